@@ -1,0 +1,120 @@
+"""The experiment config: one schema for `macb train`, config files and the API.
+
+Defaults are the thesis's appendix A settings. Invalid configs are refused before
+anything runs, naming the field and the reason (pydantic does the work; unknown
+keys are errors, so a misspelt key never silently falls back to a default).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+MULTI_AGENT_TASKS = ("spread", "speaker_listener")
+
+
+class TrainConfig(BaseModel):
+    """One training run. Field docs appear in `macb train --help` and the API schema."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    task: Literal["simple", "spread", "speaker_listener"] = Field(
+        "speaker_listener",
+        description="simple (1-agent nav), spread (N-agent nav), speaker_listener",
+    )
+    agents: int = Field(2, ge=2, le=8, description="number of agents and landmarks (spread only)")
+    algo: Literal["ddpg", "dis-maddpg", "cen-maddpg"] = Field(
+        "cen-maddpg", description="ddpg (simple), dis-maddpg or cen-maddpg (multi-agent tasks)"
+    )
+    explore: Literal["none", "dis-macb", "cen-macb", "constant"] = Field(
+        "cen-macb",
+        description="count bonus: none, dis-macb (table per agent), cen-macb (joint table), "
+        "constant (control arm: bonus beta on every reward, no counting)",
+    )
+    beta: float = Field(0.8, ge=0.0, le=100.0, description="bonus scale: r' = r + beta / sqrt(n)")
+    k: int = Field(512, ge=1, le=4096, description="SimHash code length in bits")
+    hash: Literal["simhash", "none"] = Field(
+        "simhash", description="simhash, or none (key = vector rounded to 2 decimals)"
+    )
+    key: Literal["state-action", "state"] = Field(
+        "state-action", description="count s||a (state-action) or s only (state)"
+    )
+    reward: Literal["sparse", "sparse_offset", "dense"] = Field(
+        "sparse", description="sparse (thesis), sparse_offset (sparse + 0.7), dense (mpe2's own)"
+    )
+    episodes: int = Field(1000, ge=1, description="training episodes")
+    episode_len: int = Field(20, ge=1, le=1000, description="steps per episode")
+    seed: int = Field(0, ge=0, lt=2**31, description="run seed")
+    eval_every: int = Field(1, ge=1, description="evaluate after every M training episodes")
+    eval_episodes: int = Field(10, ge=1, le=1000, description="noise-free episodes per evaluation")
+    batch_size: int = Field(100, ge=1, le=100_000)
+    buffer_size: int = Field(1_000_000, ge=1)
+    learning_starts: int = Field(100, ge=0, description="transitions collected before updates")
+    gamma: float = Field(0.99, ge=0.0, le=1.0)
+    tau: float = Field(0.005, gt=0.0, le=1.0)
+    lr_actor: float = Field(1e-3, gt=0.0, le=1.0)
+    lr_critic: float = Field(1e-3, gt=0.0, le=1.0)
+    hidden: tuple[int, ...] = Field((400, 300), min_length=1, description="MLP hidden sizes")
+    noise_sigma: float = Field(
+        0.1, ge=0.0, le=10.0, description="Gaussian action noise, relative to the half-range"
+    )
+    time_limit_terminal: bool = Field(
+        False,
+        description="treat the episode time limit as terminal (the thesis code did); "
+        "by default targets bootstrap through it",
+    )
+    threads: int = Field(1, ge=1, le=64, description="torch intra-op threads")
+
+    @model_validator(mode="after")
+    def _check_combination(self) -> TrainConfig:
+        if self.task == "simple" and self.algo != "ddpg":
+            raise ValueError(
+                f"algo {self.algo} needs several agents; task simple has one: use ddpg"
+            )
+        if self.task in MULTI_AGENT_TASKS and self.algo == "ddpg":
+            raise ValueError(f"algo ddpg trains one agent; task {self.task} has several")
+        if any(h < 1 for h in self.hidden):
+            raise ValueError("hidden sizes must be >= 1")
+        return self
+
+    @property
+    def n_agents(self) -> int:
+        return {"simple": 1, "speaker_listener": 2}.get(self.task, self.agents)
+
+
+class ConfigError(ValueError):
+    """A config refused before anything runs; the message names each field and reason."""
+
+
+def format_errors(err: ValidationError) -> str:
+    lines = []
+    for e in err.errors():
+        field = ".".join(str(p) for p in e["loc"]) or "config"
+        msg = e["msg"].removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key (misspelt?)"
+        lines.append(f"{field}: {msg}")
+    return "; ".join(lines)
+
+
+def make_config(data: dict[str, Any]) -> TrainConfig:
+    try:
+        return TrainConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_errors(err)) from None
+
+
+def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """Read a YAML or JSON config file (YAML is a superset) and apply overrides."""
+    text = Path(path).read_text()
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML/JSON: {err}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config is a mapping of keys to values")
+    data.update(overrides or {})
+    return make_config(data)

@@ -1,0 +1,119 @@
+"""Which vectors are counted, in how many tables, and the bonus each agent receives.
+
+Dis-MACB: one table per agent over o_i || a_i; agent i gets its own bonus.
+Cen-MACB: one table over the joint s || x (s = o_1..o_N, x = a_1..a_N); every agent
+gets the same bonus. "state" keys drop the actions; hash "none" keys the vector
+rounded to 2 decimals. "constant" is a control arm: the same shift beta on every
+reward with no counting at all, separating the effect of counting from the effect of
+shifting the reward (see DESIGN-NOTES section 3).
+
+Everything works on joint batches laid out as the replay buffer stores them:
+obs (B, sum obs_dims) and act (B, sum act_dims), agents in task order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared.counting import CountTable, count_bonus
+from shared.simhash import RoundKey, SimHash
+
+EXPLORE_MODES = ("none", "dis-macb", "cen-macb", "constant")
+
+
+@dataclass(frozen=True)
+class ExploreSpec:
+    mode: str = "cen-macb"
+    beta: float = 0.8
+    k: int = 512
+    hash: str = "simhash"  # "simhash" or "none" (round to 2 decimals)
+    key: str = "state-action"  # or "state"
+    seed: int = 0
+
+
+def _offsets(dims: tuple[int, ...]) -> list[int]:
+    return [0, *np.cumsum(dims).tolist()]
+
+
+class CountExploration:
+    """Turns joint transitions into per-table keys, counts them, and prices bonuses."""
+
+    def __init__(self, spec: ExploreSpec, obs_dims: tuple[int, ...], act_dims: tuple[int, ...]):
+        if spec.mode not in EXPLORE_MODES:
+            raise ValueError(f"explore mode must be one of {EXPLORE_MODES}, got {spec.mode!r}")
+        self.spec = spec
+        self.obs_dims = tuple(obs_dims)
+        self.act_dims = tuple(act_dims)
+        self.n_agents = len(obs_dims)
+        self._oo = _offsets(self.obs_dims)
+        self._ao = _offsets(self.act_dims)
+        with_act = spec.key == "state-action"
+        if spec.mode == "dis-macb":
+            self.table_dims = [o + (a if with_act else 0) for o, a in zip(obs_dims, act_dims)]
+        elif spec.mode == "cen-macb":
+            self.table_dims = [sum(obs_dims) + (sum(act_dims) if with_act else 0)]
+        else:
+            self.table_dims = []
+        self.hashers: list[SimHash | RoundKey] = [
+            SimHash(d, spec.k, seed=spec.seed + t) if spec.hash == "simhash" else RoundKey(d)
+            for t, d in enumerate(self.table_dims)
+        ]
+        self.tables = [CountTable(h.key_bytes) for h in self.hashers]
+
+    @property
+    def counting(self) -> bool:
+        return bool(self.tables)
+
+    def vectors(self, obs: np.ndarray, act: np.ndarray) -> list[np.ndarray]:
+        """The vector each table counts, one (B, D_t) array per table."""
+        with_act = self.spec.key == "state-action"
+        if self.spec.mode == "cen-macb":
+            return [np.concatenate([obs, act], axis=1) if with_act else obs]
+        if self.spec.mode == "dis-macb":
+            out = []
+            for i in range(self.n_agents):
+                o = obs[:, self._oo[i] : self._oo[i + 1]]
+                a = act[:, self._ao[i] : self._ao[i + 1]]
+                out.append(np.concatenate([o, a], axis=1) if with_act else o)
+            return out
+        return []
+
+    def keys(self, obs: np.ndarray, act: np.ndarray) -> list[np.ndarray]:
+        """Packed keys per table: (B, key_bytes) uint8 each."""
+        return [h.keys(v) for h, v in zip(self.hashers, self.vectors(obs, act))]
+
+    def observe(self, obs: np.ndarray, act: np.ndarray) -> None:
+        """Count freshly collected training transitions (and nothing else)."""
+        for table, keys in zip(self.tables, self.keys(obs, act)):
+            table.increment(keys)
+
+    def counts(self, obs: np.ndarray, act: np.ndarray) -> list[np.ndarray]:
+        return [t.counts(k) for t, k in zip(self.tables, self.keys(obs, act))]
+
+    def bonus(self, obs: np.ndarray, act: np.ndarray) -> np.ndarray:
+        """Per-agent bonus (B, N) for a sampled batch; computed now, never stored."""
+        return self.bonus_from_counts(self.counts(obs, act), len(obs))
+
+    def bonus_from_counts(self, counts: list[np.ndarray], batch: int) -> np.ndarray:
+        """Spread table counts onto agents: Dis gives each its own, Cen one for all."""
+        beta = self.spec.beta
+        if self.spec.mode == "none":
+            return np.zeros((batch, self.n_agents), np.float32)
+        if self.spec.mode == "constant":
+            return np.full((batch, self.n_agents), beta, np.float32)
+        per_table = np.stack([count_bonus(c, beta) for c in counts], axis=1)
+        if self.spec.mode == "cen-macb":
+            return np.repeat(per_table, self.n_agents, axis=1)
+        return per_table
+
+    def stats(self) -> dict[str, float]:
+        """Table size, count-1 percentage (over all tables' keys) and transitions counted."""
+        size = sum(len(t) for t in self.tables)
+        c1 = sum(t.count1 for t in self.tables)
+        return {
+            "table_size": size,
+            "count1_pct": 100.0 * c1 / size if size else 0.0,
+            "counted_transitions": self.tables[0].total if self.tables else 0,
+        }

@@ -1,0 +1,216 @@
+"""DDPG, Distributed MADDPG and Centralized MADDPG: the reference per-agent update.
+
+Each agent i has an actor mu_i(o_i) and a critic Q_i. Dis-MADDPG (and DDPG, its
+one-agent case) trains Q_i(o_i, a_i); Cen-MADDPG trains Q_i(s, x) on all
+observations and actions, and the actor gradient flows only through agent i's own
+action, the other actions coming from the batch (thesis eq. 14-15).
+
+All agents learn from one shared minibatch per update (as the original MADDPG code
+does), so one bonus query serves the whole update. Within an update, agents are
+independent: agent i's critic and actor steps touch only agent i's parameters and
+targets are read before any soft update, so the order of agents does not matter.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from shared.networks import Actor, Critic
+
+ALGOS = ("ddpg", "dis-maddpg", "cen-maddpg")
+
+
+@dataclass(frozen=True)
+class AgentDims:
+    obs_dim: int
+    act_low: tuple[float, ...]
+    act_high: tuple[float, ...]
+
+    @property
+    def act_dim(self) -> int:
+        return len(self.act_low)
+
+
+@dataclass(frozen=True)
+class LearnerSpec:
+    algo: str = "cen-maddpg"
+    hidden: tuple[int, ...] = (400, 300)
+    lr_actor: float = 1e-3
+    lr_critic: float = 1e-3
+    gamma: float = 0.99
+    tau: float = 0.005
+    seed: int = 0
+
+
+def _offsets(dims: Sequence[int]) -> list[int]:
+    return [0, *np.cumsum(dims).tolist()]
+
+
+class MADDPG:
+    """The networks, optimizers and one update step; no environment, no I/O."""
+
+    def __init__(self, agents: Sequence[AgentDims], spec: LearnerSpec) -> None:
+        if spec.algo not in ALGOS:
+            raise ValueError(f"algo must be one of {ALGOS}, got {spec.algo!r}")
+        if spec.algo == "ddpg" and len(agents) != 1:
+            raise ValueError("ddpg trains one agent; use dis-maddpg or cen-maddpg")
+        self.agents = list(agents)
+        self.spec = spec
+        self.n = len(agents)
+        self.centralized = spec.algo == "cen-maddpg"
+        self.obs_off = _offsets([a.obs_dim for a in agents])
+        self.act_off = _offsets([a.act_dim for a in agents])
+        joint_in = self.obs_off[-1] + self.act_off[-1]
+        torch.manual_seed(spec.seed)
+        self.actors = [Actor(a.obs_dim, a.act_low, a.act_high, spec.hidden) for a in agents]
+        self.critics = [
+            Critic(joint_in if self.centralized else a.obs_dim + a.act_dim, spec.hidden)
+            for a in agents
+        ]
+        self.actor_targets = [copy.deepcopy(m).requires_grad_(False) for m in self.actors]
+        self.critic_targets = [copy.deepcopy(m).requires_grad_(False) for m in self.critics]
+        self.actor_optims = [
+            torch.optim.Adam(m.parameters(), lr=spec.lr_actor) for m in self.actors
+        ]
+        self.critic_optims = [
+            torch.optim.Adam(m.parameters(), lr=spec.lr_critic) for m in self.critics
+        ]
+        self.updates = 0
+
+    # ------------------------------------------------------------------ acting
+    def obs_slice(self, joint: torch.Tensor, i: int) -> torch.Tensor:
+        return joint[..., self.obs_off[i] : self.obs_off[i + 1]]
+
+    def act_slice(self, joint: torch.Tensor, i: int) -> torch.Tensor:
+        return joint[..., self.act_off[i] : self.act_off[i + 1]]
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Deterministic joint actions for joint observations (B, joint_obs) -> (B, joint_act)."""
+        o = torch.as_tensor(obs, dtype=torch.float32)
+        return torch.cat(
+            [actor(self.obs_slice(o, i)) for i, actor in enumerate(self.actors)], dim=-1
+        ).numpy()
+
+    # ----------------------------------------------------------------- learning
+    def _critic_input(self, i: int, obs: torch.Tensor, act: torch.Tensor):
+        if self.centralized:
+            return obs, act
+        return self.obs_slice(obs, i), self.act_slice(act, i)
+
+    def tensors(self, *arrays: np.ndarray) -> list[torch.Tensor]:
+        return [torch.as_tensor(a, dtype=torch.float32) for a in arrays]
+
+    @torch.no_grad()
+    def target_q(
+        self, i: int, rew: torch.Tensor, next_obs: torch.Tensor, done: torch.Tensor
+    ) -> torch.Tensor:
+        """y = r'_i + gamma (1 - done) Qbar_i(s', mubar_1(o'_1), ..., mubar_N(o'_N))."""
+        next_act = torch.cat(
+            [mu(self.obs_slice(next_obs, j)) for j, mu in enumerate(self.actor_targets)], -1
+        )
+        qf_next_target = self.critic_targets[i](*self._critic_input(i, next_obs, next_act))
+        return rew[:, i] + self.spec.gamma * (1.0 - done) * qf_next_target
+
+    def critic_step(
+        self, i: int, obs: torch.Tensor, act: torch.Tensor, next_q_value: torch.Tensor
+    ) -> float:
+        qf_a_values = self.critics[i](*self._critic_input(i, obs, act))
+        qf_loss = F.mse_loss(qf_a_values, next_q_value)
+        self.critic_optims[i].zero_grad(set_to_none=True)
+        qf_loss.backward()
+        self.critic_optims[i].step()
+        return qf_loss.item()
+
+    def actor_step(self, i: int, obs: torch.Tensor, act: torch.Tensor) -> float:
+        """Maximise Q_i with a_i = mu_i(o_i); the other agents' actions come from the batch."""
+        a_i = self.actors[i](self.obs_slice(obs, i))
+        if self.centralized:
+            parts = [a_i if j == i else self.act_slice(act, j) for j in range(self.n)]
+            q_in = (obs, torch.cat(parts, -1))
+        else:
+            q_in = (self.obs_slice(obs, i), a_i)
+        critic = self.critics[i].requires_grad_(False)  # no gradient for critic weights
+        try:
+            actor_loss = -critic(*q_in).mean()
+            self.actor_optims[i].zero_grad(set_to_none=True)
+            actor_loss.backward()
+            self.actor_optims[i].step()
+        finally:
+            critic.requires_grad_(True)
+        return actor_loss.item()
+
+    def update(
+        self,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: np.ndarray,
+        next_obs: np.ndarray,
+        done: np.ndarray,
+    ) -> dict[str, float]:
+        """One critic and one actor step per agent, then soft target updates.
+
+        rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
+        """
+        obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
+        critic_losses, actor_losses = [], []
+        for i in range(self.n):
+            y = self.target_q(i, rew_t, next_t, done_t)
+            critic_losses.append(self.critic_step(i, obs_t, act_t, y))
+            actor_losses.append(self.actor_step(i, obs_t, act_t))
+        self.soft_update()
+        self.updates += 1
+        return {
+            "critic_loss": float(np.mean(critic_losses)),
+            "actor_loss": float(np.mean(actor_losses)),
+        }
+
+    @torch.no_grad()
+    def soft_update(self) -> None:
+        """theta' <- tau theta + (1 - tau) theta' for every target network."""
+        tau = self.spec.tau
+        for nets, targets in (
+            (self.actors, self.actor_targets),
+            (self.critics, self.critic_targets),
+        ):
+            for net, target in zip(nets, targets):
+                tp = list(target.parameters())
+                torch._foreach_lerp_(tp, list(net.parameters()), tau)
+
+    # ----------------------------------------------------------------- state
+    def state_dict(self) -> dict:
+        """Tensors and primitives only, so it loads with torch.load(weights_only=True)."""
+        return {
+            "algo": self.spec.algo,
+            "updates": self.updates,
+            "actors": [m.state_dict() for m in self.actors],
+            "critics": [m.state_dict() for m in self.critics],
+            "actor_targets": [m.state_dict() for m in self.actor_targets],
+            "critic_targets": [m.state_dict() for m in self.critic_targets],
+            "actor_optims": [o.state_dict() for o in self.actor_optims],
+            "critic_optims": [o.state_dict() for o in self.critic_optims],
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["algo"] != self.spec.algo:
+            raise ValueError(f"checkpoint is for {state['algo']}, learner is {self.spec.algo}")
+        self.updates = int(state["updates"])
+        for key in ("actors", "critics", "actor_targets", "critic_targets"):
+            for m, sd in zip(getattr(self, key), state[key]):
+                m.load_state_dict(sd)
+        for key in ("actor_optims", "critic_optims"):
+            for o, sd in zip(getattr(self, key), state[key]):
+                o.load_state_dict(sd)
+
+    def actor_weights(self) -> list[dict[str, torch.Tensor]]:
+        return [m.state_dict() for m in self.actors]
+
+    def load_actor_weights(self, weights: list[dict[str, torch.Tensor]]) -> None:
+        for m, sd in zip(self.actors, weights):
+            m.load_state_dict(sd)

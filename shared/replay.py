@@ -1,0 +1,68 @@
+"""A ring replay buffer of joint transitions (s, x, r, s', done) in preallocated arrays.
+
+It stores the extrinsic reward only: the count bonus depends on the counts at the
+time a transition is sampled, so it is added to each sampled batch, never stored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Batch:
+    obs: np.ndarray  # (B, joint_obs_dim) float32
+    act: np.ndarray  # (B, joint_act_dim) float32
+    rew: np.ndarray  # (B,) float32, extrinsic
+    next_obs: np.ndarray  # (B, joint_obs_dim) float32
+    done: np.ndarray  # (B,) float32, 1 where the target must not bootstrap
+    idx: np.ndarray  # (B,) buffer rows
+
+
+class ReplayBuffer:
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int) -> None:
+        if capacity < 1:
+            raise ValueError("capacity must be >= 1")
+        self.capacity = capacity
+        self.obs = np.zeros((capacity, obs_dim), np.float32)
+        self.act = np.zeros((capacity, act_dim), np.float32)
+        self.rew = np.zeros(capacity, np.float32)
+        self.next_obs = np.zeros((capacity, obs_dim), np.float32)
+        self.done = np.zeros(capacity, np.float32)
+        self.pos = 0  # next row to write
+        self.added = 0  # transitions ever added
+
+    def __len__(self) -> int:
+        return min(self.added, self.capacity)
+
+    def add(
+        self,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: np.ndarray | float,
+        next_obs: np.ndarray,
+        done: np.ndarray | float,
+    ) -> None:
+        """Add one transition or a batch of them (leading axis = transitions)."""
+        obs = np.atleast_2d(obs)
+        n = len(obs)
+        rows = (self.pos + np.arange(n)) % self.capacity
+        self.obs[rows] = obs
+        self.act[rows] = np.atleast_2d(act)
+        self.rew[rows] = rew
+        self.next_obs[rows] = np.atleast_2d(next_obs)
+        self.done[rows] = done
+        self.pos = int((self.pos + n) % self.capacity)
+        self.added += n
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
+        """Uniform sample with replacement, as SB3 and the thesis code do."""
+        size = len(self)
+        if size == 0:
+            raise ValueError("cannot sample from an empty buffer")
+        idx = rng.integers(0, size, size=batch_size)
+        return Batch(
+            self.obs[idx], self.act[idx], self.rew[idx], self.next_obs[idx], self.done[idx], idx
+        )

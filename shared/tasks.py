@@ -1,0 +1,382 @@
+"""Task adapters: the thesis's three particle tasks on top of mpe2's PettingZoo parallel API.
+
+mpe2 gives the worlds, physics and observations; this module adds what the thesis changed:
+
+* a 2-D movement action in [-1, 1] (mpe2 wants a 5-vector in [0, 1]), so policies and the
+  SimHash vectors o_i || a_i have the thesis's sizes;
+* sparse rewards ("sparse", "sparse_offset") computed from the world state, with mpe2's own
+  dense reward kept as an option;
+* success and collision measures, which the metrics need at every step;
+* agent and landmark size 0.125 in the navigation task (the thesis's original code).
+
+See docs/tasks.md for the layouts and the hashed vector sizes.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from mpe2 import simple_speaker_listener_v4, simple_spread_v3, simple_v3
+from mpe2._mpe_utils.core import Agent, Entity, World
+
+TASKS = ("simple", "spread", "speaker_listener")
+REWARDS = ("sparse", "sparse_offset", "dense")
+
+#: Added to the sparse reward by "sparse_offset" (the thesis's shifted navigation reward).
+SPARSE_OFFSET = 0.7
+#: Agent and landmark radius in the navigation task, as in the thesis's original code.
+SPREAD_ENTITY_SIZE = 0.125
+#: Width of the thesis's movement action (x, y); mpe2 expands it to 2 * 2 + 1 values.
+MOVE_DIM = 2
+
+_FIXED_AGENTS = {"simple": 1, "speaker_listener": 2}
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """One agent's interface in the thesis layout, so learners never see mpe2's 5-vectors."""
+
+    name: str
+    obs_dim: int
+    act_low: tuple[float, ...]
+    act_high: tuple[float, ...]
+    obs_layout: str
+    act_layout: str
+
+    @property
+    def act_dim(self) -> int:
+        """Action width in the thesis layout (2 for movement, 3 for the speaker's message)."""
+        return len(self.act_low)
+
+    @property
+    def move_dim(self) -> int:
+        """Leading movement dims (those with a negative lower bound); the rest is a message."""
+        return sum(1 for low in self.act_low if low < 0.0)
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """Shapes of one task, enough to size networks, buffers and SimHash projections."""
+
+    name: str
+    agents: tuple[AgentSpec, ...]
+    episode_len: int
+
+    @property
+    def n_agents(self) -> int:
+        return len(self.agents)
+
+    @property
+    def obs_dims(self) -> tuple[int, ...]:
+        return tuple(a.obs_dim for a in self.agents)
+
+    @property
+    def act_dims(self) -> tuple[int, ...]:
+        return tuple(a.act_dim for a in self.agents)
+
+    @property
+    def joint_obs_dim(self) -> int:
+        """Size of s = o_1 || ... || o_N (the centralized critic and Cen-MACB input)."""
+        return sum(self.obs_dims)
+
+    @property
+    def joint_act_dim(self) -> int:
+        """Size of x = a_1 || ... || a_N."""
+        return sum(self.act_dims)
+
+
+@dataclass
+class StepResult:
+    """What one joint step gives the actor: observations, the team reward and the metrics."""
+
+    obs: list[np.ndarray]
+    reward: float
+    success: bool
+    collisions: int
+    truncated: bool
+
+
+def _check_task(task: str, agents: int, episode_len: int) -> int:
+    """Validate arguments; return the real agent count (fixed for simple and speaker_listener)."""
+    if task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; expected one of {TASKS}")
+    if episode_len < 1:
+        raise ValueError(f"episode_len must be >= 1, got {episode_len}")
+    if task in _FIXED_AGENTS:
+        return _FIXED_AGENTS[task]  # `agents` only sizes the navigation task
+    if agents < 1:
+        raise ValueError(f"spread needs at least one agent, got {agents}")
+    return agents
+
+
+def _make_parallel(task: str, n_agents: int, episode_len: int) -> Any:
+    """Build the mpe2 parallel env with continuous actions."""
+    if task == "simple":
+        return simple_v3.parallel_env(max_cycles=episode_len, continuous_actions=True)
+    if task == "spread":
+        return simple_spread_v3.parallel_env(
+            N=n_agents, max_cycles=episode_len, continuous_actions=True
+        )
+    return simple_speaker_listener_v4.parallel_env(max_cycles=episode_len, continuous_actions=True)
+
+
+def _resize_for_task(task: str, world: World) -> None:
+    """Apply the thesis's entity sizes (navigation only; the others keep mpe2's)."""
+    if task == "spread":
+        for entity in world.entities:
+            entity.size = SPREAD_ENTITY_SIZE
+
+
+def _obs_layout(task: str, agent: Agent, world: World) -> list[tuple[str, int]]:
+    """Named blocks of an agent's mpe2 observation, in order."""
+    n_agents, n_landmarks, dim_p = len(world.agents), len(world.landmarks), world.dim_p
+    if task == "simple":
+        return [("self_vel", dim_p), ("landmark_rel", dim_p * n_landmarks)]
+    if task == "spread":
+        return [
+            ("self_vel", dim_p),
+            ("self_pos", dim_p),
+            ("landmark_rel", dim_p * n_landmarks),
+            ("other_rel", dim_p * (n_agents - 1)),
+            ("other_comm_zero", world.dim_c * (n_agents - 1)),
+        ]
+    if not agent.movable:  # the speaker sees only the target's colour
+        return [("goal_colour", world.dim_color)]
+    return [
+        ("self_vel", dim_p),
+        ("landmark_rel", dim_p * n_landmarks),
+        ("speaker_message", world.dim_c),
+    ]
+
+
+def _specs_from_env(task: str, env: Any) -> tuple[AgentSpec, ...]:
+    """Read each agent's sizes from a built env and cross-check them against the layouts."""
+    world: World = env.unwrapped.world
+    specs = []
+    for name, agent in zip(env.possible_agents, world.agents, strict=True):
+        blocks = _obs_layout(task, agent, world)
+        obs_dim = int(env.observation_space(name).shape[0])
+        if sum(size for _, size in blocks) != obs_dim:
+            raise RuntimeError(f"mpe2 observation of {name} ({obs_dim}) differs from {blocks}")
+        low: list[float] = []
+        high: list[float] = []
+        act_parts = []
+        if agent.movable:
+            low += [-1.0] * MOVE_DIM
+            high += [1.0] * MOVE_DIM
+            act_parts.append(f"move_xy({MOVE_DIM}) in [-1,1]")
+        if not agent.silent:
+            low += [0.0] * world.dim_c
+            high += [1.0] * world.dim_c
+            act_parts.append(f"message({world.dim_c}) in [0,1]")
+        specs.append(
+            AgentSpec(
+                name=name,
+                obs_dim=obs_dim,
+                act_low=tuple(low),
+                act_high=tuple(high),
+                obs_layout=" ".join(f"{n}({s})" for n, s in blocks),
+                act_layout=" ".join(act_parts),
+            )
+        )
+    return tuple(specs)
+
+
+@functools.cache
+def _agent_specs(task: str, n_agents: int) -> tuple[AgentSpec, ...]:
+    """Build a throwaway env once per (task, agents): sizes then come from mpe2 itself."""
+    env = _make_parallel(task, n_agents, episode_len=1)
+    try:
+        return _specs_from_env(task, env)
+    finally:
+        env.close()
+
+
+def task_spec(task: str, agents: int = 2, episode_len: int = 20) -> TaskSpec:
+    """Shapes of a task without keeping an env (for sizing networks in learners)."""
+    n_agents = _check_task(task, agents, episode_len)
+    return TaskSpec(name=task, agents=_agent_specs(task, n_agents), episode_len=episode_len)
+
+
+def to_mpe_action(agent: AgentSpec, action: np.ndarray) -> np.ndarray:
+    """Map a thesis-layout action onto mpe2's layout after clipping it to the agent's bounds.
+
+    Movement (x, y) becomes [0, max(-x,0), max(x,0), max(-y,0), max(y,0)], so mpe2's force
+    (pair differences times the sensitivity) is exactly (x, y) times the sensitivity. A
+    message passes through. float32 matches mpe2's Box, which otherwise warns and clips.
+    """
+    a = np.asarray(action, dtype=np.float32).reshape(-1)
+    if a.shape[0] != agent.act_dim:
+        raise ValueError(f"{agent.name}: action has {a.shape[0]} values, expected {agent.act_dim}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{agent.name}: non-finite action {a}")
+    a = np.clip(a, np.asarray(agent.act_low, np.float32), np.asarray(agent.act_high, np.float32))
+    parts = []
+    n_move = agent.move_dim
+    if n_move:
+        move = a[:n_move]
+        pairs = np.stack([np.maximum(-move, 0.0), np.maximum(move, 0.0)], axis=1).reshape(-1)
+        parts.append(np.zeros(1, dtype=np.float32))
+        parts.append(pairs)
+    parts.append(a[n_move:])
+    return np.concatenate(parts).astype(np.float32)
+
+
+def _dist(a: Entity, b: Entity) -> float:
+    return float(np.sqrt(np.sum(np.square(a.state.p_pos - b.state.p_pos))))
+
+
+def covers(agent: Entity, landmark: Entity) -> bool:
+    """An agent covers a landmark when their centres are closer than the sum of their radii."""
+    return _dist(agent, landmark) < agent.size + landmark.size
+
+
+def count_collisions(world: World) -> int:
+    """Colliding agent pairs: both agents collide and are closer than the sum of their radii."""
+    agents = [a for a in world.agents if a.collide]
+    return sum(
+        1 for i, a in enumerate(agents) for b in agents[i + 1 :] if _dist(a, b) < a.size + b.size
+    )
+
+
+def _sparse_simple(world: World) -> tuple[float, bool]:
+    ok = covers(world.agents[0], world.landmarks[0])
+    return (0.0 if ok else -1.0), ok
+
+
+def _sparse_spread(world: World) -> tuple[float, bool]:
+    uncovered = sum(1 for lm in world.landmarks if not any(covers(a, lm) for a in world.agents))
+    collisions = count_collisions(world)
+    return -(uncovered + collisions) / len(world.agents), uncovered == 0
+
+
+def _sparse_speaker_listener(world: World) -> tuple[float, bool]:
+    speaker, listener = world.agents[0], world.agents[1]
+    ok = covers(listener, speaker.goal_b)
+    return (0.0 if ok else -1.0), ok
+
+
+_SPARSE: dict[str, Callable[[World], tuple[float, bool]]] = {
+    "simple": _sparse_simple,
+    "spread": _sparse_spread,
+    "speaker_listener": _sparse_speaker_listener,
+}
+
+
+class TaskEnv:
+    """Wraps one mpe2 parallel env and speaks the thesis's action layout and rewards."""
+
+    spec: TaskSpec
+
+    def __init__(
+        self,
+        task: str,
+        agents: int = 2,
+        reward: str = "sparse",
+        episode_len: int = 20,
+        seed: int | None = None,
+    ) -> None:
+        n_agents = _check_task(task, agents, episode_len)
+        if reward not in REWARDS:
+            raise ValueError(f"unknown reward {reward!r}; expected one of {REWARDS}")
+        self.task = task
+        self.reward_kind = reward
+        self._env = _make_parallel(task, n_agents, episode_len)
+        self._raw = self._env.unwrapped
+        _resize_for_task(task, self._raw.world)
+        self.spec = TaskSpec(task, _agent_specs(task, n_agents), episode_len)
+        if tuple(a.name for a in self.spec.agents) != tuple(self._env.possible_agents):
+            raise RuntimeError("agent order differs between spec and env")
+        # The constructor's seed is used by the first reset() that brings none, so that
+        # make_task(seed=s).reset() equals make_task().reset(seed=s).
+        self._pending_seed = seed
+        self._t: int | None = None  # steps taken this episode; None until reset
+
+    @property
+    def world(self) -> World:
+        """The live mpe2 World (tests and debugging place entities through it)."""
+        return self._raw.world
+
+    def reset(self, seed: int | None = None) -> list[np.ndarray]:
+        """Start an episode; a seed reseeds mpe2's RNG, no seed continues it."""
+        if seed is None:
+            seed, self._pending_seed = self._pending_seed, None
+        else:
+            self._pending_seed = None
+        obs, _ = self._env.reset(seed=seed)
+        _resize_for_task(self.task, self._raw.world)
+        self._t = 0
+        return [np.asarray(obs[a.name], dtype=np.float32) for a in self.spec.agents]
+
+    def step(self, actions: Sequence[np.ndarray]) -> StepResult:
+        """Apply one thesis-layout action per agent (spec order) and score the new state."""
+        if self._t is None:
+            raise RuntimeError("call reset() before step()")
+        if self._t >= self.spec.episode_len:
+            raise RuntimeError("episode is over (time limit); call reset()")
+        if len(actions) != self.spec.n_agents:
+            raise ValueError(f"expected {self.spec.n_agents} actions, got {len(actions)}")
+        mpe_actions = {
+            a.name: to_mpe_action(a, act) for a, act in zip(self.spec.agents, actions, strict=True)
+        }
+        obs, rewards, terminations, truncations, _ = self._env.step(mpe_actions)
+        self._t += 1
+        reward, success, collisions = self.evaluate()
+        if self.reward_kind == "dense":  # mpe2's own numbers, straight from the env
+            reward = float(np.mean([rewards[a.name] for a in self.spec.agents]))
+        truncated = self._t >= self.spec.episode_len
+        mpe_ended = any(truncations.values())
+        if any(terminations.values()) or mpe_ended != truncated:
+            raise RuntimeError("mpe2 ended the episode at an unexpected step")
+        return StepResult(
+            obs=[np.asarray(obs[a.name], dtype=np.float32) for a in self.spec.agents],
+            reward=reward,
+            success=success,
+            collisions=collisions,
+            truncated=truncated,
+        )
+
+    def evaluate(self) -> tuple[float, bool, int]:
+        """(reward, success, collisions) of the current world state, for the chosen reward."""
+        world = self._raw.world
+        sparse, success = _SPARSE[self.task](world)
+        collisions = count_collisions(world)
+        if self.reward_kind == "sparse":
+            reward = sparse
+        elif self.reward_kind == "sparse_offset":
+            reward = sparse + SPARSE_OFFSET
+        else:
+            reward = self._dense_reward()
+        return float(reward), success, collisions
+
+    def _dense_reward(self) -> float:
+        """mpe2's per-agent reward of the current state (same formula as its step), averaged."""
+        raw, world = self._raw, self._raw.world
+        local_ratio = raw.local_ratio
+        global_reward = float(raw.scenario.global_reward(world)) if local_ratio is not None else 0.0
+        per_agent = []
+        for agent in world.agents:
+            r = float(raw.scenario.reward(agent, world))
+            if local_ratio is not None:
+                r = global_reward * (1 - local_ratio) + r * local_ratio
+            per_agent.append(r)
+        return float(np.mean(per_agent))
+
+    def close(self) -> None:
+        """Release the env (mpe2 holds a pygame surface)."""
+        self._env.close()
+
+
+def make_task(
+    task: str,
+    agents: int = 2,
+    reward: str = "sparse",
+    episode_len: int = 20,
+    seed: int | None = None,
+) -> TaskEnv:
+    """Build a TaskEnv; `agents` sizes spread only (simple has 1 agent, speaker_listener 2)."""
+    return TaskEnv(task, agents=agents, reward=reward, episode_len=episode_len, seed=seed)

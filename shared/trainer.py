@@ -1,0 +1,209 @@
+"""The one-process trainer: the thesis's loop with the same cores the services use.
+
+Per environment step: act with noise, store the transition, count it (collection is
+the only place counts change), and, after `learning_starts` transitions, sample one
+batch, price its bonus from the current counts and do one update. After every
+`eval_every` training episodes, run `eval_episodes` noise-free episodes and write
+one metrics row.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from shared.config import TrainConfig
+from shared.exploration import CountExploration, ExploreSpec
+from shared.maddpg import MADDPG, AgentDims, LearnerSpec
+from shared.replay import ReplayBuffer
+from shared.rollout import Collector, derive_seed, evaluate
+from shared.tasks import TaskSpec, make_task
+
+log = logging.getLogger("macb.trainer")
+
+METRIC_FIELDS = (
+    "episode",
+    "env_steps",
+    "success_rate",
+    "eval_return",
+    "collisions_cum",
+    "count1_pct",
+    "table_size",
+    "counted_transitions",
+    "steps_per_sec",
+    "train_steps_per_sec",
+    "updates",
+    "wall_s",
+)
+
+
+def build_learner(cfg: TrainConfig, spec: TaskSpec) -> MADDPG:
+    agents = [AgentDims(a.obs_dim, a.act_low, a.act_high) for a in spec.agents]
+    lspec = LearnerSpec(
+        algo=cfg.algo,
+        hidden=tuple(cfg.hidden),
+        lr_actor=cfg.lr_actor,
+        lr_critic=cfg.lr_critic,
+        gamma=cfg.gamma,
+        tau=cfg.tau,
+        seed=derive_seed(cfg.seed, "learner"),
+    )
+    return MADDPG(agents, lspec)
+
+
+def build_exploration(cfg: TrainConfig, spec: TaskSpec) -> CountExploration:
+    espec = ExploreSpec(
+        mode=cfg.explore,
+        beta=cfg.beta,
+        k=cfg.k,
+        hash=cfg.hash,
+        key=cfg.key,
+        seed=derive_seed(cfg.seed, "simhash"),
+    )
+    return CountExploration(espec, spec.obs_dims, spec.act_dims)
+
+
+class MetricsWriter:
+    """Appends rows to metrics.csv and metrics.jsonl as they are produced."""
+
+    def __init__(self, out: Path) -> None:
+        self.csv_file = (out / "metrics.csv").open("w", newline="")
+        self.csv = csv.DictWriter(self.csv_file, fieldnames=METRIC_FIELDS)
+        self.csv.writeheader()
+        self.jsonl = (out / "metrics.jsonl").open("w")
+
+    def write(self, row: dict) -> None:
+        self.csv.writerow(row)
+        self.jsonl.write(json.dumps(row) + "\n")
+        self.csv_file.flush()
+        self.jsonl.flush()
+
+    def close(self) -> None:
+        self.csv_file.close()
+        self.jsonl.close()
+
+
+def save_checkpoint(
+    path: Path, learner: MADDPG, explorer: CountExploration, counters: dict, cfg: TrainConfig
+) -> None:
+    """Networks, optimizers, step counters and count tables together, without pickle."""
+    tables = {}
+    for t, table in enumerate(explorer.tables):
+        keys, counts = table.to_arrays()
+        tables[f"table{t}"] = {
+            "keys": torch.from_numpy(keys),
+            "counts": torch.from_numpy(counts),
+            "total": table.total,
+        }
+    state = {
+        "config": json.dumps(cfg.model_dump(mode="json")),
+        "learner": learner.state_dict(),
+        "counters": counters,
+        "tables": tables,
+    }
+    tmp = path.with_suffix(".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: Path) -> dict:
+    return torch.load(path, weights_only=True)
+
+
+def train(
+    cfg: TrainConfig,
+    out: Path | None,
+    progress: bool = True,
+    on_metrics: Callable[[dict], None] | None = None,
+) -> list[dict]:
+    """Run one experiment; returns the metric rows (also written under `out`)."""
+    torch.set_num_threads(cfg.threads)
+    env = make_task(cfg.task, cfg.agents, cfg.reward, cfg.episode_len)
+    spec = env.spec
+    eval_envs = [
+        make_task(cfg.task, cfg.agents, cfg.reward, cfg.episode_len)
+        for _ in range(min(cfg.eval_episodes, 10))
+    ]
+    for j, e in enumerate(eval_envs):
+        e.reset(seed=derive_seed(cfg.seed, "eval", j))
+    learner = build_learner(cfg, spec)
+    explorer = build_exploration(cfg, spec)
+    buffer = ReplayBuffer(
+        min(cfg.buffer_size, cfg.episodes * cfg.episode_len), spec.joint_obs_dim, spec.joint_act_dim
+    )
+    collector = Collector(
+        env, cfg.noise_sigma, derive_seed(cfg.seed, "actor", 0), cfg.time_limit_terminal
+    )
+    sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
+    writer = None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2) + "\n")
+        writer = MetricsWriter(out)
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.episodes, unit="ep", desc=f"{cfg.task} {cfg.algo}+{cfg.explore}")
+    rows: list[dict] = []
+    env_steps = collisions_cum = 0
+    eval_s = 0.0
+    start = time.perf_counter()
+    try:
+        for episode in range(1, cfg.episodes + 1):
+            for _ in range(cfg.episode_len):
+                tr = collector.step(learner.act)
+                buffer.add(tr.obs, tr.act, tr.rew, tr.next_obs, tr.done)
+                explorer.observe(tr.obs[None], tr.act[None])
+                env_steps += 1
+                collisions_cum += tr.collisions
+                if env_steps > cfg.learning_starts:
+                    b = buffer.sample(cfg.batch_size, sample_rng)
+                    rew = b.rew[:, None] + explorer.bonus(b.obs, b.act)
+                    learner.update(b.obs, b.act, rew, b.next_obs, b.done)
+            if episode % cfg.eval_every == 0 or episode == cfg.episodes:
+                t0 = time.perf_counter()
+                ev = evaluate(learner.act, eval_envs, cfg.eval_episodes)
+                eval_s += time.perf_counter() - t0
+                wall = time.perf_counter() - start
+                row = {
+                    "episode": episode,
+                    "env_steps": env_steps,
+                    "success_rate": ev.success_rate,
+                    "eval_return": ev.eval_return,
+                    "collisions_cum": collisions_cum,
+                    **explorer.stats(),
+                    "steps_per_sec": env_steps / wall,
+                    "train_steps_per_sec": env_steps / max(wall - eval_s, 1e-9),
+                    "updates": learner.updates,
+                    "wall_s": wall,
+                }
+                rows.append(row)
+                if writer:
+                    writer.write(row)
+                if on_metrics:
+                    on_metrics(row)
+                if bar:
+                    bar.set_postfix(
+                        success=f"{ev.success_rate:.2f}", sps=f"{row['steps_per_sec']:.0f}"
+                    )
+            if bar:
+                bar.update(1)
+    finally:
+        if bar:
+            bar.close()
+        if writer:
+            writer.close()
+    if out is not None:
+        counters = {"env_steps": env_steps, "episodes": cfg.episodes, "updates": learner.updates}
+        save_checkpoint(out / "checkpoint.pt", learner, explorer, counters, cfg)
+        log.info("wrote %s", out)
+    return rows

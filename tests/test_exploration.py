@@ -1,0 +1,117 @@
+"""Dis-MACB and Cen-MACB receive the right vectors; counts change only on collection."""
+
+import numpy as np
+import pytest
+
+from shared.exploration import CountExploration, ExploreSpec
+
+# speaker_listener layout: speaker obs 3 / act 3, listener obs 11 / act 2
+OBS, ACT = (3, 11), (3, 2)
+
+
+def batch(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.standard_normal((n, sum(OBS))), rng.uniform(-1, 1, (n, sum(ACT)))
+
+
+def test_dis_tables_receive_each_agents_obs_and_action():
+    ex = CountExploration(ExploreSpec(mode="dis-macb", k=64), OBS, ACT)
+    obs, act = batch(5)
+    v = ex.vectors(obs, act)
+    assert len(v) == 2 and [x.shape[1] for x in v] == [6, 13]
+    assert np.array_equal(v[0], np.concatenate([obs[:, :3], act[:, :3]], 1))
+    assert np.array_equal(v[1], np.concatenate([obs[:, 3:], act[:, 3:]], 1))
+
+
+def test_cen_table_receives_the_joint_vector():
+    ex = CountExploration(ExploreSpec(mode="cen-macb", k=64), OBS, ACT)
+    obs, act = batch(5)
+    (v,) = ex.vectors(obs, act)
+    assert v.shape == (5, 19)
+    assert np.array_equal(v, np.concatenate([obs, act], 1))
+
+
+def test_state_only_variant_drops_actions():
+    cen = CountExploration(ExploreSpec(mode="cen-macb", key="state"), OBS, ACT)
+    dis = CountExploration(ExploreSpec(mode="dis-macb", key="state"), OBS, ACT)
+    obs, act = batch(4)
+    assert np.array_equal(cen.vectors(obs, act)[0], obs)
+    assert [x.shape[1] for x in dis.vectors(obs, act)] == [3, 11]
+
+
+@pytest.mark.parametrize("mode", ["dis-macb", "cen-macb"])
+@pytest.mark.parametrize("hash_", ["simhash", "none"])
+def test_counts_after_t_transitions_sum_to_t_per_table(mode, hash_):
+    ex = CountExploration(ExploreSpec(mode=mode, k=32, hash=hash_), OBS, ACT)
+    T = 0
+    for step in range(37):
+        obs, act = batch(3, seed=step)
+        ex.observe(obs, act)
+        T += 3
+    for table in ex.tables:
+        _, counts = table.to_arrays()
+        assert counts.sum() == T == table.total
+
+
+def test_sampling_a_batch_a_thousand_times_changes_no_count():
+    ex = CountExploration(ExploreSpec(mode="cen-macb", k=16), OBS, ACT)
+    obs, act = batch(200)
+    ex.observe(obs, act)
+    before = [t.to_arrays()[1].copy() for t in ex.tables]
+    for i in range(1000):
+        idx = np.random.default_rng(i).integers(0, 200, 100)
+        ex.bonus(obs[idx], act[idx])
+    after = [t.to_arrays()[1] for t in ex.tables]
+    assert all(np.array_equal(a, b) for a, b in zip(before, after))
+    assert ex.stats()["counted_transitions"] == 200
+
+
+def test_bonus_is_beta_over_sqrt_count_per_agent():
+    ex = CountExploration(ExploreSpec(mode="dis-macb", beta=0.5, k=8), OBS, ACT)
+    obs, act = batch(1)
+    for _ in range(4):
+        ex.observe(obs, act)  # agent tables both see this pair 4 times
+    obs2, act2 = batch(1, seed=99)
+    ex.observe(obs2, act2)
+    b = ex.bonus(np.concatenate([obs, obs2]), np.concatenate([act, act2]))
+    counts = ex.counts(np.concatenate([obs, obs2]), np.concatenate([act, act2]))
+    assert b.shape == (2, 2)
+    for i in range(2):
+        assert np.allclose(b[:, i], 0.5 / np.sqrt(counts[i]))
+    assert np.allclose(b[0], 0.5 / 2)  # n = 4 for both agents
+
+
+def test_cen_bonus_is_shared_by_all_agents():
+    ex = CountExploration(ExploreSpec(mode="cen-macb", beta=0.8, k=512), OBS, ACT)
+    obs, act = batch(10)
+    ex.observe(obs, act)
+    b = ex.bonus(obs, act)
+    assert b.shape == (10, 2)
+    assert np.array_equal(b[:, 0], b[:, 1])
+    assert np.allclose(b, 0.8)  # every key new at k=512
+
+
+def test_none_and_constant_arms_do_not_count():
+    obs, act = batch(7)
+    none = CountExploration(ExploreSpec(mode="none", beta=0.8), OBS, ACT)
+    const = CountExploration(ExploreSpec(mode="constant", beta=0.8), OBS, ACT)
+    for ex in (none, const):
+        ex.observe(obs, act)
+        assert ex.tables == [] and ex.stats()["table_size"] == 0
+    assert np.all(none.bonus(obs, act) == 0)
+    assert np.allclose(const.bonus(obs, act), 0.8)
+
+
+def test_bonus_for_an_uncounted_transition_is_refused():
+    ex = CountExploration(ExploreSpec(mode="cen-macb", k=64), OBS, ACT)
+    obs, act = batch(2)
+    with pytest.raises(ValueError):
+        ex.bonus(obs, act)
+
+
+def test_count1_pct_matches_hand_count():
+    ex = CountExploration(ExploreSpec(mode="cen-macb", hash="none"), OBS, ACT)
+    obs, act = batch(3)
+    ex.observe(obs[[0, 0, 1, 2, 2, 2]], act[[0, 0, 1, 2, 2, 2]])
+    s = ex.stats()
+    assert s["table_size"] == 3 and s["count1_pct"] == pytest.approx(100 / 3)

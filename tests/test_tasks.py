@@ -1,0 +1,427 @@
+"""Task adapters against the real mpe2 envs: shapes, action mapping, rewards, episodes, seeds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mpe2 import simple_speaker_listener_v4, simple_spread_v3, simple_v3
+
+from shared.tasks import (
+    REWARDS,
+    TASKS,
+    TaskEnv,
+    make_task,
+    task_spec,
+    to_mpe_action,
+)
+
+SENSITIVITY = 5.0  # mpe2's force multiplier when agent.accel is None
+FAR = 10.0
+
+
+def place(entity, x: float, y: float) -> None:
+    entity.state.p_pos = np.array([x, y], dtype=np.float64)
+    entity.state.p_vel = np.zeros(2)
+
+
+def zero_actions(env: TaskEnv) -> list[np.ndarray]:
+    return [np.zeros(a.act_dim, dtype=np.float32) for a in env.spec.agents]
+
+
+# --- specs ------------------------------------------------------------------------------------
+
+
+def test_spec_simple() -> None:
+    spec = task_spec("simple")
+    assert [a.name for a in spec.agents] == ["agent_0"]
+    assert spec.obs_dims == (4,) and spec.act_dims == (2,)
+    assert spec.agents[0].act_low == (-1.0, -1.0) and spec.agents[0].act_high == (1.0, 1.0)
+    assert spec.n_agents == 1 and spec.joint_obs_dim == 4 and spec.joint_act_dim == 2
+    assert spec.episode_len == 20
+
+
+def test_spec_spread_two_and_three_agents() -> None:
+    spec = task_spec("spread", agents=2)
+    assert [a.name for a in spec.agents] == ["agent_0", "agent_1"]
+    assert spec.obs_dims == (12, 12) and spec.act_dims == (2, 2)
+    assert spec.joint_obs_dim == 24 and spec.joint_act_dim == 4
+    spec3 = task_spec("spread", agents=3)
+    assert spec3.obs_dims == (18, 18, 18)  # 4 + 2N + 2(N-1) + 2(N-1)
+    assert spec3.joint_obs_dim == 54 and spec3.joint_act_dim == 6
+    env = make_task("spread", agents=3, seed=0)
+    obs = env.reset()
+    assert [o.shape for o in obs] == [(18,)] * 3
+    res = env.step(zero_actions(env))
+    assert len(res.obs) == 3
+    env.close()
+
+
+def test_spec_speaker_listener() -> None:
+    spec = task_spec("speaker_listener", episode_len=25)
+    speaker, listener = spec.agents
+    assert (speaker.name, listener.name) == ("speaker_0", "listener_0")
+    assert spec.obs_dims == (3, 11) and spec.act_dims == (3, 2)
+    assert speaker.act_low == (0.0, 0.0, 0.0) and speaker.act_high == (1.0, 1.0, 1.0)
+    assert listener.act_low == (-1.0, -1.0)
+    assert spec.joint_obs_dim == 14 and spec.joint_act_dim == 5
+    assert spec.episode_len == 25
+
+
+def test_spec_layout_text_matches_dims() -> None:
+    for task in TASKS:
+        for a in task_spec(task).agents:
+            sizes = [int(part.split("(")[1].split(")")[0]) for part in a.obs_layout.split()]
+            assert sum(sizes) == a.obs_dim, a.obs_layout
+    assert task_spec("speaker_listener").agents[0].act_layout == "message(3) in [0,1]"
+    assert task_spec("simple").agents[0].act_layout == "move_xy(2) in [-1,1]"
+
+
+def test_env_spec_matches_task_spec_and_obs_are_float32() -> None:
+    for task in TASKS:
+        env = make_task(task, seed=1)
+        assert env.spec == task_spec(task)
+        obs = env.reset()
+        assert [o.shape[0] for o in obs] == list(env.spec.obs_dims)
+        assert all(o.dtype == np.float32 for o in obs)
+        env.close()
+
+
+def test_bad_arguments_raise() -> None:
+    with pytest.raises(ValueError):
+        task_spec("tag")
+    with pytest.raises(ValueError):
+        make_task("spread", reward="shaped")
+    with pytest.raises(ValueError):
+        make_task("spread", agents=0)
+    env = make_task("spread", seed=0)
+    with pytest.raises(RuntimeError):
+        env.step(zero_actions(env))  # before reset
+    env.reset()
+    with pytest.raises(ValueError):
+        env.step([np.zeros(2)])  # one action for two agents
+    with pytest.raises(ValueError):
+        env.step([np.zeros(5), np.zeros(5)])  # mpe2 layout is not accepted
+    env.close()
+
+
+# --- action mapping ---------------------------------------------------------------------------
+
+
+MOVER = task_spec("simple").agents[0]
+SPEAKER = task_spec("speaker_listener").agents[0]
+
+
+@pytest.mark.parametrize(
+    ("xy", "expected"),
+    [
+        ((0.0, 0.0), (0.0, 0.0)),
+        ((1.0, 0.0), (1.0, 0.0)),
+        ((-0.25, 0.75), (-0.25, 0.75)),
+        ((0.3, -0.6), (0.3, -0.6)),
+        ((1.5, -2.0), (1.0, -1.0)),  # clipped to the bounds first
+    ],
+)
+def test_movement_mapping_gives_force_xy(xy: tuple[float, float], expected: tuple[float, float]):
+    m = to_mpe_action(MOVER, np.array(xy))
+    assert m.shape == (5,) and m.dtype == np.float32
+    assert m[0] == 0.0 and np.all(m >= 0.0) and np.all(m <= 1.0)
+    force = np.array([m[2] - m[1], m[4] - m[3]])  # mpe2's continuous rule
+    np.testing.assert_array_equal(force, np.asarray(expected, dtype=np.float32))
+
+
+def test_mapping_layout_exact() -> None:
+    m = to_mpe_action(MOVER, np.array([0.5, -0.25]))
+    np.testing.assert_array_equal(m, np.array([0.0, 0.0, 0.5, 0.25, 0.0], np.float32))
+
+
+def test_speaker_message_passes_through_and_clips() -> None:
+    msg = np.array([0.1, 0.7, 0.35])
+    np.testing.assert_array_equal(to_mpe_action(SPEAKER, msg), msg.astype(np.float32))
+    np.testing.assert_array_equal(
+        to_mpe_action(SPEAKER, np.array([1.5, -0.2, 0.5])), np.array([1.0, 0.0, 0.5], np.float32)
+    )
+
+
+def test_mapping_rejects_nan_and_wrong_size() -> None:
+    with pytest.raises(ValueError):
+        to_mpe_action(MOVER, np.array([np.nan, 0.0]))
+    with pytest.raises(ValueError):
+        to_mpe_action(MOVER, np.zeros(3))
+
+
+def test_step_applies_force_and_moves_agent() -> None:
+    env = make_task("simple", seed=3)
+    env.reset()
+    agent = env.world.agents[0]
+    start = agent.state.p_pos.copy()
+    res = env.step([np.array([0.3, -0.6])])
+    np.testing.assert_allclose(agent.action.u, np.array([0.3, -0.6]) * SENSITIVITY, rtol=1e-6)
+    # mpe2 integrates position before velocity: velocity = force * dt / mass = (0.15, -0.3).
+    np.testing.assert_allclose(res.obs[0][:2], [0.15, -0.3], rtol=1e-5)
+    mid = agent.state.p_pos.copy()
+    np.testing.assert_allclose(mid, start)
+    env.step([np.array([0.3, -0.6])])
+    delta = agent.state.p_pos - mid
+    assert delta[0] > 0 and delta[1] < 0  # +x and -y, as asked
+    np.testing.assert_allclose(delta, [0.015, -0.03], rtol=1e-5)
+    env.close()
+
+
+def test_out_of_range_action_is_clipped_in_env() -> None:
+    env = make_task("spread", seed=3)
+    env.reset()
+    env.step([np.array([3.0, -0.5]), np.array([-9.0, 9.0])])
+    np.testing.assert_allclose(env.world.agents[0].action.u, [5.0, -2.5])
+    np.testing.assert_allclose(env.world.agents[1].action.u, [-5.0, 5.0])
+    env.close()
+
+
+def test_speaker_message_reaches_listener() -> None:
+    env = make_task("speaker_listener", seed=2)
+    env.reset()
+    msg = np.array([0.2, 0.9, 0.4])
+    res = env.step([msg, np.zeros(2)])
+    np.testing.assert_allclose(res.obs[1][-3:], msg, rtol=1e-6)
+    env.close()
+
+
+# --- hand-placed states: reward, success, collisions ------------------------------------------
+
+
+def evaluate_all(env: TaskEnv) -> dict[str, tuple[float, bool, int]]:
+    """Evaluate the same world state under every sparse reward kind."""
+    out = {}
+    for kind in ("sparse", "sparse_offset"):
+        env.reward_kind = kind
+        out[kind] = env.evaluate()
+    return out
+
+
+def test_simple_cover_and_miss() -> None:
+    env = make_task("simple", seed=0)
+    env.reset()
+    agent, lm = env.world.agents[0], env.world.landmarks[0]
+    assert agent.size == pytest.approx(0.05) and lm.size == pytest.approx(0.05)
+    place(lm, 0.3, 0.3)
+    place(agent, 0.3 + 0.09, 0.3)  # 0.09 < 0.05 + 0.05
+    got = evaluate_all(env)
+    assert got["sparse"] == (0.0, True, 0)
+    assert got["sparse_offset"] == (pytest.approx(0.7), True, 0)
+    place(agent, 0.3, 0.3 + 0.11)
+    got = evaluate_all(env)
+    assert got["sparse"] == (-1.0, False, 0)
+    assert got["sparse_offset"] == (pytest.approx(-0.3), False, 0)
+    env.close()
+
+
+def test_spread_sizes_are_thesis_sizes() -> None:
+    for n in (2, 3):
+        env = make_task("spread", agents=n, seed=0)
+        for _ in range(2):
+            env.reset()
+            assert all(e.size == 0.125 for e in env.world.entities)
+            assert len(env.world.landmarks) == n
+        env.close()
+
+
+def test_spread_two_agents_all_covered() -> None:
+    env = make_task("spread", agents=2, seed=0)
+    env.reset()
+    (a0, a1), (l0, l1) = env.world.agents, env.world.landmarks
+    place(l0, 0.0, 0.0)
+    place(l1, 1.0, 0.0)
+    place(a0, 0.1, 0.0)
+    place(a1, 1.0, 0.2)  # 0.2 < 0.25: covered only with the thesis's sizes
+    got = evaluate_all(env)
+    assert got["sparse"] == (0.0, True, 0)
+    assert got["sparse_offset"] == (pytest.approx(0.7), True, 0)
+    env.close()
+
+
+def test_spread_two_agents_one_uncovered_one_collision() -> None:
+    env = make_task("spread", agents=2, seed=0)
+    env.reset()
+    (a0, a1), (l0, l1) = env.world.agents, env.world.landmarks
+    place(l0, 0.0, 0.0)
+    place(l1, 1.0, 0.0)
+    place(a0, 0.0, 0.0)
+    place(a1, 0.2, 0.0)  # both on landmark 0 and 0.2 apart: one collision, l1 uncovered
+    got = evaluate_all(env)
+    assert got["sparse"] == (-1.0, False, 1)
+    assert got["sparse_offset"] == (pytest.approx(-0.3), False, 1)
+    # Colliding and covering need a strict '<': exactly 0.125 + 0.125 apart is neither.
+    place(a1, 0.25, 0.0)  # touches a0: no collision
+    assert evaluate_all(env)["sparse"] == (-0.5, False, 0)
+    place(a1, 1.25, 0.0)  # touches landmark 1: not covered
+    assert evaluate_all(env)["sparse"] == (-0.5, False, 0)
+    env.close()
+
+
+def test_spread_collision_while_all_covered_is_not_zero() -> None:
+    env = make_task("spread", agents=2, seed=0)
+    env.reset()
+    (a0, a1), (l0, l1) = env.world.agents, env.world.landmarks
+    place(l0, 0.0, 0.0)
+    place(l1, 0.2, 0.0)
+    place(a0, 0.0, 0.0)
+    place(a1, 0.2, 0.0)
+    assert evaluate_all(env)["sparse"] == (-0.5, True, 1)
+    env.close()
+
+
+def test_spread_three_agents() -> None:
+    env = make_task("spread", agents=3, seed=0)
+    env.reset()
+    a, lm = env.world.agents, env.world.landmarks
+    place(lm[0], 0.0, 0.0)
+    place(lm[1], 1.0, 0.0)
+    place(lm[2], -1.0, 0.0)
+    place(a[0], 0.0, 0.0)
+    place(a[1], 0.1, 0.0)  # collides with a0
+    place(a[2], 1.0, 0.0)  # lm[2] is left uncovered
+    got = evaluate_all(env)
+    assert got["sparse"] == (pytest.approx(-2 / 3), False, 1)
+    assert got["sparse_offset"] == (pytest.approx(-2 / 3 + 0.7), False, 1)
+    for agent in a:  # all three on one spot: 3 pairs, 2 landmarks uncovered
+        place(agent, 0.0, 0.0)
+    assert evaluate_all(env)["sparse"] == (pytest.approx(-5 / 3), False, 3)
+    place(a[0], -1.0, 0.05)
+    place(a[1], 0.0, 0.0)
+    place(a[2], 1.0, -0.05)
+    assert evaluate_all(env)["sparse"] == (0.0, True, 0)
+    env.close()
+
+
+def test_speaker_listener_target_vs_other_landmark() -> None:
+    env = make_task("speaker_listener", seed=4)
+    env.reset()
+    speaker, listener = env.world.agents
+    assert listener.size == pytest.approx(0.075)
+    assert all(lm.size == pytest.approx(0.04) for lm in env.world.landmarks)
+    target = speaker.goal_b
+    others = [lm for lm in env.world.landmarks if lm is not target]
+    assert len(others) == 2
+    place(target, 0.5, 0.5)
+    place(others[0], -0.5, -0.5)
+    place(others[1], 0.5, -0.5)
+    place(listener, 0.5 + 0.1, 0.5)  # 0.1 < 0.075 + 0.04
+    got = evaluate_all(env)
+    assert got["sparse"] == (0.0, True, 0)
+    assert got["sparse_offset"] == (pytest.approx(0.7), True, 0)
+    place(listener, -0.5, -0.5)  # on a landmark, but not the target
+    got = evaluate_all(env)
+    assert got["sparse"] == (-1.0, False, 0)
+    assert got["sparse_offset"] == (pytest.approx(-0.3), False, 0)
+    place(listener, 0.5, 0.5 + 0.12)  # just outside the target
+    assert evaluate_all(env)["sparse"] == (-1.0, False, 0)
+    place(speaker, 0.5, 0.5)  # overlapping agents that do not collide
+    place(listener, 0.5, 0.5)
+    assert evaluate_all(env)["sparse"] == (0.0, True, 0)
+    env.close()
+
+
+def test_step_reward_is_evaluate_after_move() -> None:
+    env = make_task("simple", reward="sparse_offset", seed=0)
+    env.reset()
+    agent, lm = env.world.agents[0], env.world.landmarks[0]
+    place(lm, 0.0, 0.0)
+    place(agent, 0.0, 0.0)
+    agent.state.p_vel = np.array([2.0, 0.0])  # this step carries it 0.2 away
+    res = env.step([np.zeros(2)])
+    assert (res.reward, res.success, res.collisions) == (pytest.approx(-0.3), False, 0)
+    env.close()
+
+
+# --- dense reward -----------------------------------------------------------------------------
+
+
+def reference_env(task: str):
+    if task == "simple":
+        return simple_v3.parallel_env(max_cycles=20, continuous_actions=True)
+    if task == "spread":
+        return simple_spread_v3.parallel_env(N=2, max_cycles=20, continuous_actions=True)
+    return simple_speaker_listener_v4.parallel_env(max_cycles=20, continuous_actions=True)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_dense_equals_mpe2_reward(task: str) -> None:
+    env = make_task(task, reward="dense")
+    ref = reference_env(task)
+    obs = env.reset(seed=11)
+    ref_obs, _ = ref.reset(seed=11)
+    if task == "spread":  # same world as ours, thesis sizes included
+        for e in ref.unwrapped.world.entities:
+            e.size = 0.125
+    for o, a in zip(obs, env.spec.agents, strict=True):
+        np.testing.assert_array_equal(o, ref_obs[a.name])
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        acts = [rng.uniform(a.act_low, a.act_high) for a in env.spec.agents]
+        res = env.step(acts)
+        _, ref_rew, _, _, _ = ref.step(
+            {a.name: to_mpe_action(a, x) for a, x in zip(env.spec.agents, acts, strict=True)}
+        )
+        expected = float(np.mean([ref_rew[a.name] for a in env.spec.agents]))
+        assert res.reward == pytest.approx(expected, rel=1e-9, abs=1e-12)
+        assert env.evaluate()[0] == pytest.approx(res.reward, rel=1e-9, abs=1e-12)
+        assert res.reward != -1.0 and res.reward != 0.0  # not the sparse reward
+    env.close()
+    ref.close()
+
+
+# --- episodes and seeds -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_truncated_only_on_last_step(task: str) -> None:
+    env = make_task(task, seed=0)
+    for _ in range(2):  # also after a reset
+        env.reset()
+        flags = [env.step(zero_actions(env)).truncated for _ in range(20)]
+        assert flags == [False] * 19 + [True]
+        with pytest.raises(RuntimeError):
+            env.step(zero_actions(env))
+    env.close()
+
+
+def test_episode_len_is_configurable() -> None:
+    env = make_task("spread", episode_len=3, seed=0)
+    env.reset()
+    assert [env.step(zero_actions(env)).truncated for _ in range(3)] == [False, False, True]
+    env.close()
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_seed_reproducible(task: str) -> None:
+    a = make_task(task)
+    b = make_task(task, seed=7)
+    first_a = a.reset(seed=7)
+    first_b = b.reset()  # the constructor's seed
+    for x, y in zip(first_a, first_b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    # Unseeded resets continue the same RNG stream in both envs...
+    second_a, second_b = a.reset(), b.reset()
+    for x, y in zip(second_a, second_b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    # ... and give a new episode, while reseeding replays the first.
+    assert any(not np.array_equal(x, y) for x, y in zip(first_a, second_a, strict=True))
+    for x, y in zip(a.reset(seed=7), first_a, strict=True):
+        np.testing.assert_array_equal(x, y)
+    c = make_task(task)
+    d = make_task(task)
+    assert any(
+        not np.array_equal(x, y) for x, y in zip(c.reset(seed=1), d.reset(seed=2), strict=True)
+    )
+    for env in (a, b, c, d):
+        env.close()
+
+
+def test_all_rewards_run_on_all_tasks() -> None:
+    for task in TASKS:
+        for kind in REWARDS:
+            env = make_task(task, reward=kind, seed=0)
+            env.reset()
+            res = env.step(zero_actions(env))
+            assert isinstance(res.reward, float) and isinstance(res.success, bool)
+            assert isinstance(res.collisions, int)
+            env.close()
