@@ -98,7 +98,7 @@ def save_checkpoint(
     for t, table in enumerate(explorer.tables):
         keys, counts = table.to_arrays()
         tables[f"table{t}"] = {
-            "keys": torch.from_numpy(keys),
+            "keys": torch.from_numpy(keys.copy()),
             "counts": torch.from_numpy(counts),
             "total": table.total,
         }

@@ -1,0 +1,104 @@
+"""The one-process trainer end to end on the real mpe2 tasks (short runs)."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from shared.config import make_config
+from shared.rollout import Collector, evaluate
+from shared.tasks import make_task
+from shared.trainer import METRIC_FIELDS, build_exploration, load_checkpoint, train
+
+SMALL = {"hidden": (32, 32), "batch_size": 16, "eval_episodes": 3}
+
+
+def cfg(**kw):
+    return make_config({**SMALL, **kw})
+
+
+def test_outputs_metrics_config_and_checkpoint(tmp_path):
+    c = cfg(
+        task="speaker_listener",
+        algo="cen-maddpg",
+        explore="cen-macb",
+        episodes=8,
+        eval_every=4,
+        k=64,
+    )
+    rows = train(c, tmp_path, progress=False)
+    assert [r["episode"] for r in rows] == [4, 8]
+    with open(tmp_path / "metrics.csv") as f:
+        csv_rows = list(csv.DictReader(f))
+    jsonl = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert len(csv_rows) == len(jsonl) == 2
+    assert set(METRIC_FIELDS) <= set(csv_rows[0]) and set(METRIC_FIELDS) <= set(jsonl[0])
+    assert json.loads((tmp_path / "config.json").read_text())["k"] == 64
+    ck = load_checkpoint(tmp_path / "checkpoint.pt")  # weights_only=True inside
+    assert ck["counters"] == {"env_steps": 160, "episodes": 8, "updates": 60}
+    assert int(ck["tables"]["table0"]["counts"].sum()) == 160
+    assert isinstance(ck["learner"]["actors"][0]["net.0.weight"], torch.Tensor)
+
+
+@pytest.mark.parametrize(
+    "task, algo, explore",
+    [
+        ("simple", "ddpg", "dis-macb"),
+        ("spread", "dis-maddpg", "dis-macb"),
+        ("spread", "cen-maddpg", "cen-macb"),
+        ("speaker_listener", "cen-maddpg", "dis-macb"),
+    ],
+)
+def test_counts_equal_collected_training_transitions_exactly(task, algo, explore):
+    """Counting happens once per collected step: evaluation and sampling add nothing."""
+    c = cfg(task=task, algo=algo, explore=explore, episodes=6, eval_every=1, k=32)
+    rows = train(c, None, progress=False)
+    for r in rows:
+        assert r["counted_transitions"] == r["env_steps"] == r["episode"] * 20
+        assert r["updates"] == max(0, r["env_steps"] - 100)
+        assert 0 < r["table_size"] <= r["env_steps"]
+
+
+def test_evaluation_changes_no_count_and_uses_no_noise():
+    env = make_task("speaker_listener")
+    c = cfg(explore="cen-macb", k=16)
+    ex = build_exploration(c, env.spec)
+    col = Collector(env, 0.1, seed=0)
+    for _ in range(40):
+        tr = col.step(lambda o: np.zeros((len(o), 5), np.float32))
+        ex.observe(tr.obs[None], tr.act[None])
+    before = ex.tables[0].to_arrays()[1].copy()
+    envs = [make_task("speaker_listener", seed=s) for s in range(3)]
+    calls = []
+
+    def policy(o):
+        calls.append(o.shape[0])
+        return np.full((len(o), 5), 0.5, np.float32)
+
+    res = evaluate(policy, envs, 7)
+    assert np.array_equal(before, ex.tables[0].to_arrays()[1]) and ex.tables[0].total == 40
+    assert res.episodes == 7 and res.steps == 7 * 20
+    assert calls[:20] == [3] * 20, "evaluation runs its envs in lockstep, batched"
+    assert 0.0 <= res.success_rate <= 1.0
+
+
+def test_same_seed_same_metrics_different_seed_different():
+    c = cfg(task="spread", algo="cen-maddpg", explore="cen-macb", episodes=8, eval_every=4)
+    strip = ("steps_per_sec", "train_steps_per_sec", "wall_s")
+    a = [{k: v for k, v in r.items() if k not in strip} for r in train(c, None, progress=False)]
+    b = [{k: v for k, v in r.items() if k not in strip} for r in train(c, None, progress=False)]
+    d = cfg(task="spread", algo="cen-maddpg", explore="cen-macb", episodes=8, eval_every=4, seed=1)
+    e = [{k: v for k, v in r.items() if k not in strip} for r in train(d, None, progress=False)]
+    assert a == b
+    assert a != e
+
+
+def test_time_limit_terminal_option_marks_last_step_done():
+    env = make_task("simple")
+    for terminal in (False, True):
+        col = Collector(env, 0.1, seed=0, time_limit_terminal=terminal)
+        dones = [col.step(lambda o: np.zeros((1, 2), np.float32)).done for _ in range(40)]
+        expected = [0.0] * 40 if not terminal else ([0.0] * 19 + [1.0]) * 2
+        assert dones == expected
