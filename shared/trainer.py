@@ -122,8 +122,12 @@ def train(
     out: Path | None,
     progress: bool = True,
     on_metrics: Callable[[dict], None] | None = None,
+    stop_when: Callable[[dict], bool] | None = None,
 ) -> list[dict]:
-    """Run one experiment; returns the metric rows (also written under `out`)."""
+    """Run one experiment; returns the metric rows (also written under `out`).
+
+    `stop_when(row)` returning True ends the run early after that evaluation.
+    """
     torch.set_num_threads(cfg.threads)
     env = make_task(cfg.task, cfg.agents, cfg.reward, cfg.episode_len)
     spec = env.spec
@@ -195,6 +199,8 @@ def train(
                     bar.set_postfix(
                         success=f"{ev.success_rate:.2f}", sps=f"{row['steps_per_sec']:.0f}"
                     )
+                if stop_when and stop_when(row):
+                    break
             if bar:
                 bar.update(1)
     finally:
@@ -203,7 +209,8 @@ def train(
         if writer:
             writer.close()
     if out is not None:
-        counters = {"env_steps": env_steps, "episodes": cfg.episodes, "updates": learner.updates}
+        episodes = rows[-1]["episode"] if rows else 0
+        counters = {"env_steps": env_steps, "episodes": episodes, "updates": learner.updates}
         save_checkpoint(out / "checkpoint.pt", learner, explorer, counters, cfg)
         log.info("wrote %s", out)
     return rows
