@@ -70,6 +70,32 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+SERVICES = ("router", "counter", "learner", "actor", "evaluator")
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Run one service in the foreground until SIGTERM / Ctrl-C."""
+    import os
+    import socket
+
+    from shared.bus import DEFAULT_ENDPOINT, default_connect
+
+    if args.role == "router":
+        from services.router.main import serve
+
+        serve(args.listen or [os.environ.get("MACB_ZENOH_LISTEN", DEFAULT_ENDPOINT)])
+        return 0
+    import importlib
+
+    module = importlib.import_module(f"services.{args.role}.main")
+    service_id = args.id or f"{args.role}-{socket.gethostname()}-{os.getpid()}"
+    connect = args.connect or default_connect()
+    service = module.make_service(service_id, connect, Path(args.data_dir))
+    service.install_signal_handlers()
+    service.serve_forever()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="macb",
@@ -90,6 +116,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_config_flags(p)
     p.set_defaults(func=cmd_train)
+
+    s = sub.add_parser(
+        "serve",
+        help="run one service of the cluster (router, counter, learner, actor, evaluator)",
+        description="Run one service in the foreground. Services connect as Zenoh clients to "
+        "the router (MACB_ZENOH_CONNECT or --connect, default tcp/127.0.0.1:7447), announce "
+        "themselves with a liveliness token and wait for runs on macb/control/start.",
+    )
+    s.add_argument("role", choices=SERVICES)
+    s.add_argument("--id", help="service id (default: role-host-pid); actors need distinct ids")
+    s.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
+    s.add_argument("--listen", action="append", metavar="ENDPOINT", help="router only: listen on")
+    s.add_argument("--data-dir", default="data", help="where snapshots and checkpoints go")
+    s.set_defaults(func=cmd_serve)
     return parser
 
 

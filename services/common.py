@@ -1,0 +1,204 @@
+"""What every service shares: its bus session, inbox, liveliness, run control, rejects.
+
+A service is a loop on its own thread that drains an inbox filled by Zenoh
+callbacks (callbacks only enqueue). Inbound payloads are decoded and validated by
+`shared.wire`; a malformed message, a wrong schema version or a message for a run
+the service does not serve is dropped, counted in `rejects` and logged (rate
+limited), and the loop goes on.
+
+Run control: `macb/control/start` carries the run id, its config and the
+assignment of services (by id); a service takes a run only when it is named in the
+assignment and is free. `macb/control/stop` ends a run.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import signal
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+from shared import bus as keys
+from shared.bus import Bus
+from shared.config import ConfigError, TrainConfig, make_config
+from shared.wire import WireError, decode, encode
+
+
+class ServiceBase:
+    role = "service"
+
+    def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
+        self.id = service_id
+        self.log = logging.getLogger(f"macb.{self.role}.{service_id}")
+        self.data_dir = Path(data_dir)
+        self.inbox: queue.Queue[tuple[str, str, bytes]] = queue.Queue()
+        self.rejects: Counter[str] = Counter()
+        self._last_reject_log = 0.0
+        self.stop_event = threading.Event()
+        self.run_id: str | None = None  # the run this service serves (None = free)
+        self.config: TrainConfig | None = None
+        self.bus = Bus(connect or keys.default_connect())
+        self.listen(keys.k_control("start"), "start")
+        self.listen(keys.k_control("stop"), "stop")
+        self.bus.queryable(keys.k_info(self.role, self.id), self._info_reply)
+        self.bus.token(keys.k_live(self.role, self.id))
+
+    # ------------------------------------------------------------ plumbing
+    def listen(self, key_expr: str, tag: str) -> None:
+        """Subscribe; the callback only enqueues (tag, key, payload)."""
+        put = self.inbox.put
+        self.bus.subscribe(key_expr, lambda key, payload: put((tag, key, payload)))
+
+    def reject(self, key: str, reason: str) -> None:
+        """Drop a message: count it by reason and log it (at most once a second)."""
+        self.rejects[reason.split(":")[0]] += 1
+        now = time.monotonic()
+        if now - self._last_reject_log > 1.0:
+            self._last_reject_log = now
+            self.log.warning(
+                "dropped message on %s: %s (%d dropped so far)",
+                key,
+                reason,
+                sum(self.rejects.values()),
+            )
+
+    def decode_for_run(self, key: str, payload: bytes, expect: str) -> dict[str, Any] | None:
+        """Decode a per-run message; None (and a counted reject) unless it is for our run."""
+        try:
+            msg = decode(payload, expect)
+        except WireError as err:
+            self.reject(key, str(err))
+            return None
+        run = keys.run_of(key)
+        if run is None or msg["run"] != run:
+            self.reject(key, "run mismatch: key and message name different runs")
+            return None
+        if not self.serves(run):
+            self.reject(key, f"unknown run: {run}")
+            return None
+        return msg
+
+    def serves(self, run: str) -> bool:
+        return run == self.run_id
+
+    def info(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "role": self.role,
+            "run": self.run_id,
+            "rejects": dict(self.rejects),
+            "rejects_total": sum(self.rejects.values()),
+        }
+
+    def _info_reply(self, key: str, payload: bytes) -> bytes:
+        return json.dumps(self.info()).encode()
+
+    def publish_status(self, run: str, state: str, **detail: Any) -> None:
+        self.bus.put(
+            keys.k_status(run, self.id),
+            encode("status", run, service=self.id, state=state, detail=detail),
+        )
+
+    def publish_metrics(self, run: str, data: dict[str, Any], source: str | None = None) -> None:
+        source = source or f"{self.role}/{self.id}"
+        self.bus.put(keys.k_metrics(run, source), encode("metrics", run, source=source, data=data))
+
+    # ------------------------------------------------------------ control
+    def _on_control(self, tag: str, key: str, payload: bytes) -> None:
+        try:
+            msg = decode(payload, tag)
+        except WireError as err:
+            self.reject(key, str(err))
+            return
+        run = msg["run"]
+        if tag == "start":
+            if not self.assigned(msg["assign"]):
+                return  # another service's run: not an error
+            if self.run_id is not None and self.run_id != run:
+                self.log.warning("asked to start %s while serving %s: ignored", run, self.run_id)
+                return
+            if self.run_id == run:
+                return  # repeated start: idempotent
+            try:
+                config = make_config(msg["config"])
+            except ConfigError as err:
+                self.reject(key, f"bad config: {err}")
+                self.publish_status(run, "failed", reason=f"invalid config: {err}")
+                return
+            self.log.info("starting run %s", run)
+            self.run_id, self.config = run, config
+            try:
+                self.on_start(run, config, msg["assign"])
+            except Exception as err:
+                self.log.exception("run %s failed to start", run)
+                self.publish_status(run, "failed", reason=f"{type(err).__name__}: {err}")
+                self.free()
+        elif tag == "stop":
+            if not self.serves(run):
+                return  # a run served by other services: not ours to stop
+            self.log.info("stopping run %s: %s", run, msg["reason"])
+            self.on_stop(run, msg["reason"])
+            self.publish_status(run, "stopped", reason=msg["reason"])
+            self.free()
+
+    def assigned(self, assign: dict[str, Any]) -> bool:
+        value = assign.get(self.role)
+        return self.id in value if isinstance(value, list) else value == self.id
+
+    def free(self) -> None:
+        self.run_id, self.config = None, None
+
+    # ------------------------------------------------------------ hooks
+    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None: ...
+
+    def on_stop(self, run: str, reason: str) -> None: ...
+
+    def handle(self, tag: str, key: str, payload: bytes) -> None: ...
+
+    def tick(self) -> None:
+        """Called between messages, at least every `tick_s`."""
+
+    tick_s = 0.05
+
+    # ------------------------------------------------------------ loop
+    def serve_forever(self) -> None:
+        try:
+            while not self.stop_event.is_set():
+                try:
+                    tag, key, payload = self.inbox.get(timeout=self.tick_s)
+                except queue.Empty:
+                    self.tick()
+                    continue
+                try:
+                    if tag in ("start", "stop"):
+                        self._on_control(tag, key, payload)
+                    else:
+                        self.handle(tag, key, payload)
+                except WireError as err:
+                    self.reject(key, str(err))
+                self.tick()
+        finally:
+            self.shutdown()
+
+    def shutdown(self) -> None:
+        """Flush what must survive (hook), then close the session."""
+        try:
+            if self.run_id is not None:
+                self.on_shutdown()
+        finally:
+            self.bus.close()
+
+    def on_shutdown(self) -> None: ...
+
+    def install_signal_handlers(self) -> None:
+        def handler(signum: int, frame: object) -> None:
+            self.log.info("signal %d: shutting down", signum)
+            self.stop_event.set()
+
+        signal.signal(signal.SIGTERM, handler)
+        signal.signal(signal.SIGINT, handler)

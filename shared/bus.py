@@ -1,0 +1,195 @@
+"""The Zenoh layer: sessions, the key space, publishers, subscribers, queries, liveliness.
+
+This is the only module that imports zenoh. Services connect as clients to one
+router (a Python session in router mode: no separate binary). Multicast scouting is
+off: endpoints are explicit, loopback by default, and set per host for multi-host
+clusters (`MACB_ZENOH_CONNECT=tcp/10.0.0.5:7447`).
+
+Callbacks run on Zenoh's threads; the wrappers here hand raw bytes to the caller's
+callback, which should only enqueue (see services/common.py).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+log = logging.getLogger("macb.bus")
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+NS = "macb"
+
+
+# ---------------------------------------------------------------- the key space
+def k_transitions(run: str, actor: str = "*") -> str:
+    return f"{NS}/run/{run}/transitions/{actor}"
+
+
+def k_ack(run: str, service: str = "*") -> str:
+    return f"{NS}/run/{run}/ack/{service}"
+
+
+def k_weights(run: str) -> str:
+    return f"{NS}/run/{run}/weights"
+
+
+def k_bonus(run: str) -> str:
+    return f"{NS}/run/{run}/bonus"
+
+
+def k_metrics(run: str, source: str = "**") -> str:
+    return f"{NS}/run/{run}/metrics/{source}"
+
+
+def k_status(run: str, service: str = "*") -> str:
+    return f"{NS}/run/{run}/status/{service}"
+
+
+def k_control(action: str) -> str:
+    return f"{NS}/control/{action}"
+
+
+def k_live(role: str = "*", service: str = "*") -> str:
+    return f"{NS}/live/{role}/{service}"
+
+
+def k_info(role: str = "*", service: str = "*") -> str:
+    return f"{NS}/info/{role}/{service}"
+
+
+def run_of(key: str) -> str | None:
+    """The run id inside a per-run key, or None."""
+    parts = key.split("/")
+    return parts[2] if len(parts) > 2 and parts[0] == NS and parts[1] == "run" else None
+
+
+# ---------------------------------------------------------------- sessions
+def default_connect() -> list[str]:
+    raw = os.environ.get("MACB_ZENOH_CONNECT", DEFAULT_ENDPOINT)
+    return [e.strip() for e in raw.split(",") if e.strip()]
+
+
+def _config(mode: str, connect: list[str] | None, listen: list[str] | None) -> zenoh.Config:
+    conf: dict[str, Any] = {
+        "mode": mode,
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+    }
+    if connect:
+        conf["connect"] = {"endpoints": connect}
+    if listen:
+        conf["listen"] = {"endpoints": listen}
+    return zenoh.Config.from_json5(json.dumps(conf))
+
+
+_logging_ready = False
+
+
+def _init_logging() -> None:
+    global _logging_ready
+    if not _logging_ready:
+        zenoh.init_log_from_env_or("error")
+        _logging_ready = True
+
+
+class Bus:
+    """One Zenoh session and what a service declares on it (kept alive until close)."""
+
+    def __init__(
+        self,
+        connect: list[str] | None = None,
+        mode: str = "client",
+        listen: list[str] | None = None,
+    ) -> None:
+        _init_logging()
+        self.mode = mode
+        self.session = zenoh.open(_config(mode, connect, listen))
+        self._held: list[Any] = []  # declared entities must outlive their callbacks
+
+    @classmethod
+    def router(cls, listen: list[str]) -> Bus:
+        return cls(mode="router", listen=listen)
+
+    def close(self) -> None:
+        for h in reversed(self._held):
+            with contextlib.suppress(Exception):  # already undeclared or session gone
+                h.undeclare()
+        self._held.clear()
+        self.session.close()
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------ pub/sub
+    def publisher(self, key: str, block: bool = True) -> Callable[[bytes], None]:
+        """A put function. BLOCK makes a congested link wait instead of dropping."""
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        pub = self.session.declare_publisher(key, congestion_control=cc)
+        self._held.append(pub)
+        return pub.put
+
+    def put(self, key: str, payload: bytes, block: bool = True) -> None:
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self.session.put(key, payload, congestion_control=cc)
+
+    def subscribe(self, key_expr: str, callback: Callable[[str, bytes], None]) -> None:
+        def on_sample(sample: zenoh.Sample) -> None:
+            callback(str(sample.key_expr), sample.payload.to_bytes())
+
+        self._held.append(self.session.declare_subscriber(key_expr, on_sample))
+
+    # ------------------------------------------------------------ queries
+    def queryable(self, key_expr: str, handler: Callable[[str, bytes], bytes | None]) -> None:
+        """handler(key, payload) -> reply bytes (or None for no reply), on Zenoh's thread."""
+
+        def on_query(query: zenoh.Query) -> None:
+            with query:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                try:
+                    reply = handler(str(query.key_expr), payload)
+                except Exception:
+                    log.exception("query handler failed on %s", query.key_expr)
+                    return
+                if reply is not None:
+                    query.reply(query.key_expr, reply)
+
+        self._held.append(self.session.declare_queryable(key_expr, on_query))
+
+    def get(self, selector: str, payload: bytes | None = None, timeout: float = 2.0) -> list[bytes]:
+        """Blocking query: every ok reply's payload."""
+        return [r.ok.payload.to_bytes() for r in self.get_async(selector, payload, timeout) if r.ok]
+
+    def get_async(self, selector: str, payload: bytes | None = None, timeout: float = 2.0):
+        """Start a query; iterate the returned handler later for the replies (`.ok`)."""
+        kwargs: dict[str, Any] = {"timeout": timeout}
+        if payload is not None:
+            kwargs["payload"] = payload
+        return self.session.get(selector, **kwargs)
+
+    # ------------------------------------------------------------ liveliness
+    def token(self, key: str) -> None:
+        self._held.append(self.session.liveliness().declare_token(key))
+
+    def alive(self, key_expr: str, timeout: float = 1.0) -> list[str]:
+        return [
+            str(r.ok.key_expr)
+            for r in self.session.liveliness().get(key_expr, timeout=timeout)
+            if r.ok
+        ]
+
+    def watch_liveliness(self, key_expr: str, callback: Callable[[str, bool], None]) -> None:
+        """callback(key, alive) on appear/disappear, including tokens alive already."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            callback(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+        sub = self.session.liveliness().declare_subscriber(key_expr, on_sample, history=True)
+        self._held.append(sub)

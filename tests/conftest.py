@@ -1,0 +1,124 @@
+"""Fixtures for tests with a real Zenoh router and real service processes on loopback."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Procs:
+    """Starts `macb serve ...` processes with their own logs; ends every one by PID."""
+
+    def __init__(self, log_dir: Path, endpoint: str) -> None:
+        self.log_dir = log_dir
+        self.endpoint = endpoint
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, *args: str) -> subprocess.Popen:
+        env = {
+            **os.environ,
+            "MACB_ZENOH_CONNECT": self.endpoint,
+            "PYTHONUNBUFFERED": "1",
+            "OMP_NUM_THREADS": "1",
+            "OPENBLAS_NUM_THREADS": "1",
+            "MKL_NUM_THREADS": "1",
+        }
+        log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 (the child owns it)
+        p = subprocess.Popen(
+            [sys.executable, "-m", "shared.cli", "serve", *args],
+            cwd=ROOT,
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        self.procs[name] = p
+        return p
+
+    def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
+        p = self.procs[name]
+        if p.poll() is None:
+            os.kill(p.pid, sig)
+            p.wait(timeout=20)
+
+    def log(self, name: str) -> str:
+        return (self.log_dir / f"{name}.log").read_text(errors="replace")
+
+    def stop_all(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 10
+        for p in self.procs.values():
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def router(endpoint, tmp_path):
+    """A real router process on its own loopback port."""
+    procs = Procs(tmp_path, endpoint)
+    procs.start("router", "router", "--listen", endpoint)
+    wait_port(endpoint)
+    yield endpoint
+    procs.stop_all()
+
+
+@pytest.fixture
+def procs(router, tmp_path):
+    p = Procs(tmp_path, router)
+    yield p
+    p.stop_all()
+
+
+@pytest.fixture
+def bus(router):
+    from shared.bus import Bus
+
+    b = Bus([router])
+    yield b
+    b.close()
+
+
+def wait_port(endpoint: str, timeout: float = 15.0) -> None:
+    host, port = endpoint.split("/")[1].rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex((host, int(port))) == 0:
+                return
+        time.sleep(0.05)
+    raise TimeoutError(f"nothing listens on {endpoint}")
+
+
+def wait_for(predicate, timeout: float = 30.0, interval: float = 0.05, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise TimeoutError(f"timed out waiting for {what}")
