@@ -40,8 +40,7 @@ class ServiceBase:
         self.rejects: Counter[str] = Counter()
         self._last_reject_log = 0.0
         self.stop_event = threading.Event()
-        self.run_id: str | None = None  # the run this service serves (None = free)
-        self.config: TrainConfig | None = None
+        self.active: dict[str, TrainConfig] = {}  # runs served now, with their configs
         self.bus = Bus(connect or keys.default_connect())
         self.listen(keys.k_control("start"), "start")
         self.listen(keys.k_control("stop"), "stop")
@@ -83,14 +82,26 @@ class ServiceBase:
             return None
         return msg
 
+    max_runs = 1  # the counter serves many runs at once; the other services one
+
     def serves(self, run: str) -> bool:
-        return run == self.run_id
+        return run in self.active
+
+    @property
+    def run_id(self) -> str | None:
+        """The run served (the first one, for multi-run services), or None when free."""
+        return next(iter(self.active), None)
+
+    @property
+    def config(self) -> TrainConfig | None:
+        return self.active.get(self.run_id) if self.run_id else None
 
     def info(self) -> dict[str, Any]:
         return {
             "id": self.id,
             "role": self.role,
             "run": self.run_id,
+            "runs": list(self.active),
             "rejects": dict(self.rejects),
             "rejects_total": sum(self.rejects.values()),
         }
@@ -119,11 +130,11 @@ class ServiceBase:
         if tag == "start":
             if not self.assigned(msg["assign"]):
                 return  # another service's run: not an error
-            if self.run_id is not None and self.run_id != run:
+            if run in self.active:
+                return  # repeated start: idempotent
+            if len(self.active) >= self.max_runs:
                 self.log.warning("asked to start %s while serving %s: ignored", run, self.run_id)
                 return
-            if self.run_id == run:
-                return  # repeated start: idempotent
             try:
                 config = make_config(msg["config"])
             except ConfigError as err:
@@ -131,27 +142,28 @@ class ServiceBase:
                 self.publish_status(run, "failed", reason=f"invalid config: {err}")
                 return
             self.log.info("starting run %s", run)
-            self.run_id, self.config = run, config
+            self.active[run] = config
             try:
                 self.on_start(run, config, msg["assign"])
             except Exception as err:
                 self.log.exception("run %s failed to start", run)
                 self.publish_status(run, "failed", reason=f"{type(err).__name__}: {err}")
-                self.free()
+                self.free(run)
         elif tag == "stop":
             if not self.serves(run):
                 return  # a run served by other services: not ours to stop
             self.log.info("stopping run %s: %s", run, msg["reason"])
             self.on_stop(run, msg["reason"])
             self.publish_status(run, "stopped", reason=msg["reason"])
-            self.free()
+            self.free(run)
 
     def assigned(self, assign: dict[str, Any]) -> bool:
         value = assign.get(self.role)
         return self.id in value if isinstance(value, list) else value == self.id
 
-    def free(self) -> None:
-        self.run_id, self.config = None, None
+    def free(self, run: str) -> None:
+        """Forget a run: the service is free for the next one."""
+        self.active.pop(run, None)
 
     # ------------------------------------------------------------ hooks
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None: ...
@@ -188,7 +200,7 @@ class ServiceBase:
     def shutdown(self) -> None:
         """Flush what must survive (hook), then close the session."""
         try:
-            if self.run_id is not None:
+            if self.active:
                 self.on_shutdown()
         finally:
             self.bus.close()
