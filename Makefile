@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/macb train --config configs/default.yaml --out runs/default
+	$(BIN)/macb up --run configs/default.yaml --out runs/default --data-dir runs/cluster --quiet-services
 
 test: $(STAMP)
 	$(BIN)/ruff check .

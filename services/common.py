@@ -172,19 +172,24 @@ class ServiceBase:
 
     def handle(self, tag: str, key: str, payload: bytes) -> None: ...
 
-    def tick(self) -> None:
-        """Called between messages, at least every `tick_s`."""
+    def tick(self) -> bool:
+        """Work between messages; return True while more work is waiting (no idle wait)."""
+        return False
 
-    tick_s = 0.05
+    tick_s = 0.05  # idle wait for messages when tick has nothing to do
 
     # ------------------------------------------------------------ loop
     def serve_forever(self) -> None:
+        busy = False
         try:
             while not self.stop_event.is_set():
                 try:
-                    tag, key, payload = self.inbox.get(timeout=self.tick_s)
+                    if busy:
+                        tag, key, payload = self.inbox.get_nowait()
+                    else:
+                        tag, key, payload = self.inbox.get(timeout=self.tick_s)
                 except queue.Empty:
-                    self.tick()
+                    busy = bool(self.tick())
                     continue
                 try:
                     if tag in ("start", "stop"):
@@ -193,7 +198,7 @@ class ServiceBase:
                         self.handle(tag, key, payload)
                 except WireError as err:
                     self.reject(key, str(err))
-                self.tick()
+                busy = bool(self.tick())
         finally:
             self.shutdown()
 

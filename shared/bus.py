@@ -35,8 +35,9 @@ def k_ack(run: str, service: str = "*") -> str:
     return f"{NS}/run/{run}/ack/{service}"
 
 
-def k_weights(run: str) -> str:
-    return f"{NS}/run/{run}/weights"
+def k_weights(run: str, kind: str = "*") -> str:
+    """kind "latest": every boundary; "eval": boundaries marked as evaluation points."""
+    return f"{NS}/run/{run}/weights/{kind}"
 
 
 def k_bonus(run: str) -> str:

@@ -44,3 +44,40 @@ class Critic(nn.Module):
 
     def forward(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         return self.net(torch.cat([obs, act], dim=-1)).squeeze(-1)
+
+
+class JointPolicy:
+    """The actors alone (what actor and evaluator processes run), for joint observations."""
+
+    def __init__(
+        self,
+        obs_dims: Sequence[int],
+        lows: Sequence[Sequence[float]],
+        highs: Sequence[Sequence[float]],
+        hidden: Sequence[int],
+    ) -> None:
+        self.actors = [Actor(o, lo, hi, hidden) for o, lo, hi in zip(obs_dims, lows, highs)]
+        self.bounds = [0, *torch.cumsum(torch.tensor(list(obs_dims)), 0).tolist()]
+
+    @torch.no_grad()
+    def __call__(self, obs):
+        o = torch.as_tensor(obs, dtype=torch.float32)
+        b = self.bounds
+        return torch.cat(
+            [actor(o[..., b[i] : b[i + 1]]) for i, actor in enumerate(self.actors)], dim=-1
+        ).numpy()
+
+    def load(self, weights: Sequence[dict]) -> None:
+        load_actor_weights(self.actors, weights)
+
+
+def actor_weights(actors: Sequence[nn.Module]) -> list[dict]:
+    """Actor parameters and buffers as numpy arrays (for the wire)."""
+    return [{k: v.detach().cpu().numpy() for k, v in m.state_dict().items()} for m in actors]
+
+
+def load_actor_weights(actors: Sequence[nn.Module], weights: Sequence[dict]) -> None:
+    if len(weights) != len(actors):
+        raise ValueError(f"weights for {len(weights)} agents, policy has {len(actors)}")
+    for m, sd in zip(actors, weights):
+        m.load_state_dict({k: torch.as_tensor(v) for k, v in sd.items()})

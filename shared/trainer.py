@@ -73,9 +73,9 @@ def build_exploration(cfg: TrainConfig, spec: TaskSpec) -> CountExploration:
 class MetricsWriter:
     """Appends rows to metrics.csv and metrics.jsonl as they are produced."""
 
-    def __init__(self, out: Path) -> None:
+    def __init__(self, out: Path, fields: tuple[str, ...] = METRIC_FIELDS) -> None:
         self.csv_file = (out / "metrics.csv").open("w", newline="")
-        self.csv = csv.DictWriter(self.csv_file, fieldnames=METRIC_FIELDS)
+        self.csv = csv.DictWriter(self.csv_file, fieldnames=fields, extrasaction="ignore")
         self.csv.writeheader()
         self.jsonl = (out / "metrics.jsonl").open("w")
 

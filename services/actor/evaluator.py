@@ -1,0 +1,110 @@
+"""The evaluation role: noise-free episodes at every evaluation point, one metric row each.
+
+It listens only to weights the learner marked as evaluation points (so it never
+decodes the per-episode weights it does not need) and evaluates every one of them,
+in order, with `eval_episodes` episodes run in lockstep. Its row carries the
+trainer's metric fields; the count statistics come from a query to the counter.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from services.actor.main import make_policy
+from services.common import ServiceBase
+from shared import bus as keys
+from shared.config import TrainConfig
+from shared.rollout import derive_seed, evaluate
+from shared.tasks import make_task
+
+
+class EvaluatorService(ServiceBase):
+    role = "evaluator"
+
+    def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
+        super().__init__(service_id, connect, data_dir)
+        torch.set_num_threads(1)
+        self.listen(keys.k_weights("*", "eval"), "weights")
+        self.e: dict[str, Any] = {}
+
+    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        envs = [
+            make_task(config.task, config.agents, config.reward, config.episode_len)
+            for _ in range(min(config.eval_episodes, 10))
+        ]
+        for j, env in enumerate(envs):
+            env.reset(seed=derive_seed(config.seed, "eval", j))
+        self.e = {
+            "envs": envs,
+            "policy": make_policy(config, envs[0]),
+            "pending": collections.deque(),
+            "counter": assign.get("counter"),
+            "points": 0,
+            "t0": time.perf_counter(),
+        }
+        self.publish_status(run, "running")
+
+    def on_stop(self, run: str, reason: str) -> None:
+        self.e = {}
+
+    def handle(self, tag: str, key: str, payload: bytes) -> None:
+        if tag == "weights":
+            msg = self.decode_for_run(key, payload, "weights")
+            if msg is not None and msg["eval_point"] >= 0:
+                self.e["pending"].append(msg)
+
+    def counter_stats(self, run: str) -> dict[str, Any]:
+        if not self.e["counter"]:
+            return {}
+        for raw in self.bus.get(keys.k_info("counter", self.e["counter"]), timeout=1.0):
+            try:
+                return json.loads(raw).get("runs", {}).get(run, {})
+            except (ValueError, AttributeError):
+                return {}
+        return {}
+
+    def tick(self) -> bool:
+        if not self.e or not self.e["pending"]:
+            return False
+        run, cfg, e = self.run_id, self.config, self.e
+        msg = e["pending"].popleft()
+        e["policy"].load(msg["actors"])
+        ev = evaluate(e["policy"], e["envs"], cfg.eval_episodes)
+        counts = self.counter_stats(run)
+        info = msg["info"]
+        row = {
+            "episode": msg["eval_point"],
+            "env_steps": msg["env_steps"],
+            "success_rate": ev.success_rate,
+            "eval_return": ev.eval_return,
+            "collisions_cum": msg["collisions_cum"],
+            "count1_pct": counts.get("count1_pct", 0.0),
+            "table_size": counts.get("table_size", 0),
+            "counted_transitions": counts.get("counted_transitions", 0),
+            "steps_per_sec": info.get("steps_per_sec", 0.0),
+            "train_steps_per_sec": info.get("steps_per_sec", 0.0),
+            "updates": msg["updates"],
+            "wall_s": info.get("wall_s", 0.0),
+            "replay_ratio": info.get("replay_ratio", 0.0),
+            "policy_lag": info.get("policy_lag", 0.0),
+            "policy_version": msg["version"],
+        }
+        self.publish_metrics(run, row, source="eval")
+        e["points"] += 1
+        if msg["eval_point"] >= cfg.episodes:
+            self.publish_status(run, "completed", points=e["points"])
+            self.log.info("run %s: %d evaluation points", run, e["points"])
+            self.e = {}
+            self.free(run)
+            return False
+        return bool(e["pending"])
+
+
+def make_service(service_id: str, connect: list[str], data_dir: Path) -> EvaluatorService:
+    return EvaluatorService(service_id, connect, data_dir)

@@ -1,0 +1,373 @@
+"""The learner service: replay, updates at the thesis's replay ratio, weights, checkpoints.
+
+Transitions arrive from actors, numbered per actor. A batch joins the replay
+buffer once the counter has acknowledged it (so every sampled transition has been
+counted, n >= 1) and only once (duplicates and gaps are handled by sequence
+number). The learner does exactly one update per ingested transition beyond the
+first `learning_starts`; it grants actors a window of credits that closes while it
+is behind, so actors wait rather than let the ratio drift.
+
+Bonuses are asked of the counter at sample time; the query for the next batch is
+sent before the current update runs, overlapping the round trip with computation.
+
+Weights go out at every episode boundary of training (when the updates owed for
+that episode are done), marked `eval_point` every `eval_every` episodes, which is
+what the evaluator evaluates.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from services.common import ServiceBase
+from shared import bus as keys
+from shared.config import TrainConfig
+from shared.networks import actor_weights
+from shared.replay import ReplayBuffer
+from shared.rollout import derive_seed
+from shared.tasks import task_spec
+from shared.trainer import build_learner
+from shared.wire import WireError, check_dims, decode, encode
+
+WINDOW_EPISODES = 2  # credits per actor, in episodes
+MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
+UPDATES_PER_TICK = 10  # bound on work between inbox checks
+CHECKPOINT_EVERY_S = 60.0
+
+
+class BonusClient:
+    """Bonus queries to the counter, one in flight ahead of the update that needs it."""
+
+    def __init__(self, svc: LearnerService, run: str, mode: str, beta: float, n: int) -> None:
+        self.svc, self.run, self.mode, self.beta, self.n = svc, run, mode, beta, n
+        self.pending: tuple[Any, Any] | None = None  # (batch, replies handler)
+        self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
+        self.failures = 0
+
+    def send(self, batch) -> None:
+        handler = None
+        if self.mode in ("dis-macb", "cen-macb"):
+            payload = encode("bonus_query", self.run, obs=batch.obs, act=batch.act)
+            handler = (
+                self.svc.bus.get_async(keys.k_bonus(self.run), payload, 2.0),
+                time.perf_counter(),
+            )
+        self.pending = (batch, handler)
+
+    def receive(self) -> tuple[Any, np.ndarray] | None:
+        """The pending batch and its (B, N) bonus; None if the counter did not answer."""
+        assert self.pending is not None
+        batch, handler = self.pending
+        B = len(batch.rew)
+        if self.mode == "none":
+            return batch, np.zeros((B, self.n), np.float32)
+        if self.mode == "constant":
+            return batch, np.full((B, self.n), self.beta, np.float32)
+        replies, t0 = handler
+        for reply in replies:
+            if not reply.ok:
+                continue
+            try:
+                msg = decode(reply.ok.payload.to_bytes(), "bonus_reply")
+            except WireError as err:
+                self.svc.reject(keys.k_bonus(self.run), str(err))
+                continue
+            bonus = msg["bonus"]
+            if bonus.shape == (B, self.n):
+                self.latencies.append(time.perf_counter() - t0)
+                return batch, bonus.astype(np.float32)
+        self.failures += 1
+        return None
+
+
+class LearnerService(ServiceBase):
+    role = "learner"
+
+    def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
+        super().__init__(service_id, connect, data_dir)
+        self.listen(keys.k_transitions("*", "*"), "transitions")
+        self.listen(keys.k_ack("*", "*"), "ack")
+        self.listen(keys.k_status("*", "*"), "status")
+        self.r: dict[str, Any] = {}
+
+    # ------------------------------------------------------------ run lifecycle
+    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        torch.set_num_threads(config.threads)
+        spec = task_spec(config.task, config.agents, config.episode_len)
+        actors = list(assign["actors"])
+        learner = build_learner(config, spec)
+        self.r = {
+            "spec": spec,
+            "learner": learner,
+            "buffer": ReplayBuffer(
+                min(config.buffer_size, config.episodes * config.episode_len),
+                spec.joint_obs_dim,
+                spec.joint_act_dim,
+            ),
+            "rng": np.random.default_rng(derive_seed(config.seed, "sampler")),
+            "actors": actors,
+            "counter": assign.get("counter"),
+            "expected": dict.fromkeys(actors, 0),  # next seq taken from each actor
+            "counter_acked": dict.fromkeys(actors, 0),
+            "held": {a: collections.deque() for a in actors},  # received, not yet counted
+            "final": {},  # actor -> number of transitions it published in all
+            "ingested": 0,
+            "episodes": 0,
+            "collisions_cum": 0,
+            "boundaries": collections.deque(),  # (episode, updates target)
+            "version": 0,
+            "lags": collections.deque(maxlen=200),
+            "window_open": True,
+            "last_ack": 0.0,
+            "last_stats": 0.0,
+            "last_ckpt": time.monotonic(),
+            "t0": time.perf_counter(),
+            "bonus": BonusClient(self, run, config.explore, config.beta, spec.n_agents),
+            "weights_pub": self.bus.publisher(keys.k_weights(run, "latest")),
+            "eval_pub": self.bus.publisher(keys.k_weights(run, "eval")),
+            "ack_pub": self.bus.publisher(keys.k_ack(run, self.id)),
+            "updates_t": collections.deque(maxlen=2),
+        }
+        self.publish_weights(eval_point=-1)  # version 0: every actor starts from these
+        self.publish_status(run, "running", actors=actors)
+
+    def on_stop(self, run: str, reason: str) -> None:
+        self.checkpoint()
+        self.r = {}
+
+    def on_shutdown(self) -> None:
+        if self.r:
+            self.checkpoint()
+
+    # ------------------------------------------------------------ inbound
+    def handle(self, tag: str, key: str, payload: bytes) -> None:
+        if tag == "transitions":
+            msg = self.decode_for_run(key, payload, "transitions")
+            if msg is not None:
+                self.on_transitions(key, msg)
+        elif tag == "ack":
+            msg = self.decode_for_run(key, payload, "ack")
+            if msg is not None and msg["service"] == self.r["counter"]:
+                for actor, seq in msg["acked"].items():
+                    if actor in self.r["counter_acked"] and isinstance(seq, int):
+                        acked = self.r["counter_acked"]
+                        acked[actor] = max(acked[actor], seq)
+                self.release_counted()
+        elif tag == "status":
+            msg = self.decode_for_run(key, payload, "status")
+            if msg is not None and msg["service"] in self.r["actors"]:
+                if msg["state"] == "completed":
+                    self.r["final"][msg["service"]] = int(msg["detail"].get("final_seq", 0))
+                elif msg["state"] == "failed":
+                    self.fail(f"actor {msg['service']} failed: {msg['detail']}")
+
+    def on_transitions(self, key: str, msg: dict[str, Any]) -> None:
+        r, cfg = self.r, self.config
+        actor = msg["actor"]
+        if actor not in r["expected"]:
+            self.reject(key, f"unknown actor: {actor}")
+            return
+        spec = r["spec"]
+        check_dims(msg, spec.joint_obs_dim, spec.joint_act_dim)
+        n = len(msg["rew"])
+        if n != cfg.episode_len:
+            raise WireError(f"transitions: a batch is one episode ({cfg.episode_len}), got {n}")
+        seq, expected = msg["seq"], r["expected"][actor]
+        if seq + n <= expected:
+            self.send_ack()  # a resend: tell the actor again where we are
+            return
+        if seq != expected:
+            self.send_ack()
+            return  # a gap: the actor resends from our ack
+        r["expected"][actor] = seq + n
+        r["held"][actor].append(msg)
+        self.release_counted()
+        self.send_ack()
+
+    def release_counted(self) -> None:
+        """Move batches the counter has counted (or all, with no counting) into replay."""
+        r, cfg = self.r, self.config
+        counting = cfg.explore in ("dis-macb", "cen-macb")
+        for actor, held in r["held"].items():
+            while held and (
+                not counting or held[0]["seq"] + len(held[0]["rew"]) <= r["counter_acked"][actor]
+            ):
+                self.ingest(held.popleft())
+
+    def ingest(self, msg: dict[str, Any]) -> None:
+        r, cfg = self.r, self.config
+        r["buffer"].add(msg["obs"], msg["act"], msg["rew"], msg["next_obs"], msg["done"])
+        r["ingested"] += len(msg["rew"])
+        r["episodes"] += 1
+        r["collisions_cum"] += int(msg["collisions"].sum())
+        r["lags"].append(r["version"] - msg["policy_version"])
+        target = max(0, r["ingested"] - cfg.learning_starts)
+        r["boundaries"].append((r["episodes"], target, r["ingested"], r["collisions_cum"]))
+
+    # ------------------------------------------------------------ work
+    def tick(self) -> bool:
+        if not self.r:
+            return False
+        r, cfg = self.r, self.config
+        learner, buffer = r["learner"], r["buffer"]
+        owed = max(0, r["ingested"] - cfg.learning_starts) - learner.updates
+        done_now = 0
+        while owed > 0 and done_now < UPDATES_PER_TICK:
+            next_boundary = r["boundaries"][0][1] if r["boundaries"] else None
+            if next_boundary is not None and learner.updates >= next_boundary:
+                break
+            if r["bonus"].pending is None:
+                r["bonus"].send(buffer.sample(cfg.batch_size, r["rng"]))
+            got = r["bonus"].receive()
+            if got is None:
+                r["bonus"].pending = None  # counter silent: sample again, ask again
+                break
+            batch, bonus = got
+            # Ask for the next batch's bonus before this update runs (overlap).
+            if owed > 1:
+                r["bonus"].send(buffer.sample(cfg.batch_size, r["rng"]))
+            else:
+                r["bonus"].pending = None
+            learner.update(
+                batch.obs, batch.act, batch.rew[:, None] + bonus, batch.next_obs, batch.done
+            )
+            owed -= 1
+            done_now += 1
+        self.pass_boundaries()
+        now = time.monotonic()
+        window_open = owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(r["actors"])
+        if window_open != r["window_open"] or now - r["last_ack"] > 0.5:
+            r["window_open"] = window_open
+            self.send_ack()
+        if now - r["last_stats"] > 1.0:
+            r["last_stats"] = now
+            self.publish_metrics(self.run_id, self.stats(), source="learner")
+        if now - r["last_ckpt"] > CHECKPOINT_EVERY_S:
+            self.checkpoint()
+        self.maybe_finish()
+        return owed > 0 and bool(self.r)
+
+    def pass_boundaries(self) -> None:
+        """Publish weights at each episode boundary whose updates are done."""
+        r, cfg = self.r, self.config
+        while r["boundaries"] and r["learner"].updates >= r["boundaries"][0][1]:
+            episode, _, env_steps, collisions = r["boundaries"].popleft()
+            is_eval = episode % cfg.eval_every == 0 or episode == cfg.episodes
+            self.publish_weights(
+                eval_point=episode if is_eval else -1,
+                episode=episode,
+                env_steps=env_steps,
+                collisions=collisions,
+            )
+
+    def publish_weights(
+        self, eval_point: int, episode: int = 0, env_steps: int = 0, collisions: int = 0
+    ) -> None:
+        r = self.r
+        if episode:  # version 0 is the initial weights; each boundary makes a new one
+            r["version"] += 1
+        payload = encode(
+            "weights",
+            self.run_id,
+            version=r["version"],
+            updates=r["learner"].updates,
+            env_steps=env_steps,
+            episodes=episode,
+            eval_point=eval_point,
+            collisions_cum=collisions,
+            actors=actor_weights(r["learner"].actors),
+            info=self.stats(),
+        )
+        r["eval_pub" if eval_point >= 0 else "weights_pub"](payload)
+
+    def send_ack(self) -> None:
+        r = self.r
+        r["last_ack"] = time.monotonic()
+        window = WINDOW_EPISODES * self.config.episode_len if r["window_open"] else 0
+        r["ack_pub"](
+            encode("ack", self.run_id, service=self.id, acked=dict(r["expected"]), window=window)
+        )
+
+    def stats(self) -> dict[str, Any]:
+        r, cfg = self.r, self.config
+        updates = r["learner"].updates
+        owed_total = max(0, r["ingested"] - cfg.learning_starts)
+        wall = time.perf_counter() - r["t0"]
+        lat = sorted(r["bonus"].latencies)
+        return {
+            "updates": updates,
+            "ingested": r["ingested"],
+            "episodes_ingested": r["episodes"],
+            "replay_ratio": updates / owed_total if owed_total else 0.0,
+            "policy_lag": float(np.mean(r["lags"])) if r["lags"] else 0.0,
+            "policy_version": r["version"],
+            "wall_s": wall,
+            "steps_per_sec": r["ingested"] / wall if wall > 0 else 0.0,
+            "updates_per_sec": updates / wall if wall > 0 else 0.0,
+            "backlog": owed_total - updates,
+            "window_open": r["window_open"],
+            "bonus_p50_ms": 1e3 * lat[len(lat) // 2] if lat else 0.0,
+            "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
+            "bonus_failures": r["bonus"].failures,
+            "rejects_total": sum(self.rejects.values()),
+        }
+
+    def maybe_finish(self) -> None:
+        r, cfg = self.r, self.config
+        if set(r["final"]) != set(r["actors"]):
+            return
+        if any(r["expected"][a] < r["final"][a] for a in r["actors"]):
+            return
+        if any(r["held"][a] for a in r["actors"]) or r["boundaries"]:
+            return
+        if r["learner"].updates < max(0, r["ingested"] - cfg.learning_starts):
+            return
+        run = self.run_id
+        self.checkpoint()
+        stats = self.stats()
+        self.publish_metrics(run, stats, source="learner")
+        self.publish_status(run, "completed", **stats)
+        self.log.info("run %s completed: %s", run, json.dumps(stats))
+        self.r = {}
+        self.free(run)
+
+    def fail(self, reason: str) -> None:
+        run = self.run_id
+        self.log.error("run %s failed: %s", run, reason)
+        self.publish_status(run, "failed", reason=reason)
+        self.r = {}
+        self.free(run)
+
+    def checkpoint(self) -> None:
+        """Networks, optimizers and step counters, loadable with weights_only=True."""
+        r = self.r
+        if not r:
+            return
+        r["last_ckpt"] = time.monotonic()
+        out = self.data_dir / "learner" / self.run_id
+        out.mkdir(parents=True, exist_ok=True)
+        state = {
+            "config": json.dumps(self.config.model_dump(mode="json")),
+            "learner": r["learner"].state_dict(),
+            "counters": {
+                "ingested": r["ingested"],
+                "episodes": r["episodes"],
+                "updates": r["learner"].updates,
+                "expected": dict(r["expected"]),
+                "version": r["version"],
+            },
+        }
+        tmp = out / "checkpoint.tmp"
+        torch.save(state, tmp)
+        tmp.replace(out / "checkpoint.pt")
+
+
+def make_service(service_id: str, connect: list[str], data_dir: Path) -> LearnerService:
+    return LearnerService(service_id, connect, data_dir)

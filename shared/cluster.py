@@ -1,0 +1,139 @@
+"""`macb up`: the local cluster as plain processes, the same services docker-compose runs.
+
+`cluster_plan` is the single description of the cluster: which services, with which
+`macb serve` command and environment. `macb up` runs it as child processes;
+docker-compose.yml runs the same commands in containers (a test keeps the two in
+step). Children get one torch/BLAS thread each: on a 2-core machine shared by all
+services, more threads only make them fight.
+
+Shutdown: Ctrl-C or SIGTERM stops the children with SIGTERM (they flush snapshots and
+checkpoints), waits, and SIGKILLs whatever is left, so no process outlives `macb up`.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+@dataclass(frozen=True)
+class ServiceSpec:
+    name: str
+    args: tuple[str, ...]  # after `macb serve`
+    env: tuple[tuple[str, str], ...] = ()
+
+
+def cluster_plan(
+    actors: int = 1,
+    endpoint: str = "tcp/127.0.0.1:7447",
+    data_dir: str = "data",
+    listen: str | None = None,
+) -> list[ServiceSpec]:
+    """Router first; then counter, learner, evaluator and `actors` actors.
+
+    `endpoint` is where services connect; `listen` where the router listens (the same
+    by default; docker-compose listens on all interfaces and connects by host name).
+    """
+    env = (("MACB_ZENOH_CONNECT", endpoint), *THREAD_ENV.items())
+    router_args = ("router", "--listen", listen or endpoint)
+    plan = [ServiceSpec("router", router_args, tuple(THREAD_ENV.items()))]
+    for role in ("counter", "learner", "evaluator"):
+        plan.append(ServiceSpec(role, (role, "--id", role, "--data-dir", data_dir), env))
+    for r in range(actors):
+        plan.append(
+            ServiceSpec(f"actor{r}", ("actor", "--id", f"actor{r}", "--data-dir", data_dir), env)
+        )
+    return plan
+
+
+def _pump(name: str, stream: IO[bytes], log_file: IO[bytes], echo: bool) -> None:
+    """Copy a child's output to its log file and, prefixed with its name, to our stdout."""
+    prefix = f"{name:>10} | ".encode()
+    for line in iter(stream.readline, b""):
+        log_file.write(line)
+        log_file.flush()
+        if echo:
+            sys.stdout.buffer.write(prefix + line)
+            sys.stdout.buffer.flush()
+
+
+def _wait_port(endpoint: str, timeout: float = 20.0) -> None:
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex((host, int(port))) == 0:
+                return
+        time.sleep(0.05)
+    raise TimeoutError(f"router did not listen on {endpoint}")
+
+
+class Cluster:
+    """Starts the plan's processes; `stop()` ends every one of them by PID."""
+
+    def __init__(self, plan: list[ServiceSpec], log_dir: Path, echo: bool = True) -> None:
+        self.plan = plan
+        self.log_dir = Path(log_dir)
+        self.echo = echo
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._threads: list[threading.Thread] = []
+
+    def start(self) -> None:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        for spec in self.plan:
+            env = {**os.environ, "PYTHONUNBUFFERED": "1", **dict(spec.env)}
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "shared.cli", "serve", *spec.args],
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,  # our signal handler, not the terminal, ends them
+            )
+            self.procs[spec.name] = proc
+            log_file = (self.log_dir / f"{spec.name}.log").open("ab")
+            t = threading.Thread(
+                target=_pump, args=(spec.name, proc.stdout, log_file, self.echo), daemon=True
+            )
+            t.start()
+            self._threads.append(t)
+            if spec.name == "router":
+                _wait_port(spec.args[spec.args.index("--listen") + 1])
+
+    def dead(self) -> list[str]:
+        return [name for name, p in self.procs.items() if p.poll() is not None]
+
+    def stop(self, grace: float = 15.0) -> None:
+        # Services first, router last, so they can flush over a live bus.
+        order = [n for n in self.procs if n != "router"] + ["router"]
+        for name in order[:-1]:
+            p = self.procs.get(name)
+            if p and p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace
+        for name in order[:-1]:
+            p = self.procs.get(name)
+            if p:
+                self._reap(p, deadline)
+        router = self.procs.get("router")
+        if router and router.poll() is None:
+            router.send_signal(signal.SIGTERM)
+            self._reap(router, time.monotonic() + 5)
+
+    @staticmethod
+    def _reap(p: subprocess.Popen, deadline: float) -> None:
+        try:
+            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
