@@ -158,7 +158,7 @@ class ServiceBase:
             self.free(run)
 
     def assigned(self, assign: dict[str, Any]) -> bool:
-        value = assign.get(self.role)
+        value = assign.get(self.role, assign.get(f"{self.role}s"))  # "actors" is a list
         return self.id in value if isinstance(value, list) else value == self.id
 
     def free(self, run: str) -> None:

@@ -151,7 +151,11 @@ class Bus:
     def queryable(self, key_expr: str, handler: Callable[[str, bytes], bytes | None]) -> None:
         """handler(key, payload) -> reply bytes (or None for no reply), on Zenoh's thread."""
 
+        concrete = "*" not in key_expr
+
         def on_query(query: zenoh.Query) -> None:
+            # Reply on our own key when we have one: replies to a wildcard query would
+            # otherwise all carry the query's key and be consolidated into one.
             with query:
                 payload = query.payload.to_bytes() if query.payload is not None else b""
                 try:
@@ -160,7 +164,7 @@ class Bus:
                     log.exception("query handler failed on %s", query.key_expr)
                     return
                 if reply is not None:
-                    query.reply(query.key_expr, reply)
+                    query.reply(key_expr if concrete else query.key_expr, reply)
 
         self._held.append(self.session.declare_queryable(key_expr, on_query))
 
@@ -170,7 +174,10 @@ class Bus:
 
     def get_async(self, selector: str, payload: bytes | None = None, timeout: float = 2.0):
         """Start a query; iterate the returned handler later for the replies (`.ok`)."""
-        kwargs: dict[str, Any] = {"timeout": timeout}
+        kwargs: dict[str, Any] = {
+            "timeout": timeout,
+            "consolidation": zenoh.ConsolidationMode.NONE,
+        }
         if payload is not None:
             kwargs["payload"] = payload
         return self.session.get(selector, **kwargs)

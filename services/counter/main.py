@@ -1,0 +1,551 @@
+"""The counter service: the count tables of every active run, exactly once per transition.
+
+It subscribes to every run's `transitions` and keeps, per run and per actor, the next
+expected transition number. A batch that starts there is hashed (the run's
+`CountExploration`, built by `shared.trainer.build_exploration` so the SimHash seed is
+the one-process trainer's), appended to the write-ahead log (`wal.py`), counted, and
+acknowledged on `macb/run/{run}/ack/{id}`. A batch wholly below the expected number is
+a duplicate (ignored, counted in `duplicates`); a batch that overlaps it counts only its
+new tail; a batch above it is a gap (dropped, counted in `gaps`: the actor resends).
+Every batch, taken or not, is answered with an ack of all actors' expected numbers, and
+acks are repeated every second so actors learn where a restarted counter stands.
+
+Bonus queries (`macb/run/{run}/bonus`, a Zenoh get) are answered on Zenoh's thread
+under a lock shared with ingestion: `counts` (tables x B, int64) and `bonus`
+(B x N agents, float32). A row that was never counted (n = 0; the learner may ingest a
+batch before the counter does) is answered with its count as it is (0) and the bonus
+of a key seen once (beta); such rows are counted in the stat `uncounted_rows_queried`.
+Modes none/constant have no tables: counts is (0, B), bonus is 0 / beta.
+
+Durability: data_dir/counter/<run>/ holds `config.json` and `assign.json` (written at
+start), `wal.bin`, and `snapshot.npz` (tables as key/count arrays plus a `meta` array
+holding JSON: expected numbers, table totals and stats; one file, replaced
+atomically, loaded with allow_pickle=False). A snapshot is taken every
+`snapshot_s` (MACB_COUNTER_SNAPSHOT_S, default 5 s) when something changed, on
+stop and on shutdown; then the log is truncated. On startup every run directory
+without a `stopped` marker is restored: snapshot, then log records not already in
+it (by seq). Duplicate/gap tallies since the last snapshot are not logged and so
+are not restored; counts and expected numbers are.
+
+A start for a run whose directory carries a `stopped` marker starts it afresh (the
+old directory is moved to data_dir/counter/.archive/); a start for an unfinished
+run with the same config resumes it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.common import ServiceBase
+from services.counter.wal import WalRecord, WriteAheadLog
+from shared.bus import k_ack, k_bonus, k_status, k_transitions, run_of
+from shared.config import TrainConfig, make_config
+from shared.counting import CountTable
+from shared.exploration import CountExploration
+from shared.tasks import task_spec
+from shared.trainer import build_exploration
+from shared.wire import WireError, check_dims, encode
+
+DEFAULT_SNAPSHOT_S = 5.0
+STATS_S = 1.0
+LATENCY_WINDOW = 1000
+SNAPSHOT_FORMAT = 1
+_RUN_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,127}")
+
+
+@dataclass
+class RunState:
+    """One run's tables, expected numbers, log and stats."""
+
+    config: TrainConfig
+    explorer: CountExploration
+    obs_dim: int
+    act_dim: int
+    path: Path
+    wal: WriteAheadLog
+    expected: dict[str, int] = field(default_factory=dict)
+    counted: int = 0
+    duplicates: int = 0
+    gaps: int = 0
+    run_rejects: int = 0
+    queries: int = 0
+    uncounted_rows_queried: int = 0
+    snapshots: int = 0
+    dirty: bool = False
+    latencies: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    rate: float = 0.0
+    rate_t: float = field(default_factory=time.monotonic)
+    rate_counted: int = 0
+    closed: bool = False
+    learner: str | None = None  # the run ends for the counter when its learner completes
+
+
+class CounterService(ServiceBase):
+    role = "counter"
+    max_runs = 1_000_000  # it owns the tables of every active run
+
+    def __init__(
+        self,
+        service_id: str,
+        connect: list[str] | None,
+        data_dir: Path,
+        snapshot_s: float | None = None,
+        stats_s: float = STATS_S,
+    ) -> None:
+        # Set before the base class declares the info queryable (it calls info()).
+        self._lock = threading.RLock()  # tables and run states: ingestion vs queries/info
+        self._reject_lock = threading.Lock()
+        self._runs: dict[str, RunState] = {}
+        self._ready = False
+        if snapshot_s is None:
+            snapshot_s = float(os.environ.get("MACB_COUNTER_SNAPSHOT_S", DEFAULT_SNAPSHOT_S))
+        self.snapshot_s = snapshot_s
+        self.stats_s = stats_s
+        super().__init__(service_id, connect, data_dir)
+        self.root = self.data_dir / "counter"
+        self.root.mkdir(parents=True, exist_ok=True)
+        # Subscribe before restoring: batches arriving meanwhile wait in the inbox.
+        self.listen(k_transitions("*", "*"), "transitions")
+        self.listen(k_status("*", "*"), "status")
+        self._restore_all()
+        self.bus.queryable(k_bonus("*"), self._on_bonus)
+        now = time.monotonic()
+        self._next_stats = now + self.stats_s
+        self._next_snapshot = now + self.snapshot_s
+        self._ready = True
+        self.log.info("counter %s ready (data in %s)", self.id, self.root)
+
+    # ------------------------------------------------------------ run lifecycle
+    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        if not _RUN_ID.fullmatch(run):
+            raise ValueError(f"run id {run!r} is not a safe directory name")
+        path = self.root / run
+        if path.exists():
+            saved = _read_json(path / "config.json")
+            if (path / "stopped").exists() or saved != config.model_dump(mode="json"):
+                why = "was stopped" if (path / "stopped").exists() else "had another config"
+                dest = self._archive(path)
+                self.log.warning("run %s %s: old state moved to %s", run, why, dest)
+        path.mkdir(parents=True, exist_ok=True)
+        _write_json(path / "config.json", config.model_dump(mode="json"))
+        _write_json(path / "assign.json", assign)
+        st, replayed = self._open_run(run, config, path)
+        if replayed or st.counted:
+            self.log.info(
+                "resumed run %s: %d counted, %d keys, %d WAL records replayed",
+                run,
+                st.counted,
+                sum(len(t) for t in st.explorer.tables),
+                replayed,
+            )
+        else:
+            self.log.info(
+                "started run %s: %s %s k=%d, %d table(s)",
+                run,
+                config.task,
+                config.explore,
+                config.k,
+                len(st.explorer.tables),
+            )
+        self.publish_status(run, "running", counted=st.counted)
+
+    def on_stop(self, run: str, reason: str) -> None:
+        st = self._runs.get(run)
+        if st is None:
+            return
+        self._snapshot(run, st)
+        _write_json(st.path / "stopped", {"reason": reason, "time": time.time()})
+        self.log.info(
+            "stopped run %s (%s): %d counted, %d keys",
+            run,
+            reason,
+            st.counted,
+            sum(len(t) for t in st.explorer.tables),
+        )
+
+    def free(self, run: str) -> None:
+        with self._lock:
+            st = self._runs.pop(run, None)
+            if st is not None:
+                st.closed = True
+        if st is not None:
+            st.wal.close()
+        super().free(run)
+
+    def on_shutdown(self) -> None:
+        for run, st in list(self._runs.items()):
+            try:
+                self._snapshot(run, st)
+            except Exception:
+                self.log.exception("snapshot of run %s failed at shutdown", run)
+            st.wal.close()
+        self.log.info("counter %s shut down; %d run(s) saved", self.id, len(self._runs))
+
+    def _open_run(self, run: str, config: TrainConfig, path: Path) -> tuple[RunState, int]:
+        """Build the run's tables, load its snapshot and log; register it. Returns replayed."""
+        spec = task_spec(config.task, config.agents, config.episode_len)
+        explorer = build_exploration(config, spec)
+        wal, records = WriteAheadLog.open(path / "wal.bin")
+        st = RunState(
+            config=config,
+            explorer=explorer,
+            obs_dim=spec.joint_obs_dim,
+            act_dim=spec.joint_act_dim,
+            path=path,
+            wal=wal,
+        )
+        try:
+            if (path / "snapshot.npz").exists():
+                self._load_snapshot(st)
+            replayed = self._replay(run, st, records)
+        except Exception:
+            wal.close()
+            raise
+        st.rate_counted = st.counted
+        if (path / "assign.json").exists():
+            st.learner = (_read_json(path / "assign.json") or {}).get("learner")
+        with self._lock:
+            self._runs[run] = st
+        if replayed:
+            self._snapshot(run, st)  # fold the log into a snapshot right away
+        return st, replayed
+
+    def _restore_all(self) -> None:
+        """Resume every run this counter had not finished (no `stopped` marker)."""
+        for path in sorted(self.root.iterdir()):
+            if not path.is_dir() or path.name.startswith(".") or (path / "stopped").exists():
+                continue
+            if not (path / "config.json").exists():
+                continue
+            run = path.name
+            try:
+                config = make_config(_read_json(path / "config.json"))
+                self.active[run] = config
+                st, replayed = self._open_run(run, config, path)
+            except Exception:
+                self.log.exception("could not restore run %s from %s", run, path)
+                self.active.pop(run, None)
+                continue
+            self.log.info(
+                "restored run %s: %d counted, %d keys, %d WAL records replayed",
+                run,
+                st.counted,
+                sum(len(t) for t in st.explorer.tables),
+                replayed,
+            )
+            self.publish_status(run, "running", restored=True, counted=st.counted)
+            self._ack(run, st)
+
+    def _archive(self, path: Path) -> Path:
+        archive = self.root / ".archive"
+        archive.mkdir(exist_ok=True)
+        dest = archive / f"{path.name}.{time.strftime('%Y%m%d-%H%M%S')}.{time.time_ns()}"
+        shutil.move(str(path), str(dest))
+        return dest
+
+    # ------------------------------------------------------------ snapshots
+    def _snapshot(self, run: str, st: RunState) -> None:
+        """Tables + expected + stats into snapshot.npz (atomic replace), then empty the log.
+
+        Runs on the service thread, the only writer of the tables, so reading them
+        needs no lock (queries only read too).
+        """
+        arrays: dict[str, np.ndarray] = {}
+        for t, table in enumerate(st.explorer.tables):
+            keys, counts = table.to_arrays()
+            arrays[f"keys{t}"] = keys
+            arrays[f"counts{t}"] = counts
+        meta = {
+            "format": SNAPSHOT_FORMAT,
+            "run": run,
+            "time": time.time(),
+            "expected": dict(st.expected),
+            "totals": [t.total for t in st.explorer.tables],
+            "key_bytes": [t.key_bytes for t in st.explorer.tables],
+            "stats": {
+                "counted": st.counted,
+                "duplicates": st.duplicates,
+                "gaps": st.gaps,
+                "run_rejects": st.run_rejects,
+                "queries": st.queries,
+                "uncounted_rows_queried": st.uncounted_rows_queried,
+                "snapshots": st.snapshots + 1,
+            },
+        }
+        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+        final = st.path / "snapshot.npz"
+        tmp = st.path / "snapshot.npz.tmp"
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, final)
+        st.wal.truncate()
+        st.snapshots += 1
+        st.dirty = False
+
+    def _load_snapshot(self, st: RunState) -> None:
+        with np.load(st.path / "snapshot.npz", allow_pickle=False) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+            tables = st.explorer.tables
+            if len(meta["totals"]) != len(tables):
+                have = len(meta["totals"])
+                raise ValueError(f"snapshot has {have} tables, run has {len(tables)}")
+            for t, table in enumerate(tables):
+                keys, counts = z[f"keys{t}"], z[f"counts{t}"]
+                if keys.ndim != 2 or keys.shape[1] != table.key_bytes:
+                    raise ValueError(f"snapshot table {t} has keys {keys.shape}")
+                tables[t] = CountTable.from_arrays(keys, counts, meta["totals"][t])
+        st.expected = {str(a): int(s) for a, s in meta["expected"].items()}
+        stats = meta["stats"]
+        st.counted = int(stats["counted"])
+        st.duplicates = int(stats["duplicates"])
+        st.gaps = int(stats["gaps"])
+        st.run_rejects = int(stats.get("run_rejects", 0))
+        st.queries = int(stats.get("queries", 0))
+        st.uncounted_rows_queried = int(stats.get("uncounted_rows_queried", 0))
+        st.snapshots = int(stats.get("snapshots", 0))
+
+    def _replay(self, run: str, st: RunState, records: list[WalRecord]) -> int:
+        """Apply logged batches the snapshot does not hold yet (dedup by seq)."""
+        replayed = 0
+        for rec in records:
+            exp = st.expected.get(rec.actor, 0)
+            if rec.seq + rec.n <= exp:
+                continue  # already in the snapshot (killed between snapshot and truncate)
+            if rec.seq > exp:
+                self.log.error(
+                    "run %s: WAL record %s@%d is past expected %d: skipped",
+                    run,
+                    rec.actor,
+                    rec.seq,
+                    exp,
+                )
+                continue
+            if len(rec.keys) != len(st.explorer.tables):
+                have, want = len(rec.keys), len(st.explorer.tables)
+                raise ValueError(f"WAL record has {have} tables, run has {want}")
+            skip = exp - rec.seq
+            for table, keys in zip(st.explorer.tables, rec.keys):
+                table.increment(keys[skip:])
+            st.expected[rec.actor] = rec.seq + rec.n
+            st.counted += rec.n - skip
+            replayed += 1
+        return replayed
+
+    # ------------------------------------------------------------ ingestion
+    def handle(self, tag: str, key: str, payload: bytes) -> None:
+        if tag == "status":
+            self._on_status(key, payload)
+            return
+        if tag != "transitions":
+            return
+        msg = self.decode_for_run(key, payload, "transitions")
+        if msg is None:
+            return
+        run = msg["run"]
+        st = self._runs.get(run)
+        if st is None:
+            self.reject(key, f"unknown run: {run}")
+            return
+        actor = msg["actor"]
+        if key.rsplit("/", 1)[-1] != actor:
+            with self._lock:
+                st.run_rejects += 1
+            self.reject(key, f"actor mismatch: key and message name different actors ({actor})")
+            return
+        try:
+            check_dims(msg, st.obs_dim, st.act_dim)
+        except WireError as err:
+            with self._lock:
+                st.run_rejects += 1
+            self.reject(key, str(err))
+            return
+        self._ingest(run, st, actor, msg["seq"], msg["obs"], msg["act"])
+
+    def _on_status(self, key: str, payload: bytes) -> None:
+        """The run's learner completed or failed: publish final stats, snapshot, free."""
+        run = run_of(key)
+        st = self._runs.get(run) if run else None
+        if st is None or st.learner is None or key.rsplit("/", 1)[-1] != st.learner:
+            return  # other services' status: not ours to act on
+        msg = self.decode_for_run(key, payload, "status")
+        if msg is None or msg["state"] not in ("completed", "failed"):
+            return
+        self.publish_metrics(run, self._run_stats(st), source="counter")
+        self.on_stop(run, f"learner {msg['state']}")
+        self.publish_status(run, msg["state"], **self._run_stats(st))
+        self.free(run)
+
+    def _ingest(
+        self, run: str, st: RunState, actor: str, seq: int, obs: np.ndarray, act: np.ndarray
+    ) -> None:
+        n = len(obs)
+        exp = st.expected.get(actor, 0)
+        if seq + n <= exp:
+            st.duplicates += n
+        elif seq > exp:
+            st.gaps += 1
+        else:
+            skip = exp - seq
+            if skip:
+                st.duplicates += skip
+                obs, act = obs[skip:], act[skip:]
+            keys = st.explorer.keys(obs, act)  # hashing needs no lock (hashers are read-only)
+            st.wal.append(actor, exp, n - skip, keys)  # logged before counted and acked
+            with self._lock:
+                for table, k in zip(st.explorer.tables, keys):
+                    table.increment(k)
+                st.expected[actor] = seq + n
+                st.counted += n - skip
+            st.dirty = True
+        self._ack(run, st)
+
+    def _ack(self, run: str, st: RunState) -> None:
+        with self._lock:
+            acked = dict(st.expected)
+        ack = encode("ack", run, service=self.id, acked=acked, window=0)
+        self.bus.put(k_ack(run, self.id), ack)
+
+    # ------------------------------------------------------------ bonus queries
+    def _on_bonus(self, key: str, payload: bytes) -> bytes | None:
+        """On Zenoh's thread: counts and bonus for B rows, or None (rejected, no reply)."""
+        t0 = time.perf_counter()
+        msg = self.decode_for_run(key, payload, "bonus_query")
+        if msg is None:
+            return None
+        run = msg["run"]
+        with self._lock:
+            st = self._runs.get(run)
+        if st is None:
+            self.reject(key, f"unknown run: {run}")
+            return None
+        obs, act = msg["obs"], msg["act"]
+        if obs.ndim != 2 or act.ndim != 2 or len(obs) != len(act):
+            with self._lock:
+                st.run_rejects += 1
+            self.reject(key, "bonus_query: obs and act must be (B, dim) with the same B")
+            return None
+        try:
+            check_dims(msg, st.obs_dim, st.act_dim)
+        except WireError as err:
+            with self._lock:
+                st.run_rejects += 1
+            self.reject(key, str(err))
+            return None
+        batch = len(obs)
+        keys = st.explorer.keys(obs, act)
+        with self._lock:
+            if st.closed:
+                return None
+            counts = [t.counts(k) for t, k in zip(st.explorer.tables, keys)]
+        if counts:
+            counts_arr = np.stack(counts).astype(np.int64)
+            uncounted = int(np.sum(np.any(counts_arr < 1, axis=0)))
+        else:
+            counts_arr = np.zeros((0, batch), np.int64)
+            uncounted = 0
+        bonus = st.explorer.bonus_from_counts([np.maximum(c, 1) for c in counts], batch)
+        reply = encode("bonus_reply", run, counts=counts_arr, bonus=bonus.astype(np.float32))
+        elapsed = time.perf_counter() - t0
+        with self._lock:
+            st.latencies.append(elapsed)
+            st.queries += 1
+            st.uncounted_rows_queried += uncounted
+        return reply
+
+    # ------------------------------------------------------------ stats, timers
+    def tick(self) -> None:
+        now = time.monotonic()
+        if now >= self._next_stats:
+            self._next_stats = now + self.stats_s
+            for run, st in list(self._runs.items()):
+                dt = now - st.rate_t
+                if dt > 0:
+                    st.rate = (st.counted - st.rate_counted) / dt
+                st.rate_t, st.rate_counted = now, st.counted
+                self.publish_metrics(run, self._run_stats(st), source="counter")
+                if st.expected:
+                    self._ack(run, st)  # repeated: a restarted actor or a lost ack catches up
+        if now >= self._next_snapshot:
+            self._next_snapshot = now + self.snapshot_s
+            for run, st in list(self._runs.items()):
+                if st.dirty:
+                    try:
+                        self._snapshot(run, st)
+                    except OSError:
+                        self.log.exception("snapshot of run %s failed (the log keeps it)", run)
+
+    def _run_stats(self, st: RunState) -> dict[str, Any]:
+        with self._lock:
+            lat = np.asarray(st.latencies, dtype=np.float64) * 1000.0
+            base = st.explorer.stats()
+            memory = sum(t.memory_bytes() for t in st.explorer.tables)
+            data = {
+                "table_size": int(base["table_size"]),
+                "count1_pct": float(base["count1_pct"]),
+                "counted_transitions": st.counted,
+                "duplicates": st.duplicates,
+                "gaps": st.gaps,
+                "rejects_total": self._rejects_total(),
+                "run_rejects": st.run_rejects,
+                "memory_bytes": int(memory),
+                "transitions_per_sec": round(st.rate, 3),
+                "query_p50_ms": float(np.percentile(lat, 50)) if lat.size else 0.0,
+                "query_p99_ms": float(np.percentile(lat, 99)) if lat.size else 0.0,
+                "queries": st.queries,
+                "uncounted_rows_queried": st.uncounted_rows_queried,
+                "wal_records": st.wal.records,
+                "snapshots": st.snapshots,
+                "actors": len(st.expected),
+            }
+        return data
+
+    def _rejects_total(self) -> int:
+        with self._reject_lock:
+            return sum(self.rejects.values())
+
+    def reject(self, key: str, reason: str) -> None:
+        with self._reject_lock:  # called from the service thread and Zenoh's
+            super().reject(key, reason)
+
+    def info(self) -> dict[str, Any]:
+        with self._reject_lock:
+            out = super().info()
+        with self._lock:
+            runs = list(self._runs.items())
+        stats = {}
+        for run, st in runs:
+            stats[run] = self._run_stats(st)
+            with self._lock:
+                stats[run]["acked"] = dict(st.expected)
+        out["runs"] = stats
+        out["ready"] = self._ready
+        out["snapshot_s"] = self.snapshot_s
+        return out
+
+
+def _write_json(path: Path, data: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def make_service(service_id: str, connect: list[str], data_dir: Path) -> CounterService:
+    return CounterService(service_id, connect, data_dir)

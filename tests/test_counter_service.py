@@ -1,0 +1,406 @@
+"""The counter service against a real router and a real `macb serve counter` process.
+
+The test plays the actors and the learner: it publishes numbered transition batches,
+watches the counter's acks and asks it for bonuses. Expected counts come from a
+CountExploration built in the test with the run's config (same SimHash seed), fed the
+unique transitions, so every reply is checked exactly, not just its shape.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+from collections import defaultdict
+
+import msgpack
+import numpy as np
+import pytest
+
+from services.counter.wal import WriteAheadLog, read_wal
+from shared.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
+from shared.config import make_config
+from shared.tasks import task_spec
+from shared.trainer import build_exploration
+from shared.wire import decode, encode
+from tests.conftest import wait_for
+
+OBS, ACT = 14, 5  # speaker_listener: joint obs 3 + 11, joint act 3 + 2
+ASSIGN = {"counter": "c0", "learner": "L", "actors": ["a0", "a1"], "evaluator": "e"}
+BASE = {"task": "speaker_listener", "algo": "cen-maddpg", "explore": "cen-macb", "k": 64}
+
+
+class Stream:
+    """One actor's transitions, numbered from 0; batches are slices of it."""
+
+    def __init__(self, seed: int, n: int) -> None:
+        rng = np.random.default_rng(seed)
+        self.obs = rng.uniform(-1, 1, (n, OBS)).astype(np.float32)
+        self.act = rng.uniform(-1, 1, (n, ACT)).astype(np.float32)
+
+    def __len__(self) -> int:
+        return len(self.obs)
+
+
+def transitions(run: str, actor: str, seq: int, obs: np.ndarray, act: np.ndarray) -> bytes:
+    n = len(obs)
+    return encode(
+        "transitions",
+        run,
+        actor=actor,
+        seq=seq,
+        obs=obs,
+        act=act,
+        rew=np.zeros(n, np.float32),
+        next_obs=obs,
+        done=np.zeros(n, np.float32),
+        collisions=np.zeros(n, np.int32),
+        policy_version=0,
+    )
+
+
+def model(config: dict, streams: list[Stream]):
+    """The counts the counter must hold: the unique transitions of every stream."""
+    cfg = make_config(config)
+    explorer = build_exploration(cfg, task_spec(cfg.task, cfg.agents, cfg.episode_len))
+    for s in streams:
+        explorer.observe(s.obs, s.act)
+    return explorer
+
+
+class Counter:
+    """The counter process, seen from outside: launch, info, runs, batches, queries, acks."""
+
+    def __init__(self, bus, procs, data_dir, monkeypatch) -> None:
+        self.bus, self.procs, self.data_dir, self.mp = bus, procs, data_dir, monkeypatch
+        self.launches = 0
+        self.name = ""
+        self._lock = threading.Lock()
+        self.acks: dict[str, dict[str, int]] = {}
+        self.ack_history: dict[str, list[dict[str, int]]] = defaultdict(list)
+        bus.subscribe(k_ack("*", "c0"), self._on_ack)
+
+    def _on_ack(self, key: str, payload: bytes) -> None:
+        msg = decode(payload, "ack")
+        with self._lock:
+            self.acks[msg["run"]] = dict(msg["acked"])
+            self.ack_history[msg["run"]].append(dict(msg["acked"]))
+
+    def acked(self, run: str) -> dict[str, int]:
+        with self._lock:
+            return dict(self.acks.get(run, {}))
+
+    def launch(self, snapshot_s: float = 5.0) -> None:
+        self.launches += 1
+        self.name = f"counter-{self.launches}"
+        self.mp.setenv("MACB_COUNTER_SNAPSHOT_S", str(snapshot_s))
+        self.procs.start(self.name, "counter", "--id", "c0", "--data-dir", str(self.data_dir))
+        wait_for(lambda: (i := self.info()) and i["ready"], 30, what=f"{self.name} ready")
+
+    def kill(self, sig: int = signal.SIGKILL) -> None:
+        self.procs.kill(self.name, sig)
+
+    def alive(self) -> bool:
+        return self.procs.procs[self.name].poll() is None
+
+    def log(self) -> str:
+        return self.procs.log(self.name)
+
+    def info(self) -> dict | None:
+        replies = self.bus.get(k_info("counter", "c0"), timeout=1.0)
+        return json.loads(replies[0]) if replies else None
+
+    def stats(self, run: str) -> dict:
+        info = self.info()
+        assert info is not None, "the counter does not answer"
+        return info["runs"][run]
+
+    def start_run(self, run: str, **over) -> dict:
+        config = {**BASE, **over}
+        self.bus.put(k_control("start"), encode("start", run, config=config, assign=ASSIGN))
+        wait_for(lambda: run in (self.info() or {}).get("runs", {}), 20, what=f"run {run}")
+        return config
+
+    def send(self, run: str, actor: str, stream: Stream, seq: int, n: int) -> None:
+        sl = slice(seq, seq + n)
+        payload = transitions(run, actor, seq, stream.obs[sl], stream.act[sl])
+        self.bus.put(k_transitions(run, actor), payload)
+
+    def wait_acked(self, run: str, want: dict[str, int], timeout: float = 20) -> None:
+        wait_for(lambda: self.acked(run) == want, timeout, what=f"acks {want}")
+
+    def query(self, run: str, obs: np.ndarray, act: np.ndarray) -> dict | None:
+        replies = self.bus.get(k_bonus(run), encode("bonus_query", run, obs=obs, act=act), 2.0)
+        assert len(replies) <= 1
+        return decode(replies[0], "bonus_reply") if replies else None
+
+
+@pytest.fixture
+def counter(bus, procs, tmp_path, monkeypatch):
+    return Counter(bus, procs, tmp_path / "data", monkeypatch)
+
+
+def test_exactly_once_per_actor_with_duplicates_gaps_and_overlap(counter):
+    counter.launch()
+    run = "r-once"
+    config = counter.start_run(run)
+    a0, a1 = Stream(1, 23), Stream(2, 7)
+    counter.send(run, "a0", a0, 0, 5)
+    counter.send(run, "a0", a0, 5, 5)
+    counter.send(run, "a0", a0, 5, 5)  # repeated: 5 duplicates
+    counter.send(run, "a0", a0, 15, 5)  # out of order: a gap, dropped
+    counter.send(run, "a1", a1, 0, 7)
+    counter.send(run, "a0", a0, 10, 5)  # the missing batch
+    counter.send(run, "a0", a0, 15, 5)  # the dropped batch, resent
+    counter.send(run, "a0", a0, 18, 5)  # overlaps 18, 19: 2 duplicates, 3 new
+    counter.send(run, "a1", a1, 0, 7)  # 7 duplicates
+    counter.wait_acked(run, {"a0": 23, "a1": 7})
+
+    s = counter.stats(run)
+    assert s["counted_transitions"] == 30
+    assert s["duplicates"] == 5 + 2 + 7
+    assert s["gaps"] == 1
+    assert s["acked"] == {"a0": 23, "a1": 7}
+    history = [h.get("a0", 0) for h in counter.ack_history[run]]
+    assert history == sorted(history), "acks never go back"
+    assert 10 in history, "the gap was answered with the expected seq (10)"
+
+    truth = model(config, [a0, a1])
+    assert s["table_size"] == len(truth.tables[0])
+    obs = np.concatenate([a0.obs, a1.obs])
+    act = np.concatenate([a0.act, a1.act])
+    reply = counter.query(run, obs, act)
+    assert reply is not None
+    counts = reply["counts"]
+    assert counts.shape == (1, 30) and counts.dtype == np.int64
+    assert np.array_equal(counts, np.stack(truth.counts(obs, act)))
+    assert counts.min() >= 1
+    beta = make_config(config).beta
+    np.testing.assert_allclose(reply["bonus"][:, 0], beta / np.sqrt(counts[0]), rtol=1e-6)
+    assert truth.tables[0].total == 30
+
+
+def test_bonus_reply_shapes_for_cen_dis_and_control_arms(counter):
+    counter.launch()
+    stream, unseen = Stream(3, 10), Stream(4, 3)
+    configs = {
+        "r-cen": counter.start_run("r-cen"),
+        "r-dis": counter.start_run("r-dis", algo="dis-maddpg", explore="dis-macb", beta=0.5),
+        "r-none": counter.start_run("r-none", explore="none"),
+        "r-const": counter.start_run("r-const", explore="constant", beta=0.3),
+    }
+    for run in configs:
+        counter.send(run, "a0", stream, 0, 10)
+    for run in configs:
+        counter.wait_acked(run, {"a0": 10})
+    obs = np.concatenate([stream.obs, unseen.obs])
+    act = np.concatenate([stream.act, unseen.act])
+    b = len(obs)
+
+    for run in ("r-cen", "r-dis"):
+        truth = model(configs[run], [stream])
+        beta = make_config(configs[run]).beta
+        reply = counter.query(run, obs, act)
+        counts, bonus = reply["counts"], reply["bonus"]
+        want = np.stack(truth.counts(obs, act))
+        assert counts.shape == (len(truth.tables), b) and bonus.shape == (b, 2)
+        assert bonus.dtype == np.float32
+        assert np.array_equal(counts, want)
+        assert np.all(counts[:, :10] >= 1) and np.all(counts[:, 10:] == 0)
+        per_table = beta / np.sqrt(np.maximum(counts, 1))  # never counted: priced as n = 1
+        if run == "r-cen":
+            np.testing.assert_allclose(bonus[:, 0], bonus[:, 1])  # one bonus for all agents
+            np.testing.assert_allclose(bonus[:, 0], per_table[0], rtol=1e-6)
+        else:
+            np.testing.assert_allclose(bonus, per_table.T, rtol=1e-6)  # each agent its own
+        assert counter.stats(run)["uncounted_rows_queried"] == 3
+
+    none = counter.query("r-none", obs, act)
+    assert none["counts"].shape == (0, b) and np.array_equal(none["bonus"], np.zeros((b, 2)))
+    const = counter.query("r-const", obs, act)
+    assert const["counts"].shape == (0, b)
+    np.testing.assert_allclose(const["bonus"], np.full((b, 2), 0.3, np.float32))
+    assert counter.stats("r-none")["counted_transitions"] == 10  # numbered even if not hashed
+
+    # Latency of learner-sized queries (100 rows), as the stats report it.
+    big = Stream(5, 100)
+    for _ in range(200):
+        assert counter.query("r-cen", big.obs, big.act) is not None
+    s = counter.stats("r-cen")
+    assert s["queries"] == 1 + 200
+    assert 0 < s["query_p50_ms"] <= s["query_p99_ms"] < 1000
+    print(f"\nbonus query (B=100) p50 {s['query_p50_ms']:.3f} ms, p99 {s['query_p99_ms']:.3f} ms")
+
+
+def test_sigkill_and_restart_lose_nothing_acknowledged(counter):
+    counter.launch(snapshot_s=3600)  # no timed snapshot: the log alone must carry the counts
+    run = "r-kill"
+    config = counter.start_run(run)
+    n_batches, n = 50, 25
+    streams = {"a0": Stream(6, n_batches * n), "a1": Stream(7, n_batches * n)}
+
+    # Phase 1: 10 batches per actor, all acknowledged, then SIGKILL.
+    for b in range(10):
+        for actor, s in streams.items():
+            counter.send(run, actor, s, b * n, n)
+    counter.wait_acked(run, {"a0": 250, "a1": 250})
+    counter.kill()
+    counter.launch(snapshot_s=3600)
+    s = counter.stats(run)
+    assert s["counted_transitions"] == 500 and s["acked"] == {"a0": 250, "a1": 250}
+    assert f"restored run {run}: 500 counted" in counter.log()
+    assert "20 WAL records replayed" in counter.log()
+
+    # Phase 2: 40 more batches per actor, paced; SIGKILL while acks are coming in.
+    def stream_phase2() -> None:
+        for b in range(10, n_batches):
+            for actor, st in streams.items():
+                counter.send(run, actor, st, b * n, n)
+            time.sleep(0.005)
+
+    sender = threading.Thread(target=stream_phase2)
+    sender.start()
+    wait_for(lambda: counter.acked(run).get("a0", 0) >= 500, 20, what="phase 2 acks")
+    counter.kill()
+    seen = counter.acked(run)  # what the actors know was acknowledged
+    sender.join()
+    counter.launch(snapshot_s=3600)
+    s = counter.stats(run)
+    for actor in streams:
+        assert s["acked"][actor] >= seen[actor], "an acknowledged batch was lost"
+    assert s["counted_transitions"] == sum(s["acked"].values())
+    assert "WAL records replayed" in counter.log()
+
+    # The actors resend everything not acknowledged (from what they saw, so some twice).
+    for actor, st in streams.items():
+        for seq in range(seen[actor], n_batches * n, n):
+            counter.send(run, actor, st, seq, n)
+    total = n_batches * n
+    counter.wait_acked(run, {"a0": total, "a1": total})
+    s = counter.stats(run)
+    assert s["counted_transitions"] == 2 * total
+    truth = model(config, list(streams.values()))
+    obs = np.concatenate([st.obs for st in streams.values()])
+    act = np.concatenate([st.act for st in streams.values()])
+    reply = counter.query(run, obs, act)
+    assert np.array_equal(reply["counts"], np.stack(truth.counts(obs, act)))
+    assert s["table_size"] == len(truth.tables[0])
+
+
+def test_garbage_is_dropped_counted_and_harmless(counter):
+    counter.launch()
+    run = "r-bad"
+    counter.start_run(run)
+    good = Stream(8, 20)
+    counter.send(run, "a0", good, 0, 10)
+    counter.wait_acked(run, {"a0": 10})
+    before = counter.info()["rejects_total"]
+    key = k_transitions(run, "a0")
+    ok = transitions(run, "a0", 10, good.obs[10:15], good.act[10:15])
+
+    counter.bus.put(key, b"\x00\xffnot msgpack at all")
+    v2 = msgpack.unpackb(ok, raw=False)
+    v2["v"] = 2
+    counter.bus.put(key, msgpack.packb(v2, use_bin_type=True))
+    counter.bus.put(
+        k_transitions("nope", "a0"), transitions("nope", "a0", 10, good.obs[:5], good.act[:5])
+    )
+    wide = np.zeros((5, OBS - 1), np.float32)
+    counter.bus.put(key, transitions(run, "a0", 10, wide, good.act[:5]))  # wrong dims
+    nan = good.obs[10:15].copy()
+    nan[0, 0] = np.nan
+    counter.bus.put(key, transitions(run, "a0", 10, nan, good.act[10:15]))  # non-finite
+    counter.bus.put(k_transitions(run, "a1"), ok)  # key names a1, message a0
+    counter.bus.put(k_transitions("r-other", "a0"), ok)  # key and message runs differ
+    sent = 7
+    # Queries that get no reply: garbage, wrong dims, unknown run.
+    assert counter.bus.get(k_bonus(run), b"garbage", timeout=1.0) == []
+    assert counter.query(run, wide, good.act[:5]) is None
+    assert counter.query("nope", good.obs[:5], good.act[:5]) is None
+    sent += 3
+
+    wait_for(lambda: counter.info()["rejects_total"] == before + sent, 10, what=f"{sent} rejects")
+    info = counter.info()
+    for reason in ("undecodable payload", "unknown run", "actor mismatch", "run mismatch"):
+        assert info["rejects"].get(reason, 0) >= 1, (reason, info["rejects"])
+    assert any(r.startswith("schema version 2") for r in info["rejects"])
+    assert counter.alive()
+    s = info["runs"][run]
+    assert s["counted_transitions"] == 10 and s["acked"] == {"a0": 10}
+    assert s["run_rejects"] == 4  # dims, non-finite, actor mismatch, query dims
+
+    counter.bus.put(key, ok)  # still working
+    counter.wait_acked(run, {"a0": 15})
+    assert counter.stats(run)["counted_transitions"] == 15
+
+
+def test_stop_snapshots_and_frees_the_run_and_shutdown_saves_the_rest(counter):
+    counter.launch()
+    stopped, kept = "r-stop", "r-keep"
+    counter.start_run(stopped)
+    counter.start_run(kept)
+    stream = Stream(9, 10)
+    statuses: list[dict] = []
+    counter.bus.subscribe(k_status(stopped, "c0"), lambda k, p: statuses.append(decode(p)))
+    for run in (stopped, kept):
+        counter.send(run, "a0", stream, 0, 10)
+    for run in (stopped, kept):
+        counter.wait_acked(run, {"a0": 10})
+
+    counter.bus.put(k_control("stop"), encode("stop", stopped, reason="test over"))
+    wait_for(lambda: stopped not in counter.info()["runs"], 10, what="run freed")
+    path = counter.data_dir / "counter" / stopped
+    assert (path / "stopped").exists()
+    with np.load(path / "snapshot.npz", allow_pickle=False) as z:
+        meta = json.loads(bytes(z["meta"]).decode())
+        assert meta["expected"] == {"a0": 10} and int(z["counts0"].sum()) == 10
+    wait_for(lambda: any(m["state"] == "stopped" for m in statuses), 5, what="stopped status")
+    assert counter.query(stopped, stream.obs, stream.act) is None  # no longer served
+    assert kept in counter.info()["runs"]
+
+    # SIGTERM: the kept run is snapshotted (log emptied); a restart resumes only that one.
+    counter.kill(signal.SIGTERM)
+    counter.launch()
+    info = counter.info()
+    assert list(info["runs"]) == [kept]
+    assert info["runs"][kept]["counted_transitions"] == 10
+    assert f"restored run {kept}: 10 counted, 10 keys, 0 WAL records replayed" in counter.log()
+
+    # Starting the stopped run's id again starts it afresh; the old state is archived.
+    counter.start_run(stopped)
+    assert counter.stats(stopped)["counted_transitions"] == 0
+    assert len(list((counter.data_dir / "counter" / ".archive").iterdir())) == 1
+
+
+def test_wal_round_trip_and_torn_tail(tmp_path):
+    path = tmp_path / "wal.bin"
+    wal = WriteAheadLog(path)
+    keys = [np.arange(12, dtype=np.uint8).reshape(3, 4), np.ones((3, 2), np.uint8)]
+    wal.append("a0", 0, 3, keys)
+    wal.append("a1", 5, 1, [np.zeros((1, 4), np.uint8), np.zeros((1, 2), np.uint8)])
+    wal.append("a0", 3, 2, [])  # a run without tables logs only the numbers
+    wal.close()
+    records, valid, torn = read_wal(path)
+    assert not torn and valid == path.stat().st_size
+    assert [(r.actor, r.seq, r.n, len(r.keys)) for r in records] == [
+        ("a0", 0, 3, 2),
+        ("a1", 5, 1, 2),
+        ("a0", 3, 2, 0),
+    ]
+    assert np.array_equal(records[0].keys[0], keys[0])
+
+    with open(path, "ab") as f:  # a kill in the middle of a record
+        f.write(b"\x40\x00\x00\x00\x01\x02\x03")
+    wal, records = WriteAheadLog.open(path)
+    assert len(records) == 3 and path.stat().st_size == valid, "the torn tail is cut"
+    wal.append("a1", 6, 1, [np.zeros((1, 4), np.uint8), np.zeros((1, 2), np.uint8)])
+    wal.truncate()
+    wal.append("a0", 5, 1, [])
+    wal.close()
+    assert [(r.actor, r.seq) for r in read_wal(path)[0]] == [("a0", 5)]
+
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 0xFF  # a flipped bit: the CRC refuses the record
+    path.write_bytes(bytes(data))
+    assert read_wal(path)[0] == [] and read_wal(path)[2]

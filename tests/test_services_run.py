@@ -1,0 +1,162 @@
+"""Whole runs on the real cluster: a router and real service processes on loopback."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from shared import bus as keys
+from shared.config import make_config
+from shared.control import discover, start_run
+from shared.wire import encode
+from tests.conftest import wait_for
+
+SMALL = {
+    "task": "speaker_listener",
+    "algo": "cen-maddpg",
+    "explore": "cen-macb",
+    "k": 64,
+    "episodes": 30,
+    "eval_every": 5,
+    "eval_episodes": 3,
+    "hidden": [64, 64],
+    "batch_size": 32,
+}
+
+
+def start_cluster(procs, tmp_path, actors=1):
+    data = str(tmp_path / "data")
+    for role in ("counter", "learner", "evaluator"):
+        procs.start(role, role, "--id", role, "--data-dir", data)
+    for r in range(actors):
+        procs.start(f"actor{r}", "actor", "--id", f"actor{r}", "--data-dir", data)
+    return data
+
+
+def wait_services(bus, n, timeout=60):
+    return wait_for(lambda: len(discover(bus)) >= n, timeout=timeout, what=f"{n} services")
+
+
+def info(bus, role, sid):
+    replies = bus.get(keys.k_info(role, sid), timeout=2.0)
+    return json.loads(replies[0]) if replies else None
+
+
+def check_exact(watch, actors, config):
+    """Counted == published, no duplicates or gaps, updates == collected - warm-up."""
+    assert watch.state() == "completed", (watch.state(), watch.states)
+    published = sum(watch.states[a]["final_seq"] for a in actors)
+    assert published == config.episodes * config.episode_len
+    counter = watch.latest["counter"]
+    assert counter["counted_transitions"] == published
+    assert counter["duplicates"] == 0 and counter["gaps"] == 0
+    learner = watch.states[watch.assign["learner"]]
+    assert learner["ingested"] == published
+    expected_updates = published - config.learning_starts
+    assert abs(learner["updates"] - expected_updates) <= 0.01 * expected_updates
+    assert learner["replay_ratio"] == pytest.approx(1.0, abs=0.01)
+    points = [r["episode"] for r in watch.rows]
+    assert sorted(points) == list(range(config.eval_every, config.episodes + 1, config.eval_every))
+    for r in watch.rows:
+        assert 0.0 <= r["success_rate"] <= 1.0
+        assert r["env_steps"] == r["episode"] * config.episode_len
+    return counter, learner
+
+
+@pytest.mark.parametrize("actors", [1, 2])
+def test_short_speaker_listener_cen_macb_run_is_exact(procs, bus, tmp_path, actors):
+    start_cluster(procs, tmp_path, actors)
+    wait_services(bus, 3 + actors)
+    config = make_config(SMALL)
+    watch = start_run(bus, config, actors=actors)
+    assert watch.wait(timeout=240) == "completed", watch.states
+    counter_stats = wait_for(lambda: watch.latest.get("counter"), what="counter stats")
+    assert counter_stats
+    # The counter publishes stats each second: wait for the final ones.
+    wait_for(
+        lambda: watch.latest["counter"]["counted_transitions"] == config.episodes * 20,
+        timeout=5,
+        what="final counter stats",
+    )
+    check_exact(watch, watch.assign["actors"], config)
+    # Actors saw the weights version rise, and stamped transitions with it.
+    for a in watch.assign["actors"]:
+        assert watch.states[a]["policy_version"] > 1
+    # Services are free again.
+    wait_for(lambda: all(not i.get("run") for i in discover(bus)), timeout=10, what="free")
+
+
+def test_counter_killed_mid_run_loses_no_count(procs, bus, tmp_path):
+    data = start_cluster(procs, tmp_path, 1)
+    wait_services(bus, 4)
+    config = make_config({**SMALL, "episodes": 60, "eval_every": 10})
+    watch = start_run(bus, config, actors=1)
+    wait_for(
+        lambda: watch.latest.get("counter", {}).get("counted_transitions", 0) >= 300,
+        timeout=120,
+        what="counting under way",
+    )
+    procs.kill("counter")  # SIGKILL by PID
+    time.sleep(1.5)
+    procs.start("counter2", "counter", "--id", "counter", "--data-dir", data)
+    assert watch.wait(timeout=300) == "completed", watch.states
+    wait_for(
+        lambda: watch.latest["counter"]["counted_transitions"] == 60 * 20,
+        timeout=10,
+        what="final counter stats after restart",
+    )
+    assert watch.latest["counter"]["gaps"] >= 0
+    published = watch.states["actor0"]["final_seq"]
+    assert watch.latest["counter"]["counted_transitions"] == published == 1200
+    assert "restored run" in procs.log("counter2")
+
+
+def test_garbage_on_every_key_is_dropped_counted_and_changes_nothing(procs, bus, tmp_path):
+    start_cluster(procs, tmp_path, 1)
+    wait_services(bus, 4)
+    config = make_config(SMALL)
+    watch = start_run(bus, config, actors=1)
+    run = watch.run
+    wait_for(lambda: watch.latest.get("learner"), timeout=60, what="learner running")
+    wrong_version = msgpack.packb({"v": 99, "type": "transitions", "run": run})
+    other_run = encode(
+        "transitions",
+        "no-such-run",
+        actor="actor0",
+        seq=0,
+        obs=np.zeros((20, 14), np.float32),
+        act=np.zeros((20, 5), np.float32),
+        rew=np.zeros(20, np.float32),
+        next_obs=np.zeros((20, 14), np.float32),
+        done=np.zeros(20, np.float32),
+        collisions=np.zeros(20, np.int32),
+        policy_version=0,
+    )
+    bad = [b"\x00garbage\xff", wrong_version, b""]
+    for payload in bad:
+        bus.put(keys.k_transitions(run, "actor0"), payload)
+        bus.put(keys.k_ack(run, "learner"), payload)
+        bus.put(keys.k_weights(run, "eval"), payload)
+        bus.put(keys.k_weights(run, "latest"), payload)
+        bus.put(keys.k_control("start"), payload)
+        bus.put(keys.k_control("stop"), payload)
+        assert bus.get(keys.k_bonus(run), payload, timeout=1.0) == []
+    bus.put(keys.k_transitions("no-such-run", "actor0"), other_run)
+    assert watch.wait(timeout=240) == "completed", watch.states
+    wait_for(
+        lambda: watch.latest["counter"]["counted_transitions"] == 600,
+        timeout=5,
+        what="final counter stats",
+    )
+    check_exact(watch, ["actor0"], config)
+    for role in ("counter", "learner", "evaluator", "actor"):
+        sid = "actor0" if role == "actor" else role
+        i = info(bus, role, sid)
+        assert i is not None, f"{role} is not answering"
+        assert i["rejects_total"] >= 3, (role, i["rejects"])
+    for name, p in procs.procs.items():
+        assert p.poll() is None, f"{name} died"
