@@ -13,6 +13,7 @@ assignment and is free. `macb/control/stop` ends a run.
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import queue
@@ -41,6 +42,8 @@ class ServiceBase:
         self._last_reject_log = 0.0
         self.stop_event = threading.Event()
         self.active: dict[str, TrainConfig] = {}  # runs served now, with their configs
+        self._run_subs: dict[str, list] = {}  # run -> its subscriptions
+        self.finished: collections.deque[str] = collections.deque(maxlen=64)
         self.bus = Bus(connect or keys.default_connect())
         self.listen(keys.k_control("start"), "start")
         self.listen(keys.k_control("stop"), "stop")
@@ -48,10 +51,19 @@ class ServiceBase:
         self.bus.token(keys.k_live(self.role, self.id))
 
     # ------------------------------------------------------------ plumbing
-    def listen(self, key_expr: str, tag: str) -> None:
-        """Subscribe; the callback only enqueues (tag, key, payload)."""
+    def listen(self, key_expr: str, tag: str, run: str | None = None) -> None:
+        """Subscribe; the callback only enqueues (tag, key, payload).
+
+        With `run`, the subscription belongs to that run and ends when the run is freed,
+        so a service never receives the traffic of runs other services serve.
+        """
         put = self.inbox.put
-        self.bus.subscribe(key_expr, lambda key, payload: put((tag, key, payload)))
+        self.subscribe(key_expr, lambda key, payload: put((tag, key, payload)), run)
+
+    def subscribe(self, key_expr: str, callback, run: str | None = None) -> None:
+        handle = self.bus.subscribe(key_expr, callback)
+        if run is not None:
+            self._run_subs.setdefault(run, []).append(handle)
 
     def reject(self, key: str, reason: str) -> None:
         """Drop a message: count it by reason and log it (at most once a second)."""
@@ -78,7 +90,8 @@ class ServiceBase:
             self.reject(key, "run mismatch: key and message name different runs")
             return None
         if not self.serves(run):
-            self.reject(key, f"unknown run: {run}")
+            if run not in self.finished:  # late traffic of a finished run is expected
+                self.reject(key, f"unknown run: {run}")
             return None
         return msg
 
@@ -163,6 +176,10 @@ class ServiceBase:
 
     def free(self, run: str) -> None:
         """Forget a run: the service is free for the next one."""
+        for handle in self._run_subs.pop(run, []):
+            self.bus.undeclare(handle)
+        if run in self.active:
+            self.finished.append(run)
         self.active.pop(run, None)
 
     # ------------------------------------------------------------ hooks

@@ -141,11 +141,21 @@ class Bus:
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self.session.put(key, payload, congestion_control=cc)
 
-    def subscribe(self, key_expr: str, callback: Callable[[str, bytes], None]) -> None:
+    def subscribe(self, key_expr: str, callback: Callable[[str, bytes], None]) -> Any:
+        """Declare a callback subscriber; returns a handle for `undeclare`."""
+
         def on_sample(sample: zenoh.Sample) -> None:
             callback(str(sample.key_expr), sample.payload.to_bytes())
 
-        self._held.append(self.session.declare_subscriber(key_expr, on_sample))
+        sub = self.session.declare_subscriber(key_expr, on_sample)
+        self._held.append(sub)
+        return sub
+
+    def undeclare(self, handle: Any) -> None:
+        if handle in self._held:
+            self._held.remove(handle)
+            with contextlib.suppress(Exception):
+                handle.undeclare()
 
     # ------------------------------------------------------------ queries
     def queryable(self, key_expr: str, handler: Callable[[str, bytes], bytes | None]) -> None:

@@ -125,7 +125,11 @@ class RunWatch:
         if "stopped" in states:
             return "stopped"
         done = [self.states.get(self.assign[r], {}).get("state") for r in ("learner", "evaluator")]
-        return "completed" if done == ["completed", "completed"] else "running"
+        if done != ["completed", "completed"]:
+            return "running"
+        # The evaluator's status may overtake its last metric row: wait for every row.
+        points = self.states[self.assign["evaluator"]].get("points", 0)
+        return "completed" if len(self.rows) >= points else "running"
 
     def failure(self) -> str | None:
         for svc, s in self.states.items():

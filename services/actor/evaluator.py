@@ -30,10 +30,10 @@ class EvaluatorService(ServiceBase):
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         super().__init__(service_id, connect, data_dir)
         torch.set_num_threads(1)
-        self.listen(keys.k_weights("*", "eval"), "weights")
         self.e: dict[str, Any] = {}
 
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        self.listen(keys.k_weights(run, "eval"), "weights", run)
         envs = [
             make_task(config.task, config.agents, config.reward, config.episode_len)
             for _ in range(min(config.eval_episodes, 10))

@@ -56,8 +56,9 @@ class ActorService(ServiceBase):
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         super().__init__(service_id, connect, data_dir)
         torch.set_num_threads(1)
-        self.listen(keys.k_ack("*", "*"), "ack")
         self._newest: tuple[str, bytes] | None = None  # the newest weights message only
+        # Subscribed for the service's lifetime: the learner's first weights may be out
+        # before this actor has handled the start message. The slot holds one message.
         self.bus.subscribe(keys.k_weights("*", "*"), self._on_weights)
         self.s: dict[str, Any] = {}
 
@@ -68,6 +69,7 @@ class ActorService(ServiceBase):
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
         actors = list(assign["actors"])
         rank = actors.index(self.id)
+        self.listen(keys.k_ack(run, "*"), "ack", run)
         env = make_task(config.task, config.agents, config.reward, config.episode_len)
         seed = derive_seed(config.seed, "actor", rank)
         self.s = {

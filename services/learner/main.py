@@ -92,14 +92,14 @@ class LearnerService(ServiceBase):
 
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         super().__init__(service_id, connect, data_dir)
-        self.listen(keys.k_transitions("*", "*"), "transitions")
-        self.listen(keys.k_ack("*", "*"), "ack")
-        self.listen(keys.k_status("*", "*"), "status")
         self.r: dict[str, Any] = {}
 
     # ------------------------------------------------------------ run lifecycle
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
         torch.set_num_threads(config.threads)
+        self.listen(keys.k_transitions(run, "*"), "transitions", run)
+        self.listen(keys.k_ack(run, "*"), "ack", run)
+        self.listen(keys.k_status(run, "*"), "status", run)
         spec = task_spec(config.task, config.agents, config.episode_len)
         actors = list(assign["actors"])
         learner = build_learner(config, spec)
@@ -133,7 +133,7 @@ class LearnerService(ServiceBase):
             "weights_pub": self.bus.publisher(keys.k_weights(run, "latest")),
             "eval_pub": self.bus.publisher(keys.k_weights(run, "eval")),
             "ack_pub": self.bus.publisher(keys.k_ack(run, self.id)),
-            "updates_t": collections.deque(maxlen=2),
+            "bonus_means": collections.deque(maxlen=100),
         }
         self.publish_weights(eval_point=-1)  # version 0: every actor starts from these
         self.publish_status(run, "running", actors=actors)
@@ -238,6 +238,7 @@ class LearnerService(ServiceBase):
             learner.update(
                 batch.obs, batch.act, batch.rew[:, None] + bonus, batch.next_obs, batch.done
             )
+            r["bonus_means"].append(float(bonus.mean()))
             owed -= 1
             done_now += 1
         self.pass_boundaries()
@@ -316,6 +317,7 @@ class LearnerService(ServiceBase):
             "bonus_p50_ms": 1e3 * lat[len(lat) // 2] if lat else 0.0,
             "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
             "bonus_failures": r["bonus"].failures,
+            "bonus_mean": float(np.mean(r["bonus_means"])) if r["bonus_means"] else 0.0,
             "rejects_total": sum(self.rejects.values()),
         }
 
