@@ -67,6 +67,11 @@ class TrainConfig(BaseModel):
         "by default targets bootstrap through it",
     )
     threads: int = Field(1, ge=1, le=64, description="torch intra-op threads")
+    learner_impl: Literal["batched", "reference"] = Field(
+        "batched",
+        description="batched: all agents in stacked matrix products (fast); "
+        "reference: one plain PyTorch update per agent (same math)",
+    )
 
     @model_validator(mode="after")
     def _check_combination(self) -> TrainConfig:

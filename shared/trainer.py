@@ -21,6 +21,7 @@ import torch
 
 from shared.config import TrainConfig
 from shared.exploration import CountExploration, ExploreSpec
+from shared.fast_maddpg import BatchedMADDPG
 from shared.maddpg import MADDPG, AgentDims, LearnerSpec
 from shared.replay import ReplayBuffer
 from shared.rollout import Collector, derive_seed, evaluate
@@ -44,7 +45,7 @@ METRIC_FIELDS = (
 )
 
 
-def build_learner(cfg: TrainConfig, spec: TaskSpec) -> MADDPG:
+def build_learner(cfg: TrainConfig, spec: TaskSpec) -> MADDPG | BatchedMADDPG:
     agents = [AgentDims(a.obs_dim, a.act_low, a.act_high) for a in spec.agents]
     lspec = LearnerSpec(
         algo=cfg.algo,
@@ -55,6 +56,8 @@ def build_learner(cfg: TrainConfig, spec: TaskSpec) -> MADDPG:
         tau=cfg.tau,
         seed=derive_seed(cfg.seed, "learner"),
     )
+    if cfg.learner_impl == "batched":
+        return BatchedMADDPG(agents, lspec)
     return MADDPG(agents, lspec)
 
 
@@ -91,7 +94,11 @@ class MetricsWriter:
 
 
 def save_checkpoint(
-    path: Path, learner: MADDPG, explorer: CountExploration, counters: dict, cfg: TrainConfig
+    path: Path,
+    learner: MADDPG | BatchedMADDPG,
+    explorer: CountExploration,
+    counters: dict,
+    cfg: TrainConfig,
 ) -> None:
     """Networks, optimizers, step counters and count tables together, without pickle."""
     tables = {}

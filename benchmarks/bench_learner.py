@@ -1,0 +1,264 @@
+"""Learner update speed: reference MADDPG vs BatchedMADDPG vs the matrix-product floor.
+
+For each task the same random minibatch (batch 100, hidden 400-300, the thesis settings)
+is fed to
+
+* `ref`: shared.maddpg.MADDPG, the per-agent reference update;
+* `batched`: shared.fast_maddpg.BatchedMADDPG, a copy of the same learner;
+* `floor`: only the matrix products one batched update performs (forward and backward
+  of every stacked layer, with the same shapes and layouts, through the same
+  `linear_*` functions), on preallocated tensors: no elementwise ops, no autograd, no
+  optimizer, no target update. It is what an update would cost if everything but the
+  matrix products were free.
+
+Measurements run in rounds (about 0.15 s of each of ref, batched, floor, in a rotating
+order) so load from other processes on the shared machine hits all three alike. Rates
+are medians over rounds; ratios are medians of the ratios within each round. The floor
+runs on hot caches and still pays Python's cost of ~30 calls: it is a floor for
+arithmetic, not a reachable target. Threads: 1 for the table (the choice for a learner
+on 2 cores shared with actors and the counter), plus a 2-thread speaker_listener row.
+
+    .venv/bin/python benchmarks/bench_learner.py [--quick]
+
+prints a markdown table and writes benchmarks/results/learner.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from shared.fast_maddpg import (  # noqa: E402
+    BatchedMADDPG,
+    linear_forward,
+    linear_grad_input,
+    linear_grad_weight,
+)
+from shared.maddpg import MADDPG, AgentDims, LearnerSpec  # noqa: E402
+
+BATCH = 100
+HIDDEN = (400, 300)
+MOVE = ((-1.0, -1.0), (1.0, 1.0))
+
+
+def spread(n: int) -> list[AgentDims]:
+    return [AgentDims(4 + 2 * n + 4 * (n - 1), *MOVE)] * n
+
+
+SPEAKER_LISTENER = [AgentDims(3, (0.0,) * 3, (1.0,) * 3), AgentDims(11, *MOVE)]
+# (task, N, algo, agent dims); the dims are what shared.tasks.task_spec reports for mpe2.
+CASES = [
+    ("simple", 1, "ddpg", [AgentDims(4, *MOVE)]),
+    ("spread", 2, "dis-maddpg", spread(2)),
+    ("spread", 2, "cen-maddpg", spread(2)),
+    ("speaker_listener", 2, "cen-maddpg", SPEAKER_LISTENER),
+    ("spread", 3, "cen-maddpg", spread(3)),
+    ("spread", 4, "cen-maddpg", spread(4)),
+]
+
+
+def check_dims() -> None:
+    """The hard-coded dims above must be the project's (skipped if mpe2 is missing)."""
+    try:
+        from shared.tasks import task_spec
+    except ImportError:
+        return
+    for task, n, _, agents in CASES:
+        got = [(a.obs_dim, tuple(a.act_low), tuple(a.act_high)) for a in task_spec(task, n).agents]
+        want = [(a.obs_dim, a.act_low, a.act_high) for a in agents]
+        if got != want:
+            raise SystemExit(f"{task} N={n}: dims {want} differ from shared.tasks {got}")
+
+
+def random_batch(m: MADDPG, seed: int = 0) -> tuple[np.ndarray, ...]:
+    rng = np.random.default_rng(seed)
+    o, a = m.obs_off[-1], m.act_off[-1]
+    return (
+        rng.standard_normal((BATCH, o)).astype(np.float32),
+        rng.uniform(-1, 1, (BATCH, a)).astype(np.float32),
+        rng.uniform(-1, 0, (BATCH, m.n)).astype(np.float32),
+        rng.standard_normal((BATCH, o)).astype(np.float32),
+        (rng.uniform(0, 1, BATCH) < 0.05).astype(np.float32),
+    )
+
+
+def floor_ops(m: BatchedMADDPG) -> Callable[[], None]:
+    """The matrix products of one BatchedMADDPG.update, on preallocated tensors."""
+    n = m.n
+
+    def layers(params: list[torch.Tensor], shared_input: bool) -> list[tuple]:
+        out = []
+        for k, w in enumerate(params[0::2]):
+            w = torch.randn_like(w.detach())
+            _, fan_out, fan_in = w.shape
+            x = torch.randn(BATCH, fan_in).expand(n, -1, -1) if shared_input and k == 0 else None
+            x = x if x is not None else torch.randn(n, BATCH, fan_in)
+            out.append((x, w, torch.randn(n, 1, fan_out), torch.randn(n, BATCH, fan_out)))
+        return out
+
+    actor = layers(m.actor.params, False)
+    critic_shared = layers(m.critic.params, m.centralized)  # targets and critic step
+    critic_own = layers(m.critic.params, False)  # actor step: input differs per agent
+
+    def forward(ls):
+        for x, w, b, _ in ls:
+            linear_forward(x, w, b)
+
+    def backward(ls, weights: bool, first_input: bool):
+        for k in reversed(range(len(ls))):
+            x, w, _, g = ls[k]
+            if weights:
+                linear_grad_weight(g, x)
+            if k > 0 or first_input:
+                linear_grad_input(g, w)
+
+    def one_update() -> None:
+        with torch.no_grad():
+            forward(actor)  # target actors
+            forward(critic_shared)  # target critics
+            forward(critic_shared)  # critic step
+            backward(critic_shared, weights=True, first_input=False)
+            forward(actor)  # actor step
+            forward(critic_own)
+            backward(critic_own, weights=False, first_input=True)  # d Q / d a only
+            backward(actor, weights=True, first_input=False)
+
+    return one_update
+
+
+def time_per_call(fn: Callable[[], object], calls: int) -> float:
+    start = time.perf_counter()
+    for _ in range(calls):
+        fn()
+    return (time.perf_counter() - start) / calls
+
+
+def measure(
+    fns: dict[str, Callable[[], object]], repeats: int, budget_s: float
+) -> dict[str, list[float]]:
+    """Seconds per call of each fn, one sample per round; rounds interleave the fns (in a
+    rotating order) so load from other processes hits them alike."""
+    calls = {}
+    for name, fn in fns.items():  # warm up and size each run to about budget_s
+        for _ in range(3):
+            fn()
+        calls[name] = max(3, int(budget_s / max(time_per_call(fn, 3), 1e-6)))
+    samples: dict[str, list[float]] = {name: [] for name in fns}
+    names = list(fns)
+    for r in range(repeats):
+        for name in names[r % len(names) :] + names[: r % len(names)]:
+            samples[name].append(time_per_call(fns[name], calls[name]))
+    return samples
+
+
+def bench_case(agents, algo: str, repeats: int, budget_s: float) -> dict[str, list[float]]:
+    spec = LearnerSpec(algo=algo, hidden=HIDDEN)
+    ref = MADDPG(agents, spec)
+    fast = BatchedMADDPG.from_reference(ref)
+    b = random_batch(ref)
+    fns = {"ref": lambda: ref.update(*b), "batched": lambda: fast.update(*b)}
+    fns["floor"] = floor_ops(fast)
+    return measure(fns, repeats, budget_s)
+
+
+def row(task: str, algo: str, n: int, threads: int, samples: dict[str, list[float]]) -> dict:
+    """Medians of the rates, and medians of the ratios within each round."""
+    med = {k: statistics.median(v) for k, v in samples.items()}
+    ref, fast, floor = samples["ref"], samples["batched"], samples["floor"]
+    return {
+        "task": task,
+        "algo": algo,
+        "agents": n,
+        "threads": threads,
+        "ref_updates_per_s": 1 / med["ref"],
+        "batched_updates_per_s": 1 / med["batched"],
+        "floor_updates_per_s": 1 / med["floor"],
+        "batched_over_floor": statistics.median(f / fl for f, fl in zip(fast, floor)),
+        "speedup_vs_ref": statistics.median(r / f for r, f in zip(ref, fast)),
+        "samples_s": samples,
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0]
+        + " Batch 100, hidden 400-300, 1 torch thread (plus a 2-thread speaker_listener row).",
+        epilog="Prints a markdown table; writes --out (default benchmarks/results/learner.json).",
+    )
+    parser.add_argument("--quick", action="store_true", help="3 rounds of ~0.05 s (smoke run)")
+    parser.add_argument("--repeats", type=int, default=None, help="rounds per case (default 15)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=ROOT / "benchmarks" / "results" / "learner.json",
+        help="where to write the JSON results",
+    )
+    args = parser.parse_args(argv)
+    repeats = args.repeats or (3 if args.quick else 15)
+    budget_s = 0.05 if args.quick else 0.15
+    check_dims()
+
+    rows = []
+    load_before = os.getloadavg()
+    torch.set_num_threads(1)
+    for task, n, algo, agents in CASES:
+        print(f"{task} N={n} {algo} ...", file=sys.stderr, flush=True)
+        rows.append(row(task, algo, n, 1, bench_case(agents, algo, repeats, budget_s)))
+    torch.set_num_threads(2)
+    print("speaker_listener, 2 threads ...", file=sys.stderr, flush=True)
+    rows.append(
+        row(
+            "speaker_listener",
+            "cen-maddpg",
+            2,
+            2,
+            bench_case(SPEAKER_LISTENER, "cen-maddpg", repeats, budget_s),
+        )
+    )
+    torch.set_num_threads(1)
+
+    head = (
+        "| task | algo | N | threads | ref upd/s | batched upd/s | floor upd/s "
+        "| batched/floor time | speedup vs ref |"
+    )
+    print(head)
+    print("|" + "---|" * 9)
+    for r in rows:
+        print(
+            f"| {r['task']} | {r['algo']} | {r['agents']} | {r['threads']} "
+            f"| {r['ref_updates_per_s']:.1f} | {r['batched_updates_per_s']:.1f} "
+            f"| {r['floor_updates_per_s']:.1f} | {r['batched_over_floor']:.2f}x "
+            f"| {r['speedup_vs_ref']:.2f}x |"
+        )
+    result = {
+        "command": " ".join(["benchmarks/bench_learner.py", *(argv or sys.argv[1:])]),
+        "batch": BATCH,
+        "hidden": list(HIDDEN),
+        "repeats": repeats,
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "loadavg_before": load_before,
+        "loadavg_after": os.getloadavg(),
+        "rows": rows,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"\nwrote {args.out}; load average before {load_before}, after {os.getloadavg()}")
+
+
+if __name__ == "__main__":
+    main()
