@@ -1,0 +1,103 @@
+"""`macb up`: the whole local cluster as processes, a run on it, and a clean shutdown."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from tests.conftest import ROOT, free_port, wait_for
+
+TINY = """\
+task: speaker_listener
+algo: cen-maddpg
+explore: cen-macb
+k: 64
+episodes: 12
+eval_every: 4
+eval_episodes: 2
+hidden: [32, 32]
+batch_size: 16
+"""
+
+
+def processes_with(marker: str) -> list[str]:
+    out = subprocess.run(["pgrep", "-af", marker], capture_output=True, text=True).stdout
+    return [line for line in out.splitlines() if "pgrep" not in line]
+
+
+def up(tmp_path, *extra: str) -> tuple[subprocess.Popen, str]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "shared.cli",
+            "up",
+            "--endpoint",
+            endpoint,
+            "--data-dir",
+            str(tmp_path / "data"),
+            "--quiet",
+            *extra,
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    return proc, endpoint
+
+
+def test_up_runs_an_experiment_and_leaves_nothing_running(tmp_path):
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY)
+    proc, endpoint = up(tmp_path, "--run", str(cfg), "--out", str(tmp_path / "out"))
+    out, _ = proc.communicate(timeout=240)
+    assert proc.returncode == 0, out
+    assert "completed" in out and "cluster stopped" in out
+    with open(tmp_path / "out" / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["episode"]) for r in rows] == [4, 8, 12]
+    assert int(rows[-1]["counted_transitions"]) == 12 * 20
+    assert float(rows[-1]["replay_ratio"]) == 1.0
+    for name in ("router", "counter", "learner", "evaluator", "actor0"):
+        assert (tmp_path / "data" / "logs" / f"{name}.log").exists()
+    assert cluster_processes(endpoint, tmp_path) == []
+
+
+def test_sigterm_stops_every_service_and_the_router(tmp_path):
+    proc, endpoint = up(tmp_path)
+    from shared.control import discover
+
+    with _client(endpoint) as bus:
+        wait_for(lambda: len(discover(bus)) >= 4, timeout=90, what="services up")
+    children = cluster_processes(endpoint, tmp_path)
+    assert len(children) >= 5, f"router and four services run as processes: {children}"
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out
+    assert "cluster stopped" in out
+    deadline = time.monotonic() + 5
+    while cluster_processes(endpoint, tmp_path) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert cluster_processes(endpoint, tmp_path) == [], "no orphan process"
+
+
+def cluster_processes(endpoint: str, tmp_path) -> list[str]:
+    """`macb serve` processes of this test's cluster (router by port, services by data dir)."""
+    lines = processes_with(endpoint.split(":")[-1]) + processes_with(str(tmp_path / "data"))
+    return sorted({line for line in lines if " serve " in line})
+
+
+def _client(endpoint):
+    from tests.conftest import wait_port
+
+    wait_port(endpoint, timeout=30)
+    from shared.bus import Bus
+
+    return Bus([endpoint])
