@@ -3,13 +3,13 @@
 It listens only to weights the learner marked as evaluation points (so it never
 decodes the per-episode weights it does not need) and evaluates every one of them,
 in order, with `eval_episodes` episodes run in lockstep. Its row carries the
-trainer's metric fields; the count statistics come from a query to the counter.
+trainer's metric fields; the learner put the counter's statistics at that boundary
+into the weights message.
 """
 
 from __future__ import annotations
 
 import collections
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -44,7 +44,6 @@ class EvaluatorService(ServiceBase):
             "envs": envs,
             "policy": make_policy(config, envs[0]),
             "pending": collections.deque(),
-            "counter": assign.get("counter"),
             "points": 0,
             "t0": time.perf_counter(),
         }
@@ -59,16 +58,6 @@ class EvaluatorService(ServiceBase):
             if msg is not None and msg["eval_point"] >= 0:
                 self.e["pending"].append(msg)
 
-    def counter_stats(self, run: str) -> dict[str, Any]:
-        if not self.e["counter"]:
-            return {}
-        for raw in self.bus.get(keys.k_info("counter", self.e["counter"]), timeout=1.0):
-            try:
-                return json.loads(raw).get("runs", {}).get(run, {})
-            except (ValueError, AttributeError):
-                return {}
-        return {}
-
     def tick(self) -> bool:
         if not self.e or not self.e["pending"]:
             return False
@@ -76,8 +65,8 @@ class EvaluatorService(ServiceBase):
         msg = e["pending"].popleft()
         e["policy"].load(msg["actors"])
         ev = evaluate(e["policy"], e["envs"], cfg.eval_episodes)
-        counts = self.counter_stats(run)
         info = msg["info"]
+        counts = info.get("counter") or {}  # the counter's stats at this boundary
         row = {
             "episode": msg["eval_point"],
             "env_steps": msg["env_steps"],

@@ -264,9 +264,21 @@ class LearnerService(ServiceBase):
             eval_point=eval_point,
             collisions_cum=collisions,
             actors=actor_weights(r["learner"].actors),
-            info=self.stats(),
+            info={**self.stats(), "counter": self.counter_stats() if eval_point >= 0 else {}},
         )
         r["eval_pub" if eval_point >= 0 else "weights_pub"](payload)
+
+    def counter_stats(self) -> dict[str, Any]:
+        """The counter's stats for this run now (table size, count-1 %, counted)."""
+        counter = self.r.get("counter")
+        if not counter:
+            return {}
+        for raw in self.bus.get(keys.k_info("counter", counter), timeout=1.0):
+            try:
+                return dict(json.loads(raw).get("runs", {}).get(self.run_id, {}))
+            except (ValueError, AttributeError, TypeError):
+                return {}
+        return {}
 
     def send_ack(self) -> None:
         r = self.r
