@@ -49,6 +49,11 @@ class ServiceBase:
         self.listen(keys.k_control("stop"), "stop")
         self.bus.queryable(keys.k_info(self.role, self.id), self._info_reply)
         self.bus.token(keys.k_live(self.role, self.id))
+        put = self.inbox.put
+        self.bus.watch_liveliness(
+            keys.k_live("*", "*"), lambda key, alive: put(("live", key, b"1" if alive else b"0"))
+        )
+        self.assign: dict[str, Any] = {}  # the services of the run served now
 
     # ------------------------------------------------------------ plumbing
     def listen(self, key_expr: str, tag: str, run: str | None = None) -> None:
@@ -156,6 +161,10 @@ class ServiceBase:
                 return
             self.log.info("starting run %s", run)
             self.active[run] = config
+            self.assign = dict(msg["assign"])
+            learner = self.assign.get("learner")
+            if self.max_runs == 1 and self.role != "learner" and isinstance(learner, str):
+                self.listen(keys.k_status(run, learner), "learner_status", run)
             try:
                 self.on_start(run, config, msg["assign"])
             except Exception as err:
@@ -169,6 +178,17 @@ class ServiceBase:
             self.on_stop(run, msg["reason"])
             self.publish_status(run, "stopped", reason=msg["reason"])
             self.free(run)
+
+    def _on_learner_status(self, key: str, payload: bytes) -> None:
+        """The run's learner failed or was stopped: this service's part is over too."""
+        msg = self.decode_for_run(key, payload, "status")
+        if msg is None or msg["state"] not in ("failed", "stopped"):
+            return
+        run = msg["run"]
+        reason = f"learner {msg['state']}: {msg['detail'].get('reason', '')}".strip()
+        self.on_stop(run, reason)
+        self.publish_status(run, "stopped", reason=reason)
+        self.free(run)
 
     def assigned(self, assign: dict[str, Any]) -> bool:
         value = assign.get(self.role, assign.get(f"{self.role}s"))  # "actors" is a list
@@ -186,6 +206,19 @@ class ServiceBase:
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None: ...
 
     def on_stop(self, run: str, reason: str) -> None: ...
+
+    def on_peer_lost(self, role: str, peer: str) -> None:
+        """A service's liveliness token vanished (it exited or was killed).
+
+        By default a service whose run's learner is gone gives the run up as failed:
+        without the learner no credits, weights or evaluation points can come. The
+        counter keeps its tables (it serves many runs and outlives learners)."""
+        if role == "learner" and self.max_runs == 1 and self.assign.get("learner") == peer:
+            run = self.run_id
+            self.log.error("run %s: learner %s is gone; giving the run up", run, peer)
+            self.on_stop(run, "learner lost")
+            self.publish_status(run, "failed", reason=f"learner {peer} is gone")
+            self.free(run)
 
     def handle(self, tag: str, key: str, payload: bytes) -> None: ...
 
@@ -211,6 +244,12 @@ class ServiceBase:
                 try:
                     if tag in ("start", "stop"):
                         self._on_control(tag, key, payload)
+                    elif tag == "learner_status":
+                        self._on_learner_status(key, payload)
+                    elif tag == "live":
+                        if payload == b"0" and self.active:
+                            _, _, role, peer = key.split("/", 3)
+                            self.on_peer_lost(role, peer)
                     else:
                         self.handle(tag, key, payload)
                 except WireError as err:

@@ -160,3 +160,21 @@ def test_garbage_on_every_key_is_dropped_counted_and_changes_nothing(procs, bus,
         assert i["rejects_total"] >= 3, (role, i["rejects"])
     for name, p in procs.procs.items():
         assert p.poll() is None, f"{name} died"
+
+
+@pytest.mark.parametrize("victim", ["learner", "actor0"])
+def test_a_dead_learner_or_actor_fails_the_run_and_frees_the_others(procs, bus, tmp_path, victim):
+    start_cluster(procs, tmp_path, 1)
+    wait_services(bus, 4)
+    watch = start_run(bus, make_config({**SMALL, "episodes": 200}), actors=1)
+    wait_for(lambda: watch.latest.get("learner", {}).get("updates", 0) > 50, what="training")
+    procs.kill(victim)
+    assert watch.wait(timeout=60) == "failed", watch.states
+    assert victim.rstrip("0") in watch.failure() or "learner" in watch.failure()
+    survivors = {"learner", "actor0", "evaluator"} - {victim}
+    wait_for(
+        lambda: all(not i.get("run") for i in discover(bus) if i["id"] in survivors),
+        timeout=20,
+        what="survivors freed",
+    )
+    assert {i["id"] for i in discover(bus)} >= survivors | {"counter"}

@@ -332,6 +332,11 @@ class LearnerService(ServiceBase):
         self.r = {}
         self.free(run)
 
+    def on_peer_lost(self, role: str, peer: str) -> None:
+        """An actor that dies mid-run fails the run: its transitions cannot come."""
+        if role == "actor" and peer in self.r.get("actors", ()) and peer not in self.r["final"]:
+            self.fail(f"actor {peer} died before it finished its episodes")
+
     def fail(self, reason: str) -> None:
         run = self.run_id
         self.log.error("run %s failed: %s", run, reason)

@@ -1,0 +1,500 @@
+"""The API's scheduler: one thread with its own bus session.
+
+- Assigns queued runs, oldest first, to free services (`shared.control`), and starts
+  them. Services it has started runs on stay reserved until those runs end, so two
+  runs never land on one learner while the services' own info catches up.
+- Subscribes to each running run's metrics and status keys; Zenoh's callbacks only
+  enqueue, and this thread writes every evaluation row, the services' states and
+  the latest stats into the store as they arrive. So a run keeps its history
+  whether or not anyone watches it over HTTP.
+- Decides each run's status: failed as soon as a service reports it (with its
+  reason) or the liveliness token of its learner, evaluator or an actor goes away
+  (the process died); stopped when someone stops it; completed when the learner and
+  the evaluator have completed and every evaluation row is in. A dead counter is
+  not fatal (it restarts from its snapshot and log): the run fails only if no
+  counter is back within `counter_grace_s`.
+- Sends the stop messages the HTTP side asks for (a failed run's other services are
+  stopped too, so they are free for the next run).
+- On start (after an API restart), re-attaches to the runs the store says are
+  running; a run whose services no longer serve it ended while nobody listened, and
+  is resolved from what was stored.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from shared import bus as keys
+from shared.bus import Bus
+from shared.config import ConfigError, make_config
+from shared.control import NoFreeServices, assign_services, discover, send_start, send_stop
+from shared.wire import WireError, decode
+
+from .store import Store
+
+log = logging.getLogger("macb.api.scheduler")
+
+ROLES_THAT_MUST_LIVE = ("learner", "evaluator", "actor")
+
+
+@dataclass
+class Watch:
+    """What the scheduler holds for one running run."""
+
+    run: str
+    assign: dict[str, Any]
+    episodes: int
+    started: float  # monotonic
+    subs: list[Any] = field(default_factory=list)
+    states: dict[str, dict[str, Any]] = field(default_factory=dict)
+    live: dict[str, Any] = field(default_factory=dict)
+    live_dirty: bool = False
+    live_written: float = 0.0
+    points: int = 0
+    last_episode: int = 0
+    evaluator_done: float | None = None  # monotonic time the evaluator said completed
+    counter_down: float | None = None
+    unserved_since: float | None = None
+    ended: float | None = None  # monotonic time it reached a final status
+
+    def services(self) -> list[tuple[str, str]]:
+        """(role, id) of every service serving the run."""
+        a = self.assign
+        out = [("counter", a["counter"]), ("learner", a["learner"]), ("evaluator", a["evaluator"])]
+        return out + [("actor", x) for x in a.get("actors", [])]
+
+
+class Scheduler:
+    def __init__(
+        self,
+        store: Store,
+        connect: list[str],
+        service_id: str = "api",
+        http_url: str = "",
+        tick_s: float = 0.2,
+        counter_grace_s: float = 120.0,
+        start_timeout_s: float = 60.0,
+        completion_grace_s: float = 5.0,
+        reconcile_s: float = 3.0,
+    ) -> None:
+        self.store = store
+        self.connect = connect
+        self.service_id = service_id
+        self.http_url = http_url
+        self.tick_s = tick_s
+        self.counter_grace_s = counter_grace_s
+        self.start_timeout_s = start_timeout_s
+        self.completion_grace_s = completion_grace_s
+        self.reconcile_s = reconcile_s
+        self.events: queue.Queue[tuple[str, str, Any]] = queue.Queue()
+        self.bus: Bus | None = None
+        self.connected = threading.Event()
+        self.watches: dict[str, Watch] = {}
+        self.alive: set[tuple[str, str]] = set()  # (role, id) with a liveliness token
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._thread = threading.Thread(target=self._main, name="macb-api-scheduler", daemon=True)
+        self._last_reconcile = 0.0
+        self._last_assign_try = 0.0
+        self.listeners: list[Callable[[], None]] = []  # called after the store changed
+
+    # ------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        self._thread.start()
+
+    def close(self, timeout: float = 10.0) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout)
+
+    def wake(self) -> None:
+        """Something changed on the HTTP side (a new experiment, a stop): act now."""
+        self._wake.set()
+
+    def _main(self) -> None:
+        delay = 0.2
+        while not self._stop.is_set():
+            try:
+                self.bus = Bus(self.connect)
+            except Exception as err:  # the router is not up (yet)
+                log.warning("cannot reach the bus at %s: %s (retrying)", self.connect, err)
+                self._stop.wait(delay)
+                delay = min(5.0, delay * 2)
+                continue
+            try:
+                self._serve()
+            except Exception:
+                log.exception("scheduler failed; reconnecting")
+            finally:
+                self.connected.clear()
+                for w in self.watches.values():
+                    w.subs.clear()
+                self.watches.clear()
+                with contextlib.suppress(Exception):
+                    self.bus.close()
+                self.bus = None
+
+    def _serve(self) -> None:
+        bus = self.bus
+        assert bus is not None
+        bus.token(keys.k_live("api", self.service_id))
+        bus.queryable(keys.k_info("api", self.service_id), self._info_reply)
+        bus.watch_liveliness(
+            keys.k_live("*", "*"), lambda key, up: self.events.put(("live", key, up))
+        )
+        self.connected.set()
+        log.info("scheduler connected to %s", self.connect)
+        self._reattach()
+        while not self._stop.is_set():
+            self._drain(timeout=self.tick_s)
+            self._send_stops()
+            self._assign_queued()
+            self._check_runs()
+
+    def _info_reply(self, key: str, payload: bytes) -> bytes:
+        return json.dumps(
+            {
+                "id": self.service_id,
+                "role": "api",
+                "run": None,
+                "runs": [],
+                "rejects": {},
+                "rejects_total": 0,
+                "http": self.http_url,
+            }
+        ).encode()
+
+    def _changed(self) -> None:
+        for fn in self.listeners:
+            with contextlib.suppress(Exception):
+                fn()
+
+    # ------------------------------------------------------------ events
+    def _drain(self, timeout: float) -> None:
+        """Handle every queued bus event; wait up to `timeout` for the first."""
+        try:
+            first = self.events.get(timeout=timeout)
+        except queue.Empty:
+            if self._wake.is_set():
+                self._wake.clear()
+            return
+        self._wake.clear()
+        batch = [first]
+        with contextlib.suppress(queue.Empty):
+            while len(batch) < 10_000:
+                batch.append(self.events.get_nowait())
+        rows: dict[str, list[dict[str, Any]]] = {}
+        for kind, key, payload in batch:
+            if kind == "metrics":
+                self._on_metrics(key, payload, rows)
+            elif kind == "status":
+                self._on_status(key, payload)
+            elif kind == "live":
+                self._on_live(key, payload)
+            elif kind == "wake":
+                pass
+        for run, new in rows.items():
+            added = self.store.add_points(run, new)
+            w = self.watches.get(run)
+            if w is not None and added:
+                w.points += added
+                w.last_episode = max([w.last_episode] + [int(r["episode"]) for r in new])
+        if rows:
+            self._changed()
+
+    def _on_metrics(self, key: str, payload: bytes, rows: dict[str, list]) -> None:
+        run = keys.run_of(key)
+        w = self.watches.get(run or "")
+        if w is None:
+            return
+        try:
+            msg = decode(payload, "metrics")
+        except WireError:
+            return
+        if msg["run"] != run:
+            return
+        data = msg["data"]
+        if msg["source"] == "eval":
+            if isinstance(data.get("episode"), int):
+                rows.setdefault(run, []).append(data)
+        else:
+            w.live[msg["source"]] = data
+            w.live_dirty = True
+
+    def _on_status(self, key: str, payload: bytes) -> None:
+        run = keys.run_of(key)
+        w = self.watches.get(run or "")
+        if w is None:
+            return
+        try:
+            msg = decode(payload, "status")
+        except WireError:
+            return
+        if msg["run"] != run:
+            return
+        w.states[msg["service"]] = {"state": msg["state"], **msg["detail"]}
+        if msg["service"] == w.assign["evaluator"] and msg["state"] == "completed":
+            w.evaluator_done = time.monotonic()
+        self.store.set_services(w.run, w.states)
+        self._changed()
+
+    def _on_live(self, key: str, up: bool) -> None:
+        parts = key.split("/")
+        if len(parts) != 4:
+            return
+        role, sid = parts[2], parts[3]
+        if up:
+            self.alive.add((role, sid))
+            self._wake.set()
+            return
+        self.alive.discard((role, sid))
+        for w in list(self.watches.values()):
+            if w.ended is not None or (role, sid) not in w.services():
+                continue
+            if w.states.get(sid, {}).get("state") == "completed":
+                continue  # its part is done (an actor that finished, say)
+            if role == "counter":
+                w.counter_down = time.monotonic()
+                self.store.set_reason(w.run, f"counter {sid} is down; waiting for it to return")
+                self._changed()
+                continue
+            if role in ROLES_THAT_MUST_LIVE:
+                self._fail(w, f"{role} {sid} died (its liveliness token went away)")
+
+    # ------------------------------------------------------------ run control
+    def _watch(self, run: dict[str, Any], started: float) -> Watch:
+        bus = self.bus
+        assert bus is not None
+        w = Watch(
+            run=run["id"],
+            assign=run["assign"],
+            episodes=int(run["config"].get("episodes", 0)),
+            started=started,
+            states=dict(run.get("services") or {}),
+            live=dict(run.get("live") or {}),
+        )
+        stats = self.store.point_stats([w.run])[w.run]
+        w.points, w.last_episode = stats[0], stats[2]
+        for st in w.states.values():
+            if st.get("state") == "completed" and st.get("points") is not None:
+                w.evaluator_done = time.monotonic()
+        put = self.events.put
+        w.subs.append(
+            bus.subscribe(keys.k_metrics(w.run, "**"), lambda k, p: put(("metrics", k, p)))
+        )
+        w.subs.append(bus.subscribe(keys.k_status(w.run, "*"), lambda k, p: put(("status", k, p))))
+        self.watches[w.run] = w
+        return w
+
+    def _unwatch(self, w: Watch) -> None:
+        if self.bus is not None:
+            for h in w.subs:
+                self.bus.undeclare(h)
+        w.subs.clear()
+        self.watches.pop(w.run, None)
+
+    def _end(self, w: Watch, status: str, reason: str | None, stop: bool) -> None:
+        """Record a final status; with `stop`, tell the run's services to stop."""
+        if self.store.finish(w.run, status, reason, stop_sent=not stop):
+            log.info("run %s %s%s", w.run, status, f": {reason}" if reason else "")
+        if stop:
+            self._send_stops()
+        w.ended = time.monotonic()
+        self._changed()
+
+    def _fail(self, w: Watch, reason: str) -> None:
+        self._end(w, "failed", reason, stop=True)
+
+    def _send_stops(self) -> None:
+        if self.bus is None:
+            return
+        for run, reason in self.store.stops_to_send():
+            send_stop(self.bus, run, reason)
+            self.store.stop_sent(run)
+            w = self.watches.get(run)
+            if w is not None and w.ended is None:
+                w.ended = time.monotonic()
+
+    def _reserved(self) -> set[str]:
+        """Services of runs we started that are not over yet."""
+        busy: set[str] = set()
+        for w in self.watches.values():
+            busy.add(w.assign["learner"])
+            busy.add(w.assign["evaluator"])
+            busy.update(w.assign.get("actors", []))
+        return busy
+
+    def _assign_queued(self) -> None:
+        now = time.monotonic()
+        if now - self._last_assign_try < 0.5 and not self._wake.is_set():
+            return
+        queued = self.store.runs_with_status("queued")
+        if not queued:
+            return
+        self._last_assign_try = now
+        assert self.bus is not None
+        infos = discover(self.bus, timeout=1.0)
+        reserved = self._reserved()
+        for info in infos:
+            if info["role"] != "counter" and info["id"] in reserved:
+                info["run"] = info.get("run") or "(reserved)"
+        for run in queued:
+            try:
+                assign = assign_services(infos, run["actors"])
+            except NoFreeServices as err:
+                self.store.set_waiting(run["id"], f"waiting: {err}")
+                continue
+            try:
+                config = make_config(run["config"])
+            except ConfigError as err:  # stored by an older API with other rules
+                self.store.finish(run["id"], "failed", f"invalid config: {err}")
+                continue
+            if not self.store.claim(run["id"], assign):
+                continue  # stopped meanwhile
+            run["assign"] = assign
+            self._watch(run, time.monotonic())
+            send_start(self.bus, run["id"], config, assign)
+            log.info("run %s started on %s", run["id"], assign)
+            taken = {assign["learner"], assign["evaluator"], *assign["actors"]}
+            for info in infos:
+                if info["id"] in taken and info["role"] != "counter":
+                    info["run"] = run["id"]
+            self._changed()
+
+    def _check_runs(self) -> None:
+        now = time.monotonic()
+        for w in list(self.watches.values()):
+            if w.live_dirty and now - w.live_written > 1.0:
+                self.store.set_live(w.run, w.live)
+                w.live_dirty, w.live_written = False, now
+                self._changed()
+            if w.ended is not None:
+                if now - w.ended > 3.0:  # late rows of an ended run are still stored
+                    self._unwatch(w)
+                continue
+            self._decide(w, now)
+        if now - self._last_reconcile > self.reconcile_s and self.watches:
+            self._last_reconcile = now
+            self._reconcile(now)
+
+    def _decide(self, w: Watch, now: float) -> None:
+        row = self.store.run(w.run)
+        if row is None or row["status"] != "running":
+            w.ended = w.ended or now  # stopped over HTTP
+            return
+        for svc, st in w.states.items():
+            if st["state"] == "failed":
+                self._fail(w, f"{svc}: {st.get('reason', 'failed')}")
+                return
+        for svc, st in w.states.items():
+            if st["state"] == "stopped":
+                self._end(w, "stopped", f"{svc}: {st.get('reason', 'stopped')}", stop=True)
+                return
+        learner = w.states.get(w.assign["learner"], {}).get("state")
+        evaluator = w.states.get(w.assign["evaluator"], {}).get("state")
+        if learner == "completed" and evaluator == "completed":
+            expected = int(w.states[w.assign["evaluator"]].get("points", 0))
+            if w.points >= expected:
+                self._end(w, "completed", None, stop=False)
+            elif w.evaluator_done is not None and now - w.evaluator_done > self.completion_grace_s:
+                missing = expected - w.points
+                self._end(
+                    w,
+                    "completed",
+                    f"{missing} of {expected} metric points were published while the API "
+                    "was not listening",
+                    stop=False,
+                )
+            return
+        if w.counter_down is not None:
+            if (("counter", w.assign["counter"])) in self.alive:
+                w.counter_down = None
+                self.store.set_reason(w.run, None)
+                self._changed()
+            elif now - w.counter_down > self.counter_grace_s:
+                self._fail(w, f"counter {w.assign['counter']} did not come back")
+                return
+        if not w.states and now - w.started > self.start_timeout_s:
+            self._fail(w, f"no service took the run within {self.start_timeout_s:.0f} s")
+
+    def _reconcile(self, now: float) -> None:
+        """Runs whose services no longer serve them, with no end seen: resolve them."""
+        assert self.bus is not None
+        infos = {i["id"]: i for i in discover(self.bus, timeout=1.0)}
+        for w in list(self.watches.values()):
+            if w.ended is not None or now - w.started < self.start_timeout_s / 4:
+                continue
+            serving = [
+                sid
+                for _, sid in w.services()
+                if sid in infos
+                and (infos[sid].get("run") == w.run or w.run in (infos[sid].get("runs") or []))
+            ]
+            learner_alive = ("learner", w.assign["learner"]) in self.alive
+            if not learner_alive and w.assign["learner"] not in infos:
+                state = w.states.get(w.assign["learner"], {}).get("state")
+                if state != "completed":
+                    self._fail(w, f"learner {w.assign['learner']} is gone")
+                    continue
+            if serving:
+                w.unserved_since = None
+                continue
+            if w.unserved_since is None:
+                w.unserved_since = now
+                continue
+            if now - w.unserved_since < self.reconcile_s:
+                continue
+            if w.last_episode >= w.episodes and w.episodes > 0:
+                self._end(
+                    w, "completed", "its end was not observed (the API was not listening)", False
+                )
+            else:
+                self._fail(
+                    w,
+                    "its services no longer serve it and no end was seen (it ended while the "
+                    f"API was not listening); last point stored: episode {w.last_episode}",
+                )
+
+    def _reattach(self) -> None:
+        """After a (re)start: follow the runs the store says are running."""
+        running = self.store.runs_with_status("running")
+        for run in running:
+            if run["id"] in self.watches or not run.get("assign"):
+                continue
+            w = self._watch(run, time.monotonic())
+            log.info("re-attached to run %s (%d points stored)", w.run, w.points)
+
+    # ------------------------------------------------------------ queries for HTTP
+    def workers(self) -> list[dict[str, Any]] | None:
+        """Live services (liveliness tokens) with their info; None when not connected."""
+        bus = self.bus
+        if bus is None or not self.connected.is_set():
+            return None
+        tokens = bus.alive(keys.k_live("*", "*"), timeout=1.0)
+        infos = {(i["role"], i["id"]): i for i in discover(bus, timeout=1.0)}
+        out = []
+        for key in sorted(set(tokens)):
+            parts = key.split("/")
+            if len(parts) != 4:
+                continue
+            role, sid = parts[2], parts[3]
+            info = infos.get((role, sid))
+            out.append(
+                {
+                    "id": sid,
+                    "role": role,
+                    "run": info.get("run") if info else None,
+                    "runs": list(info.get("runs") or []) if info else [],
+                    "rejects_total": int(info.get("rejects_total", 0)) if info else 0,
+                    "answers": info is not None,
+                }
+            )
+        return out
