@@ -67,7 +67,7 @@ def _pump(name: str, stream: IO[bytes], log_file: IO[bytes], echo: bool) -> None
             sys.stdout.buffer.flush()
 
 
-def _wait_port(endpoint: str, timeout: float = 20.0) -> None:
+def wait_port(endpoint: str, timeout: float = 20.0) -> None:
     host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -108,7 +108,7 @@ class Cluster:
             t.start()
             self._threads.append(t)
             if spec.name == "router":
-                _wait_port(spec.args[spec.args.index("--listen") + 1])
+                wait_port(spec.args[spec.args.index("--listen") + 1])
 
     def dead(self) -> list[str]:
         return [name for name, p in self.procs.items() if p.poll() is not None]

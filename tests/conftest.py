@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from shared.cluster import wait_port  # noqa: F401 (tests import it from here)
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -101,17 +103,6 @@ def bus(router):
     b = Bus([router])
     yield b
     b.close()
-
-
-def wait_port(endpoint: str, timeout: float = 15.0) -> None:
-    host, port = endpoint.split("/")[1].rsplit(":", 1)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        with socket.socket() as s:
-            if s.connect_ex((host, int(port))) == 0:
-                return
-        time.sleep(0.05)
-    raise TimeoutError(f"nothing listens on {endpoint}")
 
 
 def wait_for(predicate, timeout: float = 30.0, interval: float = 0.05, what: str = "condition"):
