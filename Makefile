@@ -17,6 +17,10 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
+# The local cluster with its API; configs/default.yaml goes in through the API and is
+# followed to the end. Results: runs/default/ (metrics.csv, plot.png, checkpoint.pt);
+# every point stays in runs/cluster/api.sqlite3; the dashboard is on
+# http://127.0.0.1:8000/ while it runs (`macb up --data-dir runs/cluster` serves it again).
 run: $(STAMP)
 	$(BIN)/macb up --run configs/default.yaml --out runs/default --data-dir runs/cluster --quiet-services
 

@@ -38,11 +38,14 @@ def cluster_plan(
     endpoint: str = "tcp/127.0.0.1:7447",
     data_dir: str = "data",
     listen: str | None = None,
+    api: str | None = "127.0.0.1:8000",
 ) -> list[ServiceSpec]:
-    """Router first; then counter, learner, evaluator and `actors` actors.
+    """Router first; then counter, learner, evaluator, `actors` actors, and the API last.
 
     `endpoint` is where services connect; `listen` where the router listens (the same
     by default; docker-compose listens on all interfaces and connects by host name).
+    `api` is the API's HTTP address (None: no API). When the router listens on all
+    interfaces (containers), so does the API, which then needs MACB_API_TOKEN.
     """
     env = (("MACB_ZENOH_CONNECT", endpoint), *THREAD_ENV.items())
     router_args = ("router", "--listen", listen or endpoint)
@@ -53,6 +56,11 @@ def cluster_plan(
         plan.append(
             ServiceSpec(f"actor{r}", ("actor", "--id", f"actor{r}", "--data-dir", data_dir), env)
         )
+    if api is not None:
+        if listen and listen.split("/", 1)[-1].startswith("0.0.0.0:"):
+            api = "0.0.0.0:" + api.rsplit(":", 1)[1]
+        args = ("api", "--id", "api", "--listen-http", api, "--data-dir", data_dir)
+        plan.append(ServiceSpec("api", args, env))
     return plan
 
 

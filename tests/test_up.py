@@ -41,6 +41,8 @@ def up(tmp_path, *extra: str) -> tuple[subprocess.Popen, str]:
             endpoint,
             "--data-dir",
             str(tmp_path / "data"),
+            "--api-port",
+            str(free_port()),
             "--quiet",
             *extra,
         ],
@@ -65,7 +67,10 @@ def test_up_runs_an_experiment_and_leaves_nothing_running(tmp_path):
     assert [int(r["episode"]) for r in rows] == [4, 8, 12]
     assert int(rows[-1]["counted_transitions"]) == 12 * 20
     assert float(rows[-1]["replay_ratio"]) == 1.0
-    for name in ("router", "counter", "learner", "evaluator", "actor0"):
+    assert (tmp_path / "out" / "plot.png").stat().st_size > 10_000
+    assert (tmp_path / "out" / "checkpoint.pt").stat().st_size > 1000
+    assert "dashboard" in out and (tmp_path / "data" / "api.sqlite3").exists()
+    for name in ("router", "counter", "learner", "evaluator", "actor0", "api"):
         assert (tmp_path / "data" / "logs" / f"{name}.log").exists()
     assert cluster_processes(endpoint, tmp_path) == []
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import queue
 import threading
 import time
@@ -43,6 +44,28 @@ from .store import Store
 log = logging.getLogger("macb.api.scheduler")
 
 ROLES_THAT_MUST_LIVE = ("learner", "evaluator", "actor")
+
+
+def flat_row(data: dict[str, Any]) -> dict[str, Any]:
+    """The JSON-safe part of a message's map: string keys, plain finite values."""
+    out: dict[str, Any] = {}
+    for k, v in data.items():
+        if not isinstance(k, str):
+            continue
+        if isinstance(v, float) and not math.isfinite(v):
+            v = None
+        elif isinstance(v, list):
+            v = [
+                x
+                for x in v
+                if isinstance(x, str | int) or (isinstance(x, float) and math.isfinite(x))
+            ]
+        elif isinstance(v, dict):
+            v = flat_row(v)
+        elif not isinstance(v, str | int | float | bool | type(None)):
+            continue
+        out[k] = v
+    return out
 
 
 @dataclass
@@ -118,6 +141,7 @@ class Scheduler:
     def wake(self) -> None:
         """Something changed on the HTTP side (a new experiment, a stop): act now."""
         self._wake.set()
+        self.events.put(("wake", "", None))
 
     def _main(self) -> None:
         delay = 0.2
@@ -183,24 +207,22 @@ class Scheduler:
         try:
             first = self.events.get(timeout=timeout)
         except queue.Empty:
-            if self._wake.is_set():
-                self._wake.clear()
             return
-        self._wake.clear()
         batch = [first]
         with contextlib.suppress(queue.Empty):
             while len(batch) < 10_000:
                 batch.append(self.events.get_nowait())
         rows: dict[str, list[dict[str, Any]]] = {}
         for kind, key, payload in batch:
-            if kind == "metrics":
-                self._on_metrics(key, payload, rows)
-            elif kind == "status":
-                self._on_status(key, payload)
-            elif kind == "live":
-                self._on_live(key, payload)
-            elif kind == "wake":
-                pass
+            try:
+                if kind == "metrics":
+                    self._on_metrics(key, payload, rows)
+                elif kind == "status":
+                    self._on_status(key, payload)
+                elif kind == "live":
+                    self._on_live(key, payload)
+            except Exception:  # one odd message must not stop the bookkeeping
+                log.exception("dropped a %s event on %s", kind, key)
         for run, new in rows.items():
             added = self.store.add_points(run, new)
             w = self.watches.get(run)
@@ -221,10 +243,12 @@ class Scheduler:
             return
         if msg["run"] != run:
             return
-        data = msg["data"]
+        data = flat_row(msg["data"])
         if msg["source"] == "eval":
             if isinstance(data.get("episode"), int):
                 rows.setdefault(run, []).append(data)
+                w.live["eval"] = data
+                w.live_dirty = True
         else:
             w.live[msg["source"]] = data
             w.live_dirty = True
@@ -240,7 +264,7 @@ class Scheduler:
             return
         if msg["run"] != run:
             return
-        w.states[msg["service"]] = {"state": msg["state"], **msg["detail"]}
+        w.states[msg["service"]] = {**flat_row(msg["detail"]), "state": msg["state"]}
         if msg["service"] == w.assign["evaluator"] and msg["state"] == "completed":
             w.evaluator_done = time.monotonic()
         self.store.set_services(w.run, w.states)
@@ -303,11 +327,15 @@ class Scheduler:
 
     def _end(self, w: Watch, status: str, reason: str | None, stop: bool) -> None:
         """Record a final status; with `stop`, tell the run's services to stop."""
+        if w.live_dirty:
+            self.store.set_live(w.run, w.live)
+            w.live_dirty, w.live_written = False, time.monotonic()
         if self.store.finish(w.run, status, reason, stop_sent=not stop):
             log.info("run %s %s%s", w.run, status, f": {reason}" if reason else "")
         if stop:
             self._send_stops()
         w.ended = time.monotonic()
+        self._wake.set()  # its services are free for a queued run
         self._changed()
 
     def _fail(self, w: Watch, reason: str) -> None:
@@ -327,6 +355,8 @@ class Scheduler:
         """Services of runs we started that are not over yet."""
         busy: set[str] = set()
         for w in self.watches.values():
+            if w.ended is not None:
+                continue
             busy.add(w.assign["learner"])
             busy.add(w.assign["evaluator"])
             busy.update(w.assign.get("actors", []))
@@ -334,8 +364,9 @@ class Scheduler:
 
     def _assign_queued(self) -> None:
         now = time.monotonic()
-        if now - self._last_assign_try < 0.5 and not self._wake.is_set():
+        if now - self._last_assign_try < 1.0 and not self._wake.is_set():
             return
+        self._wake.clear()
         queued = self.store.runs_with_status("queued")
         if not queued:
             return
@@ -346,11 +377,19 @@ class Scheduler:
         for info in infos:
             if info["role"] != "counter" and info["id"] in reserved:
                 info["run"] = info.get("run") or "(reserved)"
+        waiting: dict[str, str] = {}
+        refused: dict[int, str] = {}  # actors needed -> why not (for this pass)
         for run in queued:
+            if run["actors"] in refused:
+                if run["reason"] != refused[run["actors"]]:
+                    waiting[run["id"]] = refused[run["actors"]]
+                continue
             try:
                 assign = assign_services(infos, run["actors"])
             except NoFreeServices as err:
-                self.store.set_waiting(run["id"], f"waiting: {err}")
+                refused[run["actors"]] = f"waiting: {err}"
+                if run["reason"] != refused[run["actors"]]:
+                    waiting[run["id"]] = refused[run["actors"]]
                 continue
             try:
                 config = make_config(run["config"])
@@ -368,11 +407,12 @@ class Scheduler:
                 if info["id"] in taken and info["role"] != "counter":
                     info["run"] = run["id"]
             self._changed()
+        self.store.set_waiting(waiting)
 
     def _check_runs(self) -> None:
         now = time.monotonic()
         for w in list(self.watches.values()):
-            if w.live_dirty and now - w.live_written > 1.0:
+            if w.live_dirty and (now - w.live_written > 1.0 or w.ended is not None):
                 self.store.set_live(w.run, w.live)
                 w.live_dirty, w.live_written = False, now
                 self._changed()
@@ -390,10 +430,11 @@ class Scheduler:
         if row is None or row["status"] != "running":
             w.ended = w.ended or now  # stopped over HTTP
             return
-        for svc, st in w.states.items():
-            if st["state"] == "failed":
-                self._fail(w, f"{svc}: {st.get('reason', 'failed')}")
-                return
+        failed = [(svc, st) for svc, st in w.states.items() if st["state"] == "failed"]
+        if failed:
+            svc, st = sorted(failed, key=lambda f: "reason" not in f[1])[0]
+            self._fail(w, f"{svc}: {st.get('reason', 'failed')}")
+            return
         for svc, st in w.states.items():
             if st["state"] == "stopped":
                 self._end(w, "stopped", f"{svc}: {st.get('reason', 'stopped')}", stop=True)

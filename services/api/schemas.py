@@ -210,6 +210,13 @@ class Workers(BaseModel):
     workers: list[Worker]
 
 
+class Problem(BaseModel):
+    detail: str
+
+
+NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": Problem, "description": "unknown id"}}
+
+
 class Health(BaseModel):
     status: Literal["ok"]
     bus: bool

@@ -255,12 +255,14 @@ class Store:
             )
             return cur.rowcount == 1
 
-    def set_waiting(self, run_id: str, reason: str) -> None:
+    def set_waiting(self, reasons: dict[str, str]) -> None:
+        """Say what queued runs wait for (run id -> reason), in one transaction."""
+        if not reasons:
+            return
         with self.tx() as c:
-            c.execute(
-                "UPDATE runs SET reason = ? WHERE id = ? AND status = 'queued'"
-                " AND reason IS NOT ?",
-                (reason, run_id, reason),
+            c.executemany(
+                "UPDATE runs SET reason = ? WHERE id = ? AND status = 'queued' AND reason IS NOT ?",
+                [(reason, run_id, reason) for run_id, reason in reasons.items()],
             )
 
     def finish(
@@ -303,9 +305,7 @@ class Store:
 
     def set_services(self, run_id: str, services: dict[str, Any]) -> None:
         with self.tx() as c:
-            c.execute(
-                "UPDATE runs SET services = ? WHERE id = ?", (json.dumps(services), run_id)
-            )
+            c.execute("UPDATE runs SET services = ? WHERE id = ?", (json.dumps(services), run_id))
 
     def set_live(self, run_id: str, live: dict[str, Any]) -> None:
         with self.tx() as c:
@@ -341,10 +341,14 @@ class Store:
 
     def points_json(self, run_id: str, since: int = 0, limit: int = 10_000) -> tuple[str, int, int]:
         """Points after `since` as a JSON array text; (text, count, last seq)."""
-        rows = self._conn().execute(
-            "SELECT seq, data FROM metrics WHERE run_id = ? AND seq > ? ORDER BY seq LIMIT ?",
-            (run_id, since, limit),
-        ).fetchall()
+        rows = (
+            self._conn()
+            .execute(
+                "SELECT seq, data FROM metrics WHERE run_id = ? AND seq > ? ORDER BY seq LIMIT ?",
+                (run_id, since, limit),
+            )
+            .fetchall()
+        )
         last = rows[-1][0] if rows else since
         return "[" + ",".join(r[1] for r in rows) + "]", len(rows), last
 
@@ -356,24 +360,31 @@ class Store:
         return [json.loads(r[0]) for r in rows]
 
     def point_stats(self, run_ids: list[str]) -> dict[str, tuple[int, int, int]]:
-        """run -> (number of points, last seq, last episode)."""
+        """run -> (number of points, last seq, last episode).
+
+        seq runs 1, 2, ... without holes, so the count is the last seq: two index
+        look-ups per run, whatever the number of points."""
         if not run_ids:
             return {}
         marks = ",".join("?" * len(run_ids))
         rows = self._conn().execute(
-            f"SELECT run_id, COUNT(*), COALESCE(MAX(seq), 0), COALESCE(MAX(episode), 0)"
-            f" FROM metrics WHERE run_id IN ({marks}) GROUP BY run_id",
+            "SELECT r.id,"
+            " (SELECT MAX(seq) FROM metrics m WHERE m.run_id = r.id),"
+            " (SELECT MAX(episode) FROM metrics m WHERE m.run_id = r.id)"
+            f" FROM runs r WHERE r.id IN ({marks})",
             run_ids,
         )
         out = {r: (0, 0, 0) for r in run_ids}
-        for r in rows:
-            out[r[0]] = (r[1], r[2], r[3])
+        for run_id, last_seq, last_episode in rows:
+            out[run_id] = (last_seq or 0, last_seq or 0, last_episode or 0)
         return out
 
     def has_more(self, run_id: str, since: int) -> bool:
-        row = self._conn().execute(
-            "SELECT 1 FROM metrics WHERE run_id = ? AND seq > ? LIMIT 1", (run_id, since)
-        ).fetchone()
+        row = (
+            self._conn()
+            .execute("SELECT 1 FROM metrics WHERE run_id = ? AND seq > ? LIMIT 1", (run_id, since))
+            .fetchone()
+        )
         return row is not None
 
     def snapshot(self) -> dict[str, list[tuple]]:

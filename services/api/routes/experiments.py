@@ -1,0 +1,117 @@
+"""Experiments: one config, seeds and an optional beta x k grid, expanded into runs."""
+
+from __future__ import annotations
+
+import time
+import uuid
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+
+from shared.config import TrainConfig
+
+from ..deps import ExperimentRowDep, JsonBody, SchedulerDep, StoreDep, not_found
+from ..schemas import (
+    NOT_FOUND,
+    Curves,
+    ExperimentCreate,
+    ExperimentList,
+    ExperimentPublic,
+    ExperimentStopResult,
+    Problem,
+)
+from ..views import curves, load_experiments
+
+router = APIRouter(prefix="/experiments", tags=["experiments"])
+
+MetricName = Annotated[str, Query(pattern=r"^[A-Za-z0-9_]{1,64}$")]
+
+
+def new_experiment_id() -> str:
+    return "x" + time.strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:6]
+
+
+@router.post(
+    "",
+    status_code=201,
+    response_model=ExperimentPublic,
+    dependencies=[JsonBody],
+    responses={
+        400: {"description": "the body is not JSON"},
+        413: {"model": Problem, "description": "the body is over the size limit (64 KiB)"},
+        415: {"model": Problem, "description": "the body is not declared as application/json"},
+    },
+)
+def create_experiment(body: ExperimentCreate, store: StoreDep, scheduler: SchedulerDep):
+    """Queue one run per seed and grid point; they start as services become free."""
+    exp_id = new_experiment_id()
+    expanded = body.expand()
+    runs = [
+        {
+            "id": f"{exp_id}-{i}",
+            "seed": r["seed"],
+            "point": r["point"],
+            "config": r["config"].model_dump(mode="json"),
+            "actors": body.actors,
+        }
+        for i, r in enumerate(expanded)
+    ]
+    config = TrainConfig.model_validate(body.config_part()).model_dump(mode="json")
+    config.pop("seed")
+    name = body.name or f"{config['task']} {config['algo']} {config['explore']}"
+    spec = {
+        "config": config,
+        "seeds": body.seed_list(),
+        "grid": body.grid.model_dump(exclude_none=True) if body.grid else None,
+        "actors": body.actors,
+    }
+    store.create_experiment(exp_id, name, spec, runs)
+    if scheduler is not None:
+        scheduler.wake()
+    return load_experiments(store, [store.experiment(exp_id)])[0]
+
+
+@router.get("", response_model=ExperimentList)
+def list_experiments(
+    store: StoreDep,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+):
+    """Newest first, each with its runs."""
+    return {
+        "total": store.count_experiments(),
+        "experiments": load_experiments(store, store.experiments(limit, offset)),
+    }
+
+
+@router.get("/{exp_id}", response_model=ExperimentPublic, responses=NOT_FOUND)
+def get_experiment(exp: ExperimentRowDep, store: StoreDep):
+    return load_experiments(store, [exp])[0]
+
+
+@router.post("/{exp_id}/stop", response_model=ExperimentStopResult, responses=NOT_FOUND)
+def stop_experiment(exp: ExperimentRowDep, store: StoreDep, scheduler: SchedulerDep):
+    """Stop every queued or running run (idempotent: a second call stops nothing)."""
+    stopped = store.stop_experiment(exp["id"], "stopped by user")
+    if scheduler is not None and stopped:
+        scheduler.wake()
+    detail = f"stopped {len(stopped)} run(s)" if stopped else "nothing to stop: every run had ended"
+    return {
+        "changed": bool(stopped),
+        "detail": detail,
+        "stopped": stopped,
+        "experiment": load_experiments(store, [exp])[0],
+    }
+
+
+@router.get("/{exp_id}/curves", response_model=Curves, responses=NOT_FOUND)
+def get_curves(
+    exp_id: str,
+    store: StoreDep,
+    metric: Annotated[list[MetricName] | None, Query(max_length=8)] = None,
+):
+    """Learning curves: per grid point, the mean over seeds and mean +- std, per episode."""
+    out = curves(store, exp_id, metric or ["success_rate", "count1_pct", "steps_per_sec"])
+    if out is None:
+        raise not_found("experiment", exp_id)
+    return out

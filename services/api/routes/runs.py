@@ -1,0 +1,161 @@
+"""Runs: status, stop, stored metrics (JSON, CSV) and live metrics (server-sent events)."""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import io
+import json
+import time
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query, Request
+from fastapi.responses import Response, StreamingResponse
+from starlette.concurrency import run_in_threadpool
+
+from ..deps import RunDep, SchedulerDep, StoreDep, not_found
+from ..schemas import NOT_FOUND, MetricsPage, RunPublic, RunStopResult
+from ..store import ACTIVE, CSV_FIELDS, Store
+from ..views import load_run
+
+router = APIRouter(prefix="/runs", tags=["runs"])
+
+Since = Annotated[int, Query(ge=0, le=2**62, description="only points with a larger seq")]
+
+
+@router.get("/{run_id}", response_model=RunPublic, responses=NOT_FOUND)
+def get_run(run: RunDep):
+    """Config, status (queued, running, completed, stopped, failed), progress, services."""
+    return run
+
+
+@router.post("/{run_id}/stop", response_model=RunStopResult, responses=NOT_FOUND)
+def stop_run(run: RunDep, store: StoreDep, scheduler: SchedulerDep):
+    """Stop a queued or running run; on a run that has ended it is a no-op that says so."""
+    if run["status"] not in ACTIVE:
+        return {
+            "changed": False,
+            "detail": f"run already {run['status']}: nothing to stop",
+            "run": run,
+        }
+    changed = store.finish(
+        run["id"], "stopped", "stopped by user", stop_sent=run["status"] == "queued"
+    )
+    if scheduler is not None:
+        scheduler.wake()
+    fresh = load_run(store, run["id"])
+    return {
+        "changed": changed,
+        "detail": "stopped" if changed else f"run already {fresh['status']}: nothing to stop",
+        "run": fresh,
+    }
+
+
+@router.get("/{run_id}/metrics", response_model=MetricsPage, responses=NOT_FOUND)
+def get_metrics(
+    run: RunDep,
+    store: StoreDep,
+    since: Since = 0,
+    limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
+):
+    """Stored metric points in arrival order; poll with `since=next_since` for new ones."""
+    text, n, last = store.points_json(run["id"], since, limit)
+    more = n == limit and store.has_more(run["id"], last)
+    # The points are stored as JSON: splice them in instead of decoding 10,000 rows.
+    head = json.dumps(
+        {"run": run["id"], "status": run["status"], "since": since, "next_since": last}
+    )
+    body = f'{head[:-1]}, "more": {json.dumps(more)}, "points": {text}}}'
+    return Response(body, media_type="application/json")
+
+
+@router.get(
+    "/{run_id}/metrics.csv",
+    response_class=Response,
+    responses={200: {"content": {"text/csv": {}}, "description": "one row per point"}, **NOT_FOUND},
+)
+def get_metrics_csv(run: RunDep, store: StoreDep):
+    """The stored points as CSV: macb train's metrics.csv columns, then the services' extras."""
+    points = store.points(run["id"])
+    extra = sorted({k for p in points for k in p} - set(CSV_FIELDS) - {"seq"})
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=[*CSV_FIELDS, *extra], extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(points)
+    return Response(
+        buf.getvalue(),
+        media_type="text/csv",
+        headers={"Content-Disposition": f'attachment; filename="{run["id"]}-metrics.csv"'},
+    )
+
+
+def _sse(event: str, data: object, ident: int | None = None) -> str:
+    head = f"id: {ident}\n" if ident is not None else ""
+    return f"{head}event: {event}\ndata: {json.dumps(data, default=str)}\n\n"
+
+
+async def _events(
+    request: Request, store: Store, run_id: str, since: int, poll_s: float
+) -> AsyncIterator[str]:
+    last_status = None
+    last_beat = time.monotonic()
+    yield "retry: 1000\n\n"
+    while True:
+        run = await run_in_threadpool(load_run, store, run_id)
+        if run is None:
+            return
+        points = await run_in_threadpool(store.points, run_id, since, 1000)
+        for p in points:
+            since = p["seq"]
+            yield _sse("metric", p, since)
+        status = (run["status"], run["reason"], run["progress"]["trained_episodes"])
+        if status != last_status:
+            last_status = status
+            yield _sse(
+                "status",
+                {"status": run["status"], "reason": run["reason"], "progress": run["progress"]},
+            )
+        if run["status"] not in ACTIVE and not points:
+            # Final, and every stored point has gone out: say so and end the stream.
+            yield _sse("end", {"status": run["status"], "reason": run["reason"], "seq": since})
+            return
+        if points:
+            continue
+        if await request.is_disconnected():
+            return
+        if time.monotonic() - last_beat > 10:
+            last_beat = time.monotonic()
+            yield ": keep-alive\n\n"
+        await asyncio.sleep(poll_s)
+
+
+@router.get(
+    "/{run_id}/events",
+    response_class=StreamingResponse,
+    responses={
+        200: {"content": {"text/event-stream": {}}, "description": "an SSE stream"},
+        **NOT_FOUND,
+    },
+)
+async def run_events(
+    run_id: str,
+    request: Request,
+    store: StoreDep,
+    since: Since = 0,
+    last_event_id: Annotated[str | None, Header(max_length=32)] = None,
+):
+    """Server-sent events: `metric` (one per point, id = its seq), `status` on each
+    change, and `end` once the run has ended and every point has been sent. Resume
+    with `since` or the Last-Event-ID header."""
+    run = await run_in_threadpool(load_run, store, run_id)
+    if run is None:
+        raise not_found("run", run_id)
+    if last_event_id and last_event_id.isdigit():
+        since = max(since, int(last_event_id))
+    poll_s = request.app.state.settings.sse_poll_s
+    return StreamingResponse(
+        _events(request, store, run_id, since, poll_s),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+    )

@@ -1,0 +1,365 @@
+"""End to end: the API as a process (`macb serve api`) on a real local cluster.
+
+A router, a counter, one learner, one evaluator and one actor run as processes on
+loopback ports of their own; experiments go in over HTTP and every metric point is
+checked against what the evaluator put on the bus, in the store, the JSON and the CSV.
+One learner means one run at a time, so a second run waits in the queue.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import msgpack
+import pytest
+import yaml
+
+from services.api.client import parse_sse
+from shared import bus as keys
+from shared.bus import Bus
+from shared.wire import WireError, decode, encode
+from tests.conftest import ROOT, Procs, free_port, wait_for, wait_port
+
+TINY = {
+    "task": "speaker_listener",
+    "algo": "cen-maddpg",
+    "explore": "cen-macb",
+    "k": 64,
+    "episodes": 12,
+    "eval_every": 4,
+    "eval_episodes": 2,
+    "hidden": [32, 32],
+    "batch_size": 16,
+}
+
+
+@dataclass
+class ApiCluster:
+    procs: Procs
+    endpoint: str
+    url: str
+    data: Path
+    api_name: str = "api"
+
+    def start_api(self, name: str = "api") -> None:
+        host_port = self.url.removeprefix("http://")
+        self.procs.start(name, "api", "--listen-http", host_port, "--data-dir", str(self.data))
+        self.api_name = name
+        self.wait_api()
+
+    def wait_api(self, services: int = 5) -> None:
+        def ready():
+            try:
+                if not httpx.get(f"{self.url}/health", timeout=2).json()["bus"]:
+                    return False
+                workers = httpx.get(f"{self.url}/workers", timeout=5).json()["workers"]
+                return len([w for w in workers if w["answers"]]) >= services
+            except httpx.HTTPError:
+                return False
+
+        wait_for(ready, timeout=90, interval=0.2, what="API and services up")
+
+
+@contextlib.contextmanager
+def api_cluster(tmp: Path):
+    """Router, counter, learner, evaluator, one actor and the API, all processes."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs = Procs(tmp, endpoint)
+    try:
+        procs.start("router", "router", "--listen", endpoint)
+        wait_port(endpoint)
+        data = tmp / "data"
+        for role in ("counter", "learner", "evaluator"):
+            procs.start(role, role, "--id", role, "--data-dir", str(data))
+        procs.start("actor0", "actor", "--id", "actor0", "--data-dir", str(data))
+        cluster = ApiCluster(procs, endpoint, f"http://127.0.0.1:{free_port()}", data)
+        cluster.start_api()
+        yield cluster
+    finally:
+        procs.stop_all()
+    for name, p in procs.procs.items():
+        assert p.poll() is not None, f"{name} left running"
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    with api_cluster(tmp_path_factory.mktemp("api-e2e")) as c:
+        yield c
+
+
+class BusRows:
+    """Every evaluation row on macb/run/*/metrics/eval, as a plain subscriber sees it."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.rows: dict[str, list[dict]] = {}
+        self.lock = threading.Lock()
+        self.bus = Bus([endpoint])
+        self.bus.subscribe(keys.k_metrics("*", "eval"), self._on)
+
+    def _on(self, key: str, payload: bytes) -> None:
+        try:
+            msg = decode(payload, "metrics")
+        except WireError:
+            return
+        with self.lock:
+            self.rows.setdefault(msg["run"], []).append(msg["data"])
+
+    def close(self) -> None:
+        self.bus.close()
+
+
+def follow(url: str, run_id: str, out: list, since: int = 0, timeout: float = 180) -> None:
+    """Collect (event, data) from GET /runs/{id}/events until `end`."""
+    with httpx.stream(
+        "GET", f"{url}/runs/{run_id}/events", params={"since": since}, timeout=timeout
+    ) as r:
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
+        for event, data in parse_sse(r.iter_lines()):
+            out.append((event, data))
+            if event == "end":
+                return
+
+
+def without_seq(point: dict) -> dict:
+    return {k: v for k, v in point.items() if k != "seq"}
+
+
+def check_csv_has(url: str, run_id: str, points: list[dict]) -> None:
+    text = httpx.get(f"{url}/runs/{run_id}/metrics.csv").text
+    table = list(csv.DictReader(io.StringIO(text)))
+    assert len(table) == len(points)
+    for line, p in zip(table, points, strict=True):
+        for field in ("episode", "env_steps", "success_rate", "count1_pct", "counted_transitions"):
+            assert float(line[field]) == pytest.approx(float(p[field])), (field, line, p)
+        assert float(line["replay_ratio"]) == pytest.approx(p["replay_ratio"])
+
+
+def test_two_seeds_queue_run_and_every_point_reaches_events_json_and_csv(cluster):
+    url = cluster.url
+    bus_rows = BusRows(cluster.endpoint)
+    try:
+        exp = httpx.post(f"{url}/experiments", json={**TINY, "seeds": [0, 1]}).json()
+        run_ids = [r["id"] for r in exp["runs"]]
+        events: dict[str, list] = {r: [] for r in run_ids}
+        followers = [
+            threading.Thread(target=follow, args=(url, r, events[r]), daemon=True) for r in run_ids
+        ]
+        for t in followers:
+            t.start()
+        # One learner: while the first run runs, the second waits in the queue.
+        first = wait_for(
+            lambda: (s := httpx.get(f"{url}/runs/{run_ids[0]}").json())["status"] != "queued" and s,
+            timeout=30,
+            what="first run started",
+        )
+        second = httpx.get(f"{url}/runs/{run_ids[1]}").json()
+        if first["status"] == "running":
+            assert second["status"] == "queued", second
+        # Garbage on the run's keys is dropped by the API, which goes on.
+        with Bus([cluster.endpoint]) as noise:
+            for payload in (b"\x00garbage\xff", b"", msgpack.packb({"v": 99, "run": "x"})):
+                noise.put(keys.k_metrics(run_ids[0], "eval"), payload)
+                noise.put(keys.k_status(run_ids[0], "learner"), payload)
+            other_run = encode("metrics", "other-run", source="eval", data={"episode": 4})
+            noise.put(keys.k_metrics(run_ids[0], "eval"), other_run)
+        for t in followers:
+            t.join(180)
+            assert not t.is_alive(), "event stream did not end"
+        final = httpx.get(f"{url}/experiments/{exp['id']}").json()
+        assert final["status"] == "completed", final
+        time.sleep(0.5)  # let the subscriber see the last rows
+        for run_id in run_ids:
+            run = httpx.get(f"{url}/runs/{run_id}").json()
+            assert run["status"] == "completed" and run["reason"] is None, run
+            assert run["progress"]["fraction"] == 1.0 and run["points"] == 3
+            assert run["assign"]["learner"] == "learner"
+            assert run["assign"]["actors"] == ["actor0"]
+            assert run["services"]["learner"]["state"] == "completed"
+
+            def counted(run_id=run_id):
+                live = httpx.get(f"{url}/runs/{run_id}").json()["live"]
+                return live.get("counter", {}).get("counted_transitions") == 12 * 20
+
+            # The counter's final stats follow the learner's end.
+            wait_for(counted, timeout=10, what="the counter's final stats")
+            streamed = [d for e, d in events[run_id] if e == "metric"]
+            statuses = [d["status"] for e, d in events[run_id] if e == "status"]
+            assert statuses[-1] == "completed" and "running" in statuses
+            assert events[run_id][-1] == (
+                "end",
+                {"status": "completed", "reason": None, "seq": 3},
+            )
+            assert [p["episode"] for p in streamed] == [4, 8, 12]
+            stored = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
+            assert stored == streamed, "the events carry exactly the stored points"
+            assert [without_seq(p) for p in stored] == bus_rows.rows[run_id], (
+                "the store holds every row the evaluator published, as published"
+            )
+            check_csv_has(url, run_id, stored)
+            for p in stored:
+                assert p["env_steps"] == p["episode"] * 20
+                assert 0.0 <= p["success_rate"] <= 1.0 and p["replay_ratio"] >= 0.0
+        # The services are free again.
+        workers = httpx.get(f"{url}/workers").json()["workers"]
+        assert all(w["run"] is None for w in workers), workers
+    finally:
+        bus_rows.close()
+
+
+def test_restarting_the_api_mid_run_loses_no_stored_metric_and_the_run_goes_on(cluster):
+    url = cluster.url
+    bus_rows = BusRows(cluster.endpoint)
+    try:
+        episodes = 60
+        exp = httpx.post(f"{url}/experiments", json={**TINY, "episodes": episodes}).json()
+        run_id = exp["runs"][0]["id"]
+        wait_for(
+            lambda: httpx.get(f"{url}/runs/{run_id}/metrics").json()["next_since"] >= 2,
+            timeout=60,
+            what="two points stored",
+        )
+        cluster.procs.kill(cluster.api_name, signal.SIGKILL)  # no goodbye, mid-write maybe
+        killed_at = time.monotonic()
+        cluster.start_api("api-restarted")
+        down_s = time.monotonic() - killed_at
+        after_restart = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
+        assert len(after_restart) >= 2
+        assert httpx.get(f"{url}/runs/{run_id}").json()["status"] in ("running", "completed")
+        streamed: list = []
+        follow(url, run_id, streamed)
+        run = httpx.get(f"{url}/runs/{run_id}").json()
+        assert run["status"] == "completed", run
+        final = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
+        assert final[: len(after_restart)] == after_restart, "stored points are kept as they were"
+        assert [d for e, d in streamed if e == "metric"] == final
+        assert final[-1]["episode"] == episodes, "points after the restart are stored"
+        time.sleep(0.5)
+        published = bus_rows.rows[run_id]
+        assert len(published) == episodes // 4
+        by_episode = {r["episode"]: r for r in published}
+        for p in final:
+            assert without_seq(p) == by_episode[p["episode"]]
+        missed = len(published) - len(final)
+        if missed:  # rows published while no API listened: said, not hidden
+            assert run["reason"] == (
+                f"{missed} of {len(published)} metric points were published while the API "
+                "was not listening"
+            )
+        else:
+            assert run["reason"] is None
+        print(f"API down {down_s:.1f} s; {missed} of {len(published)} points missed meanwhile")
+        check_csv_has(url, run_id, final)
+    finally:
+        bus_rows.close()
+
+
+def test_a_run_whose_learner_dies_fails_with_the_reason_and_the_others_go_on(cluster):
+    url = cluster.url
+    long = httpx.post(f"{url}/experiments", json={**TINY, "episodes": 400}).json()
+    short = httpx.post(f"{url}/experiments", json={**TINY, "seed": 5}).json()
+    doomed, survivor = long["runs"][0]["id"], short["runs"][0]["id"]
+    wait_for(
+        lambda: httpx.get(f"{url}/runs/{doomed}").json()["points"] >= 1,
+        timeout=60,
+        what="the first run training",
+    )
+    assert httpx.get(f"{url}/runs/{survivor}").json()["status"] == "queued"
+    cluster.procs.kill("learner", signal.SIGKILL)
+    run = wait_for(
+        lambda: (r := httpx.get(f"{url}/runs/{doomed}").json())["status"] != "running" and r,
+        timeout=30,
+        what="the run to end",
+    )
+    assert run["status"] == "failed", run
+    assert "learner" in run["reason"] and ("died" in run["reason"] or "gone" in run["reason"])
+    assert run["points"] >= 1, "what it had stored is kept"
+    # The queued run waits for a learner, and runs when one comes.
+    waiting = wait_for(
+        lambda: httpx.get(f"{url}/runs/{survivor}").json()["reason"], timeout=10, what="reason"
+    )
+    assert "learner" in waiting
+    cluster.procs.start("learner2", "learner", "--id", "learner", "--data-dir", str(cluster.data))
+    done = wait_for(
+        lambda: (
+            (r := httpx.get(f"{url}/runs/{survivor}").json())["status"] not in ("queued", "running")
+            and r
+        ),
+        timeout=120,
+        what="the other run to end",
+    )
+    assert done["status"] == "completed", done
+    assert done["points"] == 3
+    stop = httpx.post(f"{url}/runs/{doomed}/stop").json()
+    assert stop["changed"] is False and stop["detail"] == "run already failed: nothing to stop"
+    assert httpx.get(f"{url}/experiments/{long['id']}").json()["status"] == "failed"
+
+
+def macb(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "shared.cli", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def test_cli_run_ls_plot_and_stop_through_the_api(cluster, tmp_path):
+    url = cluster.url
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump(TINY))
+    out = tmp_path / "out"
+    done = macb("run", str(cfg), "--seeds", "3", "4", "--api", url, "--out", str(out), "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert "completed" in done.stderr
+    exp_id = done.stderr.split("experiment ", 1)[1].split(":", 1)[0]
+    exp = httpx.get(f"{url}/experiments/{exp_id}").json()
+    assert exp["status"] == "completed" and exp["seeds"] == [3, 4]
+    for run in exp["runs"]:
+        table = list(csv.DictReader((out / run["id"] / "metrics.csv").open()))
+        assert [int(r["episode"]) for r in table] == [4, 8, 12]
+        assert json.loads((out / run["id"] / "config.json").read_text()) == run["config"]
+    assert (out / "plot.png").stat().st_size > 10_000
+
+    listed = macb("ls", "--api", url)
+    assert listed.returncode == 0 and exp_id in listed.stdout
+    assert all(r["id"] in listed.stdout for r in exp["runs"])
+
+    for source in (("--api", url), ("--db", str(cluster.data / "api.sqlite3"))):
+        png = tmp_path / f"plot{source[0]}.png"
+        plotted = macb("plot", exp_id, "-o", str(png), *source)
+        assert plotted.returncode == 0, plotted.stderr
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+
+    finished = macb("stop", exp["runs"][0]["id"], "--api", url)
+    assert finished.returncode == 0 and "nothing to stop" in finished.stdout
+    assert macb("stop", "no-such-id", "--api", url).returncode == 1
+
+    bad = macb("run", str(cfg), "--beta", "1000", "--api", url)
+    assert bad.returncode == 2 and "beta" in bad.stderr
+
+    detached = macb("run", str(cfg), "--episodes", "400", "--detach", "--api", url)
+    assert detached.returncode == 0, detached.stderr
+    new_id = detached.stdout.strip().splitlines()[-1]
+    stopped = macb("stop", new_id, "--api", url)
+    assert stopped.returncode == 0 and "stopped 1 run(s)" in stopped.stdout
+    final = httpx.get(f"{url}/experiments/{new_id}").json()
+    assert final["status"] == "stopped" and final["runs"][0]["reason"] == "stopped by user"
+    wait_for(
+        lambda: all(w["run"] is None for w in httpx.get(f"{url}/workers").json()["workers"]),
+        timeout=20,
+        what="services freed by the stop",
+    )

@@ -1,0 +1,134 @@
+"""The dashboard in headless Chromium against a running API with real metrics.
+
+A real cluster runs an experiment (two seeds x two grid points); Chromium loads
+GET /, lets the page fetch and draw, and dumps the DOM. The curves it drew must
+be the mean over seeds of the points the API stored, per episode, for the success
+rate, the count-1 percentage and the throughput; a screenshot is saved in the
+test's output folder (tmp_path).
+"""
+
+from __future__ import annotations
+
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.conftest import wait_for
+from tests.test_api_e2e import TINY, api_cluster
+
+CHROMIUM = Path("/usr/bin/chromium")
+pytestmark = pytest.mark.skipif(
+    not CHROMIUM.exists(),
+    reason="needs Debian's chromium at /usr/bin/chromium (apt-get install -y chromium; "
+    ".ci/run installs it)",
+)
+CHARTS = ("success_rate", "count1_pct", "steps_per_sec")
+
+
+def chromium(url: str, out: Path, *action: str, budget_ms: int = 8000) -> str:
+    out.mkdir(parents=True, exist_ok=True)
+    cmd = [
+        str(CHROMIUM),
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--disable-dev-shm-usage",
+        "--hide-scrollbars",
+        f"--user-data-dir={out / 'chromium-profile'}",
+        f"--virtual-time-budget={budget_ms}",
+        "--window-size=1400,1800",
+        *action,
+        url,
+    ]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout
+
+
+class Dom(HTMLParser):
+    """Every element's tag and attributes, in document order."""
+
+    def __init__(self, html: str) -> None:
+        super().__init__()
+        self.elements: list[tuple[str, dict[str, str]]] = []
+        self.feed(html)
+
+    def handle_starttag(self, tag, attrs):
+        self.elements.append((tag, {k: v or "" for k, v in attrs}))
+
+    def find(self, tag: str, **attrs: str) -> list[dict[str, str]]:
+        want = {k.rstrip("_").replace("_", "-"): v for k, v in attrs.items()}
+        return [
+            a
+            for t, a in self.elements
+            if t == tag
+            and all(
+                a.get(k) == v or (k == "class" and v in a.get(k, "").split())
+                for k, v in want.items()
+            )
+        ]
+
+
+@pytest.fixture(scope="module")
+def finished_experiment(tmp_path_factory):
+    with api_cluster(tmp_path_factory.mktemp("dashboard")) as cluster:
+        url = cluster.url
+        body = {**TINY, "seeds": [0, 1], "grid": {"k": [32, 64]}, "name": "dashboard check"}
+        exp = httpx.post(f"{url}/experiments", json=body).json()
+        wait_for(
+            lambda: httpx.get(f"{url}/experiments/{exp['id']}").json()["status"] == "completed",
+            timeout=180,
+            interval=0.5,
+            what="experiment completed",
+        )
+        yield url, httpx.get(f"{url}/experiments/{exp['id']}").json()
+
+
+def test_dashboard_draws_the_stored_learning_curves(finished_experiment, tmp_path):
+    url, exp = finished_experiment
+    points = {
+        r["id"]: httpx.get(f"{url}/runs/{r['id']}/metrics").json()["points"] for r in exp["runs"]
+    }
+    dom = Dom(chromium(f"{url}/", tmp_path, "--dump-dom"))
+    body = dom.find("body")[0]
+    assert body["data-ready"] == "1"
+    assert int(body["data-updates"]) >= 2, "the page keeps refreshing itself"
+    (card,) = dom.find("section", data_experiment=exp["id"])
+    assert card["data-status"] == "completed"
+    for run in exp["runs"]:
+        (row,) = dom.find("tr", data_run=run["id"])
+        assert row["data-status"] == "completed"
+    for metric in CHARTS:
+        curves = dom.find(
+            "path", class_="curve-mean", data_experiment=exp["id"], data_metric=metric
+        )
+        assert sorted(c["data-label"] for c in curves) == ["k=32", "k=64"], metric
+        for c in curves:
+            k = int(c["data-label"].split("=")[1])
+            runs = [r["id"] for r in exp["runs"] if r["point"] == {"k": k}]
+            assert len(runs) == 2
+            episodes = sorted({p["episode"] for r in runs for p in points[r]})
+            assert episodes == [4, 8, 12]
+            expected = [
+                sum(p[metric] for r in runs for p in points[r] if p["episode"] == e) / len(runs)
+                for e in episodes
+            ]
+            assert c["data-episodes"] == "4,8,12"
+            assert c["data-seeds"] == "2,2,2"
+            drawn = [float(v) for v in c["data-values"].split(",")]
+            assert drawn == pytest.approx(expected, rel=1e-5, abs=1e-9), metric
+            assert c["d"].count("L") == len(episodes) - 1 and c["d"].startswith("M")
+        bands = [b for b in dom.find("polygon", class_="curve-band") if b["data-label"]]
+        assert len(bands) >= 2 * len(CHARTS)
+    shot = tmp_path / "dashboard.png"
+    chromium(f"{url}/", tmp_path, f"--screenshot={shot}")
+    assert shot.stat().st_size > 20_000
+    print(f"screenshot: {shot}")
