@@ -1,17 +1,28 @@
-"""The `macb` command. Subcommands are small wrappers over library functions."""
+"""The `macb` command. Subcommands are small wrappers over library functions.
+
+Thread settings are chosen here, before numpy or torch load: every process of the
+platform shares 2 cores with the others, and BLAS threads fighting torch's threads
+cost up to 40% (benchmarks/bench_e2e.py: the one-process trainer ran 69 steps/s with
+numpy's default BLAS threads, 78 with one). `--threads` still sets torch's own.
+"""
 
 from __future__ import annotations
 
-import argparse
-import logging
-import sys
-import time
-from pathlib import Path
-from typing import Any
+import os
 
-import yaml
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from shared.config import ConfigError, TrainConfig, load_config, make_config
+import argparse  # noqa: E402 (after the thread settings, on purpose)
+import logging  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import yaml  # noqa: E402
+
+from shared.config import ConfigError, TrainConfig, load_config, make_config  # noqa: E402
 
 
 def _add_config_flags(p: argparse.ArgumentParser) -> None:
