@@ -10,6 +10,7 @@ anything else raises `WireError`, which services count, log and drop.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import msgpack
@@ -80,7 +81,7 @@ def _unpack_hook(obj: dict) -> Any:
             raise WireError(f"bad array encoding (dtype {dtype!r})")
         if not all(isinstance(s, int) and s >= 0 for s in shape):
             raise WireError("bad array shape")
-        count = int(np.prod(shape)) if shape else 1
+        count = math.prod(shape)
         if count * np.dtype(dtype).itemsize != len(data):
             raise WireError("array data does not match its shape")
         return np.frombuffer(data, dtype=dtype).reshape(shape)

@@ -1,0 +1,840 @@
+"""End-to-end training throughput: the one-process trainer against the local cluster.
+
+The workload is the thesis's speaker_listener arm: Cen-MADDPG + Cen-MACB, k=512,
+beta=0.8, batch 100, hidden 400-300, one update per environment step, 10 noise-free
+evaluation episodes per evaluation point. Each variant is a fresh process tree:
+
+* `trainer`: `shared.trainer.train` (what `macb train` runs) in a child process whose
+  environment has no OMP/OPENBLAS/MKL_NUM_THREADS, as from a plain shell;
+* `trainer-blas1`: the same with those set to 1, which is what `macb up` gives each
+  service (shared/cluster.py THREAD_ENV): the like-for-like baseline for the cluster;
+* `cluster`: `macb up --run CONFIG --actors 1 --quiet --quiet-services` on a free
+  loopback port (router, counter, learner, evaluator, one actor as processes), watched
+  from this process over the bus (learner stats every second, status, metric rows).
+
+each with evaluation on (`--eval-every 1`) and off (`--eval-every` = episodes).
+
+Throughput is updates (= env steps past `learning_starts`, one update per step) per
+second in steady state: from the point where a third of the run's updates are done to
+the end of training. For the trainer the child records the time at every episode end
+(evaluation time falls inside the window, as in `steps_per_sec`); for the cluster the
+learner's own `updates` and `wall_s` (published every second, and at completion). For
+evaluation-on runs the same is also computed from the metric rows (env_steps and wall_s
+of a late evaluation point and the last one), and the overall average of the last row
+is reported too. End-to-end time runs until the last metric row exists (for the
+cluster: until the evaluator has evaluated the last point).
+
+Variants run in rounds, in a rotating order, one at a time (never two at once): load
+from other processes hits them alike; ratios (cluster / trainer) are taken within a
+round, and everything is the median over rounds. CPU seconds of every process (from
+/proc) show what limits throughput.
+
+    .venv/bin/python benchmarks/bench_e2e.py [--quick]
+
+prints markdown tables and writes benchmarks/results/e2e.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+CONFIG_YAML = """\
+# bench_e2e: thesis figure 8 arm sparse-cen-macb with the appendix A settings.
+task: speaker_listener
+algo: cen-maddpg
+explore: cen-macb
+beta: 0.8
+k: 512
+batch_size: 100
+hidden: [400, 300]
+eval_episodes: 10
+seed: 0
+"""
+TARGET_CLUSTER_EVAL_ON = 136.0  # steps/s, the issue's target for the cluster, eval on
+TARGET_RATIO = 0.85  # cluster within 15% of the trainer
+THESIS_STEPS_PER_S = {"with bonus": 34.0, "without bonus": 70.0}
+VARIANTS = ("trainer", "trainer-blas1", "cluster")
+
+
+# ------------------------------------------------------------------ helpers
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_port(endpoint: str, timeout: float = 30.0) -> bool:
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex((host, int(port))) == 0:
+                return True
+        time.sleep(0.05)
+    return False
+
+
+def cpu_seconds(pid: int) -> float | None:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        with contextlib.suppress(OSError):
+            out += [int(c) for c in (task / "children").read_text().split()]
+    return out
+
+
+def role_of(pid: int) -> str:
+    try:
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return "?"
+    argv = [a.decode(errors="replace") for a in argv]
+    if "serve" in argv:
+        i = argv.index("serve")
+        role = argv[i + 1] if i + 1 < len(argv) else "?"
+        if "--id" in argv:
+            return argv[argv.index("--id") + 1]
+        return role
+    return "?"
+
+
+def ours(pid: int, marks: tuple[str, ...]) -> bool:
+    """Whether pid is still one of this run's processes (its command line names them)."""
+    try:
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+    except OSError:
+        return False
+    return any(m in cmd for m in marks)
+
+
+def base_env(blas1: bool) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in BLAS_VARS}
+    env["PYTHONUNBUFFERED"] = "1"
+    if blas1:
+        env.update(dict.fromkeys(BLAS_VARS, "1"))
+    return env
+
+
+def end_process(p: subprocess.Popen, grace: float = 30.0) -> None:
+    """SIGTERM, wait, SIGKILL: by PID, only what we started."""
+    if p.poll() is None:
+        p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(timeout=grace)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def window_rate(points: list[tuple[float, float]], total: float) -> dict:
+    """Steady state from (time_s, updates) samples: from the first sample with at least a
+    third of `total` updates to the last sample."""
+    points = sorted(points)
+    late = [p for p in points if p[1] >= total / 3]
+    if len(late) < 2 or late[-1][0] <= late[0][0]:
+        return {"rate": None}
+    (t0, u0), (t1, u1) = late[0], late[-1]
+    return {
+        "rate": (u1 - u0) / (t1 - t0),
+        "from_updates": u0,
+        "to_updates": u1,
+        "s": t1 - t0,
+        "t0": t0,
+        "t1": t1,
+    }
+
+
+def rows_rate(rows: list[dict], episodes: int) -> float | None:
+    """env_steps / wall_s between the first row at or past a third of the run and the last."""
+    late = [r for r in rows if r["episode"] >= episodes / 3]
+    if len(late) < 2:
+        return None
+    a, b = late[0], late[-1]
+    return (b["env_steps"] - a["env_steps"]) / (b["wall_s"] - a["wall_s"])
+
+
+# ------------------------------------------------------------------ trainer child
+def trainer_child(args: argparse.Namespace) -> None:
+    """Run the one-process trainer; record the time of every episode end."""
+    import resource
+
+    import shared.trainer as trainer_mod
+    from shared.config import load_config
+
+    cfg = load_config(args.config, {"episodes": args.episodes, "eval_every": args.eval_every})
+    marks: list[tuple[float, float]] = []  # (wall, CPU seconds of all threads)
+    steps = [0]
+
+    class TimedCollector(trainer_mod.Collector):
+        def step(self, policy):
+            tr = super().step(policy)
+            steps[0] += 1
+            if tr.episode_end:
+                marks.append((time.perf_counter(), time.process_time()))
+            return tr
+
+    trainer_mod.Collector = TimedCollector  # measurement only: one append per episode
+    t0 = time.perf_counter()
+    rows = trainer_mod.train(cfg, Path(args.result).parent / "trainer-out", progress=False)
+    wall = time.perf_counter() - t0
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    Path(args.result).write_text(
+        json.dumps(
+            {
+                "rows": rows,
+                "marks": [(m - t0, c) for m, c in marks],
+                "steps": steps[0],
+                "wall_s": wall,
+                "cpu_s": usage.ru_utime + usage.ru_stime,
+                "learning_starts": cfg.learning_starts,
+                "episode_len": cfg.episode_len,
+                "env": {k: os.environ.get(k) for k in BLAS_VARS},
+            }
+        )
+    )
+
+
+def run_trainer(
+    config: Path, episodes: int, eval_every: int, blas1: bool, work: Path, timeout: float
+) -> dict:
+    result = work / "trainer.json"
+    argv = [sys.executable, str(Path(__file__).resolve()), "--_trainer", "--config", str(config)]
+    argv += ["--episodes", str(episodes), "--eval-every", str(eval_every)]
+    argv += ["--result", str(result)]
+    log = open(work / "trainer.log", "wb")  # noqa: SIM115
+    p = subprocess.Popen(
+        argv,
+        cwd=ROOT,
+        env=base_env(blas1),
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    log.close()
+    try:
+        p.wait(timeout=timeout)
+    finally:
+        end_process(p)
+    if p.returncode != 0 or not result.exists():
+        raise RuntimeError(f"trainer failed ({p.returncode}); see {work}/trainer.log")
+    data = json.loads(result.read_text())
+    rows, marks = data["rows"], data["marks"]
+    ls, el = data["learning_starts"], data["episode_len"]
+    # (time, updates done) at each episode end: updates = steps past learning_starts.
+    points = [(t, max(0, (i + 1) * el - ls)) for i, (t, _) in enumerate(marks)]
+    total = max(0, episodes * el - ls)
+    steady = window_rate(points, total)
+    cpu_at = dict(marks)
+    steady_cpu = (
+        (cpu_at[steady["t1"]] - cpu_at[steady["t0"]]) / steady["s"] if steady["rate"] else None
+    )
+    last = rows[-1]
+    return {
+        "steady": steady,
+        "rows_steady": rows_rate(rows, episodes) if eval_every < episodes else None,
+        "overall_steps_per_sec": last["steps_per_sec"],
+        "overall_train_steps_per_sec": last["train_steps_per_sec"],
+        "e2e_s": last["wall_s"],
+        "e2e_steps_per_s": last["env_steps"] / last["wall_s"],
+        "cpu_s": {"trainer": data["cpu_s"]},
+        "cpu_share": {"trainer": steady_cpu},  # cores used in the steady window
+        "rows": len(rows),
+        "final_success": last["success_rate"],
+        "env": data["env"],
+    }
+
+
+# ------------------------------------------------------------------ cluster
+class Watcher:
+    """Subscribes to a cluster's metrics and status; timestamps arrivals."""
+
+    def __init__(self, endpoint: str) -> None:
+        from shared.bus import Bus
+
+        self.bus = Bus([endpoint])
+        self.lock = threading.Lock()
+        self.learner: list[tuple[float, dict]] = []
+        self.counter: list[dict] = []
+        self.actors: dict[str, dict] = {}
+        self.eval_rows: list[tuple[float, dict]] = []
+        self.status: list[tuple[float, str, str]] = []
+        self.bus.subscribe("macb/run/*/metrics/**", self._on_metrics)
+        self.bus.subscribe("macb/run/*/status/*", self._on_status)
+
+    def _on_metrics(self, key: str, payload: bytes) -> None:
+        from shared.wire import WireError, decode
+
+        try:
+            msg = decode(payload, "metrics")
+        except WireError:
+            return
+        now = time.monotonic()
+        with self.lock:
+            src, data = msg["source"], msg["data"]
+            if src == "learner":
+                self.learner.append((now, data))
+            elif src == "counter":
+                self.counter.append(data)
+            elif src == "eval":
+                self.eval_rows.append((now, data))
+            elif src.startswith("actor/"):
+                self.actors[src] = data
+
+    def _on_status(self, key: str, payload: bytes) -> None:
+        from shared.wire import WireError, decode
+
+        try:
+            msg = decode(payload, "status")
+        except WireError:
+            return
+        with self.lock:
+            self.status.append((time.monotonic(), msg["service"], msg["state"]))
+
+    def close(self) -> None:
+        self.bus.close()
+
+
+_UP_FLAGS: str | None = None
+
+
+def up_supports(flag: str) -> bool:
+    """Whether `macb up` has this flag (the CLI grows; e.g. --api-port)."""
+    global _UP_FLAGS
+    if _UP_FLAGS is None:
+        _UP_FLAGS = subprocess.run(
+            [sys.executable, "-m", "shared.cli", "up", "--help"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        ).stdout
+    return flag in _UP_FLAGS
+
+
+def up_argv(config: Path, episodes: int, eval_every: int, actors: int, work: Path):
+    """The `macb up --run` command line on free loopback ports, and its endpoint."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    out = work / "cluster-out"
+    argv = [sys.executable, "-m", "shared.cli", "up", "--run", str(config), "--out", str(out)]
+    argv += ["--endpoint", endpoint, "--data-dir", str(work / "cluster-data")]
+    argv += ["--actors", str(actors), "--quiet", "--quiet-services"]
+    argv += ["--episodes", str(episodes), "--eval-every", str(eval_every)]
+    if up_supports("--api-port"):  # never the default port 8000: it may be taken
+        argv += ["--api-port", str(free_port())]
+    return argv, endpoint
+
+
+def run_cluster(
+    config: Path, episodes: int, eval_every: int, actors: int, work: Path, timeout: float
+) -> dict:
+    argv, endpoint = up_argv(config, episodes, eval_every, actors, work)
+    log = open(work / "up.log", "wb")  # noqa: SIM115
+    t_launch = time.monotonic()
+    p = subprocess.Popen(
+        argv,
+        cwd=ROOT,
+        env=base_env(False),
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    log.close()
+    watcher = None
+    cpu: dict[int, float] = {}
+    series: list[tuple[float, dict[int, float]]] = []  # (monotonic time, pid -> CPU s)
+    roles: dict[int, str] = {}
+    stop = threading.Event()
+
+    def sample() -> None:
+        while not stop.is_set():
+            now = {}
+            for c in children(p.pid):
+                s = cpu_seconds(c)
+                if s is not None:
+                    now[c] = cpu[c] = max(cpu.get(c, 0.0), s)
+                    if c not in roles or roles[c] == "?":
+                        roles[c] = role_of(c)
+            series.append((time.monotonic(), now))
+            stop.wait(0.25)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    try:
+        if not wait_port(endpoint, 60):
+            raise RuntimeError(f"the cluster's router did not listen; see {work}/up.log")
+        watcher = Watcher(endpoint)
+        p.wait(timeout=timeout)
+    finally:
+        stop.set()
+        sampler.join()
+        end_process(p)
+        for c in list(cpu):  # `macb up` ends its children; make sure, by PID
+            if ours(c, (endpoint, str(work))):
+                os.kill(c, signal.SIGKILL)
+        if watcher is not None:
+            watcher.close()
+    t_exit = time.monotonic()
+    if p.returncode != 0:
+        raise RuntimeError(f"macb up exited {p.returncode}; see {work}/up.log")
+    learner = watcher.learner
+    if not learner:
+        raise RuntimeError("no learner metrics seen")
+    total = learner[-1][1]["updates"]
+    points = [(d["wall_s"], d["updates"]) for _, d in learner]
+    rows = [d for _, d in watcher.eval_rows]
+    last = learner[-1][1]
+    starts = [t for t, svc, st in watcher.status if st == "running"]
+    t_start = min(starts) if starts else t_launch
+    t_last_row = max(t for t, _ in watcher.eval_rows)
+    t_learner_done = learner[-1][0]
+    counter = watcher.counter[-1] if watcher.counter else {}
+    cpu_by_role: dict[str, float] = {}
+    for c, s in cpu.items():
+        cpu_by_role[roles.get(c, "?")] = cpu_by_role.get(roles.get(c, "?"), 0.0) + s
+    run_s = t_last_row - t_start
+    steady = window_rate(points, total)
+    share: dict[str, float] = {}
+    if steady["rate"]:
+        # The steady window in this process's clock: when those learner stats arrived.
+        arrival = {d["wall_s"]: t for t, d in learner}
+        a, b = arrival[steady["t0"]], arrival[steady["t1"]]
+        s0 = min(series, key=lambda x: abs(x[0] - a))
+        s1 = min(series, key=lambda x: abs(x[0] - b))
+        for c in s1[1]:
+            if c in s0[1]:
+                role = roles.get(c, "?")
+                share[role] = share.get(role, 0.0) + (s1[1][c] - s0[1][c]) / (s1[0] - s0[0])
+    return {
+        "steady": steady,
+        "rows_steady": rows_rate(rows, episodes) if eval_every < episodes else None,
+        "overall_steps_per_sec": rows[-1]["steps_per_sec"] if rows else None,
+        "e2e_s": run_s,
+        "e2e_steps_per_s": episodes * 20 / run_s,
+        "startup_s": t_start - t_launch,
+        "teardown_s": t_exit - t_last_row,
+        "evaluator_lag_s": t_last_row - t_learner_done,
+        "learner": {
+            k: last.get(k)
+            for k in (
+                "updates",
+                "ingested",
+                "wall_s",
+                "replay_ratio",
+                "policy_lag",
+                "bonus_p50_ms",
+                "bonus_p99_ms",
+                "bonus_failures",
+                "backlog",
+            )
+        },
+        "counter": {
+            k: counter.get(k)
+            for k in ("counted_transitions", "query_p50_ms", "query_p99_ms", "queries")
+        },
+        "actors": watcher.actors,
+        "cpu_s": cpu_by_role,
+        "cpu_share": share,  # cores used by each service in the steady window
+        "rows": len(rows),
+        "final_success": rows[-1]["success_rate"] if rows else None,
+        "argv": argv[1:],
+    }
+
+
+# ------------------------------------------------------------------ profiles
+TRAINER_PARTS = {
+    "learner.update": ("fast_maddpg.py", "update"),
+    "bonus (hash + look-up)": ("exploration.py", "bonus"),
+    "count (observe)": ("exploration.py", "observe"),
+    "replay sample": ("replay.py", "sample"),
+    "env step + act (Collector.step)": ("rollout.py", "step"),
+    "evaluation": ("rollout.py", "evaluate"),
+}
+LEARNER_PARTS = {
+    "learner.update": ("fast_maddpg.py", "update"),
+    "bonus query round trip (BonusClient.bonus_for)": ("learner/main.py", "bonus_for"),
+    "replay sample": ("replay.py", "sample"),
+    "weights out (publish_weights)": ("learner/main.py", "publish_weights"),
+    "  of which counter stats query": ("learner/main.py", "counter_stats"),
+    "inbound messages (handle)": ("learner/main.py", "handle"),
+    "waiting for messages (inbox get)": ("queue.py", "get"),
+}
+
+
+def profile_parts(path: Path, parts: dict, top: int = 20) -> dict:
+    """Cumulative seconds of the named functions, and the top functions by own time."""
+    import io
+    import pstats
+
+    st = pstats.Stats(str(path))
+    found = {}
+    for label, (file_part, func) in parts.items():
+        found[label] = sum(
+            v[3] for (f, _, fn), v in st.stats.items() if fn == func and f.endswith(file_part)
+        )
+    # The run itself (train / serve_forever), not the imports before it.
+    total = max(
+        (v[3] for (f, _, fn), v in st.stats.items() if fn in ("train", "serve_forever")),
+        default=max(v[3] for v in st.stats.values()),
+    )
+    buf = io.StringIO()
+    pstats.Stats(str(path), stream=buf).sort_stats("tottime").print_stats(top)
+    return {"total_s": total, "parts_s": found, "top_tottime": buf.getvalue()}
+
+
+def profile_trainer(
+    config: Path, episodes: int, eval_every: int, work: Path, blas1: bool = True
+) -> dict:
+    result, prof = work / "trainer.json", work / "trainer.prof"
+    argv = [sys.executable, "-m", "cProfile", "-o", str(prof), str(Path(__file__).resolve())]
+    argv += ["--_trainer", "--config", str(config), "--episodes", str(episodes)]
+    argv += ["--eval-every", str(eval_every), "--result", str(result)]
+    p = subprocess.Popen(argv, cwd=ROOT, env=base_env(blas1), start_new_session=True)
+    try:
+        p.wait(timeout=120 + episodes * 4)
+    finally:
+        end_process(p)
+    return profile_parts(prof, TRAINER_PARTS)
+
+
+def profile_cluster(config: Path, episodes: int, eval_every: int, work: Path) -> dict:
+    """The cluster's services by hand (as `macb up` starts them, no API), with the learner
+    under cProfile; the run is started on the bus (shared.control.start_run)."""
+    from shared.bus import Bus
+    from shared.config import load_config
+    from shared.control import discover, start_run
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = {**base_env(True), "MACB_ZENOH_CONNECT": endpoint}
+    data = str(work / "data")
+    prof = work / "learner.prof"
+    serve = [sys.executable, "-m", "shared.cli", "serve"]
+    plan = {
+        "router": serve + ["router", "--listen", endpoint],
+        "counter": serve + ["counter", "--id", "counter", "--data-dir", data],
+        "learner": [sys.executable, "-m", "cProfile", "-o", str(prof), "-m", "shared.cli"]
+        + ["serve", "learner", "--id", "learner", "--data-dir", data],
+        "evaluator": serve + ["evaluator", "--id", "evaluator", "--data-dir", data],
+        "actor0": serve + ["actor", "--id", "actor0", "--data-dir", data],
+    }
+    procs: dict[str, subprocess.Popen] = {}
+    try:
+        for name, argv in plan.items():
+            log = open(work / f"{name}.log", "wb")  # noqa: SIM115
+            procs[name] = subprocess.Popen(
+                argv,
+                cwd=ROOT,
+                env=env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,
+            )
+            log.close()
+            if name == "router" and not wait_port(endpoint):
+                raise RuntimeError("router did not listen")
+        cfg = load_config(config, {"episodes": episodes, "eval_every": eval_every})
+        with Bus([endpoint]) as bus:
+            deadline = time.monotonic() + 90
+            while len(discover(bus)) < len(plan) - 1:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"services did not come up; logs in {work}")
+                time.sleep(0.2)
+            watch = start_run(bus, cfg, actors=1)
+            state = watch.wait(timeout=120 + episodes * 4)
+            if state != "completed":
+                raise RuntimeError(f"profiled run {state}: {watch.failure()}")
+    finally:
+        for name in [n for n in procs if n != "router"] + ["router"]:
+            if name in procs:
+                end_process(procs[name])
+    return profile_parts(prof, LEARNER_PARTS)
+
+
+def run_profiles(config: Path, episodes: int, tmp: Path) -> dict:
+    out = {}
+
+    def trainer_default(*a):
+        return profile_trainer(*a, blas1=False)
+
+    for name, fn in (
+        ("trainer", trainer_default),
+        ("trainer-blas1", profile_trainer),
+        ("cluster learner", profile_cluster),
+    ):
+        work = tmp / f"profile-{name.replace(' ', '-')}"
+        work.mkdir()
+        print(f"profiling {name} (eval off, {episodes} episodes) ...", file=sys.stderr)
+        out[name] = fn(config, episodes, episodes, work)
+    print("\nProfiles (cProfile, eval off; seconds of the profiled thread, inflated by the")
+    print("profiler's own cost):\n")
+    print("| part | seconds | share |")
+    print("|---|---|---|")
+    for name, res in out.items():
+        print(f"| **{name}** (total {res['total_s']:.1f} s) | | |")
+        for label, sec in res["parts_s"].items():
+            print(f"| {label} | {sec:.2f} | {sec / res['total_s']:.0%} |")
+    for name, res in out.items():
+        print(f"\n{name}, top functions by own time:\n{res['top_tottime']}")
+    return out
+
+
+# ------------------------------------------------------------------ main
+def median(xs):
+    xs = [x for x in xs if x is not None]
+    return statistics.median(xs) if xs else None
+
+
+def fmt(x, spec=".1f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def ratio_pair(s: dict, base: str) -> str:
+    if f"over_{base}" not in s:
+        return "-"
+    return f"{fmt(s[f'over_{base}'], '.2f')}, {fmt(s[f'e2e_over_{base}'], '.2f')}"
+
+
+def tmp_config(tmp: Path) -> Path:
+    config = tmp / "config.yaml"
+    config.write_text(CONFIG_YAML)
+    return config
+
+
+def run_variant(name: str, config: Path, episodes: int, ev: int, work: Path, actors: int = 1):
+    timeout = 120 + episodes * 20 / 5.0  # a run slower than 5 steps/s is broken
+    if name == "cluster":
+        return run_cluster(config, episodes, ev, actors, work, timeout)
+    return run_trainer(config, episodes, ev, name == "trainer-blas1", work, timeout)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0]
+        + " speaker_listener, Cen-MADDPG + Cen-MACB (k=512, beta=0.8), batch 100, hidden "
+        "400-300; evaluation every episode and only at the end.",
+        epilog="Prints markdown tables; writes --out (default benchmarks/results/e2e.json).",
+    )
+    parser.add_argument("--quick", action="store_true", help="30 episodes, 1 round (~1-2 min)")
+    parser.add_argument("--episodes", type=int, default=None, help="per run (default 150)")
+    parser.add_argument("--rounds", type=int, default=None, help="rounds (default 2; quick 1)")
+    parser.add_argument(
+        "--variants",
+        default=",".join(VARIANTS),
+        help=f"comma-separated subset of {','.join(VARIANTS)}",
+    )
+    parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="also profile (cProfile) both trainers and the cluster's learner, eval off",
+    )
+    parser.add_argument(
+        "--profile-episodes", type=int, default=80, help="episodes of each profiled run"
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=ROOT / "benchmarks" / "results" / "e2e.json",
+        help="where to write the JSON results",
+    )
+    parser.add_argument("--_trainer", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--config", help=argparse.SUPPRESS)
+    parser.add_argument("--eval-every", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--result", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args._trainer:
+        trainer_child(args)
+        return
+
+    episodes = args.episodes or (30 if args.quick else 150)
+    rounds = args.rounds or (1 if args.quick else 2)
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    if unknown := set(variants) - set(VARIANTS):
+        parser.error(f"unknown variants {sorted(unknown)}")
+    evals = {"on": 1, "off": episodes}
+    cases = [(v, e) for e in evals for v in variants]
+    load_before = os.getloadavg()
+    if not variants:  # --variants "" --profile: the profiles alone
+        if not args.profile:
+            parser.error("no variants and no --profile: nothing to do")
+        with tempfile.TemporaryDirectory(prefix="bench-e2e-prof-") as tmp:
+            profiles = run_profiles(tmp_config(Path(tmp)), args.profile_episodes, Path(tmp))
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        out = {
+            "command": " ".join(["benchmarks/bench_e2e.py", *(argv or sys.argv[1:])]),
+            "config": CONFIG_YAML,
+            "episodes": args.profile_episodes,
+            "loadavg_before": load_before,
+            "loadavg_after": os.getloadavg(),
+            "profiles": profiles,
+        }
+        args.out.write_text(json.dumps(out, indent=2) + "\n")
+        print(f"\nwrote {args.out}; load average before {load_before}, after {os.getloadavg()}")
+        return
+    runs: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="bench-e2e-") as tmp:
+        tmp = Path(tmp)
+        config = tmp_config(tmp)
+        for r in range(rounds):
+            order = cases[r % len(cases) :] + cases[: r % len(cases)]
+            for name, ev in order:
+                work = tmp / f"r{r}-{name}-{ev}"
+                work.mkdir()
+                load = os.getloadavg()
+                print(
+                    f"round {r + 1}/{rounds}: {name}, eval {ev} ({episodes} episodes; "
+                    f"load {load[0]:.2f}) ...",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                res = run_variant(name, config, episodes, evals[ev], work)
+                res.update(variant=name, eval=ev, round=r, loadavg_before=load)
+                res["loadavg_after"] = os.getloadavg()
+                runs.append(res)
+                print(
+                    f"  steady {fmt(res['steady']['rate'])} steps/s, e2e "
+                    f"{fmt(res['e2e_steps_per_s'])} steps/s",
+                    file=sys.stderr,
+                    flush=True,
+                )
+
+    def get(r, name, ev):
+        return next(
+            (x for x in runs if x["round"] == r and x["variant"] == name and x["eval"] == ev), None
+        )
+
+    summary = []
+    for ev in evals:
+        for name in variants:
+            rs = [get(r, name, ev) for r in range(rounds)]
+            row = {
+                "variant": name,
+                "eval": ev,
+                "steady_steps_per_s": median([x["steady"]["rate"] for x in rs]),
+                "rows_steady_steps_per_s": median([x["rows_steady"] for x in rs]),
+                "overall_steps_per_s": median([x["overall_steps_per_sec"] for x in rs]),
+                "e2e_steps_per_s": median([x["e2e_steps_per_s"] for x in rs]),
+                "samples_steady": [x["steady"]["rate"] for x in rs],
+            }
+            for base in ("trainer", "trainer-blas1"):
+                if name == "cluster" and base in variants:
+                    ratios = [
+                        x["steady"]["rate"] / get(x["round"], base, ev)["steady"]["rate"]
+                        for x in rs
+                    ]
+                    e2e = [
+                        x["e2e_steps_per_s"] / get(x["round"], base, ev)["e2e_steps_per_s"]
+                        for x in rs
+                    ]
+                    row[f"over_{base}"] = median(ratios)
+                    row[f"e2e_over_{base}"] = median(e2e)
+            if name == "cluster":
+                row["learner_bonus_p50_ms"] = median([x["learner"]["bonus_p50_ms"] for x in rs])
+                row["learner_bonus_p99_ms"] = median([x["learner"]["bonus_p99_ms"] for x in rs])
+                row["replay_ratio"] = median([x["learner"]["replay_ratio"] for x in rs])
+                row["evaluator_lag_s"] = median([x["evaluator_lag_s"] for x in rs])
+                row["startup_s"] = median([x["startup_s"] for x in rs])
+            roles = sorted({k for x in rs for k in x["cpu_share"]})
+            row["cpu_share"] = {k: median([x["cpu_share"].get(k) for x in rs]) for k in roles}
+            summary.append(row)
+
+    print(
+        f"\nspeaker_listener, Cen-MADDPG + Cen-MACB (k=512, beta=0.8, batch 100, hidden "
+        f"400-300), {episodes} episodes, 1 actor; medians of {rounds} round(s)\n"
+    )
+    print(
+        "| variant | eval | steady steps/s | from eval rows | overall (last row) "
+        "| end-to-end steps/s | cluster / trainer (steady, e2e) "
+        "| cluster / trainer-blas1 (steady, e2e) | cores used (steady window) |"
+    )
+    print("|" + "---|" * 9)
+    for s in summary:
+        cpu = ", ".join(f"{k} {v:.2f}" for k, v in s["cpu_share"].items() if v and v >= 0.02)
+        print(
+            f"| {s['variant']} | {s['eval']} | {fmt(s['steady_steps_per_s'])} "
+            f"| {fmt(s['rows_steady_steps_per_s'])} | {fmt(s['overall_steps_per_s'])} "
+            f"| {fmt(s['e2e_steps_per_s'])} "
+            f"| {ratio_pair(s, 'trainer')} | {ratio_pair(s, 'trainer-blas1')} | {cpu} |"
+        )
+    clusters = [s for s in summary if s["variant"] == "cluster"]
+    for s in clusters:
+        print(
+            f"\ncluster, eval {s['eval']}: learner bonus query p50 "
+            f"{fmt(s['learner_bonus_p50_ms'], '.2f')} ms, p99 "
+            f"{fmt(s['learner_bonus_p99_ms'], '.2f')} ms; replay ratio "
+            f"{fmt(s['replay_ratio'], '.3f')}; evaluator finished "
+            f"{fmt(s['evaluator_lag_s'], '.1f')} s after the learner; startup "
+            f"{fmt(s['startup_s'], '.1f')} s"
+        )
+    targets = {}
+    on = next((s for s in clusters if s["eval"] == "on"), None)
+    if on is not None:
+        targets["cluster_eval_on_ge_136"] = {
+            "target": TARGET_CLUSTER_EVAL_ON,
+            "measured_steady": on["steady_steps_per_s"],
+            "measured_e2e": on["e2e_steps_per_s"],
+            "met": bool((on["steady_steps_per_s"] or 0) >= TARGET_CLUSTER_EVAL_ON),
+        }
+    for s in clusters:
+        for base in ("trainer", "trainer-blas1"):
+            if f"over_{base}" in s:
+                targets[f"cluster_within_15pct_of_{base}_eval_{s['eval']}"] = {
+                    "target_ratio": TARGET_RATIO,
+                    "measured_ratio": s[f"over_{base}"],
+                    "met": bool((s[f"over_{base}"] or 0) >= TARGET_RATIO),
+                }
+    print("\ntargets (thesis code: 34 steps/s with the bonus, 70 without):")
+    for k, t in targets.items():
+        got = t.get("measured_steady", t.get("measured_ratio"))
+        want = t.get("target", t.get("target_ratio"))
+        print(f"  {k}: {fmt(got, '.2f')} vs {want}: {'met' if t['met'] else 'NOT met'}")
+    profiles = None
+    if args.profile:
+        with tempfile.TemporaryDirectory(prefix="bench-e2e-prof-") as tmp:
+            profiles = run_profiles(tmp_config(Path(tmp)), args.profile_episodes, Path(tmp))
+    result = {
+        "command": " ".join(["benchmarks/bench_e2e.py", *(argv or sys.argv[1:])]),
+        "config": CONFIG_YAML,
+        "episodes": episodes,
+        "rounds": rounds,
+        "variants": variants,
+        "cores": os.cpu_count(),
+        "loadavg_before": load_before,
+        "loadavg_after": os.getloadavg(),
+        "thesis_steps_per_s": THESIS_STEPS_PER_S,
+        "summary": summary,
+        "targets": targets,
+        "profiles": profiles,
+        "runs": runs,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"\nwrote {args.out}; load average before {load_before}, after {os.getloadavg()}")
+
+
+if __name__ == "__main__":
+    main()
