@@ -131,9 +131,6 @@ def serve_api(args: argparse.Namespace) -> int:
     return serve(Settings(**overrides))
 
 
-DISTRIBUTED_FIELDS = ("replay_ratio", "policy_lag", "policy_version")
-
-
 def follow_run(bus, cfg: TrainConfig, actors: int, out: Path | None, quiet: bool) -> int:
     """Start a run on the cluster, follow it to the end, write its metrics; exit code."""
     import json
@@ -141,13 +138,14 @@ def follow_run(bus, cfg: TrainConfig, actors: int, out: Path | None, quiet: bool
     from tqdm import tqdm
 
     from shared.control import NoFreeServices, send_stop, start_run
-    from shared.trainer import METRIC_FIELDS, MetricsWriter
+    from shared.metrics import ALL_FIELDS
+    from shared.trainer import MetricsWriter
 
     writer = None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2) + "\n")
-        writer = MetricsWriter(out, METRIC_FIELDS + DISTRIBUTED_FIELDS)
+        writer = MetricsWriter(out, ALL_FIELDS)
     bar = tqdm(total=cfg.episodes, unit="ep", disable=quiet, desc=f"{cfg.task} {cfg.algo}")
 
     def on_row(row: dict) -> None:

@@ -23,26 +23,14 @@ from shared.config import TrainConfig
 from shared.exploration import CountExploration, ExploreSpec
 from shared.fast_maddpg import BatchedMADDPG
 from shared.maddpg import MADDPG, AgentDims, LearnerSpec
+from shared.metrics import TRAIN_FIELDS
 from shared.replay import ReplayBuffer
 from shared.rollout import Collector, derive_seed, evaluate
 from shared.tasks import TaskSpec, make_task
 
 log = logging.getLogger("macb.trainer")
 
-METRIC_FIELDS = (
-    "episode",
-    "env_steps",
-    "success_rate",
-    "eval_return",
-    "collisions_cum",
-    "count1_pct",
-    "table_size",
-    "counted_transitions",
-    "steps_per_sec",
-    "train_steps_per_sec",
-    "updates",
-    "wall_s",
-)
+METRIC_FIELDS = TRAIN_FIELDS
 
 
 def build_learner(cfg: TrainConfig, spec: TaskSpec) -> MADDPG | BatchedMADDPG:

@@ -165,10 +165,10 @@ def test_metrics_json_csv_since_and_curves_serve_exactly_what_is_stored(api, cli
 
 
 def test_csv_columns_are_the_trainers_then_the_services():
-    from shared.cli import DISTRIBUTED_FIELDS
+    from shared.metrics import SERVICE_FIELDS
     from shared.trainer import METRIC_FIELDS
 
-    assert CSV_FIELDS == METRIC_FIELDS + DISTRIBUTED_FIELDS
+    assert CSV_FIELDS == METRIC_FIELDS + SERVICE_FIELDS
 
 
 def test_everything_survives_a_restart_of_the_api(router, tmp_path):

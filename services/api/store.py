@@ -22,27 +22,11 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from shared.metrics import ALL_FIELDS
+
 SCHEMA_VERSION = 1
 
-# The columns of `macb train`'s metrics.csv (shared.trainer.METRIC_FIELDS, which this
-# module does not import: it would pull torch into the API), then what the services
-# add. A test keeps the two in step.
-TRAIN_FIELDS = (
-    "episode",
-    "env_steps",
-    "success_rate",
-    "eval_return",
-    "collisions_cum",
-    "count1_pct",
-    "table_size",
-    "counted_transitions",
-    "steps_per_sec",
-    "train_steps_per_sec",
-    "updates",
-    "wall_s",
-)
-SERVICE_FIELDS = ("replay_ratio", "policy_lag", "policy_version")
-CSV_FIELDS = TRAIN_FIELDS + SERVICE_FIELDS
+CSV_FIELDS = ALL_FIELDS  # the columns of `macb train`, then what the services add
 
 STATUSES = ("queued", "running", "completed", "stopped", "failed")
 ACTIVE = ("queued", "running")
