@@ -108,13 +108,24 @@ class MADDPG:
         return [torch.as_tensor(a, dtype=torch.float32) for a in arrays]
 
     @torch.no_grad()
-    def target_q(
-        self, i: int, rew: torch.Tensor, next_obs: torch.Tensor, done: torch.Tensor
-    ) -> torch.Tensor:
-        """y = r'_i + gamma (1 - done) Qbar_i(s', mubar_1(o'_1), ..., mubar_N(o'_N))."""
-        next_act = torch.cat(
+    def target_actions(self, next_obs: torch.Tensor) -> torch.Tensor:
+        """mubar_1(o'_1), ..., mubar_N(o'_N), joined: computed once per update."""
+        return torch.cat(
             [mu(self.obs_slice(next_obs, j)) for j, mu in enumerate(self.actor_targets)], -1
         )
+
+    @torch.no_grad()
+    def target_q(
+        self,
+        i: int,
+        rew: torch.Tensor,
+        next_obs: torch.Tensor,
+        done: torch.Tensor,
+        next_act: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """y = r'_i + gamma (1 - done) Qbar_i(s', mubar_1(o'_1), ..., mubar_N(o'_N))."""
+        if next_act is None:
+            next_act = self.target_actions(next_obs)
         qf_next_target = self.critic_targets[i](*self._critic_input(i, next_obs, next_act))
         return rew[:, i] + self.spec.gamma * (1.0 - done) * qf_next_target
 
@@ -160,8 +171,9 @@ class MADDPG:
         """
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
         critic_losses, actor_losses = [], []
+        next_act = self.target_actions(next_t)  # targets do not move until soft_update
         for i in range(self.n):
-            y = self.target_q(i, rew_t, next_t, done_t)
+            y = self.target_q(i, rew_t, next_t, done_t, next_act)
             critic_losses.append(self.critic_step(i, obs_t, act_t, y))
             actor_losses.append(self.actor_step(i, obs_t, act_t))
         self.soft_update()
