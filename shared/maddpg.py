@@ -212,6 +212,8 @@ class MADDPG:
     def load_state_dict(self, state: dict) -> None:
         if state["algo"] != self.spec.algo:
             raise ValueError(f"checkpoint is for {state['algo']}, learner is {self.spec.algo}")
+        if len(state["actors"]) != self.n:
+            raise ValueError(f"checkpoint has {len(state['actors'])} agents, learner has {self.n}")
         self.updates = int(state["updates"])
         for key in ("actors", "critics", "actor_targets", "critic_targets"):
             for m, sd in zip(getattr(self, key), state[key]):
