@@ -49,7 +49,6 @@ import argparse  # noqa: E402
 import contextlib  # noqa: E402
 import json  # noqa: E402
 import signal  # noqa: E402
-import socket  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -66,7 +65,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from shared.bus import Bus, k_ack, k_bonus, k_control, k_info, k_transitions  # noqa: E402
-from shared.cluster import THREAD_ENV  # noqa: E402
+from shared.cluster import THREAD_ENV, free_port, wait_port  # noqa: E402
 from shared.wire import check_dims, decode, encode  # noqa: E402
 
 # Publisher and echo processes import only the above (numpy, zenoh, msgpack): no torch,
@@ -81,21 +80,6 @@ TARGET_P99_MS = 5.0
 
 
 # ------------------------------------------------------------------ processes
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_port(endpoint: str, timeout: float = 20.0) -> None:
-    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        with socket.socket() as s:
-            if s.connect_ex((host, int(port))) == 0:
-                return
-        time.sleep(0.05)
-    raise TimeoutError(f"nothing listens on {endpoint}")
 
 
 def cpu_seconds(pid: int) -> float:

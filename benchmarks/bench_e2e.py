@@ -53,6 +53,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from shared.cluster import free_port  # noqa: E402 (stdlib only: no BLAS loaded)
+
 BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 CONFIG_YAML = """\
 # bench_e2e: thesis figure 8 arm sparse-cen-macb with the appendix A settings.
@@ -73,12 +75,6 @@ VARIANTS = ("trainer", "trainer-blas1", "cluster")
 
 
 # ------------------------------------------------------------------ helpers
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def wait_port(endpoint: str, timeout: float = 30.0) -> bool:
     host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
     deadline = time.monotonic() + timeout

@@ -75,6 +75,13 @@ def _pump(name: str, stream: IO[bytes], log_file: IO[bytes], echo: bool) -> None
             sys.stdout.buffer.flush()
 
 
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now (tests and benchmarks)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def wait_port(endpoint: str, timeout: float = 20.0) -> None:
     host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
     deadline = time.monotonic() + timeout

@@ -31,18 +31,7 @@ from shared import bus as keys
 from shared.bus import Bus
 from shared.wire import WireError, decode, encode
 from tests.conftest import ROOT, Procs, free_port, wait_for, wait_port
-
-TINY = {
-    "task": "speaker_listener",
-    "algo": "cen-maddpg",
-    "explore": "cen-macb",
-    "k": 64,
-    "episodes": 12,
-    "eval_every": 4,
-    "eval_episodes": 2,
-    "hidden": [32, 32],
-    "batch_size": 16,
-}
+from tests.test_api import TINY
 
 
 @dataclass
