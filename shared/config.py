@@ -67,6 +67,14 @@ class TrainConfig(BaseModel):
         "by default targets bootstrap through it",
     )
     threads: int = Field(1, ge=1, le=64, description="torch intra-op threads")
+    learner_lanes: int = Field(
+        2,
+        ge=1,
+        le=16,
+        description="batched learner: split each minibatch into this many row blocks "
+        "computed in parallel threads (1 torch thread each); 2 uses both cores of a "
+        "2-core machine when the other is free and degrades gently when it is not",
+    )
     learner_impl: Literal["batched", "reference"] = Field(
         "batched",
         description="batched: all agents in stacked matrix products (fast); "

@@ -24,10 +24,16 @@ rounding; tests/test_batched_equivalence.py checks it update by update. Why it i
 * Python overhead is a fixed ~100 tensor operations per update whatever N: Adam runs
   the fused kernel directly (`_adam_step`), targets move in one `_foreach_lerp_`, and
   the losses become floats in one conversion at the end.
+* With `lanes=2` the minibatch is split into two row blocks whose targets, forward and
+  backward passes run at the same time in two threads (`shared.lanes`); their
+  gradients are summed before each Adam step, which is the whole batch's gradient up to
+  the order of additions. The matrix products are ~95% of an update and split evenly,
+  so two free cores give ~1.7x, and a busy second core costs little (no spinning).
 
-Threads: this module leaves `torch.set_num_threads` to the process. On the project's
-2-core machines, shared with actors and the counter, one thread per process is the
-measured choice (benchmarks/bench_learner.py reports 1 and 2 threads).
+Threads: this module leaves `torch.set_num_threads` to the process; lanes assume it is
+1. On the project's 2-core machines torch's own 2-thread mode is fast on an idle machine
+and 5-10x slower than one thread as soon as another process wants a core
+(benchmarks/bench_learner.py reports 1 thread, 2 threads and 2 lanes).
 
 `state_dict()` writes the reference's own per-agent format (module and Adam state dicts),
 so checkpoints move between the two classes both ways, and a `BatchedMADDPG` built from
@@ -42,6 +48,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+
+from shared.lanes import Lanes
 
 if TYPE_CHECKING:  # annotations only: this module imports numpy and torch alone
     from shared.maddpg import MADDPG, AgentDims, LearnerSpec
@@ -179,7 +187,7 @@ class BatchedMADDPG:
     `actor_step(i, ...)`) are here for all agents at once and return (N, ...) tensors.
     """
 
-    def __init__(self, agents: Sequence[AgentDims], spec: LearnerSpec) -> None:
+    def __init__(self, agents: Sequence[AgentDims], spec: LearnerSpec, lanes: int = 1) -> None:
         if spec.algo not in ALGOS:
             raise ValueError(f"algo must be one of {ALGOS}, got {spec.algo!r}")
         if spec.algo == "ddpg" and len(agents) != 1:
@@ -249,6 +257,7 @@ class BatchedMADDPG:
         self.actor_optim = torch.optim.Adam(self.actor.params, lr=spec.lr_actor, fused=True)
         self.critic_optim = torch.optim.Adam(self.critic.params, lr=spec.lr_critic, fused=True)
         self.updates = 0
+        self.lanes = Lanes(lanes)
 
     def _init_like_reference(self, critic_in: Sequence[int]) -> None:
         """The reference's initial weights for this seed: the same nn.Linear calls in order."""
@@ -320,18 +329,54 @@ class BatchedMADDPG:
         # done is (B,); reshape so a (B, 1) done cannot broadcast y to (N, B, B).
         return rew.T + self.spec.gamma * (1.0 - done.reshape(1, -1)) * qf_next_target
 
+    def _critic_grads(
+        self, obs: torch.Tensor, act: torch.Tensor, next_q_value: torch.Tensor, batch: int
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Summed squared errors (N,) of these rows and their gradients, as parts of
+        mean((Q_i - y_i)^2) over a minibatch of `batch` rows."""
+        acts = mlp_forward(self.critic.params, self._critic_input(obs, act))
+        diff = acts[-1].squeeze(-1) - next_q_value
+        grad = diff.mul(2.0 / batch).unsqueeze(-1)  # d qf_loss_i / d Q_i
+        grads, _ = mlp_backward(self.critic.params, acts, grad, weights=True, inputs=False)
+        return diff.square().sum(1), grads  # type: ignore[return-value]
+
     def critic_step(
         self, obs: torch.Tensor, act: torch.Tensor, next_q_value: torch.Tensor
     ) -> torch.Tensor:
         """One Adam step of every critic on mean((Q_i - y_i)^2); returns the (N,) losses."""
-        acts = mlp_forward(self.critic.params, self._critic_input(obs, act))
-        qf_a_values = acts[-1].squeeze(-1)
-        diff = qf_a_values - next_q_value
-        qf_loss = diff.square().mean(1)
-        grad = diff.mul(2.0 / diff.shape[1]).unsqueeze(-1)  # d qf_loss_i / d Q_i
-        grads, _ = mlp_backward(self.critic.params, acts, grad, weights=True, inputs=False)
+        batch = obs.shape[0]
+        sq_sum, grads = self._critic_grads(obs, act, next_q_value, batch)
         self._adam_step(self.critic_optim, self.critic.params, grads)
-        return qf_loss
+        return sq_sum / batch
+
+    def _actor_grads(
+        self, obs: torch.Tensor, act: torch.Tensor, batch: int
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Summed Q_i(.., mu_i(o_i), ..) (N,) of these rows and the gradients of
+        -mean(Q_i) over a minibatch of `batch` rows with respect to actor i."""
+        obs_pad = self._per_agent(obs, self._obs_idx)
+        acts = mlp_forward(self.actor.params, obs_pad)
+        tanh_out = torch.tanh(acts[-1])
+        a = self._squash(tanh_out)  # (N, rows, act_pad)
+        rows = a.shape[1]
+        if self.centralized:
+            placed = torch.gather(
+                torch.nn.functional.pad(a, (0, 1)), 2, self._place_idx.expand(-1, rows, -1)
+            )
+            q_in = torch.cat([obs, act], -1) * self._keep + placed
+        else:
+            q_in = torch.cat([obs_pad, a], -1)
+        critic_acts = mlp_forward(self.critic.params, q_in)
+        grad_q = torch.full_like(critic_acts[-1], -1.0 / batch)  # d actor_loss_i / d Q_i
+        _, grad_in = mlp_backward(self.critic.params, critic_acts, grad_q, False, True)
+        if self.centralized:
+            grad_a = torch.gather(grad_in, 2, self._own_cols.expand(-1, rows, -1))
+        else:
+            grad_a = grad_in[..., self.obs_pad :]
+        # Through a = center + scale * tanh(out); scale is 0 in padded columns.
+        grad_out = torch.ops.aten.tanh_backward(grad_a * self.scale, tanh_out)
+        grads, _ = mlp_backward(self.actor.params, acts, grad_out, weights=True, inputs=False)
+        return critic_acts[-1].squeeze(-1).sum(1), grads  # type: ignore[return-value]
 
     def actor_step(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         """One Adam step of every actor on -mean(Q_i(.., mu_i(o_i), ..)); returns (N,) losses.
@@ -339,31 +384,10 @@ class BatchedMADDPG:
         Critic i is the one just updated; the other agents' actions come from the batch
         (Cen). Only dQ_i/da_i is taken from the critic, never its weight gradients.
         """
-        obs_pad = self._per_agent(obs, self._obs_idx)
-        acts = mlp_forward(self.actor.params, obs_pad)
-        tanh_out = torch.tanh(acts[-1])
-        a = self._squash(tanh_out)  # (N, B, act_pad)
-        batch = a.shape[1]
-        if self.centralized:
-            placed = torch.gather(
-                torch.nn.functional.pad(a, (0, 1)), 2, self._place_idx.expand(-1, batch, -1)
-            )
-            q_in = torch.cat([obs, act], -1) * self._keep + placed
-        else:
-            q_in = torch.cat([obs_pad, a], -1)
-        critic_acts = mlp_forward(self.critic.params, q_in)
-        actor_loss = -critic_acts[-1].squeeze(-1).mean(1)
-        grad_q = torch.full_like(critic_acts[-1], -1.0 / batch)  # d actor_loss_i / d Q_i
-        _, grad_in = mlp_backward(self.critic.params, critic_acts, grad_q, False, True)
-        if self.centralized:
-            grad_a = torch.gather(grad_in, 2, self._own_cols.expand(-1, batch, -1))
-        else:
-            grad_a = grad_in[..., self.obs_pad :]
-        # Through a = center + scale * tanh(out); scale is 0 in padded columns.
-        grad_out = torch.ops.aten.tanh_backward(grad_a * self.scale, tanh_out)
-        grads, _ = mlp_backward(self.actor.params, acts, grad_out, weights=True, inputs=False)
+        batch = obs.shape[0]
+        q_sum, grads = self._actor_grads(obs, act, batch)
         self._adam_step(self.actor_optim, self.actor.params, grads)
-        return actor_loss
+        return -q_sum / batch
 
     @staticmethod
     def _adam_step(
@@ -420,13 +444,58 @@ class BatchedMADDPG:
         rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
         """
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
-        y = self.target_q(rew_t, next_t, done_t)
-        critic_losses = self.critic_step(obs_t, act_t, y)
-        actor_losses = self.actor_step(obs_t, act_t)
+        if self.lanes.n > 1 and obs_t.shape[0] > 1:
+            critic_losses, actor_losses = self._update_in_lanes(obs_t, act_t, rew_t, next_t, done_t)
+        else:
+            y = self.target_q(rew_t, next_t, done_t)
+            critic_losses = self.critic_step(obs_t, act_t, y)
+            actor_losses = self.actor_step(obs_t, act_t)
         self.soft_update()
         self.updates += 1
         critic_loss, actor_loss = torch.stack([critic_losses.mean(), actor_losses.mean()]).tolist()
         return {"critic_loss": critic_loss, "actor_loss": actor_loss}
+
+    def _update_in_lanes(
+        self,
+        obs: torch.Tensor,
+        act: torch.Tensor,
+        rew: torch.Tensor,
+        next_obs: torch.Tensor,
+        done: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`critic_step` then `actor_step` with the minibatch split into row blocks, one
+        per lane. A loss is a mean over rows, so its gradient is the sum of the blocks'
+        gradients (each scaled by 1/B): summed, they are the whole batch's gradient up
+        to the order of the additions, and one Adam step per network follows as before.
+        Targets and both forward/backward passes run in the lanes; the two sums and the
+        Adam steps between them run here."""
+        batch = obs.shape[0]
+        blocks = [
+            tuple(t[rows] for t in (obs, act, rew, next_obs, done))
+            for rows in self.lanes.blocks(batch)
+        ]
+
+        def critic_part(b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+            o, a, r, o2, d = b
+            return self._critic_grads(o, a, self.target_q(r, o2, d), batch)
+
+        sq_sum, grads = self._sum_parts(self.lanes.map(critic_part, blocks))
+        self._adam_step(self.critic_optim, self.critic.params, grads)
+        q_sum, grads = self._sum_parts(
+            self.lanes.map(lambda b: self._actor_grads(b[0], b[1], batch), blocks)
+        )
+        self._adam_step(self.actor_optim, self.actor.params, grads)
+        return sq_sum / batch, -q_sum / batch
+
+    @staticmethod
+    def _sum_parts(
+        parts: Sequence[tuple[torch.Tensor, list[torch.Tensor]]],
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        total, grads = parts[0]
+        for part_total, part_grads in parts[1:]:
+            total = total + part_total
+            torch._foreach_add_(grads, part_grads)
+        return total, grads
 
     def soft_update(self) -> None:
         """theta' <- tau theta + (1 - tau) theta' for every target network, in one call."""

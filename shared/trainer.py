@@ -45,7 +45,7 @@ def build_learner(cfg: TrainConfig, spec: TaskSpec) -> MADDPG | BatchedMADDPG:
         seed=derive_seed(cfg.seed, "learner"),
     )
     if cfg.learner_impl == "batched":
-        return BatchedMADDPG(agents, lspec)
+        return BatchedMADDPG(agents, lspec, lanes=cfg.learner_lanes)
     return MADDPG(agents, lspec)
 
 

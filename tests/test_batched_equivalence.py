@@ -92,15 +92,43 @@ def test_batched_update_equals_per_agent_update(algo, agents):
         np.testing.assert_allclose(fast.act(probe), ref.act(probe), rtol=0, atol=ATOL)
 
 
+@pytest.mark.parametrize(("algo", "agents"), CASES, ids=IDS)
+@pytest.mark.parametrize(("lanes", "rows"), [(2, 100), (3, 7)])
+def test_update_in_lanes_equals_per_agent_update(algo, agents, lanes, rows):
+    """The minibatch split into row blocks computed in parallel threads, gradients summed:
+    the same update as the reference (and as one lane) up to the order of additions.
+
+    With 7 rows some gradients are ~1e-8, where Adam's step lr * m / (sqrt(v) + eps)
+    turns rounding into differences up to ~2e-5 (one lane vs the reference shows it too,
+    6e-6), still a fiftieth of one Adam step (lr 1e-3)."""
+    atol = ATOL if rows >= 100 else 5e-5
+    ref = make(algo, agents)
+    one = BatchedMADDPG.from_reference(ref)
+    fast = BatchedMADDPG(ref.agents, ref.spec, lanes=lanes)
+    fast.load_state_dict(ref.state_dict())
+    assert fast.lanes.blocks(rows) != [slice(0, rows)]  # really split
+    for step in range(4):
+        b = batch(ref, n=rows, seed=step)
+        ref_losses, one_losses, fast_losses = ref.update(*b), one.update(*b), fast.update(*b)
+        for k in ("critic_loss", "actor_loss"):
+            assert fast_losses[k] == pytest.approx(ref_losses[k], rel=1e-5, abs=1e-6)
+        assert_same_state(ref.state_dict(), fast.state_dict(), atol)
+        assert_same_state(one.state_dict(), fast.state_dict(), atol)
+    fast.lanes.close()
+
+
 @pytest.mark.parametrize("algo", ["cen-maddpg", "dis-maddpg"])
 def test_equal_at_the_thesis_network_size(algo):
     """Hidden 400-300 and batch 100: the sizes where the fast matrix layouts kick in."""
     ref = make(algo, [SPEAKER, LISTENER], hidden=(400, 300))
     fast = BatchedMADDPG.from_reference(ref)
+    lanes = BatchedMADDPG(ref.agents, ref.spec, lanes=2)
+    lanes.load_state_dict(ref.state_dict())
     for step in range(3):
         b = batch(ref, seed=step)
-        ref.update(*b), fast.update(*b)
+        ref.update(*b), fast.update(*b), lanes.update(*b)
     assert_same_state(ref.state_dict(), fast.state_dict())
+    assert_same_state(ref.state_dict(), lanes.state_dict())
 
 
 def test_adam_settings_travel_with_the_state():
