@@ -71,7 +71,10 @@ seed: 0
 TARGET_CLUSTER_EVAL_ON = 136.0  # steps/s, the issue's target for the cluster, eval on
 TARGET_RATIO = 0.85  # cluster within 15% of the trainer
 THESIS_STEPS_PER_S = {"with bonus": 34.0, "without bonus": 70.0}
-VARIANTS = ("trainer", "trainer-blas1", "cluster")
+VARIANTS = ("trainer", "trainer-blas1", "cluster", "trainer-1lane", "cluster-1lane")
+DEFAULT_VARIANTS = ("trainer-blas1", "cluster", "trainer-1lane", "cluster-1lane")
+# What each cluster variant is compared with (same config, same round).
+BASELINES = {"cluster": ("trainer-blas1", "trainer"), "cluster-1lane": ("trainer-1lane",)}
 
 
 # ------------------------------------------------------------------ helpers
@@ -618,11 +621,16 @@ def ratio_pair(s: dict, base: str) -> str:
 def tmp_config(tmp: Path) -> Path:
     config = tmp / "config.yaml"
     config.write_text(CONFIG_YAML)
+    (tmp / "config-1lane.yaml").write_text(CONFIG_YAML + "learner_lanes: 1\n")
     return config
 
 
 def run_variant(name: str, config: Path, episodes: int, ev: int, work: Path, actors: int = 1):
+    """`*-1lane`: the same with `learner_lanes: 1` (one thread in the update)."""
     timeout = 120 + episodes * 20 / 5.0  # a run slower than 5 steps/s is broken
+    if name.endswith("-1lane"):
+        config = config.with_name("config-1lane.yaml")
+        name = {"trainer-1lane": "trainer-blas1", "cluster-1lane": "cluster"}[name]
     if name == "cluster":
         return run_cluster(config, episodes, ev, actors, work, timeout)
     return run_trainer(config, episodes, ev, name == "trainer-blas1", work, timeout)
@@ -640,8 +648,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rounds", type=int, default=None, help="rounds (default 2; quick 1)")
     parser.add_argument(
         "--variants",
-        default=",".join(VARIANTS),
-        help=f"comma-separated subset of {','.join(VARIANTS)}",
+        default=",".join(DEFAULT_VARIANTS),
+        help=f"comma-separated subset of {','.join(VARIANTS)} (default: "
+        f"{','.join(DEFAULT_VARIANTS)}; '-1lane': learner_lanes 1; 'trainer': numpy's "
+        "default BLAS threads, as a library user who calls shared.trainer.train gets)",
     )
     parser.add_argument(
         "--profile",
@@ -736,8 +746,8 @@ def main(argv: list[str] | None = None) -> None:
                 "e2e_steps_per_s": median([x["e2e_steps_per_s"] for x in rs]),
                 "samples_steady": [x["steady"]["rate"] for x in rs],
             }
-            for base in ("trainer", "trainer-blas1"):
-                if name == "cluster" and base in variants:
+            for base in BASELINES.get(name, ()):
+                if base in variants:
                     ratios = [
                         x["steady"]["rate"] / get(x["round"], base, ev)["steady"]["rate"]
                         for x in rs
@@ -748,7 +758,7 @@ def main(argv: list[str] | None = None) -> None:
                     ]
                     row[f"over_{base}"] = median(ratios)
                     row[f"e2e_over_{base}"] = median(e2e)
-            if name == "cluster":
+            if name.startswith("cluster"):
                 row["learner_bonus_p50_ms"] = median([x["learner"]["bonus_p50_ms"] for x in rs])
                 row["learner_bonus_p99_ms"] = median([x["learner"]["bonus_p99_ms"] for x in rs])
                 row["replay_ratio"] = median([x["learner"]["replay_ratio"] for x in rs])
@@ -764,22 +774,26 @@ def main(argv: list[str] | None = None) -> None:
     )
     print(
         "| variant | eval | steady steps/s | from eval rows | overall (last row) "
-        "| end-to-end steps/s | cluster / trainer (steady, e2e) "
-        "| cluster / trainer-blas1 (steady, e2e) | cores used (steady window) |"
+        "| end-to-end steps/s | cluster / its trainer (steady; e2e) "
+        "| cores used (steady window) |"
     )
-    print("|" + "---|" * 9)
+    print("|" + "---|" * 8)
     for s in summary:
         cpu = ", ".join(f"{k} {v:.2f}" for k, v in s["cpu_share"].items() if v and v >= 0.02)
+        ratios = "; ".join(
+            f"{ratio_pair(s, base)} vs {base}"
+            for base in BASELINES.get(s["variant"], ())
+            if f"over_{base}" in s
+        )
         print(
             f"| {s['variant']} | {s['eval']} | {fmt(s['steady_steps_per_s'])} "
             f"| {fmt(s['rows_steady_steps_per_s'])} | {fmt(s['overall_steps_per_s'])} "
-            f"| {fmt(s['e2e_steps_per_s'])} "
-            f"| {ratio_pair(s, 'trainer')} | {ratio_pair(s, 'trainer-blas1')} | {cpu} |"
+            f"| {fmt(s['e2e_steps_per_s'])} | {ratios} | {cpu} |"
         )
-    clusters = [s for s in summary if s["variant"] == "cluster"]
+    clusters = [s for s in summary if s["variant"].startswith("cluster")]
     for s in clusters:
         print(
-            f"\ncluster, eval {s['eval']}: learner bonus query p50 "
+            f"\n{s['variant']}, eval {s['eval']}: learner bonus query p50 "
             f"{fmt(s['learner_bonus_p50_ms'], '.2f')} ms, p99 "
             f"{fmt(s['learner_bonus_p99_ms'], '.2f')} ms; replay ratio "
             f"{fmt(s['replay_ratio'], '.3f')}; evaluator finished "
@@ -787,7 +801,7 @@ def main(argv: list[str] | None = None) -> None:
             f"{fmt(s['startup_s'], '.1f')} s"
         )
     targets = {}
-    on = next((s for s in clusters if s["eval"] == "on"), None)
+    on = next((s for s in clusters if s["eval"] == "on" and s["variant"] == "cluster"), None)
     if on is not None:
         targets["cluster_eval_on_ge_136"] = {
             "target": TARGET_CLUSTER_EVAL_ON,
@@ -796,9 +810,9 @@ def main(argv: list[str] | None = None) -> None:
             "met": bool((on["steady_steps_per_s"] or 0) >= TARGET_CLUSTER_EVAL_ON),
         }
     for s in clusters:
-        for base in ("trainer", "trainer-blas1"):
+        for base in BASELINES[s["variant"]]:
             if f"over_{base}" in s:
-                targets[f"cluster_within_15pct_of_{base}_eval_{s['eval']}"] = {
+                targets[f"{s['variant']}_within_15pct_of_{base}_eval_{s['eval']}"] = {
                     "target_ratio": TARGET_RATIO,
                     "measured_ratio": s[f"over_{base}"],
                     "met": bool((s[f"over_{base}"] or 0) >= TARGET_RATIO),

@@ -202,6 +202,11 @@ def task_spec(task: str, agents: int = 2, episode_len: int = 20) -> TaskSpec:
     return TaskSpec(name=task, agents=_agent_specs(task, n_agents), episode_len=episode_len)
 
 
+@functools.cache
+def _bounds(agent: AgentSpec) -> tuple[np.ndarray, np.ndarray]:
+    return np.asarray(agent.act_low, np.float32), np.asarray(agent.act_high, np.float32)
+
+
 def to_mpe_action(agent: AgentSpec, action: np.ndarray) -> np.ndarray:
     """Map a thesis-layout action onto mpe2's layout after clipping it to the agent's bounds.
 
@@ -212,18 +217,19 @@ def to_mpe_action(agent: AgentSpec, action: np.ndarray) -> np.ndarray:
     a = np.asarray(action, dtype=np.float32).reshape(-1)
     if a.shape[0] != agent.act_dim:
         raise ValueError(f"{agent.name}: action has {a.shape[0]} values, expected {agent.act_dim}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise ValueError(f"{agent.name}: non-finite action {a}")
-    a = np.clip(a, np.asarray(agent.act_low, np.float32), np.asarray(agent.act_high, np.float32))
-    parts = []
+    low, high = _bounds(agent)
+    a = np.minimum(np.maximum(a, low), high)
     n_move = agent.move_dim
-    if n_move:
-        move = a[:n_move]
-        pairs = np.stack([np.maximum(-move, 0.0), np.maximum(move, 0.0)], axis=1).reshape(-1)
-        parts.append(np.zeros(1, dtype=np.float32))
-        parts.append(pairs)
-    parts.append(a[n_move:])
-    return np.concatenate(parts).astype(np.float32)
+    if not n_move:
+        return a
+    out = np.zeros(1 + 2 * n_move + a.shape[0] - n_move, np.float32)
+    move = a[:n_move]
+    out[1 : 1 + 2 * n_move : 2] = np.maximum(-move, 0.0)
+    out[2 : 2 + 2 * n_move : 2] = np.maximum(move, 0.0)
+    out[1 + 2 * n_move :] = a[n_move:]
+    return out
 
 
 def _dist(a: Entity, b: Entity) -> float:
@@ -268,7 +274,18 @@ _SPARSE: dict[str, Callable[[World], tuple[float, bool]]] = {
 
 
 class TaskEnv:
-    """Wraps one mpe2 parallel env and speaks the thesis's action layout and rewards."""
+    """Wraps one mpe2 parallel env and speaks the thesis's action layout and rewards.
+
+    `step` drives mpe2's own env object directly by default (`direct=True`): it sets all
+    agents' actions and runs the env's `_execute_world_step` (mpe2's physics, scenario
+    rewards and observations), which is what PettingZoo's parallel `step` ends up
+    doing after passing each action through the AEC cycle and four wrappers (order
+    enforcing, bounds clipping, the parallel conversion). Those layers cost ~75% of a
+    step (0.4 of 0.55 ms on speaker_listener), and the evaluator runs ten episodes per
+    training episode. The actions arrive already clipped into mpe2's box, and
+    tests/test_tasks.py checks that both paths give the same observations, rewards and
+    ends, bit for bit. `direct=False` steps through the public API; `reset` always does.
+    """
 
     spec: TaskSpec
 
@@ -279,6 +296,7 @@ class TaskEnv:
         reward: str = "sparse",
         episode_len: int = 20,
         seed: int | None = None,
+        direct: bool = True,
     ) -> None:
         n_agents = _check_task(task, agents, episode_len)
         if reward not in REWARDS:
@@ -295,6 +313,8 @@ class TaskEnv:
         # make_task(seed=s).reset() equals make_task().reset(seed=s).
         self._pending_seed = seed
         self._t: int | None = None  # steps taken this episode; None until reset
+        self.direct = direct
+        self._slots = [self._raw._index_map[a.name] for a in self.spec.agents]
 
     @property
     def world(self) -> World:
@@ -323,14 +343,17 @@ class TaskEnv:
         mpe_actions = {
             a.name: to_mpe_action(a, act) for a, act in zip(self.spec.agents, actions, strict=True)
         }
-        obs, rewards, terminations, truncations, _ = self._env.step(mpe_actions)
+        if self.direct:
+            obs, rewards, terminated, mpe_ended = self._step_direct(mpe_actions)
+        else:
+            obs, rewards, terminations, truncations, _ = self._env.step(mpe_actions)
+            terminated, mpe_ended = any(terminations.values()), any(truncations.values())
         self._t += 1
         reward, success, collisions = self.evaluate()
         if self.reward_kind == "dense":  # mpe2's own numbers, straight from the env
             reward = float(np.mean([rewards[a.name] for a in self.spec.agents]))
         truncated = self._t >= self.spec.episode_len
-        mpe_ended = any(truncations.values())
-        if any(terminations.values()) or mpe_ended != truncated:
+        if terminated or mpe_ended != truncated:
             raise RuntimeError("mpe2 ended the episode at an unexpected step")
         return StepResult(
             obs=[np.asarray(obs[a.name], dtype=np.float32) for a in self.spec.agents],
@@ -339,6 +362,20 @@ class TaskEnv:
             collisions=collisions,
             truncated=truncated,
         )
+
+    def _step_direct(
+        self, mpe_actions: dict[str, np.ndarray]
+    ) -> tuple[dict[str, np.ndarray], dict[str, float], bool, bool]:
+        """mpe2's SimpleEnv.step for a whole cycle of agents, without the AEC layers."""
+        raw = self._raw
+        for a, slot in zip(self.spec.agents, self._slots):
+            raw.current_actions[slot] = mpe_actions[a.name]
+        raw._execute_world_step()
+        raw.steps += 1
+        ended = raw.steps >= raw.max_cycles
+        terminated = not ended and bool(raw.scenario.is_terminal(raw.world))
+        obs = {a.name: raw.observe(a.name) for a in self.spec.agents}
+        return obs, raw.rewards, terminated, ended
 
     def evaluate(self) -> tuple[float, bool, int]:
         """(reward, success, collisions) of the current world state, for the chosen reward."""
@@ -377,6 +414,9 @@ def make_task(
     reward: str = "sparse",
     episode_len: int = 20,
     seed: int | None = None,
+    direct: bool = True,
 ) -> TaskEnv:
     """Build a TaskEnv; `agents` sizes spread only (simple has 1 agent, speaker_listener 2)."""
-    return TaskEnv(task, agents=agents, reward=reward, episode_len=episode_len, seed=seed)
+    return TaskEnv(
+        task, agents=agents, reward=reward, episode_len=episode_len, seed=seed, direct=direct
+    )

@@ -112,6 +112,7 @@ def test_update_in_lanes_equals_per_agent_update(algo, agents, lanes, rows):
         ref_losses, one_losses, fast_losses = ref.update(*b), one.update(*b), fast.update(*b)
         for k in ("critic_loss", "actor_loss"):
             assert fast_losses[k] == pytest.approx(ref_losses[k], rel=1e-5, abs=1e-6)
+            assert fast_losses[k] == pytest.approx(one_losses[k], rel=1e-5, abs=1e-6)
         assert_same_state(ref.state_dict(), fast.state_dict(), atol)
         assert_same_state(one.state_dict(), fast.state_dict(), atol)
     fast.lanes.close()
