@@ -10,6 +10,14 @@ is fed to
   `linear_*` functions), on preallocated tensors: no elementwise ops, no autograd, no
   optimizer, no target update. It is what an update would cost if everything but the
   matrix products were free.
+* `lanes2`: BatchedMADDPG with `lanes=2` (what the platform runs by default): the rows
+  split over two threads; `floor_lanes2`: the floor's products for half the rows, in
+  the same two threads, its floor on two cores.
+
+A last measurement runs speaker_listener while another process spins on one core: one
+lane, two lanes, torch's own two intra-op threads, and `lanes="auto"` (the default: a
+tuner picks 1 or 2 by measured speed), to show what each does when the second core is
+not free.
 
 Measurements run in rounds (about 0.15 s of each of ref, batched, floor, in a rotating
 order) so load from other processes on the shared machine hits all three alike. Rates
@@ -27,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import platform
 import statistics
@@ -47,6 +56,7 @@ from shared.fast_maddpg import (  # noqa: E402
     linear_grad_input,
     linear_grad_weight,
 )
+from shared.lanes import Lanes  # noqa: E402
 from shared.maddpg import MADDPG, AgentDims, LearnerSpec  # noqa: E402
 
 BATCH = 100
@@ -95,9 +105,10 @@ def random_batch(m: MADDPG, seed: int = 0) -> tuple[np.ndarray, ...]:
     )
 
 
-def floor_ops(m: BatchedMADDPG) -> Callable[[], None]:
-    """The matrix products of one BatchedMADDPG.update, on preallocated tensors."""
+def floor_ops(m: BatchedMADDPG, rows: int = BATCH) -> Callable[[], None]:
+    """The matrix products of one BatchedMADDPG.update (of `rows` rows), preallocated."""
     n = m.n
+    BATCH = rows  # noqa: N806 (the shapes below read as the update's)
 
     def layers(params: list[torch.Tensor], shared_input: bool) -> list[tuple]:
         out = []
@@ -164,32 +175,93 @@ def measure(
     return samples
 
 
-def bench_case(agents, algo: str, repeats: int, budget_s: float) -> dict[str, list[float]]:
+def lanes_floor(m: BatchedMADDPG, lanes: Lanes) -> Callable[[], None]:
+    """The same products with the rows split over the lanes, each lane its block."""
+    parts = [floor_ops(m, b.stop - b.start) for b in lanes.blocks(BATCH)]
+    return lambda: lanes.map(lambda part: part(), parts)
+
+
+def bench_case(
+    agents, algo: str, repeats: int, budget_s: float, lanes: bool = True, ref: bool = True
+) -> dict[str, list[float]]:
     spec = LearnerSpec(algo=algo, hidden=HIDDEN)
-    ref = MADDPG(agents, spec)
-    fast = BatchedMADDPG.from_reference(ref)
-    b = random_batch(ref)
-    fns = {"ref": lambda: ref.update(*b), "batched": lambda: fast.update(*b)}
+    reference = MADDPG(agents, spec)
+    fast = BatchedMADDPG.from_reference(reference)
+    b = random_batch(reference)
+    fns: dict[str, Callable[[], object]] = {"batched": lambda: fast.update(*b)}
+    if ref:
+        fns["ref"] = lambda: reference.update(*b)
     fns["floor"] = floor_ops(fast)
+    if lanes:
+        two = BatchedMADDPG(agents, spec, lanes=2)
+        two.load_state_dict(fast.state_dict())
+        fns["lanes2"] = lambda: two.update(*b)
+        fns["floor_lanes2"] = lanes_floor(fast, two.lanes)
     return measure(fns, repeats, budget_s)
+
+
+def spin() -> None:
+    """Keep one core busy (a stand-in for an actor, the counter or another user)."""
+    while True:
+        pass
+
+
+def contention(repeats: int, budget_s: float) -> dict[str, list[float]]:
+    """speaker_listener with another process spinning on one of the two cores: one lane,
+    two lanes, and torch's own 2 intra-op threads (one lane)."""
+    ctx = multiprocessing.get_context("spawn")
+    hog = ctx.Process(target=spin, daemon=True)
+    hog.start()
+    try:
+        time.sleep(0.2)
+        spec = LearnerSpec(algo="cen-maddpg", hidden=HIDDEN)
+        one = BatchedMADDPG(SPEAKER_LISTENER, spec)
+        two = BatchedMADDPG(SPEAKER_LISTENER, spec, lanes=2)
+        b = random_batch(one)
+
+        def threads2() -> None:
+            torch.set_num_threads(2)
+            try:
+                one.update(*b)
+            finally:
+                torch.set_num_threads(1)
+
+        auto = BatchedMADDPG(SPEAKER_LISTENER, spec, lanes="auto")
+        fns = {"batched": lambda: one.update(*b), "lanes2": lambda: two.update(*b)}
+        fns["threads2"] = threads2
+        fns["auto"] = lambda: auto.update(*b)
+        return measure(fns, repeats, budget_s)
+    finally:
+        hog.kill()
+        hog.join()
+
+
+def ratio(samples: dict[str, list[float]], a: str, b: str) -> float | None:
+    """Median over rounds of time(a) / time(b)."""
+    if a not in samples or b not in samples:
+        return None
+    return statistics.median(x / y for x, y in zip(samples[a], samples[b]))
 
 
 def row(task: str, algo: str, n: int, threads: int, samples: dict[str, list[float]]) -> dict:
     """Medians of the rates, and medians of the ratios within each round."""
-    med = {k: statistics.median(v) for k, v in samples.items()}
-    ref, fast, floor = samples["ref"], samples["batched"], samples["floor"]
+    rate = {f"{k}_updates_per_s": 1 / statistics.median(v) for k, v in samples.items()}
     return {
         "task": task,
         "algo": algo,
         "agents": n,
         "threads": threads,
-        "ref_updates_per_s": 1 / med["ref"],
-        "batched_updates_per_s": 1 / med["batched"],
-        "floor_updates_per_s": 1 / med["floor"],
-        "batched_over_floor": statistics.median(f / fl for f, fl in zip(fast, floor)),
-        "speedup_vs_ref": statistics.median(r / f for r, f in zip(ref, fast)),
+        **rate,
+        "batched_over_floor": ratio(samples, "batched", "floor"),
+        "speedup_vs_ref": ratio(samples, "ref", "batched"),
+        "lanes2_over_floor_lanes2": ratio(samples, "lanes2", "floor_lanes2"),
+        "lanes2_speedup": ratio(samples, "batched", "lanes2"),
         "samples_s": samples,
     }
+
+
+def fmt(x: float | None, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -219,30 +291,38 @@ def main(argv: list[str] | None = None) -> None:
         rows.append(row(task, algo, n, 1, bench_case(agents, algo, repeats, budget_s)))
     torch.set_num_threads(2)
     print("speaker_listener, 2 threads ...", file=sys.stderr, flush=True)
-    rows.append(
-        row(
-            "speaker_listener",
-            "cen-maddpg",
-            2,
-            2,
-            bench_case(SPEAKER_LISTENER, "cen-maddpg", repeats, budget_s),
-        )
-    )
+    sl2 = bench_case(SPEAKER_LISTENER, "cen-maddpg", repeats, budget_s, lanes=False)
+    rows.append(row("speaker_listener", "cen-maddpg", 2, 2, sl2))
     torch.set_num_threads(1)
+    print("speaker_listener, one core busy ...", file=sys.stderr, flush=True)
+    busy = contention(repeats, budget_s)
 
     head = (
-        "| task | algo | N | threads | ref upd/s | batched upd/s | floor upd/s "
-        "| batched/floor time | speedup vs ref |"
+        "| task | algo | N | torch threads | ref upd/s | batched upd/s | floor upd/s "
+        "| batched/floor time | speedup vs ref | 2 lanes upd/s | 2-lane floor upd/s "
+        "| 2 lanes / 2-lane floor time | 2 lanes / 1 lane speed |"
     )
     print(head)
-    print("|" + "---|" * 9)
+    print("|" + "---|" * 13)
     for r in rows:
         print(
             f"| {r['task']} | {r['algo']} | {r['agents']} | {r['threads']} "
             f"| {r['ref_updates_per_s']:.1f} | {r['batched_updates_per_s']:.1f} "
             f"| {r['floor_updates_per_s']:.1f} | {r['batched_over_floor']:.2f}x "
-            f"| {r['speedup_vs_ref']:.2f}x |"
+            f"| {r['speedup_vs_ref']:.2f}x "
+            f"| {fmt(r.get('lanes2_updates_per_s'), '.1f')} "
+            f"| {fmt(r.get('floor_lanes2_updates_per_s'), '.1f')} "
+            f"| {fmt(r['lanes2_over_floor_lanes2'], '.2f')}x "
+            f"| {fmt(r['lanes2_speedup'], '.2f')}x |"
         )
+    busy_rates = {k: 1 / statistics.median(v) for k, v in busy.items()}
+    print(
+        "\nspeaker_listener with another process spinning on one core (updates/s): "
+        f"1 lane {busy_rates['batched']:.1f}, 2 lanes {busy_rates['lanes2']:.1f} "
+        f"({ratio(busy, 'batched', 'lanes2'):.2f}x), torch 2 threads "
+        f"{busy_rates['threads2']:.1f} ({ratio(busy, 'batched', 'threads2'):.2f}x), "
+        f"lanes auto {busy_rates['auto']:.1f} ({ratio(busy, 'batched', 'auto'):.2f}x)"
+    )
     result = {
         "command": " ".join(["benchmarks/bench_learner.py", *(argv or sys.argv[1:])]),
         "batch": BATCH,
@@ -254,6 +334,7 @@ def main(argv: list[str] | None = None) -> None:
         "loadavg_before": load_before,
         "loadavg_after": os.getloadavg(),
         "rows": rows,
+        "one_core_busy": {"updates_per_s": busy_rates, "samples_s": busy},
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")

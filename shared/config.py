@@ -8,7 +8,7 @@ keys are errors, so a misspelt key never silently falls back to a default).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -67,13 +67,12 @@ class TrainConfig(BaseModel):
         "by default targets bootstrap through it",
     )
     threads: int = Field(1, ge=1, le=64, description="torch intra-op threads")
-    learner_lanes: int = Field(
-        2,
-        ge=1,
-        le=16,
+    learner_lanes: Literal["auto"] | Annotated[int, Field(ge=1, le=16)] = Field(
+        "auto",
         description="batched learner: split each minibatch into this many row blocks "
-        "computed in parallel threads (1 torch thread each); 2 uses both cores of a "
-        "2-core machine when the other is free and degrades gently when it is not",
+        "computed in parallel threads (1 torch thread each); auto: 1 or 2, whichever "
+        "measures faster on this machine now (reruns then equal up to float rounding; "
+        "a fixed number gives bit-identical reruns)",
     )
     learner_impl: Literal["batched", "reference"] = Field(
         "batched",
@@ -103,14 +102,19 @@ class ConfigError(ValueError):
 
 
 def format_errors(err: ValidationError) -> str:
-    lines = []
+    """'field: reason; ...'. A field that may take one of several types (learner_lanes:
+    'auto' or an int) fails once per type; those reasons are joined with 'or'."""
+    reasons: dict[str, list[str]] = {}
     for e in err.errors():
-        field = ".".join(str(p) for p in e["loc"]) or "config"
+        loc = list(e["loc"])
+        if len(loc) == 2 and isinstance(loc[1], str):  # a union branch tag, not a field
+            loc = loc[:1]
+        field = ".".join(str(p) for p in loc) or "config"
         msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
             msg = "unknown key (misspelt?)"
-        lines.append(f"{field}: {msg}")
-    return "; ".join(lines)
+        reasons.setdefault(field, []).append(msg)
+    return "; ".join(f"{field}: {' or '.join(msgs)}" for field, msgs in reasons.items())
 
 
 def make_config(data: dict[str, Any]) -> TrainConfig:

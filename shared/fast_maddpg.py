@@ -27,13 +27,16 @@ rounding; tests/test_batched_equivalence.py checks it update by update. Why it i
 * With `lanes=2` the minibatch is split into two row blocks whose targets, forward and
   backward passes run at the same time in two threads (`shared.lanes`); their
   gradients are summed before each Adam step, which is the whole batch's gradient up to
-  the order of additions. The matrix products are ~95% of an update and split evenly,
-  so two free cores give ~1.7x, and a busy second core costs little (no spinning).
+  the order of additions. On an idle 2-core machine that is ~1.4x faster; when other
+  processes keep the cores busy it can be slower than one lane (a lane preempted while
+  holding the GIL stalls the other), so `lanes="auto"` lets a `LaneTuner` pick 1 or 2
+  from measured update times, block by block. A fixed count gives bit-identical
+  reruns; "auto" gives reruns equal up to floating-point rounding.
 
 Threads: this module leaves `torch.set_num_threads` to the process; lanes assume it is
 1. On the project's 2-core machines torch's own 2-thread mode is fast on an idle machine
-and 5-10x slower than one thread as soon as another process wants a core
-(benchmarks/bench_learner.py reports 1 thread, 2 threads and 2 lanes).
+and several times slower than one thread as soon as another process wants a core
+(benchmarks/bench_learner.py reports 1 thread, 2 threads, 2 lanes and a busy core).
 
 `state_dict()` writes the reference's own per-agent format (module and Adam state dicts),
 so checkpoints move between the two classes both ways, and a `BatchedMADDPG` built from
@@ -43,13 +46,14 @@ initialisation, without reseeding the caller's global RNG).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
-from shared.lanes import Lanes
+from shared.lanes import Lanes, LaneTuner
 
 if TYPE_CHECKING:  # annotations only: this module imports numpy and torch alone
     from shared.maddpg import MADDPG, AgentDims, LearnerSpec
@@ -187,7 +191,9 @@ class BatchedMADDPG:
     `actor_step(i, ...)`) are here for all agents at once and return (N, ...) tensors.
     """
 
-    def __init__(self, agents: Sequence[AgentDims], spec: LearnerSpec, lanes: int = 1) -> None:
+    def __init__(
+        self, agents: Sequence[AgentDims], spec: LearnerSpec, lanes: int | str = 1
+    ) -> None:
         if spec.algo not in ALGOS:
             raise ValueError(f"algo must be one of {ALGOS}, got {spec.algo!r}")
         if spec.algo == "ddpg" and len(agents) != 1:
@@ -257,7 +263,12 @@ class BatchedMADDPG:
         self.actor_optim = torch.optim.Adam(self.actor.params, lr=spec.lr_actor, fused=True)
         self.critic_optim = torch.optim.Adam(self.critic.params, lr=spec.lr_critic, fused=True)
         self.updates = 0
-        self.lanes = Lanes(lanes)
+        # "auto": two lanes available, a tuner picks 1 or 2 per block of updates.
+        auto = lanes == "auto"
+        if not auto and not isinstance(lanes, int):
+            raise ValueError(f"lanes must be a positive int or 'auto', got {lanes!r}")
+        self.lanes = Lanes(2 if auto else lanes)
+        self.tuner = LaneTuner((1, 2)) if auto else None
 
     def _init_like_reference(self, critic_in: Sequence[int]) -> None:
         """The reference's initial weights for this seed: the same nn.Linear calls in order."""
@@ -443,8 +454,10 @@ class BatchedMADDPG:
 
         rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
         """
+        t0 = time.perf_counter()
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
-        if self.lanes.n > 1 and obs_t.shape[0] > 1:
+        lanes = self.tuner.choose() if self.tuner is not None else self.lanes.n
+        if lanes > 1 and obs_t.shape[0] > 1:
             critic_losses, actor_losses = self._update_in_lanes(obs_t, act_t, rew_t, next_t, done_t)
         else:
             y = self.target_q(rew_t, next_t, done_t)
@@ -453,7 +466,21 @@ class BatchedMADDPG:
         self.soft_update()
         self.updates += 1
         critic_loss, actor_loss = torch.stack([critic_losses.mean(), actor_losses.mean()]).tolist()
+        if self.tuner is not None:
+            self.tuner.record(time.perf_counter() - t0)
         return {"critic_loss": critic_loss, "actor_loss": actor_loss}
+
+    def lane_stats(self) -> dict[str, float]:
+        """Lanes in use: the fixed count, or the tuner's picks and measured times."""
+        if self.tuner is None:
+            return {"lanes": float(self.lanes.n)}
+        total = max(1, sum(self.tuner.chosen.values()))
+        out = {"lanes": float(self.tuner.current)}
+        for k in self.tuner.options:
+            out[f"lanes{k}_share"] = self.tuner.chosen[k] / total
+            mean = self.tuner.mean_s[k]
+            out[f"lanes{k}_update_ms"] = 1e3 * mean if mean is not None else 0.0
+        return out
 
     def _update_in_lanes(
         self,

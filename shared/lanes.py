@@ -54,3 +54,76 @@ class Lanes:
         pool = getattr(self, "_pool", None)
         if pool is not None:
             pool.shutdown(wait=False)
+
+
+class LaneTuner:
+    """Picks the faster of several lane counts from measured update times, and keeps
+    checking, because the machine's load changes under it.
+
+    Why: two lanes are ~1.4-1.7x faster than one on an idle 2-core machine and up to
+    2x slower when other processes keep the cores busy (a lane thread preempted while
+    it holds the GIL stalls the other lane: bench_learner.py's "one core busy" line).
+    Neither fixed choice is right on a shared machine, and the update's result differs
+    between them only in the order of floating-point additions.
+
+    Updates run in blocks of `block` with one choice; a block's mean time updates that
+    choice's moving average. Each choice is tried once first; after that the fastest
+    runs, and every `probe_every` blocks the others get one block each, so a change in
+    load is noticed within a few seconds while probes cost at most about
+    1/probe_every of the updates.
+    """
+
+    def __init__(
+        self,
+        options: Sequence[int] = (1, 2),
+        block: int = 20,
+        probe_every: int = 10,
+        smoothing: float = 0.5,
+    ) -> None:
+        if not options:
+            raise ValueError("LaneTuner needs at least one option")
+        self.options = list(options)
+        self.block, self.probe_every, self.smoothing = block, probe_every, smoothing
+        self.mean_s: dict[int, float | None] = dict.fromkeys(self.options)
+        self.current = self.options[0]
+        self.chosen = dict.fromkeys(self.options, 0)  # updates run with each option
+        self._in_block = 0
+        self._block_s = 0.0
+        self._since_probe = 0
+        self._probes: list[int] = []
+
+    def choose(self) -> int:
+        return self.current
+
+    def record(self, seconds: float) -> None:
+        """The time of one update run with `choose()`'s answer."""
+        self.chosen[self.current] += 1
+        self._in_block += 1
+        self._block_s += seconds
+        if self._in_block < self.block:
+            return
+        mean = self._block_s / self._in_block
+        old = self.mean_s[self.current]
+        self.mean_s[self.current] = (
+            mean if old is None else self.smoothing * mean + (1 - self.smoothing) * old
+        )
+        self._in_block, self._block_s = 0, 0.0
+        self.current = self._next()
+
+    def best(self) -> int:
+        known = {k: v for k, v in self.mean_s.items() if v is not None}
+        return min(known, key=known.__getitem__) if known else self.options[0]
+
+    def _next(self) -> int:
+        untried = [k for k, v in self.mean_s.items() if v is None]
+        if untried:
+            return untried[0]
+        if self._probes:
+            return self._probes.pop()
+        self._since_probe += 1
+        best = self.best()
+        if self._since_probe >= self.probe_every:
+            self._since_probe = 0
+            self._probes = [k for k in self.options if k != best]
+            return self._probes.pop() if self._probes else best
+        return best

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from shared.fast_maddpg import BatchedMADDPG
+from shared.lanes import LaneTuner
 from shared.maddpg import MADDPG, AgentDims, LearnerSpec
 from shared.networks import Actor, JointPolicy, actor_weights
 
@@ -116,6 +117,32 @@ def test_update_in_lanes_equals_per_agent_update(algo, agents, lanes, rows):
         assert_same_state(ref.state_dict(), fast.state_dict(), atol)
         assert_same_state(one.state_dict(), fast.state_dict(), atol)
     fast.lanes.close()
+
+
+def test_auto_lanes_switch_and_stay_equal_to_the_reference():
+    """lanes='auto': the tuner runs blocks with 1 and with 2 lanes; every update still
+    equals the reference's."""
+    ref = make("cen-maddpg", [SPEAKER, LISTENER])
+    fast = BatchedMADDPG(ref.agents, ref.spec, lanes="auto")
+    fast.load_state_dict(ref.state_dict())
+    fast.tuner = LaneTuner((1, 2), block=2, probe_every=2)
+    used = []
+    for step in range(12):
+        used.append(fast.tuner.choose())
+        b = batch(ref, seed=step)
+        ref.update(*b), fast.update(*b)
+        assert_same_state(ref.state_dict(), fast.state_dict())
+    assert set(used) == {1, 2}
+    stats = fast.lane_stats()
+    assert stats["lanes1_share"] + stats["lanes2_share"] == pytest.approx(1.0)
+    assert stats["lanes1_update_ms"] > 0 and stats["lanes2_update_ms"] > 0
+
+
+def test_lanes_must_be_a_count_or_auto():
+    with pytest.raises(ValueError, match="lanes"):
+        BatchedMADDPG([SPEAKER, LISTENER], LearnerSpec(hidden=HIDDEN), lanes="fast")
+    with pytest.raises(ValueError, match="lanes"):
+        BatchedMADDPG([SPEAKER, LISTENER], LearnerSpec(hidden=HIDDEN), lanes=0)
 
 
 @pytest.mark.parametrize("algo", ["cen-maddpg", "dis-maddpg"])

@@ -4,7 +4,7 @@ import threading
 
 import pytest
 
-from shared.lanes import Lanes
+from shared.lanes import Lanes, LaneTuner
 
 
 @pytest.mark.parametrize(("n", "rows"), [(1, 100), (2, 100), (2, 7), (3, 7), (4, 2), (2, 1)])
@@ -44,3 +44,39 @@ def test_errors_in_a_lane_reach_the_caller():
 def test_refuses_zero_lanes():
     with pytest.raises(ValueError, match="lanes"):
         Lanes(0)
+
+
+def run(tuner: LaneTuner, cost: dict[int, float], updates: int) -> list[int]:
+    picks = []
+    for _ in range(updates):
+        k = tuner.choose()
+        picks.append(k)
+        tuner.record(cost[k])
+    return picks
+
+
+def test_tuner_tries_each_then_keeps_the_faster_with_rare_probes():
+    tuner = LaneTuner((1, 2), block=10, probe_every=10)
+    picks = run(tuner, {1: 0.008, 2: 0.005}, 2000)
+    assert picks[:10] == [1] * 10 and picks[10:20] == [2] * 10  # each tried once
+    assert tuner.best() == 2
+    slow_share = picks[20:].count(1) / len(picks[20:])
+    assert 0 < slow_share <= 0.1  # probes only: one block in about eleven
+
+
+def test_tuner_follows_a_change_in_load():
+    tuner = LaneTuner((1, 2), block=10, probe_every=5)
+    run(tuner, {1: 0.008, 2: 0.005}, 500)
+    assert tuner.best() == 2
+    picks = run(tuner, {1: 0.008, 2: 0.016}, 500)  # the second core got busy
+    assert tuner.best() == 1
+    assert picks[-100:].count(1) >= 80
+    run(tuner, {1: 0.008, 2: 0.005}, 500)  # and free again
+    assert tuner.best() == 2
+
+
+def test_tuner_with_one_option_never_switches():
+    tuner = LaneTuner((1,), block=3)
+    assert set(run(tuner, {1: 0.01}, 50)) == {1}
+    with pytest.raises(ValueError):
+        LaneTuner(())

@@ -84,12 +84,22 @@ def test_evaluation_changes_no_count_and_uses_no_noise():
     assert 0.0 <= res.success_rate <= 1.0
 
 
-def test_same_seed_same_metrics_different_seed_different():
-    c = cfg(task="spread", algo="cen-maddpg", explore="cen-macb", episodes=8, eval_every=4)
+@pytest.mark.parametrize("lanes", [1, 2])
+def test_same_seed_same_metrics_different_seed_different(lanes):
+    """Bit-identical reruns with a fixed number of lanes (auto may switch between 1 and 2,
+    which changes results at the level of floating-point rounding)."""
+    c = cfg(
+        task="spread",
+        algo="cen-maddpg",
+        explore="cen-macb",
+        episodes=8,
+        eval_every=4,
+        learner_lanes=lanes,
+    )
     strip = ("steps_per_sec", "train_steps_per_sec", "wall_s")
     a = [{k: v for k, v in r.items() if k not in strip} for r in train(c, None, progress=False)]
     b = [{k: v for k, v in r.items() if k not in strip} for r in train(c, None, progress=False)]
-    d = cfg(task="spread", algo="cen-maddpg", explore="cen-macb", episodes=8, eval_every=4, seed=1)
+    d = c.model_copy(update={"seed": 1})
     e = [{k: v for k, v in r.items() if k not in strip} for r in train(d, None, progress=False)]
     assert a == b
     assert a != e

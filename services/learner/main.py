@@ -329,6 +329,7 @@ class LearnerService(ServiceBase):
             "bonus_failures": r["bonus"].failures,
             "bonus_mean": float(np.mean(r["bonus_means"])) if r["bonus_means"] else 0.0,
             "rejects_total": sum(self.rejects.values()),
+            **(r["learner"].lane_stats() if hasattr(r["learner"], "lane_stats") else {}),
         }
 
     def maybe_finish(self) -> None:
