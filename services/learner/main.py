@@ -62,6 +62,10 @@ class BonusClient:
         self.failures = 0
         self.queries = 0
         self.rows = 0
+        # The counter's table stats as of the last answered query (its reply carries
+        # them): what an evaluation point reports, without a query of its own.
+        self.tables: dict[str, float] | None = None
+        self.fresh = False  # tables came with this tick's query
 
     def bonus_for(self, batches: list) -> list[np.ndarray] | None:
         """The (B, N) bonus of each sampled batch, priced in one query; None if the
@@ -86,10 +90,22 @@ class BonusClient:
                 self.latencies.append(time.perf_counter() - t0)
                 self.queries += 1
                 self.rows += rows
+                self.tables = _table_stats(msg.get("tables"))
+                self.fresh = True
                 bonus = msg["bonus"].astype(np.float32)
                 return np.split(bonus, np.cumsum(sizes)[:-1])
         self.failures += 1
         return None
+
+
+def _table_stats(raw: Any) -> dict[str, float] | None:
+    """The reply's optional `tables` map, if well formed (numbers under known names)."""
+    names = ("table_size", "count1_pct", "counted_transitions")
+    if not isinstance(raw, dict) or not all(
+        isinstance(raw.get(k), int | float) and not isinstance(raw.get(k), bool) for k in names
+    ):
+        return None
+    return {k: raw[k] for k in names}
 
 
 class LearnerService(ServiceBase):
@@ -228,6 +244,7 @@ class LearnerService(ServiceBase):
         if next_boundary is not None:
             todo = min(todo, max(0, next_boundary - learner.updates))
         batches = [buffer.sample(cfg.batch_size, r["rng"]) for _ in range(todo)]
+        r["bonus"].fresh = False
         bonuses = r["bonus"].bonus_for(batches) if batches else []
         if bonuses is None:  # counter silent (restarting?): draw again on the next tick
             batches, bonuses = [], []
@@ -285,7 +302,11 @@ class LearnerService(ServiceBase):
         r["eval_pub" if eval_point >= 0 else "weights_pub"](payload)
 
     def counter_stats(self) -> dict[str, Any]:
-        """The counter's stats for this run now (table size, count-1 %, counted)."""
+        """The counter's stats for this run now (table size, count-1 %, counted): from the
+        reply to this tick's bonus query when there was one, else by asking the counter."""
+        bonus = self.r["bonus"]
+        if bonus.tables is not None and bonus.fresh:
+            return dict(bonus.tables)
         counter = self.r.get("counter")
         if not counter:
             return {}
