@@ -64,6 +64,15 @@ def check_exact(watch, actors, config):
     for r in watch.rows:
         assert 0.0 <= r["success_rate"] <= 1.0
         assert r["env_steps"] == r["episode"] * config.episode_len
+        if config.explore in ("dis-macb", "cen-macb") and r["env_steps"] > config.learning_starts:
+            # the counter's tables as of the tick that trained up to this point: it has
+            # counted at least every transition trained on
+            assert r["counted_transitions"] >= r["env_steps"], r
+            assert r["table_size"] > 0 and 0.0 < r["count1_pct"] <= 100.0, r
+    if config.explore in ("dis-macb", "cen-macb"):
+        # bonuses priced per tick (all of its minibatches in one query), not per update
+        assert learner["bonus_rows_per_query"] >= 5 * config.batch_size, learner
+        assert learner["bonus_queries"] * 5 <= learner["updates"], learner
     return counter, learner
 
 

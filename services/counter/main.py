@@ -455,7 +455,11 @@ class CounterService(ServiceBase):
             counts_arr = np.zeros((0, batch), np.int64)
             uncounted = 0
         bonus = st.explorer.bonus_from_counts([np.maximum(c, 1) for c in counts], batch)
-        reply = encode("bonus_reply", run, counts=counts_arr, bonus=bonus.astype(np.float32))
+        with self._lock:
+            tables = st.explorer.stats()  # O(1): kept up to date as keys are counted
+        reply = encode(
+            "bonus_reply", run, counts=counts_arr, bonus=bonus.astype(np.float32), tables=tables
+        )
         elapsed = time.perf_counter() - t0
         with self._lock:
             st.latencies.append(elapsed)
