@@ -8,6 +8,8 @@ at sample time makes the bonus vanish).
 
 from __future__ import annotations
 
+from itertools import islice
+
 import numpy as np
 
 
@@ -63,13 +65,25 @@ class CountTable:
         some_key = next(iter(self._counts))
         return sys.getsizeof(self._counts) + n * (sys.getsizeof(some_key) + 28)
 
-    def to_arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """(keys (n, key_bytes) uint8, counts (n,) int64) for a pickle-free snapshot."""
-        n = len(self._counts)
-        keys = np.frombuffer(b"".join(self._counts.keys()), dtype=np.uint8).reshape(
-            n, self.key_bytes
-        )
-        counts = np.fromiter(self._counts.values(), dtype=np.int64, count=n)
+    def to_arrays(self, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+        """(keys (n, key_bytes) uint8, counts (n,) int64) for a pickle-free snapshot.
+
+        Built `chunk` keys at a time: in one piece the join and the fromiter are C
+        calls that hold the GIL for the whole table (~0.17 s for a million 128-byte
+        keys), stalling every other thread of the process (the counter answers bonus
+        queries on another thread while it snapshots). The table must not change
+        meanwhile (its one writer is the caller's thread).
+        """
+        n, w = len(self._counts), self.key_bytes
+        keys = np.empty((n, w), dtype=np.uint8)
+        counts = np.empty(n, dtype=np.int64)
+        flat = keys.reshape(-1)
+        key_it, count_it = iter(self._counts), iter(self._counts.values())
+        for start in range(0, n, chunk):
+            m = min(chunk, n - start)
+            raw = b"".join(islice(key_it, m))
+            flat[start * w : (start + m) * w] = np.frombuffer(raw, dtype=np.uint8)
+            counts[start : start + m] = np.fromiter(islice(count_it, m), np.int64, count=m)
         return keys, counts
 
     @classmethod

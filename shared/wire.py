@@ -18,6 +18,7 @@ import numpy as np
 
 SCHEMA_VERSION = 1
 _DTYPES = {"<f4", "<f8", "<i8", "<i4", "|u1", "|b1"}
+_NP_DTYPES = {d: np.dtype(d) for d in _DTYPES}
 
 # type -> {field: python type(s)}; "nd" marks an ndarray field.
 SCHEMAS: dict[str, dict[str, Any]] = {
@@ -75,14 +76,16 @@ def _pack_default(obj: Any) -> Any:
 
 
 def _unpack_hook(obj: dict) -> Any:
+    # Called for every map of every inbound message (6 arrays in a transitions batch):
+    # dtype objects are looked up, not built, and the checks stay in plain loops.
     if "nd" in obj and "data" in obj and "shape" in obj:
-        dtype, shape, data = obj["nd"], obj["shape"], obj["data"]
-        if dtype not in _DTYPES or not isinstance(shape, list) or not isinstance(data, bytes):
-            raise WireError(f"bad array encoding (dtype {dtype!r})")
-        if not all(isinstance(s, int) and s >= 0 for s in shape):
-            raise WireError("bad array shape")
-        count = math.prod(shape)
-        if count * np.dtype(dtype).itemsize != len(data):
+        dtype, shape, data = _NP_DTYPES.get(obj["nd"]), obj["shape"], obj["data"]
+        if dtype is None or type(shape) is not list or type(data) is not bytes:
+            raise WireError(f"bad array encoding (dtype {obj['nd']!r})")
+        for s in shape:
+            if type(s) is not int or s < 0:
+                raise WireError("bad array shape")
+        if math.prod(shape) * dtype.itemsize != len(data):
             raise WireError("array data does not match its shape")
         return np.frombuffer(data, dtype=dtype).reshape(shape)
     return obj
@@ -153,5 +156,5 @@ def check_dims(msg: dict, obs_dim: int, act_dim: int) -> None:
         raise WireError(
             f"{msg['type']}: dims ({obs.shape[1]}, {act.shape[1]}), run has ({obs_dim}, {act_dim})"
         )
-    if not (np.all(np.isfinite(obs)) and np.all(np.isfinite(act))):
+    if not (np.isfinite(obs).all() and np.isfinite(act).all()):
         raise WireError(f"{msg['type']}: non-finite values")

@@ -1,7 +1,8 @@
 """The counter's write-ahead log: one append-only file of struct-packed batch records.
 
-The counter appends a record for every batch it takes (after hashing, before it
-increments its tables and before it acknowledges the batch), so that a counter
+The counter appends a record for every batch it takes (consecutive batches of one
+actor taken together share one record; after hashing, before it increments its
+tables and before it acknowledges the batch), so that a counter
 killed with SIGKILL can rebuild everything it acknowledged from the last snapshot
 plus this log. No msgpack, no pickle: the format is fixed binary.
 
@@ -15,9 +16,11 @@ File layout::
               per table: <I key width w, then n * w key bytes (row-major uint8)
 
 Records are flushed to the OS after each append (no fsync: the log survives the
-process dying, which is what it is for, not the machine dying). A record cut short
-by a kill, or one whose CRC does not match, ends the log: it was never acknowledged,
-so the actor resends it. `WriteAheadLog.open` cuts such a tail off before appending.
+process dying, which is what it is for, not the machine dying); one append may carry
+several records in one write, as the counter logs a whole burst of batches at once. A
+record cut short by a kill, or one whose CRC does not match, ends the log: it was
+never acknowledged, so the actor resends it. `WriteAheadLog.open` cuts such a tail
+off before appending.
 """
 
 from __future__ import annotations
@@ -142,11 +145,20 @@ class WriteAheadLog:
 
     def append(self, actor: str, seq: int, n: int, keys: list[np.ndarray]) -> None:
         """Write one record and hand it to the OS before returning."""
-        rec = pack_record(actor, seq, keys, n)
-        self._f.write(rec)
+        self.append_many([(actor, seq, n, keys)])
+
+    def append_many(self, batches: list[tuple[str, int, int, list[np.ndarray]]]) -> None:
+        """Write several records (actor, seq, n, keys) with one write and one flush.
+
+        The counter logs everything it takes in one burst this way: one system call
+        instead of one per batch, and still all on the OS's side before any of them
+        is acknowledged.
+        """
+        data = b"".join(pack_record(actor, seq, keys, n) for actor, seq, n, keys in batches)
+        self._f.write(data)
         self._f.flush()
-        self.records += 1
-        self.bytes += len(rec)
+        self.records += len(batches)
+        self.bytes += len(data)
 
     def truncate(self) -> None:
         """Drop every record (they are in a snapshot now); keep the header."""
