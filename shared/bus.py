@@ -48,6 +48,11 @@ def k_metrics(run: str, source: str = "**") -> str:
     return f"{NS}/run/{run}/metrics/{source}"
 
 
+def k_history(run: str, source: str = "eval") -> str:
+    """Queryable: every metric row `source` has published for the run (gap filling)."""
+    return f"{NS}/run/{run}/history/{source}"
+
+
 def k_status(run: str, service: str = "*") -> str:
     return f"{NS}/run/{run}/status/{service}"
 

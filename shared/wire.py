@@ -51,6 +51,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     "bonus_reply": {"counts": "nd", "bonus": "nd"},
     # any service -> watchers: a metric point or stats
     "metrics": {"source": str, "data": dict},
+    # evaluator -> API (reply to a history get): every row published for the run so far
+    "history": {"source": str, "rows": list, "state": str},
     # run control
     "start": {"config": dict, "assign": dict},
     "stop": {"reason": str},

@@ -5,11 +5,16 @@ decodes the per-episode weights it does not need) and evaluates every one of the
 in order, with `eval_episodes` episodes run in lockstep. Its row carries the
 trainer's metric fields; the learner put the counter's statistics at that boundary
 into the weights message.
+
+It also keeps every row it published for its recent runs (the last `HISTORY_RUNS`)
+and answers `macb/run/{run}/history/eval` with them, so a watcher that was away (the
+API restarting, say) fills its gaps instead of losing the points published meanwhile.
 """
 
 from __future__ import annotations
 
 import collections
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -22,6 +27,9 @@ from shared import bus as keys
 from shared.config import TrainConfig
 from shared.rollout import derive_seed, evaluate
 from shared.tasks import make_task
+from shared.wire import encode
+
+HISTORY_RUNS = 64  # runs whose rows are kept for history queries
 
 
 class EvaluatorService(ServiceBase):
@@ -31,6 +39,30 @@ class EvaluatorService(ServiceBase):
         super().__init__(service_id, connect, data_dir)
         torch.set_num_threads(1)
         self.e: dict[str, Any] = {}
+        # run -> (state, rows published); read on Zenoh's thread, hence the lock.
+        self.history: collections.OrderedDict[str, tuple[str, list[dict[str, Any]]]] = (
+            collections.OrderedDict()
+        )
+        self._history_lock = threading.Lock()
+        self.bus.queryable(keys.k_history("*", "eval"), self._history_reply)
+
+    def _history_reply(self, key: str, payload: bytes) -> bytes | None:
+        run = keys.run_of(key)
+        with self._history_lock:
+            entry = self.history.get(run or "")
+            if entry is None:
+                return None  # not ours: another evaluator may answer
+            state, rows = entry[0], list(entry[1])
+        return encode("history", run, source="eval", rows=rows, state=state)
+
+    def _remember(self, run: str, state: str, row: dict[str, Any] | None = None) -> None:
+        with self._history_lock:
+            _, rows = self.history.pop(run, ("running", []))
+            if row is not None:
+                rows.append(row)
+            self.history[run] = (state, rows)
+            while len(self.history) > HISTORY_RUNS:
+                self.history.popitem(last=False)
 
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
         self.listen(keys.k_weights(run, "eval"), "weights", run)
@@ -47,9 +79,11 @@ class EvaluatorService(ServiceBase):
             "points": 0,
             "t0": time.perf_counter(),
         }
+        self._remember(run, "running")
         self.publish_status(run, "running")
 
     def on_stop(self, run: str, reason: str) -> None:
+        self._remember(run, "stopped")
         self.e = {}
 
     def handle(self, tag: str, key: str, payload: bytes) -> None:
@@ -84,9 +118,11 @@ class EvaluatorService(ServiceBase):
             "policy_lag": info.get("policy_lag", 0.0),
             "policy_version": msg["version"],
         }
+        self._remember(run, "running", row)
         self.publish_metrics(run, row, source="eval")
         e["points"] += 1
         if msg["eval_point"] >= cfg.episodes:
+            self._remember(run, "completed")
             self.publish_status(run, "completed", points=e["points"])
             self.log.info("run %s: %d evaluation points", run, e["points"])
             self.e = {}

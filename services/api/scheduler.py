@@ -16,8 +16,10 @@
 - Sends the stop messages the HTTP side asks for (a failed run's other services are
   stopped too, so they are free for the next run).
 - On start (after an API restart), re-attaches to the runs the store says are
-  running; a run whose services no longer serve it ended while nobody listened, and
-  is resolved from what was stored.
+  running and asks each run's evaluator for the rows it published meanwhile
+  (`macb/run/{run}/history/eval`), so no point is lost while the API is down; a run
+  whose services no longer serve it ended while nobody listened, and is resolved
+  from what was stored. At a run's end, rows still missing are asked for once more.
 """
 
 from __future__ import annotations
@@ -87,6 +89,7 @@ class Watch:
     counter_down: float | None = None
     unserved_since: float | None = None
     ended: float | None = None  # monotonic time it reached a final status
+    history_asked: bool = False  # the evaluator's history was asked for at the end
 
     def services(self) -> list[tuple[str, str]]:
         """(role, id) of every service serving the run."""
@@ -107,6 +110,7 @@ class Scheduler:
         start_timeout_s: float = 60.0,
         completion_grace_s: float = 5.0,
         reconcile_s: float = 3.0,
+        history_timeout_s: float = 2.0,
     ) -> None:
         self.store = store
         self.connect = connect
@@ -117,6 +121,7 @@ class Scheduler:
         self.start_timeout_s = start_timeout_s
         self.completion_grace_s = completion_grace_s
         self.reconcile_s = reconcile_s
+        self.history_timeout_s = history_timeout_s
         self.events: queue.Queue[tuple[str, str, Any]] = queue.Queue()
         self.bus: Bus | None = None
         self.connected = threading.Event()
@@ -443,6 +448,9 @@ class Scheduler:
         evaluator = w.states.get(w.assign["evaluator"], {}).get("state")
         if learner == "completed" and evaluator == "completed":
             expected = int(w.states[w.assign["evaluator"]].get("points", 0))
+            if w.points < expected and not w.history_asked:
+                w.history_asked = True  # points lost on the way: ask for them once
+                self._fill_gaps(w)
             if w.points >= expected:
                 self._end(w, "completed", None, stop=False)
             elif w.evaluator_done is not None and now - w.evaluator_done > self.completion_grace_s:
@@ -505,13 +513,54 @@ class Scheduler:
                 )
 
     def _reattach(self) -> None:
-        """After a (re)start: follow the runs the store says are running."""
+        """After a (re)start: follow the runs the store says are running, and store the
+        points their evaluators published while nobody listened."""
         running = self.store.runs_with_status("running")
         for run in running:
             if run["id"] in self.watches or not run.get("assign"):
                 continue
             w = self._watch(run, time.monotonic())
-            log.info("re-attached to run %s (%d points stored)", w.run, w.points)
+            filled = self._fill_gaps(w)
+            log.info(
+                "re-attached to run %s (%d points stored, %d of them filled from the "
+                "evaluator's history)",
+                w.run,
+                w.points,
+                filled,
+            )
+
+    def _fill_gaps(self, w: Watch) -> int:
+        """Ask the run's evaluator for every row it published; store the missing ones.
+
+        Called after `_watch` has subscribed (so nothing falls between the two) and on
+        the scheduler's thread (so these rows are stored before any that queue up
+        meanwhile: points stay in episode order). The store ignores episodes it has.
+        """
+        bus = self.bus
+        if bus is None:
+            return 0
+        rows: list[dict[str, Any]] = []
+        for raw in bus.get(keys.k_history(w.run, "eval"), timeout=self.history_timeout_s):
+            try:
+                msg = decode(raw, "history")
+            except WireError:
+                continue
+            if msg["run"] != w.run:
+                continue
+            rows = [
+                flat_row(r)
+                for r in msg["rows"]
+                if isinstance(r, dict) and isinstance(r.get("episode"), int)
+            ]
+            break
+        if not rows:
+            return 0
+        added = self.store.add_points(w.run, rows)
+        if added:
+            w.points += added
+            w.last_episode = max([w.last_episode] + [int(r["episode"]) for r in rows])
+            self._changed()
+        return added
 
     # ------------------------------------------------------------ queries for HTTP
     def workers(self) -> list[dict[str, Any]] | None:
