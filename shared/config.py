@@ -70,9 +70,10 @@ class TrainConfig(BaseModel):
     learner_lanes: Literal["auto"] | Annotated[int, Field(ge=1, le=16)] = Field(
         "auto",
         description="batched learner: split each minibatch into this many row blocks "
-        "computed in parallel threads (1 torch thread each); auto: 1 or 2, whichever "
-        "measures faster on this machine now (reruns then equal up to float rounding; "
-        "a fixed number gives bit-identical reruns)",
+        "computed in parallel threads (1 torch thread each); auto: whichever of one "
+        "thread, two lanes or two torch threads measures fastest on this machine now "
+        "(reruns then equal up to float rounding; a fixed number gives bit-identical "
+        "reruns)",
     )
     learner_impl: Literal["batched", "reference"] = Field(
         "batched",

@@ -27,16 +27,19 @@ rounding; tests/test_batched_equivalence.py checks it update by update. Why it i
 * With `lanes=2` the minibatch is split into two row blocks whose targets, forward and
   backward passes run at the same time in two threads (`shared.lanes`); their
   gradients are summed before each Adam step, which is the whole batch's gradient up to
-  the order of additions. On an idle 2-core machine that is ~1.4x faster; when other
-  processes keep the cores busy it can be slower than one lane (a lane preempted while
-  holding the GIL stalls the other), so `lanes="auto"` lets a `LaneTuner` pick 1 or 2
-  from measured update times, block by block. A fixed count gives bit-identical
-  reruns; "auto" gives reruns equal up to floating-point rounding.
+  the order of additions.
+* With `lanes="auto"` (the platform's default) a `LaneTuner` picks, block by block of
+  updates, the fastest of: one thread; two lanes; one lane with two torch intra-op
+  threads; from measured update times. On an idle 2-core machine two threads win
+  (torch's ~1.4x, lanes less: the lanes share the GIL); when other processes keep the
+  cores busy, torch's spinning OpenMP threads run ~2x slower than one thread and lanes
+  ~1.2x slower (a lane preempted while holding the GIL stalls the other), and the
+  tuner falls back to one thread. A fixed lane count (and fixed `threads`) gives
+  bit-identical reruns; "auto" gives reruns equal up to floating-point rounding.
 
-Threads: this module leaves `torch.set_num_threads` to the process; lanes assume it is
-1. On the project's 2-core machines torch's own 2-thread mode is fast on an idle machine
-and several times slower than one thread as soon as another process wants a core
-(benchmarks/bench_learner.py reports 1 thread, 2 threads, 2 lanes and a busy core).
+Threads: with a fixed lane count this module leaves `torch.set_num_threads` to the
+process (lanes assume 1); with "auto" it sets it (1 or 2) for each block of updates.
+benchmarks/bench_learner.py reports 1 thread, 2 threads, 2 lanes and a busy core.
 
 `state_dict()` writes the reference's own per-agent format (module and Adam state dicts),
 so checkpoints move between the two classes both ways, and a `BatchedMADDPG` built from
@@ -59,6 +62,8 @@ if TYPE_CHECKING:  # annotations only: this module imports numpy and torch alone
     from shared.maddpg import MADDPG, AgentDims, LearnerSpec
 
 ALGOS = ("ddpg", "dis-maddpg", "cen-maddpg")
+# What lanes="auto" chooses among, as (lanes, torch intra-op threads).
+AUTO_MODES = ((1, 1), (2, 1), (1, 2))
 
 
 def _offsets(dims: Sequence[int]) -> list[int]:
@@ -263,12 +268,12 @@ class BatchedMADDPG:
         self.actor_optim = torch.optim.Adam(self.actor.params, lr=spec.lr_actor, fused=True)
         self.critic_optim = torch.optim.Adam(self.critic.params, lr=spec.lr_critic, fused=True)
         self.updates = 0
-        # "auto": two lanes available, a tuner picks 1 or 2 per block of updates.
+        # "auto": a tuner picks (lanes, torch threads) per block of updates.
         auto = lanes == "auto"
         if not auto and not isinstance(lanes, int):
             raise ValueError(f"lanes must be a positive int or 'auto', got {lanes!r}")
         self.lanes = Lanes(2 if auto else lanes)
-        self.tuner = LaneTuner((1, 2)) if auto else None
+        self.tuner: LaneTuner[tuple[int, int]] | None = LaneTuner(AUTO_MODES) if auto else None
 
     def _init_like_reference(self, critic_in: Sequence[int]) -> None:
         """The reference's initial weights for this seed: the same nn.Linear calls in order."""
@@ -456,7 +461,12 @@ class BatchedMADDPG:
         """
         t0 = time.perf_counter()
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
-        lanes = self.tuner.choose() if self.tuner is not None else self.lanes.n
+        if self.tuner is not None:
+            lanes, threads = self.tuner.choose()
+            if torch.get_num_threads() != threads:
+                torch.set_num_threads(threads)
+        else:
+            lanes = self.lanes.n
         if lanes > 1 and obs_t.shape[0] > 1:
             critic_losses, actor_losses = self._update_in_lanes(obs_t, act_t, rew_t, next_t, done_t)
         else:
@@ -475,11 +485,13 @@ class BatchedMADDPG:
         if self.tuner is None:
             return {"lanes": float(self.lanes.n)}
         total = max(1, sum(self.tuner.chosen.values()))
-        out = {"lanes": float(self.tuner.current)}
-        for k in self.tuner.options:
-            out[f"lanes{k}_share"] = self.tuner.chosen[k] / total
-            mean = self.tuner.mean_s[k]
-            out[f"lanes{k}_update_ms"] = 1e3 * mean if mean is not None else 0.0
+        lanes, threads = self.tuner.current
+        out = {"lanes": float(lanes), "threads": float(threads)}
+        for mode in self.tuner.options:
+            name = f"lanes{mode[0]}x{mode[1]}"  # lanes x torch threads
+            out[f"{name}_share"] = self.tuner.chosen[mode] / total
+            mean = self.tuner.mean_s[mode]
+            out[f"{name}_update_ms"] = 1e3 * mean if mean is not None else 0.0
         return out
 
     def _update_in_lanes(

@@ -14,12 +14,13 @@ The caller's thread runs the first block itself; `n - 1` worker threads run the 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
+O = TypeVar("O", bound=Hashable)  # noqa: E741 (an option: lanes, or (lanes, threads))
 
 
 class Lanes:
@@ -56,15 +57,16 @@ class Lanes:
             pool.shutdown(wait=False)
 
 
-class LaneTuner:
-    """Picks the faster of several lane counts from measured update times, and keeps
-    checking, because the machine's load changes under it.
+class LaneTuner(Generic[O]):
+    """Picks the fastest of several ways to run the update (lane counts, torch thread
+    counts) from measured update times, and keeps checking, because the machine's load
+    changes under it.
 
-    Why: two lanes are ~1.4-1.7x faster than one on an idle 2-core machine and up to
-    2x slower when other processes keep the cores busy (a lane thread preempted while
-    it holds the GIL stalls the other lane: bench_learner.py's "one core busy" line).
-    Neither fixed choice is right on a shared machine, and the update's result differs
-    between them only in the order of floating-point additions.
+    Why: on an idle 2-core machine two threads (lanes, or torch's own) are up to ~1.4x
+    faster than one; when other processes keep the cores busy they are slower, torch's
+    spinning OpenMP threads about 2x (bench_learner.py's "one core busy" line). No
+    fixed choice is right on a shared machine, and the update's result differs between
+    them only in the order of floating-point additions.
 
     Updates run in blocks of `block` with one choice; a block's mean time updates that
     choice's moving average. Each choice is tried once first; after that the fastest
@@ -75,7 +77,7 @@ class LaneTuner:
 
     def __init__(
         self,
-        options: Sequence[int] = (1, 2),
+        options: Sequence[O],
         block: int = 20,
         probe_every: int = 10,
         smoothing: float = 0.5,
@@ -84,15 +86,15 @@ class LaneTuner:
             raise ValueError("LaneTuner needs at least one option")
         self.options = list(options)
         self.block, self.probe_every, self.smoothing = block, probe_every, smoothing
-        self.mean_s: dict[int, float | None] = dict.fromkeys(self.options)
+        self.mean_s: dict[O, float | None] = dict.fromkeys(self.options)
         self.current = self.options[0]
         self.chosen = dict.fromkeys(self.options, 0)  # updates run with each option
         self._in_block = 0
         self._block_s = 0.0
         self._since_probe = 0
-        self._probes: list[int] = []
+        self._probes: list[O] = []
 
-    def choose(self) -> int:
+    def choose(self) -> O:
         return self.current
 
     def record(self, seconds: float) -> None:
@@ -110,11 +112,11 @@ class LaneTuner:
         self._in_block, self._block_s = 0, 0.0
         self.current = self._next()
 
-    def best(self) -> int:
+    def best(self) -> O:
         known = {k: v for k, v in self.mean_s.items() if v is not None}
         return min(known, key=known.__getitem__) if known else self.options[0]
 
-    def _next(self) -> int:
+    def _next(self) -> O:
         untried = [k for k, v in self.mean_s.items() if v is None]
         if untried:
             return untried[0]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from shared.fast_maddpg import BatchedMADDPG
+from shared.fast_maddpg import AUTO_MODES, BatchedMADDPG
 from shared.lanes import LaneTuner
 from shared.maddpg import MADDPG, AgentDims, LearnerSpec
 from shared.networks import Actor, JointPolicy, actor_weights
@@ -119,23 +119,29 @@ def test_update_in_lanes_equals_per_agent_update(algo, agents, lanes, rows):
     fast.lanes.close()
 
 
-def test_auto_lanes_switch_and_stay_equal_to_the_reference():
-    """lanes='auto': the tuner runs blocks with 1 and with 2 lanes; every update still
-    equals the reference's."""
+def test_auto_modes_switch_and_stay_equal_to_the_reference():
+    """lanes='auto': the tuner runs blocks with one thread, two lanes and two torch
+    threads; every update still equals the reference's."""
     ref = make("cen-maddpg", [SPEAKER, LISTENER])
     fast = BatchedMADDPG(ref.agents, ref.spec, lanes="auto")
     fast.load_state_dict(ref.state_dict())
-    fast.tuner = LaneTuner((1, 2), block=2, probe_every=2)
+    fast.tuner = LaneTuner(AUTO_MODES, block=2, probe_every=2)
     used = []
-    for step in range(12):
-        used.append(fast.tuner.choose())
-        b = batch(ref, seed=step)
-        ref.update(*b), fast.update(*b)
-        assert_same_state(ref.state_dict(), fast.state_dict())
-    assert set(used) == {1, 2}
+    try:
+        for step in range(16):
+            used.append(fast.tuner.choose())
+            b = batch(ref, seed=step)
+            ref.update(*b), fast.update(*b)
+            if used[-1][1] == 2:
+                assert torch.get_num_threads() == 2
+            assert_same_state(ref.state_dict(), fast.state_dict())
+    finally:
+        torch.set_num_threads(1)
+    assert set(used) == set(AUTO_MODES)
     stats = fast.lane_stats()
-    assert stats["lanes1_share"] + stats["lanes2_share"] == pytest.approx(1.0)
-    assert stats["lanes1_update_ms"] > 0 and stats["lanes2_update_ms"] > 0
+    shares = [stats[f"lanes{a}x{t}_share"] for a, t in AUTO_MODES]
+    assert sum(shares) == pytest.approx(1.0) and min(shares) > 0
+    assert all(stats[f"lanes{a}x{t}_update_ms"] > 0 for a, t in AUTO_MODES)
 
 
 def test_lanes_must_be_a_count_or_auto():

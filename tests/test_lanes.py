@@ -46,7 +46,7 @@ def test_refuses_zero_lanes():
         Lanes(0)
 
 
-def run(tuner: LaneTuner, cost: dict[int, float], updates: int) -> list[int]:
+def run(tuner: LaneTuner, cost: dict, updates: int) -> list:
     picks = []
     for _ in range(updates):
         k = tuner.choose()
@@ -80,3 +80,13 @@ def test_tuner_with_one_option_never_switches():
     assert set(run(tuner, {1: 0.01}, 50)) == {1}
     with pytest.raises(ValueError):
         LaneTuner(())
+
+
+def test_tuner_picks_among_three_modes():
+    modes = [(1, 1), (2, 1), (1, 2)]
+    tuner = LaneTuner(modes, block=5, probe_every=10)
+    run(tuner, {(1, 1): 0.008, (2, 1): 0.007, (1, 2): 0.0055}, 600)
+    assert tuner.best() == (1, 2)
+    run(tuner, {(1, 1): 0.008, (2, 1): 0.010, (1, 2): 0.016}, 600)  # the other core busy
+    assert tuner.best() == (1, 1)
+    assert all(tuner.chosen[m] > 0 for m in modes)
