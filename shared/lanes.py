@@ -63,16 +63,19 @@ class LaneTuner(Generic[O]):
     changes under it.
 
     Why: on an idle 2-core machine two threads (lanes, or torch's own) are up to ~1.4x
-    faster than one; when other processes keep the cores busy they are slower, torch's
-    spinning OpenMP threads about 2x (bench_learner.py's "one core busy" line). No
-    fixed choice is right on a shared machine, and the update's result differs between
-    them only in the order of floating-point additions.
+    faster than one; when other processes keep the cores busy they are slower: lanes
+    ~1.2x, torch's spinning OpenMP threads 2x to 30x (bench_learner.py's "one core
+    busy" line). No fixed choice is right on a shared machine, and the update's result
+    differs between them only in the order of floating-point additions.
 
     Updates run in blocks of `block` with one choice; a block's mean time updates that
     choice's moving average. Each choice is tried once first; after that the fastest
-    runs, and every `probe_every` blocks the others get one block each, so a change in
-    load is noticed within a few seconds while probes cost at most about
-    1/probe_every of the updates.
+    runs, and the others are probed with one block each, every `probe_every` blocks. A
+    probe that is losing is cut short: an update slower than `abort_factor` times the
+    best choice's mean ends its block at once. A choice that loses a probe waits twice
+    as long for the next (up to `max_backoff` times), one that wins is probed at the
+    normal rate again, so a choice that is ruinous under the current load costs a
+    single update now and then, while a change in load is still noticed.
     """
 
     def __init__(
@@ -81,18 +84,22 @@ class LaneTuner(Generic[O]):
         block: int = 20,
         probe_every: int = 10,
         smoothing: float = 0.5,
+        abort_factor: float = 2.0,
+        max_backoff: int = 32,
     ) -> None:
         if not options:
             raise ValueError("LaneTuner needs at least one option")
         self.options = list(options)
         self.block, self.probe_every, self.smoothing = block, probe_every, smoothing
+        self.abort_factor, self.max_backoff = abort_factor, max_backoff
         self.mean_s: dict[O, float | None] = dict.fromkeys(self.options)
+        self.backoff: dict[O, int] = dict.fromkeys(self.options, 1)
+        self._wait: dict[O, int] = dict.fromkeys(self.options, 0)  # blocks since probed
         self.current = self.options[0]
         self.chosen = dict.fromkeys(self.options, 0)  # updates run with each option
+        self.aborted = 0  # probes cut short
         self._in_block = 0
         self._block_s = 0.0
-        self._since_probe = 0
-        self._probes: list[O] = []
 
     def choose(self) -> O:
         return self.current
@@ -102,30 +109,46 @@ class LaneTuner(Generic[O]):
         self.chosen[self.current] += 1
         self._in_block += 1
         self._block_s += seconds
-        if self._in_block < self.block:
-            return
-        mean = self._block_s / self._in_block
-        old = self.mean_s[self.current]
-        self.mean_s[self.current] = (
-            mean if old is None else self.smoothing * mean + (1 - self.smoothing) * old
+        best = self.best()
+        best_s = self.mean_s[best]
+        losing = (
+            self.current != best and best_s is not None and seconds > self.abort_factor * best_s
         )
-        self._in_block, self._block_s = 0, 0.0
-        self.current = self._next()
+        if losing:
+            self.aborted += 1
+        elif self._in_block < self.block:
+            return
+        self._end_block()
 
     def best(self) -> O:
         known = {k: v for k, v in self.mean_s.items() if v is not None}
         return min(known, key=known.__getitem__) if known else self.options[0]
 
-    def _next(self) -> O:
+    def _end_block(self) -> None:
+        done, mean = self.current, self._block_s / self._in_block
+        old = self.mean_s[done]
+        self.mean_s[done] = (
+            mean if old is None else self.smoothing * mean + (1 - self.smoothing) * old
+        )
+        self._in_block, self._block_s = 0, 0.0
+        best = self.best()
+        if done != best and old is not None:  # a probe that lost: probe it less often
+            self.backoff[done] = min(self.max_backoff, 2 * self.backoff[done])
+        elif done == best:
+            self.backoff[done] = 1
+        self._wait[done] = 0
+        for k in self.options:
+            if k != done:
+                self._wait[k] += 1
+        self.current = self._next(best)
+
+    def _next(self, best: O) -> O:
         untried = [k for k, v in self.mean_s.items() if v is None]
         if untried:
             return untried[0]
-        if self._probes:
-            return self._probes.pop()
-        self._since_probe += 1
-        best = self.best()
-        if self._since_probe >= self.probe_every:
-            self._since_probe = 0
-            self._probes = [k for k in self.options if k != best]
-            return self._probes.pop() if self._probes else best
-        return best
+        due = [
+            k
+            for k in self.options
+            if k != best and self._wait[k] >= self.probe_every * self.backoff[k]
+        ]
+        return max(due, key=self._wait.__getitem__) if due else best
