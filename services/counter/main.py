@@ -16,7 +16,9 @@ second so actors learn where a restarted counter stands.
 
 Bonus queries (`macb/run/{run}/bonus`, a Zenoh get) are answered on Zenoh's thread
 under a lock shared with ingestion, so a query sees a burst counted whole or not at
-all: `counts` (tables x B, int64) and `bonus` (B x N agents, float32). A row that was
+all: `counts` (tables x B, int64), `bonus` (B x N agents, float32) and `tables` (the
+run's table size, count-1 % and transitions counted, which the learner reports at
+evaluation points without a query of its own). A row that was
 never counted (n = 0; the learner may ingest a batch before the counter does) is
 answered with its count as it is (0) and the bonus of a key seen once (beta); such
 rows are counted in the stat `uncounted_rows_queried`. Queries come first: the
