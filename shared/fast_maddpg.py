@@ -32,8 +32,8 @@ rounding; tests/test_batched_equivalence.py checks it update by update. Why it i
   updates, the fastest of: one thread; two lanes; one lane with two torch intra-op
   threads; from measured update times. On an idle 2-core machine two threads win
   (torch's ~1.4x, lanes less: the lanes share the GIL); when other processes keep the
-  cores busy, torch's spinning OpenMP threads run ~2x slower than one thread and lanes
-  ~1.2x slower (a lane preempted while holding the GIL stalls the other), and the
+  cores busy, torch's spinning OpenMP threads run 2x-30x slower than one thread and
+  lanes ~1.2x slower (a lane preempted while holding the GIL stalls the other), and the
   tuner falls back to one thread. A fixed lane count (and fixed `threads`) gives
   bit-identical reruns; "auto" gives reruns equal up to floating-point rounding.
 

@@ -1,13 +1,16 @@
-"""Run one function on several blocks of a minibatch at once, in plain threads.
+"""Run one function on several blocks of a minibatch at once, in plain threads; and
+pick, from measured times, how many threads an update should use.
 
-Why threads and not torch's own intra-op threads: on the project's 2-core machines,
-shared with actors, the counter and other users, an OpenMP team that spins at every
-barrier falls apart as soon as another process takes a core (bench_learner measured
-a 2-thread update 5-10x slower than a 1-thread one under load). Here each lane is an
-ordinary thread running whole torch operations with one intra-op thread
-(`torch.set_num_threads(1)`); torch releases the GIL inside every operation, so two
-lanes use two cores when they are free, and when they are not, the lanes are merely
-time-sliced: the only waiting is one blocking join per `map`, never a spin.
+Lanes are an alternative to torch's own intra-op threads: on the project's 2-core
+machines, shared with actors, the counter and other users, an OpenMP team that spins
+at every barrier falls apart as soon as another process takes a core (2x-30x slower
+than one thread, bench_learner.py). Each lane is an ordinary thread running whole
+torch operations with one intra-op thread; torch releases the GIL inside every
+operation, so two lanes use two cores when they are free, and when they are not they
+are time-sliced with one blocking join per `map`, never a spin. They still take the
+GIL back between operations, which makes them slower than torch's threads on an idle
+machine; `LaneTuner` therefore measures which of one thread, two lanes and two torch
+threads is fastest now and keeps measuring.
 
 The caller's thread runs the first block itself; `n - 1` worker threads run the rest.
 """
