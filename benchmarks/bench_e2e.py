@@ -448,9 +448,13 @@ def run_cluster(
                 "bonus_p50_ms",
                 "bonus_p99_ms",
                 "bonus_failures",
+                "bonus_queries",
+                "bonus_rows_per_query",
                 "backlog",
             )
-        },
+        }
+        # how the update ran: learner_lanes auto's picks (share of updates, ms each)
+        | {k: v for k, v in last.items() if k.startswith("lanes") or k == "threads"},
         "counter": {
             k: counter.get(k)
             for k in ("counted_transitions", "query_p50_ms", "query_p99_ms", "queries")
@@ -759,6 +763,8 @@ def main(argv: list[str] | None = None) -> None:
                     row[f"over_{base}"] = median(ratios)
                     row[f"e2e_over_{base}"] = median(e2e)
             if name.startswith("cluster"):
+                modes = sorted({k for x in rs for k in x["learner"] if k.endswith("_share")})
+                row["learner_modes"] = {k: median([x["learner"].get(k) for x in rs]) for k in modes}
                 row["learner_bonus_p50_ms"] = median([x["learner"]["bonus_p50_ms"] for x in rs])
                 row["learner_bonus_p99_ms"] = median([x["learner"]["bonus_p99_ms"] for x in rs])
                 row["replay_ratio"] = median([x["learner"]["replay_ratio"] for x in rs])
@@ -795,7 +801,8 @@ def main(argv: list[str] | None = None) -> None:
         print(
             f"\n{s['variant']}, eval {s['eval']}: learner bonus query p50 "
             f"{fmt(s['learner_bonus_p50_ms'], '.2f')} ms, p99 "
-            f"{fmt(s['learner_bonus_p99_ms'], '.2f')} ms; replay ratio "
+            f"{fmt(s['learner_bonus_p99_ms'], '.2f')} ms; update modes (share of updates, "
+            f"lanes x torch threads) {s['learner_modes'] or '-'}; replay ratio "
             f"{fmt(s['replay_ratio'], '.3f')}; evaluator finished "
             f"{fmt(s['evaluator_lag_s'], '.1f')} s after the learner; startup "
             f"{fmt(s['startup_s'], '.1f')} s"
