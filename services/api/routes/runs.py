@@ -111,6 +111,16 @@ async def _events(
             yield _sse("metric", p, since)
         status = (run["status"], run["reason"], run["progress"]["trained_episodes"])
         if status != last_status:
+            skipped_running = (
+                last_status is not None
+                and last_status[0] == "queued"
+                and run["started"]
+                and run["status"] not in ACTIVE
+            )
+            if skipped_running:
+                # Started and ended between two polls (a short run): still say that it
+                # ran, so every client sees queued -> running -> the end, in order.
+                yield _sse("status", {"status": "running", "reason": None, "progress": None})
             last_status = status
             yield _sse(
                 "status",
@@ -146,8 +156,9 @@ async def run_events(
     last_event_id: Annotated[str | None, Header(max_length=32)] = None,
 ):
     """Server-sent events: `metric` (one per point, id = its seq), `status` on each
-    change, and `end` once the run has ended and every point has been sent. Resume
-    with `since` or the Last-Event-ID header."""
+    change (as polled; a run seen queued and then ended also gets its `running`, with
+    progress null), and `end` once the run has ended and every point has been sent.
+    Resume with `since` or the Last-Event-ID header."""
     run = await run_in_threadpool(load_run, store, run_id)
     if run is None:
         raise not_found("run", run_id)
