@@ -214,7 +214,7 @@ def test_restarting_the_api_mid_run_loses_no_metric_and_the_run_goes_on(cluster)
     url = cluster.url
     bus_rows = BusRows(cluster.endpoint)
     try:
-        episodes = 200
+        episodes = 600  # long enough to outlast the restart on a fast machine
         exp = httpx.post(f"{url}/experiments", json={**TINY, "episodes": episodes}).json()
         run_id = exp["runs"][0]["id"]
         wait_for(
