@@ -108,16 +108,15 @@ def random_batch(m: MADDPG, seed: int = 0) -> tuple[np.ndarray, ...]:
 def floor_ops(m: BatchedMADDPG, rows: int = BATCH) -> Callable[[], None]:
     """The matrix products of one BatchedMADDPG.update (of `rows` rows), preallocated."""
     n = m.n
-    BATCH = rows  # noqa: N806 (the shapes below read as the update's)
 
     def layers(params: list[torch.Tensor], shared_input: bool) -> list[tuple]:
         out = []
         for k, w in enumerate(params[0::2]):
             w = torch.randn_like(w.detach())
             _, fan_out, fan_in = w.shape
-            x = torch.randn(BATCH, fan_in).expand(n, -1, -1) if shared_input and k == 0 else None
-            x = x if x is not None else torch.randn(n, BATCH, fan_in)
-            out.append((x, w, torch.randn(n, 1, fan_out), torch.randn(n, BATCH, fan_out)))
+            x = torch.randn(rows, fan_in).expand(n, -1, -1) if shared_input and k == 0 else None
+            x = x if x is not None else torch.randn(n, rows, fan_in)
+            out.append((x, w, torch.randn(n, 1, fan_out), torch.randn(n, rows, fan_out)))
         return out
 
     actor = layers(m.actor.params, False)

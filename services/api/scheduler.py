@@ -229,13 +229,19 @@ class Scheduler:
             except Exception:  # one odd message must not stop the bookkeeping
                 log.exception("dropped a %s event on %s", kind, key)
         for run, new in rows.items():
-            added = self.store.add_points(run, new)
-            w = self.watches.get(run)
-            if w is not None and added:
-                w.points += added
-                w.last_episode = max([w.last_episode] + [int(r["episode"]) for r in new])
+            self._store_points(run, new)
         if rows:
             self._changed()
+
+    def _store_points(self, run: str, rows: list[dict[str, Any]]) -> int:
+        """Store evaluation rows (the store ignores episodes it has); count the new ones
+        on the run's watch. Returns how many were new."""
+        added = self.store.add_points(run, rows)
+        w = self.watches.get(run)
+        if w is not None and added:
+            w.points += added
+            w.last_episode = max([w.last_episode] + [int(r["episode"]) for r in rows])
+        return added
 
     def _on_metrics(self, key: str, payload: bytes, rows: dict[str, list]) -> None:
         run = keys.run_of(key)
@@ -555,10 +561,8 @@ class Scheduler:
             break
         if not rows:
             return 0
-        added = self.store.add_points(w.run, rows)
+        added = self._store_points(w.run, rows)
         if added:
-            w.points += added
-            w.last_episode = max([w.last_episode] + [int(r["episode"]) for r in rows])
             self._changed()
         return added
 
