@@ -71,10 +71,19 @@ seed: 0
 TARGET_CLUSTER_EVAL_ON = 136.0  # steps/s, the issue's target for the cluster, eval on
 TARGET_RATIO = 0.85  # cluster within 15% of the trainer
 THESIS_STEPS_PER_S = {"with bonus": 34.0, "without bonus": 70.0}
-VARIANTS = ("trainer", "trainer-blas1", "cluster", "trainer-1lane", "cluster-1lane")
+# Fixed learner modes instead of `learner_lanes: auto`: what the config adds.
+FIXED_MODES = {
+    "-1lane": "learner_lanes: 1\n",  # one thread in the update
+    "-2threads": "learner_lanes: 1\nthreads: 2\n",  # torch's two intra-op threads
+}
+VARIANTS = ("trainer", "trainer-blas1", "cluster") + tuple(
+    f"{v}{m}" for m in FIXED_MODES for v in ("trainer", "cluster")
+)
 DEFAULT_VARIANTS = ("trainer-blas1", "cluster", "trainer-1lane", "cluster-1lane")
 # What each cluster variant is compared with (same config, same round).
-BASELINES = {"cluster": ("trainer-blas1", "trainer"), "cluster-1lane": ("trainer-1lane",)}
+BASELINES = {"cluster": ("trainer-blas1", "trainer")} | {
+    f"cluster{m}": (f"trainer{m}",) for m in FIXED_MODES
+}
 
 
 # ------------------------------------------------------------------ helpers
@@ -448,8 +457,10 @@ def run_cluster(
                 "bonus_p50_ms",
                 "bonus_p99_ms",
                 "bonus_failures",
+                "bonus_wait_ms_per_update",
                 "bonus_queries",
-                "bonus_rows_per_query",
+                "bonus_ticks",
+                "bonus_rows_per_tick",
                 "backlog",
             )
         }
@@ -479,7 +490,7 @@ TRAINER_PARTS = {
 }
 LEARNER_PARTS = {
     "learner.update": ("fast_maddpg.py", "update"),
-    "bonus query round trip (BonusClient.bonus_for)": ("learner/main.py", "bonus_for"),
+    "waiting for bonus replies (BonusClient._reply)": ("learner/main.py", "_reply"),
     "replay sample": ("replay.py", "sample"),
     "weights out (publish_weights)": ("learner/main.py", "publish_weights"),
     "  of which counter stats query": ("learner/main.py", "counter_stats"),
@@ -625,16 +636,19 @@ def ratio_pair(s: dict, base: str) -> str:
 def tmp_config(tmp: Path) -> Path:
     config = tmp / "config.yaml"
     config.write_text(CONFIG_YAML)
-    (tmp / "config-1lane.yaml").write_text(CONFIG_YAML + "learner_lanes: 1\n")
+    for mode, extra in FIXED_MODES.items():
+        (tmp / f"config{mode}.yaml").write_text(CONFIG_YAML + extra)
     return config
 
 
 def run_variant(name: str, config: Path, episodes: int, ev: int, work: Path, actors: int = 1):
-    """`*-1lane`: the same with `learner_lanes: 1` (one thread in the update)."""
+    """`*-1lane`, `*-2threads`: the same with a fixed learner mode (FIXED_MODES); the
+    trainer side with one BLAS thread outside torch, as trainer-blas1."""
     timeout = 120 + episodes * 20 / 5.0  # a run slower than 5 steps/s is broken
-    if name.endswith("-1lane"):
-        config = config.with_name("config-1lane.yaml")
-        name = {"trainer-1lane": "trainer-blas1", "cluster-1lane": "cluster"}[name]
+    for mode in FIXED_MODES:
+        if name.endswith(mode):
+            config = config.with_name(f"config{mode}.yaml")
+            name = {"trainer": "trainer-blas1", "cluster": "cluster"}[name.removesuffix(mode)]
     if name == "cluster":
         return run_cluster(config, episodes, ev, actors, work, timeout)
     return run_trainer(config, episodes, ev, name == "trainer-blas1", work, timeout)
@@ -654,8 +668,15 @@ def main(argv: list[str] | None = None) -> None:
         "--variants",
         default=",".join(DEFAULT_VARIANTS),
         help=f"comma-separated subset of {','.join(VARIANTS)} (default: "
-        f"{','.join(DEFAULT_VARIANTS)}; '-1lane': learner_lanes 1; 'trainer': numpy's "
-        "default BLAS threads, as a library user who calls shared.trainer.train gets)",
+        f"{','.join(DEFAULT_VARIANTS)}; '-1lane': learner_lanes 1; '-2threads': "
+        "learner_lanes 1 with two torch threads; 'trainer': numpy's default BLAS threads, "
+        "as a library user who calls shared.trainer.train gets)",
+    )
+    parser.add_argument(
+        "--eval",
+        choices=("both", "on", "off"),
+        default="both",
+        help="per-episode evaluation on, off (only at the end) or both (default)",
     )
     parser.add_argument(
         "--profile",
@@ -685,7 +706,7 @@ def main(argv: list[str] | None = None) -> None:
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     if unknown := set(variants) - set(VARIANTS):
         parser.error(f"unknown variants {sorted(unknown)}")
-    evals = {"on": 1, "off": episodes}
+    evals = {k: v for k, v in {"on": 1, "off": episodes}.items() if args.eval in (k, "both")}
     cases = [(v, e) for e in evals for v in variants]
     load_before = os.getloadavg()
     if not variants:  # --variants "" --profile: the profiles alone
@@ -767,6 +788,9 @@ def main(argv: list[str] | None = None) -> None:
                 row["learner_modes"] = {k: median([x["learner"].get(k) for x in rs]) for k in modes}
                 row["learner_bonus_p50_ms"] = median([x["learner"]["bonus_p50_ms"] for x in rs])
                 row["learner_bonus_p99_ms"] = median([x["learner"]["bonus_p99_ms"] for x in rs])
+                row["learner_bonus_wait_ms_per_update"] = median(
+                    [x["learner"].get("bonus_wait_ms_per_update") for x in rs]
+                )
                 row["replay_ratio"] = median([x["learner"]["replay_ratio"] for x in rs])
                 row["evaluator_lag_s"] = median([x["evaluator_lag_s"] for x in rs])
                 row["startup_s"] = median([x["startup_s"] for x in rs])
@@ -799,10 +823,12 @@ def main(argv: list[str] | None = None) -> None:
     clusters = [s for s in summary if s["variant"].startswith("cluster")]
     for s in clusters:
         print(
-            f"\n{s['variant']}, eval {s['eval']}: learner bonus query p50 "
-            f"{fmt(s['learner_bonus_p50_ms'], '.2f')} ms, p99 "
-            f"{fmt(s['learner_bonus_p99_ms'], '.2f')} ms; update modes (share of updates, "
-            f"lanes x torch threads) {s['learner_modes'] or '-'}; replay ratio "
+            f"\n{s['variant']}, eval {s['eval']}: learner's first bonus query of a tick "
+            f"p50 {fmt(s['learner_bonus_p50_ms'], '.2f')} ms, p99 "
+            f"{fmt(s['learner_bonus_p99_ms'], '.2f')} ms, waiting for bonuses "
+            f"{fmt(s['learner_bonus_wait_ms_per_update'], '.2f')} ms per update; update "
+            f"modes (share of updates, lanes x torch threads) {s['learner_modes'] or '-'}; "
+            "replay ratio "
             f"{fmt(s['replay_ratio'], '.3f')}; evaluator finished "
             f"{fmt(s['evaluator_lag_s'], '.1f')} s after the learner; startup "
             f"{fmt(s['startup_s'], '.1f')} s"

@@ -71,14 +71,24 @@ class LaneTuner(Generic[O]):
     busy" line). No fixed choice is right on a shared machine, and the update's result
     differs between them only in the order of floating-point additions.
 
-    Updates run in blocks of `block` with one choice; a block's mean time updates that
-    choice's moving average. Each choice is tried once first; after that the fastest
-    runs, and the others are probed with one block each, every `probe_every` blocks. A
-    probe that is losing is cut short: an update slower than `abort_factor` times the
-    best choice's mean ends its block at once. A choice that loses a probe waits twice
-    as long for the next (up to `max_backoff` times), one that wins is probed at the
-    normal rate again, so a choice that is ruinous under the current load costs a
-    single update now and then, while a change in load is still noticed.
+    Updates run in blocks of `block` with one choice; a block's median update time
+    updates that choice's moving average (a probe's block replaces it). Each choice
+    is tried once first; after that the fastest runs, and the others are probed with
+    one block each, every `probe_every` blocks. A probe that is losing is cut short:
+    at once by an update slower than `ruin_factor` times the best choice's estimate,
+    otherwise once the median of at least `min_probe` of its updates is slower than
+    `abort_factor` times it. A choice that loses a probe waits twice as long for the
+    next (up to `max_backoff` times), one that wins is probed at the normal rate
+    again, so a choice that is ruinous under the current load costs a single update
+    now and then, while a change in load is still noticed.
+
+    Medians, not means: other processes on the machine stall an update now and then
+    (an evaluator's burst of episodes, ~20 ms, preempts a thread mid-update) whatever
+    the choice. With means and a cut at the first slow update, one such stall decided
+    a probe, the probed choice backed off for hundreds of blocks, and the local
+    cluster ran on one thread at ~0.8x of what two threads gave it (bench_e2e).
+    A choice that is slower under the load shows it in most of its updates, which
+    the median sees.
     """
 
     def __init__(
@@ -89,20 +99,22 @@ class LaneTuner(Generic[O]):
         smoothing: float = 0.5,
         abort_factor: float = 2.0,
         max_backoff: int = 32,
+        ruin_factor: float = 8.0,
+        min_probe: int = 3,
     ) -> None:
         if not options:
             raise ValueError("LaneTuner needs at least one option")
         self.options = list(options)
         self.block, self.probe_every, self.smoothing = block, probe_every, smoothing
         self.abort_factor, self.max_backoff = abort_factor, max_backoff
-        self.mean_s: dict[O, float | None] = dict.fromkeys(self.options)
+        self.ruin_factor, self.min_probe = ruin_factor, min_probe
+        self.mean_s: dict[O, float | None] = dict.fromkeys(self.options)  # smoothed medians
         self.backoff: dict[O, int] = dict.fromkeys(self.options, 1)
         self._wait: dict[O, int] = dict.fromkeys(self.options, 0)  # blocks since probed
         self.current = self.options[0]
         self.chosen = dict.fromkeys(self.options, 0)  # updates run with each option
         self.aborted = 0  # probes cut short
-        self._in_block = 0
-        self._block_s = 0.0
+        self._times: list[float] = []  # this block's update times
 
     def choose(self) -> O:
         return self.current
@@ -110,30 +122,36 @@ class LaneTuner(Generic[O]):
     def record(self, seconds: float) -> None:
         """The time of one update run with `choose()`'s answer."""
         self.chosen[self.current] += 1
-        self._in_block += 1
-        self._block_s += seconds
+        self._times.append(seconds)
         best = self.best()
         best_s = self.mean_s[best]
-        losing = (
-            self.current != best and best_s is not None and seconds > self.abort_factor * best_s
-        )
-        if losing:
-            self.aborted += 1
-        elif self._in_block < self.block:
-            return
-        self._end_block()
+        if self.current != best and best_s is not None:
+            ruinous = seconds > self.ruin_factor * best_s
+            losing = (
+                len(self._times) >= self.min_probe
+                and _median(self._times) > self.abort_factor * best_s
+            )
+            if ruinous or losing:
+                self.aborted += 1
+                self._end_block()
+                return
+        if len(self._times) >= self.block:
+            self._end_block()
 
     def best(self) -> O:
         known = {k: v for k, v in self.mean_s.items() if v is not None}
         return min(known, key=known.__getitem__) if known else self.options[0]
 
     def _end_block(self) -> None:
-        done, mean = self.current, self._block_s / self._in_block
+        done, typical = self.current, _median(self._times)
         old = self.mean_s[done]
+        # Smoothed over consecutive blocks; a probe's estimate is its own block's alone
+        # (the last one is many blocks old, from another load).
+        consecutive = old is not None and self._wait[done] == 0
         self.mean_s[done] = (
-            mean if old is None else self.smoothing * mean + (1 - self.smoothing) * old
+            self.smoothing * typical + (1 - self.smoothing) * old if consecutive else typical
         )
-        self._in_block, self._block_s = 0, 0.0
+        self._times = []
         best = self.best()
         if done != best and old is not None:  # a probe that lost: probe it less often
             self.backoff[done] = min(self.max_backoff, 2 * self.backoff[done])
@@ -155,3 +173,9 @@ class LaneTuner(Generic[O]):
             if k != best and self._wait[k] >= self.probe_every * self.backoff[k]
         ]
         return max(due, key=self._wait.__getitem__) if due else best
+
+
+def _median(xs: Sequence[float]) -> float:
+    ordered = sorted(xs)
+    mid = len(ordered) // 2
+    return ordered[mid] if len(ordered) % 2 else 0.5 * (ordered[mid - 1] + ordered[mid])

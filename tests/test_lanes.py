@@ -114,3 +114,40 @@ def test_a_probe_that_wins_takes_over_at_once():
     picks = run(tuner, {1: 0.008, 2: 0.004}, 3000)  # load gone: 2 is now faster
     assert tuner.best() == 2 and tuner.backoff[2] == 1
     assert picks[-200:].count(2) >= 180
+
+
+def test_stalls_at_each_episode_start_do_not_lock_out_the_faster_mode():
+    """Another process's bursts stall updates whatever the mode, the two-thread one
+    most. In the cluster they come at episode boundaries (the evaluator starts on the
+    new weights), i.e. at the start of every 20-update tick and tuner block, so every
+    probe began with a stall; with block means and a cut at the first slow update the
+    two threads lost every probe and the cluster ran on one thread. The two threads
+    are still faster, typically and on average: the tuner keeps them."""
+    modes = [(1, 1), (2, 1), (1, 2)]
+    typical = {(1, 1): 0.008, (2, 1): 0.0095, (1, 2): 0.0055}
+    stall = {(1, 1): 0.019, (2, 1): 0.019, (1, 2): 0.03}
+
+    def seconds(mode: tuple, i: int) -> float:
+        return typical[mode] + (stall[mode] if i % 20 < 2 else 0.0)
+
+    tuner = LaneTuner(modes)
+    picks, total = [], 0.0
+    for i in range(6000):
+        mode = tuner.choose()
+        picks.append(mode)
+        total += seconds(mode, i)
+        tuner.record(seconds(mode, i))
+    assert tuner.best() == (1, 2)
+    assert picks[1000:].count((1, 2)) >= 0.8 * len(picks[1000:])
+    # and that is what pays: within 10% of always running the two threads
+    assert total <= 1.1 * sum(seconds((1, 2), i) for i in range(6000))
+
+
+def test_a_mode_slower_in_most_updates_loses_its_probes_early():
+    """Twice as slow in every update (not a stall now and then): probes are cut after
+    `min_probe` updates, not run to the end of their block."""
+    tuner = LaneTuner([1, 2], block=20, probe_every=5)
+    picks = run(tuner, {1: 0.008, 2: 0.02}, 4000)
+    assert tuner.best() == 1 and tuner.aborted > 0
+    probes = picks[40:].count(2)
+    assert probes <= tuner.min_probe * (tuner.aborted + 1)

@@ -9,10 +9,11 @@ import msgpack
 import numpy as np
 import pytest
 
+from services.learner.main import SPLIT, BonusClient, split_points
 from shared import bus as keys
 from shared.config import make_config
 from shared.control import discover, start_run
-from shared.wire import encode
+from shared.wire import decode, encode
 from tests.conftest import wait_for
 
 SMALL = {
@@ -70,9 +71,12 @@ def check_exact(watch, actors, config):
             assert r["counted_transitions"] >= r["env_steps"], r
             assert r["table_size"] > 0 and 0.0 < r["count1_pct"] <= 100.0, r
     if config.explore in ("dis-macb", "cen-macb"):
-        # bonuses priced per tick (all of its minibatches in one query), not per update
-        assert learner["bonus_rows_per_query"] >= 5 * config.batch_size, learner
-        assert learner["bonus_queries"] * 5 <= learner["updates"], learner
+        # bonuses priced per tick (its minibatches in one round of at most len(SPLIT) + 1
+        # queries sent together), not per update
+        assert learner["bonus_rows_per_tick"] >= 5 * config.batch_size, learner
+        assert learner["bonus_ticks"] * 5 <= learner["updates"], learner
+        assert learner["bonus_queries"] <= (len(SPLIT) + 1) * learner["bonus_ticks"] + 1, learner
+        assert learner["bonus_failures"] == 0, learner
     return counter, learner
 
 
@@ -187,3 +191,76 @@ def test_a_dead_learner_or_actor_fails_the_run_and_frees_the_others(procs, bus, 
         what="survivors freed",
     )
     assert {i["id"] for i in discover(bus)} >= survivors | {"counter"}
+
+
+@pytest.mark.parametrize("n", range(0, 25))
+def test_split_points_cover_each_minibatch_once_in_order(n):
+    parts = split_points(n)
+    assert [i for a, b in parts for i in range(a, b)] == list(range(n))
+    assert all(b > a for a, b in parts) and len(parts) <= len(SPLIT) + 1
+    if n > 1:
+        assert parts[0] == (0, 1)  # the first update waits for one minibatch's answer
+
+
+class _Reply:
+    def __init__(self, payload: bytes) -> None:
+        self.ok = type("Sample", (), {"payload": type("P", (), {"to_bytes": lambda s: payload})()})
+
+
+class _FakeBus:
+    """Answers bonus queries from a script (per query, the bonus to reply or None for
+    silence) and logs when each query is sent and when its answer is first read."""
+
+    def __init__(self, answers: list) -> None:
+        self.answers, self.asked, self.log = list(answers), [], []
+
+    def get_async(self, key: str, payload: bytes, timeout: float):
+        k = len(self.asked)
+        self.asked.append(payload)
+        self.log.append(("sent", k))
+        bonus = self.answers.pop(0)
+
+        def replies():
+            self.log.append(("read", k))
+            if bonus is not None:
+                yield _Reply(encode("bonus_reply", "r1", counts=np.ones_like(bonus), bonus=bonus))
+
+        return replies()
+
+
+def _batches(n: int, rows: int = 4) -> list:
+    from shared.replay import Batch
+
+    rng = np.random.default_rng(0)
+    return [
+        Batch(
+            obs=rng.normal(size=(rows, 3)).astype(np.float32),
+            act=rng.normal(size=(rows, 2)).astype(np.float32),
+            rew=np.zeros(rows, np.float32),
+            next_obs=np.zeros((rows, 3), np.float32),
+            done=np.zeros(rows, np.float32),
+            idx=np.arange(rows),
+        )
+        for _ in range(n)
+    ]
+
+
+def test_bonus_client_prices_a_tick_in_order_and_stops_at_a_silent_part():
+    batches = _batches(6)
+    parts = split_points(6)  # (0,1), (1,4), (4,6)
+    answers = [np.full(((b - a) * 4, 2), float(k), np.float32) for k, (a, b) in enumerate(parts)]
+    svc = type("Svc", (), {"bus": _FakeBus(answers), "reject": lambda *a: None})()
+    client = BonusClient(svc, "r1", "cen-macb", 0.8, 2)
+    got = list(client.price(batches))
+    assert [float(g[0, 0]) for g in got] == [0.0, 1.0, 1.0, 1.0, 2.0, 2.0]
+    assert all(g.shape == (4, 2) for g in got)
+    assert len(svc.bus.asked) == 3 and client.ticks == 1 and client.failures == 0
+    # every query was sent before the first answer was read: one round trip per tick
+    assert svc.bus.log == [("sent", k) for k in range(3)] + [("read", k) for k in range(3)]
+    sent = [decode(p, "bonus_query")["obs"] for p in svc.bus.asked]
+    assert np.array_equal(np.concatenate(sent), np.concatenate([b.obs for b in batches]))
+
+    answers[1] = None  # the counter answers the first query only
+    svc.bus = _FakeBus(answers)
+    got = list(client.price(batches))
+    assert len(got) == 1 and client.failures == 1 and client.ticks == 1

@@ -9,18 +9,24 @@ is behind, so actors wait rather than let the ratio drift.
 
 Bonuses are asked of the counter at sample time, answered before the updates run:
 each tick samples the minibatches of all the updates it will do (up to
-UPDATES_PER_TICK, never past an episode boundary) and prices their rows in one query.
-The buffer cannot change within a tick (inbound messages are handled between ticks),
-so these are the minibatches per-update sampling would draw from the same generator,
-and the counts are those the counter holds when the tick starts: per-update queries
-would see at most the batches the counter takes during the tick, a timing the
-cluster never fixed anyway (the counter runs ahead of the learner's buffer by up to
-a few episodes). One round trip per tick instead of per update: a 2,000-row query
-took 8-13 ms p50 in bench_e2e's cluster (~1.9 ms of it the counter's work), i.e.
-0.4-0.7 ms per update, where per-update queries cost 1.75-2 ms each (~18% of the
-learner's time). (An overlapped variant, asking for batch k+1 while update k ran,
-learned visibly worse on sparse `simple` in a small sample, 0 of 4 against 2 of 3
-reaching 80% by episode 400, for reasons not understood; this one overlaps nothing.)
+UPDATES_PER_TICK, never past an episode boundary) and prices their rows in one
+round of queries. The buffer cannot change within a tick (inbound messages are
+handled between ticks), so these are the minibatches per-update sampling would draw
+from the same generator, and the counts are those the counter holds when the tick
+starts: per-update queries would see at most the batches the counter takes during
+the tick, a timing the cluster never fixed anyway (the counter runs ahead of the
+learner's buffer by up to a few episodes). One round trip per tick instead of per
+update: per-update queries cost 1.75-2 ms each (~18% of the learner's time).
+
+The tick's rows go out as a few queries sent at once (SPLIT: the first minibatch,
+the next three, the rest), so the first update waits only for a 100-row answer and
+the larger answers arrive while it runs. A single 2,000-row query kept the learner
+waiting 8-13 ms p50 per tick in bench_e2e's cluster (~1.9 ms of it the counter's
+work). The arithmetic is unchanged: the same minibatches, priced by the same
+counter state, in the same order. (An earlier overlapped variant, asking for batch
+k+1 while update k ran, learned visibly worse on sparse `simple` in a small sample,
+0 of 4 against 2 of 3 reaching 80% by episode 400, for reasons not understood; that
+one priced batches later than they were drawn, this one does not.)
 
 Weights go out at every episode boundary of training (when the updates owed for
 that episode are done), marked `eval_point` every `eval_every` episodes, which is
@@ -32,6 +38,7 @@ from __future__ import annotations
 import collections
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -50,8 +57,20 @@ from shared.wire import WireError, check_dims, decode, encode
 
 WINDOW_EPISODES = 2  # credits per actor, in episodes
 MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
-UPDATES_PER_TICK = 20  # bound on work between inbox checks; one bonus query each
+UPDATES_PER_TICK = 20  # bound on work between inbox checks; one round of bonus queries each
+SPLIT = (1, 3)  # minibatches in the leading bonus queries of a tick; the last takes the rest
 CHECKPOINT_EVERY_S = 60.0
+
+
+def split_points(n: int) -> list[tuple[int, int]]:
+    """The [a, b) minibatch ranges of a tick's bonus queries: SPLIT's sizes while more
+    is left after them, then the rest (n=20 -> [0,1), [1,4), [4,20); n=1 -> [0,1))."""
+    parts, a = [], 0
+    for size in SPLIT:
+        if n - a > size:
+            parts.append((a, a + size))
+            a += size
+    return [*parts, (a, n)] if n > a else parts
 
 
 class BonusClient:
@@ -59,43 +78,64 @@ class BonusClient:
 
     def __init__(self, svc: LearnerService, run: str, mode: str, beta: float, n: int) -> None:
         self.svc, self.run, self.mode, self.beta, self.n = svc, run, mode, beta, n
+        # round trip of a tick's first query: what the tick's first update waits for
         self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
+        self.wait_s = 0.0  # time blocked on replies, all queries
         self.failures = 0
         self.queries = 0
+        self.ticks = 0  # ticks fully priced
         self.rows = 0
         # The counter's table stats as of the last answered query (its reply carries
         # them): what an evaluation point reports, without a query of its own.
         self.tables: dict[str, float] | None = None
-        self.fresh = False  # tables came with this tick's query
+        self.fresh = False  # tables came with this tick's queries
 
-    def bonus_for(self, batches: list) -> list[np.ndarray] | None:
-        """The (B, N) bonus of each sampled batch, priced in one query; None if the
-        counter did not answer."""
-        sizes = [len(b.rew) for b in batches]
-        if self.mode == "none":
-            return [np.zeros((B, self.n), np.float32) for B in sizes]
-        if self.mode == "constant":
-            return [np.full((B, self.n), self.beta, np.float32) for B in sizes]
-        rows = sum(sizes)
+    def price(self, batches: list) -> Iterator[np.ndarray]:
+        """The (B, N) bonus of each sampled batch, in order, each as soon as its query is
+        answered; stops early if the counter does not answer (the caller draws again)."""
+        if self.mode in ("none", "constant"):
+            value = 0.0 if self.mode == "none" else self.beta
+            for b in batches:
+                yield np.full((len(b.rew), self.n), value, np.float32)
+            return
         t0 = time.perf_counter()
-        obs = np.concatenate([b.obs for b in batches])
-        act = np.concatenate([b.act for b in batches])
-        payload = encode("bonus_query", self.run, obs=obs, act=act)
-        for raw in self.svc.bus.get(keys.k_bonus(self.run), payload, timeout=2.0):
+        pending = []
+        for a, b in split_points(len(batches)):
+            part = batches[a:b]
+            obs = np.concatenate([x.obs for x in part])
+            act = np.concatenate([x.act for x in part])
+            payload = encode("bonus_query", self.run, obs=obs, act=act)
+            handler = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
+            pending.append(([len(x.rew) for x in part], handler))
+        self.queries += len(pending)
+        for k, (sizes, handler) in enumerate(pending):
+            t_wait = time.perf_counter()
+            bonus = self._reply(handler, sum(sizes))
+            self.wait_s += time.perf_counter() - t_wait
+            if bonus is None:
+                self.failures += 1
+                return
+            if k == 0:
+                self.latencies.append(time.perf_counter() - t0)
+            self.rows += sum(sizes)
+            if k == len(pending) - 1:
+                self.ticks += 1
+            yield from np.split(bonus, np.cumsum(sizes)[:-1])
+
+    def _reply(self, handler: Any, rows: int) -> np.ndarray | None:
+        """The first well-formed bonus of `rows` rows among a query's replies."""
+        for reply in handler:
+            if not reply.ok:
+                continue
             try:
-                msg = decode(raw, "bonus_reply")
+                msg = decode(reply.ok.payload.to_bytes(), "bonus_reply")
             except WireError as err:
                 self.svc.reject(keys.k_bonus(self.run), str(err))
                 continue
             if msg["bonus"].shape == (rows, self.n):
-                self.latencies.append(time.perf_counter() - t0)
-                self.queries += 1
-                self.rows += rows
                 self.tables = _table_stats(msg.get("tables"))
                 self.fresh = True
-                bonus = msg["bonus"].astype(np.float32)
-                return np.split(bonus, np.cumsum(sizes)[:-1])
-        self.failures += 1
+                return msg["bonus"].astype(np.float32)
         return None
 
 
@@ -246,10 +286,8 @@ class LearnerService(ServiceBase):
             todo = min(todo, max(0, next_boundary - learner.updates))
         batches = [buffer.sample(cfg.batch_size, r["rng"]) for _ in range(todo)]
         r["bonus"].fresh = False
-        bonuses = r["bonus"].bonus_for(batches) if batches else []
-        if bonuses is None:  # counter silent (restarting?): draw again on the next tick
-            batches, bonuses = [], []
-        for batch, bonus in zip(batches, bonuses, strict=True):
+        # Batches the counter did not price (silent, restarting?) are drawn again next tick.
+        for batch, bonus in zip(batches, r["bonus"].price(batches)):
             learner.update(
                 batch.obs, batch.act, batch.rew[:, None] + bonus, batch.next_obs, batch.done
             )
@@ -346,8 +384,10 @@ class LearnerService(ServiceBase):
             "window_open": r["window_open"],
             "bonus_p50_ms": 1e3 * lat[len(lat) // 2] if lat else 0.0,
             "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
+            "bonus_wait_ms_per_update": 1e3 * r["bonus"].wait_s / updates if updates else 0.0,
             "bonus_queries": r["bonus"].queries,
-            "bonus_rows_per_query": r["bonus"].rows / max(1, r["bonus"].queries),
+            "bonus_ticks": r["bonus"].ticks,
+            "bonus_rows_per_tick": r["bonus"].rows / max(1, r["bonus"].ticks),
             "bonus_failures": r["bonus"].failures,
             "bonus_mean": float(np.mean(r["bonus_means"])) if r["bonus_means"] else 0.0,
             "rejects_total": sum(self.rejects.values()),
