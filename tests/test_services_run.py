@@ -245,22 +245,25 @@ def _batches(n: int, rows: int = 4) -> list:
     ]
 
 
-def test_bonus_client_prices_a_tick_in_order_and_stops_at_a_silent_part():
+def test_bonus_client_sends_a_ticks_queries_at_once_and_stops_at_a_silent_one():
     batches = _batches(6)
     parts = split_points(6)  # (0,1), (1,4), (4,6)
     answers = [np.full(((b - a) * 4, 2), float(k), np.float32) for k, (a, b) in enumerate(parts)]
     svc = type("Svc", (), {"bus": _FakeBus(answers), "reject": lambda *a: None})()
     client = BonusClient(svc, "r1", "cen-macb", 0.8, 2)
-    got = list(client.price(batches))
+    pending = client.ask(batches)
+    # every query goes out at once, before any answer is read: one round trip per tick,
+    # and a tick's queries can be sent ahead while the previous tick's weights go out
+    assert svc.bus.log == [("sent", k) for k in range(3)]
+    got = list(pending)
+    assert svc.bus.log[3:] == [("read", k) for k in range(3)]
     assert [float(g[0, 0]) for g in got] == [0.0, 1.0, 1.0, 1.0, 2.0, 2.0]
     assert all(g.shape == (4, 2) for g in got)
-    assert len(svc.bus.asked) == 3 and client.ticks == 1 and client.failures == 0
-    # every query was sent before the first answer was read: one round trip per tick
-    assert svc.bus.log == [("sent", k) for k in range(3)] + [("read", k) for k in range(3)]
+    assert client.queries == 3 and client.ticks == 1 and client.failures == 0
     sent = [decode(p, "bonus_query")["obs"] for p in svc.bus.asked]
     assert np.array_equal(np.concatenate(sent), np.concatenate([b.obs for b in batches]))
 
     answers[1] = None  # the counter answers the first query only
     svc.bus = _FakeBus(answers)
-    got = list(client.price(batches))
+    got = list(client.ask(batches))
     assert len(got) == 1 and client.failures == 1 and client.ticks == 1

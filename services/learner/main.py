@@ -90,14 +90,13 @@ class BonusClient:
         self.tables: dict[str, float] | None = None
         self.fresh = False  # tables came with this tick's queries
 
-    def price(self, batches: list) -> Iterator[np.ndarray]:
-        """The (B, N) bonus of each sampled batch, in order, each as soon as its query is
-        answered; stops early if the counter does not answer (the caller draws again)."""
+    def ask(self, batches: list) -> Iterator[np.ndarray]:
+        """Send the queries that price `batches` now; iterating the result gives each
+        batch's (B, N) bonus in order, as soon as its query is answered, and stops early
+        if the counter does not answer (the caller draws again)."""
         if self.mode in ("none", "constant"):
             value = 0.0 if self.mode == "none" else self.beta
-            for b in batches:
-                yield np.full((len(b.rew), self.n), value, np.float32)
-            return
+            return iter([np.full((len(b.rew), self.n), value, np.float32) for b in batches])
         t0 = time.perf_counter()
         pending = []
         for a, b in split_points(len(batches)):
@@ -108,6 +107,9 @@ class BonusClient:
             handler = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
             pending.append(([len(x.rew) for x in part], handler))
         self.queries += len(pending)
+        return self._answers(pending, t0)
+
+    def _answers(self, pending: list, t0: float) -> Iterator[np.ndarray]:
         for k, (sizes, handler) in enumerate(pending):
             t_wait = time.perf_counter()
             bonus = self._reply(handler, sum(sizes))
@@ -278,21 +280,22 @@ class LearnerService(ServiceBase):
         if not self.r:
             return False
         r, cfg = self.r, self.config
-        learner, buffer = r["learner"], r["buffer"]
-        owed = max(0, r["ingested"] - cfg.learning_starts) - learner.updates
-        next_boundary = r["boundaries"][0][1] if r["boundaries"] else None
-        todo = min(owed, UPDATES_PER_TICK)
-        if next_boundary is not None:
-            todo = min(todo, max(0, next_boundary - learner.updates))
-        batches = [buffer.sample(cfg.batch_size, r["rng"]) for _ in range(todo)]
+        learner = r["learner"]
+        batches, priced = r.pop("next", None) or self.draw()
         r["bonus"].fresh = False
-        # Batches the counter did not price (silent, restarting?) are drawn again next tick.
-        for batch, bonus in zip(batches, r["bonus"].price(batches)):
+        # Batches the counter did not price (silent, restarting?) are drawn again.
+        for batch, bonus in zip(batches, priced):
             learner.update(
                 batch.obs, batch.act, batch.rew[:, None] + bonus, batch.next_obs, batch.done
             )
             r["bonus_means"].append(float(bonus.mean()))
-            owed -= 1
+        # The next tick's minibatches, drawn and sent for pricing before this tick's
+        # weights go out (they wake the actor and the evaluator, who would then compete
+        # with the counter's answer for the cores).
+        ahead = self.draw()
+        if ahead[0]:
+            r["next"] = ahead
+        owed = max(0, r["ingested"] - cfg.learning_starts) - learner.updates
         self.pass_boundaries()
         now = time.monotonic()
         window_open = owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(r["actors"])
@@ -306,6 +309,19 @@ class LearnerService(ServiceBase):
             self.checkpoint()
         self.maybe_finish()
         return owed > 0 and bool(self.r)
+
+    def draw(self) -> tuple[list, Iterator[np.ndarray]]:
+        """The minibatches of the next tick's updates (as many as are owed, up to
+        UPDATES_PER_TICK, never past the next episode boundary), their bonus queries
+        sent: (batches, their bonuses as they are answered)."""
+        r, cfg = self.r, self.config
+        updates = r["learner"].updates
+        todo = min(max(0, r["ingested"] - cfg.learning_starts) - updates, UPDATES_PER_TICK)
+        boundary = next((b[1] for b in r["boundaries"] if b[1] > updates), None)
+        if boundary is not None:
+            todo = min(todo, boundary - updates)
+        batches = [r["buffer"].sample(cfg.batch_size, r["rng"]) for _ in range(max(0, todo))]
+        return batches, r["bonus"].ask(batches) if batches else iter(())
 
     def pass_boundaries(self) -> None:
         """Publish weights at each episode boundary whose updates are done."""
