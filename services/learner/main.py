@@ -7,26 +7,28 @@ number). The learner does exactly one update per ingested transition beyond the
 first `learning_starts`; it grants actors a window of credits that closes while it
 is behind, so actors wait rather than let the ratio drift.
 
-Bonuses are asked of the counter at sample time, answered before the updates run:
-each tick samples the minibatches of all the updates it will do (up to
-UPDATES_PER_TICK, never past an episode boundary) and prices their rows in one
-round of queries. The buffer cannot change within a tick (inbound messages are
-handled between ticks), so these are the minibatches per-update sampling would draw
-from the same generator, and the counts are those the counter holds when the tick
-starts: per-update queries would see at most the batches the counter takes during
-the tick, a timing the cluster never fixed anyway (the counter runs ahead of the
-learner's buffer by up to a few episodes). One round trip per tick instead of per
-update: per-update queries cost 1.75-2 ms each (~18% of the learner's time).
+Bonuses are asked of the counter at sample time, one query per tick: a tick samples
+the minibatches of all the updates it will do (up to UPDATES_PER_TICK, never past an
+episode boundary) and prices their rows together. Per-update queries cost 1.75-2 ms
+each (~18% of the learner's time); one per tick of 20 updates costs one round trip.
 
-The tick's rows go out as a few queries sent at once (SPLIT: the first minibatch,
-the next three, the rest), so the first update waits only for a 100-row answer and
-the larger answers arrive while it runs. A single 2,000-row query kept the learner
-waiting 8-13 ms p50 per tick in bench_e2e's cluster (~1.9 ms of it the counter's
-work). The arithmetic is unchanged: the same minibatches, priced by the same
-counter state, in the same order. (An earlier overlapped variant, asking for batch
-k+1 while update k ran, learned visibly worse on sparse `simple` in a small sample,
-0 of 4 against 2 of 3 reaching 80% by episode 400, for reasons not understood; that
-one priced batches later than they were drawn, this one does not.)
+That round trip is sent a tick ahead: when a tick starts and the updates of the next
+one are already owed (the actor runs up to two episodes ahead, so they usually are),
+the next tick's minibatches are drawn right after this tick's and priced while this
+tick's updates run. Drawn then, they come from the same buffer as this tick's
+(inbound messages are handled between ticks, never within one), so they differ from
+what the next tick would draw at its own start only by the episodes that arrive in
+between, which are newer than every transition the next tick's updates are for; the
+one-process trainer never has those in its buffer either. The counts are those the
+counter holds a tick earlier (it runs ahead of the learner's buffer by up to a few
+episodes anyway, and every sampled transition has been counted). Why: in
+bench_e2e's cluster the answer took 8-13 ms p50 to come back (the counter's own
+work ~0.6 ms; the rest is three processes waking up in turn on two busy cores), and
+the learner spent ~0.45 ms per update waiting for it, ~7% of its time. (An earlier
+overlapped variant, asking for batch k+1 while update k ran, learned visibly worse on
+sparse `simple` in a small sample, 0 of 4 against 2 of 3 reaching 80% by episode
+400, for reasons not understood; the current learner was checked on the same
+question, see docs/performance.md.)
 
 Weights go out at every episode boundary of training (when the updates owed for
 that episode are done), marked `eval_point` every `eval_every` episodes, which is
@@ -58,19 +60,7 @@ from shared.wire import WireError, check_dims, decode, encode
 WINDOW_EPISODES = 2  # credits per actor, in episodes
 MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
 UPDATES_PER_TICK = 20  # bound on work between inbox checks; one round of bonus queries each
-SPLIT = (1, 3)  # minibatches in the leading bonus queries of a tick; the last takes the rest
 CHECKPOINT_EVERY_S = 60.0
-
-
-def split_points(n: int) -> list[tuple[int, int]]:
-    """The [a, b) minibatch ranges of a tick's bonus queries: SPLIT's sizes while more
-    is left after them, then the rest (n=20 -> [0,1), [1,4), [4,20); n=1 -> [0,1))."""
-    parts, a = [], 0
-    for size in SPLIT:
-        if n - a > size:
-            parts.append((a, a + size))
-            a += size
-    return [*parts, (a, n)] if n > a else parts
 
 
 class BonusClient:
@@ -78,51 +68,43 @@ class BonusClient:
 
     def __init__(self, svc: LearnerService, run: str, mode: str, beta: float, n: int) -> None:
         self.svc, self.run, self.mode, self.beta, self.n = svc, run, mode, beta, n
-        # round trip of a tick's first query: what the tick's first update waits for
+        # from sending a query to having its answer (sent a tick ahead, it is read late)
         self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
-        self.wait_s = 0.0  # time blocked on replies, all queries
+        self.wait_s = 0.0  # time the learner was blocked on answers
         self.failures = 0
         self.queries = 0
-        self.ticks = 0  # ticks fully priced
         self.rows = 0
         # The counter's table stats as of the last answered query (its reply carries
         # them): what an evaluation point reports, without a query of its own.
         self.tables: dict[str, float] | None = None
-        self.fresh = False  # tables came with this tick's queries
+        self.fresh = False  # tables came with the answer this tick read
 
     def ask(self, batches: list) -> Iterator[np.ndarray]:
-        """Send the queries that price `batches` now; iterating the result gives each
-        batch's (B, N) bonus in order, as soon as its query is answered, and stops early
-        if the counter does not answer (the caller draws again)."""
+        """Send the query that prices `batches` now; iterating the result waits for the
+        answer and gives each batch's (B, N) bonus in order, or nothing if the counter
+        does not answer (the caller draws again)."""
         if self.mode in ("none", "constant"):
             value = 0.0 if self.mode == "none" else self.beta
             return iter([np.full((len(b.rew), self.n), value, np.float32) for b in batches])
-        t0 = time.perf_counter()
-        pending = []
-        for a, b in split_points(len(batches)):
-            part = batches[a:b]
-            obs = np.concatenate([x.obs for x in part])
-            act = np.concatenate([x.act for x in part])
-            payload = encode("bonus_query", self.run, obs=obs, act=act)
-            handler = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
-            pending.append(([len(x.rew) for x in part], handler))
-        self.queries += len(pending)
-        return self._answers(pending, t0)
+        obs = np.concatenate([b.obs for b in batches])
+        act = np.concatenate([b.act for b in batches])
+        payload = encode("bonus_query", self.run, obs=obs, act=act)
+        sent = time.perf_counter()
+        handler = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
+        self.queries += 1
+        return self._answer(handler, [len(b.rew) for b in batches], sent)
 
-    def _answers(self, pending: list, t0: float) -> Iterator[np.ndarray]:
-        for k, (sizes, handler) in enumerate(pending):
-            t_wait = time.perf_counter()
-            bonus = self._reply(handler, sum(sizes))
-            self.wait_s += time.perf_counter() - t_wait
-            if bonus is None:
-                self.failures += 1
-                return
-            if k == 0:
-                self.latencies.append(time.perf_counter() - t0)
-            self.rows += sum(sizes)
-            if k == len(pending) - 1:
-                self.ticks += 1
-            yield from np.split(bonus, np.cumsum(sizes)[:-1])
+    def _answer(self, handler: Any, sizes: list[int], sent: float) -> Iterator[np.ndarray]:
+        waited = time.perf_counter()
+        bonus = self._reply(handler, sum(sizes))
+        now = time.perf_counter()
+        self.wait_s += now - waited
+        if bonus is None:
+            self.failures += 1
+            return
+        self.latencies.append(now - sent)
+        self.rows += sum(sizes)
+        yield from np.split(bonus, np.cumsum(sizes)[:-1])
 
     def _reply(self, handler: Any, rows: int) -> np.ndarray | None:
         """The first well-formed bonus of `rows` rows among a query's replies."""
@@ -281,20 +263,22 @@ class LearnerService(ServiceBase):
             return False
         r, cfg = self.r, self.config
         learner = r["learner"]
-        batches, priced = r.pop("next", None) or self.draw()
+        batches, priced = r.pop("next", None) or self.draw(learner.updates)
+        # The next tick's minibatches, drawn now and priced while this tick's updates
+        # run (the buffer is the one this tick draws from; see the module docstring).
+        ahead = self.draw(learner.updates + len(batches))
+        if ahead[0]:
+            r["next"] = ahead
         r["bonus"].fresh = False
-        # Batches the counter did not price (silent, restarting?) are drawn again.
+        done = 0
         for batch, bonus in zip(batches, priced):
             learner.update(
                 batch.obs, batch.act, batch.rew[:, None] + bonus, batch.next_obs, batch.done
             )
             r["bonus_means"].append(float(bonus.mean()))
-        # The next tick's minibatches, drawn and sent for pricing before this tick's
-        # weights go out (they wake the actor and the evaluator, who would then compete
-        # with the counter's answer for the cores).
-        ahead = self.draw()
-        if ahead[0]:
-            r["next"] = ahead
+            done += 1
+        if done < len(batches):  # the counter did not answer (restarting?): draw again
+            r.pop("next", None)
         owed = max(0, r["ingested"] - cfg.learning_starts) - learner.updates
         self.pass_boundaries()
         now = time.monotonic()
@@ -310,12 +294,11 @@ class LearnerService(ServiceBase):
         self.maybe_finish()
         return owed > 0 and bool(self.r)
 
-    def draw(self) -> tuple[list, Iterator[np.ndarray]]:
-        """The minibatches of the next tick's updates (as many as are owed, up to
-        UPDATES_PER_TICK, never past the next episode boundary), their bonus queries
-        sent: (batches, their bonuses as they are answered)."""
+    def draw(self, updates: int) -> tuple[list, Iterator[np.ndarray]]:
+        """The minibatches of a tick that starts after `updates` updates (as many as are
+        owed by then, up to UPDATES_PER_TICK, never past the next episode boundary),
+        their bonus query sent: (batches, their bonuses as they are answered)."""
         r, cfg = self.r, self.config
-        updates = r["learner"].updates
         todo = min(max(0, r["ingested"] - cfg.learning_starts) - updates, UPDATES_PER_TICK)
         boundary = next((b[1] for b in r["boundaries"] if b[1] > updates), None)
         if boundary is not None:
@@ -402,8 +385,7 @@ class LearnerService(ServiceBase):
             "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
             "bonus_wait_ms_per_update": 1e3 * r["bonus"].wait_s / updates if updates else 0.0,
             "bonus_queries": r["bonus"].queries,
-            "bonus_ticks": r["bonus"].ticks,
-            "bonus_rows_per_tick": r["bonus"].rows / max(1, r["bonus"].ticks),
+            "bonus_rows_per_query": r["bonus"].rows / max(1, r["bonus"].queries),
             "bonus_failures": r["bonus"].failures,
             "bonus_mean": float(np.mean(r["bonus_means"])) if r["bonus_means"] else 0.0,
             "rejects_total": sum(self.rejects.values()),
