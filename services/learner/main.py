@@ -61,6 +61,7 @@ WINDOW_EPISODES = 2  # credits per actor, in episodes
 MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
 UPDATES_PER_TICK = 20  # bound on work between inbox checks; one round of bonus queries each
 CHECKPOINT_EVERY_S = 60.0
+MAX_DEFERRED_TICKS = 64  # messages handled before a tick that waits for the inbox to empty
 
 
 class BonusClient:
@@ -137,6 +138,7 @@ class LearnerService(ServiceBase):
     role = "learner"
 
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
+        self._deferred = 0  # ticks put off in a row because messages were waiting
         super().__init__(service_id, connect, data_dir)
         self.r: dict[str, Any] = {}
 
@@ -261,6 +263,16 @@ class LearnerService(ServiceBase):
     def tick(self) -> bool:
         if not self.r:
             return False
+        if not self.inbox.empty() and self._deferred < MAX_DEFERRED_TICKS:
+            # Messages first: the loop ticks after every message, and a tick is ~20
+            # updates long, so without this each tick started with the one episode whose
+            # counter ack had just been handled while the next one waited in the inbox
+            # (bench_e2e: the backlog at every tick start was exactly one episode), the
+            # next tick's bonus could never be asked ahead, and acks (the actor's
+            # credit) went out a tick late.
+            self._deferred += 1
+            return True
+        self._deferred = 0
         r, cfg = self.r, self.config
         learner = r["learner"]
         batches, priced = r.pop("next", None) or self.draw(learner.updates)
@@ -282,9 +294,7 @@ class LearnerService(ServiceBase):
         owed = max(0, r["ingested"] - cfg.learning_starts) - learner.updates
         self.pass_boundaries()
         now = time.monotonic()
-        window_open = owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(r["actors"])
-        if window_open != r["window_open"] or now - r["last_ack"] > 0.5:
-            r["window_open"] = window_open
+        if self.window_open() != r["window_open"] or now - r["last_ack"] > 0.5:
             self.send_ack()
         if now - r["last_stats"] > 1.0:
             r["last_stats"] = now
@@ -355,9 +365,18 @@ class LearnerService(ServiceBase):
                 return {}
         return {}
 
+    def window_open(self) -> bool:
+        """Whether actors get credit: the updates owed are below the backlog bound."""
+        r, cfg = self.r, self.config
+        owed = max(0, r["ingested"] - cfg.learning_starts) - r["learner"].updates
+        return owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(r["actors"])
+
     def send_ack(self) -> None:
+        """Where each actor's batches stand here, and its credit, judged by the backlog
+        now (acks go out as batches arrive, also while a backlog builds up)."""
         r = self.r
         r["last_ack"] = time.monotonic()
+        r["window_open"] = self.window_open()
         window = WINDOW_EPISODES * self.config.episode_len if r["window_open"] else 0
         r["ack_pub"](
             encode("ack", self.run_id, service=self.id, acked=dict(r["expected"]), window=window)
