@@ -459,8 +459,7 @@ def run_cluster(
                 "bonus_failures",
                 "bonus_wait_ms_per_update",
                 "bonus_queries",
-                "bonus_ticks",
-                "bonus_rows_per_tick",
+                "bonus_rows_per_query",
                 "backlog",
             )
         }
@@ -490,7 +489,7 @@ TRAINER_PARTS = {
 }
 LEARNER_PARTS = {
     "learner.update": ("fast_maddpg.py", "update"),
-    "waiting for bonus replies (BonusClient._reply)": ("learner/main.py", "_reply"),
+    "bonus query round trip (BonusClient.bonus_for)": ("learner/main.py", "bonus_for"),
     "replay sample": ("replay.py", "sample"),
     "weights out (publish_weights)": ("learner/main.py", "publish_weights"),
     "  of which counter stats query": ("learner/main.py", "counter_stats"),
@@ -823,7 +822,7 @@ def main(argv: list[str] | None = None) -> None:
     clusters = [s for s in summary if s["variant"].startswith("cluster")]
     for s in clusters:
         print(
-            f"\n{s['variant']}, eval {s['eval']}: learner's first bonus query of a tick "
+            f"\n{s['variant']}, eval {s['eval']}: learner's bonus query (one a tick) "
             f"p50 {fmt(s['learner_bonus_p50_ms'], '.2f')} ms, p99 "
             f"{fmt(s['learner_bonus_p99_ms'], '.2f')} ms, waiting for bonuses "
             f"{fmt(s['learner_bonus_wait_ms_per_update'], '.2f')} ms per update; update "

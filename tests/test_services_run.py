@@ -13,6 +13,7 @@ from services.learner.main import BonusClient
 from shared import bus as keys
 from shared.config import make_config
 from shared.control import discover, start_run
+from shared.replay import Batch
 from shared.wire import decode, encode
 from tests.conftest import wait_for
 
@@ -75,6 +76,7 @@ def check_exact(watch, actors, config):
         assert learner["bonus_rows_per_query"] >= 5 * config.batch_size, learner
         assert learner["bonus_queries"] * 5 <= learner["updates"], learner
         assert learner["bonus_failures"] == 0, learner
+        assert 0.0 < learner["bonus_wait_ms_per_update"] < 1e3, learner
     return counter, learner
 
 
@@ -191,64 +193,41 @@ def test_a_dead_learner_or_actor_fails_the_run_and_frees_the_others(procs, bus, 
     assert {i["id"] for i in discover(bus)} >= survivors | {"counter"}
 
 
-class _Reply:
-    def __init__(self, payload: bytes) -> None:
-        self.ok = type("Sample", (), {"payload": type("P", (), {"to_bytes": lambda s: payload})()})
-
-
 class _FakeBus:
-    """Answers bonus queries from a script (per query, the bonus to reply or None for
-    silence) and logs when each query is sent and when its answer is first read."""
+    """Answers bonus queries from a script: per query, the bonus to reply or None."""
 
     def __init__(self, answers: list) -> None:
-        self.answers, self.asked, self.log = list(answers), [], []
+        self.answers, self.asked = list(answers), []
 
-    def get_async(self, key: str, payload: bytes, timeout: float):
-        k = len(self.asked)
+    def get(self, key: str, payload: bytes, timeout: float) -> list[bytes]:
         self.asked.append(payload)
-        self.log.append(("sent", k))
         bonus = self.answers.pop(0)
-
-        def replies():
-            self.log.append(("read", k))
-            if bonus is not None:
-                yield _Reply(encode("bonus_reply", "r1", counts=np.ones_like(bonus), bonus=bonus))
-
-        return replies()
+        if bonus is None:
+            return []
+        return [encode("bonus_reply", "r1", counts=np.ones_like(bonus), bonus=bonus)]
 
 
-def _batches(n: int, rows: int = 4) -> list:
-    from shared.replay import Batch
-
+def test_bonus_client_prices_a_ticks_batches_in_one_query_and_splits_the_answer():
     rng = np.random.default_rng(0)
-    return [
+    batches = [
         Batch(
-            obs=rng.normal(size=(rows, 3)).astype(np.float32),
-            act=rng.normal(size=(rows, 2)).astype(np.float32),
-            rew=np.zeros(rows, np.float32),
-            next_obs=np.zeros((rows, 3), np.float32),
-            done=np.zeros(rows, np.float32),
-            idx=np.arange(rows),
+            obs=rng.normal(size=(4, 3)).astype(np.float32),
+            act=rng.normal(size=(4, 2)).astype(np.float32),
+            rew=np.zeros(4, np.float32),
+            next_obs=np.zeros((4, 3), np.float32),
+            done=np.zeros(4, np.float32),
+            idx=np.arange(4),
         )
-        for _ in range(n)
+        for _ in range(6)
     ]
-
-
-def test_bonus_client_sends_a_query_at_once_and_waits_only_when_read():
-    """`ask` sends the query when called (the learner asks a tick ahead) and the answer
-    is read when iterated; a silent counter yields nothing, so the tick draws again."""
-    batches = _batches(6)
     answer = np.repeat(np.arange(6, dtype=np.float32), 4)[:, None] * np.ones(2, np.float32)
     svc = type("Svc", (), {"bus": _FakeBus([answer, None]), "reject": lambda *a: None})()
     client = BonusClient(svc, "r1", "cen-macb", 0.8, 2)
-    first = client.ask(batches)
-    second = client.ask(batches)
-    assert svc.bus.log == [("sent", 0), ("sent", 1)]  # both out before any answer is read
-    got = list(first)
-    assert svc.bus.log[2:] == [("read", 0)]
-    assert [g.shape for g in got] == [(4, 2)] * 6
-    assert [float(g[0, 0]) for g in got] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]  # split in order
+    got = client.bonus_for(batches)
+    assert len(svc.bus.asked) == 1  # one query for the whole tick
     sent = decode(svc.bus.asked[0], "bonus_query")["obs"]
     assert np.array_equal(sent, np.concatenate([b.obs for b in batches]))
-    assert list(second) == [] and client.failures == 1
-    assert client.queries == 2 and client.rows == 24
+    assert [g.shape for g in got] == [(4, 2)] * 6
+    assert [float(g[0, 0]) for g in got] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]  # in order
+    assert client.bonus_for(batches) is None and client.failures == 1  # a silent counter
+    assert client.queries == 1 and client.rows == 24 and client.wait_s > 0

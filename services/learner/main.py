@@ -7,28 +7,28 @@ number). The learner does exactly one update per ingested transition beyond the
 first `learning_starts`; it grants actors a window of credits that closes while it
 is behind, so actors wait rather than let the ratio drift.
 
-Bonuses are asked of the counter at sample time, one query per tick: a tick samples
-the minibatches of all the updates it will do (up to UPDATES_PER_TICK, never past an
-episode boundary) and prices their rows together. Per-update queries cost 1.75-2 ms
-each (~18% of the learner's time); one per tick of 20 updates costs one round trip.
+Bonuses are asked of the counter at sample time, answered before the updates run:
+each tick samples the minibatches of all the updates it will do (up to
+UPDATES_PER_TICK, never past an episode boundary) and prices their rows in one query.
+The buffer cannot change within a tick (inbound messages are handled between ticks),
+so these are the minibatches per-update sampling would draw from the same generator,
+and the counts are those the counter holds when the tick starts: per-update queries
+would see at most the batches the counter takes during the tick, a timing the
+cluster never fixed anyway (the counter runs ahead of the learner's buffer by up to
+a few episodes). One round trip per tick instead of per update: a 2,000-row query
+took 8-13 ms p50 in bench_e2e's cluster (~1.9 ms of it the counter's work), i.e.
+0.4-0.7 ms per update, where per-update queries cost 1.75-2 ms each (~18% of the
+learner's time). (An overlapped variant, asking for batch k+1 while update k ran,
+learned visibly worse on sparse `simple` in a small sample, 0 of 4 against 2 of 3
+reaching 80% by episode 400, for reasons not understood; this one overlaps nothing.)
 
-That round trip is sent a tick ahead: when a tick starts and the updates of the next
-one are already owed (the actor runs up to two episodes ahead, so they usually are),
-the next tick's minibatches are drawn right after this tick's and priced while this
-tick's updates run. Drawn then, they come from the same buffer as this tick's
-(inbound messages are handled between ticks, never within one), so they differ from
-what the next tick would draw at its own start only by the episodes that arrive in
-between, which are newer than every transition the next tick's updates are for; the
-one-process trainer never has those in its buffer either. The counts are those the
-counter holds a tick earlier (it runs ahead of the learner's buffer by up to a few
-episodes anyway, and every sampled transition has been counted). Why: in
-bench_e2e's cluster the answer took 8-13 ms p50 to come back (the counter's own
-work ~0.6 ms; the rest is three processes waking up in turn on two busy cores), and
-the learner spent ~0.45 ms per update waiting for it, ~7% of its time. (An earlier
-overlapped variant, asking for batch k+1 while update k ran, learned visibly worse on
-sparse `simple` in a small sample, 0 of 4 against 2 of 3 reaching 80% by episode
-400, for reasons not understood; the current learner was checked on the same
-question, see docs/performance.md.)
+Tried and left out (docs/performance.md, "Tried this session"): splitting a tick's
+query in three so the first update waits for 100 rows only (the wait is the round
+trip, 8-13 ms whatever the size: no gain); asking for the next tick's minibatches a
+tick ahead, which needs the inbox handled before each tick (the loop ticks after
+every message, so each tick used to start with exactly one episode owed). That cut
+the learner's wait from ~0.6 to ~0.2 ms per update but not its time: the actor's
+episodes then ran during the learner's two-thread updates instead of in its waits.
 
 Weights go out at every episode boundary of training (when the updates owed for
 that episode are done), marked `eval_point` every `eval_every` episodes, which is
@@ -40,7 +40,6 @@ from __future__ import annotations
 import collections
 import json
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -59,9 +58,8 @@ from shared.wire import WireError, check_dims, decode, encode
 
 WINDOW_EPISODES = 2  # credits per actor, in episodes
 MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
-UPDATES_PER_TICK = 20  # bound on work between inbox checks; one round of bonus queries each
+UPDATES_PER_TICK = 20  # bound on work between inbox checks; one bonus query each
 CHECKPOINT_EVERY_S = 60.0
-MAX_DEFERRED_TICKS = 64  # messages handled before a tick that waits for the inbox to empty
 
 
 class BonusClient:
@@ -69,58 +67,48 @@ class BonusClient:
 
     def __init__(self, svc: LearnerService, run: str, mode: str, beta: float, n: int) -> None:
         self.svc, self.run, self.mode, self.beta, self.n = svc, run, mode, beta, n
-        # from sending a query to having its answer (sent a tick ahead, it is read late)
         self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
-        self.wait_s = 0.0  # time the learner was blocked on answers
+        self.wait_s = 0.0  # all time spent in queries (the learner waits for each)
         self.failures = 0
         self.queries = 0
         self.rows = 0
         # The counter's table stats as of the last answered query (its reply carries
         # them): what an evaluation point reports, without a query of its own.
         self.tables: dict[str, float] | None = None
-        self.fresh = False  # tables came with the answer this tick read
+        self.fresh = False  # tables came with this tick's query
 
-    def ask(self, batches: list) -> Iterator[np.ndarray]:
-        """Send the query that prices `batches` now; iterating the result waits for the
-        answer and gives each batch's (B, N) bonus in order, or nothing if the counter
-        does not answer (the caller draws again)."""
-        if self.mode in ("none", "constant"):
-            value = 0.0 if self.mode == "none" else self.beta
-            return iter([np.full((len(b.rew), self.n), value, np.float32) for b in batches])
+    def bonus_for(self, batches: list) -> list[np.ndarray] | None:
+        """The (B, N) bonus of each sampled batch, priced in one query; None if the
+        counter did not answer."""
+        sizes = [len(b.rew) for b in batches]
+        if self.mode == "none":
+            return [np.zeros((B, self.n), np.float32) for B in sizes]
+        if self.mode == "constant":
+            return [np.full((B, self.n), self.beta, np.float32) for B in sizes]
+        rows = sum(sizes)
+        t0 = time.perf_counter()
         obs = np.concatenate([b.obs for b in batches])
         act = np.concatenate([b.act for b in batches])
         payload = encode("bonus_query", self.run, obs=obs, act=act)
-        sent = time.perf_counter()
-        handler = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
-        self.queries += 1
-        return self._answer(handler, [len(b.rew) for b in batches], sent)
-
-    def _answer(self, handler: Any, sizes: list[int], sent: float) -> Iterator[np.ndarray]:
-        waited = time.perf_counter()
-        bonus = self._reply(handler, sum(sizes))
-        now = time.perf_counter()
-        self.wait_s += now - waited
-        if bonus is None:
-            self.failures += 1
-            return
-        self.latencies.append(now - sent)
-        self.rows += sum(sizes)
-        yield from np.split(bonus, np.cumsum(sizes)[:-1])
-
-    def _reply(self, handler: Any, rows: int) -> np.ndarray | None:
-        """The first well-formed bonus of `rows` rows among a query's replies."""
-        for reply in handler:
-            if not reply.ok:
-                continue
+        try:
+            replies = self.svc.bus.get(keys.k_bonus(self.run), payload, timeout=2.0)
+        finally:
+            self.wait_s += time.perf_counter() - t0
+        for raw in replies:
             try:
-                msg = decode(reply.ok.payload.to_bytes(), "bonus_reply")
+                msg = decode(raw, "bonus_reply")
             except WireError as err:
                 self.svc.reject(keys.k_bonus(self.run), str(err))
                 continue
             if msg["bonus"].shape == (rows, self.n):
+                self.latencies.append(time.perf_counter() - t0)
+                self.queries += 1
+                self.rows += rows
                 self.tables = _table_stats(msg.get("tables"))
                 self.fresh = True
-                return msg["bonus"].astype(np.float32)
+                bonus = msg["bonus"].astype(np.float32)
+                return np.split(bonus, np.cumsum(sizes)[:-1])
+        self.failures += 1
         return None
 
 
@@ -138,7 +126,6 @@ class LearnerService(ServiceBase):
     role = "learner"
 
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
-        self._deferred = 0  # ticks put off in a row because messages were waiting
         super().__init__(service_id, connect, data_dir)
         self.r: dict[str, Any] = {}
 
@@ -263,38 +250,29 @@ class LearnerService(ServiceBase):
     def tick(self) -> bool:
         if not self.r:
             return False
-        if not self.inbox.empty() and self._deferred < MAX_DEFERRED_TICKS:
-            # Messages first: the loop ticks after every message, and a tick is ~20
-            # updates long, so without this each tick started with the one episode whose
-            # counter ack had just been handled while the next one waited in the inbox
-            # (bench_e2e: the backlog at every tick start was exactly one episode), the
-            # next tick's bonus could never be asked ahead, and acks (the actor's
-            # credit) went out a tick late.
-            self._deferred += 1
-            return True
-        self._deferred = 0
         r, cfg = self.r, self.config
-        learner = r["learner"]
-        batches, priced = r.pop("next", None) or self.draw(learner.updates)
-        # The next tick's minibatches, drawn now and priced while this tick's updates
-        # run (the buffer is the one this tick draws from; see the module docstring).
-        ahead = self.draw(learner.updates + len(batches))
-        if ahead[0]:
-            r["next"] = ahead
+        learner, buffer = r["learner"], r["buffer"]
+        owed = max(0, r["ingested"] - cfg.learning_starts) - learner.updates
+        next_boundary = r["boundaries"][0][1] if r["boundaries"] else None
+        todo = min(owed, UPDATES_PER_TICK)
+        if next_boundary is not None:
+            todo = min(todo, max(0, next_boundary - learner.updates))
+        batches = [buffer.sample(cfg.batch_size, r["rng"]) for _ in range(todo)]
         r["bonus"].fresh = False
-        done = 0
-        for batch, bonus in zip(batches, priced):
+        bonuses = r["bonus"].bonus_for(batches) if batches else []
+        if bonuses is None:  # counter silent (restarting?): draw again on the next tick
+            batches, bonuses = [], []
+        for batch, bonus in zip(batches, bonuses, strict=True):
             learner.update(
                 batch.obs, batch.act, batch.rew[:, None] + bonus, batch.next_obs, batch.done
             )
             r["bonus_means"].append(float(bonus.mean()))
-            done += 1
-        if done < len(batches):  # the counter did not answer (restarting?): draw again
-            r.pop("next", None)
-        owed = max(0, r["ingested"] - cfg.learning_starts) - learner.updates
+            owed -= 1
         self.pass_boundaries()
         now = time.monotonic()
-        if self.window_open() != r["window_open"] or now - r["last_ack"] > 0.5:
+        window_open = owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(r["actors"])
+        if window_open != r["window_open"] or now - r["last_ack"] > 0.5:
+            r["window_open"] = window_open
             self.send_ack()
         if now - r["last_stats"] > 1.0:
             r["last_stats"] = now
@@ -303,18 +281,6 @@ class LearnerService(ServiceBase):
             self.checkpoint()
         self.maybe_finish()
         return owed > 0 and bool(self.r)
-
-    def draw(self, updates: int) -> tuple[list, Iterator[np.ndarray]]:
-        """The minibatches of a tick that starts after `updates` updates (as many as are
-        owed by then, up to UPDATES_PER_TICK, never past the next episode boundary),
-        their bonus query sent: (batches, their bonuses as they are answered)."""
-        r, cfg = self.r, self.config
-        todo = min(max(0, r["ingested"] - cfg.learning_starts) - updates, UPDATES_PER_TICK)
-        boundary = next((b[1] for b in r["boundaries"] if b[1] > updates), None)
-        if boundary is not None:
-            todo = min(todo, boundary - updates)
-        batches = [r["buffer"].sample(cfg.batch_size, r["rng"]) for _ in range(max(0, todo))]
-        return batches, r["bonus"].ask(batches) if batches else iter(())
 
     def pass_boundaries(self) -> None:
         """Publish weights at each episode boundary whose updates are done."""
@@ -365,18 +331,9 @@ class LearnerService(ServiceBase):
                 return {}
         return {}
 
-    def window_open(self) -> bool:
-        """Whether actors get credit: the updates owed are below the backlog bound."""
-        r, cfg = self.r, self.config
-        owed = max(0, r["ingested"] - cfg.learning_starts) - r["learner"].updates
-        return owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(r["actors"])
-
     def send_ack(self) -> None:
-        """Where each actor's batches stand here, and its credit, judged by the backlog
-        now (acks go out as batches arrive, also while a backlog builds up)."""
         r = self.r
         r["last_ack"] = time.monotonic()
-        r["window_open"] = self.window_open()
         window = WINDOW_EPISODES * self.config.episode_len if r["window_open"] else 0
         r["ack_pub"](
             encode("ack", self.run_id, service=self.id, acked=dict(r["expected"]), window=window)
