@@ -668,8 +668,9 @@ def main(argv: list[str] | None = None) -> None:
         default=",".join(DEFAULT_VARIANTS),
         help=f"comma-separated subset of {','.join(VARIANTS)} (default: "
         f"{','.join(DEFAULT_VARIANTS)}; '-1lane': learner_lanes 1; '-2threads': "
-        "learner_lanes 1 with two torch threads; 'trainer': numpy's default BLAS threads, "
-        "as a library user who calls shared.trainer.train gets)",
+        "learner_lanes 1 with two torch threads; 'trainer': the environment's default "
+        "BLAS/OpenMP thread variables, as a library user who calls shared.trainer.train "
+        "gets; train() limits numpy's BLAS to one thread itself since session 3)",
     )
     parser.add_argument(
         "--eval",

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
 from shared.config import TrainConfig
 from shared.exploration import CountExploration, ExploreSpec
@@ -122,7 +123,24 @@ def train(
     """Run one experiment; returns the metric rows (also written under `out`).
 
     `stop_when(row)` returning True ends the run early after that evaluation.
+
+    numpy's BLAS (the SimHash projections) runs on one thread while it trains, as in
+    `macb train` and the services, which set it before numpy loads: from Python, numpy
+    is usually loaded already with a thread per core, and the k=512 projections of a
+    100-row batch then kept a second core busy (1.03 cores for counting against 0.04,
+    bench_scaling) beside torch's own threads. The caller's setting is restored after.
     """
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _train(cfg, out, progress, on_metrics, stop_when)
+
+
+def _train(
+    cfg: TrainConfig,
+    out: Path | None,
+    progress: bool,
+    on_metrics: Callable[[dict], None] | None,
+    stop_when: Callable[[dict], bool] | None,
+) -> list[dict]:
     torch.set_num_threads(cfg.threads)
     env = make_task(cfg.task, cfg.agents, cfg.reward, cfg.episode_len)
     spec = env.spec

@@ -112,3 +112,20 @@ def test_time_limit_terminal_option_marks_last_step_done():
         dones = [col.step(lambda o: np.zeros((1, 2), np.float32)).done for _ in range(40)]
         expected = [0.0] * 40 if not terminal else ([0.0] * 19 + [1.0]) * 2
         assert dones == expected
+
+
+def test_numpy_blas_runs_on_one_thread_while_training_and_is_restored():
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    seen: list[list[int]] = []
+    c = cfg(task="simple", algo="ddpg", explore="dis-macb", episodes=4, eval_every=2, k=512)
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        train(c, None, progress=False, on_metrics=lambda row: seen.append(blas_threads()))
+        after = blas_threads()
+    assert before and all(n == 2 for n in before)  # numpy's BLAS is visible and at 2
+    assert len(seen) == 2 and all(n == 1 for threads in seen for n in threads)
+    assert after == before
