@@ -85,8 +85,10 @@ class LaneTuner(Generic[O]):
     Medians, not means: other processes on the machine stall an update now and then
     (an evaluator's burst of episodes, ~20 ms, preempts a thread mid-update) whatever
     the choice. With means and a cut at the first slow update, one such stall decided
-    a probe, the probed choice backed off for hundreds of blocks, and the local
-    cluster ran on one thread at ~0.8x of what two threads gave it (bench_e2e).
+    a probe and the probed choice backed off for hundreds of blocks; in the local
+    cluster, where the evaluator's bursts start with every tick and so every block,
+    torch's two threads were locked out in 4 of 7 runs (median 117.8 steps/s against
+    132.9 with medians, docs/performance.md).
     A choice that is slower under the load shows it in most of its updates, which
     the median sees.
     """

@@ -22,7 +22,7 @@ learner's time). (An overlapped variant, asking for batch k+1 while update k ran
 learned visibly worse on sparse `simple` in a small sample, 0 of 4 against 2 of 3
 reaching 80% by episode 400, for reasons not understood; this one overlaps nothing.)
 
-Tried and left out (docs/performance.md, "Tried this session"): splitting a tick's
+Tried and left out (docs/performance.md, section "Session 3"): splitting a tick's
 query in three so the first update waits for 100 rows only (the wait is the round
 trip, 8-13 ms whatever the size: no gain); asking for the next tick's minibatches a
 tick ahead, which needs the inbox handled before each tick (the loop ticks after
