@@ -490,8 +490,8 @@ class BatchedMADDPG:
         for mode in self.tuner.options:
             name = f"lanes{mode[0]}x{mode[1]}"  # lanes x torch threads
             out[f"{name}_share"] = self.tuner.chosen[mode] / total
-            mean = self.tuner.mean_s[mode]
-            out[f"{name}_update_ms"] = 1e3 * mean if mean is not None else 0.0
+            typical = self.tuner.estimate_s[mode]  # smoothed median update time
+            out[f"{name}_update_ms"] = 1e3 * typical if typical is not None else 0.0
         return out
 
     def _update_in_lanes(

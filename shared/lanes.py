@@ -110,7 +110,7 @@ class LaneTuner(Generic[O]):
         self.block, self.probe_every, self.smoothing = block, probe_every, smoothing
         self.abort_factor, self.max_backoff = abort_factor, max_backoff
         self.ruin_factor, self.min_probe = ruin_factor, min_probe
-        self.mean_s: dict[O, float | None] = dict.fromkeys(self.options)  # smoothed medians
+        self.estimate_s: dict[O, float | None] = dict.fromkeys(self.options)  # smoothed medians
         self.backoff: dict[O, int] = dict.fromkeys(self.options, 1)
         self._wait: dict[O, int] = dict.fromkeys(self.options, 0)  # blocks since probed
         self.current = self.options[0]
@@ -126,7 +126,7 @@ class LaneTuner(Generic[O]):
         self.chosen[self.current] += 1
         self._times.append(seconds)
         best = self.best()
-        best_s = self.mean_s[best]
+        best_s = self.estimate_s[best]
         if self.current != best and best_s is not None:
             ruinous = seconds > self.ruin_factor * best_s
             losing = (
@@ -141,16 +141,16 @@ class LaneTuner(Generic[O]):
             self._end_block()
 
     def best(self) -> O:
-        known = {k: v for k, v in self.mean_s.items() if v is not None}
+        known = {k: v for k, v in self.estimate_s.items() if v is not None}
         return min(known, key=known.__getitem__) if known else self.options[0]
 
     def _end_block(self) -> None:
         done, typical = self.current, _median(self._times)
-        old = self.mean_s[done]
+        old = self.estimate_s[done]
         # Smoothed over consecutive blocks; a probe's estimate is its own block's alone
         # (the last one is many blocks old, from another load).
         consecutive = old is not None and self._wait[done] == 0
-        self.mean_s[done] = (
+        self.estimate_s[done] = (
             self.smoothing * typical + (1 - self.smoothing) * old if consecutive else typical
         )
         self._times = []
@@ -166,7 +166,7 @@ class LaneTuner(Generic[O]):
         self.current = self._next(best)
 
     def _next(self, best: O) -> O:
-        untried = [k for k, v in self.mean_s.items() if v is None]
+        untried = [k for k, v in self.estimate_s.items() if v is None]
         if untried:
             return untried[0]
         due = [
