@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Hashable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from statistics import median
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -131,7 +132,7 @@ class LaneTuner(Generic[O]):
             ruinous = seconds > self.ruin_factor * best_s
             losing = (
                 len(self._times) >= self.min_probe
-                and _median(self._times) > self.abort_factor * best_s
+                and median(self._times) > self.abort_factor * best_s
             )
             if ruinous or losing:
                 self.aborted += 1
@@ -145,7 +146,7 @@ class LaneTuner(Generic[O]):
         return min(known, key=known.__getitem__) if known else self.options[0]
 
     def _end_block(self) -> None:
-        done, typical = self.current, _median(self._times)
+        done, typical = self.current, median(self._times)
         old = self.estimate_s[done]
         # Smoothed over consecutive blocks; a probe's estimate is its own block's alone
         # (the last one is many blocks old, from another load).
@@ -175,9 +176,3 @@ class LaneTuner(Generic[O]):
             if k != best and self._wait[k] >= self.probe_every * self.backoff[k]
         ]
         return max(due, key=self._wait.__getitem__) if due else best
-
-
-def _median(xs: Sequence[float]) -> float:
-    ordered = sorted(xs)
-    mid = len(ordered) // 2
-    return ordered[mid] if len(ordered) % 2 else 0.5 * (ordered[mid - 1] + ordered[mid])

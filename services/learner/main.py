@@ -27,8 +27,9 @@ query in three so the first update waits for 100 rows only (the wait is the roun
 trip, 8-13 ms whatever the size: no gain); asking for the next tick's minibatches a
 tick ahead, which needs the inbox handled before each tick (the loop ticks after
 every message, so each tick used to start with exactly one episode owed). That cut
-the learner's wait from ~0.6 to ~0.2 ms per update but not its time: the actor's
-episodes then ran during the learner's two-thread updates instead of in its waits.
+the learner's wait from ~0.6 to ~0.2 ms per update but not its time, likely because
+the actor's episodes then ran during the learner's two-thread updates instead of in
+its waits.
 
 Weights go out at every episode boundary of training (when the updates owed for
 that episode are done), marked `eval_point` every `eval_every` episodes, which is
