@@ -464,7 +464,13 @@ def run_cluster(
             )
         }
         # how the update ran: learner_lanes auto's picks (share of updates, ms each)
-        | {k: v for k, v in last.items() if k.startswith("lanes") or k == "threads"},
+        | {
+            k: v
+            for k, v in last.items()
+            if k.startswith(("lanes", "contended_")) or k in ("threads", "eval_rows_seen")
+        }
+        # where the learner's wall time went, ms per update by phase
+        | {k: v for k, v in last.items() if k.startswith("ms_per_update_")},
         "counter": {
             k: counter.get(k)
             for k in ("counted_transitions", "query_p50_ms", "query_p99_ms", "queries")

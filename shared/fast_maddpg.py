@@ -36,6 +36,11 @@ rounding; tests/test_batched_equivalence.py checks it update by update. Why it i
   lanes ~1.2x slower (a lane preempted while holding the GIL stalls the other), and the
   tuner falls back to one thread. A fixed lane count (and fixed `threads`) gives
   bit-identical reruns; "auto" gives reruns equal up to floating-point rounding.
+* A caller that knows when other work runs beside it (the cluster's learner knows when
+  the evaluator is evaluating the weights it just sent) passes `contended=True` for
+  those updates; they get a tuner of their own, so the choice for the rest is not
+  spoiled by their stalls, and during them the choice is what is fastest then (on 2
+  cores: one thread, where two threads stall behind the evaluator's burst).
 
 Threads: with a fixed lane count this module leaves `torch.set_num_threads` to the
 process (lanes assume 1); with "auto" it sets it (1 or 2) for each block of updates.
@@ -273,7 +278,11 @@ class BatchedMADDPG:
         if not auto and not isinstance(lanes, int):
             raise ValueError(f"lanes must be a positive int or 'auto', got {lanes!r}")
         self.lanes = Lanes(2 if auto else lanes)
+        # One tuner for ordinary updates, one for updates the caller marks contended.
         self.tuner: LaneTuner[tuple[int, int]] | None = LaneTuner(AUTO_MODES) if auto else None
+        self.contended_tuner: LaneTuner[tuple[int, int]] | None = (
+            LaneTuner(AUTO_MODES) if auto else None
+        )
 
     def _init_like_reference(self, critic_in: Sequence[int]) -> None:
         """The reference's initial weights for this seed: the same nn.Linear calls in order."""
@@ -454,15 +463,19 @@ class BatchedMADDPG:
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
+        contended: bool = False,
     ) -> dict[str, float]:
         """One critic and one actor step for every agent, then soft target updates.
 
         rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
+        `contended`: other work known to run beside this update (with lanes="auto",
+        its own tuner picks the threads; otherwise ignored). The result is the same.
         """
         t0 = time.perf_counter()
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
-        if self.tuner is not None:
-            lanes, threads = self.tuner.choose()
+        tuner = self.contended_tuner if contended else self.tuner
+        if tuner is not None:
+            lanes, threads = tuner.choose()
             if torch.get_num_threads() != threads:
                 torch.set_num_threads(threads)
         else:
@@ -476,22 +489,28 @@ class BatchedMADDPG:
         self.soft_update()
         self.updates += 1
         critic_loss, actor_loss = torch.stack([critic_losses.mean(), actor_losses.mean()]).tolist()
-        if self.tuner is not None:
-            self.tuner.record(time.perf_counter() - t0)
+        if tuner is not None:
+            tuner.record(time.perf_counter() - t0)
         return {"critic_loss": critic_loss, "actor_loss": actor_loss}
 
     def lane_stats(self) -> dict[str, float]:
-        """Lanes in use: the fixed count, or the tuner's picks and measured times."""
-        if self.tuner is None:
+        """Lanes in use: the fixed count, or the tuners' picks and measured times
+        (`lanesAxB_*` for ordinary updates, `contended_lanesAxB_*` for contended ones,
+        `contended_share` the share of updates that were contended)."""
+        if self.tuner is None or self.contended_tuner is None:
             return {"lanes": float(self.lanes.n)}
-        total = max(1, sum(self.tuner.chosen.values()))
         lanes, threads = self.tuner.current
         out = {"lanes": float(lanes), "threads": float(threads)}
-        for mode in self.tuner.options:
-            name = f"lanes{mode[0]}x{mode[1]}"  # lanes x torch threads
-            out[f"{name}_share"] = self.tuner.chosen[mode] / total
-            typical = self.tuner.estimate_s[mode]  # smoothed median update time
-            out[f"{name}_update_ms"] = 1e3 * typical if typical is not None else 0.0
+        quiet = sum(self.tuner.chosen.values())
+        contended = sum(self.contended_tuner.chosen.values())
+        out["contended_share"] = contended / max(1, quiet + contended)
+        for prefix, tuner in (("", self.tuner), ("contended_", self.contended_tuner)):
+            total = max(1, sum(tuner.chosen.values()))
+            for mode in tuner.options:
+                name = f"{prefix}lanes{mode[0]}x{mode[1]}"  # lanes x torch threads
+                out[f"{name}_share"] = tuner.chosen[mode] / total
+                typical = tuner.estimate_s[mode]  # smoothed median update time
+                out[f"{name}_update_ms"] = 1e3 * typical if typical is not None else 0.0
         return out
 
     def _update_in_lanes(

@@ -164,10 +164,12 @@ class MADDPG:
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
+        contended: bool = False,
     ) -> dict[str, float]:
         """One critic and one actor step per agent, then soft target updates.
 
         rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
+        `contended` is BatchedMADDPG's thread hint; this one-thread reference ignores it.
         """
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
         critic_losses, actor_losses = [], []

@@ -144,6 +144,35 @@ def test_auto_modes_switch_and_stay_equal_to_the_reference():
     assert all(stats[f"lanes{a}x{t}_update_ms"] > 0 for a, t in AUTO_MODES)
 
 
+def test_contended_updates_have_a_tuner_of_their_own():
+    """update(contended=True) is timed into its own tuner: the ordinary tuner's
+    counts and estimates are untouched by it, lane_stats reports both, and every
+    update still equals the reference's."""
+    ref = make("cen-maddpg", [SPEAKER, LISTENER])
+    fast = BatchedMADDPG(ref.agents, ref.spec, lanes="auto")
+    fast.load_state_dict(ref.state_dict())
+    fast.tuner = LaneTuner([(1, 1)], block=2)
+    fast.contended_tuner = LaneTuner([(2, 1)], block=2)
+    flags = [step % 3 == 0 for step in range(12)]  # 4 contended, 8 ordinary
+    for step, contended in enumerate(flags):
+        b = batch(ref, seed=step)
+        ref.update(*b), fast.update(*b, contended=contended)
+        assert_same_state(ref.state_dict(), fast.state_dict())
+    assert fast.tuner.chosen == {(1, 1): 8}
+    assert fast.contended_tuner.chosen == {(2, 1): 4}
+    stats = fast.lane_stats()
+    assert stats["contended_share"] == pytest.approx(4 / 12)
+    assert stats["lanes1x1_share"] == 1.0 and stats["contended_lanes2x1_share"] == 1.0
+    assert stats["lanes1x1_update_ms"] > 0 and stats["contended_lanes2x1_update_ms"] > 0
+    # A fixed lane count has no tuners: the hint changes nothing.
+    one = BatchedMADDPG(ref.agents, ref.spec, lanes=1)
+    one.load_state_dict(ref.state_dict())
+    b = batch(ref, seed=99)
+    ref.update(*b, contended=True), one.update(*b, contended=True)
+    assert_same_state(ref.state_dict(), one.state_dict())
+    assert one.lane_stats() == {"lanes": 1.0}
+
+
 def test_lanes_must_be_a_count_or_auto():
     with pytest.raises(ValueError, match="lanes"):
         BatchedMADDPG([SPEAKER, LISTENER], LearnerSpec(hidden=HIDDEN), lanes="fast")

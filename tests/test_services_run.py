@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from services.learner.main import BonusClient
+from services.learner.main import BonusClient, EvaluationsInFlight
 from shared import bus as keys
 from shared.config import make_config
 from shared.control import discover, start_run
@@ -77,6 +77,11 @@ def check_exact(watch, actors, config):
         assert learner["bonus_queries"] * 5 <= learner["updates"], learner
         assert learner["bonus_failures"] == 0, learner
         assert 0.0 < learner["bonus_wait_ms_per_update"] < 1e3, learner
+    # The learner saw the evaluator's rows (what ends its contended updates), marked
+    # some updates contended, and accounted for its time by phase.
+    assert 0 < learner["eval_rows_seen"] <= len(points), learner
+    assert 0 < learner["contended_updates"] < learner["updates"], learner
+    assert learner["ms_per_update_update"] > 0.0, learner
     return counter, learner
 
 
@@ -155,6 +160,7 @@ def test_garbage_on_every_key_is_dropped_counted_and_changes_nothing(procs, bus,
         bus.put(keys.k_ack(run, "learner"), payload)
         bus.put(keys.k_weights(run, "eval"), payload)
         bus.put(keys.k_weights(run, "latest"), payload)
+        bus.put(keys.k_metrics(run, "eval"), payload)  # the learner reads eval rows too
         bus.put(keys.k_control("start"), payload)
         bus.put(keys.k_control("stop"), payload)
         assert bus.get(keys.k_bonus(run), payload, timeout=1.0) == []
@@ -231,3 +237,20 @@ def test_bonus_client_prices_a_ticks_batches_in_one_query_and_splits_the_answer(
     assert [float(g[0, 0]) for g in got] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]  # in order
     assert client.bonus_for(batches) is None and client.failures == 1  # a silent counter
     assert client.queries == 1 and client.rows == 24 and client.wait_s > 0
+
+
+def test_evaluations_in_flight_from_send_to_the_evaluators_row_or_timeout():
+    evals = EvaluationsInFlight(max_s=0.2)
+    assert not evals.busy()  # nothing sent
+    evals.sent(5)
+    assert evals.busy()
+    evals.reported(4)  # an older point's row: 5 is still being evaluated
+    assert evals.busy()
+    evals.reported(5)
+    assert not evals.busy()
+    evals.sent(10)
+    assert evals.busy()
+    time.sleep(0.25)  # no row within max_s: no longer counted as busy
+    assert not evals.busy()
+    evals.reported(3)  # late rows never move the mark back
+    assert evals.last_reported == 5

@@ -34,6 +34,15 @@ its waits.
 Weights go out at every episode boundary of training (when the updates owed for
 that episode are done), marked `eval_point` every `eval_every` episodes, which is
 what the evaluator evaluates.
+
+While the evaluator evaluates weights this learner sent (from the send until its
+metric row for that point arrives: `EvaluationsInFlight`), updates are marked
+contended: with `learner_lanes: auto` a tuner of their own picks their threads. On
+a 2-core machine the evaluation (~20 ms of episodes) starts with every tick, and an
+update on two OpenMP threads then waits for the thread the evaluator preempted: the
+first update of a tick took 17-28 ms against 5-8 ms for the rest (per-update trace of
+bench_e2e's cluster); on one thread it takes 11-14 ms, and the cluster ran a median
+9% faster over 9 alternated pairs (docs/performance.md, "Session 4").
 """
 
 from __future__ import annotations
@@ -61,6 +70,10 @@ WINDOW_EPISODES = 2  # credits per actor, in episodes
 MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
 UPDATES_PER_TICK = 20  # bound on work between inbox checks; one bonus query each
 CHECKPOINT_EVERY_S = 60.0
+# Phases of the learner's wall time that stats() reports per update; the bonus wait is
+# BonusClient.wait_s, and what none of them covers (waiting for messages, acks, stats)
+# is reported as "other".
+TIME_PHASES = ("sample", "update", "publish", "inbound")
 
 
 class BonusClient:
@@ -113,6 +126,32 @@ class BonusClient:
         return None
 
 
+class EvaluationsInFlight:
+    """Evaluation points sent to the evaluator that it has not reported yet.
+
+    `sent` is called on the learner's thread, `reported` on Zenoh's (from the
+    evaluator's metric rows); each writes its own fields. A point unreported after
+    `max_s` no longer counts (a slow or absent evaluator must not mark every update)."""
+
+    def __init__(self, max_s: float = 1.0) -> None:
+        self.max_s = max_s
+        self.last_sent = -1
+        self.sent_at = 0.0
+        self.last_reported = -1
+        self.reported_rows = 0
+
+    def sent(self, point: int) -> None:
+        self.last_sent, self.sent_at = point, time.monotonic()
+
+    def reported(self, point: int) -> None:
+        self.last_reported = max(self.last_reported, point)
+        self.reported_rows += 1
+
+    def busy(self) -> bool:
+        """The evaluator is (most likely) evaluating a point we sent."""
+        return self.last_reported < self.last_sent and time.monotonic() - self.sent_at < self.max_s
+
+
 def _table_stats(raw: Any) -> dict[str, float] | None:
     """The reply's optional `tables` map, if well formed (numbers under known names)."""
     names = ("table_size", "count1_pct", "counted_transitions")
@@ -136,6 +175,12 @@ class LearnerService(ServiceBase):
         self.listen(keys.k_transitions(run, "*"), "transitions", run)
         self.listen(keys.k_ack(run, "*"), "ack", run)
         self.listen(keys.k_status(run, "*"), "status", run)
+        evaluations = EvaluationsInFlight()
+        self.subscribe(
+            keys.k_metrics(run, "eval"),
+            lambda key, payload: self.on_eval_row(evaluations, key, payload),
+            run,
+        )
         spec = task_spec(config.task, config.agents, config.episode_len)
         actors = list(assign["actors"])
         learner = build_learner(config, spec)
@@ -170,6 +215,10 @@ class LearnerService(ServiceBase):
             "eval_pub": self.bus.publisher(keys.k_weights(run, "eval")),
             "ack_pub": self.bus.publisher(keys.k_ack(run, self.id)),
             "bonus_means": collections.deque(maxlen=100),
+            # Wall time by phase (s): where the learner's time per update goes.
+            "time": dict.fromkeys(TIME_PHASES, 0.0),
+            "evaluations": evaluations,
+            "contended_updates": 0,
         }
         self.publish_weights(eval_point=-1)  # version 0: every actor starts from these
         self.publish_status(run, "running", actors=actors)
@@ -184,6 +233,14 @@ class LearnerService(ServiceBase):
 
     # ------------------------------------------------------------ inbound
     def handle(self, tag: str, key: str, payload: bytes) -> None:
+        t0 = time.perf_counter()
+        try:
+            self._handle(tag, key, payload)
+        finally:
+            if self.r:
+                self.r["time"]["inbound"] += time.perf_counter() - t0
+
+    def _handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag == "transitions":
             msg = self.decode_for_run(key, payload, "transitions")
             if msg is not None:
@@ -203,6 +260,19 @@ class LearnerService(ServiceBase):
                     self.r["final"][msg["service"]] = int(msg["detail"].get("final_seq", 0))
                 elif msg["state"] == "failed":
                     self.fail(f"actor {msg['service']} failed: {msg['detail']}")
+
+    def on_eval_row(self, evaluations: EvaluationsInFlight, key: str, payload: bytes) -> None:
+        """The evaluator's metric row for a point (on Zenoh's thread): that evaluation
+        is over. Only the point is read; the API is the rows' consumer of record."""
+        try:
+            msg = decode(payload, "metrics")
+            point = msg["data"]["episode"]
+            if not isinstance(point, int) or isinstance(point, bool):
+                raise WireError(f"metrics: eval row episode is not an int: {point!r}")
+        except (WireError, KeyError) as err:
+            self.reject(key, str(err))
+            return
+        evaluations.reported(point)
 
     def on_transitions(self, key: str, msg: dict[str, Any]) -> None:
         r, cfg = self.r, self.config
@@ -258,18 +328,33 @@ class LearnerService(ServiceBase):
         todo = min(owed, UPDATES_PER_TICK)
         if next_boundary is not None:
             todo = min(todo, max(0, next_boundary - learner.updates))
+        spent = r["time"]
+        t0 = time.perf_counter()
         batches = [buffer.sample(cfg.batch_size, r["rng"]) for _ in range(todo)]
+        spent["sample"] += time.perf_counter() - t0
         r["bonus"].fresh = False
         bonuses = r["bonus"].bonus_for(batches) if batches else []
         if bonuses is None:  # counter silent (restarting?): draw again on the next tick
             batches, bonuses = [], []
+        t0 = time.perf_counter()
+        evaluating = r["evaluations"].busy
         for batch, bonus in zip(batches, bonuses, strict=True):
+            contended = evaluating()
+            r["contended_updates"] += contended
             learner.update(
-                batch.obs, batch.act, batch.rew[:, None] + bonus, batch.next_obs, batch.done
+                batch.obs,
+                batch.act,
+                batch.rew[:, None] + bonus,
+                batch.next_obs,
+                batch.done,
+                contended=contended,
             )
             r["bonus_means"].append(float(bonus.mean()))
             owed -= 1
+        t1 = time.perf_counter()
+        spent["update"] += t1 - t0
         self.pass_boundaries()
+        spent["publish"] += time.perf_counter() - t1
         now = time.monotonic()
         window_open = owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(r["actors"])
         if window_open != r["window_open"] or now - r["last_ack"] > 0.5:
@@ -314,7 +399,11 @@ class LearnerService(ServiceBase):
             actors=actor_weights(r["learner"].actors),
             info={**self.stats(), "counter": self.counter_stats() if eval_point >= 0 else {}},
         )
-        r["eval_pub" if eval_point >= 0 else "weights_pub"](payload)
+        if eval_point >= 0:
+            r["eval_pub"](payload)
+            r["evaluations"].sent(eval_point)
+        else:
+            r["weights_pub"](payload)
 
     def counter_stats(self) -> dict[str, Any]:
         """The counter's stats for this run now (table size, count-1 %, counted): from the
@@ -346,6 +435,10 @@ class LearnerService(ServiceBase):
         owed_total = max(0, r["ingested"] - cfg.learning_starts)
         wall = time.perf_counter() - r["t0"]
         lat = sorted(r["bonus"].latencies)
+        per_update = 1e3 / updates if updates else 0.0
+        phases = {**r["time"], "bonus_wait": r["bonus"].wait_s}
+        spent = {f"ms_per_update_{k}": v * per_update for k, v in phases.items()}
+        spent["ms_per_update_other"] = (wall - sum(phases.values())) * per_update
         return {
             "updates": updates,
             "ingested": r["ingested"],
@@ -366,6 +459,9 @@ class LearnerService(ServiceBase):
             "bonus_failures": r["bonus"].failures,
             "bonus_mean": float(np.mean(r["bonus_means"])) if r["bonus_means"] else 0.0,
             "rejects_total": sum(self.rejects.values()),
+            "contended_updates": r["contended_updates"],
+            "eval_rows_seen": r["evaluations"].reported_rows,
+            **spent,
             **(r["learner"].lane_stats() if hasattr(r["learner"], "lane_stats") else {}),
         }
 
