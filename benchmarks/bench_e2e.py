@@ -27,7 +27,10 @@ cluster: until the evaluator has evaluated the last point).
 Variants run in rounds, in a rotating order, one at a time (never two at once): load
 from other processes hits them alike; ratios (cluster / trainer) are taken within a
 round, and everything is the median over rounds. CPU seconds of every process (from
-/proc) show what limits throughput.
+/proc) show what limits throughput. Just before and after each run a child process
+times the update's matrix products alone (bench_learner's floor) on one and two
+threads: the machine's speed for this workload then (the host is shared with other
+guests), and `steady / floor`, the share of it the run turned into env steps.
 
     .venv/bin/python benchmarks/bench_e2e.py [--quick]
 
@@ -69,6 +72,35 @@ eval_episodes: 10
 seed: 0
 """
 TARGET_CLUSTER_EVAL_ON = 136.0  # steps/s, the issue's target for the cluster, eval on
+# The machine's speed around each run: the update's matrix products alone (bench_learner's
+# floor) on one and on two threads, timed in a child just before and after the run. The
+# host is shared with other guests, and what it gives the second thread varies most
+# (the two-thread floor ran 1.4x-2.05x the one-thread floor on different days).
+FLOOR_PROBE = """\
+import json, statistics, sys, time
+sys.path.insert(0, sys.argv[1])
+import torch
+import bench_learner as bl
+from shared.fast_maddpg import BatchedMADDPG
+from shared.maddpg import LearnerSpec
+
+seconds = float(sys.argv[2])
+m = BatchedMADDPG(bl.SPEAKER_LISTENER, LearnerSpec(algo="cen-maddpg", hidden=bl.HIDDEN))
+floor = bl.floor_ops(m)
+out = {}
+for threads in (1, 2):
+    torch.set_num_threads(threads)
+    for _ in range(10):
+        floor()
+    rates, end = [], time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        t0 = time.perf_counter()
+        for _ in range(5):
+            floor()
+        rates.append(5 / (time.perf_counter() - t0))
+    out[threads] = statistics.median(rates)
+print(json.dumps(out))
+"""
 TARGET_RATIO = 0.85  # cluster within 15% of the trainer
 THESIS_STEPS_PER_S = {"with bonus": 34.0, "without bonus": 70.0}
 # Fixed learner modes instead of `learner_lanes: auto`: what the config adds.
@@ -646,6 +678,27 @@ def tmp_config(tmp: Path) -> Path:
     return config
 
 
+def floor_rates(seconds: float = 0.7) -> dict[str, float] | None:
+    """Updates/s of the speaker_listener update's matrix products alone, on 1 and 2
+    threads ({"1": .., "2": ..}), measured now in a child so this process loads no
+    BLAS: the machine's speed for this workload around a run."""
+    env = {**os.environ, **dict.fromkeys(BLAS_VARS, "1")}
+    try:
+        out = subprocess.run(
+            [sys.executable, "-c", FLOOR_PROBE, str(ROOT / "benchmarks"), str(seconds)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env=env,
+            check=True,
+            cwd=ROOT,
+        )
+        return json.loads(out.stdout)
+    except (subprocess.SubprocessError, ValueError) as err:
+        print(f"  floor probe failed: {err}", file=sys.stderr)
+        return None
+
+
 def run_variant(name: str, config: Path, episodes: int, ev: int, work: Path, actors: int = 1):
     """`*-1lane`, `*-2threads`: the same with a fixed learner mode (FIXED_MODES); the
     trainer side with one BLAS thread outside torch, as trainer-blas1."""
@@ -748,13 +801,24 @@ def main(argv: list[str] | None = None) -> None:
                     file=sys.stderr,
                     flush=True,
                 )
+                before = floor_rates()
                 res = run_variant(name, config, episodes, evals[ev], work)
+                after = floor_rates()
                 res.update(variant=name, eval=ev, round=r, loadavg_before=load)
                 res["loadavg_after"] = os.getloadavg()
+                res["floor_before"], res["floor_after"] = before, after
+                probes = [p["2"] for p in (before, after) if p]
+                res["floor2"] = statistics.mean(probes) if probes else None
+                res["steady_over_floor2"] = (
+                    res["steady"]["rate"] / res["floor2"]
+                    if res["floor2"] and res["steady"]["rate"]
+                    else None
+                )
                 runs.append(res)
                 print(
                     f"  steady {fmt(res['steady']['rate'])} steps/s, e2e "
-                    f"{fmt(res['e2e_steps_per_s'])} steps/s",
+                    f"{fmt(res['e2e_steps_per_s'])} steps/s; floor on 2 threads "
+                    f"{fmt(res['floor2'])} updates/s around the run",
                     file=sys.stderr,
                     flush=True,
                 )
@@ -776,6 +840,8 @@ def main(argv: list[str] | None = None) -> None:
                 "overall_steps_per_s": median([x["overall_steps_per_sec"] for x in rs]),
                 "e2e_steps_per_s": median([x["e2e_steps_per_s"] for x in rs]),
                 "samples_steady": [x["steady"]["rate"] for x in rs],
+                "floor2": median([x["floor2"] for x in rs]),
+                "steady_over_floor2": median([x["steady_over_floor2"] for x in rs]),
             }
             for base in BASELINES.get(name, ()):
                 if base in variants:
@@ -811,9 +877,9 @@ def main(argv: list[str] | None = None) -> None:
     print(
         "| variant | eval | steady steps/s | from eval rows | overall (last row) "
         "| end-to-end steps/s | cluster / its trainer (steady; e2e) "
-        "| cores used (steady window) |"
+        "| cores used (steady window) | floor, 2 threads (updates/s) | steady / floor |"
     )
-    print("|" + "---|" * 8)
+    print("|" + "---|" * 10)
     for s in summary:
         cpu = ", ".join(f"{k} {v:.2f}" for k, v in s["cpu_share"].items() if v and v >= 0.02)
         ratios = "; ".join(
@@ -824,8 +890,16 @@ def main(argv: list[str] | None = None) -> None:
         print(
             f"| {s['variant']} | {s['eval']} | {fmt(s['steady_steps_per_s'])} "
             f"| {fmt(s['rows_steady_steps_per_s'])} | {fmt(s['overall_steps_per_s'])} "
-            f"| {fmt(s['e2e_steps_per_s'])} | {ratios} | {cpu} |"
+            f"| {fmt(s['e2e_steps_per_s'])} | {ratios} | {cpu} | {fmt(s['floor2'])} "
+            f"| {fmt(s['steady_over_floor2'], '.3f')} |"
         )
+    print(
+        "\n'floor': the update's matrix products alone on two threads (bench_learner's "
+        "floor), timed just before and after each run: the machine's speed for this "
+        "workload then. 'steady / floor': env steps per floor update, the share of the "
+        "machine's speed the run turned into steps (136 steps/s at session 3's floor of "
+        "294/s would be 0.46)."
+    )
     clusters = [s for s in summary if s["variant"].startswith("cluster")]
     for s in clusters:
         print(
@@ -857,6 +931,9 @@ def main(argv: list[str] | None = None) -> None:
                     "met": bool((s[f"over_{base}"] or 0) >= TARGET_RATIO),
                 }
     print("\ntargets (thesis code: 34 steps/s with the bonus, 70 without):")
+    if on is not None:
+        targets["cluster_eval_on_ge_136"]["floor2"] = on["floor2"]
+        targets["cluster_eval_on_ge_136"]["steady_over_floor2"] = on["steady_over_floor2"]
     for k, t in targets.items():
         got = t.get("measured_steady", t.get("measured_ratio"))
         want = t.get("target", t.get("target_ratio"))

@@ -67,12 +67,13 @@ class MADDPG:
         self.obs_off = _offsets([a.obs_dim for a in agents])
         self.act_off = _offsets([a.act_dim for a in agents])
         joint_in = self.obs_off[-1] + self.act_off[-1]
-        torch.manual_seed(spec.seed)
-        self.actors = [Actor(a.obs_dim, a.act_low, a.act_high, spec.hidden) for a in agents]
-        self.critics = [
-            Critic(joint_in if self.centralized else a.obs_dim + a.act_dim, spec.hidden)
-            for a in agents
-        ]
+        with torch.random.fork_rng(devices=[]):  # seeded weights; the caller's RNG untouched
+            torch.manual_seed(spec.seed)
+            self.actors = [Actor(a.obs_dim, a.act_low, a.act_high, spec.hidden) for a in agents]
+            self.critics = [
+                Critic(joint_in if self.centralized else a.obs_dim + a.act_dim, spec.hidden)
+                for a in agents
+            ]
         self.actor_targets = [copy.deepcopy(m).requires_grad_(False) for m in self.actors]
         self.critic_targets = [copy.deepcopy(m).requires_grad_(False) for m in self.critics]
         self.actor_optims = [

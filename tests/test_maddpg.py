@@ -164,3 +164,19 @@ def test_state_dict_loads_with_weights_only_and_restores_everything():
     assert np.array_equal(m.act(obs), m2.act(obs))
     b = batch(m, seed=9)
     assert m.update(*b) == m2.update(*b), "optimizer state restored too"
+
+
+def test_construction_is_seeded_and_leaves_the_global_rng_alone():
+    """The same spec seed gives the same weights, and building a learner does not
+    reseed the caller's torch RNG (it used to: torch.manual_seed in the constructor)."""
+    agents = [AgentDims(4, (-1.0, -1.0), (1.0, 1.0))]
+    torch.manual_seed(123)
+    expected_next = torch.rand(3)
+    torch.manual_seed(123)
+    a = MADDPG(agents, LearnerSpec(algo="ddpg", hidden=(16, 16), seed=5))
+    assert torch.equal(torch.rand(3), expected_next), "global RNG stream was disturbed"
+    b = MADDPG(agents, LearnerSpec(algo="ddpg", hidden=(16, 16), seed=5))
+    c = MADDPG(agents, LearnerSpec(algo="ddpg", hidden=(16, 16), seed=6))
+    wa, wb, wc = (m.actors[0].state_dict() for m in (a, b, c))
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    assert not all(torch.equal(wa[k], wc[k]) for k in wa)

@@ -41,8 +41,9 @@ contended: with `learner_lanes: auto` a tuner of their own picks their threads. 
 a 2-core machine the evaluation (~20 ms of episodes) starts with every tick, and an
 update on two OpenMP threads then waits for the thread the evaluator preempted: the
 first update of a tick took 17-28 ms against 5-8 ms for the rest (per-update trace of
-bench_e2e's cluster); on one thread it takes 11-14 ms, and the cluster ran a median
-9% faster over 9 alternated pairs (docs/performance.md, "Session 4").
+bench_e2e's cluster); on one thread it takes 11-14 ms. The cluster ran a median 5%
+faster than without this in 10 alternated pairs (7% over 19 pairs, counting 9 of a
+version that forced one thread instead of tuning; docs/performance.md, "Session 4").
 """
 
 from __future__ import annotations
