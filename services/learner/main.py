@@ -72,8 +72,8 @@ MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
 UPDATES_PER_TICK = 20  # bound on work between inbox checks; one bonus query each
 CHECKPOINT_EVERY_S = 60.0
 # Phases of the learner's wall time that stats() reports per update; the bonus wait is
-# BonusClient.wait_s, and what none of them covers (waiting for messages, acks, stats)
-# is reported as "other".
+# BonusClient.wait_s, and what none of them covers (waiting for messages, acks, stats,
+# and the wait for the first `learning_starts` transitions) is reported as "other".
 TIME_PHASES = ("sample", "update", "publish", "inbound")
 
 
