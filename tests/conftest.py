@@ -82,11 +82,25 @@ def router(endpoint, tmp_path):
     procs.stop_all()
 
 
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Keep each phase's report on the test item, so fixtures can see a failure."""
+    outcome = yield
+    report = outcome.get_result()
+    setattr(item, f"rep_{report.when}", report)
+
+
 @pytest.fixture
-def procs(router, tmp_path):
+def procs(router, tmp_path, request):
     p = Procs(tmp_path, router)
     yield p
     p.stop_all()
+    failed = getattr(request.node, "rep_call", None)
+    if failed is not None and failed.failed:  # the services' own account, in the report
+        for name in p.procs:
+            lines = p.log(name).splitlines()
+            print(f"----- {name}.log (last 40 of {len(lines)} lines) -----")
+            print("\n".join(lines[-40:]))
 
 
 @pytest.fixture

@@ -440,7 +440,10 @@ class CounterService(ServiceBase):
             return
         self.publish_metrics(run, self._run_stats(st), source="counter")
         self.on_stop(run, f"learner {msg['state']}")
-        self.publish_status(run, msg["state"], **self._run_stats(st))
+        detail = self._run_stats(st)
+        if msg["state"] == "failed":  # say why, as the learner did: watchers show the first
+            detail["reason"] = f"learner failed: {msg['detail'].get('reason', '')}".strip()
+        self.publish_status(run, msg["state"], **detail)
         self.free(run)
 
     def _take_burst(self) -> None:

@@ -242,7 +242,9 @@ class LearnerService(ServiceBase):
                 self.r["time"]["inbound"] += time.perf_counter() - t0
 
     def _handle(self, tag: str, key: str, payload: bytes) -> None:
-        if tag == "transitions":
+        if tag == "reject":  # found malformed on another thread (on_eval_row)
+            self.reject(key, payload.decode(errors="replace"))
+        elif tag == "transitions":
             msg = self.decode_for_run(key, payload, "transitions")
             if msg is not None:
                 self.on_transitions(key, msg)
@@ -264,14 +266,16 @@ class LearnerService(ServiceBase):
 
     def on_eval_row(self, evaluations: EvaluationsInFlight, key: str, payload: bytes) -> None:
         """The evaluator's metric row for a point (on Zenoh's thread): that evaluation
-        is over. Only the point is read; the API is the rows' consumer of record."""
+        is over. Only the point is read; the API is the rows' consumer of record. A
+        malformed row is counted and logged on the service's thread (via the inbox),
+        which owns the reject counts that stats() reads."""
         try:
             msg = decode(payload, "metrics")
             point = msg["data"]["episode"]
             if not isinstance(point, int) or isinstance(point, bool):
                 raise WireError(f"metrics: eval row episode is not an int: {point!r}")
         except (WireError, KeyError) as err:
-            self.reject(key, str(err))
+            self.inbox.put(("reject", key, str(err).encode()))
             return
         evaluations.reported(point)
 
