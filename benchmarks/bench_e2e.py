@@ -94,10 +94,7 @@ for threads in (1, 2):
         floor()
     rates, end = [], time.perf_counter() + seconds
     while time.perf_counter() < end:
-        t0 = time.perf_counter()
-        for _ in range(5):
-            floor()
-        rates.append(5 / (time.perf_counter() - t0))
+        rates.append(1 / bl.time_per_call(floor, 5))
     out[threads] = statistics.median(rates)
 print(json.dumps(out))
 """

@@ -31,6 +31,12 @@ from shared.config import ConfigError, TrainConfig, make_config
 from shared.wire import WireError, decode, encode
 
 
+def learner_end_reason(msg: dict[str, Any]) -> str:
+    """Why a run ended, from its learner's decoded `status` message, for the status
+    other services publish when they follow it (watchers show the first failure)."""
+    return f"learner {msg['state']}: {msg['detail'].get('reason', '')}".strip()
+
+
 class ServiceBase:
     role = "service"
     # queue.SimpleQueue puts and gets ~20x cheaper (C, no Python-level locks): worth it
@@ -191,7 +197,7 @@ class ServiceBase:
         if msg is None or msg["state"] not in ("failed", "stopped"):
             return
         run = msg["run"]
-        reason = f"learner {msg['state']}: {msg['detail'].get('reason', '')}".strip()
+        reason = learner_end_reason(msg)
         self.on_stop(run, reason)
         self.publish_status(run, "stopped", reason=reason)
         self.free(run)

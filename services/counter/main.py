@@ -66,7 +66,7 @@ from typing import Any
 
 import numpy as np
 
-from services.common import ServiceBase
+from services.common import ServiceBase, learner_end_reason
 from services.counter.wal import WalRecord, WriteAheadLog
 from shared.bus import k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.config import TrainConfig, make_config
@@ -441,8 +441,8 @@ class CounterService(ServiceBase):
         self.publish_metrics(run, self._run_stats(st), source="counter")
         self.on_stop(run, f"learner {msg['state']}")
         detail = self._run_stats(st)
-        if msg["state"] == "failed":  # say why, as the learner did: watchers show the first
-            detail["reason"] = f"learner failed: {msg['detail'].get('reason', '')}".strip()
+        if msg["state"] == "failed":
+            detail["reason"] = learner_end_reason(msg)
         self.publish_status(run, msg["state"], **detail)
         self.free(run)
 

@@ -458,7 +458,7 @@ class LearnerService(ServiceBase):
             "window_open": r["window_open"],
             "bonus_p50_ms": 1e3 * lat[len(lat) // 2] if lat else 0.0,
             "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
-            "bonus_wait_ms_per_update": 1e3 * r["bonus"].wait_s / updates if updates else 0.0,
+            "bonus_wait_ms_per_update": spent["ms_per_update_bonus_wait"],
             "bonus_queries": r["bonus"].queries,
             "bonus_rows_per_query": r["bonus"].rows / max(1, r["bonus"].queries),
             "bonus_failures": r["bonus"].failures,
