@@ -48,7 +48,6 @@ class Collector:
         self.low = np.concatenate([np.asarray(a.act_low, np.float32) for a in spec.agents])
         self.high = np.concatenate([np.asarray(a.act_high, np.float32) for a in spec.agents])
         self.noise_scale = noise_sigma * (self.high - self.low) / 2
-        self.act_split = np.cumsum(spec.act_dims)[:-1]
         self.rng = np.random.default_rng(seed)
         self.time_limit_terminal = time_limit_terminal
         self.obs = np.concatenate(env.reset(seed=seed))
@@ -62,8 +61,8 @@ class Collector:
     def step(self, policy: Policy) -> Transition:
         obs = self.obs
         act = self.noisy(policy(obs[None])[0])
-        res = self.env.step(np.split(act, self.act_split))
-        next_obs = np.concatenate(res.obs)
+        res = self.env.step_joint(act)
+        next_obs = res.obs
         self.episode_return += res.reward
         done = 1.0 if (res.truncated and self.time_limit_terminal) else 0.0
         tr = Transition(
@@ -89,7 +88,6 @@ class EvalResult:
 def evaluate(policy: Policy, envs: list[TaskEnv], episodes: int) -> EvalResult:
     """Noise-free episodes, len(envs) at a time in lockstep; counts are never touched."""
     successes, returns, steps = [], [], 0
-    act_split = np.cumsum(envs[0].spec.act_dims)[:-1]
     remaining = episodes
     while remaining > 0:
         group = envs[: min(len(envs), remaining)]
@@ -100,8 +98,8 @@ def evaluate(policy: Policy, envs: list[TaskEnv], episodes: int) -> EvalResult:
         while not done:
             acts = policy(obs)
             for j, env in enumerate(group):
-                res = env.step(np.split(acts[j], act_split))
-                obs[j] = np.concatenate(res.obs)
+                res = env.step_joint(acts[j])
+                obs[j] = res.obs
                 ok[j] |= res.success
                 ret[j] += res.reward
                 done = res.truncated

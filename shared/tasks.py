@@ -17,7 +17,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from mpe2 import simple_speaker_listener_v4, simple_spread_v3, simple_v3
@@ -87,6 +87,20 @@ class TaskSpec:
     def joint_act_dim(self) -> int:
         """Size of x = a_1 || ... || a_N."""
         return sum(self.act_dims)
+
+
+def _offsets(dims: Sequence[int]) -> list[int]:
+    return [0, *np.cumsum(dims).tolist()]
+
+
+class JointStep(NamedTuple):
+    """One joint step: the joint observation s' = o'_1 || ... || o'_N and the metrics."""
+
+    obs: np.ndarray
+    reward: float
+    success: bool
+    collisions: int
+    truncated: bool
 
 
 @dataclass
@@ -314,7 +328,17 @@ class TaskEnv:
         self._pending_seed = seed
         self._t: int | None = None  # steps taken this episode; None until reset
         self.direct = direct
-        self._slots = [self._raw._index_map[a.name] for a in self.spec.agents]
+        spec = self.spec
+        if [a.name for a in self._raw.world.agents] != [a.name for a in spec.agents]:
+            raise RuntimeError("agent order differs between spec and mpe2's world")
+        self._low = np.concatenate([_bounds(a)[0] for a in spec.agents])
+        self._high = np.concatenate([_bounds(a)[1] for a in spec.agents])
+        self._act_total, self._obs_total = spec.joint_act_dim, spec.joint_obs_dim
+        act_off, obs_off = _offsets(spec.act_dims), _offsets(spec.obs_dims)
+        self._act_split, self._obs_split = act_off[1:-1], obs_off[1:-1]
+        self._act_slices = list(zip(act_off[:-1], act_off[1:], strict=True))
+        self._obs_slices = list(zip(obs_off[:-1], obs_off[1:], strict=True))
+        self._move_dims = [a.move_dim for a in spec.agents]
 
     @property
     def world(self) -> World:
@@ -334,48 +358,96 @@ class TaskEnv:
 
     def step(self, actions: Sequence[np.ndarray]) -> StepResult:
         """Apply one thesis-layout action per agent (spec order) and score the new state."""
+        if len(actions) != self.spec.n_agents:
+            raise ValueError(f"expected {self.spec.n_agents} actions, got {len(actions)}")
+        for agent, act in zip(self.spec.agents, actions, strict=True):
+            if np.shape(act) != (agent.act_dim,):
+                raise ValueError(
+                    f"{agent.name}: action has shape {np.shape(act)}, expected ({agent.act_dim},)"
+                )
+        res = self.step_joint(np.concatenate([np.asarray(a, np.float32) for a in actions]))
+        return StepResult(
+            obs=np.split(res.obs, self._obs_split),
+            reward=res.reward,
+            success=res.success,
+            collisions=res.collisions,
+            truncated=res.truncated,
+        )
+
+    def step_joint(self, action: np.ndarray) -> JointStep:
+        """`step` for the joint action x = a_1 || ... || a_N, giving the joint observation.
+
+        What collection and evaluation call at every step: no per-agent split and join.
+        """
         if self._t is None:
             raise RuntimeError("call reset() before step()")
         if self._t >= self.spec.episode_len:
             raise RuntimeError("episode is over (time limit); call reset()")
-        if len(actions) != self.spec.n_agents:
-            raise ValueError(f"expected {self.spec.n_agents} actions, got {len(actions)}")
-        mpe_actions = {
-            a.name: to_mpe_action(a, act) for a, act in zip(self.spec.agents, actions, strict=True)
-        }
+        a = np.asarray(action, dtype=np.float32).reshape(-1)
+        if a.shape[0] != self._act_total:
+            raise ValueError(f"joint action has {a.shape[0]} values, expected {self._act_total}")
+        if not np.isfinite(a).all():
+            bad = [
+                ag.name
+                for ag, part in zip(self.spec.agents, self._split_act(a))
+                if not np.isfinite(part).all()
+            ]
+            raise ValueError(f"non-finite action of {', '.join(bad)}: {a}")
+        a = np.minimum(np.maximum(a, self._low), self._high)
         if self.direct:
-            obs, rewards, terminated, mpe_ended = self._step_direct(mpe_actions)
+            obs, terminated, mpe_ended = self._step_direct(a)
+            mpe_reward = None
         else:
-            obs, rewards, terminations, truncations, _ = self._env.step(mpe_actions)
+            mpe_actions = {
+                ag.name: to_mpe_action(ag, part)
+                for ag, part in zip(self.spec.agents, self._split_act(a), strict=True)
+            }
+            obs_d, rewards, terminations, truncations, _ = self._env.step(mpe_actions)
             terminated, mpe_ended = any(terminations.values()), any(truncations.values())
+            obs = np.concatenate(
+                [np.asarray(obs_d[ag.name], np.float32) for ag in self.spec.agents]
+            )
+            mpe_reward = float(np.mean([rewards[ag.name] for ag in self.spec.agents]))
         self._t += 1
         reward, success, collisions = self.evaluate()
-        if self.reward_kind == "dense":  # mpe2's own numbers, straight from the env
-            reward = float(np.mean([rewards[a.name] for a in self.spec.agents]))
+        if self.reward_kind == "dense" and mpe_reward is not None:
+            reward = mpe_reward  # mpe2's own numbers, straight from the env
         truncated = self._t >= self.spec.episode_len
         if terminated or mpe_ended != truncated:
             raise RuntimeError("mpe2 ended the episode at an unexpected step")
-        return StepResult(
-            obs=[np.asarray(obs[a.name], dtype=np.float32) for a in self.spec.agents],
-            reward=reward,
-            success=success,
-            collisions=collisions,
-            truncated=truncated,
-        )
+        return JointStep(obs, reward, success, collisions, truncated)
 
-    def _step_direct(
-        self, mpe_actions: dict[str, np.ndarray]
-    ) -> tuple[dict[str, np.ndarray], dict[str, float], bool, bool]:
-        """mpe2's SimpleEnv.step for a whole cycle of agents, without the AEC layers."""
+    def _split_act(self, a: np.ndarray) -> list[np.ndarray]:
+        return np.split(a, self._act_split)
+
+    def _step_direct(self, a: np.ndarray) -> tuple[np.ndarray, bool, bool]:
+        """mpe2's SimpleEnv.step for a whole cycle of agents, without the AEC layers.
+
+        The actions are set as mpe2's `_set_action` sets continuous ones (movement as
+        the difference of a pair times the sensitivity, which for our pairs is the
+        movement itself, message as given) and the world steps with mpe2's own physics
+        and observations. mpe2's per-agent rewards, which its step computes every time,
+        are computed only for the dense reward (`_dense_reward`, the same formula).
+        """
         raw = self._raw
-        for a, slot in zip(self.spec.agents, self._slots):
-            raw.current_actions[slot] = mpe_actions[a.name]
-        raw._execute_world_step()
+        world = raw.world
+        dim_p, dim_c = world.dim_p, world.dim_c
+        for agent, (lo, hi), n_move in zip(world.agents, self._act_slices, self._move_dims):
+            u = np.zeros(dim_p)
+            if agent.movable:
+                u += a[lo : lo + n_move]
+                u *= 5.0 if agent.accel is None else agent.accel
+            agent.action.u = u
+            agent.action.c = np.zeros(dim_c) if agent.silent else a[lo + n_move : hi].copy()
+        world.step()
         raw.steps += 1
         ended = raw.steps >= raw.max_cycles
-        terminated = not ended and bool(raw.scenario.is_terminal(raw.world))
-        obs = {a.name: raw.observe(a.name) for a in self.spec.agents}
-        return obs, raw.rewards, terminated, ended
+        terminated = not ended and bool(raw.scenario.is_terminal(world))
+        obs = np.empty(self._obs_total, np.float32)
+        observation = raw.scenario.observation
+        for agent, (lo, hi) in zip(world.agents, self._obs_slices):
+            obs[lo:hi] = observation(agent, world)
+        return obs, terminated, ended
 
     def evaluate(self) -> tuple[float, bool, int]:
         """(reward, success, collisions) of the current world state, for the chosen reward."""
@@ -386,7 +458,7 @@ class TaskEnv:
             reward = sparse
         elif self.reward_kind == "sparse_offset":
             reward = sparse + SPARSE_OFFSET
-        else:
+        else:  # mpe2's formula (the public-API path takes mpe2's own numbers)
             reward = self._dense_reward()
         return float(reward), success, collisions
 
