@@ -9,6 +9,7 @@ from mpe2 import simple_speaker_listener_v4, simple_spread_v3, simple_v3
 from shared.tasks import (
     REWARDS,
     TASKS,
+    StepResult,
     TaskEnv,
     make_task,
     task_spec,
@@ -439,7 +440,8 @@ def test_all_rewards_run_on_all_tasks() -> None:
 )
 def test_direct_step_equals_the_pettingzoo_api(task: str, agents: int, reward: str) -> None:
     """The default direct path and PettingZoo's parallel step agree bit for bit, over
-    several episodes of random (also out-of-range) actions, through resets."""
+    several episodes of random (also out-of-range) actions, through resets, whether
+    the direct env is stepped per agent or by the joint action."""
     direct = make_task(task, agents, reward, episode_len=7, seed=5)
     api = make_task(task, agents, reward, episode_len=7, seed=5, direct=False)
     assert direct.direct and not api.direct
@@ -452,7 +454,12 @@ def test_direct_step_equals_the_pettingzoo_api(task: str, agents: int, reward: s
                 rng.uniform(-1.5, 1.5, spec.act_dim).astype(np.float32)
                 for spec in direct.spec.agents
             ]
-            x, y = direct.step(actions), api.step(actions)
+            if t % 2:  # the joint step (collection, evaluation) and the per-agent one
+                j = direct.step_joint(np.concatenate(actions))
+                x = StepResult(list(np.split(j.obs, np.cumsum(direct.spec.obs_dims)[:-1])), *j[1:])
+            else:
+                x = direct.step(actions)
+            y = api.step(actions)
             for a, b in zip(x.obs, y.obs, strict=True):
                 np.testing.assert_array_equal(a, b)
             assert (x.reward, x.success, x.collisions, x.truncated) == (
@@ -464,3 +471,20 @@ def test_direct_step_equals_the_pettingzoo_api(task: str, agents: int, reward: s
         assert x.truncated
         with pytest.raises(RuntimeError, match="episode is over"):
             direct.step(actions)
+
+
+def test_joint_step_refuses_bad_actions_and_names_the_agent() -> None:
+    env = make_task("speaker_listener", seed=0)
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step_joint(np.zeros(env.spec.joint_act_dim, np.float32))
+    env.reset()
+    with pytest.raises(ValueError, match="joint action has 4 values, expected 5"):
+        env.step_joint(np.zeros(4, np.float32))
+    bad = np.zeros(env.spec.joint_act_dim, np.float32)
+    bad[-1] = np.nan  # the listener's movement
+    with pytest.raises(ValueError, match="non-finite action of listener_0"):
+        env.step_joint(bad)
+    with pytest.raises(ValueError, match="speaker_0: action has shape"):
+        env.step([np.zeros(2, np.float32), np.zeros(2, np.float32)])
+    res = env.step_joint(np.zeros(env.spec.joint_act_dim, np.float32))  # nothing was lost
+    assert res.obs.shape == (env.spec.joint_obs_dim,) and res.obs.dtype == np.float32
