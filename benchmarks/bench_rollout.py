@@ -1,0 +1,218 @@
+"""Collection and evaluation cost: what the actor and the evaluator spend per episode.
+
+On 2 cores every millisecond the actor and the evaluator spend is taken from the
+learner's two threads, so their cost per training episode bounds the cluster. This
+times, per task (thesis settings: hidden 400-300, 20-step episodes):
+
+* an evaluation point: `eval_episodes` (10) noise-free episodes in lockstep,
+  `shared.rollout.evaluate`, as the evaluator runs it;
+* an actor's training episode: 20 noisy steps of `shared.rollout.Collector`, as the
+  actor runs it;
+
+each in three ways, alternated in rounds in a rotating order:
+
+* `platform`: the code as it runs (the joint step `TaskEnv.step_joint` driving mpe2
+  directly, the numpy `JointPolicy`);
+* `per_agent`: mpe2 driven directly too, but per-agent actions split from and
+  observations joined into the joint vectors, and the torch actor modules (the
+  platform before session 5, which also computed mpe2's per-agent rewards each step);
+* `baseline`: the straightforward way: PettingZoo's public parallel API (`direct=False`:
+  per-agent action dicts through the AEC layers) and the torch actor modules.
+
+Ratios are medians of per-round ratios (other way / platform), so the machine's drift
+between rounds cancels. Runs with one BLAS and torch thread, as the services do.
+
+    .venv/bin/python benchmarks/bench_rollout.py [--quick] [--tasks speaker_listener,...]
+
+prints a markdown table and writes benchmarks/results/rollout.json.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # as every service runs; before numpy is imported
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from shared.networks import JointPolicy  # noqa: E402
+from shared.rollout import Collector, Transition, evaluate  # noqa: E402
+from shared.tasks import TASKS, TaskEnv, make_task  # noqa: E402
+
+HIDDEN = (400, 300)
+EPISODE_LEN = 20
+EVAL_EPISODES = 10
+NOISE_SIGMA = 0.1
+
+
+class TorchPolicy:
+    """The baseline policy: each agent's torch actor module on its slice, joined."""
+
+    def __init__(self, policy: JointPolicy) -> None:
+        self.actors, self.bounds = policy.actors, policy.bounds
+
+    @torch.no_grad()
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        o, b = torch.as_tensor(obs, dtype=torch.float32), self.bounds
+        parts = [actor(o[..., b[i] : b[i + 1]]) for i, actor in enumerate(self.actors)]
+        return torch.cat(parts, -1).numpy()
+
+
+class PerAgentCollector(Collector):
+    """The baseline collector: Collector.step with per-agent actions through `TaskEnv.step`."""
+
+    def step(self, policy: Callable[[np.ndarray], np.ndarray]) -> Transition:
+        env, obs = self.env, self.obs
+        act = self.noisy(policy(obs[None])[0])
+        res = env.step(np.split(act, np.cumsum(env.spec.act_dims)[:-1]))
+        next_obs = np.concatenate(res.obs)
+        done = 1.0 if (res.truncated and self.time_limit_terminal) else 0.0
+        tr = Transition(
+            obs, act, res.reward, next_obs, done, res.success, res.collisions, res.truncated
+        )
+        self.obs = np.concatenate(env.reset()) if res.truncated else next_obs
+        return tr
+
+
+def per_agent_evaluate(policy: Callable, envs: list[TaskEnv], episodes: int) -> None:
+    """`evaluate`'s lockstep episodes with per-agent actions through `TaskEnv.step`."""
+    split = np.cumsum(envs[0].spec.act_dims)[:-1]
+    for start in range(0, episodes, len(envs)):
+        group = envs[: min(len(envs), episodes - start)]
+        obs = np.stack([np.concatenate(e.reset()) for e in group])
+        done = False
+        while not done:
+            acts = policy(obs)
+            for j, env in enumerate(group):
+                res = env.step(np.split(acts[j], split))
+                obs[j] = np.concatenate(res.obs)
+                done = res.truncated
+
+
+def _envs(task: str, n: int, direct: bool) -> list[TaskEnv]:
+    envs = [make_task(task, 2, "sparse", EPISODE_LEN, seed=j, direct=direct) for j in range(n)]
+    for e in envs:
+        e.reset()
+    return envs
+
+
+def make_cases(task: str) -> dict[str, dict[str, Callable[[], None]]]:
+    """{measure: {way: one timed call}}."""
+    torch.manual_seed(0)
+    spec = make_task(task).spec
+    policy = JointPolicy(
+        spec.obs_dims, [a.act_low for a in spec.agents], [a.act_high for a in spec.agents], HIDDEN
+    )
+    cases: dict[str, dict[str, Callable[[], None]]] = {"eval_point": {}, "actor_episode": {}}
+    torch_policy = TorchPolicy(policy)
+    for way, direct, pol, per_agent in (
+        ("platform", True, policy, False),
+        ("per_agent", True, torch_policy, True),
+        ("baseline", False, torch_policy, True),
+    ):
+        envs = _envs(task, EVAL_EPISODES, direct)
+        run_eval = per_agent_evaluate if per_agent else evaluate
+        cases["eval_point"][way] = lambda p=pol, e=envs, f=run_eval: f(p, e, EVAL_EPISODES)
+        env = make_task(task, 2, "sparse", EPISODE_LEN, seed=0, direct=direct)
+        col = (PerAgentCollector if per_agent else Collector)(env, NOISE_SIGMA, seed=0)
+        cases["actor_episode"][way] = lambda p=pol, c=col: [c.step(p) for _ in range(EPISODE_LEN)]
+    return cases
+
+
+def time_call(fn: Callable[[], None], min_s: float) -> float:
+    """Seconds per call: the median of repeated calls over at least `min_s`."""
+    fn()  # warm
+    samples: list[float] = []
+    end = time.perf_counter() + min_s
+    while time.perf_counter() < end or len(samples) < 5:
+        t = time.perf_counter()
+        fn()
+        samples.append(time.perf_counter() - t)
+    return statistics.median(samples)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        epilog="Prints a markdown table; writes --out (default benchmarks/results/rollout.json).",
+    )
+    ap.add_argument("--quick", action="store_true", help="2 rounds of 0.3 s per case (~15 s)")
+    ap.add_argument("--rounds", type=int, default=None, help="rounds (default 5; quick 2)")
+    ap.add_argument("--tasks", default=",".join(TASKS), help=f"comma-separated of {TASKS}")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "rollout.json"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    rounds = args.rounds or (2 if args.quick else 5)
+    min_s = 0.3 if args.quick else 1.0
+    tasks = [t for t in args.tasks.split(",") if t]
+    unknown = sorted(set(tasks) - set(TASKS))
+    if unknown:
+        ap.error(f"unknown task(s) {unknown}; expected some of {TASKS}")
+
+    samples: dict[tuple[str, str, str], list[float]] = {}
+    for task in tasks:
+        cases = make_cases(task)
+        keys = [(m, w) for m in cases for w in cases[m]]
+        for r in range(rounds):
+            print(f"{task}: round {r + 1}/{rounds}", file=sys.stderr)
+            for m, w in keys[r % len(keys) :] + keys[: r % len(keys)]:
+                samples.setdefault((task, m, w), []).append(time_call(cases[m][w], min_s))
+
+    rows = []
+    for task in tasks:
+        for measure in ("eval_point", "actor_episode"):
+            ms = {w: samples[(task, measure, w)] for w in ("platform", "per_agent", "baseline")}
+            row: dict[str, object] = {"task": task, "measure": measure}
+            for way, xs in ms.items():
+                row[f"{way}_ms"] = statistics.median(xs) * 1e3
+                ratios = (x / p for x, p in zip(xs, ms["platform"], strict=True))
+                row[f"{way}_over_platform"] = statistics.median(ratios)
+            rows.append(row)
+    print(
+        f"\nCollection and evaluation, hidden {HIDDEN[0]}-{HIDDEN[1]}, {EPISODE_LEN}-step "
+        f"episodes, 1 thread; medians of {rounds} rounds\n"
+    )
+    print("| task | measure | platform ms | per_agent ms (x) | baseline ms (x) |")
+    print("|---|---|---|---|---|")
+    for row in rows:
+        print(
+            f"| {row['task']} | {row['measure']} | {row['platform_ms']:.2f} "
+            f"| {row['per_agent_ms']:.2f} ({row['per_agent_over_platform']:.2f}x) "
+            f"| {row['baseline_ms']:.2f} ({row['baseline_over_platform']:.2f}x) |"
+        )
+    print(
+        "\n'eval_point': 10 noise-free episodes in lockstep (the evaluator's work per "
+        "training episode); 'actor_episode': one noisy training episode. 'per_agent': "
+        "mpe2 stepped directly with per-agent actions and the torch actor modules; "
+        "'baseline': PettingZoo's parallel API and the torch actor modules. (x): "
+        "median of per-round ratios to 'platform'."
+    )
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result = {
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+        "rounds": rounds,
+        "loadavg": os.getloadavg(),
+        "rows": rows,
+        "samples_ms": {"/".join(k): [s * 1e3 for s in v] for k, v in samples.items()},
+    }
+    out.write_text(json.dumps(result, indent=1))
+    print(f"\nwrote {out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,30 @@
+"""The benchmarks still run: a smoke run of bench_rollout (timings are not asserted)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_bench_rollout_runs_and_writes_its_table(tmp_path: Path) -> None:
+    out = tmp_path / "rollout.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_rollout.py"), "--quick"]
+    argv += ["--tasks", "simple", "--rounds", "1", "--out", str(out)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert "| simple | eval_point |" in proc.stdout
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["measure"] for r in rows] == ["eval_point", "actor_episode"]
+    for row in rows:
+        for way in ("platform", "per_agent", "baseline"):
+            assert row[f"{way}_ms"] > 0
+
+
+def test_bench_rollout_refuses_an_unknown_task(tmp_path: Path) -> None:
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_rollout.py"), "--tasks", "nope"]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 2 and "unknown task(s) ['nope']" in proc.stderr
