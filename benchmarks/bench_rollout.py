@@ -38,7 +38,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import json  # noqa: E402
 import statistics  # noqa: E402
-import time  # noqa: E402
 from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -47,6 +46,9 @@ import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_learner import measure as measure_rounds  # noqa: E402
 
 from shared.networks import JointPolicy  # noqa: E402
 from shared.rollout import Collector, Transition, evaluate  # noqa: E402
@@ -132,18 +134,6 @@ def make_cases(task: str) -> dict[str, dict[str, Callable[[], None]]]:
     return cases
 
 
-def time_call(fn: Callable[[], None], min_s: float) -> float:
-    """Seconds per call: the median of repeated calls over at least `min_s`."""
-    fn()  # warm
-    samples: list[float] = []
-    end = time.perf_counter() + min_s
-    while time.perf_counter() < end or len(samples) < 5:
-        t = time.perf_counter()
-        fn()
-        samples.append(time.perf_counter() - t)
-    return statistics.median(samples)
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0],
@@ -156,7 +146,7 @@ def main() -> int:
     args = ap.parse_args()
     torch.set_num_threads(1)
     rounds = args.rounds or (2 if args.quick else 5)
-    min_s = 0.3 if args.quick else 1.0
+    budget_s = 0.3 if args.quick else 1.0  # per case and round
     tasks = [t for t in args.tasks.split(",") if t]
     unknown = sorted(set(tasks) - set(TASKS))
     if unknown:
@@ -164,12 +154,10 @@ def main() -> int:
 
     samples: dict[tuple[str, str, str], list[float]] = {}
     for task in tasks:
+        print(f"{task}: {rounds} rounds", file=sys.stderr)
         cases = make_cases(task)
-        keys = [(m, w) for m in cases for w in cases[m]]
-        for r in range(rounds):
-            print(f"{task}: round {r + 1}/{rounds}", file=sys.stderr)
-            for m, w in keys[r % len(keys) :] + keys[: r % len(keys)]:
-                samples.setdefault((task, m, w), []).append(time_call(cases[m][w], min_s))
+        fns = {(task, m, w): fn for m in cases for w, fn in cases[m].items()}
+        samples.update(measure_rounds(fns, rounds, budget_s))
 
     rows = []
     for task in tasks:

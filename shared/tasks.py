@@ -298,9 +298,9 @@ class TaskEnv:
     on speaker_listener), and the evaluator runs ten episodes per training episode.
     `step_joint` takes and gives joint vectors (what collection and evaluation hold), so
     no per-agent split and join either: an evaluation point of speaker_listener (200
-    steps, 20 policy calls) 19.4 -> 12.4 ms. tests/test_tasks.py checks that the paths
-    give the same observations, rewards and ends, bit for bit. `direct=False` steps
-    through the public API; `reset` always does.
+    steps, 20 policy calls) 19.4 -> 12.4 ms with the same policy. tests/test_tasks.py
+    checks that the paths give the same observations, rewards and ends, bit for bit.
+    `direct=False` steps through the public API; `reset` always does.
     """
 
     spec: TaskSpec
