@@ -71,23 +71,31 @@ class JointPolicy:
         self._refresh()
 
     def _refresh(self) -> None:
-        """Copy each actor's layers as (W^T, b) and its box as (center, scale) for numpy."""
-        self._layers = [
-            [
-                (m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy())
-                for m in actor.net
-                if isinstance(m, nn.Linear)
-            ]
-            for actor in self.actors
+        """Copy each actor's layers as (W^T, b) and its box as (center, scale) for numpy.
+
+        One attribute is replaced as a whole, so a call never mixes two loads."""
+
+        def arr(t: torch.Tensor) -> np.ndarray:
+            return t.detach().cpu().numpy()
+
+        self._net = [
+            (
+                [
+                    (arr(m.weight).T.copy(), arr(m.bias).copy())
+                    for m in a.net
+                    if isinstance(m, nn.Linear)
+                ],
+                (arr(a.center).copy(), arr(a.scale).copy()),
+            )
+            for a in self.actors
         ]
-        self._boxes = [(a.center.numpy().copy(), a.scale.numpy().copy()) for a in self.actors]
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         """Joint observations (..., joint_obs) -> joint actions (..., joint_act), float32."""
         o = np.asarray(obs, dtype=np.float32)
         b = self.bounds
         out = []
-        for i, (layers, (center, scale)) in enumerate(zip(self._layers, self._boxes)):
+        for i, (layers, (center, scale)) in enumerate(self._net):
             x = o[..., b[i] : b[i + 1]]
             for k, (w_t, bias) in enumerate(layers):
                 x = x @ w_t

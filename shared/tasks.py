@@ -359,7 +359,8 @@ class TaskEnv:
         return [np.asarray(obs[a.name], dtype=np.float32) for a in self.spec.agents]
 
     def step(self, actions: Sequence[np.ndarray]) -> StepResult:
-        """Apply one thesis-layout action per agent (spec order) and score the new state."""
+        """Apply one thesis-layout action per agent (spec order, each of shape (act_dim,))
+        and score the new state."""
         if len(actions) != self.spec.n_agents:
             raise ValueError(f"expected {self.spec.n_agents} actions, got {len(actions)}")
         for agent, act in zip(self.spec.agents, actions, strict=True):
@@ -369,7 +370,7 @@ class TaskEnv:
                 )
         res = self.step_joint(np.concatenate([np.asarray(a, np.float32) for a in actions]))
         return StepResult(
-            obs=np.split(res.obs, self._obs_split),
+            obs=[o.copy() for o in np.split(res.obs, self._obs_split)],
             reward=res.reward,
             success=res.success,
             collisions=res.collisions,

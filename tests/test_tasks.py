@@ -432,8 +432,10 @@ def test_all_rewards_run_on_all_tasks() -> None:
     ("task", "agents", "reward"),
     [
         ("simple", 1, "sparse"),
+        ("simple", 1, "dense"),
         ("spread", 2, "dense"),
         ("spread", 3, "sparse"),
+        ("spread", 4, "sparse"),
         ("speaker_listener", 2, "dense"),
         ("speaker_listener", 2, "sparse_offset"),
     ],
@@ -454,6 +456,9 @@ def test_direct_step_equals_the_pettingzoo_api(task: str, agents: int, reward: s
                 rng.uniform(-1.5, 1.5, spec.act_dim).astype(np.float32)
                 for spec in direct.spec.agents
             ]
+            if t == 3:  # signed zeros, huge and subnormal values
+                special = np.array([-0.0, 0.0, 1e30, -1e30, 1e-40, -1e-40], np.float32)
+                actions = [rng.choice(special, a.shape) for a in actions]
             if t % 2:  # the joint step (collection, evaluation) and the per-agent one
                 j = direct.step_joint(np.concatenate(actions))
                 x = StepResult(list(np.split(j.obs, np.cumsum(direct.spec.obs_dims)[:-1])), *j[1:])
@@ -462,6 +467,10 @@ def test_direct_step_equals_the_pettingzoo_api(task: str, agents: int, reward: s
             y = api.step(actions)
             for a, b in zip(x.obs, y.obs, strict=True):
                 np.testing.assert_array_equal(a, b)
+            for p, q in zip(direct.world.agents, api.world.agents, strict=True):
+                for field in ("p_pos", "p_vel", "c"):
+                    u, v = getattr(p.state, field), getattr(q.state, field)
+                    assert u.dtype == v.dtype and u.tobytes() == v.tobytes(), (field, t)
             assert (x.reward, x.success, x.collisions, x.truncated) == (
                 y.reward,
                 y.success,
@@ -488,3 +497,19 @@ def test_joint_step_refuses_bad_actions_and_names_the_agent() -> None:
         env.step([np.zeros(2, np.float32), np.zeros(2, np.float32)])
     res = env.step_joint(np.zeros(env.spec.joint_act_dim, np.float32))  # nothing was lost
     assert res.obs.shape == (env.spec.joint_obs_dim,) and res.obs.dtype == np.float32
+
+
+def test_joint_step_clips_actions_into_the_box() -> None:
+    """An out-of-range action moves the world exactly as its clipped version does."""
+    wild, tame = (make_task("speaker_listener", seed=3) for _ in range(2))
+    wild.reset(), tame.reset()
+    rng = np.random.default_rng(4)
+    low = np.concatenate([a.act_low for a in wild.spec.agents]).astype(np.float32)
+    high = np.concatenate([a.act_high for a in wild.spec.agents]).astype(np.float32)
+    for _ in range(5):
+        action = rng.uniform(-3, 3, wild.spec.joint_act_dim).astype(np.float32)
+        x, y = wild.step_joint(action), tame.step_joint(np.clip(action, low, high))
+        np.testing.assert_array_equal(x.obs, y.obs)
+        assert x[1:] == y[1:]
+    listener = wild.world.agents[1]
+    assert np.abs(listener.state.p_vel).max() > 0  # the steps did move it
