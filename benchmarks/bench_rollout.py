@@ -53,8 +53,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_learner import measure as measure_rounds  # noqa: E402
 
 from shared.networks import JointPolicy  # noqa: E402
-from shared.rollout import Collector, Transition, evaluate  # noqa: E402
-from shared.tasks import TASKS, TaskEnv, make_task  # noqa: E402
+from shared.rollout import Collector, evaluate  # noqa: E402
+from shared.tasks import TASKS, JointStep, TaskEnv, make_task  # noqa: E402
 
 HIDDEN = (400, 300)
 EPISODE_LEN = 20
@@ -75,42 +75,27 @@ class TorchPolicy:
         return torch.cat(parts, -1).numpy()
 
 
-class PerAgentCollector(Collector):
-    """The baseline collector: Collector.step with per-agent actions through `TaskEnv.step`."""
+class PerAgentEnv:
+    """The baseline's env: the joint step through per-agent actions (`TaskEnv.step`),
+    split from the joint action and joined back, so `Collector` and `evaluate` run
+    unchanged on it."""
 
-    def step(self, policy: Callable[[np.ndarray], np.ndarray]) -> Transition:
-        env, obs = self.env, self.obs
-        act = self.noisy(policy(obs[None])[0])
-        res = env.step(np.split(act, np.cumsum(env.spec.act_dims)[:-1]))
-        next_obs = np.concatenate(res.obs)
-        done = 1.0 if (res.truncated and self.time_limit_terminal) else 0.0
-        tr = Transition(
-            obs, act, res.reward, next_obs, done, res.success, res.collisions, res.truncated
-        )
-        self.obs = np.concatenate(env.reset()) if res.truncated else next_obs
-        return tr
+    def __init__(self, env: TaskEnv) -> None:
+        self.env, self.spec = env, env.spec
+        self.split = np.cumsum(env.spec.act_dims)[:-1]
 
+    def reset(self, seed: int | None = None) -> list[np.ndarray]:
+        return self.env.reset(seed)
 
-def per_agent_evaluate(policy: Callable, envs: list[TaskEnv], episodes: int) -> None:
-    """`evaluate`'s lockstep episodes with per-agent actions through `TaskEnv.step`."""
-    split = np.cumsum(envs[0].spec.act_dims)[:-1]
-    for start in range(0, episodes, len(envs)):
-        group = envs[: min(len(envs), episodes - start)]
-        obs = np.stack([np.concatenate(e.reset()) for e in group])
-        done = False
-        while not done:
-            acts = policy(obs)
-            for j, env in enumerate(group):
-                res = env.step(np.split(acts[j], split))
-                obs[j] = np.concatenate(res.obs)
-                done = res.truncated
+    def step_joint(self, action: np.ndarray) -> JointStep:
+        res = self.env.step(np.split(action, self.split))
+        obs = np.concatenate(res.obs)
+        return JointStep(obs, res.reward, res.success, res.collisions, res.truncated)
 
 
-def _envs(task: str, n: int, direct: bool) -> list[TaskEnv]:
-    envs = [make_task(task, 2, "sparse", EPISODE_LEN, seed=j, direct=direct) for j in range(n)]
-    for e in envs:
-        e.reset()
-    return envs
+def _env(task: str, seed: int, direct: bool, per_agent: bool) -> TaskEnv | PerAgentEnv:
+    env = make_task(task, 2, "sparse", EPISODE_LEN, seed=seed, direct=direct)
+    return PerAgentEnv(env) if per_agent else env
 
 
 def make_cases(task: str) -> dict[str, dict[str, Callable[[], None]]]:
@@ -127,11 +112,9 @@ def make_cases(task: str) -> dict[str, dict[str, Callable[[], None]]]:
         ("per_agent", True, torch_policy, True),
         ("baseline", False, torch_policy, True),
     ):
-        envs = _envs(task, EVAL_EPISODES, direct)
-        run_eval = per_agent_evaluate if per_agent else evaluate
-        cases["eval_point"][way] = lambda p=pol, e=envs, f=run_eval: f(p, e, EVAL_EPISODES)
-        env = make_task(task, 2, "sparse", EPISODE_LEN, seed=0, direct=direct)
-        col = (PerAgentCollector if per_agent else Collector)(env, NOISE_SIGMA, seed=0)
+        envs = [_env(task, j, direct, per_agent) for j in range(EVAL_EPISODES)]
+        cases["eval_point"][way] = lambda p=pol, e=envs: evaluate(p, e, EVAL_EPISODES)
+        col = Collector(_env(task, 0, direct, per_agent), NOISE_SIGMA, seed=0)
         cases["actor_episode"][way] = lambda p=pol, c=col: [c.step(p) for _ in range(EPISODE_LEN)]
     return cases
 
