@@ -113,6 +113,9 @@ class ServiceBase:
         return msg
 
     max_runs = 1  # the counter serves many runs at once; the other services one
+    # Actors and the evaluator work for one learner: its failure or loss ends their run.
+    # The learner is that learner; the counter serves many runs and outlives learners.
+    follows_learner = False
 
     def serves(self, run: str) -> bool:
         return run in self.active
@@ -175,7 +178,7 @@ class ServiceBase:
             self.active[run] = config
             self.assign = dict(msg["assign"])
             learner = self.assign.get("learner")
-            if self.max_runs == 1 and self.role != "learner" and isinstance(learner, str):
+            if self.follows_learner and isinstance(learner, str):
                 self.listen(keys.k_status(run, learner), "learner_status", run)
             try:
                 self.on_start(run, config, msg["assign"])
@@ -222,10 +225,9 @@ class ServiceBase:
     def on_peer_lost(self, role: str, peer: str) -> None:
         """A service's liveliness token vanished (it exited or was killed).
 
-        By default a service whose run's learner is gone gives the run up as failed:
-        without the learner no credits, weights or evaluation points can come. The
-        counter keeps its tables (it serves many runs and outlives learners)."""
-        if role == "learner" and self.max_runs == 1 and self.assign.get("learner") == peer:
+        A service that follows its run's learner gives the run up as failed when the
+        learner is gone: without it no credits, weights or evaluation points can come."""
+        if role == "learner" and self.follows_learner and self.assign.get("learner") == peer:
             run = self.run_id
             self.log.error("run %s: learner %s is gone; giving the run up", run, peer)
             self.on_stop(run, "learner lost")

@@ -101,8 +101,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return serve_api(args)
     import importlib
 
-    modules = {"evaluator": "services.actor.evaluator"}
-    module = importlib.import_module(modules.get(args.role, f"services.{args.role}.main"))
+    module = importlib.import_module(f"services.{args.role}.main")
     service_id = args.id or f"{args.role}-{socket.gethostname()}-{os.getpid()}"
     connect = args.connect or default_connect()
     service = module.make_service(service_id, connect, Path(args.data_dir))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -69,6 +70,13 @@ class JointPolicy:
         self.actors = [Actor(o, lo, hi, hidden) for o, lo, hi in zip(obs_dims, lows, highs)]
         self.bounds = [0, *np.cumsum(obs_dims).tolist()]
         self._refresh()
+
+    @classmethod
+    def for_task(cls, spec: Any, hidden: Sequence[int]) -> JointPolicy:
+        """The policy for a task's agents (`shared.tasks.TaskSpec`: its obs_dims and each
+        agent's action box), as actor and evaluator processes build it."""
+        agents = spec.agents
+        return cls(spec.obs_dims, [a.act_low for a in agents], [a.act_high for a in agents], hidden)
 
     def _refresh(self) -> None:
         """Copy each actor's layers as (W^T, b) and its box as (center, scale) for numpy.

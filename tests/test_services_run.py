@@ -113,7 +113,10 @@ def test_short_speaker_listener_cen_macb_run_is_exact(procs, bus, tmp_path, acto
 def test_counter_killed_mid_run_loses_no_count(procs, bus, tmp_path):
     data = start_cluster(procs, tmp_path, 1)
     wait_services(bus, 4)
-    config = make_config({**SMALL, "episodes": 60, "eval_every": 10})
+    # Long enough that the kill lands mid-run: the counter's stats come once a second, and
+    # with these small networks 60 episodes could be counted before the first look.
+    episodes = 200
+    config = make_config({**SMALL, "episodes": episodes, "eval_every": 10})
     watch = start_run(bus, config, actors=1)
     wait_for(
         lambda: watch.latest.get("counter", {}).get("counted_transitions", 0) >= 300,
@@ -121,17 +124,18 @@ def test_counter_killed_mid_run_loses_no_count(procs, bus, tmp_path):
         what="counting under way",
     )
     procs.kill("counter")  # SIGKILL by PID
+    assert watch.latest["counter"]["counted_transitions"] < episodes * 20, "killed too late"
     time.sleep(1.5)
     procs.start("counter2", "counter", "--id", "counter", "--data-dir", data)
     assert watch.wait(timeout=300) == "completed", watch.states
     wait_for(
-        lambda: watch.latest["counter"]["counted_transitions"] == 60 * 20,
+        lambda: watch.latest["counter"]["counted_transitions"] == episodes * 20,
         timeout=10,
         what="final counter stats after restart",
     )
     assert watch.latest["counter"]["gaps"] >= 0
     published = watch.states["actor0"]["final_seq"]
-    assert watch.latest["counter"]["counted_transitions"] == published == 1200
+    assert watch.latest["counter"]["counted_transitions"] == published == episodes * 20
     assert "restored run" in procs.log("counter2")
 
 

@@ -7,16 +7,16 @@ acted. Weights arrive on a callback that only keeps the newest message; the acto
 loads it between episodes, so it never works through a backlog of stale weights.
 
 Every batch stays in a resend queue until the learner (and, when counting, the
-counter) have acknowledged it; unacknowledged batches are resent after a second
-without progress. The learner's window of credits, and a bound on batches the
-counter has not acknowledged, hold the actor back when either falls behind or is
-down.
+counter) have acknowledged it, and is resent after a second without progress; the
+learner's window of credits and a bound on batches the counter has not acknowledged
+hold the actor back when either falls behind or is down (`shared.protocol.Sender`).
 """
 
 from __future__ import annotations
 
-import collections
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +27,9 @@ from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
 from shared.networks import JointPolicy
+from shared.protocol import Sender
 from shared.rollout import Collector, derive_seed
-from shared.tasks import make_task
+from shared.tasks import TaskEnv, make_task
 from shared.wire import encode
 
 MAX_UNCOUNTED_BATCHES = 8  # episodes in flight that the counter has not acknowledged
@@ -40,18 +41,27 @@ def episode_share(episodes: int, actors: int, rank: int) -> int:
     return episodes // actors + (1 if rank < episodes % actors else 0)
 
 
-def make_policy(config: TrainConfig, env) -> JointPolicy:
-    spec = env.spec
-    return JointPolicy(
-        spec.obs_dims,
-        [a.act_low for a in spec.agents],
-        [a.act_high for a in spec.agents],
-        config.hidden,
-    )
+@dataclass
+class ActorRun:
+    """Everything an actor holds for the run it serves."""
+
+    rank: int
+    env: TaskEnv
+    collector: Collector
+    policy: JointPolicy
+    todo: int  # episodes this actor runs
+    sender: Sender  # numbering, unacknowledged batches, resends, credit
+    pub: Callable[[bytes], None]
+    version: int = -1  # weights version acting now; -1 until the learner's first weights
+    done: int = 0
+    steps: int = 0
+    last_stats: float = 0.0
+    t0: float = field(default_factory=time.perf_counter)
 
 
 class ActorService(ServiceBase):
     role = "actor"
+    follows_learner = True
 
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         super().__init__(service_id, connect, data_dir)
@@ -60,7 +70,7 @@ class ActorService(ServiceBase):
         # Subscribed for the service's lifetime: the learner's first weights may be out
         # before this actor has handled the start message. The slot holds one message.
         self.bus.subscribe(keys.k_weights("*", "*"), self._on_weights)
-        self.s: dict[str, Any] = {}
+        self.st: ActorRun | None = None
 
     def _on_weights(self, key: str, payload: bytes) -> None:
         self._newest = (key, payload)  # overwrite: older versions are never looked at
@@ -72,143 +82,114 @@ class ActorService(ServiceBase):
         self.listen(keys.k_ack(run, "*"), "ack", run)
         env = make_task(config.task, config.agents, config.reward, config.episode_len)
         seed = derive_seed(config.seed, "actor", rank)
-        self.s = {
-            "rank": rank,
-            "env": env,
-            "collector": Collector(env, config.noise_sigma, seed, config.time_limit_terminal),
-            "policy": make_policy(config, env),
-            "version": -1,
-            "todo": episode_share(config.episodes, len(actors), rank),
-            "done": 0,
-            "seq": 0,
-            "unacked": collections.deque(),  # (seq, n, payload)
-            "learner": assign.get("learner"),
-            "counter": assign.get("counter"),
-            "counting": config.explore in ("dis-macb", "cen-macb"),
-            "acked_learner": 0,
-            "acked_counter": 0,
-            "window": 0,
-            "last_progress": time.monotonic(),
-            "resends": 0,
-            "pub": self.bus.publisher(keys.k_transitions(run, self.id)),
-            "t0": time.perf_counter(),
-            "steps": 0,
-            "last_stats": 0.0,
-        }
-        self.publish_status(run, "running", rank=rank, episodes=self.s["todo"])
+        learner, counter = assign.get("learner"), assign.get("counter")
+        counting = config.explore in ("dis-macb", "cen-macb")
+        self.st = ActorRun(
+            rank=rank,
+            env=env,
+            collector=Collector(env, config.noise_sigma, seed, config.time_limit_terminal),
+            policy=JointPolicy.for_task(env.spec, config.hidden),
+            todo=episode_share(config.episodes, len(actors), rank),
+            sender=Sender(
+                confirm=(learner, counter) if counting else (learner,),
+                credit_from=learner,
+                bounded=(counter,) if counting else (),
+                max_unconfirmed=MAX_UNCOUNTED_BATCHES,
+                resend_after_s=RESEND_AFTER_S,
+                last_progress=time.monotonic(),
+            ),
+            pub=self.bus.publisher(keys.k_transitions(run, self.id)),
+        )
+        self.publish_status(run, "running", rank=rank, episodes=self.st.todo)
 
     def on_stop(self, run: str, reason: str) -> None:
-        self.s = {}
+        self.st = None
 
     # ------------------------------------------------------------ inbound
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag != "ack":
             return
         msg = self.decode_for_run(key, payload, "ack")
-        if msg is None:
+        if msg is None or self.st is None:
             return
-        s = self.s
-        seq = msg["acked"].get(self.id)
-        if not isinstance(seq, int):
-            return
-        if msg["service"] == s["learner"]:
-            if seq > s["acked_learner"]:
-                s["last_progress"] = time.monotonic()
-            s["acked_learner"] = max(s["acked_learner"], seq)
-            s["window"] = int(msg["window"])
-        elif msg["service"] == s["counter"]:
-            if seq > s["acked_counter"]:
-                s["last_progress"] = time.monotonic()
-            s["acked_counter"] = max(s["acked_counter"], seq)
-        fully = min(s["acked_learner"], s["acked_counter"] if s["counting"] else 1 << 62)
-        while s["unacked"] and s["unacked"][0][0] + s["unacked"][0][1] <= fully:
-            s["unacked"].popleft()
+        self.st.sender.on_ack(
+            msg["service"], msg["acked"].get(self.id), time.monotonic(), window=msg["window"]
+        )
 
     def load_newest_weights(self) -> None:
-        newest = self._newest
-        if newest is None:
+        newest, st = self._newest, self.st
+        if newest is None or st is None:
             return
         key, payload = newest
         if keys.run_of(key) != self.run_id:
             return
         msg = self.decode_for_run(key, payload, "weights")
-        if msg is not None and msg["version"] > self.s["version"]:
-            self.s["policy"].load(msg["actors"])
-            self.s["version"] = msg["version"]
+        if msg is not None and msg["version"] > st.version:
+            st.policy.load(msg["actors"])
+            st.version = msg["version"]
 
     # ------------------------------------------------------------ work
-    def can_send(self) -> bool:
-        s, n = self.s, self.config.episode_len
-        if s["seq"] + n > s["acked_learner"] + s["window"]:
-            return False  # no credit: the learner is behind
-        uncounted = (s["seq"] - s["acked_counter"]) // n if s["counting"] else 0
-        return uncounted < MAX_UNCOUNTED_BATCHES
-
     def tick(self) -> bool:
-        if not self.s:
+        st = self.st
+        if st is None:
             return False
-        s = self.s
         self.load_newest_weights()
-        if s["version"] < 0:
+        if st.version < 0:
             return False  # wait for the learner's initial weights
         now = time.monotonic()
-        if s["unacked"] and now - s["last_progress"] > RESEND_AFTER_S:
-            for _, _, payload in s["unacked"]:
-                s["pub"](payload)
-                s["resends"] += 1
-            s["last_progress"] = now
-        if now - s["last_stats"] > 1.0:
-            s["last_stats"] = now
+        for payload in st.sender.due(now):
+            st.pub(payload)
+        if now - st.last_stats > 1.0:
+            st.last_stats = now
             self.publish_metrics(self.run_id, self.stats())
-        if s["done"] < s["todo"]:
-            if self.can_send():
+        if st.done < st.todo:
+            if st.sender.can_send(self.config.episode_len):
                 self.run_episode()
                 return True
             return False
-        if not s["unacked"]:
+        if st.sender.settled:
             run = self.run_id
             self.publish_metrics(run, self.stats())
-            self.publish_status(run, "completed", final_seq=s["seq"], **self.stats())
-            self.log.info("run %s: %d episodes published", run, s["done"])
-            self.s = {}
+            self.publish_status(run, "completed", final_seq=st.sender.seq, **self.stats())
+            self.log.info("run %s: %d episodes published", run, st.done)
+            self.st = None
             self.free(run)
         return False
 
     def run_episode(self) -> None:
-        s = self.s
-        collector, policy = s["collector"], s["policy"]
+        st = self.st
+        assert st is not None
+        collector, policy = st.collector, st.policy
         rows = [collector.step(policy) for _ in range(self.config.episode_len)]
         payload = encode(
             "transitions",
             self.run_id,
             actor=self.id,
-            seq=s["seq"],
+            seq=st.sender.seq,
             obs=np.stack([t.obs for t in rows]),
             act=np.stack([t.act for t in rows]),
             rew=np.array([t.rew for t in rows], np.float32),
             next_obs=np.stack([t.next_obs for t in rows]),
             done=np.array([t.done for t in rows], np.float32),
             collisions=np.array([t.collisions for t in rows], np.int32),
-            policy_version=s["version"],
+            policy_version=st.version,
         )
-        if not s["unacked"]:
-            s["last_progress"] = time.monotonic()
-        s["unacked"].append((s["seq"], len(rows), payload))
-        s["pub"](payload)
-        s["seq"] += len(rows)
-        s["done"] += 1
-        s["steps"] += len(rows)
+        st.sender.send(len(rows), payload, time.monotonic())
+        st.pub(payload)
+        st.done += 1
+        st.steps += len(rows)
 
     def stats(self) -> dict[str, Any]:
-        s = self.s
-        wall = time.perf_counter() - s["t0"]
+        st = self.st
+        assert st is not None
+        wall = time.perf_counter() - st.t0
         return {
-            "rank": s["rank"],
-            "episodes": s["done"],
-            "published": s["seq"],
-            "policy_version": s["version"],
-            "resends": s["resends"],
-            "steps_per_sec": s["steps"] / wall if wall > 0 else 0.0,
+            "rank": st.rank,
+            "episodes": st.done,
+            "published": st.sender.seq,
+            "policy_version": st.version,
+            "resends": st.sender.resends,
+            "steps_per_sec": st.steps / wall if wall > 0 else 0.0,
             "rejects_total": sum(self.rejects.values()),
         }
 

@@ -72,6 +72,7 @@ from shared.bus import k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.config import TrainConfig, make_config
 from shared.counting import CountTable
 from shared.exploration import CountExploration
+from shared.protocol import ReceiveCursor, Verdict
 from shared.tasks import task_spec
 from shared.trainer import build_exploration
 from shared.wire import WireError, check_dims, encode
@@ -108,10 +109,9 @@ class RunState:
     act_dim: int
     path: Path
     wal: WriteAheadLog
-    expected: dict[str, int] = field(default_factory=dict)
+    # Next expected number per actor, and the duplicate rows / gaps seen (shared.protocol).
+    cursor: ReceiveCursor = field(default_factory=ReceiveCursor)
     counted: int = 0
-    duplicates: int = 0
-    gaps: int = 0
     run_rejects: int = 0
     queries: int = 0
     uncounted_rows_queried: int = 0
@@ -317,13 +317,13 @@ class CounterService(ServiceBase):
             "format": SNAPSHOT_FORMAT,
             "run": run,
             "time": time.time(),
-            "expected": dict(st.expected),
+            "expected": st.cursor.positions(),
             "totals": [t.total for t in st.explorer.tables],
             "key_bytes": [t.key_bytes for t in st.explorer.tables],
             "stats": {
                 "counted": st.counted,
-                "duplicates": st.duplicates,
-                "gaps": st.gaps,
+                "duplicates": st.cursor.duplicate_rows,
+                "gaps": st.cursor.gaps,
                 "run_rejects": st.run_rejects,
                 "queries": st.queries,
                 "uncounted_rows_queried": st.uncounted_rows_queried,
@@ -352,11 +352,11 @@ class CounterService(ServiceBase):
                 if keys.ndim != 2 or keys.shape[1] != table.key_bytes:
                     raise ValueError(f"snapshot table {t} has keys {keys.shape}")
                 tables[t] = CountTable.from_arrays(keys, counts, meta["totals"][t])
-        st.expected = {str(a): int(s) for a, s in meta["expected"].items()}
         stats = meta["stats"]
+        st.cursor = ReceiveCursor({str(a): int(s) for a, s in meta["expected"].items()})
+        st.cursor.duplicate_rows = int(stats["duplicates"])
+        st.cursor.gaps = int(stats["gaps"])
         st.counted = int(stats["counted"])
-        st.duplicates = int(stats["duplicates"])
-        st.gaps = int(stats["gaps"])
         st.run_rejects = int(stats.get("run_rejects", 0))
         st.queries = int(stats.get("queries", 0))
         st.uncounted_rows_queried = int(stats.get("uncounted_rows_queried", 0))
@@ -365,11 +365,14 @@ class CounterService(ServiceBase):
     def _replay(self, run: str, st: RunState, records: list[WalRecord]) -> int:
         """Apply logged batches the snapshot does not hold yet (dedup by seq)."""
         replayed = 0
+        # A scratch cursor: replay must not add to the run's duplicate/gap tallies.
+        cursor = ReceiveCursor(st.cursor.positions())
         for rec in records:
-            exp = st.expected.get(rec.actor, 0)
-            if rec.seq + rec.n <= exp:
+            exp = cursor.expected(rec.actor)
+            d = cursor.peek(rec.actor, rec.seq, rec.n)
+            if d.verdict is Verdict.DUPLICATE:
                 continue  # already in the snapshot (killed between snapshot and truncate)
-            if rec.seq > exp:
+            if d.verdict is Verdict.GAP:
                 self.log.error(
                     "run %s: WAL record %s@%d is past expected %d: skipped",
                     run,
@@ -381,12 +384,14 @@ class CounterService(ServiceBase):
             if len(rec.keys) != len(st.explorer.tables):
                 have, want = len(rec.keys), len(st.explorer.tables)
                 raise ValueError(f"WAL record has {have} tables, run has {want}")
-            skip = exp - rec.seq
+            cursor.take(rec.actor, rec.seq, rec.n)
             for table, keys in zip(st.explorer.tables, rec.keys):
-                table.increment(keys[skip:])
-            st.expected[rec.actor] = rec.seq + rec.n
-            st.counted += rec.n - skip
+                table.increment(keys[d.skip :])
+            st.counted += d.taken
             replayed += 1
+        tallies = st.cursor.duplicate_rows, st.cursor.gaps
+        st.cursor = cursor
+        st.cursor.duplicate_rows, st.cursor.gaps = tallies
         return replayed
 
     # ------------------------------------------------------------ ingestion
@@ -467,36 +472,30 @@ class CounterService(ServiceBase):
         self, run: str, st: RunState, batches: list[tuple[str, int, np.ndarray, np.ndarray]]
     ) -> None:
         """Apply the exactly-once rule batch by batch, in arrival order; then log, count
-        and acknowledge what was taken. What one actor has taken in a burst is one
-        contiguous range (each taken batch starts where the last ended): one record."""
-        expected: dict[str, int] = {}
+        and acknowledge what was taken. The burst is decided on a staging copy of the
+        run's cursor, which replaces it only once the taken rows are logged. What one
+        actor has taken in a burst is one contiguous range (each taken batch starts
+        where the last ended): one record."""
+        staged = st.cursor.copy()
         taken: dict[str, tuple[int, list[np.ndarray], list[np.ndarray]]] = {}
-        duplicates = gaps = 0
         for actor, seq, obs, act in batches:
-            exp = expected.get(actor)
-            if exp is None:
-                exp = st.expected.get(actor, 0)
-            n = len(obs)
-            if seq + n <= exp:
-                duplicates += n
-            elif seq > exp:
-                gaps += 1
-            else:
-                skip = exp - seq
-                if skip:
-                    duplicates += skip
-                    obs, act = obs[skip:], act[skip:]
-                if actor not in taken:
-                    taken[actor] = (exp, [], [])
-                taken[actor][1].append(obs)
-                taken[actor][2].append(act)
-                exp = seq + n
-            expected[actor] = exp
-        st.duplicates += duplicates
-        st.gaps += gaps
-        if taken:
+            start = staged.expected(actor)
+            d = staged.take(actor, seq, len(obs))
+            if not d.took:
+                continue
+            if d.skip:
+                obs, act = obs[d.skip :], act[d.skip :]
+            if actor not in taken:
+                taken[actor] = (start, [], [])
+            taken[actor][1].append(obs)
+            taken[actor][2].append(act)
+        if not taken:
+            with self._lock:
+                st.cursor = staged  # only the duplicate/gap tallies changed
+        else:
             segments = [
-                (actor, start, expected[actor] - start) for actor, (start, _, _) in taken.items()
+                (actor, start, staged.expected(actor) - start)
+                for actor, (start, _, _) in taken.items()
             ]
             obs_all = [o for _, obs_parts, _ in taken.values() for o in obs_parts]
             act_all = [a for _, _, act_parts in taken.values() for a in act_parts]
@@ -514,15 +513,14 @@ class CounterService(ServiceBase):
             with self._lock:
                 for table, k in zip(st.explorer.tables, keys):
                     table.increment(k)
-                for actor, start, rows in segments:
-                    st.expected[actor] = start + rows
+                st.cursor = staged
                 st.counted += pos
             st.dirty = True
         self._ack(run, st)
 
     def _ack(self, run: str, st: RunState) -> None:
         with self._lock:
-            acked = dict(st.expected)
+            acked = st.cursor.positions()
         ack = encode("ack", run, service=self.id, acked=acked, window=0)
         self.bus.put(k_ack(run, self.id), ack)
 
@@ -615,7 +613,7 @@ class CounterService(ServiceBase):
                     st.rate = (st.counted - st.rate_counted) / dt
                 st.rate_t, st.rate_counted = now, st.counted
                 self.publish_metrics(run, self._run_stats(st), source="counter")
-                if st.expected:
+                if st.cursor.positions():
                     self._ack(run, st)  # repeated: a restarted actor or a lost ack catches up
         if now >= self._next_snapshot:
             self._take_burst()  # not kept waiting for their acks while the snapshot runs
@@ -637,8 +635,8 @@ class CounterService(ServiceBase):
                 "table_size": int(base["table_size"]),
                 "count1_pct": float(base["count1_pct"]),
                 "counted_transitions": st.counted,
-                "duplicates": st.duplicates,
-                "gaps": st.gaps,
+                "duplicates": st.cursor.duplicate_rows,
+                "gaps": st.cursor.gaps,
                 "rejects_total": self._rejects_total(),
                 "run_rejects": st.run_rejects,
                 "memory_bytes": int(memory),
@@ -649,7 +647,7 @@ class CounterService(ServiceBase):
                 "uncounted_rows_queried": st.uncounted_rows_queried,
                 "wal_records": st.wal.records,
                 "snapshots": st.snapshots,
-                "actors": len(st.expected),
+                "actors": len(st.cursor.positions()),
             }
         return data
 
@@ -670,7 +668,7 @@ class CounterService(ServiceBase):
         for run, st in runs:
             stats[run] = self._run_stats(st)
             with self._lock:
-                stats[run]["acked"] = dict(st.expected)
+                stats[run]["acked"] = st.cursor.positions()
         out["runs"] = stats
         out["ready"] = self._ready
         out["snapshot_s"] = self.snapshot_s

@@ -1,49 +1,21 @@
 """The learner service: replay, updates at the thesis's replay ratio, weights, checkpoints.
 
-Transitions arrive from actors, numbered per actor. A batch joins the replay
-buffer once the counter has acknowledged it (so every sampled transition has been
-counted, n >= 1) and only once (duplicates and gaps are handled by sequence
-number). The learner does exactly one update per ingested transition beyond the
-first `learning_starts`; it grants actors a window of credits that closes while it
-is behind, so actors wait rather than let the ratio drift.
+A batch joins the replay buffer once the counter has acknowledged it (so every sampled
+transition has been counted, n >= 1) and only once (`shared.protocol.ReceiveCursor`).
+Exactly one update per ingested transition beyond `learning_starts`; actors get a
+window of credits that closes while the learner is behind, so they wait rather than
+let the ratio drift.
 
-Bonuses are asked of the counter at sample time, answered before the updates run:
-each tick samples the minibatches of all the updates it will do (up to
-UPDATES_PER_TICK, never past an episode boundary) and prices their rows in one query.
-The buffer cannot change within a tick (inbound messages are handled between ticks),
-so these are the minibatches per-update sampling would draw from the same generator,
-and the counts are those the counter holds when the tick starts: per-update queries
-would see at most the batches the counter takes during the tick, a timing the
-cluster never fixed anyway (the counter runs ahead of the learner's buffer by up to
-a few episodes). One round trip per tick instead of per update: a 2,000-row query
-took 8-13 ms p50 in bench_e2e's cluster (~1.9 ms of it the counter's work), i.e.
-0.4-0.7 ms per update, where per-update queries cost 1.75-2 ms each (~18% of the
-learner's time). (An overlapped variant, asking for batch k+1 while update k ran,
-learned visibly worse on sparse `simple` in a small sample, 0 of 4 against 2 of 3
-reaching 80% by episode 400, for reasons not understood; this one overlaps nothing.)
+Bonuses are priced at sample time, one query per tick: a tick samples the minibatches
+of all the updates it will do (up to UPDATES_PER_TICK, never past an episode boundary)
+and asks the counter for their rows at once. Inbound messages are handled only
+between ticks, so these are the minibatches per-update sampling would draw. One round
+trip per tick instead of per update (docs/performance.md, "Learner service").
 
-Tried and left out (docs/performance.md, section "Session 3"): splitting a tick's
-query in three so the first update waits for 100 rows only (the wait is the round
-trip, 8-13 ms whatever the size: no gain); asking for the next tick's minibatches a
-tick ahead, which needs the inbox handled before each tick (the loop ticks after
-every message, so each tick used to start with exactly one episode owed). That cut
-the learner's wait from ~0.6 to ~0.2 ms per update but not its time, likely because
-the actor's episodes then ran during the learner's two-thread updates instead of in
-its waits.
-
-Weights go out at every episode boundary of training (when the updates owed for
-that episode are done), marked `eval_point` every `eval_every` episodes, which is
-what the evaluator evaluates.
-
-While the evaluator evaluates weights this learner sent (from the send until its
-metric row for that point arrives: `EvaluationsInFlight`), updates are marked
-contended: with `learner_lanes: auto` a tuner of their own picks their threads. On
-a 2-core machine the evaluation (~20 ms of episodes) starts with every tick, and an
-update on two OpenMP threads then waits for the thread the evaluator preempted: the
-first update of a tick took 17-28 ms against 5-8 ms for the rest (per-update trace of
-bench_e2e's cluster); on one thread it takes 11-14 ms. The cluster ran a median 5%
-faster than without this in 10 alternated pairs (7% over 19 pairs, counting 9 of a
-version that forced one thread instead of tuning; docs/performance.md, "Session 4").
+Weights go out at every episode boundary (once its updates are done), marked
+`eval_point` every `eval_every` episodes. While the evaluator evaluates weights this
+learner sent (`EvaluationsInFlight`), updates are marked contended so the thread tuner
+can pick what is fastest beside it.
 """
 
 from __future__ import annotations
@@ -51,8 +23,10 @@ from __future__ import annotations
 import collections
 import json
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -61,9 +35,10 @@ from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
 from shared.networks import actor_weights
+from shared.protocol import AckTracker, ReceiveCursor
 from shared.replay import ReplayBuffer
 from shared.rollout import derive_seed
-from shared.tasks import task_spec
+from shared.tasks import TaskSpec, task_spec
 from shared.trainer import build_learner
 from shared.wire import WireError, check_dims, decode, encode
 
@@ -163,12 +138,69 @@ def _table_stats(raw: Any) -> dict[str, float] | None:
     return {k: raw[k] for k in names}
 
 
+class Boundary(NamedTuple):
+    """An ingested episode's end: weights go out once `updates` updates are done."""
+
+    episode: int
+    updates: int
+    env_steps: int
+    collisions_cum: int
+
+
+@dataclass
+class LearnerRun:
+    """Everything the learner holds for the run it serves."""
+
+    config: TrainConfig
+    spec: TaskSpec
+    learner: Any  # MADDPG | BatchedMADDPG
+    buffer: ReplayBuffer
+    rng: np.random.Generator
+    actors: list[str]
+    counter: str | None
+    bonus: BonusClient
+    evaluations: EvaluationsInFlight
+    weights_pub: Callable[[bytes], None]
+    eval_pub: Callable[[bytes], None]
+    ack_pub: Callable[[bytes], None]
+    received: ReceiveCursor  # what has been taken from each actor (whole episodes only)
+    counted: AckTracker  # how far the counter has acknowledged each actor
+    held: dict[str, collections.deque[dict[str, Any]]]  # received, not yet counted
+    final: dict[str, int] = field(default_factory=dict)  # actor -> transitions it published
+    ingested: int = 0
+    episodes: int = 0
+    collisions_cum: int = 0
+    boundaries: collections.deque[Boundary] = field(default_factory=collections.deque)
+    version: int = 0
+    lags: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=200))
+    window_open: bool = True
+    last_ack: float = 0.0
+    last_stats: float = 0.0
+    last_ckpt: float = field(default_factory=time.monotonic)
+    t0: float = field(default_factory=time.perf_counter)
+    bonus_means: collections.deque[float] = field(
+        default_factory=lambda: collections.deque(maxlen=100)
+    )
+    # Wall time by phase (s): where the learner's time per update goes.
+    time: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_PHASES, 0.0))
+    contended_updates: int = 0
+
+    @property
+    def counting(self) -> bool:
+        return self.config.explore in ("dis-macb", "cen-macb")
+
+    @property
+    def owed_total(self) -> int:
+        """Updates the replay ratio asks for so far: one per transition after the warm-up."""
+        return max(0, self.ingested - self.config.learning_starts)
+
+
 class LearnerService(ServiceBase):
     role = "learner"
 
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         super().__init__(service_id, connect, data_dir)
-        self.r: dict[str, Any] = {}
+        self.st: LearnerRun | None = None
 
     # ------------------------------------------------------------ run lifecycle
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
@@ -184,52 +216,36 @@ class LearnerService(ServiceBase):
         )
         spec = task_spec(config.task, config.agents, config.episode_len)
         actors = list(assign["actors"])
-        learner = build_learner(config, spec)
-        self.r = {
-            "spec": spec,
-            "learner": learner,
-            "buffer": ReplayBuffer(
+        self.st = LearnerRun(
+            config=config,
+            spec=spec,
+            learner=build_learner(config, spec),
+            buffer=ReplayBuffer(
                 min(config.buffer_size, config.episodes * config.episode_len),
                 spec.joint_obs_dim,
                 spec.joint_act_dim,
             ),
-            "rng": np.random.default_rng(derive_seed(config.seed, "sampler")),
-            "actors": actors,
-            "counter": assign.get("counter"),
-            "expected": dict.fromkeys(actors, 0),  # next seq taken from each actor
-            "counter_acked": dict.fromkeys(actors, 0),
-            "held": {a: collections.deque() for a in actors},  # received, not yet counted
-            "final": {},  # actor -> number of transitions it published in all
-            "ingested": 0,
-            "episodes": 0,
-            "collisions_cum": 0,
-            "boundaries": collections.deque(),  # (episode, updates target)
-            "version": 0,
-            "lags": collections.deque(maxlen=200),
-            "window_open": True,
-            "last_ack": 0.0,
-            "last_stats": 0.0,
-            "last_ckpt": time.monotonic(),
-            "t0": time.perf_counter(),
-            "bonus": BonusClient(self, run, config.explore, config.beta, spec.n_agents),
-            "weights_pub": self.bus.publisher(keys.k_weights(run, "latest")),
-            "eval_pub": self.bus.publisher(keys.k_weights(run, "eval")),
-            "ack_pub": self.bus.publisher(keys.k_ack(run, self.id)),
-            "bonus_means": collections.deque(maxlen=100),
-            # Wall time by phase (s): where the learner's time per update goes.
-            "time": dict.fromkeys(TIME_PHASES, 0.0),
-            "evaluations": evaluations,
-            "contended_updates": 0,
-        }
+            rng=np.random.default_rng(derive_seed(config.seed, "sampler")),
+            actors=actors,
+            counter=assign.get("counter"),
+            bonus=BonusClient(self, run, config.explore, config.beta, spec.n_agents),
+            evaluations=evaluations,
+            weights_pub=self.bus.publisher(keys.k_weights(run, "latest")),
+            eval_pub=self.bus.publisher(keys.k_weights(run, "eval")),
+            ack_pub=self.bus.publisher(keys.k_ack(run, self.id)),
+            received=ReceiveCursor(actors=actors, partial=False),
+            counted=AckTracker(actors),
+            held={a: collections.deque() for a in actors},
+        )
         self.publish_weights(eval_point=-1)  # version 0: every actor starts from these
         self.publish_status(run, "running", actors=actors)
 
     def on_stop(self, run: str, reason: str) -> None:
         self.checkpoint()
-        self.r = {}
+        self.st = None
 
     def on_shutdown(self) -> None:
-        if self.r:
+        if self.st is not None:
             self.checkpoint()
 
     # ------------------------------------------------------------ inbound
@@ -238,8 +254,8 @@ class LearnerService(ServiceBase):
         try:
             self._handle(tag, key, payload)
         finally:
-            if self.r:
-                self.r["time"]["inbound"] += time.perf_counter() - t0
+            if self.st is not None:
+                self.st.time["inbound"] += time.perf_counter() - t0
 
     def _handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag == "reject":  # found malformed on another thread (on_eval_row)
@@ -250,17 +266,16 @@ class LearnerService(ServiceBase):
                 self.on_transitions(key, msg)
         elif tag == "ack":
             msg = self.decode_for_run(key, payload, "ack")
-            if msg is not None and msg["service"] == self.r["counter"]:
+            if msg is not None and self.st is not None and msg["service"] == self.st.counter:
                 for actor, seq in msg["acked"].items():
-                    if actor in self.r["counter_acked"] and isinstance(seq, int):
-                        acked = self.r["counter_acked"]
-                        acked[actor] = max(acked[actor], seq)
+                    self.st.counted.ack(actor, seq)
                 self.release_counted()
         elif tag == "status":
             msg = self.decode_for_run(key, payload, "status")
-            if msg is not None and msg["service"] in self.r["actors"]:
+            st = self.st
+            if msg is not None and st is not None and msg["service"] in st.actors:
                 if msg["state"] == "completed":
-                    self.r["final"][msg["service"]] = int(msg["detail"].get("final_seq", 0))
+                    st.final[msg["service"]] = int(msg["detail"].get("final_seq", 0))
                 elif msg["state"] == "failed":
                     self.fail(f"actor {msg['service']} failed: {msg['detail']}")
 
@@ -280,72 +295,68 @@ class LearnerService(ServiceBase):
         evaluations.reported(point)
 
     def on_transitions(self, key: str, msg: dict[str, Any]) -> None:
-        r, cfg = self.r, self.config
+        st = self.st
+        assert st is not None
         actor = msg["actor"]
-        if actor not in r["expected"]:
+        if not st.received.knows(actor):
             self.reject(key, f"unknown actor: {actor}")
             return
-        spec = r["spec"]
-        check_dims(msg, spec.joint_obs_dim, spec.joint_act_dim)
+        check_dims(msg, st.spec.joint_obs_dim, st.spec.joint_act_dim)
         n = len(msg["rew"])
-        if n != cfg.episode_len:
-            raise WireError(f"transitions: a batch is one episode ({cfg.episode_len}), got {n}")
-        seq, expected = msg["seq"], r["expected"][actor]
-        if seq + n <= expected:
-            self.send_ack()  # a resend: tell the actor again where we are
-            return
-        if seq != expected:
-            self.send_ack()
-            return  # a gap: the actor resends from our ack
-        r["expected"][actor] = seq + n
-        r["held"][actor].append(msg)
-        self.release_counted()
+        if n != st.config.episode_len:
+            raise WireError(
+                f"transitions: a batch is one episode ({st.config.episode_len}), got {n}"
+            )
+        # A duplicate (a resend) or a gap is not taken; either way the ack tells the
+        # actor again where we are, and it resends from there.
+        if st.received.take(actor, msg["seq"], n).took:
+            st.held[actor].append(msg)
+            self.release_counted()
         self.send_ack()
 
     def release_counted(self) -> None:
         """Move batches the counter has counted (or all, with no counting) into replay."""
-        r, cfg = self.r, self.config
-        counting = cfg.explore in ("dis-macb", "cen-macb")
-        for actor, held in r["held"].items():
+        st = self.st
+        assert st is not None
+        for actor, held in st.held.items():
             while held and (
-                not counting or held[0]["seq"] + len(held[0]["rew"]) <= r["counter_acked"][actor]
+                not st.counting or st.counted.covers(actor, held[0]["seq"], len(held[0]["rew"]))
             ):
                 self.ingest(held.popleft())
 
     def ingest(self, msg: dict[str, Any]) -> None:
-        r, cfg = self.r, self.config
-        r["buffer"].add(msg["obs"], msg["act"], msg["rew"], msg["next_obs"], msg["done"])
-        r["ingested"] += len(msg["rew"])
-        r["episodes"] += 1
-        r["collisions_cum"] += int(msg["collisions"].sum())
-        r["lags"].append(r["version"] - msg["policy_version"])
-        target = max(0, r["ingested"] - cfg.learning_starts)
-        r["boundaries"].append((r["episodes"], target, r["ingested"], r["collisions_cum"]))
+        st = self.st
+        assert st is not None
+        st.buffer.add(msg["obs"], msg["act"], msg["rew"], msg["next_obs"], msg["done"])
+        st.ingested += len(msg["rew"])
+        st.episodes += 1
+        st.collisions_cum += int(msg["collisions"].sum())
+        st.lags.append(st.version - msg["policy_version"])
+        st.boundaries.append(Boundary(st.episodes, st.owed_total, st.ingested, st.collisions_cum))
 
     # ------------------------------------------------------------ work
     def tick(self) -> bool:
-        if not self.r:
+        st = self.st
+        if st is None:
             return False
-        r, cfg = self.r, self.config
-        learner, buffer = r["learner"], r["buffer"]
-        owed = max(0, r["ingested"] - cfg.learning_starts) - learner.updates
-        next_boundary = r["boundaries"][0][1] if r["boundaries"] else None
+        cfg, learner = st.config, st.learner
+        owed = st.owed_total - learner.updates
         todo = min(owed, UPDATES_PER_TICK)
-        if next_boundary is not None:
-            todo = min(todo, max(0, next_boundary - learner.updates))
-        spent = r["time"]
+        if st.boundaries:
+            todo = min(todo, max(0, st.boundaries[0].updates - learner.updates))
+        spent = st.time
         t0 = time.perf_counter()
-        batches = [buffer.sample(cfg.batch_size, r["rng"]) for _ in range(todo)]
+        batches = [st.buffer.sample(cfg.batch_size, st.rng) for _ in range(todo)]
         spent["sample"] += time.perf_counter() - t0
-        r["bonus"].fresh = False
-        bonuses = r["bonus"].bonus_for(batches) if batches else []
+        st.bonus.fresh = False
+        bonuses = st.bonus.bonus_for(batches) if batches else []
         if bonuses is None:  # counter silent (restarting?): draw again on the next tick
             batches, bonuses = [], []
         t0 = time.perf_counter()
-        evaluating = r["evaluations"].busy
+        evaluating = st.evaluations.busy
         for batch, bonus in zip(batches, bonuses, strict=True):
             contended = evaluating()
-            r["contended_updates"] += contended
+            st.contended_updates += contended
             learner.update(
                 batch.obs,
                 batch.act,
@@ -354,72 +365,74 @@ class LearnerService(ServiceBase):
                 batch.done,
                 contended=contended,
             )
-            r["bonus_means"].append(float(bonus.mean()))
+            st.bonus_means.append(float(bonus.mean()))
             owed -= 1
         t1 = time.perf_counter()
         spent["update"] += t1 - t0
         self.pass_boundaries()
         spent["publish"] += time.perf_counter() - t1
         now = time.monotonic()
-        window_open = owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(r["actors"])
-        if window_open != r["window_open"] or now - r["last_ack"] > 0.5:
-            r["window_open"] = window_open
+        window_open = owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(st.actors)
+        if window_open != st.window_open or now - st.last_ack > 0.5:
+            st.window_open = window_open
             self.send_ack()
-        if now - r["last_stats"] > 1.0:
-            r["last_stats"] = now
+        if now - st.last_stats > 1.0:
+            st.last_stats = now
             self.publish_metrics(self.run_id, self.stats(), source="learner")
-        if now - r["last_ckpt"] > CHECKPOINT_EVERY_S:
+        if now - st.last_ckpt > CHECKPOINT_EVERY_S:
             self.checkpoint()
         self.maybe_finish()
-        return owed > 0 and bool(self.r)
+        return owed > 0 and self.st is not None
 
     def pass_boundaries(self) -> None:
         """Publish weights at each episode boundary whose updates are done."""
-        r, cfg = self.r, self.config
-        while r["boundaries"] and r["learner"].updates >= r["boundaries"][0][1]:
-            episode, _, env_steps, collisions = r["boundaries"].popleft()
-            is_eval = episode % cfg.eval_every == 0 or episode == cfg.episodes
+        st = self.st
+        assert st is not None
+        while st.boundaries and st.learner.updates >= st.boundaries[0].updates:
+            b = st.boundaries.popleft()
+            is_eval = b.episode % st.config.eval_every == 0 or b.episode == st.config.episodes
             self.publish_weights(
-                eval_point=episode if is_eval else -1,
-                episode=episode,
-                env_steps=env_steps,
-                collisions=collisions,
+                eval_point=b.episode if is_eval else -1,
+                episode=b.episode,
+                env_steps=b.env_steps,
+                collisions=b.collisions_cum,
             )
 
     def publish_weights(
         self, eval_point: int, episode: int = 0, env_steps: int = 0, collisions: int = 0
     ) -> None:
-        r = self.r
+        st = self.st
+        assert st is not None
         if episode:  # version 0 is the initial weights; each boundary makes a new one
-            r["version"] += 1
+            st.version += 1
         payload = encode(
             "weights",
             self.run_id,
-            version=r["version"],
-            updates=r["learner"].updates,
+            version=st.version,
+            updates=st.learner.updates,
             env_steps=env_steps,
             episodes=episode,
             eval_point=eval_point,
             collisions_cum=collisions,
-            actors=actor_weights(r["learner"].actors),
+            actors=actor_weights(st.learner.actors),
             info={**self.stats(), "counter": self.counter_stats() if eval_point >= 0 else {}},
         )
         if eval_point >= 0:
-            r["eval_pub"](payload)
-            r["evaluations"].sent(eval_point)
+            st.eval_pub(payload)
+            st.evaluations.sent(eval_point)
         else:
-            r["weights_pub"](payload)
+            st.weights_pub(payload)
 
     def counter_stats(self) -> dict[str, Any]:
         """The counter's stats for this run now (table size, count-1 %, counted): from the
         reply to this tick's bonus query when there was one, else by asking the counter."""
-        bonus = self.r["bonus"]
-        if bonus.tables is not None and bonus.fresh:
-            return dict(bonus.tables)
-        counter = self.r.get("counter")
-        if not counter:
+        st = self.st
+        assert st is not None
+        if st.bonus.tables is not None and st.bonus.fresh:
+            return dict(st.bonus.tables)
+        if not st.counter:
             return {}
-        for raw in self.bus.get(keys.k_info("counter", counter), timeout=1.0):
+        for raw in self.bus.get(keys.k_info("counter", st.counter), timeout=1.0):
             try:
                 return dict(json.loads(raw).get("runs", {}).get(self.run_id, {}))
             except (ValueError, AttributeError, TypeError):
@@ -427,58 +440,67 @@ class LearnerService(ServiceBase):
         return {}
 
     def send_ack(self) -> None:
-        r = self.r
-        r["last_ack"] = time.monotonic()
-        window = WINDOW_EPISODES * self.config.episode_len if r["window_open"] else 0
-        r["ack_pub"](
-            encode("ack", self.run_id, service=self.id, acked=dict(r["expected"]), window=window)
+        st = self.st
+        assert st is not None
+        st.last_ack = time.monotonic()
+        window = WINDOW_EPISODES * st.config.episode_len if st.window_open else 0
+        st.ack_pub(
+            encode(
+                "ack",
+                self.run_id,
+                service=self.id,
+                acked=st.received.positions(),
+                window=window,
+            )
         )
 
     def stats(self) -> dict[str, Any]:
-        r, cfg = self.r, self.config
-        updates = r["learner"].updates
-        owed_total = max(0, r["ingested"] - cfg.learning_starts)
-        wall = time.perf_counter() - r["t0"]
-        lat = sorted(r["bonus"].latencies)
+        st = self.st
+        assert st is not None
+        updates = st.learner.updates
+        owed_total = st.owed_total
+        wall = time.perf_counter() - st.t0
+        lat = sorted(st.bonus.latencies)
         per_update = 1e3 / updates if updates else 0.0
-        phases = {**r["time"], "bonus_wait": r["bonus"].wait_s}
+        phases = {**st.time, "bonus_wait": st.bonus.wait_s}
         spent = {f"ms_per_update_{k}": v * per_update for k, v in phases.items()}
         spent["ms_per_update_other"] = (wall - sum(phases.values())) * per_update
         return {
             "updates": updates,
-            "ingested": r["ingested"],
-            "episodes_ingested": r["episodes"],
+            "ingested": st.ingested,
+            "episodes_ingested": st.episodes,
             "replay_ratio": updates / owed_total if owed_total else 0.0,
-            "policy_lag": float(np.mean(r["lags"])) if r["lags"] else 0.0,
-            "policy_version": r["version"],
+            "policy_lag": float(np.mean(st.lags)) if st.lags else 0.0,
+            "policy_version": st.version,
             "wall_s": wall,
-            "steps_per_sec": r["ingested"] / wall if wall > 0 else 0.0,
+            "steps_per_sec": st.ingested / wall if wall > 0 else 0.0,
             "updates_per_sec": updates / wall if wall > 0 else 0.0,
             "backlog": owed_total - updates,
-            "window_open": r["window_open"],
+            "window_open": st.window_open,
             "bonus_p50_ms": 1e3 * lat[len(lat) // 2] if lat else 0.0,
             "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
             "bonus_wait_ms_per_update": spent["ms_per_update_bonus_wait"],
-            "bonus_queries": r["bonus"].queries,
-            "bonus_rows_per_query": r["bonus"].rows / max(1, r["bonus"].queries),
-            "bonus_failures": r["bonus"].failures,
-            "bonus_mean": float(np.mean(r["bonus_means"])) if r["bonus_means"] else 0.0,
+            "bonus_queries": st.bonus.queries,
+            "bonus_rows_per_query": st.bonus.rows / max(1, st.bonus.queries),
+            "bonus_failures": st.bonus.failures,
+            "bonus_mean": float(np.mean(st.bonus_means)) if st.bonus_means else 0.0,
             "rejects_total": sum(self.rejects.values()),
-            "contended_updates": r["contended_updates"],
-            "eval_rows_seen": r["evaluations"].reported_rows,
+            "contended_updates": st.contended_updates,
+            "eval_rows_seen": st.evaluations.reported_rows,
             **spent,
-            **(r["learner"].lane_stats() if hasattr(r["learner"], "lane_stats") else {}),
+            **(st.learner.lane_stats() if hasattr(st.learner, "lane_stats") else {}),
         }
 
     def maybe_finish(self) -> None:
-        r, cfg = self.r, self.config
-        if set(r["final"]) != set(r["actors"]):
+        st = self.st
+        assert st is not None
+        if set(st.final) != set(st.actors):
             return
-        if any(r["expected"][a] < r["final"][a] for a in r["actors"]):
+        if any(st.received.expected(a) < st.final[a] for a in st.actors):
             return
-        if any(r["held"][a] for a in r["actors"]) or r["boundaries"]:
+        if any(st.held[a] for a in st.actors) or st.boundaries:
             return
-        if r["learner"].updates < max(0, r["ingested"] - cfg.learning_starts):
+        if st.learner.updates < st.owed_total:
             return
         run = self.run_id
         self.checkpoint()
@@ -486,38 +508,39 @@ class LearnerService(ServiceBase):
         self.publish_metrics(run, stats, source="learner")
         self.publish_status(run, "completed", **stats)
         self.log.info("run %s completed: %s", run, json.dumps(stats))
-        self.r = {}
+        self.st = None
         self.free(run)
 
     def on_peer_lost(self, role: str, peer: str) -> None:
         """An actor that dies mid-run fails the run: its transitions cannot come."""
-        if role == "actor" and peer in self.r.get("actors", ()) and peer not in self.r["final"]:
+        st = self.st
+        if role == "actor" and st is not None and peer in st.actors and peer not in st.final:
             self.fail(f"actor {peer} died before it finished its episodes")
 
     def fail(self, reason: str) -> None:
         run = self.run_id
         self.log.error("run %s failed: %s", run, reason)
         self.publish_status(run, "failed", reason=reason)
-        self.r = {}
+        self.st = None
         self.free(run)
 
     def checkpoint(self) -> None:
         """Networks, optimizers and step counters, loadable with weights_only=True."""
-        r = self.r
-        if not r:
+        st = self.st
+        if st is None:
             return
-        r["last_ckpt"] = time.monotonic()
+        st.last_ckpt = time.monotonic()
         out = self.data_dir / "learner" / self.run_id
         out.mkdir(parents=True, exist_ok=True)
         state = {
-            "config": json.dumps(self.config.model_dump(mode="json")),
-            "learner": r["learner"].state_dict(),
+            "config": json.dumps(st.config.model_dump(mode="json")),
+            "learner": st.learner.state_dict(),
             "counters": {
-                "ingested": r["ingested"],
-                "episodes": r["episodes"],
-                "updates": r["learner"].updates,
-                "expected": dict(r["expected"]),
-                "version": r["version"],
+                "ingested": st.ingested,
+                "episodes": st.episodes,
+                "updates": st.learner.updates,
+                "expected": st.received.positions(),
+                "version": st.version,
             },
         }
         tmp = out / "checkpoint.tmp"

@@ -17,24 +17,37 @@ import collections
 import os
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from services.actor.main import make_policy
 from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
+from shared.networks import JointPolicy
 from shared.rollout import derive_seed, evaluate
-from shared.tasks import make_task
+from shared.tasks import TaskEnv, make_task
 from shared.wire import encode
 
 HISTORY_RUNS = 64  # runs whose rows are kept for history queries
 
 
+@dataclass
+class EvaluatorRun:
+    """The evaluation environments and the points waiting, for the run served."""
+
+    envs: list[TaskEnv]
+    policy: JointPolicy
+    pending: collections.deque[dict[str, Any]] = field(default_factory=collections.deque)
+    points: int = 0
+    t0: float = field(default_factory=time.perf_counter)
+
+
 class EvaluatorService(ServiceBase):
     role = "evaluator"
+    follows_learner = True
 
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         super().__init__(service_id, connect, data_dir)
@@ -45,7 +58,7 @@ class EvaluatorService(ServiceBase):
         # evaluator on a saturated machine falls behind and queues weights).
         if nice := int(os.environ.get("MACB_EVALUATOR_NICE", "0")):
             os.nice(nice)
-        self.e: dict[str, Any] = {}
+        self.st: EvaluatorRun | None = None
         # run -> (state, rows published); read on Zenoh's thread, hence the lock.
         self.history: collections.OrderedDict[str, tuple[str, list[dict[str, Any]]]] = (
             collections.OrderedDict()
@@ -79,33 +92,28 @@ class EvaluatorService(ServiceBase):
         ]
         for j, env in enumerate(envs):
             env.reset(seed=derive_seed(config.seed, "eval", j))
-        self.e = {
-            "envs": envs,
-            "policy": make_policy(config, envs[0]),
-            "pending": collections.deque(),
-            "points": 0,
-            "t0": time.perf_counter(),
-        }
+        self.st = EvaluatorRun(envs, JointPolicy.for_task(envs[0].spec, config.hidden))
         self._remember(run, "running")
         self.publish_status(run, "running")
 
     def on_stop(self, run: str, reason: str) -> None:
         self._remember(run, "stopped")
-        self.e = {}
+        self.st = None
 
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag == "weights":
             msg = self.decode_for_run(key, payload, "weights")
-            if msg is not None and msg["eval_point"] >= 0:
-                self.e["pending"].append(msg)
+            if msg is not None and msg["eval_point"] >= 0 and self.st is not None:
+                self.st.pending.append(msg)
 
     def tick(self) -> bool:
-        if not self.e or not self.e["pending"]:
+        st = self.st
+        if st is None or not st.pending:
             return False
-        run, cfg, e = self.run_id, self.config, self.e
-        msg = e["pending"].popleft()
-        e["policy"].load(msg["actors"])
-        ev = evaluate(e["policy"], e["envs"], cfg.eval_episodes)
+        run, cfg = self.run_id, self.config
+        msg = st.pending.popleft()
+        st.policy.load(msg["actors"])
+        ev = evaluate(st.policy, st.envs, cfg.eval_episodes)
         info = msg["info"]
         counts = info.get("counter") or {}  # the counter's stats at this boundary
         row = {
@@ -127,15 +135,15 @@ class EvaluatorService(ServiceBase):
         }
         self._remember(run, "running", row)
         self.publish_metrics(run, row, source="eval")
-        e["points"] += 1
+        st.points += 1
         if msg["eval_point"] >= cfg.episodes:
             self._remember(run, "completed")
-            self.publish_status(run, "completed", points=e["points"])
-            self.log.info("run %s: %d evaluation points", run, e["points"])
-            self.e = {}
+            self.publish_status(run, "completed", points=st.points)
+            self.log.info("run %s: %d evaluation points", run, st.points)
+            self.st = None
             self.free(run)
             return False
-        return bool(e["pending"])
+        return bool(st.pending)
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> EvaluatorService:
