@@ -19,6 +19,7 @@ from typing import Any
 from shared import bus as keys
 from shared.bus import Bus
 from shared.config import TrainConfig
+from shared.protocol import RunVerdict, run_verdict
 from shared.wire import WireError, decode, encode
 
 
@@ -117,25 +118,19 @@ class RunWatch:
             self.states[msg["service"]] = {"state": msg["state"], **msg["detail"]}
             self.changed.notify_all()
 
+    def verdict(self) -> RunVerdict:
+        """The run's status by the one rule the API's scheduler also uses."""
+        return run_verdict(self.states, self.assign, len(self.rows))
+
     def state(self) -> str:
-        """running, completed (learner and evaluator done), stopped or failed."""
-        states = {s["state"] for s in self.states.values()}
-        if "failed" in states:
-            return "failed"
-        if "stopped" in states:
-            return "stopped"
-        done = [self.states.get(self.assign[r], {}).get("state") for r in ("learner", "evaluator")]
-        if done != ["completed", "completed"]:
-            return "running"
-        # The evaluator's status may overtake its last metric row: wait for every row.
-        points = self.states[self.assign["evaluator"]].get("points", 0)
-        return "completed" if len(self.rows) >= points else "running"
+        """running, completed (learner and evaluator done, every point seen), stopped or
+        failed. Until the evaluator's last rows arrive the run is still running."""
+        state = self.verdict().state
+        return "running" if state == "finishing" else state
 
     def failure(self) -> str | None:
-        for svc, s in self.states.items():
-            if s["state"] == "failed":
-                return f"{svc}: {s.get('reason', 'failed')}"
-        return None
+        v = self.verdict()
+        return v.reason if v.state == "failed" else None
 
     def wait(self, timeout: float | None = None) -> str:
         deadline = None if timeout is None else time.monotonic() + timeout

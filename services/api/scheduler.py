@@ -39,6 +39,7 @@ from shared import bus as keys
 from shared.bus import Bus
 from shared.config import ConfigError, make_config
 from shared.control import NoFreeServices, assign_services, discover, send_start, send_stop
+from shared.protocol import run_verdict
 from shared.wire import WireError, decode
 
 from .store import Store
@@ -441,31 +442,27 @@ class Scheduler:
         if row is None or row["status"] != "running":
             w.ended = w.ended or now  # stopped over HTTP
             return
-        failed = [(svc, st) for svc, st in w.states.items() if st["state"] == "failed"]
-        if failed:
-            svc, st = sorted(failed, key=lambda f: "reason" not in f[1])[0]
-            self._fail(w, f"{svc}: {st.get('reason', 'failed')}")
+        verdict = run_verdict(w.states, w.assign, w.points)
+        if verdict.state == "failed":
+            self._fail(w, verdict.reason or "failed")
             return
-        for svc, st in w.states.items():
-            if st["state"] == "stopped":
-                self._end(w, "stopped", f"{svc}: {st.get('reason', 'stopped')}", stop=True)
-                return
-        learner = w.states.get(w.assign["learner"], {}).get("state")
-        evaluator = w.states.get(w.assign["evaluator"], {}).get("state")
-        if learner == "completed" and evaluator == "completed":
-            expected = int(w.states[w.assign["evaluator"]].get("points", 0))
-            if w.points < expected and not w.history_asked:
-                w.history_asked = True  # points lost on the way: ask for them once
-                self._fill_gaps(w)
-            if w.points >= expected:
-                self._end(w, "completed", None, stop=False)
-            elif w.evaluator_done is not None and now - w.evaluator_done > self.completion_grace_s:
-                missing = expected - w.points
+        if verdict.state == "stopped":
+            self._end(w, "stopped", verdict.reason, stop=True)
+            return
+        if verdict.state == "finishing" and not w.history_asked:
+            w.history_asked = True  # points lost on the way: ask for them once
+            self._fill_gaps(w)
+            verdict = run_verdict(w.states, w.assign, w.points)
+        if verdict.state == "completed":
+            self._end(w, "completed", None, stop=False)
+            return
+        if verdict.state == "finishing":
+            if w.evaluator_done is not None and now - w.evaluator_done > self.completion_grace_s:
                 self._end(
                     w,
                     "completed",
-                    f"{missing} of {expected} metric points were published while the API "
-                    "was not listening",
+                    f"{verdict.missing} of {verdict.points_expected} metric points were "
+                    "published while the API was not listening",
                     stop=False,
                 )
             return
