@@ -8,6 +8,7 @@ RUN pip install --no-cache-dir torch==2.13.0 ${TORCH_PIP_ARGS}
 COPY pyproject.toml README.md ./
 COPY shared shared
 COPY services services
+COPY cli cli
 COPY configs configs
 RUN pip install --no-cache-dir .
 ENV PYTHONUNBUFFERED=1

@@ -117,7 +117,7 @@ def main() -> int:
         fill_s = time.perf_counter() - t0
         port = free_port()
         server = subprocess.Popen(
-            [sys.executable, "-m", "shared.cli", "serve", "api", "--listen-http"]
+            [sys.executable, "-m", "cli", "serve", "api", "--listen-http"]
             + [f"127.0.0.1:{port}", "--db", str(db), "--data-dir", tmp],
             cwd=ROOT,
             env={**os.environ, "MACB_API_SCHEDULER": "false"},

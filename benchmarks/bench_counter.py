@@ -131,7 +131,7 @@ class Procs:
 
 
 def serve_argv(*args: str) -> list[str]:
-    return [sys.executable, "-m", "shared.cli", "serve", *args]
+    return [sys.executable, "-m", "cli", "serve", *args]
 
 
 # ------------------------------------------------------------------ data
@@ -292,7 +292,7 @@ class CounterHarness:
         argv = serve_argv("counter", "--id", "c0", "--data-dir", str(self.work))
         if self.profile:  # cProfile sees the service thread (ingestion), not Zenoh's
             argv = [sys.executable, "-m", "cProfile", "-o", str(self.work / "counter.prof")]
-            argv += ["-m", "shared.cli", "serve", "counter", "--id", "c0"]
+            argv += ["-m", "cli", "serve", "counter", "--id", "c0"]
             argv += ["--data-dir", str(self.work)]
         self.procs.start("counter", argv, env)
         echo = self.work / "echo"

@@ -363,7 +363,7 @@ def up_supports(flag: str) -> bool:
     global _UP_FLAGS
     if _UP_FLAGS is None:
         _UP_FLAGS = subprocess.run(
-            [sys.executable, "-m", "shared.cli", "up", "--help"],
+            [sys.executable, "-m", "cli", "up", "--help"],
             cwd=ROOT,
             capture_output=True,
             text=True,
@@ -376,7 +376,7 @@ def up_argv(config: Path, episodes: int, eval_every: int, actors: int, work: Pat
     """The `macb up --run` command line on free loopback ports, and its endpoint."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     out = work / "cluster-out"
-    argv = [sys.executable, "-m", "shared.cli", "up", "--run", str(config), "--out", str(out)]
+    argv = [sys.executable, "-m", "cli", "up", "--run", str(config), "--out", str(out)]
     argv += ["--endpoint", endpoint, "--data-dir", str(work / "cluster-data")]
     argv += ["--actors", str(actors), "--quiet", "--quiet-services"]
     argv += ["--episodes", str(episodes), "--eval-every", str(eval_every)]
@@ -580,11 +580,11 @@ def profile_cluster(config: Path, episodes: int, eval_every: int, work: Path) ->
     env = {**base_env(True), "MACB_ZENOH_CONNECT": endpoint}
     data = str(work / "data")
     prof = work / "learner.prof"
-    serve = [sys.executable, "-m", "shared.cli", "serve"]
+    serve = [sys.executable, "-m", "cli", "serve"]
     plan = {
         "router": serve + ["router", "--listen", endpoint],
         "counter": serve + ["counter", "--id", "counter", "--data-dir", data],
-        "learner": [sys.executable, "-m", "cProfile", "-o", str(prof), "-m", "shared.cli"]
+        "learner": [sys.executable, "-m", "cProfile", "-o", str(prof), "-m", "cli"]
         + ["serve", "learner", "--id", "learner", "--data-dir", data],
         "evaluator": serve + ["evaluator", "--id", "evaluator", "--data-dir", data],
         "actor0": serve + ["actor", "--id", "actor0", "--data-dir", data],

@@ -108,7 +108,7 @@ class Cluster:
         for spec in self.plan:
             env = {**os.environ, "PYTHONUNBUFFERED": "1", **dict(spec.env)}
             proc = subprocess.Popen(
-                [sys.executable, "-m", "shared.cli", "serve", *spec.args],
+                [sys.executable, "-m", "cli", "serve", *spec.args],
                 env=env,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.STDOUT,

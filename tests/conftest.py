@@ -35,7 +35,7 @@ class Procs:
         }
         log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 (the child owns it)
         p = subprocess.Popen(
-            [sys.executable, "-m", "shared.cli", "serve", *args],
+            [sys.executable, "-m", "cli", "serve", *args],
             cwd=ROOT,
             env=env,
             stdout=log,

@@ -403,7 +403,7 @@ def test_refuses_a_non_loopback_address_without_a_token(tmp_path):
     check_bind(Settings(host="::1"))
     env = {k: v for k, v in os.environ.items() if k != "MACB_API_TOKEN"}
     proc = subprocess.run(
-        [sys.executable, "-m", "shared.cli", "serve", "api", "--listen-http"]
+        [sys.executable, "-m", "cli", "serve", "api", "--listen-http"]
         + [f"0.0.0.0:{free_port()}", "--data-dir", str(tmp_path)],
         cwd=ROOT,
         env=env,

@@ -303,7 +303,7 @@ def test_a_run_whose_learner_dies_fails_with_the_reason_and_the_others_go_on(clu
 
 def macb(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "shared.cli", *args],
+        [sys.executable, "-m", "cli", *args],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -59,7 +59,7 @@ def test_cli_refuses_a_bad_config_before_running(tmp_path):
         [
             sys.executable,
             "-m",
-            "shared.cli",
+            "cli",
             "train",
             "--task",
             "simple",

@@ -35,7 +35,7 @@ def up(tmp_path, *extra: str) -> tuple[subprocess.Popen, str]:
         [
             sys.executable,
             "-m",
-            "shared.cli",
+            "cli",
             "up",
             "--endpoint",
             endpoint,

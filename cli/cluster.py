@@ -1,0 +1,414 @@
+"""The commands that run or talk to the cluster on the bus: `serve`, `up`, `start`, `ps`,
+and `stop --bus` (the `stop` command itself lives with the API commands in cli.api).
+
+`serve` is the one place a service is started from a command line: `macb up`
+(shared/cluster.py) and docker-compose.yml both run `macb serve ROLE ...`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from cli.api import experiment_body, run_via_api
+from cli.config_flags import add_config_flags, config_overrides, resolve_config
+from shared.config import ConfigError, TrainConfig, load_config
+
+if TYPE_CHECKING:
+    from services.api.client import ApiClient
+    from shared.bus import Bus
+    from shared.cluster import Cluster
+
+SERVICES = ("router", "counter", "learner", "actor", "evaluator", "api")
+
+
+# ---------------------------------------------------------------- parsers
+def add_serve_parser(sub: argparse._SubParsersAction) -> None:
+    s = sub.add_parser(
+        "serve",
+        help="run one service of the cluster (router, counter, learner, actor, evaluator, api)",
+        description="Run one service in the foreground. Services connect as Zenoh clients to "
+        "the router (MACB_ZENOH_CONNECT or --connect, default tcp/127.0.0.1:7447), announce "
+        "themselves with a liveliness token and wait for runs on macb/control/start.",
+    )
+    s.add_argument("role", choices=SERVICES)
+    s.add_argument("--id", help="service id (default: role-host-pid); actors need distinct ids")
+    s.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
+    s.add_argument("--listen", action="append", metavar="ENDPOINT", help="router only: listen on")
+    s.add_argument("--data-dir", default="data", help="where snapshots and checkpoints go")
+    s.add_argument(
+        "--listen-http",
+        metavar="HOST:PORT",
+        help="api only: HTTP address (default 127.0.0.1:8000; a non-loopback address "
+        "needs MACB_API_TOKEN)",
+    )
+    s.add_argument(
+        "--db", metavar="FILE", help="api only: SQLite store (default DATA_DIR/api.sqlite3)"
+    )
+    s.set_defaults(func=cmd_serve)
+
+
+def add_start_parser(sub: argparse._SubParsersAction) -> None:
+    st = sub.add_parser(
+        "start",
+        help="start a run on a running cluster and follow it to the end",
+        description="Assign free services, start a run with this config, show its progress, "
+        "and write DIR/metrics.csv and DIR/metrics.jsonl from the evaluation points.",
+    )
+    st.add_argument("--config", metavar="FILE", help="YAML/JSON config file")
+    st.add_argument("--actors", type=int, default=1, help="actors to use")
+    st.add_argument("--out", metavar="DIR", help="write metrics here")
+    st.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint")
+    st.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config_flags(st)
+    st.set_defaults(func=cmd_start)
+
+
+def add_ps_parser(sub: argparse._SubParsersAction) -> None:
+    ps = sub.add_parser("ps", help="list live services and the runs they serve")
+    ps.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint")
+    ps.set_defaults(func=cmd_ps)
+
+
+def add_up_parser(sub: argparse._SubParsersAction) -> None:
+    up = sub.add_parser(
+        "up",
+        help="start the local cluster (router, counter, learner, evaluator, actors, API)",
+        description="Start every service as a local process with the same commands "
+        "docker-compose.yml runs, the API last (its dashboard on 127.0.0.1:8000). With "
+        "--run CONFIG, run that experiment through the API, write its results and stop; "
+        "otherwise serve until Ctrl-C / SIGTERM. No process outlives this command.",
+    )
+    up.add_argument("--actors", type=int, default=1, help="actor processes")
+    up.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="router endpoint")
+    up.add_argument("--data-dir", default="data", help="snapshots, checkpoints, logs")
+    up.add_argument("--run", metavar="CONFIG", help="run this experiment, then stop")
+    up.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="with --run: seeds")
+    up.add_argument("--api-port", type=int, default=8000, help="the API's port on 127.0.0.1")
+    up.add_argument("--no-api", action="store_true", help="no API (runs go on the bus)")
+    up.add_argument("--out", metavar="DIR", help="with --run: write metrics here")
+    up.add_argument("--quiet", action="store_true", help="no progress bar")
+    up.add_argument("--quiet-services", action="store_true", help="service logs to files only")
+    add_config_flags(up)
+    up.set_defaults(func=cmd_up)
+
+
+# ---------------------------------------------------------------- serve
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Run one service in the foreground until SIGTERM / Ctrl-C."""
+    import os
+    import socket
+
+    from shared.bus import DEFAULT_ENDPOINT, default_connect
+
+    if args.role == "router":
+        from services.router.main import serve
+
+        serve(args.listen or [os.environ.get("MACB_ZENOH_LISTEN", DEFAULT_ENDPOINT)])
+        return 0
+    if args.role == "api":
+        return serve_api(args)
+    import importlib
+
+    module = importlib.import_module(f"services.{args.role}.main")
+    service_id = args.id or f"{args.role}-{socket.gethostname()}-{os.getpid()}"
+    connect = args.connect or default_connect()
+    service = module.make_service(service_id, connect, Path(args.data_dir))
+    service.install_signal_handlers()
+    service.serve_forever()
+    return 0
+
+
+def serve_api(args: argparse.Namespace) -> int:
+    """`macb serve api`: the HTTP API (uvicorn) with its scheduler and store."""
+    from services.api.main import Settings, serve
+
+    overrides: dict[str, Any] = {"data_dir": Path(args.data_dir)}
+    if args.listen_http:
+        host, _, port = args.listen_http.rpartition(":")
+        if not host or not port.isdigit():
+            print(f"macb serve api: --listen-http wants HOST:PORT, not {args.listen_http}")
+            return 2
+        overrides.update(host=host.strip("[]"), port=int(port))
+    if args.db:
+        overrides["db"] = Path(args.db)
+    if args.connect:
+        overrides["connect"] = args.connect
+    if args.id:
+        overrides["service_id"] = args.id
+    return serve(Settings(**overrides))
+
+
+# ---------------------------------------------------------------- runs on the bus
+def _metrics_writer(cfg: TrainConfig, out: Path | None) -> Any:
+    """out/config.json now and a MetricsWriter for the rows to come (None: no out)."""
+    import json
+
+    from shared.metrics import ALL_FIELDS
+    from shared.trainer import MetricsWriter
+
+    if out is None:
+        return None
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2) + "\n")
+    return MetricsWriter(out, ALL_FIELDS)
+
+
+def follow_run(bus: Bus, cfg: TrainConfig, actors: int, out: Path | None, quiet: bool) -> int:
+    """Start a run on the cluster, follow it to the end, write its metrics; exit code."""
+    from tqdm import tqdm
+
+    from shared.control import NoFreeServices, send_stop, start_run
+
+    writer = _metrics_writer(cfg, out)
+    bar = tqdm(total=cfg.episodes, unit="ep", disable=quiet, desc=f"{cfg.task} {cfg.algo}")
+
+    def on_row(row: dict) -> None:
+        if writer:
+            writer.write(row)
+        bar.update(row["episode"] - bar.n)
+        bar.set_postfix(success=f"{row['success_rate']:.2f}", sps=f"{row['steps_per_sec']:.0f}")
+
+    try:
+        watch = start_run(bus, cfg, actors=actors, on_row=on_row)
+    except NoFreeServices as err:
+        print(f"macb: cannot start the run: {err}", file=sys.stderr)
+        return 1
+    print(f"run {watch.run} started on {watch.assign}", file=sys.stderr)
+    try:
+        state = watch.wait()
+    except KeyboardInterrupt:
+        send_stop(bus, watch.run, "interrupted")
+        state = "stopped"
+    finally:
+        bar.close()
+        if writer:
+            writer.close()
+    return _report_run_end(watch, state, out)
+
+
+def _report_run_end(watch: Any, state: str, out: Path | None) -> int:
+    """The run's summary line (and its failure); exit 0 only for a completed run."""
+    rows = watch.rows
+    last = rows[-1] if rows else {}
+    print(
+        f"run {watch.run} {state}: {len(rows)} evaluation points, final success "
+        f"{last.get('success_rate', 0):.2f}, {last.get('steps_per_sec', 0):.1f} env steps/s"
+        + (f"; results in {out}/" if out else ""),
+        file=sys.stderr,
+    )
+    if state == "failed":
+        print(f"failure: {watch.failure()}", file=sys.stderr)
+    return 0 if state == "completed" else 1
+
+
+def cmd_start(args: argparse.Namespace) -> int:
+    from shared.bus import Bus, default_connect
+
+    try:
+        cfg = resolve_config(args)
+    except (ConfigError, OSError) as err:
+        print(f"macb start: invalid config: {err}", file=sys.stderr)
+        return 2
+    with Bus(args.connect or default_connect()) as bus:
+        return follow_run(bus, cfg, args.actors, Path(args.out) if args.out else None, args.quiet)
+
+
+def stop_on_bus(args: argparse.Namespace) -> int:
+    """`macb stop --bus RUN`: for runs started with `macb start`, which the API never saw."""
+    from shared.bus import Bus, default_connect
+    from shared.control import send_stop
+
+    with Bus(args.connect or default_connect()) as bus:
+        send_stop(bus, args.id)
+    print(f"sent stop for run {args.id} on the bus")
+    return 0
+
+
+def cmd_ps(args: argparse.Namespace) -> int:
+    from shared.bus import Bus, default_connect
+    from shared.control import discover
+
+    with Bus(args.connect or default_connect()) as bus:
+        infos = discover(bus)
+    for i in infos:
+        print(
+            f"{i['role']:<10} {i['id']:<24} run={i.get('run') or '-'} rejects={i['rejects_total']}"
+        )
+    if not infos:
+        print("no services answer (is `macb up` running?)")
+    return 0
+
+
+# ---------------------------------------------------------------- up
+def cmd_up(args: argparse.Namespace) -> int:
+    """Start the local cluster, then run `--run CONFIG` on it or serve until a signal.
+
+    The config is checked before any process starts, and the `finally` stops every child
+    whichever way this returns, so no process outlives `macb up`.
+    """
+    from shared.bus import Bus
+
+    try:
+        cfg, body = _up_experiment(args)
+    except (ConfigError, OSError) as err:
+        print(f"macb up: invalid config: {err}", file=sys.stderr)
+        return 2
+    data_dir = Path(args.data_dir)
+    api_addr = None if args.no_api else f"127.0.0.1:{args.api_port}"
+    cluster = _local_cluster(args, data_dir, api_addr)
+    stop = _stop_on_signals()
+    api = None
+    try:
+        _start_cluster(cluster, data_dir)
+        with Bus([args.endpoint]) as bus:
+            if not _services_came_up(bus, cluster, stop):
+                return 1
+            if api_addr is not None and not stop.is_set():
+                api = _api_client_at(api_addr)
+                if not _api_came_up(api, cluster, data_dir):
+                    return 1
+            if cfg is None or stop.is_set():
+                return _serve_until_stopped(cluster, stop)
+            code = _run_while_cluster_lives(
+                _experiment(args, cfg, body, bus, api, data_dir), cluster, stop
+            )
+            if api is not None:
+                _print_where_results_stay(api, data_dir)
+            return code
+    finally:
+        if api is not None:
+            api.close()
+        cluster.stop()
+        print("cluster stopped", file=sys.stderr)
+
+
+def _up_experiment(args: argparse.Namespace) -> tuple[TrainConfig | None, dict | None]:
+    """`--run CONFIG` as a config (for the bus) and an experiment body (for the API);
+    (None, None) without --run. Raises ConfigError or OSError."""
+    if not args.run:
+        return None, None
+    cfg = load_config(args.run, config_overrides(args))
+    body = experiment_body(
+        argparse.Namespace(**{**vars(args), "config": args.run, "grid": None, "name": None})
+    )
+    return cfg, body
+
+
+def _local_cluster(args: argparse.Namespace, data_dir: Path, api_addr: str | None) -> Cluster:
+    from shared.cluster import Cluster, cluster_plan
+
+    plan = cluster_plan(args.actors, args.endpoint, str(data_dir), api=api_addr)
+    return Cluster(plan, data_dir / "logs", echo=not args.quiet_services)
+
+
+def _stop_on_signals() -> threading.Event:
+    """SIGTERM and Ctrl-C only set this event: the main loop then stops the children."""
+    import signal
+
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _start_cluster(cluster: Cluster, data_dir: Path) -> None:
+    cluster.start()
+    print(
+        f"cluster up: {', '.join(s.name for s in cluster.plan)}; logs in {data_dir}/logs",
+        file=sys.stderr,
+    )
+
+
+def _services_came_up(bus: Bus, cluster: Cluster, stop: threading.Event) -> bool:
+    """Wait up to 60 s for every service but the router (which does not announce itself)
+    to answer; False if that fails or one dies. A signal ends the wait early with True."""
+    from shared.control import discover
+
+    deadline = time.monotonic() + 60
+    while len(discover(bus)) < len(cluster.plan) - 1 and not stop.is_set():
+        if time.monotonic() > deadline or cluster.dead():
+            print(f"services did not come up (dead: {cluster.dead()})", file=sys.stderr)
+            return False
+        time.sleep(0.2)
+    return True
+
+
+def _api_client_at(api_addr: str) -> ApiClient:
+    from services.api.client import ApiClient
+
+    return ApiClient(f"http://{api_addr}")
+
+
+def _api_came_up(api: ApiClient, cluster: Cluster, data_dir: Path) -> bool:
+    """Wait up to 60 s for the API to answer (giving up early if a service dies)."""
+    try:
+        api.wait_healthy(60, alive=lambda: not cluster.dead())
+    except TimeoutError as err:
+        print(f"{err} (dead: {cluster.dead()})", file=sys.stderr)
+        return False
+    print(
+        f"dashboard: {api.url}/   API docs: {api.url}/docs   store: {data_dir}/api.sqlite3",
+        file=sys.stderr,
+    )
+    return True
+
+
+def _experiment(
+    args: argparse.Namespace,
+    cfg: TrainConfig,
+    body: dict | None,
+    bus: Bus,
+    api: ApiClient | None,
+    data_dir: Path,
+) -> Callable[[], int]:
+    """The `--run` experiment as a call returning its exit code: through the API when
+    there is one (the run is then stored and shown), else straight on the bus."""
+    out = Path(args.out) if args.out else None
+    if api is not None:
+        return lambda: run_via_api(api, body, out, args.quiet, data_dir)
+    return lambda: follow_run(bus, cfg, args.actors, out, args.quiet)
+
+
+def _run_while_cluster_lives(
+    work: Callable[[], int], cluster: Cluster, stop: threading.Event
+) -> int:
+    """Run `work` in a thread so that a signal or a dead service ends the wait (and then
+    `macb up` stops the cluster); its exit code, or 1 if it did not finish."""
+    result: list[int] = []
+    runner = threading.Thread(target=lambda: result.append(work()), daemon=True)
+    runner.start()
+    while runner.is_alive() and not stop.is_set():
+        runner.join(0.2)
+        if cluster.dead():
+            print(f"service(s) died: {cluster.dead()}", file=sys.stderr)
+            stop.set()
+    return result[0] if result else 1
+
+
+def _print_where_results_stay(api: ApiClient, data_dir: Path) -> None:
+    print(
+        f"the dashboard was at {api.url}/ ; the experiment and every metric "
+        f"point are kept in {data_dir}/api.sqlite3: "
+        f"`macb up --data-dir {data_dir}` shows them again",
+        file=sys.stderr,
+    )
+
+
+def _serve_until_stopped(cluster: Cluster, stop: threading.Event) -> int:
+    """No --run: keep the cluster up until a signal (0) or until a service dies (1)."""
+    print(
+        "waiting for runs (macb run CONFIG, or macb start CONFIG on the bus); "
+        "Ctrl-C stops the cluster",
+        file=sys.stderr,
+    )
+    while not stop.wait(0.5):
+        if cluster.dead():
+            print(f"service(s) died: {cluster.dead()}", file=sys.stderr)
+            return 1
+    return 0

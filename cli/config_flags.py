@@ -1,0 +1,88 @@
+"""The config flags: one per `TrainConfig` field, on every command that takes a config.
+
+`train`, `start`, `run` and `up` accept the keys of a config file as flags that override
+the file. Names, help and how a value is read all come from the schema, so a new field
+gets its flag without touching the CLI; the exceptions are listed below, each with why.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any, Literal, get_args, get_origin
+
+import yaml
+
+from shared.config import TrainConfig, load_config, make_config
+
+# Exception: these tuple fields take a comma list (`--hidden 400,300`) rather than YAML,
+# and show their default that way; YAML would read "400,300" as one string.
+COMMA_LIST_FIELDS = frozenset({"hidden"})
+
+
+def _takes_only_strings(annotation: Any) -> bool:
+    """A `str` or a Literal of strings only: its flag value is kept as typed, never read
+    as YAML, so `--explore none` stays "none" and does not become null."""
+    if annotation is str:
+        return True
+    if get_origin(annotation) is not Literal:
+        return False
+    return all(isinstance(v, str) for v in get_args(annotation))
+
+
+STRING_FIELDS = frozenset(
+    name for name, f in TrainConfig.model_fields.items() if _takes_only_strings(f.annotation)
+)
+
+
+def flag_name(field: str) -> str:
+    """The option string of a field: underscores become dashes."""
+    return f"--{field.replace('_', '-')}"
+
+
+def flag_dest(field: str) -> str:
+    """The attribute a field's flag sets; prefixed so no command's own flag can clash."""
+    return f"cfg_{field}"
+
+
+def add_config_flags(p: argparse.ArgumentParser) -> None:
+    """One flag per config key; each overrides the file. Values stay raw strings here
+    (`config_overrides` reads them) so that a flag not given is told apart by None."""
+    group = p.add_argument_group("config keys (override --config)")
+    for name, field in TrainConfig.model_fields.items():
+        default = field.default
+        if name in COMMA_LIST_FIELDS:
+            default = ",".join(map(str, default))
+        group.add_argument(
+            flag_name(name),
+            dest=flag_dest(name),
+            metavar=name.upper(),
+            default=None,
+            help=f"{field.description or ''} (default: {default})".strip(),
+        )
+
+
+def read_flag_value(name: str, raw: str) -> Any:
+    """A flag's raw text as the value its field takes (validation is the schema's job)."""
+    if name in COMMA_LIST_FIELDS:
+        return [s.strip() for s in raw.split(",") if s.strip()]
+    if name in STRING_FIELDS:
+        return raw
+    return yaml.safe_load(raw)
+
+
+def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The config keys given as flags, each read the way its field wants."""
+    out: dict[str, Any] = {}
+    for name in TrainConfig.model_fields:
+        raw = getattr(args, flag_dest(name))
+        if raw is not None:
+            out[name] = read_flag_value(name, raw)
+    return out
+
+
+def resolve_config(args: argparse.Namespace) -> TrainConfig:
+    """`--config FILE` (if given) with the flags over it; raises ConfigError or OSError."""
+    overrides = config_overrides(args)
+    if args.config:
+        return load_config(args.config, overrides)
+    return make_config(overrides)

@@ -1,0 +1,45 @@
+"""`macb`: the parser assembled from the command groups, and the entry point.
+
+Each group module (cli.train, cli.cluster, cli.api) adds its own subcommands; this
+module only fixes their order in `macb --help` and sets up logging.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from collections.abc import Callable
+
+from cli import api, cluster, train
+
+# In the order `macb --help` lists them.
+COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
+    train.add_train_parser,
+    cluster.add_serve_parser,
+    cluster.add_start_parser,
+    api.add_stop_parser,
+    api.add_run_parser,
+    api.add_ls_parser,
+    api.add_plot_parser,
+    cluster.add_ps_parser,
+    cluster.add_up_parser,
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="macb",
+        description="Multi-agent count-based exploration (MACB): train DDPG / MADDPG agents "
+        "with SimHash count bonuses on sparse particle tasks.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add_parser in COMMANDS:
+        add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # not a line per API call
+    args = build_parser().parse_args(argv)
+    return args.func(args)

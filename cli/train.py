@@ -1,0 +1,46 @@
+"""`macb train`: one experiment in this process, without the bus or any service."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from cli.config_flags import add_config_flags, resolve_config
+from shared.config import ConfigError
+
+
+def add_train_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "train",
+        help="run one experiment in this process",
+        description="Run one experiment in one process and write DIR/metrics.csv, "
+        "DIR/metrics.jsonl, DIR/config.json and DIR/checkpoint.pt. Keys come from --config "
+        "(YAML or JSON) and are overridden by flags.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--config", metavar="FILE", help="YAML/JSON config file")
+    p.add_argument("--out", metavar="DIR", default="runs/train", help="output directory")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config_flags(p)
+    p.set_defaults(func=cmd_train)
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    """A bad config is refused (exit 2) before training starts or anything is written."""
+    from shared.trainer import train
+
+    try:
+        cfg = resolve_config(args)
+    except (ConfigError, OSError) as err:
+        print(f"macb train: invalid config: {err}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    rows = train(cfg, out, progress=not args.quiet)
+    last = rows[-1] if rows else {}
+    print(
+        f"done: {cfg.episodes} episodes, final success {last.get('success_rate', 0):.2f}, "
+        f"{last.get('steps_per_sec', 0):.1f} env steps/s "
+        f"({last.get('train_steps_per_sec', 0):.1f} without evaluation); results in {out}/"
+    )
+    return 0
