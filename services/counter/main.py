@@ -1,52 +1,17 @@
 """The counter service: the count tables of every active run, exactly once per transition.
 
-It subscribes to every run's `transitions` and keeps, per run and per actor, the next
-expected transition number. A batch that starts there is taken; a batch wholly below
-the expected number is a duplicate (ignored, counted in `duplicates`); a batch that
-overlaps it takes only its new tail; a batch above it is a gap (dropped, counted in
-`gaps`: the actor resends). Batches are validated as they arrive and taken in
-bursts: when the inbox is empty (`ServiceBase.after_drain`), when 512 rows wait, or
-when the oldest has waited 2 ms. Per run, a burst's taken rows are hashed at once
-(the run's `CountExploration`, built by `shared.trainer.build_exploration` so the
-SimHash seed is the one-process trainer's), appended to the write-ahead log
-(`wal.py`; one record per actor, one write) and flushed, counted, and only then
-acknowledged on `macb/run/{run}/ack/{id}` with one ack of all actors' expected
-numbers, whether the burst's batches were taken or not. Acks are also repeated every
-second so actors learn where a restarted counter stands.
+It owns the tables because counts must change only on collection, once per transition,
+whoever else sees the transitions: every run's batches are taken by the receive rule of
+`shared.protocol.ReceiveCursor` (duplicates ignored, an overlap's new tail taken, gaps
+dropped for the actor to resend), hashed in bursts, written to a write-ahead log and
+only then counted and acknowledged, so an acknowledged count survives a SIGKILL.
+Bonus queries are answered on Zenoh's thread under the lock ingestion takes, so a
+query sees a burst counted whole or not at all, and they come first (a short GIL
+switch interval, the service thread stepping aside): the learner waits for them.
 
-Bonus queries (`macb/run/{run}/bonus`, a Zenoh get) are answered on Zenoh's thread
-under a lock shared with ingestion, so a query sees a burst counted whole or not at
-all: `counts` (tables x B, int64), `bonus` (B x N agents, float32) and `tables` (the
-run's table size, count-1 % and transitions counted, which the learner reports at
-evaluation points without a query of its own). A row that was
-never counted (n = 0; the learner may ingest a batch before the counter does) is
-answered with its count as it is (0) and the bonus of a key seen once (beta); such
-rows are counted in the stat `uncounted_rows_queried`. Queries come first: the
-process's GIL switch interval is 0.5 ms (MACB_COUNTER_SWITCH_S), not the
-interpreter's 5 ms, so a query does not wait a whole slice for the GIL while the
-service thread ingests, and while a query is being answered the service thread
-waits (up to 5 ms) between messages and between the steps of a burst.
-Modes none/constant have no tables: counts is (0, B), bonus is 0 / beta.
-
-Durability: data_dir/counter/<run>/ holds `config.json` and `assign.json` (written at
-start), `wal.bin`, and `snapshot.npz` (tables as key/count arrays plus a `meta` array
-holding JSON: expected numbers, table totals and stats; one file, replaced
-atomically, loaded with allow_pickle=False). A snapshot is taken on stop, on
-shutdown, and when a check finds that something changed and the log has reached a
-quarter of the snapshot's size (SNAPSHOT_LOG_RATIO); then the log is truncated.
-Checks come every `snapshot_s` (MACB_COUNTER_SNAPSHOT_S, default 5 s), or 20 times
-as long as the last check's snapshots took if that is longer. A snapshot rewrites
-the whole table, so it comes less often as the table grows (a small table's, every
-`snapshot_s`) and takes at most ~5% of the service thread's time; a restart
-replays the log since the last snapshot, about a quarter of a snapshot's worth
-plus what came in between two checks. On startup every run directory without a
-`stopped` marker is restored: snapshot, then log records not already in it (by
-seq). Duplicate/gap tallies since the last snapshot are not logged and so are not
-restored; counts and expected numbers are.
-
-A start for a run whose directory carries a `stopped` marker starts it afresh (the
-old directory is moved to data_dir/counter/.archive/); a start for an unfinished
-run with the same config resumes it.
+Durability (files, snapshot schedule, restore) is in docs/architecture.md, "The
+counter's files"; why the burst sizes, switch interval and snapshot spacing are what
+they are is in docs/performance.md, "Counter service".
 """
 
 from __future__ import annotations
