@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from cli.config_flags import add_config_flags, config_overrides
-from shared.config import ConfigError, TrainConfig, make_config
+from shared.config import ConfigError, TrainConfig, make_config, read_config_file
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -98,14 +98,7 @@ def _api_failed(cmd: str, err: Exception | str) -> int:
 def _read_config_file(path: str) -> dict[str, Any]:
     """The file's mapping as written: the body sends every key on (a file may also hold
     the experiment's `seeds`, `grid` or `name`), and the API judges what is not config."""
-    text = Path(path).read_text()
-    try:
-        data = yaml.safe_load(text) or {}
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML/JSON: {err}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: a config is a mapping of keys to values")
-    return data
+    return read_config_file(path)
 
 
 def _grid(items: list[str] | None) -> dict[str, list]:

@@ -125,8 +125,8 @@ def make_config(data: dict[str, Any]) -> TrainConfig:
         raise ConfigError(format_errors(err)) from None
 
 
-def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
-    """Read a YAML or JSON config file (YAML is a superset) and apply overrides."""
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """A YAML or JSON file's mapping as written (YAML is a superset), not yet validated."""
     text = Path(path).read_text()
     try:
         data = yaml.safe_load(text) or {}
@@ -134,5 +134,11 @@ def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> Tr
         raise ConfigError(f"{path}: not valid YAML/JSON: {err}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config is a mapping of keys to values")
+    return data
+
+
+def load_config(path: str | Path, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """Read a YAML or JSON config file and apply overrides."""
+    data = read_config_file(path)
     data.update(overrides or {})
     return make_config(data)
