@@ -8,6 +8,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from shared.joint import offsets
+
 
 def mlp(in_dim: int, out_dim: int, hidden: Sequence[int]) -> nn.Sequential:
     layers: list[nn.Module] = []
@@ -67,7 +69,7 @@ class JointPolicy:
         hidden: Sequence[int],
     ) -> None:
         self.actors = [Actor(o, lo, hi, hidden) for o, lo, hi in zip(obs_dims, lows, highs)]
-        self.bounds = [0, *np.cumsum(obs_dims).tolist()]
+        self.bounds = offsets(obs_dims)
         self._refresh()
 
     def _refresh(self) -> None:
