@@ -117,7 +117,13 @@ class JointPolicy:
 
 def actor_weights(actors: Sequence[nn.Module]) -> list[dict]:
     """Actor parameters and buffers as numpy arrays (for the wire)."""
-    return [{k: v.detach().cpu().numpy() for k, v in m.state_dict().items()} for m in actors]
+    return weights_as_arrays([m.state_dict() for m in actors])
+
+
+def weights_as_arrays(weights: Sequence[dict]) -> list[dict]:
+    """State dicts of tensors (e.g. a learner's `actor_weights()`) as numpy arrays, for
+    the wire."""
+    return [{k: v.detach().cpu().numpy() for k, v in sd.items()} for sd in weights]
 
 
 def load_actor_weights(actors: Sequence[nn.Module], weights: Sequence[dict]) -> None:

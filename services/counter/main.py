@@ -7,7 +7,7 @@ overlaps it takes only its new tail; a batch above it is a gap (dropped, counted
 `gaps`: the actor resends). Batches are validated as they arrive and taken in
 bursts: when the inbox is empty (`ServiceBase.after_drain`), when 512 rows wait, or
 when the oldest has waited 2 ms. Per run, a burst's taken rows are hashed at once
-(the run's `CountExploration`, built by `shared.trainer.build_exploration` so the
+(the run's `CountExploration`, built by `shared.factories.build_exploration` so the
 SimHash seed is the one-process trainer's), appended to the write-ahead log
 (`wal.py`; one record per actor, one write) and flushed, counted, and only then
 acknowledged on `macb/run/{run}/ack/{id}` with one ack of all actors' expected
@@ -72,8 +72,8 @@ from shared.bus import k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.config import TrainConfig, make_config
 from shared.counting import CountTable
 from shared.exploration import CountExploration
+from shared.factories import build_exploration
 from shared.tasks import task_spec
-from shared.trainer import build_exploration
 from shared.wire import WireError, check_dims, encode
 
 DEFAULT_SNAPSHOT_S = 5.0

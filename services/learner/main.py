@@ -60,11 +60,11 @@ import torch
 from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
-from shared.networks import actor_weights
+from shared.factories import build_learner
+from shared.networks import weights_as_arrays
 from shared.replay import ReplayBuffer
 from shared.rollout import derive_seed
 from shared.tasks import task_spec
-from shared.trainer import build_learner
 from shared.wire import WireError, check_dims, decode, encode
 
 WINDOW_EPISODES = 2  # credits per actor, in episodes
@@ -184,7 +184,7 @@ class LearnerService(ServiceBase):
         )
         spec = task_spec(config.task, config.agents, config.episode_len)
         actors = list(assign["actors"])
-        learner = build_learner(config, spec)
+        learner = build_learner(config, spec, contended=evaluations.busy)
         self.r = {
             "spec": spec,
             "learner": learner,
@@ -344,6 +344,8 @@ class LearnerService(ServiceBase):
         t0 = time.perf_counter()
         evaluating = r["evaluations"].busy
         for batch, bonus in zip(batches, bonuses, strict=True):
+            # Counted here for every kind of learner; a tuned one polls the same signal
+            # for its tuners and its own count (in its stats(), which take precedence).
             contended = evaluating()
             r["contended_updates"] += contended
             learner.update(
@@ -352,7 +354,6 @@ class LearnerService(ServiceBase):
                 batch.rew[:, None] + bonus,
                 batch.next_obs,
                 batch.done,
-                contended=contended,
             )
             r["bonus_means"].append(float(bonus.mean()))
             owed -= 1
@@ -401,7 +402,7 @@ class LearnerService(ServiceBase):
             episodes=episode,
             eval_point=eval_point,
             collisions_cum=collisions,
-            actors=actor_weights(r["learner"].actors),
+            actors=weights_as_arrays(r["learner"].actor_weights()),
             info={**self.stats(), "counter": self.counter_stats() if eval_point >= 0 else {}},
         )
         if eval_point >= 0:
@@ -467,7 +468,7 @@ class LearnerService(ServiceBase):
             "contended_updates": r["contended_updates"],
             "eval_rows_seen": r["evaluations"].reported_rows,
             **spent,
-            **(r["learner"].lane_stats() if hasattr(r["learner"], "lane_stats") else {}),
+            **r["learner"].stats(),
         }
 
     def maybe_finish(self) -> None:
