@@ -81,8 +81,7 @@ import json, statistics, sys, time
 sys.path.insert(0, sys.argv[1])
 import torch
 import bench_learner as bl
-from shared.fast_maddpg import BatchedMADDPG
-from shared.maddpg import LearnerSpec
+from shared.learners import BatchedMADDPG, LearnerSpec
 
 seconds = float(sys.argv[2])
 m = BatchedMADDPG(bl.SPEAKER_LISTENER, LearnerSpec(algo="cen-maddpg", hidden=bl.HIDDEN))
@@ -515,7 +514,7 @@ def run_cluster(
 
 # ------------------------------------------------------------------ profiles
 TRAINER_PARTS = {
-    "learner.update": ("fast_maddpg.py", "update"),
+    "learner.update": ("learners/tuning.py", "update"),
     "bonus (hash + look-up)": ("exploration.py", "bonus"),
     "count (observe)": ("exploration.py", "observe"),
     "replay sample": ("replay.py", "sample"),
@@ -523,7 +522,7 @@ TRAINER_PARTS = {
     "evaluation": ("rollout.py", "evaluate"),
 }
 LEARNER_PARTS = {
-    "learner.update": ("fast_maddpg.py", "update"),
+    "learner.update": ("learners/tuning.py", "update"),
     "bonus query round trip (BonusClient.bonus_for)": ("learner/main.py", "bonus_for"),
     "replay sample": ("replay.py", "sample"),
     "weights out (publish_weights)": ("learner/main.py", "publish_weights"),

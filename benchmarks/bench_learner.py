@@ -3,8 +3,8 @@
 For each task the same random minibatch (batch 100, hidden 400-300, the thesis settings)
 is fed to
 
-* `ref`: shared.maddpg.MADDPG, the per-agent reference update;
-* `batched`: shared.fast_maddpg.BatchedMADDPG, a copy of the same learner;
+* `ref`: shared.learners.MADDPG, the per-agent reference update;
+* `batched`: shared.learners.BatchedMADDPG, a copy of the same learner;
 * `floor`: only the matrix products one batched update performs (forward and backward
   of every stacked layer, with the same shapes and layouts, through the same
   `linear_*` functions), on preallocated tensors: no elementwise ops, no autograd, no
@@ -50,14 +50,19 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from shared.fast_maddpg import (  # noqa: E402
+from shared.learners import (  # noqa: E402
+    MADDPG,
+    AgentDims,
     BatchedMADDPG,
+    Lanes,
+    LearnerSpec,
+    TunedMADDPG,
+)
+from shared.learners.layers import (  # noqa: E402
     linear_forward,
     linear_grad_input,
     linear_grad_weight,
 )
-from shared.lanes import Lanes  # noqa: E402
-from shared.maddpg import MADDPG, AgentDims, LearnerSpec  # noqa: E402
 
 BATCH = 100
 HIDDEN = (400, 300)
@@ -225,7 +230,7 @@ def contention(repeats: int, budget_s: float) -> dict[str, list[float]]:
             finally:
                 torch.set_num_threads(1)
 
-        auto = BatchedMADDPG(SPEAKER_LISTENER, spec, lanes="auto")
+        auto = TunedMADDPG(BatchedMADDPG(SPEAKER_LISTENER, spec, lanes=2))
         fns = {"batched": lambda: one.update(*b), "lanes2": lambda: two.update(*b)}
         fns["threads2"] = threads2
         fns["auto"] = lambda: auto.update(*b)

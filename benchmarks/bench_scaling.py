@@ -63,8 +63,7 @@ def learner_scaling(repeats: int, budget_s: float) -> dict:
     import torch
     from bench_learner import BATCH, HIDDEN, measure, random_batch, spread
 
-    from shared.fast_maddpg import BatchedMADDPG
-    from shared.maddpg import MADDPG, LearnerSpec
+    from shared.learners import MADDPG, BatchedMADDPG, LearnerSpec
 
     torch.set_num_threads(1)
     fns = {}

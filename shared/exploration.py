@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared.counting import CountTable, count_bonus
+from shared.joint import offsets
 from shared.simhash import RoundKey, SimHash
 
 EXPLORE_MODES = ("none", "dis-macb", "cen-macb", "constant")
@@ -33,10 +34,6 @@ class ExploreSpec:
     seed: int = 0
 
 
-def _offsets(dims: tuple[int, ...]) -> list[int]:
-    return [0, *np.cumsum(dims).tolist()]
-
-
 class CountExploration:
     """Turns joint transitions into per-table keys, counts them, and prices bonuses."""
 
@@ -47,8 +44,8 @@ class CountExploration:
         self.obs_dims = tuple(obs_dims)
         self.act_dims = tuple(act_dims)
         self.n_agents = len(obs_dims)
-        self._oo = _offsets(self.obs_dims)
-        self._ao = _offsets(self.act_dims)
+        self._oo = offsets(self.obs_dims)
+        self._ao = offsets(self.act_dims)
         with_act = spec.key == "state-action"
         if spec.mode == "dis-macb":
             self.table_dims = [o + (a if with_act else 0) for o, a in zip(obs_dims, act_dims)]

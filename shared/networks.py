@@ -9,6 +9,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from shared.joint import offsets
+
 
 def mlp(in_dim: int, out_dim: int, hidden: Sequence[int]) -> nn.Sequential:
     layers: list[nn.Module] = []
@@ -68,7 +70,7 @@ class JointPolicy:
         hidden: Sequence[int],
     ) -> None:
         self.actors = [Actor(o, lo, hi, hidden) for o, lo, hi in zip(obs_dims, lows, highs)]
-        self.bounds = [0, *np.cumsum(obs_dims).tolist()]
+        self.bounds = offsets(obs_dims)
         self._refresh()
 
     @classmethod
@@ -123,7 +125,13 @@ class JointPolicy:
 
 def actor_weights(actors: Sequence[nn.Module]) -> list[dict]:
     """Actor parameters and buffers as numpy arrays (for the wire)."""
-    return [{k: v.detach().cpu().numpy() for k, v in m.state_dict().items()} for m in actors]
+    return weights_as_arrays([m.state_dict() for m in actors])
+
+
+def weights_as_arrays(weights: Sequence[dict]) -> list[dict]:
+    """State dicts of tensors (e.g. a learner's `actor_weights()`) as numpy arrays, for
+    the wire."""
+    return [{k: v.detach().cpu().numpy() for k, v in sd.items()} for sd in weights]
 
 
 def load_actor_weights(actors: Sequence[nn.Module], weights: Sequence[dict]) -> None:

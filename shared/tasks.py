@@ -23,6 +23,8 @@ import numpy as np
 from mpe2 import simple_speaker_listener_v4, simple_spread_v3, simple_v3
 from mpe2._mpe_utils.core import Agent, Entity, World
 
+from shared.joint import offsets
+
 TASKS = ("simple", "spread", "speaker_listener")
 REWARDS = ("sparse", "sparse_offset", "dense")
 
@@ -87,10 +89,6 @@ class TaskSpec:
     def joint_act_dim(self) -> int:
         """Size of x = a_1 || ... || a_N."""
         return sum(self.act_dims)
-
-
-def _offsets(dims: Sequence[int]) -> list[int]:
-    return [0, *np.cumsum(dims).tolist()]
 
 
 class JointStep(NamedTuple):
@@ -336,7 +334,7 @@ class TaskEnv:
         self._low = np.concatenate([_bounds(a)[0] for a in spec.agents])
         self._high = np.concatenate([_bounds(a)[1] for a in spec.agents])
         self._act_total, self._obs_total = spec.joint_act_dim, spec.joint_obs_dim
-        act_off, obs_off = _offsets(spec.act_dims), _offsets(spec.obs_dims)
+        act_off, obs_off = offsets(spec.act_dims), offsets(spec.obs_dims)
         self._act_split, self._obs_split = act_off[1:-1], obs_off[1:-1]
         self._act_slices = list(zip(act_off[:-1], act_off[1:], strict=True))
         self._obs_slices = list(zip(obs_off[:-1], obs_off[1:], strict=True))

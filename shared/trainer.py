@@ -21,45 +21,17 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from shared.config import TrainConfig
-from shared.exploration import CountExploration, ExploreSpec
-from shared.fast_maddpg import BatchedMADDPG
-from shared.maddpg import MADDPG, AgentDims, LearnerSpec
+from shared.exploration import CountExploration
+from shared.factories import build_exploration, build_learner
+from shared.learners import Learner
 from shared.metrics import TRAIN_FIELDS
 from shared.replay import ReplayBuffer
 from shared.rollout import Collector, derive_seed, evaluate
-from shared.tasks import TaskSpec, make_task
+from shared.tasks import make_task
 
 log = logging.getLogger("macb.trainer")
 
 METRIC_FIELDS = TRAIN_FIELDS
-
-
-def build_learner(cfg: TrainConfig, spec: TaskSpec) -> MADDPG | BatchedMADDPG:
-    agents = [AgentDims(a.obs_dim, a.act_low, a.act_high) for a in spec.agents]
-    lspec = LearnerSpec(
-        algo=cfg.algo,
-        hidden=tuple(cfg.hidden),
-        lr_actor=cfg.lr_actor,
-        lr_critic=cfg.lr_critic,
-        gamma=cfg.gamma,
-        tau=cfg.tau,
-        seed=derive_seed(cfg.seed, "learner"),
-    )
-    if cfg.learner_impl == "batched":
-        return BatchedMADDPG(agents, lspec, lanes=cfg.learner_lanes)
-    return MADDPG(agents, lspec)
-
-
-def build_exploration(cfg: TrainConfig, spec: TaskSpec) -> CountExploration:
-    espec = ExploreSpec(
-        mode=cfg.explore,
-        beta=cfg.beta,
-        k=cfg.k,
-        hash=cfg.hash,
-        key=cfg.key,
-        seed=derive_seed(cfg.seed, "simhash"),
-    )
-    return CountExploration(espec, spec.obs_dims, spec.act_dims)
 
 
 class MetricsWriter:
@@ -84,7 +56,7 @@ class MetricsWriter:
 
 def save_checkpoint(
     path: Path,
-    learner: MADDPG | BatchedMADDPG,
+    learner: Learner,
     explorer: CountExploration,
     counters: dict,
     cfg: TrainConfig,

@@ -6,10 +6,16 @@ import numpy as np
 import pytest
 import torch
 
-from shared.fast_maddpg import AUTO_MODES, BatchedMADDPG
-from shared.lanes import LaneTuner
-from shared.maddpg import MADDPG, AgentDims, LearnerSpec
-from shared.networks import Actor, JointPolicy, actor_weights
+from shared.learners import (
+    AUTO_MODES,
+    MADDPG,
+    AgentDims,
+    BatchedMADDPG,
+    LaneTuner,
+    LearnerSpec,
+    TunedMADDPG,
+)
+from shared.networks import Actor, JointPolicy, weights_as_arrays
 
 MOVE = ((-1.0, -1.0), (1.0, 1.0))
 SPEAKER = AgentDims(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
@@ -120,10 +126,10 @@ def test_update_in_lanes_equals_per_agent_update(algo, agents, lanes, rows):
 
 
 def test_auto_modes_switch_and_stay_equal_to_the_reference():
-    """lanes='auto': the tuner runs blocks with one thread, two lanes and two torch
-    threads; every update still equals the reference's."""
+    """TunedMADDPG (lanes 'auto'): the tuner runs blocks with one thread, two lanes and
+    two torch threads; every update still equals the reference's."""
     ref = make("cen-maddpg", [SPEAKER, LISTENER])
-    fast = BatchedMADDPG(ref.agents, ref.spec, lanes="auto")
+    fast = TunedMADDPG(BatchedMADDPG(ref.agents, ref.spec, lanes=2))
     fast.load_state_dict(ref.state_dict())
     fast.tuner = LaneTuner(AUTO_MODES, block=2, probe_every=2)
     used = []
@@ -138,42 +144,47 @@ def test_auto_modes_switch_and_stay_equal_to_the_reference():
     finally:
         torch.set_num_threads(1)
     assert set(used) == set(AUTO_MODES)
-    stats = fast.lane_stats()
+    stats = fast.stats()
     shares = [stats[f"lanes{a}x{t}_share"] for a, t in AUTO_MODES]
     assert sum(shares) == pytest.approx(1.0) and min(shares) > 0
     assert all(stats[f"lanes{a}x{t}_update_ms"] > 0 for a, t in AUTO_MODES)
 
 
 def test_contended_updates_have_a_tuner_of_their_own():
-    """update(contended=True) is timed into its own tuner: the ordinary tuner's
-    counts and estimates are untouched by it, lane_stats reports both, and every
-    update still equals the reference's."""
+    """An update while `contended()` says True is timed into its own tuner: the
+    ordinary tuner's counts and estimates are untouched by it, stats() reports both,
+    and every update still equals the reference's."""
     ref = make("cen-maddpg", [SPEAKER, LISTENER])
-    fast = BatchedMADDPG(ref.agents, ref.spec, lanes="auto")
+    now_contended = [False]
+    fast = TunedMADDPG(
+        BatchedMADDPG(ref.agents, ref.spec, lanes=2), contended=lambda: now_contended[0]
+    )
     fast.load_state_dict(ref.state_dict())
     fast.tuner = LaneTuner([(1, 1)], block=2)
     fast.contended_tuner = LaneTuner([(2, 1)], block=2)
     flags = [step % 3 == 0 for step in range(12)]  # 4 contended, 8 ordinary
     for step, contended in enumerate(flags):
         b = batch(ref, seed=step)
-        ref.update(*b), fast.update(*b, contended=contended)
+        now_contended[0] = contended
+        ref.update(*b), fast.update(*b)
         assert_same_state(ref.state_dict(), fast.state_dict())
     assert fast.tuner.chosen == {(1, 1): 8}
     assert fast.contended_tuner.chosen == {(2, 1): 4}
-    stats = fast.lane_stats()
+    stats = fast.stats()
     assert stats["contended_share"] == pytest.approx(4 / 12)
+    assert stats["contended_updates"] == 4
     assert stats["lanes1x1_share"] == 1.0 and stats["contended_lanes2x1_share"] == 1.0
     assert stats["lanes1x1_update_ms"] > 0 and stats["contended_lanes2x1_update_ms"] > 0
-    # A fixed lane count has no tuners: the hint changes nothing.
+    # A fixed lane count has no tuners (and takes no contended signal).
     one = BatchedMADDPG(ref.agents, ref.spec, lanes=1)
     one.load_state_dict(ref.state_dict())
     b = batch(ref, seed=99)
-    ref.update(*b, contended=True), one.update(*b, contended=True)
+    ref.update(*b), one.update(*b)
     assert_same_state(ref.state_dict(), one.state_dict())
-    assert one.lane_stats() == {"lanes": 1.0}
+    assert one.stats() == {"lanes": 1.0}
 
 
-def test_lanes_must_be_a_count_or_auto():
+def test_lanes_must_be_a_count():
     with pytest.raises(ValueError, match="lanes"):
         BatchedMADDPG([SPEAKER, LISTENER], LearnerSpec(hidden=HIDDEN), lanes="fast")
     with pytest.raises(ValueError, match="lanes"):
@@ -294,14 +305,14 @@ def test_actor_weights_load_into_actor_and_act_the_same(algo, agents):
         np.testing.assert_allclose(
             got.numpy(), expected[:, fast.act_off[i] : fast.act_off[i + 1]], atol=1e-6
         )
-    # What the learner service ships (networks.actor_weights over learner.actors).
+    # What the learner service ships (weights_as_arrays of learner.actor_weights()).
     policy = JointPolicy(
         [a.obs_dim for a in agents],
         [a.act_low for a in agents],
         [a.act_high for a in agents],
         (32, 16),
     )
-    policy.load(actor_weights(fast.actors))
+    policy.load(weights_as_arrays(fast.actor_weights()))
     np.testing.assert_allclose(policy(obs), expected, atol=1e-6)
     # Fresh tensors: training on does not change weights already handed out.
     before = {k: v.clone() for k, v in weights[0].items()}

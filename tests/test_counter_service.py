@@ -22,8 +22,8 @@ import pytest
 from services.counter.wal import WriteAheadLog, read_wal
 from shared.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
 from shared.config import make_config
+from shared.factories import build_exploration
 from shared.tasks import task_spec
-from shared.trainer import build_exploration
 from shared.wire import decode, encode
 from tests.conftest import wait_for
 

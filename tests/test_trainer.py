@@ -8,9 +8,10 @@ import pytest
 import torch
 
 from shared.config import make_config
+from shared.factories import build_exploration
 from shared.rollout import Collector, evaluate
 from shared.tasks import make_task
-from shared.trainer import METRIC_FIELDS, build_exploration, load_checkpoint, train
+from shared.trainer import METRIC_FIELDS, load_checkpoint, train
 
 SMALL = {"hidden": (32, 32), "batch_size": 16, "eval_episodes": 3}
 

@@ -37,9 +37,9 @@ from shared.bus import k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.config import TrainConfig, make_config
 from shared.counting import CountTable
 from shared.exploration import CountExploration
+from shared.factories import build_exploration
 from shared.protocol import ReceiveCursor, Verdict
 from shared.tasks import task_spec
-from shared.trainer import build_exploration
 from shared.wire import WireError, check_dims, encode
 
 DEFAULT_SNAPSHOT_S = 5.0

@@ -34,12 +34,13 @@ import torch
 from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
-from shared.networks import actor_weights
+from shared.factories import build_learner
+from shared.learners import Learner
+from shared.networks import weights_as_arrays
 from shared.protocol import AckTracker, ReceiveCursor
 from shared.replay import ReplayBuffer
 from shared.rollout import derive_seed
 from shared.tasks import TaskSpec, task_spec
-from shared.trainer import build_learner
 from shared.wire import WireError, check_dims, decode, encode
 
 WINDOW_EPISODES = 2  # credits per actor, in episodes
@@ -153,7 +154,7 @@ class LearnerRun:
 
     config: TrainConfig
     spec: TaskSpec
-    learner: Any  # MADDPG | BatchedMADDPG
+    learner: Learner
     buffer: ReplayBuffer
     rng: np.random.Generator
     actors: list[str]
@@ -219,7 +220,7 @@ class LearnerService(ServiceBase):
         self.st = LearnerRun(
             config=config,
             spec=spec,
-            learner=build_learner(config, spec),
+            learner=build_learner(config, spec, contended=evaluations.busy),
             buffer=ReplayBuffer(
                 min(config.buffer_size, config.episodes * config.episode_len),
                 spec.joint_obs_dim,
@@ -355,6 +356,8 @@ class LearnerService(ServiceBase):
         t0 = time.perf_counter()
         evaluating = st.evaluations.busy
         for batch, bonus in zip(batches, bonuses, strict=True):
+            # Counted here for every kind of learner; a tuned one polls the same signal
+            # for its tuners and its own count (in its stats(), which take precedence).
             contended = evaluating()
             st.contended_updates += contended
             learner.update(
@@ -363,7 +366,6 @@ class LearnerService(ServiceBase):
                 batch.rew[:, None] + bonus,
                 batch.next_obs,
                 batch.done,
-                contended=contended,
             )
             st.bonus_means.append(float(bonus.mean()))
             owed -= 1
@@ -414,7 +416,7 @@ class LearnerService(ServiceBase):
             episodes=episode,
             eval_point=eval_point,
             collisions_cum=collisions,
-            actors=actor_weights(st.learner.actors),
+            actors=weights_as_arrays(st.learner.actor_weights()),
             info={**self.stats(), "counter": self.counter_stats() if eval_point >= 0 else {}},
         )
         if eval_point >= 0:
@@ -488,7 +490,7 @@ class LearnerService(ServiceBase):
             "contended_updates": st.contended_updates,
             "eval_rows_seen": st.evaluations.reported_rows,
             **spent,
-            **(st.learner.lane_stats() if hasattr(st.learner, "lane_stats") else {}),
+            **st.learner.stats(),
         }
 
     def maybe_finish(self) -> None:

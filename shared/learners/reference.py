@@ -15,57 +15,28 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Sequence
-from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from shared.joint import offsets
+from shared.learners.base import AgentDims, LearnerSpec, agent_slice, check_agents
 from shared.networks import Actor, Critic
-
-ALGOS = ("ddpg", "dis-maddpg", "cen-maddpg")
-
-
-@dataclass(frozen=True)
-class AgentDims:
-    obs_dim: int
-    act_low: tuple[float, ...]
-    act_high: tuple[float, ...]
-
-    @property
-    def act_dim(self) -> int:
-        return len(self.act_low)
-
-
-@dataclass(frozen=True)
-class LearnerSpec:
-    algo: str = "cen-maddpg"
-    hidden: tuple[int, ...] = (400, 300)
-    lr_actor: float = 1e-3
-    lr_critic: float = 1e-3
-    gamma: float = 0.99
-    tau: float = 0.005
-    seed: int = 0
-
-
-def _offsets(dims: Sequence[int]) -> list[int]:
-    return [0, *np.cumsum(dims).tolist()]
 
 
 class MADDPG:
     """The networks, optimizers and one update step; no environment, no I/O."""
 
     def __init__(self, agents: Sequence[AgentDims], spec: LearnerSpec) -> None:
-        if spec.algo not in ALGOS:
-            raise ValueError(f"algo must be one of {ALGOS}, got {spec.algo!r}")
-        if spec.algo == "ddpg" and len(agents) != 1:
-            raise ValueError("ddpg trains one agent; use dis-maddpg or cen-maddpg")
+        check_agents(agents, spec)
         self.agents = list(agents)
         self.spec = spec
         self.n = len(agents)
         self.centralized = spec.algo == "cen-maddpg"
-        self.obs_off = _offsets([a.obs_dim for a in agents])
-        self.act_off = _offsets([a.act_dim for a in agents])
+        self.obs_off = offsets([a.obs_dim for a in agents])
+        self.act_off = offsets([a.act_dim for a in agents])
         joint_in = self.obs_off[-1] + self.act_off[-1]
         with torch.random.fork_rng(devices=[]):  # seeded weights; the caller's RNG untouched
             torch.manual_seed(spec.seed)
@@ -86,10 +57,10 @@ class MADDPG:
 
     # ------------------------------------------------------------------ acting
     def obs_slice(self, joint: torch.Tensor, i: int) -> torch.Tensor:
-        return joint[..., self.obs_off[i] : self.obs_off[i + 1]]
+        return agent_slice(joint, self.obs_off, i)
 
     def act_slice(self, joint: torch.Tensor, i: int) -> torch.Tensor:
-        return joint[..., self.act_off[i] : self.act_off[i + 1]]
+        return agent_slice(joint, self.act_off, i)
 
     @torch.no_grad()
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -165,12 +136,10 @@ class MADDPG:
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
-        contended: bool = False,
     ) -> dict[str, float]:
         """One critic and one actor step per agent, then soft target updates.
 
         rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
-        `contended` is BatchedMADDPG's thread hint; this one-thread reference ignores it.
         """
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
         critic_losses, actor_losses = [], []
@@ -228,6 +197,10 @@ class MADDPG:
     def actor_weights(self) -> list[dict[str, torch.Tensor]]:
         return [m.state_dict() for m in self.actors]
 
-    def load_actor_weights(self, weights: list[dict[str, torch.Tensor]]) -> None:
+    def load_actor_weights(self, weights: Sequence[dict[str, Any]]) -> None:
         for m, sd in zip(self.actors, weights):
             m.load_state_dict(sd)
+
+    def stats(self) -> dict[str, float]:
+        """Nothing to report: one plain PyTorch update per agent, on the process's threads."""
+        return {}

@@ -1,0 +1,61 @@
+"""A run's learner and exploration, built from its config.
+
+The one-process trainer and the services (learner, counter) build them here, so they
+get the same learner for the same config and, since the seeds derive from the run
+seed in one place, the same initial weights and SimHash projections.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from shared.config import TrainConfig
+from shared.exploration import CountExploration, ExploreSpec
+from shared.learners import (
+    AUTO_MODES,
+    MADDPG,
+    AgentDims,
+    BatchedMADDPG,
+    Learner,
+    LearnerSpec,
+    TunedMADDPG,
+)
+from shared.rollout import derive_seed
+from shared.tasks import TaskSpec
+
+
+def build_learner(
+    cfg: TrainConfig, spec: TaskSpec, contended: Callable[[], bool] | None = None
+) -> Learner:
+    """`cfg.learner_impl`'s learner; with `learner_lanes: auto` the batched one tuned.
+
+    `contended()`, polled before each tuned update, says whether other work known to
+    the caller runs beside it (ignored by the untuned learners)."""
+    agents = [AgentDims(a.obs_dim, a.act_low, a.act_high) for a in spec.agents]
+    lspec = LearnerSpec(
+        algo=cfg.algo,
+        hidden=tuple(cfg.hidden),
+        lr_actor=cfg.lr_actor,
+        lr_critic=cfg.lr_critic,
+        gamma=cfg.gamma,
+        tau=cfg.tau,
+        seed=derive_seed(cfg.seed, "learner"),
+    )
+    if cfg.learner_impl != "batched":
+        return MADDPG(agents, lspec)
+    if cfg.learner_lanes == "auto":
+        lanes = max(n for n, _ in AUTO_MODES)  # the most lanes a mode runs on
+        return TunedMADDPG(BatchedMADDPG(agents, lspec, lanes=lanes), contended)
+    return BatchedMADDPG(agents, lspec, lanes=cfg.learner_lanes)
+
+
+def build_exploration(cfg: TrainConfig, spec: TaskSpec) -> CountExploration:
+    espec = ExploreSpec(
+        mode=cfg.explore,
+        beta=cfg.beta,
+        k=cfg.k,
+        hash=cfg.hash,
+        key=cfg.key,
+        seed=derive_seed(cfg.seed, "simhash"),
+    )
+    return CountExploration(espec, spec.obs_dims, spec.act_dims)

@@ -1,0 +1,39 @@
+"""The learners: one `Learner` protocol, three ways to run the same MADDPG update.
+
+* reference.py: `MADDPG`, one plain PyTorch update per agent (the definition);
+* batched.py: `BatchedMADDPG`, the same update with all agents in stacked products
+  (layers.py) and its minibatch optionally split over threads (lanes.py);
+* tuning.py: `TunedMADDPG`, a `BatchedMADDPG` whose threads a tuner picks per block
+  of updates (`learner_lanes: auto`);
+* checkpoint.py: the batched storage in the reference's checkpoint format.
+
+shared/factories.py builds the one a config asks for.
+"""
+
+from shared.learners.base import (
+    ALGOS,
+    AgentDims,
+    Learner,
+    LearnerSpec,
+    agent_slice,
+    check_agents,
+)
+from shared.learners.batched import BatchedMADDPG
+from shared.learners.lanes import Lanes, LaneTuner
+from shared.learners.reference import MADDPG
+from shared.learners.tuning import AUTO_MODES, TunedMADDPG
+
+__all__ = [
+    "ALGOS",
+    "AUTO_MODES",
+    "MADDPG",
+    "AgentDims",
+    "BatchedMADDPG",
+    "LaneTuner",
+    "Lanes",
+    "Learner",
+    "LearnerSpec",
+    "TunedMADDPG",
+    "agent_slice",
+    "check_agents",
+]

@@ -1,0 +1,108 @@
+"""What a learner is to the code that drives it, and what every learner is built from.
+
+The one-process trainer and the cluster's learner service hold a learner only through
+`Learner`, so the reference (`MADDPG`), the batched learner (`BatchedMADDPG`) and the
+thread-tuning wrapper (`TunedMADDPG`) are interchangeable there and are chosen by the
+config alone (shared/factories.py). Everything else a learner has (networks, stacks,
+per-agent steps) is for tests and benchmarks, which know which one they built.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+if TYPE_CHECKING:  # annotations only
+    import numpy as np
+    import torch
+
+ALGOS = ("ddpg", "dis-maddpg", "cen-maddpg")
+
+
+@dataclass(frozen=True)
+class AgentDims:
+    """One agent's observation size and action box, all a learner needs of a task."""
+
+    obs_dim: int
+    act_low: tuple[float, ...]
+    act_high: tuple[float, ...]
+
+    @property
+    def act_dim(self) -> int:
+        return len(self.act_low)
+
+
+@dataclass(frozen=True)
+class LearnerSpec:
+    """The algorithm and its settings; `seed` fixes the initial weights."""
+
+    algo: str = "cen-maddpg"
+    hidden: tuple[int, ...] = (400, 300)
+    lr_actor: float = 1e-3
+    lr_critic: float = 1e-3
+    gamma: float = 0.99
+    tau: float = 0.005
+    seed: int = 0
+
+
+def check_agents(agents: Sequence[AgentDims], spec: LearnerSpec) -> None:
+    """Refuse an unknown algorithm, and DDPG with other than one agent (every learner
+    refuses the same, so a config fails the same way whichever one it picks)."""
+    if spec.algo not in ALGOS:
+        raise ValueError(f"algo must be one of {ALGOS}, got {spec.algo!r}")
+    if spec.algo == "ddpg" and len(agents) != 1:
+        raise ValueError("ddpg trains one agent; use dis-maddpg or cen-maddpg")
+
+
+def agent_slice(joint: torch.Tensor, offsets: Sequence[int], i: int) -> torch.Tensor:
+    """Agent i's block of joint vectors (..., joint) laid out by `shared.joint.offsets`."""
+    return joint[..., offsets[i] : offsets[i + 1]]
+
+
+@runtime_checkable
+class Learner(Protocol):
+    """Networks, optimizers and the update step of DDPG / Dis- / Cen-MADDPG; no
+    environment, no I/O. Joint batches are laid out as the replay buffer stores them:
+    agents in task order, observations (B, sum obs_dims), actions (B, sum act_dims)."""
+
+    @property
+    def updates(self) -> int:
+        """Updates done so far (restored with the state)."""
+        ...
+
+    def update(
+        self,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: np.ndarray,
+        next_obs: np.ndarray,
+        done: np.ndarray,
+    ) -> dict[str, float]:
+        """One critic and one actor step for every agent, then soft target updates.
+        rew is (B, N): the extrinsic reward plus agent i's bonus in column i. Returns
+        the mean `critic_loss` and `actor_loss` over agents."""
+        ...
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Deterministic joint actions for joint observations (..., joint_obs)."""
+        ...
+
+    def actor_weights(self) -> list[dict[str, torch.Tensor]]:
+        """Per agent, a state dict for shared.networks.Actor (what actors and the
+        evaluator load)."""
+        ...
+
+    def load_actor_weights(self, weights: Sequence[dict[str, Any]]) -> None: ...
+
+    def state_dict(self) -> dict:
+        """The reference's per-agent checkpoint format, tensors and primitives only:
+        loads with torch.load(weights_only=True) into any learner of the same shape."""
+        ...
+
+    def load_state_dict(self, state: dict) -> None: ...
+
+    def stats(self) -> dict[str, float]:
+        """How the update runs (lanes, threads and the tuner's picks), for the metrics;
+        empty for the reference."""
+        ...

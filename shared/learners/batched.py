@@ -1,0 +1,410 @@
+"""The reference update (reference.py) with all agents batched into a few operations.
+
+`BatchedMADDPG` computes what `MADDPG` computes (same networks, same critic step, actor
+step and soft update in the same order, one shared minibatch) up to floating-point
+rounding; tests/test_batched_equivalence.py checks it update by update. Why that holds:
+
+* Within an update agents are independent: agent i's critic step touches only critic i,
+  its actor step only actor i, and targets are read before any soft update. So all N
+  critic steps are one step (one backward, one Adam call), then all N actor steps one
+  step that reads the freshly updated critics, as the reference does. Adam is
+  elementwise, so one Adam over stacked tensors equals N Adams over per-agent tensors.
+* Agents of different sizes are zero-padded (layers.py). Padded inputs are always 0 and
+  padded outputs never reach a loss, so their weights get exactly zero gradient, and
+  Adam (m = v = 0, step 0 / (0 + eps) = 0) keeps them exactly zero.
+* With lanes the minibatch is split into row blocks whose targets, forward and backward
+  passes run at the same time in threads (lanes.py); their gradients are summed before
+  each Adam step, which is the whole batch's gradient up to the order of additions.
+
+Why it is faster: few, large operations whatever N (Adam's fused kernel called
+directly, one `_foreach_lerp_` for all targets, one conversion of the losses), and no
+autograd. A fixed lane count leaves `torch.set_num_threads` to the process and gives
+bit-identical reruns. docs/performance.md, "Learner design and its measurements", has
+the numbers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from shared.joint import offsets
+from shared.learners import checkpoint
+from shared.learners.base import AgentDims, LearnerSpec, check_agents
+from shared.learners.lanes import Lanes
+from shared.learners.layers import Stack, mlp_backward, mlp_forward
+
+if TYPE_CHECKING:  # annotations only
+    from shared.learners.reference import MADDPG
+
+
+class BatchedMADDPG:
+    """Drop-in for the reference `MADDPG`: same constructor, results and checkpoints.
+
+    The per-agent methods of the reference (`target_q(i, ...)`, `critic_step(i, ...)`,
+    `actor_step(i, ...)`) are here for all agents at once and return (N, ...) tensors.
+    `lanes` row blocks of each minibatch run in that many threads (`update`); a tuner
+    may run an update on one of them instead (`update_on`, see tuning.py).
+    """
+
+    def __init__(self, agents: Sequence[AgentDims], spec: LearnerSpec, lanes: int = 1) -> None:
+        check_agents(agents, spec)
+        self.agents = list(agents)
+        self.spec = spec
+        self.n = n = len(agents)
+        self.centralized = spec.algo == "cen-maddpg"
+        obs_dims = [a.obs_dim for a in agents]
+        act_dims = [a.act_dim for a in agents]
+        self.obs_off = offsets(obs_dims)
+        self.act_off = offsets(act_dims)
+        self.joint_obs, self.joint_act = self.obs_off[-1], self.act_off[-1]
+        self.obs_pad, self.act_pad = max(obs_dims), max(act_dims)
+        ar = torch.arange
+
+        # Joint (B, joint) -> padded per-agent (N, B, pad): gather indices into the joint
+        # vector with one zero column appended (index `joint`) for the padding.
+        self._obs_idx = torch.full((n, self.obs_pad), self.joint_obs)
+        self._act_idx = torch.full((n, self.act_pad), self.joint_act)
+        for i in range(n):
+            self._obs_idx[i, : obs_dims[i]] = ar(self.obs_off[i], self.obs_off[i + 1])
+            self._act_idx[i, : act_dims[i]] = ar(self.act_off[i], self.act_off[i + 1])
+        # Padded (N, B, act_pad) -> joint (B, joint_act): positions i * act_pad + k.
+        self._joint_act_idx = torch.cat([i * self.act_pad + ar(d) for i, d in enumerate(act_dims)])
+
+        actor_sizes = [self.obs_pad, *spec.hidden, self.act_pad]
+        self.actor = Stack(n, actor_sizes, [ar(d) for d in obs_dims], [ar(d) for d in act_dims])
+        if self.centralized:
+            # Q_i(s, x): every critic reads cat(joint obs, joint act), width D.
+            width = self.joint_obs + self.joint_act
+            critic_in = [ar(width)] * n
+            # In the actor step, critic i reads the batch's cat(s, x) with agent i's own
+            # action columns replaced by mu_i(o_i) (thesis eq. 14-15): keep masks them out,
+            # place_idx gathers a_i into them (index act_pad: an appended zero column),
+            # own_cols reads dQ_i/da_i back out of dQ_i/d(input).
+            self._keep = torch.ones(n, 1, width)
+            self._place_idx = torch.full((n, 1, width), self.act_pad)
+            self._own_cols = torch.zeros(n, 1, self.act_pad, dtype=torch.long)
+            for i in range(n):
+                cols = self.joint_obs + ar(self.act_off[i], self.act_off[i + 1])
+                self._keep[i, 0, cols] = 0.0
+                self._place_idx[i, 0, cols] = ar(act_dims[i])
+                # Padded actions read column 0: harmless, their scale is 0 (see actor_step).
+                self._own_cols[i, 0, : act_dims[i]] = cols
+        else:
+            # Q_i(o_i, a_i): cat(padded o_i, padded a_i).
+            width = self.obs_pad + self.act_pad
+            critic_in = [
+                torch.cat([ar(o), self.obs_pad + ar(a)]) for o, a in zip(obs_dims, act_dims)
+            ]
+        self.critic = Stack(n, [width, *spec.hidden, 1], critic_in, [ar(1)] * n)
+
+        # The reference Actor's buffers, stacked; 0 in padded columns, so padded actions
+        # are exactly 0 and get no gradient.
+        low = torch.zeros(n, 1, self.act_pad)
+        high = torch.zeros(n, 1, self.act_pad)
+        for i, a in enumerate(agents):
+            low[i, 0, : a.act_dim] = torch.as_tensor(a.act_low, dtype=torch.float32)
+            high[i, 0, : a.act_dim] = torch.as_tensor(a.act_high, dtype=torch.float32)
+        self.scale = (high - low) / 2
+        self.center = (high + low) / 2
+
+        self._init_like_reference([len(c) for c in critic_in])
+        # Adam over the stacked tensors, stepped by _adam_step with the fused kernel. The
+        # optimizers hold the settings and state that state_dict() reads and writes.
+        self.actor_optim = torch.optim.Adam(self.actor.params, lr=spec.lr_actor, fused=True)
+        self.critic_optim = torch.optim.Adam(self.critic.params, lr=spec.lr_critic, fused=True)
+        self.updates = 0
+        if not isinstance(lanes, int):
+            raise ValueError(
+                f"lanes must be a positive int (for 'auto' wrap the learner in TunedMADDPG), "
+                f"got {lanes!r}"
+            )
+        self.lanes = Lanes(lanes)
+
+    def _init_like_reference(self, critic_in: Sequence[int]) -> None:
+        """The reference's initial weights for this seed: the same nn.Linear calls in order."""
+        with torch.random.fork_rng(devices=[]):  # leave the caller's RNG stream alone
+            torch.manual_seed(self.spec.seed)
+            for stack, ins, outs in (
+                (self.actor, [a.obs_dim for a in self.agents], [a.act_dim for a in self.agents]),
+                (self.critic, critic_in, [1] * self.n),
+            ):
+                for i in range(self.n):
+                    sizes = [ins[i], *self.spec.hidden, outs[i]]
+                    sd = {}
+                    for layer, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+                        lin = torch.nn.Linear(fan_in, fan_out)
+                        sd[stack.key(layer, False)] = lin.weight.detach()
+                        sd[stack.key(layer, True)] = lin.bias.detach()
+                    stack.load(stack.params, i, sd)
+                    stack.load(stack.targets, i, sd)
+
+    # ------------------------------------------------------------------ acting
+    @staticmethod
+    def _per_agent(joint: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """(B, joint) -> (N, B, pad): each agent's block, zero-padded."""
+        return torch.nn.functional.pad(joint, (0, 1))[:, idx].transpose(0, 1)
+
+    def _joint_act(self, per_agent: torch.Tensor) -> torch.Tensor:
+        """(N, B, act_pad) -> (B, joint_act)."""
+        return per_agent.transpose(0, 1).reshape(per_agent.shape[1], -1)[:, self._joint_act_idx]
+
+    def _squash(self, out: torch.Tensor) -> torch.Tensor:
+        """The actor's tanh output rescaled into each agent's box [low, high]."""
+        return torch.addcmul(self.center, self.scale, out)
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Deterministic joint actions for joint observations (B, joint_obs) -> (B, joint_act)."""
+        o = torch.as_tensor(obs, dtype=torch.float32)
+        lead = o.shape[:-1]
+        o_pad = self._per_agent(o.reshape(-1, self.joint_obs), self._obs_idx)
+        mu = self._squash(torch.tanh(mlp_forward(self.actor.params, o_pad)[-1]))
+        return self._joint_act(mu).reshape(*lead, self.joint_act).numpy()
+
+    # ----------------------------------------------------------------- learning
+    def tensors(self, *arrays: np.ndarray) -> list[torch.Tensor]:
+        return [torch.as_tensor(a, dtype=torch.float32) for a in arrays]
+
+    def _critic_input(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """What the critics read: cat(s, x) (B, D) shared by all (Cen), or (N, B, D) own."""
+        if self.centralized:
+            return torch.cat([obs, act], -1)
+        return torch.cat(
+            [self._per_agent(obs, self._obs_idx), self._per_agent(act, self._act_idx)], -1
+        )
+
+    def target_q(self, rew: torch.Tensor, next_obs: torch.Tensor, done: torch.Tensor):
+        """y_i = r_i + gamma (1 - done) Qbar_i(s', mubar_1(o'_1), ..., mubar_N(o'_N)): (N, B)."""
+        next_obs_pad = self._per_agent(next_obs, self._obs_idx)
+        next_act = self._squash(torch.tanh(mlp_forward(self.actor.targets, next_obs_pad)[-1]))
+        if self.centralized:
+            q_in = torch.cat([next_obs, self._joint_act(next_act)], -1)
+        else:
+            q_in = torch.cat([next_obs_pad, next_act], -1)
+        qf_next_target = mlp_forward(self.critic.targets, q_in)[-1].squeeze(-1)
+        # done is (B,); reshape so a (B, 1) done cannot broadcast y to (N, B, B).
+        return rew.T + self.spec.gamma * (1.0 - done.reshape(1, -1)) * qf_next_target
+
+    def _critic_grads(
+        self, obs: torch.Tensor, act: torch.Tensor, next_q_value: torch.Tensor, batch: int
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Summed squared errors (N,) of these rows and their gradients, as parts of
+        mean((Q_i - y_i)^2) over a minibatch of `batch` rows."""
+        acts = mlp_forward(self.critic.params, self._critic_input(obs, act))
+        diff = acts[-1].squeeze(-1) - next_q_value
+        grad = diff.mul(2.0 / batch).unsqueeze(-1)  # d qf_loss_i / d Q_i
+        grads, _ = mlp_backward(self.critic.params, acts, grad, weights=True, inputs=False)
+        return diff.square().sum(1), grads  # type: ignore[return-value]
+
+    def critic_step(
+        self, obs: torch.Tensor, act: torch.Tensor, next_q_value: torch.Tensor
+    ) -> torch.Tensor:
+        """One Adam step of every critic on mean((Q_i - y_i)^2); returns the (N,) losses."""
+        batch = obs.shape[0]
+        sq_sum, grads = self._critic_grads(obs, act, next_q_value, batch)
+        self._adam_step(self.critic_optim, self.critic.params, grads)
+        return sq_sum / batch
+
+    def _actor_grads(
+        self, obs: torch.Tensor, act: torch.Tensor, batch: int
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Summed Q_i(.., mu_i(o_i), ..) (N,) of these rows and the gradients of
+        -mean(Q_i) over a minibatch of `batch` rows with respect to actor i."""
+        obs_pad = self._per_agent(obs, self._obs_idx)
+        acts = mlp_forward(self.actor.params, obs_pad)
+        tanh_out = torch.tanh(acts[-1])
+        a = self._squash(tanh_out)  # (N, rows, act_pad)
+        rows = a.shape[1]
+        if self.centralized:
+            placed = torch.gather(
+                torch.nn.functional.pad(a, (0, 1)), 2, self._place_idx.expand(-1, rows, -1)
+            )
+            q_in = torch.cat([obs, act], -1) * self._keep + placed
+        else:
+            q_in = torch.cat([obs_pad, a], -1)
+        critic_acts = mlp_forward(self.critic.params, q_in)
+        grad_q = torch.full_like(critic_acts[-1], -1.0 / batch)  # d actor_loss_i / d Q_i
+        _, grad_in = mlp_backward(self.critic.params, critic_acts, grad_q, False, True)
+        if self.centralized:
+            grad_a = torch.gather(grad_in, 2, self._own_cols.expand(-1, rows, -1))
+        else:
+            grad_a = grad_in[..., self.obs_pad :]
+        # Through a = center + scale * tanh(out); scale is 0 in padded columns.
+        grad_out = torch.ops.aten.tanh_backward(grad_a * self.scale, tanh_out)
+        grads, _ = mlp_backward(self.actor.params, acts, grad_out, weights=True, inputs=False)
+        return critic_acts[-1].squeeze(-1).sum(1), grads  # type: ignore[return-value]
+
+    def actor_step(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """One Adam step of every actor on -mean(Q_i(.., mu_i(o_i), ..)); returns (N,) losses.
+
+        Critic i is the one just updated; the other agents' actions come from the batch
+        (Cen). Only dQ_i/da_i is taken from the critic, never its weight gradients.
+        """
+        batch = obs.shape[0]
+        q_sum, grads = self._actor_grads(obs, act, batch)
+        self._adam_step(self.actor_optim, self.actor.params, grads)
+        return -q_sum / batch
+
+    @staticmethod
+    def _adam_step(
+        optim: torch.optim.Adam, params: Sequence[torch.Tensor], grads: Sequence[torch.Tensor]
+    ) -> None:
+        """`optim.step()` with `grads`: the same fused kernel, without Optimizer.step's
+        per-call bookkeeping (hooks, grouping, state checks), which costs about 0.1 ms a
+        call, a tenth of a whole update on small networks. Settings outside the plain Adam
+        the learner uses (amsgrad, weight decay) go through `optim.step()` itself."""
+        group = optim.param_groups[0]
+        if group["amsgrad"] or group["weight_decay"] or group["maximize"]:
+            for p, g in zip(params, grads):
+                p.grad = g
+            optim.step()
+            return
+        state = optim.state
+        if params[0] not in state:  # first step: initialise state as Adam(fused=True) does
+            for p in params:
+                state[p] = {
+                    "step": torch.zeros((), dtype=torch.float32),
+                    "exp_avg": torch.zeros_like(p),
+                    "exp_avg_sq": torch.zeros_like(p),
+                }
+        states = [state[p] for p in params]
+        steps = [s["step"] for s in states]
+        torch._foreach_add_(steps, 1)
+        beta1, beta2 = group["betas"]
+        torch._fused_adam_(
+            list(params),
+            list(grads),
+            [s["exp_avg"] for s in states],
+            [s["exp_avg_sq"] for s in states],
+            [],
+            steps,
+            amsgrad=False,
+            lr=group["lr"],
+            beta1=beta1,
+            beta2=beta2,
+            weight_decay=0.0,
+            eps=group["eps"],
+            maximize=False,
+        )
+
+    def update(
+        self,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: np.ndarray,
+        next_obs: np.ndarray,
+        done: np.ndarray,
+    ) -> dict[str, float]:
+        """One critic and one actor step for every agent, then soft target updates, on
+        all of this learner's lanes.
+
+        rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
+        """
+        return self.update_on(self.lanes.n, obs, act, rew, next_obs, done)
+
+    def update_on(
+        self,
+        lanes: int,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: np.ndarray,
+        next_obs: np.ndarray,
+        done: np.ndarray,
+    ) -> dict[str, float]:
+        """`update` on one lane or on all of them (`lanes` is 1 or `self.lanes.n`): what
+        a tuner picks from update to update. The result is the same up to the order of
+        floating-point additions."""
+        if lanes not in (1, self.lanes.n):
+            raise ValueError(f"lanes must be 1 or {self.lanes.n}, got {lanes!r}")
+        obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
+        if lanes > 1 and obs_t.shape[0] > 1:
+            critic_losses, actor_losses = self._update_in_lanes(obs_t, act_t, rew_t, next_t, done_t)
+        else:
+            y = self.target_q(rew_t, next_t, done_t)
+            critic_losses = self.critic_step(obs_t, act_t, y)
+            actor_losses = self.actor_step(obs_t, act_t)
+        self.soft_update()
+        self.updates += 1
+        critic_loss, actor_loss = torch.stack([critic_losses.mean(), actor_losses.mean()]).tolist()
+        return {"critic_loss": critic_loss, "actor_loss": actor_loss}
+
+    def stats(self) -> dict[str, float]:
+        """The fixed lane count (a tuner reports its own picks, see tuning.py)."""
+        return {"lanes": float(self.lanes.n)}
+
+    def _update_in_lanes(
+        self,
+        obs: torch.Tensor,
+        act: torch.Tensor,
+        rew: torch.Tensor,
+        next_obs: torch.Tensor,
+        done: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`critic_step` then `actor_step` with the minibatch split into row blocks, one
+        per lane. A loss is a mean over rows, so its gradient is the sum of the blocks'
+        gradients (each scaled by 1/B): summed, they are the whole batch's gradient up
+        to the order of the additions, and one Adam step per network follows as before.
+        Targets and both forward/backward passes run in the lanes; the two sums and the
+        Adam steps between them run here."""
+        batch = obs.shape[0]
+        blocks = [
+            tuple(t[rows] for t in (obs, act, rew, next_obs, done))
+            for rows in self.lanes.blocks(batch)
+        ]
+
+        def critic_part(b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+            o, a, r, o2, d = b
+            return self._critic_grads(o, a, self.target_q(r, o2, d), batch)
+
+        sq_sum, grads = self._sum_parts(self.lanes.map(critic_part, blocks))
+        self._adam_step(self.critic_optim, self.critic.params, grads)
+        q_sum, grads = self._sum_parts(
+            self.lanes.map(lambda b: self._actor_grads(b[0], b[1], batch), blocks)
+        )
+        self._adam_step(self.actor_optim, self.actor.params, grads)
+        return sq_sum / batch, -q_sum / batch
+
+    @staticmethod
+    def _sum_parts(
+        parts: Sequence[tuple[torch.Tensor, list[torch.Tensor]]],
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        total, grads = parts[0]
+        for part_total, part_grads in parts[1:]:
+            total = total + part_total
+            torch._foreach_add_(grads, part_grads)
+        return total, grads
+
+    def soft_update(self) -> None:
+        """theta' <- tau theta + (1 - tau) theta' for every target network, in one call."""
+        torch._foreach_lerp_(
+            self.actor.targets + self.critic.targets,
+            self.actor.params + self.critic.params,
+            self.spec.tau,
+        )
+
+    # ----------------------------------------------------------------- state
+    def state_dict(self) -> dict:
+        """The reference's format, tensors and primitives only: loads with
+        torch.load(weights_only=True) into either MADDPG or BatchedMADDPG."""
+        return checkpoint.export_state(self)
+
+    def load_state_dict(self, state: dict) -> None:
+        checkpoint.import_state(self, state)
+
+    @classmethod
+    def from_reference(cls, ref: MADDPG) -> BatchedMADDPG:
+        """A batched copy of a reference learner: weights, targets, Adam states, counter."""
+        m = cls(ref.agents, ref.spec)
+        m.load_state_dict(ref.state_dict())
+        return m
+
+    def actor_weights(self) -> list[dict[str, torch.Tensor]]:
+        """Per agent, a state dict for shared.networks.Actor (fresh tensors, safe to ship)."""
+        return [checkpoint.actor_state(self, self.actor.params, i) for i in range(self.n)]
+
+    def load_actor_weights(self, weights: Sequence[dict[str, Any]]) -> None:
+        for i, sd in enumerate(weights):
+            self.actor.load(self.actor.params, i, sd)

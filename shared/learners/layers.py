@@ -1,0 +1,124 @@
+"""N agents' MLPs as stacked tensors: the forward pass, its hand-written backward, and
+the padded storage they run on.
+
+Weights are stacked per layer, W (N, out, in) as nn.Linear stores them and b (N, 1, out),
+so one layer of all N agents is one `torch.baddbmm`; agents with different observation
+or action sizes are zero-padded to the largest. Gradients are written out by hand
+instead of autograd: that saves the engine's per-node cost and computes only the
+gradients the algorithm uses (none for targets or batch inputs, none for critic weights
+in the actor step, no input gradient at an actor's first layer).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+
+
+# The three products of a stacked linear layer. MKL on one core is 3-10x slower for
+# products with a narrow side (a last layer's 1-3 outputs, a first layer's 4-24 inputs)
+# in some layouts, e.g. the ones `bmm`'s autograd picks; these pick the fast one. The
+# floor in benchmarks/bench_learner.py times these same functions.
+def linear_forward(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """x W^T + b: x (N, B, in), W (N, out, in), b (N, 1, out) -> (N, B, out)."""
+    return torch.baddbmm(b, x, w.mT)
+
+
+def linear_grad_input(grad: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """dL/dx = grad W: grad (N, B, out), W (N, out, in) -> (N, B, in)."""
+    if w.shape[2] < w.shape[1]:  # narrow input: (W^T grad^T)^T is faster
+        return torch.bmm(w.mT, grad.mT).mT
+    return torch.bmm(grad, w)
+
+
+def linear_grad_weight(grad: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """dL/dW = grad^T x: grad (N, B, out), x (N, B, in) -> (N, out, in), contiguous."""
+    if x.shape[2] < grad.shape[2]:  # narrow input: (x^T grad)^T is faster
+        return torch.bmm(x.mT, grad).mT.contiguous()
+    return torch.bmm(grad.mT, x)
+
+
+def mlp_forward(params: Sequence[torch.Tensor], x: torch.Tensor) -> list[torch.Tensor]:
+    """N MLPs at once (shared.networks.mlp: ReLU between layers, none after the last).
+
+    params = [W0, b0, W1, b1, ...]; x is (N, B, in), or (B, in) when all N networks read
+    the same input (Cen critics). Returns every layer's input and the output, [x, h1, ...,
+    out], which is what `mlp_backward` needs.
+    """
+    n = params[0].shape[0]
+    acts = [x.expand(n, -1, -1) if x.dim() == 2 else x]
+    last = len(params) // 2 - 1
+    for layer in range(last + 1):
+        h = linear_forward(acts[-1], params[2 * layer], params[2 * layer + 1])
+        acts.append(h.relu_() if layer < last else h)
+    return acts
+
+
+def mlp_backward(
+    params: Sequence[torch.Tensor],
+    acts: Sequence[torch.Tensor],
+    grad: torch.Tensor,
+    weights: bool,
+    inputs: bool,
+) -> tuple[list[torch.Tensor] | None, torch.Tensor | None]:
+    """Backpropagate dL/d(output) through `mlp_forward`'s layers.
+
+    Returns (gradients for params, or None unless `weights`; dL/dx, or None unless
+    `inputs`). Nothing else is computed: the actor step asks its critic for dL/dx only.
+    """
+    layers = len(params) // 2
+    grads: list[torch.Tensor] = [None] * len(params)  # type: ignore[list-item]
+    for layer in reversed(range(layers)):
+        x = acts[layer]
+        if weights:
+            grads[2 * layer] = linear_grad_weight(grad, x)
+            grads[2 * layer + 1] = grad.sum(1, keepdim=True)
+        if layer == 0 and not inputs:
+            break
+        grad = linear_grad_input(grad, params[2 * layer])
+        if layer > 0:  # x = relu(previous pre-activation): pass grad where x > 0
+            grad = torch.ops.aten.threshold_backward(grad, x, 0.0)
+    return (grads if weights else None), (grad if inputs else None)
+
+
+class Stack:
+    """One kind of network (actors or critics) of all N agents: online and target tensors.
+
+    Knows where agent i's reference weights sit in the padded stack, so it converts to and
+    from the reference's per-agent state dicts (`net.0.weight`, `net.0.bias`, ...).
+    """
+
+    def __init__(
+        self,
+        n: int,
+        sizes: Sequence[int],
+        agent_in: Sequence[torch.Tensor],
+        agent_out: Sequence[torch.Tensor],
+    ) -> None:
+        self.params: list[torch.Tensor] = []
+        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+            self.params += [torch.zeros(n, fan_out, fan_in), torch.zeros(n, 1, fan_out)]
+        self.targets = [p.clone() for p in self.params]
+        # index[i][layer] = (input indices, output indices) of agent i's weight.
+        hidden = [torch.arange(h) for h in sizes[1:-1]]
+        self.index = [list(zip([agent_in[i], *hidden], [*hidden, agent_out[i]])) for i in range(n)]
+
+    @staticmethod
+    def key(layer: int, bias: bool) -> str:
+        return f"net.{2 * layer}.{'bias' if bias else 'weight'}"
+
+    def export(self, tensors: Sequence[torch.Tensor], i: int) -> dict[str, torch.Tensor]:
+        """Agent i's part of `tensors` (params, targets or an Adam moment), as new tensors."""
+        out = {}
+        for layer, (ins, outs) in enumerate(self.index[i]):
+            out[self.key(layer, False)] = tensors[2 * layer][i][outs[:, None], ins]
+            out[self.key(layer, True)] = tensors[2 * layer + 1][i, 0, outs]
+        return out
+
+    def load(self, tensors: Sequence[torch.Tensor], i: int, sd: dict[str, Any]) -> None:
+        """Agent i's per-agent state dict `sd` written into its place in `tensors`."""
+        for layer, (ins, outs) in enumerate(self.index[i]):
+            tensors[2 * layer][i][outs[:, None], ins] = torch.as_tensor(sd[self.key(layer, False)])
+            tensors[2 * layer + 1][i, 0, outs] = torch.as_tensor(sd[self.key(layer, True)])
