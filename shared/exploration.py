@@ -13,6 +13,7 @@ obs (B, sum obs_dims) and act (B, sum act_dims), agents in task order.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,3 +115,65 @@ class CountExploration:
             "count1_pct": 100.0 * c1 / size if size else 0.0,
             "counted_transitions": self.tables[0].total if self.tables else 0,
         }
+
+
+class BonusDiagnostics:
+    """What the bonus did on the rows sampled since the last metric point.
+
+    `bonus_mean` and `bonus_std` over every sampled (row, agent) bonus, and
+    `sampled_count1_pct`, the share of sampled (row, table) keys with n = 1. A std of 0
+    with a positive mean means the bonus was a constant reward shift on every sampled
+    row (every key new, or the `constant` arm): what counting cannot explain. Sums
+    only, so recording costs a few numpy reductions per update.
+    """
+
+    FIELDS = ("bonus_mean", "bonus_std", "sampled_count1_pct")
+
+    def __init__(self) -> None:
+        self._reset()
+
+    def _reset(self) -> None:
+        self.n = 0
+        self.total = 0.0
+        self.total_sq = 0.0
+        self.keys = 0
+        self.count1 = 0
+        self.low = np.inf
+        self.high = -np.inf
+
+    def record(self, bonus: np.ndarray, counts: Sequence[np.ndarray] | np.ndarray) -> None:
+        """One sampled batch: its (B, N) bonus and each table's (B,) counts (none for
+        the arms without tables). A count of 0 (a row the counter had not counted yet)
+        was priced as n = 1, and is counted as such."""
+        b = np.asarray(bonus, dtype=np.float64)
+        self.n += b.size
+        self.total += float(b.sum())
+        self.total_sq += float(np.square(b).sum())
+        if b.size:
+            self.low = min(self.low, float(b.min()))
+            self.high = max(self.high, float(b.max()))
+        for c in counts:
+            c = np.asarray(c)
+            self.keys += c.size
+            self.count1 += int(np.count_nonzero(c <= 1))
+
+    def take(self) -> dict[str, float]:
+        """The fields for this point; starts over for the next."""
+        mean = self.total / self.n if self.n else 0.0
+        var = max(0.0, self.total_sq / self.n - mean * mean) if self.n else 0.0
+        # Exactly 0 when every value was the same (sums of squares leave rounding residue).
+        std = 0.0 if self.low >= self.high else float(np.sqrt(var))
+        out = {
+            "bonus_mean": mean,
+            "bonus_std": std,
+            "sampled_count1_pct": 100.0 * self.count1 / self.keys if self.keys else 0.0,
+        }
+        self._reset()
+        return out
+
+
+def constant_shift(rows: Sequence[dict], last: int = 2) -> bool:
+    """The bonus was a constant reward shift over the last `last` points: std 0 with a
+    positive mean at each (at least one point needed)."""
+    tail = [r for r in rows[-last:] if "bonus_std" in r]
+    return bool(tail) and all(r["bonus_std"] == 0 and r["bonus_mean"] > 0 for r in tail)

@@ -21,7 +21,7 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from shared.config import TrainConfig
-from shared.exploration import CountExploration
+from shared.exploration import BonusDiagnostics, CountExploration, constant_shift
 from shared.factories import build_exploration, build_learner
 from shared.learners import Learner
 from shared.metrics import TRAIN_FIELDS
@@ -85,6 +85,23 @@ def load_checkpoint(path: Path) -> dict:
     return torch.load(path, weights_only=True)
 
 
+def _say_if_constant_shift(rows: list[dict], warned: bool) -> bool:
+    """Log, once each time it starts, that the bonus has been a constant reward shift
+    (every sampled key new, or the constant arm): then counting did nothing yet that a
+    constant bonus would not do. Returns whether it holds now."""
+    shift = constant_shift(rows)
+    if shift and not warned:
+        r = rows[-1]
+        log.warning(
+            "episode %d: the bonus is a constant shift (%.4g on every sampled row, "
+            "sampled count-1 %.1f%%): counting has not changed any reward yet",
+            r["episode"],
+            r["bonus_mean"],
+            r["sampled_count1_pct"],
+        )
+    return shift
+
+
 def train(
     cfg: TrainConfig,
     out: Path | None,
@@ -143,6 +160,8 @@ def _train(
 
         bar = tqdm(total=cfg.episodes, unit="ep", desc=f"{cfg.task} {cfg.algo}+{cfg.explore}")
     rows: list[dict] = []
+    diagnostics = BonusDiagnostics()
+    shift_warned = False
     env_steps = collisions_cum = 0
     eval_s = 0.0
     start = time.perf_counter()
@@ -156,8 +175,10 @@ def _train(
                 collisions_cum += tr.collisions
                 if env_steps > cfg.learning_starts:
                     b = buffer.sample(cfg.batch_size, sample_rng)
-                    rew = b.rew[:, None] + explorer.bonus(b.obs, b.act)
-                    learner.update(b.obs, b.act, rew, b.next_obs, b.done)
+                    counts = explorer.counts(b.obs, b.act)
+                    bonus = explorer.bonus_from_counts(counts, len(b.rew))
+                    diagnostics.record(bonus, counts)
+                    learner.update(b.obs, b.act, b.rew[:, None] + bonus, b.next_obs, b.done)
             if episode % cfg.eval_every == 0 or episode == cfg.episodes:
                 t0 = time.perf_counter()
                 ev = evaluate(learner.act, eval_envs, cfg.eval_episodes)
@@ -170,12 +191,14 @@ def _train(
                     "eval_return": ev.eval_return,
                     "collisions_cum": collisions_cum,
                     **explorer.stats(),
+                    **diagnostics.take(),
                     "steps_per_sec": env_steps / wall,
                     "train_steps_per_sec": env_steps / max(wall - eval_s, 1e-9),
                     "updates": learner.updates,
                     "wall_s": wall,
                 }
                 rows.append(row)
+                shift_warned = _say_if_constant_shift(rows, shift_warned)
                 if writer:
                     writer.write(row)
                 if on_metrics:

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from shared.exploration import CountExploration, ExploreSpec
+from shared.exploration import BonusDiagnostics, CountExploration, ExploreSpec, constant_shift
 
 # speaker_listener layout: speaker obs 3 / act 3, listener obs 11 / act 2
 OBS, ACT = (3, 11), (3, 2)
@@ -115,3 +115,37 @@ def test_count1_pct_matches_hand_count():
     ex.observe(obs[[0, 0, 1, 2, 2, 2]], act[[0, 0, 1, 2, 2, 2]])
     s = ex.stats()
     assert s["table_size"] == 3 and s["count1_pct"] == pytest.approx(100 / 3)
+
+
+# ------------------------------------------------------------- bonus diagnostics
+def test_bonus_diagnostics_mean_std_and_sampled_count1_since_the_last_point():
+    d = BonusDiagnostics()
+    d.record(np.array([[0.8, 0.8], [0.4, 0.4]]), [np.array([1, 4])])
+    d.record(np.array([[0.8, 0.8]]), [np.array([0])])  # uncounted: priced as n = 1
+    got = d.take()
+    values = np.array([0.8, 0.8, 0.4, 0.4, 0.8, 0.8])
+    assert got["bonus_mean"] == pytest.approx(values.mean())
+    assert got["bonus_std"] == pytest.approx(values.std())
+    assert got["sampled_count1_pct"] == pytest.approx(100 * 2 / 3)
+    assert d.take() == {"bonus_mean": 0.0, "bonus_std": 0.0, "sampled_count1_pct": 0.0}
+
+
+def test_bonus_diagnostics_std_is_exactly_zero_for_a_constant_shift():
+    d = BonusDiagnostics()
+    beta = np.float32(0.8)  # not exact in binary: sums of squares would leave residue
+    for _ in range(1000):
+        d.record(np.full((100, 2), beta), [np.ones(100, np.int64)])
+    got = d.take()
+    assert got["bonus_std"] == 0.0 and got["bonus_mean"] == pytest.approx(0.8)
+    assert got["sampled_count1_pct"] == 100.0
+    assert constant_shift([got, got])
+    assert not constant_shift([])
+    assert not constant_shift([got, {**got, "bonus_std": 0.01}])
+    assert not constant_shift([{**got, "bonus_mean": 0.0}])  # no bonus is no shift
+
+
+def test_bonus_diagnostics_of_several_tables_count_every_key():
+    """Dis-MACB: one table per agent, so a row has one key per table."""
+    d = BonusDiagnostics()
+    d.record(np.zeros((2, 2)), [np.array([1, 2]), np.array([1, 1])])
+    assert d.take()["sampled_count1_pct"] == 75.0

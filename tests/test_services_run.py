@@ -71,6 +71,12 @@ def check_exact(watch, actors, config):
             # counted at least every transition trained on
             assert r["counted_transitions"] >= r["env_steps"], r
             assert r["table_size"] > 0 and 0.0 < r["count1_pct"] <= 100.0, r
+        if r["env_steps"] > config.learning_starts + config.eval_every * config.episode_len:
+            # what the bonus did on the rows sampled since the last point (every row of
+            # such a point had updates since the point before)
+            beta = config.beta if config.explore != "none" else 0.0
+            assert 0.0 <= r["bonus_std"] <= beta and 0.0 <= r["sampled_count1_pct"] <= 100, r
+            assert (0.0 < r["bonus_mean"] <= beta + 1e-6) or beta == 0.0, r
     if config.explore in ("dis-macb", "cen-macb"):
         # bonuses priced per tick (all of its minibatches in one query), not per update
         assert learner["bonus_rows_per_query"] >= 5 * config.batch_size, learner

@@ -130,3 +130,31 @@ def test_numpy_blas_runs_on_one_thread_while_training_and_is_restored():
     assert before and all(n == 2 for n in before)  # numpy's BLAS is visible and at 2
     assert len(seen) == 2 and all(n == 1 for threads in seen for n in threads)
     assert after == before
+
+
+def test_rows_say_what_the_bonus_did_and_the_log_names_a_constant_shift(caplog):
+    """k=512 on speaker_listener: every key is new, so Cen-MACB's bonus is exactly beta
+    (a constant shift, what the constant arm does by design); with k=4 keys repeat and
+    the bonus varies."""
+    base = dict(task="speaker_listener", algo="cen-maddpg", episodes=15, eval_every=5)
+    with caplog.at_level("WARNING", logger="macb.trainer"):
+        rows = train(cfg(**base, explore="cen-macb", k=512, beta=0.8), None, progress=False)
+    # Nothing is sampled before learning_starts (100 steps = 5 episodes): all zero.
+    assert rows[0]["bonus_mean"] == rows[0]["sampled_count1_pct"] == 0.0
+    wide = rows[1:]
+    assert [r["sampled_count1_pct"] for r in wide] == [100.0, 100.0]
+    assert all(r["bonus_std"] == 0.0 for r in wide)
+    assert wide[-1]["bonus_mean"] == pytest.approx(0.8)
+    assert "the bonus is a constant shift" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="macb.trainer"):
+        narrow = train(cfg(**base, explore="cen-macb", k=4, beta=0.8), None, progress=False)[1:]
+    assert all(r["bonus_std"] > 0 for r in narrow)
+    assert all(r["sampled_count1_pct"] < 100 for r in narrow)
+    assert all(0 < r["bonus_mean"] < 0.8 for r in narrow)
+    assert "constant shift" not in caplog.text
+    const = train(cfg(**base, explore="constant", beta=0.3), None, progress=False)[1:]
+    assert all(r["bonus_std"] == 0 and r["bonus_mean"] == pytest.approx(0.3) for r in const)
+    assert all(r["sampled_count1_pct"] == 0.0 for r in const)  # no tables
+    none = train(cfg(**base, explore="none"), None, progress=False)[1:]
+    assert all(r["bonus_mean"] == 0 and r["bonus_std"] == 0 for r in none)

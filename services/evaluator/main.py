@@ -116,6 +116,7 @@ class EvaluatorService(ServiceBase):
         ev = evaluate(st.policy, st.envs, cfg.eval_episodes)
         info = msg["info"]
         counts = info.get("counter") or {}  # the counter's stats at this boundary
+        bonus = info.get("bonus") or {}  # what the bonus did since the last point
         row = {
             "episode": msg["eval_point"],
             "env_steps": msg["env_steps"],
@@ -125,6 +126,9 @@ class EvaluatorService(ServiceBase):
             "count1_pct": counts.get("count1_pct", 0.0),
             "table_size": counts.get("table_size", 0),
             "counted_transitions": counts.get("counted_transitions", 0),
+            "bonus_mean": bonus.get("bonus_mean", 0.0),
+            "bonus_std": bonus.get("bonus_std", 0.0),
+            "sampled_count1_pct": bonus.get("sampled_count1_pct", 0.0),
             "steps_per_sec": info.get("steps_per_sec", 0.0),
             "train_steps_per_sec": info.get("steps_per_sec", 0.0),
             "updates": msg["updates"],

@@ -34,6 +34,7 @@ import torch
 from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
+from shared.exploration import BonusDiagnostics
 from shared.factories import build_learner
 from shared.learners import Learner
 from shared.networks import weights_as_arrays
@@ -67,11 +68,14 @@ class BonusClient:
         # them): what an evaluation point reports, without a query of its own.
         self.tables: dict[str, float] | None = None
         self.fresh = False  # tables came with this tick's query
+        # Each batch's (tables, B) counts from the last answered query, for diagnostics.
+        self.counts: list[np.ndarray] = []
 
     def bonus_for(self, batches: list) -> list[np.ndarray] | None:
         """The (B, N) bonus of each sampled batch, priced in one query; None if the
         counter did not answer."""
         sizes = [len(b.rew) for b in batches]
+        self.counts = [np.zeros((0, B), np.int64) for B in sizes]  # no tables to count
         if self.mode == "none":
             return [np.zeros((B, self.n), np.float32) for B in sizes]
         if self.mode == "constant":
@@ -98,7 +102,10 @@ class BonusClient:
                 self.tables = _table_stats(msg.get("tables"))
                 self.fresh = True
                 bonus = msg["bonus"].astype(np.float32)
-                return np.split(bonus, np.cumsum(sizes)[:-1])
+                cuts = np.cumsum(sizes)[:-1]
+                if msg["counts"].ndim == 2 and msg["counts"].shape[1] == rows:
+                    self.counts = np.split(msg["counts"], cuts, axis=1)
+                return np.split(bonus, cuts)
         self.failures += 1
         return None
 
@@ -185,6 +192,7 @@ class LearnerRun:
     # Wall time by phase (s): where the learner's time per update goes.
     time: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_PHASES, 0.0))
     contended_updates: int = 0
+    diagnostics: BonusDiagnostics = field(default_factory=BonusDiagnostics)
 
     @property
     def counting(self) -> bool:
@@ -355,7 +363,8 @@ class LearnerService(ServiceBase):
             batches, bonuses = [], []
         t0 = time.perf_counter()
         evaluating = st.evaluations.busy
-        for batch, bonus in zip(batches, bonuses, strict=True):
+        counts = st.bonus.counts if len(st.bonus.counts) == len(bonuses) else None
+        for j, (batch, bonus) in enumerate(zip(batches, bonuses, strict=True)):
             # Counted here for every kind of learner; a tuned one polls the same signal
             # for its tuners and its own count (in its stats(), which take precedence).
             contended = evaluating()
@@ -368,6 +377,7 @@ class LearnerService(ServiceBase):
                 batch.done,
             )
             st.bonus_means.append(float(bonus.mean()))
+            st.diagnostics.record(bonus, counts[j] if counts is not None else [])
             owed -= 1
         t1 = time.perf_counter()
         spent["update"] += t1 - t0
@@ -417,7 +427,12 @@ class LearnerService(ServiceBase):
             eval_point=eval_point,
             collisions_cum=collisions,
             actors=weights_as_arrays(st.learner.actor_weights()),
-            info={**self.stats(), "counter": self.counter_stats() if eval_point >= 0 else {}},
+            info={
+                **self.stats(),
+                "counter": self.counter_stats() if eval_point >= 0 else {},
+                # What the bonus did on the rows sampled since the last point.
+                "bonus": st.diagnostics.take() if eval_point >= 0 else {},
+            },
         )
         if eval_point >= 0:
             st.eval_pub(payload)
