@@ -24,28 +24,20 @@ import json
 import os
 import platform
 import random
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import httpx
+from _harness import RESULTS, macb_argv
+from _procs import end, start
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from services.api.store import Store  # noqa: E402
+from services.api.store import Store
+from shared.cluster import free_port
 
 CONFIG = {"task": "speaker_listener", "episodes": 100_000, "eval_every": 10}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def fill(db: Path, points: int) -> str:
@@ -78,8 +70,8 @@ def fill(db: Path, points: int) -> str:
                 "policy_version": 10 * i,
             }
         )
-    for start in range(0, points, 1000):  # as the scheduler writes: batches as rows arrive
-        store.add_points("xbench-0", rows[start : start + 1000])
+    for i in range(0, points, 1000):  # as the scheduler writes: batches as rows arrive
+        store.add_points("xbench-0", rows[i : i + 1000])
     store.close()
     return "xbench-0"
 
@@ -116,14 +108,9 @@ def main() -> int:
         run = fill(db, args.points)
         fill_s = time.perf_counter() - t0
         port = free_port()
-        server = subprocess.Popen(
-            [sys.executable, "-m", "cli", "serve", "api", "--listen-http"]
-            + [f"127.0.0.1:{port}", "--db", str(db), "--data-dir", tmp],
-            cwd=ROOT,
-            env={**os.environ, "MACB_API_SCHEDULER": "false"},
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
+        argv = macb_argv("serve", "api", "--listen-http", f"127.0.0.1:{port}")
+        argv += ["--db", str(db), "--data-dir", tmp]
+        server = start(argv, env={**os.environ, "MACB_API_SCHEDULER": "false"})
         try:
             client = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30)
             deadline = time.monotonic() + 60
@@ -147,8 +134,7 @@ def main() -> int:
             }
             client.close()
         finally:
-            server.terminate()
-            server.wait(30)
+            end(server)
     out = {
         "points": args.points,
         "fill_s": fill_s,
@@ -163,9 +149,8 @@ def main() -> int:
             f"| {name} | {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | {r['mean_ms']:.2f} "
             f"| {r['bytes']} |"
         )
-    results_dir = ROOT / "benchmarks" / "results"
-    results_dir.mkdir(exist_ok=True)
-    (results_dir / "api.json").write_text(json.dumps(out, indent=2) + "\n")
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "api.json").write_text(json.dumps(out, indent=2) + "\n")
     return 0
 
 

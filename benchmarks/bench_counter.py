@@ -36,102 +36,55 @@ tracemalloc's measured allocation per key as a check).
 prints markdown tables and writes benchmarks/results/counter.json.
 """
 
+# Imports below pin_threads(), which must set the thread variables before numpy loads:
+# ruff: noqa: E402
 from __future__ import annotations
 
 import os
 
+from _procs import pin_threads
+
 # The services run with one BLAS thread (shared/cluster.py THREAD_ENV); the in-process
 # ceiling must too. Set before numpy is imported.
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+pin_threads()
 
-import argparse  # noqa: E402
-import contextlib  # noqa: E402
-import json  # noqa: E402
-import signal  # noqa: E402
-import statistics  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import threading  # noqa: E402
-import time  # noqa: E402
-import tracemalloc  # noqa: E402
-from collections import deque  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import contextlib
+import json
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import tracemalloc
+from collections import deque
+from pathlib import Path
 
-import numpy as np  # noqa: E402
+import numpy as np
+from _harness import Services, add_out, bench_parser, command, exploration, progress, write_result
+from _procs import Procs, cpu_seconds
+from _stats import fmt, median, rotated, top_tottime
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from shared.bus import Bus, k_ack, k_bonus, k_control, k_info, k_transitions
+from shared.cluster import THREAD_ENV, cluster_plan, free_port
+from shared.wire import check_dims, decode, encode
 
-from shared.bus import Bus, k_ack, k_bonus, k_control, k_info, k_transitions  # noqa: E402
-from shared.cluster import THREAD_ENV, free_port, wait_port  # noqa: E402
-from shared.wire import check_dims, decode, encode  # noqa: E402
-
-# Publisher and echo processes import only the above (numpy, zenoh, msgpack): no torch,
-# no environments, so they start fast and cost the counter's CPU as little as possible.
+# Publisher and echo processes import only the above (numpy, zenoh, msgpack, pydantic):
+# no torch, no environments, so they start fast and cost the counter's CPU as little as
+# possible.
 
 CONFIG = {"task": "speaker_listener", "algo": "cen-maddpg", "explore": "cen-macb", "beta": 0.8}
+COUNTER = "counter"  # the counter's service id in shared.cluster.cluster_plan
+ABOUT = (  # what --help adds to the docstring's first paragraph
+    " Router + counter processes; publisher processes flood numbered `transitions` "
+    "batches (20 and 64 rows); 100-row bonus queries timed at the client."
+)
 QUERY_ROWS = 100
 QUERY_EVERY_S = 0.005
 SEED_ROWS = 2000  # transitions the harness counts first; queries sample them
 TARGET_INGEST = 50_000.0
 TARGET_P99_MS = 5.0
-
-
-# ------------------------------------------------------------------ processes
-
-
-def cpu_seconds(pid: int) -> float:
-    """utime + stime of a process, from /proc (0 if it is gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-class Procs:
-    """Child processes started here and ended here, by PID."""
-
-    def __init__(self, log_dir: Path) -> None:
-        self.log_dir = log_dir
-        self.procs: dict[str, subprocess.Popen] = {}
-
-    def start(self, name: str, argv: list[str], env: dict[str, str]) -> subprocess.Popen:
-        log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 (the child owns it)
-        p = subprocess.Popen(
-            argv,
-            cwd=ROOT,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", **env},
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,
-        )
-        log.close()
-        self.procs[name] = p
-        return p
-
-    def stop(self, name: str, timeout: float = 15.0) -> None:
-        p = self.procs.pop(name, None)
-        if p is None:
-            return
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-        try:
-            p.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-
-    def stop_all(self) -> None:
-        for name in [n for n in self.procs if n != "router"] + ["router"]:
-            self.stop(name)
-
-
-def serve_argv(*args: str) -> list[str]:
-    return [sys.executable, "-m", "cli", "serve", *args]
 
 
 # ------------------------------------------------------------------ data
@@ -152,20 +105,10 @@ def transitions_payload(run: str, actor: str, seq: int, obs: np.ndarray, act: np
     )
 
 
-def run_spec(k: int):
-    """(config, task spec) of the benchmark's run."""
-    from shared.config import make_config
-    from shared.tasks import task_spec
-
-    cfg = make_config({**CONFIG, "k": k})
-    return cfg, task_spec(cfg.task, cfg.agents, cfg.episode_len)
-
-
-def make_explorer(k: int):
-    from shared.trainer import build_exploration
-
-    cfg, spec = run_spec(k)
-    return build_exploration(cfg, spec)
+def run_exploration(k: int):
+    """(config, task spec, count exploration) of the benchmark's run: what the counter
+    builds for it."""
+    return exploration({**CONFIG, "k": k})
 
 
 # ------------------------------------------------------------------ echo process
@@ -206,7 +149,7 @@ def publisher_main(a: argparse.Namespace) -> None:
                     state["acked"] = seq
                     cond.notify()
 
-    bus.subscribe(k_ack(a.run, "c0"), on_ack)
+    bus.subscribe(k_ack(a.run, COUNTER), on_ack)
     pub = bus.publisher(k_transitions(a.run, a.actor))
     rng = np.random.default_rng(a.seed)
     stop_file = Path(a.result + ".stop")
@@ -275,9 +218,13 @@ class CounterHarness:
         self.work = work
         self.profile = profile
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.procs = Procs(work)
+        plan = cluster_plan(0, self.endpoint, str(work), api=None)
+        plan = [s for s in plan if s.name in ("router", COUNTER)]
+        prof = {COUNTER: work / "counter.prof"} if profile else None
+        self.services = Services(plan, work, profile=prof)  # router, counter
+        self.procs = Procs(work)  # echo, publishers
         self.bus: Bus | None = None
-        _, spec = run_spec(k)
+        _, spec, _ = run_exploration(k)
         self.obs_dim, self.act_dim = spec.joint_obs_dim, spec.joint_act_dim
         rng = np.random.default_rng(12345)
         self.q_obs = rng.uniform(-1, 1, (SEED_ROWS, self.obs_dim)).astype(np.float32)
@@ -285,22 +232,14 @@ class CounterHarness:
         self.runs = 0
 
     def start(self) -> None:
-        env = dict(THREAD_ENV)
-        self.procs.start("router", serve_argv("router", "--listen", self.endpoint), env)
-        wait_port(self.endpoint)
-        env["MACB_ZENOH_CONNECT"] = self.endpoint
-        argv = serve_argv("counter", "--id", "c0", "--data-dir", str(self.work))
-        if self.profile:  # cProfile sees the service thread (ingestion), not Zenoh's
-            argv = [sys.executable, "-m", "cProfile", "-o", str(self.work / "counter.prof")]
-            argv += ["-m", "cli", "serve", "counter", "--id", "c0"]
-            argv += ["--data-dir", str(self.work)]
-        self.procs.start("counter", argv, env)
+        self.services.start()  # under --profile, cProfile sees the service thread (ingestion)
         echo = self.work / "echo"
+        env = {**THREAD_ENV, "MACB_ZENOH_CONNECT": self.endpoint}
         self.procs.start("echo", self.script("--_echo", "--result", str(echo)), env)
         self.bus = Bus([self.endpoint])
         deadline = time.monotonic() + 60
         while not (self.info() or {}).get("ready"):
-            if time.monotonic() > deadline or self.procs.procs["counter"].poll() is not None:
+            if time.monotonic() > deadline or self.services.popen(COUNTER).poll() is not None:
                 raise RuntimeError(f"the counter did not come up (see {self.work}/counter.log)")
             time.sleep(0.1)
         wait_files([Path(str(echo) + ".ready")], 30, "the echo process")
@@ -314,18 +253,14 @@ class CounterHarness:
             self.bus.close()
             self.bus = None
         self.procs.stop_all()
+        self.services.stop()
         prof = self.work / "counter.prof"
         if self.profile and prof.exists():
-            import io
-            import pstats
-
-            buf = io.StringIO()
-            pstats.Stats(str(prof), stream=buf).sort_stats("tottime").print_stats(25)
-            return {"top_tottime": buf.getvalue()}
+            return {"top_tottime": top_tottime(prof, 25)}
         return None
 
     def info(self) -> dict | None:
-        replies = self.bus.get(k_info("counter", "c0"), timeout=2.0)
+        replies = self.bus.get(k_info("counter", COUNTER), timeout=2.0)
         return json.loads(replies[0]) if replies else None
 
     def run_stats(self, run: str) -> dict:
@@ -335,7 +270,7 @@ class CounterHarness:
     def new_run(self, actors: list[str]) -> str:
         self.runs += 1
         run = f"bench-{self.runs}"
-        assign = {"counter": "c0", "learner": "L", "actors": actors, "evaluator": "e"}
+        assign = {"counter": COUNTER, "learner": "L", "actors": actors, "evaluator": "e"}
         config = {**CONFIG, "k": self.k}
         self.bus.put(k_control("start"), encode("start", run, config=config, assign=assign))
         deadline = time.monotonic() + 20
@@ -431,8 +366,8 @@ class CounterHarness:
         lat: dict = {"counter": [], "echo": [], "failures": 0}
         stop = threading.Event()
         pids = {
-            "counter": self.procs.procs["counter"].pid,
-            "router": self.procs.procs["router"].pid,
+            "counter": self.services.popen(COUNTER).pid,
+            "router": self.services.popen("router").pid,
             "publishers": [self.procs.procs[n].pid for n in names],
         }
         try:
@@ -500,11 +435,15 @@ class CounterHarness:
 
     @staticmethod
     def _cpu(pids: dict) -> dict:
-        return {
-            "counter": cpu_seconds(pids["counter"]),
-            "router": cpu_seconds(pids["router"]),
-            "publishers": sum(cpu_seconds(p) for p in pids["publishers"]),
-        }
+        """CPU seconds of the phase's processes; each must still run (a gone one has no
+        CPU seconds to give, and the phase's shares would be wrong)."""
+        each = {"counter": pids["counter"], "router": pids["router"]}
+        each |= {f"publisher {p}": p for p in pids["publishers"]}
+        cpu = {name: cpu_seconds(pid) for name, pid in each.items()}
+        if gone := [name for name, s in cpu.items() if s is None]:
+            raise RuntimeError(f"{', '.join(gone)} ended during the phase")
+        pub = sum(s for name, s in cpu.items() if name.startswith("publisher "))
+        return {"counter": cpu["counter"], "router": cpu["router"], "publishers": pub}
 
 
 # ------------------------------------------------------------------ in-process ceiling
@@ -512,7 +451,7 @@ def in_process(k: int, rows: int, seconds: float, work: Path) -> dict:
     """The counter's per-batch work in this process: core, and with decode + ack encode."""
     from services.counter.wal import WriteAheadLog
 
-    _, spec = run_spec(k)
+    _, spec, _ = run_exploration(k)
     rng = np.random.default_rng(7)
     n_batches = 400
     obs = rng.uniform(-1, 1, (n_batches, rows, spec.joint_obs_dim)).astype(np.float32)
@@ -520,7 +459,7 @@ def in_process(k: int, rows: int, seconds: float, work: Path) -> dict:
     payloads = [transitions_payload("r", "a0", i * rows, obs[i], act[i]) for i in range(n_batches)]
     out = {}
     for variant in ("core", "with_codec"):
-        explorer = make_explorer(k)
+        _, _, explorer = run_exploration(k)
         wal = WriteAheadLog(work / f"wal-{variant}-{rows}.bin")
         done = 0
         t0 = time.perf_counter()
@@ -537,7 +476,7 @@ def in_process(k: int, rows: int, seconds: float, work: Path) -> dict:
             for table, kk in zip(explorer.tables, keys):
                 table.increment(kk)
             if variant == "with_codec":
-                encode("ack", "r", service="c0", acked={"a0": done * rows}, window=0)
+                encode("ack", "r", service=COUNTER, acked={"a0": done * rows}, window=0)
             done += 1
         elapsed = time.perf_counter() - t0
         wal.close()
@@ -547,8 +486,7 @@ def in_process(k: int, rows: int, seconds: float, work: Path) -> dict:
 
 def memory_per_key(k: int, keys_n: int) -> dict:
     """CountTable.memory_bytes() / len, and tracemalloc's allocation per key."""
-    _, spec = run_spec(k)
-    explorer = make_explorer(k)
+    _, spec, explorer = run_exploration(k)
     rng = np.random.default_rng(3)
     chunks = [
         explorer.keys(
@@ -575,22 +513,8 @@ def memory_per_key(k: int, keys_n: int) -> dict:
 
 
 # ------------------------------------------------------------------ main
-def median(xs):
-    xs = [x for x in xs if x is not None]
-    return statistics.median(xs) if xs else None
-
-
-def fmt(x, spec=".1f") -> str:
-    return "-" if x is None else format(x, spec)
-
-
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0]
-        + " Router + counter processes; publisher processes flood numbered `transitions` "
-        "batches (20 and 64 rows); 100-row bonus queries timed at the client.",
-        epilog="Prints markdown tables; writes --out (default benchmarks/results/counter.json).",
-    )
+    parser = bench_parser(__doc__, "counter.json", ABOUT)
     parser.add_argument("--quick", action="store_true", help="1 round of 4 s phases (~1 min)")
     parser.add_argument("--rounds", type=int, default=None, help="rounds (default 3; quick 1)")
     parser.add_argument("--duration", type=float, default=None, help="measured s per phase")
@@ -602,12 +526,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--paced-rate", type=float, default=2000.0, help="paced phase: transitions/s in all"
     )
-    parser.add_argument(
-        "--out",
-        type=Path,
-        default=ROOT / "benchmarks" / "results" / "counter.json",
-        help="where to write the JSON results",
-    )
+    add_out(parser, "counter.json")
     parser.add_argument(
         "--profile",
         action="store_true",
@@ -647,19 +566,18 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory(prefix="bench-counter-") as tmp:
         work = Path(tmp)
         h = CounterHarness(args.k, work, args.profile)
-        print(f"router on {h.endpoint}; work dir {work}", file=sys.stderr, flush=True)
+        progress(f"router on {h.endpoint}; work dir {work}")
         profile = None
         try:
             h.start()
             for r in range(rounds):
-                order = phases[r % len(phases) :] + phases[: r % len(phases)]
-                for name, pubs, rows, rate in order:
-                    print(f"round {r + 1}/{rounds}: {name} ...", file=sys.stderr, flush=True)
+                for name, pubs, rows, rate in rotated(phases, r):
+                    progress(f"round {r + 1}/{rounds}: {name} ...")
                     res = h.phase(name, pubs, rows, args.window, rate, warmup, duration)
                     res["round"] = r
                     res["loadavg"] = os.getloadavg()
                     results.append(res)
-                print(f"round {r + 1}/{rounds}: in-process ceiling ...", file=sys.stderr)
+                progress(f"round {r + 1}/{rounds}: in-process ceiling ...")
                 for rows in (20, 64):
                     c = in_process(args.k, rows, ceiling_s, work)
                     ceilings.append({"round": r, "rows": rows, **c})
@@ -802,7 +720,7 @@ def main(argv: list[str] | None = None) -> None:
         f"{t2['measured_paced_ms']:.2f} ms ({'met' if t2['met_paced'] else 'NOT met'})"
     )
     result = {
-        "command": " ".join(["benchmarks/bench_counter.py", *(argv or sys.argv[1:])]),
+        "command": command(__file__, argv),
         "k": args.k,
         "publishers": args.publishers,
         "window": args.window,
@@ -821,11 +739,9 @@ def main(argv: list[str] | None = None) -> None:
         "phases": results,
         "ceilings": ceilings,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
     if profile:
         print("\ncounter service thread, cProfile (tottime):\n" + profile["top_tottime"])
-    print(f"\nwrote {args.out}; load average before {load_before}, after {os.getloadavg()}")
+    write_result(args.out, result, load_before)
 
 
 if __name__ == "__main__":

@@ -28,8 +28,8 @@ Variants run in rounds, in a rotating order, one at a time (never two at once): 
 from other processes hits them alike; ratios (cluster / trainer) are taken within a
 round, and everything is the median over rounds. CPU seconds of every process (from
 /proc) show what limits throughput. Just before and after each run a child process
-times the update's matrix products alone (bench_learner's floor) on one and two
-threads: the machine's speed for this workload then (the host is shared with other
+(floor_probe.py) times the update's matrix products alone (bench_learner's floor) on one
+and two threads: the machine's speed for this workload then (the host is shared with other
 guests), and `steady / floor`, the share of it the run turned into env steps.
 
     .venv/bin/python benchmarks/bench_e2e.py [--quick]
@@ -40,25 +40,34 @@ prints markdown tables and writes benchmarks/results/e2e.json.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
-import signal
-import socket
 import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from _harness import (
+    Services,
+    TimedWatch,
+    add_out,
+    begin_run,
+    bench_parser,
+    command,
+    macb_argv,
+    progress,
+    write_result,
+)
+from _procs import ROOT, THREAD_VARS, CpuSampler, end, kill_ours, start, thread_env
+from _stats import fmt, median, rotating_rounds, top_tottime
 
-from shared.cluster import free_port  # noqa: E402 (stdlib only: no BLAS loaded)
+from shared.bus import Bus
+from shared.cluster import THREAD_ENV, cluster_plan, free_port, wait_port
+from shared.config import load_config
+from shared.control import discover, start_run
 
-BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 CONFIG_YAML = """\
 # bench_e2e: thesis figure 8 arm sparse-cen-macb with the appendix A settings.
 task: speaker_listener
@@ -72,33 +81,12 @@ eval_episodes: 10
 seed: 0
 """
 TARGET_CLUSTER_EVAL_ON = 136.0  # steps/s, the issue's target for the cluster, eval on
-# The machine's speed around each run: the update's matrix products alone (bench_learner's
-# floor) on one and on two threads, timed in a child just before and after the run. The
-# host is shared with other guests, and what it gives the second thread varies most
-# (the two-thread floor ran 1.4x-2.05x the one-thread floor on different days).
-FLOOR_PROBE = """\
-import json, statistics, sys, time
-sys.path.insert(0, sys.argv[1])
-import torch
-import bench_learner as bl
-from shared.learners import BatchedMADDPG, LearnerSpec
-
-seconds = float(sys.argv[2])
-m = BatchedMADDPG(bl.SPEAKER_LISTENER, LearnerSpec(algo="cen-maddpg", hidden=bl.HIDDEN))
-floor = bl.floor_ops(m)
-out = {}
-for threads in (1, 2):
-    torch.set_num_threads(threads)
-    for _ in range(10):
-        floor()
-    rates, end = [], time.perf_counter() + seconds
-    while time.perf_counter() < end:
-        rates.append(1 / bl.time_per_call(floor, 5))
-    out[threads] = statistics.median(rates)
-print(json.dumps(out))
-"""
 TARGET_RATIO = 0.85  # cluster within 15% of the trainer
 THESIS_STEPS_PER_S = {"with bonus": 34.0, "without bonus": 70.0}
+ABOUT = (  # what --help adds to the docstring's first paragraph
+    " speaker_listener, Cen-MADDPG + Cen-MACB (k=512, beta=0.8), batch 100, hidden "
+    "400-300; evaluation every episode and only at the end."
+)
 # Fixed learner modes instead of `learner_lanes: auto`: what the config adds.
 FIXED_MODES = {
     "-1lane": "learner_lanes: 1\n",  # one thread in the update
@@ -114,77 +102,7 @@ BASELINES = {"cluster": ("trainer-blas1", "trainer")} | {
 }
 
 
-# ------------------------------------------------------------------ helpers
-def wait_port(endpoint: str, timeout: float = 30.0) -> bool:
-    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        with socket.socket() as s:
-            if s.connect_ex((host, int(port))) == 0:
-                return True
-        time.sleep(0.05)
-    return False
-
-
-def cpu_seconds(pid: int) -> float | None:
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def children(pid: int) -> list[int]:
-    out = []
-    for task in Path(f"/proc/{pid}/task").glob("*"):
-        with contextlib.suppress(OSError):
-            out += [int(c) for c in (task / "children").read_text().split()]
-    return out
-
-
-def role_of(pid: int) -> str:
-    try:
-        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-    except OSError:
-        return "?"
-    argv = [a.decode(errors="replace") for a in argv]
-    if "serve" in argv:
-        i = argv.index("serve")
-        role = argv[i + 1] if i + 1 < len(argv) else "?"
-        if "--id" in argv:
-            return argv[argv.index("--id") + 1]
-        return role
-    return "?"
-
-
-def ours(pid: int, marks: tuple[str, ...]) -> bool:
-    """Whether pid is still one of this run's processes (its command line names them)."""
-    try:
-        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
-    except OSError:
-        return False
-    return any(m in cmd for m in marks)
-
-
-def base_env(blas1: bool) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in BLAS_VARS}
-    env["PYTHONUNBUFFERED"] = "1"
-    if blas1:
-        env.update(dict.fromkeys(BLAS_VARS, "1"))
-    return env
-
-
-def end_process(p: subprocess.Popen, grace: float = 30.0) -> None:
-    """SIGTERM, wait, SIGKILL: by PID, only what we started."""
-    if p.poll() is None:
-        p.send_signal(signal.SIGTERM)
-        try:
-            p.wait(timeout=grace)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-
-
+# ------------------------------------------------------------------ steady state
 def window_rate(points: list[tuple[float, float]], total: float) -> dict:
     """Steady state from (time_s, updates) samples: from the first sample with at least a
     third of `total` updates to the last sample."""
@@ -217,17 +135,14 @@ def trainer_child(args: argparse.Namespace) -> None:
     """Run the one-process trainer; record the time of every episode end."""
     import resource
 
-    import shared.trainer as trainer_mod
-    from shared.config import load_config
+    import shared.trainer as trainer_mod  # torch: only in this child, never the parent
 
     cfg = load_config(args.config, {"episodes": args.episodes, "eval_every": args.eval_every})
     marks: list[tuple[float, float]] = []  # (wall, CPU seconds of all threads)
-    steps = [0]
 
     class TimedCollector(trainer_mod.Collector):
         def step(self, policy):
             tr = super().step(policy)
-            steps[0] += 1
             if tr.episode_end:
                 marks.append((time.perf_counter(), time.process_time()))
             return tr
@@ -242,39 +157,33 @@ def trainer_child(args: argparse.Namespace) -> None:
             {
                 "rows": rows,
                 "marks": [(m - t0, c) for m, c in marks],
-                "steps": steps[0],
                 "wall_s": wall,
                 "cpu_s": usage.ru_utime + usage.ru_stime,
                 "learning_starts": cfg.learning_starts,
                 "episode_len": cfg.episode_len,
-                "env": {k: os.environ.get(k) for k in BLAS_VARS},
+                "env": {k: os.environ.get(k) for k in THREAD_VARS},
             }
         )
     )
+
+
+def trainer_argv(config: Path, episodes: int, eval_every: int, result: Path) -> list[str]:
+    """This script as the trainer child (after the interpreter and its options)."""
+    argv = [str(Path(__file__).resolve()), "--_trainer", "--config", str(config)]
+    argv += ["--episodes", str(episodes), "--eval-every", str(eval_every)]
+    return argv + ["--result", str(result)]
 
 
 def run_trainer(
     config: Path, episodes: int, eval_every: int, blas1: bool, work: Path, timeout: float
 ) -> dict:
     result = work / "trainer.json"
-    argv = [sys.executable, str(Path(__file__).resolve()), "--_trainer", "--config", str(config)]
-    argv += ["--episodes", str(episodes), "--eval-every", str(eval_every)]
-    argv += ["--result", str(result)]
-    log = open(work / "trainer.log", "wb")  # noqa: SIM115
-    p = subprocess.Popen(
-        argv,
-        cwd=ROOT,
-        env=base_env(blas1),
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        stdin=subprocess.DEVNULL,
-        start_new_session=True,
-    )
-    log.close()
+    argv = [sys.executable, *trainer_argv(config, episodes, eval_every, result)]
+    p = start(argv, work / "trainer.log", thread_env(blas1))
     try:
         p.wait(timeout=timeout)
     finally:
-        end_process(p)
+        end(p)
     if p.returncode != 0 or not result.exists():
         raise RuntimeError(f"trainer failed ({p.returncode}); see {work}/trainer.log")
     data = json.loads(result.read_text())
@@ -305,82 +214,14 @@ def run_trainer(
 
 
 # ------------------------------------------------------------------ cluster
-class Watcher:
-    """Subscribes to a cluster's metrics and status; timestamps arrivals."""
-
-    def __init__(self, endpoint: str) -> None:
-        from shared.bus import Bus
-
-        self.bus = Bus([endpoint])
-        self.lock = threading.Lock()
-        self.learner: list[tuple[float, dict]] = []
-        self.counter: list[dict] = []
-        self.actors: dict[str, dict] = {}
-        self.eval_rows: list[tuple[float, dict]] = []
-        self.status: list[tuple[float, str, str]] = []
-        self.bus.subscribe("macb/run/*/metrics/**", self._on_metrics)
-        self.bus.subscribe("macb/run/*/status/*", self._on_status)
-
-    def _on_metrics(self, key: str, payload: bytes) -> None:
-        from shared.wire import WireError, decode
-
-        try:
-            msg = decode(payload, "metrics")
-        except WireError:
-            return
-        now = time.monotonic()
-        with self.lock:
-            src, data = msg["source"], msg["data"]
-            if src == "learner":
-                self.learner.append((now, data))
-            elif src == "counter":
-                self.counter.append(data)
-            elif src == "eval":
-                self.eval_rows.append((now, data))
-            elif src.startswith("actor/"):
-                self.actors[src] = data
-
-    def _on_status(self, key: str, payload: bytes) -> None:
-        from shared.wire import WireError, decode
-
-        try:
-            msg = decode(payload, "status")
-        except WireError:
-            return
-        with self.lock:
-            self.status.append((time.monotonic(), msg["service"], msg["state"]))
-
-    def close(self) -> None:
-        self.bus.close()
-
-
-_UP_FLAGS: str | None = None
-
-
-def up_supports(flag: str) -> bool:
-    """Whether `macb up` has this flag (the CLI grows; e.g. --api-port)."""
-    global _UP_FLAGS
-    if _UP_FLAGS is None:
-        _UP_FLAGS = subprocess.run(
-            [sys.executable, "-m", "cli", "up", "--help"],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=60,
-        ).stdout
-    return flag in _UP_FLAGS
-
-
 def up_argv(config: Path, episodes: int, eval_every: int, actors: int, work: Path):
     """The `macb up --run` command line on free loopback ports, and its endpoint."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    out = work / "cluster-out"
-    argv = [sys.executable, "-m", "cli", "up", "--run", str(config), "--out", str(out)]
+    argv = macb_argv("up", "--run", str(config), "--out", str(work / "cluster-out"))
     argv += ["--endpoint", endpoint, "--data-dir", str(work / "cluster-data")]
     argv += ["--actors", str(actors), "--quiet", "--quiet-services"]
     argv += ["--episodes", str(episodes), "--eval-every", str(eval_every)]
-    if up_supports("--api-port"):  # never the default port 8000: it may be taken
-        argv += ["--api-port", str(free_port())]
+    argv += ["--api-port", str(free_port())]  # never the default port 8000: it may be taken
     return argv, endpoint
 
 
@@ -388,83 +229,48 @@ def run_cluster(
     config: Path, episodes: int, eval_every: int, actors: int, work: Path, timeout: float
 ) -> dict:
     argv, endpoint = up_argv(config, episodes, eval_every, actors, work)
-    log = open(work / "up.log", "wb")  # noqa: SIM115
     t_launch = time.monotonic()
-    p = subprocess.Popen(
-        argv,
-        cwd=ROOT,
-        env=base_env(False),
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        stdin=subprocess.DEVNULL,
-        start_new_session=True,
-    )
-    log.close()
-    watcher = None
-    cpu: dict[int, float] = {}
-    series: list[tuple[float, dict[int, float]]] = []  # (monotonic time, pid -> CPU s)
-    roles: dict[int, str] = {}
-    stop = threading.Event()
-
-    def sample() -> None:
-        while not stop.is_set():
-            now = {}
-            for c in children(p.pid):
-                s = cpu_seconds(c)
-                if s is not None:
-                    now[c] = cpu[c] = max(cpu.get(c, 0.0), s)
-                    if c not in roles or roles[c] == "?":
-                        roles[c] = role_of(c)
-            series.append((time.monotonic(), now))
-            stop.wait(0.25)
-
-    sampler = threading.Thread(target=sample, daemon=True)
+    p = start(argv, work / "up.log", thread_env(False))
+    sampler = CpuSampler(p.pid)
     sampler.start()
+    watch = None
     try:
-        if not wait_port(endpoint, 60):
-            raise RuntimeError(f"the cluster's router did not listen; see {work}/up.log")
-        watcher = Watcher(endpoint)
+        try:
+            wait_port(endpoint, 60)
+        except TimeoutError as err:
+            raise RuntimeError(f"the cluster's router did not listen; see {work}/up.log") from err
+        watch = TimedWatch(endpoint)
         p.wait(timeout=timeout)
     finally:
-        stop.set()
-        sampler.join()
-        end_process(p)
-        for c in list(cpu):  # `macb up` ends its children; make sure, by PID
-            if ours(c, (endpoint, str(work))):
-                os.kill(c, signal.SIGKILL)
-        if watcher is not None:
-            watcher.close()
+        sampler.stop()
+        end(p)
+        kill_ours(list(sampler.cpu), (endpoint, str(work)))  # `macb up` ends them; make sure
+        if watch is not None:
+            watch.close()
     t_exit = time.monotonic()
     if p.returncode != 0:
         raise RuntimeError(f"macb up exited {p.returncode}; see {work}/up.log")
-    learner = watcher.learner
+    learner = watch.metric_times.get("learner", [])  # (arrival, learner stats)
     if not learner:
         raise RuntimeError("no learner metrics seen")
     total = learner[-1][1]["updates"]
     points = [(d["wall_s"], d["updates"]) for _, d in learner]
-    rows = [d for _, d in watcher.eval_rows]
+    eval_rows = watch.metric_times.get("eval", [])
+    rows = [d for _, d in eval_rows]
     last = learner[-1][1]
-    starts = [t for t, svc, st in watcher.status if st == "running"]
+    status = [x for seen in watch.status_times.values() for x in seen]
+    starts = [t for t, st in status if st["state"] == "running"]
     t_start = min(starts) if starts else t_launch
-    t_last_row = max(t for t, _ in watcher.eval_rows)
+    t_last_row = max(t for t, _ in eval_rows)
     t_learner_done = learner[-1][0]
-    counter = watcher.counter[-1] if watcher.counter else {}
-    cpu_by_role: dict[str, float] = {}
-    for c, s in cpu.items():
-        cpu_by_role[roles.get(c, "?")] = cpu_by_role.get(roles.get(c, "?"), 0.0) + s
+    counter = watch.latest.get("counter", {})
     run_s = t_last_row - t_start
     steady = window_rate(points, total)
     share: dict[str, float] = {}
     if steady["rate"]:
         # The steady window in this process's clock: when those learner stats arrived.
         arrival = {d["wall_s"]: t for t, d in learner}
-        a, b = arrival[steady["t0"]], arrival[steady["t1"]]
-        s0 = min(series, key=lambda x: abs(x[0] - a))
-        s1 = min(series, key=lambda x: abs(x[0] - b))
-        for c in s1[1]:
-            if c in s0[1]:
-                role = roles.get(c, "?")
-                share[role] = share.get(role, 0.0) + (s1[1][c] - s0[1][c]) / (s1[0] - s0[0])
+        share = sampler.share(arrival[steady["t0"]], arrival[steady["t1"]])
     return {
         "steady": steady,
         "rows_steady": rows_rate(rows, episodes) if eval_every < episodes else None,
@@ -503,8 +309,8 @@ def run_cluster(
             k: counter.get(k)
             for k in ("counted_transitions", "query_p50_ms", "query_p99_ms", "queries")
         },
-        "actors": watcher.actors,
-        "cpu_s": cpu_by_role,
+        "actors": {k: v for k, v in watch.latest.items() if k.startswith("actor/")},
+        "cpu_s": sampler.by_role(),
         "cpu_share": share,  # cores used by each service in the steady window
         "rows": len(rows),
         "final_success": rows[-1]["success_rate"] if rows else None,
@@ -515,7 +321,7 @@ def run_cluster(
 # ------------------------------------------------------------------ profiles
 TRAINER_PARTS = {
     "learner.update": ("learners/tuning.py", "update"),
-    "bonus (hash + look-up)": ("exploration.py", "bonus"),
+    "bonus (hash + look-up)": ("exploration.py", "counts"),
     "count (observe)": ("exploration.py", "observe"),
     "replay sample": ("replay.py", "sample"),
     "env step + act (Collector.step)": ("rollout.py", "step"),
@@ -534,7 +340,6 @@ LEARNER_PARTS = {
 
 def profile_parts(path: Path, parts: dict, top: int = 20) -> dict:
     """Cumulative seconds of the named functions, and the top functions by own time."""
-    import io
     import pstats
 
     st = pstats.Stats(str(path))
@@ -548,62 +353,32 @@ def profile_parts(path: Path, parts: dict, top: int = 20) -> dict:
         (v[3] for (f, _, fn), v in st.stats.items() if fn in ("train", "serve_forever")),
         default=max(v[3] for v in st.stats.values()),
     )
-    buf = io.StringIO()
-    pstats.Stats(str(path), stream=buf).sort_stats("tottime").print_stats(top)
-    return {"total_s": total, "parts_s": found, "top_tottime": buf.getvalue()}
+    return {"total_s": total, "parts_s": found, "top_tottime": top_tottime(path, top)}
 
 
 def profile_trainer(
     config: Path, episodes: int, eval_every: int, work: Path, blas1: bool = True
 ) -> dict:
     result, prof = work / "trainer.json", work / "trainer.prof"
-    argv = [sys.executable, "-m", "cProfile", "-o", str(prof), str(Path(__file__).resolve())]
-    argv += ["--_trainer", "--config", str(config), "--episodes", str(episodes)]
-    argv += ["--eval-every", str(eval_every), "--result", str(result)]
-    p = subprocess.Popen(argv, cwd=ROOT, env=base_env(blas1), start_new_session=True)
+    argv = [sys.executable, "-m", "cProfile", "-o", str(prof)]
+    argv += trainer_argv(config, episodes, eval_every, result)
+    p = start(argv, work / "trainer.log", thread_env(blas1))
     try:
         p.wait(timeout=120 + episodes * 4)
     finally:
-        end_process(p)
+        end(p)
     return profile_parts(prof, TRAINER_PARTS)
 
 
 def profile_cluster(config: Path, episodes: int, eval_every: int, work: Path) -> dict:
-    """The cluster's services by hand (as `macb up` starts them, no API), with the learner
-    under cProfile; the run is started on the bus (shared.control.start_run)."""
-    from shared.bus import Bus
-    from shared.config import load_config
-    from shared.control import discover, start_run
-
+    """The cluster's services as `macb up` starts them (no API), with the learner under
+    cProfile; the run is started on the bus (shared.control.start_run)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    env = {**base_env(True), "MACB_ZENOH_CONNECT": endpoint}
-    data = str(work / "data")
+    plan = cluster_plan(1, endpoint, str(work / "data"), api=None)
     prof = work / "learner.prof"
-    serve = [sys.executable, "-m", "cli", "serve"]
-    plan = {
-        "router": serve + ["router", "--listen", endpoint],
-        "counter": serve + ["counter", "--id", "counter", "--data-dir", data],
-        "learner": [sys.executable, "-m", "cProfile", "-o", str(prof), "-m", "cli"]
-        + ["serve", "learner", "--id", "learner", "--data-dir", data],
-        "evaluator": serve + ["evaluator", "--id", "evaluator", "--data-dir", data],
-        "actor0": serve + ["actor", "--id", "actor0", "--data-dir", data],
-    }
-    procs: dict[str, subprocess.Popen] = {}
+    services = Services(plan, work, profile={"learner": prof})
     try:
-        for name, argv in plan.items():
-            log = open(work / f"{name}.log", "wb")  # noqa: SIM115
-            procs[name] = subprocess.Popen(
-                argv,
-                cwd=ROOT,
-                env=env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,
-            )
-            log.close()
-            if name == "router" and not wait_port(endpoint):
-                raise RuntimeError("router did not listen")
+        services.start()
         cfg = load_config(config, {"episodes": episodes, "eval_every": eval_every})
         with Bus([endpoint]) as bus:
             deadline = time.monotonic() + 90
@@ -616,9 +391,7 @@ def profile_cluster(config: Path, episodes: int, eval_every: int, work: Path) ->
             if state != "completed":
                 raise RuntimeError(f"profiled run {state}: {watch.failure()}")
     finally:
-        for name in [n for n in procs if n != "router"] + ["router"]:
-            if name in procs:
-                end_process(procs[name])
+        services.stop()
     return profile_parts(prof, LEARNER_PARTS)
 
 
@@ -635,7 +408,7 @@ def run_profiles(config: Path, episodes: int, tmp: Path) -> dict:
     ):
         work = tmp / f"profile-{name.replace(' ', '-')}"
         work.mkdir()
-        print(f"profiling {name} (eval off, {episodes} episodes) ...", file=sys.stderr)
+        progress(f"profiling {name} (eval off, {episodes} episodes) ...")
         out[name] = fn(config, episodes, episodes, work)
     print("\nProfiles (cProfile, eval off; seconds of the profiled thread, inflated by the")
     print("profiler's own cost):\n")
@@ -651,15 +424,6 @@ def run_profiles(config: Path, episodes: int, tmp: Path) -> dict:
 
 
 # ------------------------------------------------------------------ main
-def median(xs):
-    xs = [x for x in xs if x is not None]
-    return statistics.median(xs) if xs else None
-
-
-def fmt(x, spec=".1f") -> str:
-    return "-" if x is None else format(x, spec)
-
-
 def ratio_pair(s: dict, base: str) -> str:
     if f"over_{base}" not in s:
         return "-"
@@ -676,12 +440,12 @@ def tmp_config(tmp: Path) -> Path:
 
 def floor_rates(seconds: float = 0.7) -> dict[str, float] | None:
     """Updates/s of the speaker_listener update's matrix products alone, on 1 and 2
-    threads ({"1": .., "2": ..}), measured now in a child so this process loads no
-    BLAS: the machine's speed for this workload around a run."""
-    env = {**os.environ, **dict.fromkeys(BLAS_VARS, "1")}
+    threads ({"1": .., "2": ..}): floor_probe.py, in a child so this process loads no
+    torch: the machine's speed for this workload around a run."""
+    env = {**os.environ, **THREAD_ENV}
     try:
         out = subprocess.run(
-            [sys.executable, "-c", FLOOR_PROBE, str(ROOT / "benchmarks"), str(seconds)],
+            [sys.executable, str(Path(__file__).with_name("floor_probe.py")), str(seconds)],
             capture_output=True,
             text=True,
             timeout=120,
@@ -691,11 +455,11 @@ def floor_rates(seconds: float = 0.7) -> dict[str, float] | None:
         )
         return json.loads(out.stdout)
     except (subprocess.SubprocessError, ValueError) as err:
-        print(f"  floor probe failed: {err}", file=sys.stderr)
+        progress(f"  floor probe failed: {err}")
         return None
 
 
-def run_variant(name: str, config: Path, episodes: int, ev: int, work: Path, actors: int = 1):
+def run_variant(name: str, config: Path, episodes: int, ev: int, work: Path) -> dict:
     """`*-1lane`, `*-2threads`: the same with a fixed learner mode (FIXED_MODES); the
     trainer side with one BLAS thread outside torch, as trainer-blas1."""
     timeout = 120 + episodes * 20 / 5.0  # a run slower than 5 steps/s is broken
@@ -704,17 +468,12 @@ def run_variant(name: str, config: Path, episodes: int, ev: int, work: Path, act
             config = config.with_name(f"config{mode}.yaml")
             name = {"trainer": "trainer-blas1", "cluster": "cluster"}[name.removesuffix(mode)]
     if name == "cluster":
-        return run_cluster(config, episodes, ev, actors, work, timeout)
+        return run_cluster(config, episodes, ev, 1, work, timeout)
     return run_trainer(config, episodes, ev, name == "trainer-blas1", work, timeout)
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0]
-        + " speaker_listener, Cen-MADDPG + Cen-MACB (k=512, beta=0.8), batch 100, hidden "
-        "400-300; evaluation every episode and only at the end.",
-        epilog="Prints markdown tables; writes --out (default benchmarks/results/e2e.json).",
-    )
+    parser = bench_parser(__doc__, "e2e.json", ABOUT)
     parser.add_argument("--quick", action="store_true", help="30 episodes, 1 round (~1-2 min)")
     parser.add_argument("--episodes", type=int, default=None, help="per run (default 150)")
     parser.add_argument("--rounds", type=int, default=None, help="rounds (default 2; quick 1)")
@@ -741,12 +500,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--profile-episodes", type=int, default=80, help="episodes of each profiled run"
     )
-    parser.add_argument(
-        "--out",
-        type=Path,
-        default=ROOT / "benchmarks" / "results" / "e2e.json",
-        help="where to write the JSON results",
-    )
+    add_out(parser, "e2e.json")
     parser.add_argument("--_trainer", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--config", help=argparse.SUPPRESS)
     parser.add_argument("--eval-every", type=int, help=argparse.SUPPRESS)
@@ -769,55 +523,44 @@ def main(argv: list[str] | None = None) -> None:
             parser.error("no variants and no --profile: nothing to do")
         with tempfile.TemporaryDirectory(prefix="bench-e2e-prof-") as tmp:
             profiles = run_profiles(tmp_config(Path(tmp)), args.profile_episodes, Path(tmp))
-        args.out.parent.mkdir(parents=True, exist_ok=True)
         out = {
-            "command": " ".join(["benchmarks/bench_e2e.py", *(argv or sys.argv[1:])]),
+            "command": command(__file__, argv),
             "config": CONFIG_YAML,
             "episodes": args.profile_episodes,
             "loadavg_before": load_before,
             "loadavg_after": os.getloadavg(),
             "profiles": profiles,
         }
-        args.out.write_text(json.dumps(out, indent=2) + "\n")
-        print(f"\nwrote {args.out}; load average before {load_before}, after {os.getloadavg()}")
+        write_result(args.out, out, load_before)
         return
     runs: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="bench-e2e-") as tmp:
         tmp = Path(tmp)
         config = tmp_config(tmp)
-        for r in range(rounds):
-            order = cases[r % len(cases) :] + cases[: r % len(cases)]
-            for name, ev in order:
-                work = tmp / f"r{r}-{name}-{ev}"
-                work.mkdir()
-                load = os.getloadavg()
-                print(
-                    f"round {r + 1}/{rounds}: {name}, eval {ev} ({episodes} episodes; "
-                    f"load {load[0]:.2f}) ...",
-                    file=sys.stderr,
-                    flush=True,
-                )
-                before = floor_rates()
-                res = run_variant(name, config, episodes, evals[ev], work)
-                after = floor_rates()
-                res.update(variant=name, eval=ev, round=r, loadavg_before=load)
-                res["loadavg_after"] = os.getloadavg()
-                res["floor_before"], res["floor_after"] = before, after
-                probes = [p["2"] for p in (before, after) if p]
-                res["floor2"] = statistics.mean(probes) if probes else None
-                res["steady_over_floor2"] = (
-                    res["steady"]["rate"] / res["floor2"]
-                    if res["floor2"] and res["steady"]["rate"]
-                    else None
-                )
-                runs.append(res)
-                print(
-                    f"  steady {fmt(res['steady']['rate'])} steps/s, e2e "
-                    f"{fmt(res['e2e_steps_per_s'])} steps/s; floor on 2 threads "
-                    f"{fmt(res['floor2'])} updates/s around the run",
-                    file=sys.stderr,
-                    flush=True,
-                )
+        for r, (name, ev) in rotating_rounds(rounds, cases):
+            work = tmp / f"r{r}-{name}-{ev}"
+            load = begin_run(
+                work, f"round {r + 1}/{rounds}: {name}, eval {ev}, {episodes} episodes"
+            )
+            before = floor_rates()
+            res = run_variant(name, config, episodes, evals[ev], work)
+            after = floor_rates()
+            res.update(variant=name, eval=ev, round=r, loadavg_before=load)
+            res["loadavg_after"] = os.getloadavg()
+            res["floor_before"], res["floor_after"] = before, after
+            probes = [p["2"] for p in (before, after) if p]
+            res["floor2"] = statistics.mean(probes) if probes else None
+            res["steady_over_floor2"] = (
+                res["steady"]["rate"] / res["floor2"]
+                if res["floor2"] and res["steady"]["rate"]
+                else None
+            )
+            runs.append(res)
+            progress(
+                f"  steady {fmt(res['steady']['rate'])} steps/s, e2e "
+                f"{fmt(res['e2e_steps_per_s'])} steps/s; floor on 2 threads "
+                f"{fmt(res['floor2'])} updates/s around the run"
+            )
 
     def get(r, name, ev):
         return next(
@@ -939,7 +682,7 @@ def main(argv: list[str] | None = None) -> None:
         with tempfile.TemporaryDirectory(prefix="bench-e2e-prof-") as tmp:
             profiles = run_profiles(tmp_config(Path(tmp)), args.profile_episodes, Path(tmp))
     result = {
-        "command": " ".join(["benchmarks/bench_e2e.py", *(argv or sys.argv[1:])]),
+        "command": command(__file__, argv),
         "config": CONFIG_YAML,
         "episodes": episodes,
         "rounds": rounds,
@@ -953,9 +696,7 @@ def main(argv: list[str] | None = None) -> None:
         "profiles": profiles,
         "runs": runs,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"\nwrote {args.out}; load average before {load_before}, after {os.getloadavg()}")
+    write_result(args.out, result, load_before)
 
 
 if __name__ == "__main__":

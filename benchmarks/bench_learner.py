@@ -15,9 +15,9 @@ is fed to
   the same two threads, its floor on two cores.
 
 A last measurement runs speaker_listener while another process spins on one core: one
-lane, two lanes, torch's own two intra-op threads, and `lanes="auto"` (the default: a
-tuner picks 1 or 2 by measured speed), to show what each does when the second core is
-not free.
+lane, two lanes, torch's own two intra-op threads, and `TunedMADDPG` (the default,
+`learner_lanes: auto`: a tuner picks 1 or 2 by measured speed), to show what each does
+when the second core is not free.
 
 Measurements run in rounds (about 0.15 s of each of ref, batched, floor, in a rotating
 order) so load from other processes on the shared machine hits all three alike. Rates
@@ -33,36 +33,22 @@ prints a markdown table and writes benchmarks/results/learner.json.
 
 from __future__ import annotations
 
-import argparse
-import json
 import multiprocessing
 import os
 import platform
 import statistics
-import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
+from _harness import add_out, bench_parser, command, progress, write_result
+from _stats import fmt, measure, ratio_median
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from shared.learners import (  # noqa: E402
-    MADDPG,
-    AgentDims,
-    BatchedMADDPG,
-    Lanes,
-    LearnerSpec,
-    TunedMADDPG,
-)
-from shared.learners.layers import (  # noqa: E402
-    linear_forward,
-    linear_grad_input,
-    linear_grad_weight,
-)
+# The benchmarks' one import site of the learners (bench_scaling and floor_probe.py use
+# them through the helpers below).
+from shared.learners import MADDPG, AgentDims, BatchedMADDPG, Lanes, LearnerSpec, TunedMADDPG
+from shared.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
 
 BATCH = 100
 HIDDEN = (400, 300)
@@ -154,29 +140,16 @@ def floor_ops(m: BatchedMADDPG, rows: int = BATCH) -> Callable[[], None]:
     return one_update
 
 
-def time_per_call(fn: Callable[[], object], calls: int) -> float:
-    start = time.perf_counter()
-    for _ in range(calls):
-        fn()
-    return (time.perf_counter() - start) / calls
+def batched(agents: list[AgentDims], algo: str = "cen-maddpg", **kw: object) -> BatchedMADDPG:
+    """A BatchedMADDPG with the thesis settings (hidden 400-300); `kw`: lanes=..."""
+    return BatchedMADDPG(agents, LearnerSpec(algo=algo, hidden=HIDDEN), **kw)
 
 
-def measure(
-    fns: dict[str, Callable[[], object]], repeats: int, budget_s: float
-) -> dict[str, list[float]]:
-    """Seconds per call of each fn, one sample per round; rounds interleave the fns (in a
-    rotating order) so load from other processes hits them alike."""
-    calls = {}
-    for name, fn in fns.items():  # warm up and size each run to about budget_s
-        for _ in range(3):
-            fn()
-        calls[name] = max(3, int(budget_s / max(time_per_call(fn, 3), 1e-6)))
-    samples: dict[str, list[float]] = {name: [] for name in fns}
-    names = list(fns)
-    for r in range(repeats):
-        for name in names[r % len(names) :] + names[: r % len(names)]:
-            samples[name].append(time_per_call(fns[name], calls[name]))
-    return samples
+def learner_pair(agents: list[AgentDims], algo: str) -> tuple[MADDPG, BatchedMADDPG, tuple]:
+    """The reference learner, a BatchedMADDPG copy of it and a random minibatch: the
+    same weights and data, so the two are timed on the same work."""
+    reference = MADDPG(agents, LearnerSpec(algo=algo, hidden=HIDDEN))
+    return reference, BatchedMADDPG.from_reference(reference), random_batch(reference)
 
 
 def lanes_floor(m: BatchedMADDPG, lanes: Lanes) -> Callable[[], None]:
@@ -188,16 +161,13 @@ def lanes_floor(m: BatchedMADDPG, lanes: Lanes) -> Callable[[], None]:
 def bench_case(
     agents, algo: str, repeats: int, budget_s: float, lanes: bool = True, ref: bool = True
 ) -> dict[str, list[float]]:
-    spec = LearnerSpec(algo=algo, hidden=HIDDEN)
-    reference = MADDPG(agents, spec)
-    fast = BatchedMADDPG.from_reference(reference)
-    b = random_batch(reference)
+    reference, fast, b = learner_pair(agents, algo)
     fns: dict[str, Callable[[], object]] = {"batched": lambda: fast.update(*b)}
     if ref:
         fns["ref"] = lambda: reference.update(*b)
     fns["floor"] = floor_ops(fast)
     if lanes:
-        two = BatchedMADDPG(agents, spec, lanes=2)
+        two = batched(agents, algo, lanes=2)
         two.load_state_dict(fast.state_dict())
         fns["lanes2"] = lambda: two.update(*b)
         fns["floor_lanes2"] = lanes_floor(fast, two.lanes)
@@ -218,9 +188,8 @@ def contention(repeats: int, budget_s: float) -> dict[str, list[float]]:
     hog.start()
     try:
         time.sleep(0.2)
-        spec = LearnerSpec(algo="cen-maddpg", hidden=HIDDEN)
-        one = BatchedMADDPG(SPEAKER_LISTENER, spec)
-        two = BatchedMADDPG(SPEAKER_LISTENER, spec, lanes=2)
+        one = batched(SPEAKER_LISTENER)
+        two = batched(SPEAKER_LISTENER, lanes=2)
         b = random_batch(one)
 
         def threads2() -> None:
@@ -230,7 +199,7 @@ def contention(repeats: int, budget_s: float) -> dict[str, list[float]]:
             finally:
                 torch.set_num_threads(1)
 
-        auto = TunedMADDPG(BatchedMADDPG(SPEAKER_LISTENER, spec, lanes=2))
+        auto = TunedMADDPG(batched(SPEAKER_LISTENER, lanes=2))
         fns = {"batched": lambda: one.update(*b), "lanes2": lambda: two.update(*b)}
         fns["threads2"] = threads2
         fns["auto"] = lambda: auto.update(*b)
@@ -244,7 +213,7 @@ def ratio(samples: dict[str, list[float]], a: str, b: str) -> float | None:
     """Median over rounds of time(a) / time(b)."""
     if a not in samples or b not in samples:
         return None
-    return statistics.median(x / y for x, y in zip(samples[a], samples[b]))
+    return ratio_median(samples[a], samples[b])
 
 
 def row(task: str, algo: str, n: int, threads: int, samples: dict[str, list[float]]) -> dict:
@@ -264,24 +233,16 @@ def row(task: str, algo: str, n: int, threads: int, samples: dict[str, list[floa
     }
 
 
-def fmt(x: float | None, spec: str) -> str:
-    return "-" if x is None else format(x, spec)
-
-
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0]
-        + " Batch 100, hidden 400-300, 1 torch thread (plus a 2-thread speaker_listener row).",
-        epilog="Prints a markdown table; writes --out (default benchmarks/results/learner.json).",
+    parser = bench_parser(
+        __doc__,
+        "learner.json",
+        " Batch 100, hidden 400-300, 1 torch thread (plus a 2-thread speaker_listener row).",
+        prints="a markdown table",
     )
     parser.add_argument("--quick", action="store_true", help="3 rounds of ~0.05 s (smoke run)")
     parser.add_argument("--repeats", type=int, default=None, help="rounds per case (default 15)")
-    parser.add_argument(
-        "--out",
-        type=Path,
-        default=ROOT / "benchmarks" / "results" / "learner.json",
-        help="where to write the JSON results",
-    )
+    add_out(parser, "learner.json")
     args = parser.parse_args(argv)
     repeats = args.repeats or (3 if args.quick else 15)
     budget_s = 0.05 if args.quick else 0.15
@@ -291,14 +252,14 @@ def main(argv: list[str] | None = None) -> None:
     load_before = os.getloadavg()
     torch.set_num_threads(1)
     for task, n, algo, agents in CASES:
-        print(f"{task} N={n} {algo} ...", file=sys.stderr, flush=True)
+        progress(f"{task} N={n} {algo} ...")
         rows.append(row(task, algo, n, 1, bench_case(agents, algo, repeats, budget_s)))
     torch.set_num_threads(2)
-    print("speaker_listener, 2 threads ...", file=sys.stderr, flush=True)
+    progress("speaker_listener, 2 threads ...")
     sl2 = bench_case(SPEAKER_LISTENER, "cen-maddpg", repeats, budget_s, lanes=False)
     rows.append(row("speaker_listener", "cen-maddpg", 2, 2, sl2))
     torch.set_num_threads(1)
-    print("speaker_listener, one core busy ...", file=sys.stderr, flush=True)
+    progress("speaker_listener, one core busy ...")
     busy = contention(repeats, budget_s)
 
     head = (
@@ -328,7 +289,7 @@ def main(argv: list[str] | None = None) -> None:
         f"lanes auto {busy_rates['auto']:.1f} ({ratio(busy, 'batched', 'auto'):.2f}x)"
     )
     result = {
-        "command": " ".join(["benchmarks/bench_learner.py", *(argv or sys.argv[1:])]),
+        "command": command(__file__, argv),
         "batch": BATCH,
         "hidden": list(HIDDEN),
         "repeats": repeats,
@@ -340,9 +301,7 @@ def main(argv: list[str] | None = None) -> None:
         "rows": rows,
         "one_core_busy": {"updates_per_s": busy_rates, "samples_s": busy},
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"\nwrote {args.out}; load average before {load_before}, after {os.getloadavg()}")
+    write_result(args.out, result, load_before)
 
 
 if __name__ == "__main__":

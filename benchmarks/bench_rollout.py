@@ -29,32 +29,31 @@ between rounds cancels. Runs with one BLAS and torch thread, as the services do.
 prints a markdown table and writes benchmarks/results/rollout.json.
 """
 
+# Imports below pin_threads(), which must set the thread variables before numpy loads:
+# ruff: noqa: E402
 from __future__ import annotations
 
 import os
 import sys
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")  # as every service runs; before numpy is imported
+from _procs import pin_threads
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import statistics  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-from pathlib import Path  # noqa: E402
+pin_threads()  # as every service runs; before numpy is imported
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import json
+import statistics
+from collections.abc import Callable
+from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+import numpy as np
+import torch
+from _harness import add_out, bench_parser, progress
+from _stats import measure as measure_rounds
+from _stats import ratio_median
 
-from bench_learner import measure as measure_rounds  # noqa: E402
-
-from shared.networks import JointPolicy  # noqa: E402
-from shared.rollout import Collector, evaluate  # noqa: E402
-from shared.tasks import TASKS, JointStep, TaskEnv, make_task  # noqa: E402
+from shared.networks import JointPolicy
+from shared.rollout import Collector, evaluate
+from shared.tasks import TASKS, JointStep, TaskEnv, make_task
 
 HIDDEN = (400, 300)
 EPISODE_LEN = 20
@@ -120,14 +119,11 @@ def make_cases(task: str) -> dict[str, dict[str, Callable[[], None]]]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        epilog="Prints a markdown table; writes --out (default benchmarks/results/rollout.json).",
-    )
+    ap = bench_parser(__doc__, "rollout.json", prints="a markdown table")
     ap.add_argument("--quick", action="store_true", help="2 rounds of 0.3 s per case (~15 s)")
     ap.add_argument("--rounds", type=int, default=None, help="rounds (default 5; quick 2)")
     ap.add_argument("--tasks", default=",".join(TASKS), help=f"comma-separated of {TASKS}")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "rollout.json"))
+    add_out(ap, "rollout.json")
     args = ap.parse_args()
     torch.set_num_threads(1)
     rounds = args.rounds or (2 if args.quick else 5)
@@ -139,7 +135,7 @@ def main() -> int:
 
     samples: dict[tuple[str, str, str], list[float]] = {}
     for task in tasks:
-        print(f"{task}: {rounds} rounds", file=sys.stderr)
+        progress(f"{task}: {rounds} rounds")
         cases = make_cases(task)
         fns = {(task, m, w): fn for m in cases for w, fn in cases[m].items()}
         samples.update(measure_rounds(fns, rounds, budget_s))
@@ -151,8 +147,7 @@ def main() -> int:
             row: dict[str, object] = {"task": task, "measure": measure}
             for way, xs in ms.items():
                 row[f"{way}_ms"] = statistics.median(xs) * 1e3
-                ratios = (x / p for x, p in zip(xs, ms["platform"], strict=True))
-                row[f"{way}_over_platform"] = statistics.median(ratios)
+                row[f"{way}_over_platform"] = ratio_median(xs, ms["platform"])
             rows.append(row)
     print(
         f"\nCollection and evaluation, hidden {HIDDEN[0]}-{HIDDEN[1]}, {EPISODE_LEN}-step "

@@ -19,61 +19,48 @@
 prints markdown tables and writes benchmarks/results/scaling.json.
 """
 
+# Imports below pin_threads(), which must set the thread variables before numpy loads:
+# ruff: noqa: E402
 from __future__ import annotations
 
 import os
 import sys
 
+from _procs import ROOT, pin_threads, thread_env
+
 # This process times learner updates with one BLAS thread like the services; the
 # counting children get their BLAS settings from the parent, untouched here. Set
 # before numpy is imported.
 if "--_counting" not in sys.argv:
-    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(_var, "1")
+    pin_threads()
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import statistics  # noqa: E402
-import subprocess  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import json
+import subprocess
+import tempfile
+import time
+from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from _harness import add_out, begin_run, bench_parser, command, exploration, progress, write_result
+from _stats import fmt, measure, median, ratio_median, rotating_rounds
 
 KS = (64, 128, 256, 512)
-BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 COUNT_ROWS = 100
 TABLE_KEYS = 20_000
-
-
-def median(xs):
-    xs = [x for x in xs if x is not None]
-    return statistics.median(xs) if xs else None
-
-
-def fmt(x, spec=".1f") -> str:
-    return "-" if x is None else format(x, spec)
 
 
 # ------------------------------------------------------------------ 1. learner vs N
 def learner_scaling(repeats: int, budget_s: float) -> dict:
     import torch
-    from bench_learner import BATCH, HIDDEN, measure, random_batch, spread
-
-    from shared.learners import MADDPG, BatchedMADDPG, LearnerSpec
+    from bench_learner import BATCH, HIDDEN, learner_pair, spread
 
     torch.set_num_threads(1)
     fns = {}
     for n in (2, 3, 4):
-        ref = MADDPG(spread(n), LearnerSpec(algo="cen-maddpg", hidden=HIDDEN))
-        fast = BatchedMADDPG.from_reference(ref)
-        b = random_batch(ref)
+        ref, fast, b = learner_pair(spread(n), "cen-maddpg")
         fns[f"ref N={n}"] = lambda ref=ref, b=b: ref.update(*b)
         fns[f"batched N={n}"] = lambda fast=fast, b=b: fast.update(*b)
-    print("learner: spread N=2,3,4 ...", file=sys.stderr, flush=True)
+    progress("learner: spread N=2,3,4 ...")
     samples = measure(fns, repeats, budget_s)
     rows = []
     for impl in ("ref", "batched"):
@@ -84,9 +71,9 @@ def learner_scaling(repeats: int, budget_s: float) -> dict:
                 {
                     "learner": impl,
                     "agents": n,
-                    "ms_per_update": 1e3 * statistics.median(s),
-                    "updates_per_s": 1 / statistics.median(s),
-                    "time_over_n2": statistics.median(x / y for x, y in zip(s, base)),
+                    "ms_per_update": 1e3 * median(s),
+                    "updates_per_s": 1 / median(s),
+                    "time_over_n2": ratio_median(s, base),
                 }
             )
     return {
@@ -110,15 +97,8 @@ def counting_child(budget_s: float) -> dict:
 def count_costs(k: int, budget_s: float, rng) -> dict:
     import numpy as np
 
-    from shared.config import make_config
-    from shared.tasks import task_spec
-    from shared.trainer import build_exploration
-
-    cfg = make_config(
-        {"task": "speaker_listener", "algo": "cen-maddpg", "explore": "cen-macb", "k": k}
-    )
-    spec = task_spec(cfg.task, cfg.agents, cfg.episode_len)
-    ex = build_exploration(cfg, spec)
+    config = {"task": "speaker_listener", "algo": "cen-maddpg", "explore": "cen-macb", "k": k}
+    _, spec, ex = exploration(config)
     n_batches = TABLE_KEYS // COUNT_ROWS
     obs = rng.uniform(-1, 1, (n_batches, COUNT_ROWS, spec.joint_obs_dim)).astype(np.float32)
     act = rng.uniform(-1, 1, (n_batches, COUNT_ROWS, spec.joint_act_dim)).astype(np.float32)
@@ -167,40 +147,33 @@ def count_costs(k: int, budget_s: float, rng) -> dict:
 def counting_scaling(rounds: int, budget_s: float, work: Path) -> dict:
     runs = []
     settings = ["1", "default"]
-    for r in range(rounds):
-        for blas in settings[r % 2 :] + settings[: r % 2]:
-            print(
-                f"counting: round {r + 1}/{rounds}, BLAS threads {blas} ...",
-                file=sys.stderr,
-                flush=True,
-            )
-            env = {k: v for k, v in os.environ.items() if k not in BLAS_VARS}
-            if blas == "1":
-                env.update(dict.fromkeys(BLAS_VARS, "1"))
-            result = work / f"counting-{r}-{blas}.json"
-            subprocess.run(
-                [
-                    sys.executable,
-                    str(Path(__file__).resolve()),
-                    "--_counting",
-                    "--budget",
-                    str(budget_s),
-                    "--result",
-                    str(result),
-                ],
-                cwd=ROOT,
-                env=env,
-                check=True,
-                timeout=600,
-            )
-            runs.append(
-                {
-                    "round": r,
-                    "blas": blas,
-                    "load": os.getloadavg(),
-                    "k": json.loads(result.read_text()),
-                }
-            )
+    for r, blas in rotating_rounds(rounds, settings):
+        progress(f"counting: round {r + 1}/{rounds}, BLAS threads {blas} ...")
+        env = thread_env(blas == "1")
+        result = work / f"counting-{r}-{blas}.json"
+        subprocess.run(
+            [
+                sys.executable,
+                str(Path(__file__).resolve()),
+                "--_counting",
+                "--budget",
+                str(budget_s),
+                "--result",
+                str(result),
+            ],
+            cwd=ROOT,
+            env=env,
+            check=True,
+            timeout=600,
+        )
+        runs.append(
+            {
+                "round": r,
+                "blas": blas,
+                "load": os.getloadavg(),
+                "k": json.loads(result.read_text()),
+            }
+        )
     rows = []
     for blas in settings:
         for k in KS:
@@ -226,7 +199,7 @@ def counting_scaling(rounds: int, budget_s: float, work: Path) -> dict:
                     "counts_us": 1e6 * median([p["counts_s"] for p in per]),
                     "bonus_us": 1e6 * median([p["bonus_s"] for p in per]),
                     "total_us": 1e6 * median(total),
-                    "total_over_k64_blas1": median(t / b for t, b in zip(total, base_total)),
+                    "total_over_k64_blas1": ratio_median(total, base_total),
                     "memory_bytes_per_key": median([p["memory_bytes_per_key"] for p in per]),
                 }
             )
@@ -240,20 +213,14 @@ def cluster_scaling(rounds: int, episodes: int, work: Path) -> dict:
     config = tmp_config(work)
     runs = []
     cases = [1, 2]
-    for r in range(rounds):
-        for actors in cases[r % 2 :] + cases[: r % 2]:
-            d = work / f"cluster-{r}-{actors}"
-            d.mkdir()
-            load = os.getloadavg()
-            print(
-                f"cluster: round {r + 1}/{rounds}, {actors} actor(s), {episodes} episodes "
-                f"(load {load[0]:.2f}) ...",
-                file=sys.stderr,
-                flush=True,
-            )
-            res = run_cluster(config, episodes, episodes, actors, d, 120 + episodes * 4)
-            res.update(round=r, actors=actors, loadavg_before=load, loadavg_after=os.getloadavg())
-            runs.append(res)
+    for r, actors in rotating_rounds(rounds, cases):
+        d = work / f"cluster-{r}-{actors}"
+        load = begin_run(
+            d, f"cluster: round {r + 1}/{rounds}, {actors} actor(s), {episodes} episodes"
+        )
+        res = run_cluster(config, episodes, episodes, actors, d, 120 + episodes * 4)
+        res.update(round=r, actors=actors, loadavg_before=load, loadavg_after=os.getloadavg())
+        runs.append(res)
     rows = []
     for actors in cases:
         rs = [x for x in runs if x["actors"] == actors]
@@ -264,8 +231,8 @@ def cluster_scaling(rounds: int, episodes: int, work: Path) -> dict:
                 "actors": actors,
                 "steady_steps_per_s": median([x["steady"]["rate"] for x in rs]),
                 "e2e_steps_per_s": median([x["e2e_steps_per_s"] for x in rs]),
-                "over_1_actor": median(
-                    x["steady"]["rate"] / b["steady"]["rate"] for x, b in zip(rs, base)
+                "over_1_actor": ratio_median(
+                    [x["steady"]["rate"] for x in rs], [b["steady"]["rate"] for b in base]
                 ),
                 "policy_lag": median([x["learner"]["policy_lag"] for x in rs]),
                 "bonus_p50_ms": median([x["learner"]["bonus_p50_ms"] for x in rs]),
@@ -277,20 +244,12 @@ def cluster_scaling(rounds: int, episodes: int, work: Path) -> dict:
 
 # ------------------------------------------------------------------ main
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        epilog="Prints markdown tables; writes --out (default benchmarks/results/scaling.json).",
-    )
+    parser = bench_parser(__doc__, "scaling.json")
     parser.add_argument("--quick", action="store_true", help="short runs (~1-2 min)")
     parser.add_argument(
         "--skip", default="", help="comma-separated parts to skip: learner, counting, cluster"
     )
-    parser.add_argument(
-        "--out",
-        type=Path,
-        default=ROOT / "benchmarks" / "results" / "scaling.json",
-        help="where to write the JSON results",
-    )
+    add_out(parser, "scaling.json")
     parser.add_argument("--_counting", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--budget", type=float, default=0.2, help=argparse.SUPPRESS)
     parser.add_argument("--result", help=argparse.SUPPRESS)
@@ -301,7 +260,7 @@ def main(argv: list[str] | None = None) -> None:
     skip = {s.strip() for s in args.skip.split(",") if s.strip()}
     load_before = os.getloadavg()
     result: dict = {
-        "command": " ".join(["benchmarks/bench_scaling.py", *(argv or sys.argv[1:])]),
+        "command": command(__file__, argv),
         "cores": os.cpu_count(),
         "loadavg_before": load_before,
     }
@@ -373,9 +332,7 @@ def main(argv: list[str] | None = None) -> None:
                 f"| {fmt(r['e2e_steps_per_s'])} | {fmt(r['over_1_actor'], '.2f')}x "
                 f"| {fmt(r['policy_lag'], '.2f')} | {fmt(r['bonus_p50_ms'], '.2f')} | {cpu} |"
             )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"\nwrote {args.out}; load average before {load_before}, after {os.getloadavg()}")
+    write_result(args.out, result, load_before)
 
 
 if __name__ == "__main__":
