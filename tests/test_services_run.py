@@ -55,7 +55,7 @@ def check_exact(watch, actors, config):
     assert published == config.episodes * config.episode_len
     counter = watch.latest["counter"]
     assert counter["counted_transitions"] == published
-    assert counter["duplicates"] == 0 and counter["gaps"] == 0
+    assert counter["duplicates"] == 0 and counter["gaps"] == 0, json.dumps([counter, watch.states])
     learner = watch.states[watch.assign["learner"]]
     assert learner["ingested"] == published
     expected_updates = published - config.learning_starts
