@@ -12,9 +12,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml
+from pydantic import ValidationError
 
-from cli.config_flags import add_config_flags, config_overrides
-from shared.config import ConfigError, TrainConfig, make_config, read_config_file
+from cli.config_flags import COMMA_LIST_FIELDS, add_config_flags, config_overrides, read_flag_value
+from shared.config import ConfigError, TrainConfig, format_errors, read_config_file
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -42,7 +43,7 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
         "run",
         help="submit an experiment to the API and follow it to the end",
         description="Submit CONFIG (a YAML/JSON config, keys overridden by flags) as an "
-        "experiment: one run per seed and grid point, queued until services are free. "
+        "experiment: one run per arm, grid point and seed, queued until services are free. "
         "Shows a progress bar until every run has ended; Ctrl-C stops the experiment.",
     )
     rn.add_argument("config", metavar="CONFIG", help="YAML/JSON config file")
@@ -51,7 +52,16 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
         "--grid",
         action="append",
         metavar="KEY=V1,V2",
-        help="sweep beta or k (repeat for both): --grid beta=0.2,0.8 --grid k=64,512",
+        help="sweep any config key but the seed (repeat for more keys; the runs are the "
+        "product): --grid explore=none,dis-macb,cen-macb --grid beta=0.2,0.8; values are "
+        "read like the key's flag (--hidden takes lists: --grid hidden=[64,64],[32])",
+    )
+    rn.add_argument(
+        "--arms",
+        metavar="FILE",
+        help="a YAML list of named partial configs over CONFIG, e.g. "
+        "'- {name: cen-macb, explore: cen-macb}' and '- {name: control, explore: constant}'; "
+        "each arm runs every seed (and grid point)",
     )
     rn.add_argument("--name", help="experiment name")
     rn.add_argument("--actors", type=int, default=1, help="actors per run")
@@ -101,30 +111,98 @@ def _read_config_file(path: str) -> dict[str, Any]:
     return read_config_file(path)
 
 
+def _split_values(text: str) -> list[str]:
+    """`a,b,[1,2]` as ["a", "b", "[1,2]"]: commas split, except inside brackets."""
+    parts, depth, current = [], 0, ""
+    for ch in text:
+        depth += {"[": 1, "{": 1, "]": -1, "}": -1}.get(ch, 0)
+        if ch == "," and depth == 0:
+            parts.append(current)
+            current = ""
+        else:
+            current += ch
+    parts.append(current)
+    return [p.strip() for p in parts if p.strip()]
+
+
+def _grid_value(key: str, raw: str) -> Any:
+    """One grid value, read as the key's flag reads it (strings stay strings for string
+    fields, the rest is YAML), except lists, which are YAML lists here: `[64,64]`."""
+    if key in COMMA_LIST_FIELDS:
+        value = yaml.safe_load(raw)
+        if not isinstance(value, list):
+            raise ConfigError(f"--grid {key}: give each value as a list: {key}=[64,64],[32]")
+        return value
+    return read_flag_value(key, raw)
+
+
 def _grid(items: list[str] | None) -> dict[str, list]:
-    """`--grid beta=0.2,0.8 --grid k=64,512` as {"beta": [0.2, 0.8], "k": [64, 512]}."""
+    """`--grid explore=none,cen-macb --grid beta=0.2,0.8` as {"explore": ["none",
+    "cen-macb"], "beta": [0.2, 0.8]}. A key that is not a config key, a seed, or a key
+    given twice is refused here, before the API is asked."""
     grid: dict[str, list] = {}
     for item in items or []:
         key, _, values = item.partition("=")
-        if key not in ("beta", "k") or not values:
-            raise ConfigError(f"--grid {item}: use beta=V1,V2,... or k=V1,V2,...")
-        grid[key] = [yaml.safe_load(v) for v in values.split(",") if v.strip()]
+        key = key.strip().replace("-", "_")
+        if key in ("seed", "seeds"):
+            raise ConfigError(f"--grid {item}: the seed is not a grid key: use --seeds 0 1 2")
+        if key not in TrainConfig.model_fields:
+            raise ConfigError(f"--grid {item}: {key!r} is not a config key (misspelt?)")
+        if key in grid:
+            raise ConfigError(f"--grid {key}: given twice; list every value in one --grid")
+        parsed = [_grid_value(key, v) for v in _split_values(values)]
+        if not parsed:
+            raise ConfigError(f"--grid {item}: no values; use {key}=V1,V2,...")
+        grid[key] = parsed
     return grid
 
 
+def read_arms(path: str) -> list[dict[str, Any]]:
+    """An arms file: a YAML list of mappings, each with a `name` (or a mapping whose
+    `arms` is that list). The keys are the API's to judge; only the shape is checked."""
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    if isinstance(data, dict) and "arms" in data:
+        data = data["arms"]
+    if not isinstance(data, list) or not data:
+        raise ConfigError(f"{path}: an arms file is a list of named partial configs")
+    for i, arm in enumerate(data):
+        if not isinstance(arm, dict) or not isinstance(arm.get("name"), str):
+            raise ConfigError(f"{path}: arm {i} is not a mapping with a `name`")
+    return data
+
+
+def _check_base(config: dict[str, Any], varied: bool) -> None:
+    """Refuse a bad base config before the API is asked. With arms or a grid, the base
+    alone may break a cross-field rule (an arm may set the algo): only each run's config
+    must be valid, which the API checks; field errors are still refused here."""
+    try:
+        TrainConfig.model_validate(config)
+    except ValidationError as err:
+        if not varied or any(e["loc"] for e in err.errors()):
+            raise ConfigError(format_errors(err)) from None
+
+
 def experiment_body(args: argparse.Namespace) -> dict[str, Any]:
-    """The POST /experiments body from a config file, flags, --seeds and --grid."""
+    """The POST /experiments body from a config file, flags, --seeds, --grid and --arms
+    (the flags replace what the file says)."""
     body: dict[str, Any] = {}
     if getattr(args, "config", None):
         body.update(_read_config_file(args.config))
     body.update(config_overrides(args))
-    make_config({k: v for k, v in body.items() if k in TrainConfig.model_fields})
+    grid = _grid(args.grid)
+    if grid:
+        in_file = body.get("grid")
+        body["grid"] = {**(in_file if isinstance(in_file, dict) else {}), **grid}
+    if getattr(args, "arms", None):
+        body["arms"] = read_arms(args.arms)
+    config = {k: v for k, v in body.items() if k in TrainConfig.model_fields}
+    _check_base(config, varied=bool(body.get("grid") or body.get("arms")))
     if args.seeds:
         body.pop("seed", None)
         body["seeds"] = args.seeds
-    grid = _grid(args.grid)
-    if grid:
-        body["grid"] = grid
     if args.name:
         body["name"] = args.name
     body["actors"] = args.actors
@@ -135,8 +213,9 @@ def write_results(
     api: ApiClient, exp: dict[str, Any], out: Path, plot: bool = True, data_dir: Path | None = None
 ) -> list[Path]:
     """Each run's metrics.csv, metrics.jsonl, config.json (and, with the cluster's data
-    dir, the learner's checkpoint.pt) in out/ for one run or out/<run id>/ for several;
-    out/plot.png."""
+    dir, the learner's checkpoint.pt) in out/ for one run or out/<run id>/ for several,
+    then every run's points in out/metrics.csv (with `arm`, `seed`, `run` columns);
+    out/plot.png, every arm overlaid."""
     import json
     import shutil
 
@@ -155,6 +234,9 @@ def write_results(
         checkpoint = data_dir / "learner" / run["id"] / "checkpoint.pt" if data_dir else None
         if checkpoint is not None and checkpoint.exists():
             shutil.copyfile(checkpoint, d / "checkpoint.pt")
+    if len(exp["runs"]) > 1:
+        (out / "metrics.csv").write_text(api.experiment_csv(exp["id"]))
+        written.append(out / "metrics.csv")
     if plot:
         from services.api.plot import plot_curves
 
@@ -283,11 +365,10 @@ def cmd_ls(args: argparse.Namespace) -> int:
         counts = ", ".join(f"{v} {k}" for k, v in e["counts"].items())
         print(f"{e['id']}  {e['status']:<9}  {e['name']}  ({counts})")
         for r in e["runs"]:
-            point = " ".join(f"{k}={v}" for k, v in r["point"].items())
             p = r["progress"]
             print(
-                f"  {r['id']:<28} {r['status']:<9} seed={r['seed']:<4} {point:<16} "
-                f"episode {p['episode']}/{p['episodes']}"
+                f"  {r['id']:<28} {r['status']:<9} seed={r['seed']:<4} "
+                f"arm={r.get('arm', ''):<24} episode {p['episode']}/{p['episodes']}"
                 + (f"  {r['reason']}" if r["reason"] else "")
             )
     return 0

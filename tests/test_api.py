@@ -7,19 +7,30 @@ bus side is a real router. Whole runs on real services: tests/test_api_e2e.py.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
+import math
 import os
 import re
+import shutil
+import sqlite3
+import statistics
 import subprocess
 import sys
+from typing import Literal, get_args, get_origin
 
 import httpx
 import pytest
+from PIL import Image
+from pydantic import ValidationError
 
+from services.api import views
 from services.api.main import ApiServer, Settings, check_bind
+from services.api.naming import format_value
 from services.api.store import CSV_FIELDS, SCHEMA_VERSION, Store, StoreError
+from shared.config import TrainConfig
 from tests.conftest import ROOT, free_port, wait_for
 
 TINY = {
@@ -77,6 +88,7 @@ def test_experiment_expands_into_one_queued_run_per_seed_and_grid_point(client):
     assert combos == {(b, k, s) for b in (0.2, 0.8) for k in (64, 512) for s in (0, 1)}
     for run in exp["runs"]:
         assert run["point"] == {"beta": run["config"]["beta"], "k": run["config"]["k"]}
+        assert run["arm"] == f"beta={run['config']['beta']},k={run['config']['k']}"
         assert run["config"]["episodes"] == 12 and run["config"]["hidden"] == [32, 32]
         assert run["progress"] == {
             "episode": 0,
@@ -205,6 +217,331 @@ def test_a_newer_store_schema_is_refused(tmp_path):
         Store(path)
 
 
+# ---------------------------------------------------------------- arms and grids
+FIG8_ARMS = [  # thesis figure 8's arms over a Cen-MADDPG base
+    {"name": "no bonus", "explore": "none"},
+    {"name": "dis-macb", "explore": "dis-macb"},
+    {"name": "cen-macb", "explore": "cen-macb"},
+    {"name": "control", "explore": "constant"},
+]
+
+
+def _grid_values(name: str) -> list:
+    """Two or more values of a config key for a grid: every choice of a Literal, both
+    booleans, or TINY's value and another valid one."""
+    field = TrainConfig.model_fields[name]
+    choices = [v for v in get_args(field.annotation) if isinstance(v, str)]
+    if get_origin(field.annotation) is Literal:
+        return choices
+    if field.annotation is bool:
+        return [False, True]
+    value = TINY.get(name, field.default)
+    other = {
+        "learner_lanes": 2,
+        "hidden": [16],
+        "beta": 0.25,
+        "gamma": 0.95,
+        "tau": 0.01,
+        "lr_actor": 1e-4,
+        "lr_critic": 1e-4,
+        "noise_sigma": 0.2,
+        "agents": 3,
+        "episode_len": 25,
+        "learning_starts": 0,
+    }.get(name, value + 1 if isinstance(value, int) else value)
+    return [value, other]
+
+
+def test_a_grid_may_sweep_every_config_key_but_the_seed(client):
+    """Every key is accepted with every value its field takes; a combination that breaks
+    a cross-field rule (task simple with Cen-MADDPG) is refused, naming the point."""
+    for name in TrainConfig.model_fields:
+        if name == "seed":
+            continue
+        values = _grid_values(name)
+        r = post(client, {**TINY, "grid": {name: values}})
+        invalid = []
+        for v in values:
+            try:
+                TrainConfig.model_validate({**TINY, name: v})
+            except ValidationError:
+                invalid.append(v)
+        if invalid:
+            assert r.status_code == 422, (name, r.text)
+            (err,) = r.json()["detail"]
+            assert err["field"] == "grid"
+            assert err["msg"].startswith(f"grid: point {name}={format_value(invalid[0])}: config: ")
+            values = [v for v in values if v not in invalid]
+            assert len(values) >= 2, name
+            r = post(client, {**TINY, "grid": {name: values}})
+        assert r.status_code == 201, (name, r.text)
+        runs = r.json()["runs"]
+        assert [run["config"][name] for run in runs] == values, name
+        assert [run["point"] for run in runs] == [{name: v} for v in values]
+        assert [run["arm"] for run in runs] == [f"{name}={format_value(v)}" for v in values]
+        assert r.json()["grid"] == {name: values}
+
+
+def test_arms_are_crossed_with_seeds_and_the_grid_and_each_run_carries_its_arm(client):
+    r = post(client, {**TINY, "seeds": [0, 1], "arms": FIG8_ARMS})
+    assert r.status_code == 201, r.text
+    exp = r.json()
+    assert exp["arms"] == FIG8_ARMS and exp["grid"] is None and exp["seeds"] == [0, 1]
+    assert [(x["arm"], x["seed"]) for x in exp["runs"]] == [
+        (a["name"], s) for a in FIG8_ARMS for s in (0, 1)
+    ], "arms outer, seeds inner, in the order given"
+    for run in exp["runs"]:
+        arm = next(a for a in FIG8_ARMS if a["name"] == run["arm"])
+        assert run["point"] == {"explore": arm["explore"]}
+        assert run["config"]["explore"] == arm["explore"]
+        assert run["config"]["k"] == 64 and run["config"]["algo"] == "cen-maddpg"
+    assert exp["name"] == "speaker_listener: no bonus | dis-macb | cen-macb | control"
+
+    # Arms x grid x seeds: the arm's keys and the grid point's both; the names both.
+    arms = [{"name": "cen", "explore": "cen-macb"}, {"name": "ctl", "explore": "constant"}]
+    body = {**TINY, "arms": arms, "grid": {"beta": [0.2, 0.8]}, "seeds": [5, 6]}
+    exp = post(client, body).json()
+    assert len(exp["runs"]) == 8
+    assert [x["arm"] for x in exp["runs"][::2]] == [
+        "cen beta=0.2",
+        "cen beta=0.8",
+        "ctl beta=0.2",
+        "ctl beta=0.8",
+    ]
+    first = exp["runs"][0]
+    assert first["point"] == {"explore": "cen-macb", "beta": 0.2} and first["seed"] == 5
+    assert (first["config"]["explore"], first["config"]["beta"]) == ("cen-macb", 0.2)
+
+    # A grid over several keys: points named key=value in config-field order.
+    body = {**TINY, "grid": {"beta": [0.2], "explore": ["none", "dis-macb"], "k": [32]}}
+    exp = post(client, body).json()
+    assert [x["arm"] for x in exp["runs"]] == [
+        "explore=none,beta=0.2,k=32",
+        "explore=dis-macb,beta=0.2,k=32",
+    ]
+
+    # The base alone may break a cross-field rule that every arm fixes.
+    body = {"task": "simple", "episodes": 8, "arms": [{"name": "ddpg", "algo": "ddpg"}]}
+    exp = post(client, body).json()
+    assert exp["config"]["algo"] == "cen-maddpg", "the base as given"
+    assert exp["runs"][0]["config"]["algo"] == "ddpg" and exp["runs"][0]["arm"] == "ddpg"
+    # Without arms or grid the one arm is named after its algo and bonus.
+    assert post(client, TINY).json()["runs"][0]["arm"] == "cen-maddpg + cen-macb"
+
+
+def test_refusals_of_grids_and_arms_say_what_and_where(client):
+    def detail(body):
+        r = post(client, body)
+        assert r.status_code == 422, r.text
+        (err,) = r.json()["detail"]
+        return err["field"], err["msg"]
+
+    field, msg = detail({**TINY, "grid": {"seed": [1, 2]}})
+    assert field == "grid.seed" and "list them in `seeds`" in msg
+    field, msg = detail({**TINY, "arms": [{"name": "a"}, {"name": "b", "seeds": [1]}]})
+    assert field == "arms.1.seeds" and "not a grid or arm key" in msg
+    field, msg = detail({**TINY, "grid": {"task": ["spread", "simple"], "agents": [2, 3]}})
+    assert field == "grid"
+    assert msg == (
+        "grid: point task=simple,agents=2: config: algo cen-maddpg needs several agents; "
+        "task simple has one: use ddpg (1 more combination(s) are invalid too)"
+    )
+    field, msg = detail({**TINY, "arms": [{"name": "ok"}, {"name": "one", "algo": "ddpg"}]})
+    assert field == "arms.1"
+    assert msg.startswith("arms.1: arm 'one': config: algo ddpg trains one agent")
+    body = {**TINY, "arms": [{"name": "one", "algo": "ddpg"}], "grid": {"beta": [0.1]}}
+    assert detail(body)[1].startswith("arms.0: arm 'one' with grid point beta=0.1: config: ")
+    field, msg = detail({**TINY, "grid": {"gama": [0.9]}})
+    assert field == "grid.gama" and "unknown key" in msg
+    assert client.get("/experiments").json()["total"] == 0, "nothing was stored"
+
+
+def _store_points(store: Store, exp: dict, values: dict[tuple[str, int], list]) -> None:
+    """(arm, seed) -> [(episode, success_rate), ...] into the runs of `exp`."""
+    for run in exp["runs"]:
+        rows = [row(e, success_rate=v) for e, v in values.get((run["arm"], run["seed"]), [])]
+        store.add_points(run["id"], rows)
+
+
+ARM_POINTS = {  # two arms x three seeds; seed 2 of arm b has no point at episode 8
+    ("a", 0): [(4, 0.0), (8, 0.2)],
+    ("a", 1): [(4, 0.3), (8, 0.4)],
+    ("a", 2): [(4, 0.6), (8, 0.9)],
+    ("b", 0): [(4, 1.0), (8, 1.0)],
+    ("b", 1): [(4, 0.5), (8, 0.0)],
+    ("b", 2): [(4, 0.0)],
+}
+
+
+def _arms_experiment(api, client) -> dict:
+    arms = [{"name": "a", "explore": "cen-macb"}, {"name": "b", "explore": "constant"}]
+    exp = post(client, {**TINY, "seeds": [0, 1, 2], "arms": arms}).json()
+    store = Store(api.settings.db_path)
+    try:
+        _store_points(store, exp, ARM_POINTS)
+    finally:
+        store.close()
+    return exp
+
+
+def test_curves_give_one_series_per_arm_with_mean_and_std_over_its_seeds(api, client):
+    exp = _arms_experiment(api, client)
+    data = client.get(
+        f"/experiments/{exp['id']}/curves", params={"metric": ["success_rate", "episode"]}
+    ).json()
+    a, b = data["metrics"]["success_rate"]
+    assert (a["name"], b["name"]) == ("a", "b") and (a["label"], b["label"]) == ("a", "b")
+    assert a["seeds"] == [0, 1, 2] and b["seeds"] == [0, 1, 2]
+    assert a["runs"] == [r["id"] for r in exp["runs"] if r["arm"] == "a"]
+    assert a["point"] == {"explore": "cen-macb"} and b["point"] == {"explore": "constant"}
+    for curve, arm in ((a, "a"), (b, "b")):
+        assert curve["episode"] == [4, 8]
+        for i, episode in enumerate((4, 8)):
+            vs = [v for s in range(3) for e, v in ARM_POINTS[(arm, s)] if e == episode]
+            assert curve["n"][i] == len(vs)
+            assert curve["mean"][i] == pytest.approx(statistics.fmean(vs))
+            assert curve["std"][i] == pytest.approx(statistics.pstdev(vs))
+            assert curve["lo"][i] == pytest.approx(curve["mean"][i] - curve["std"][i])
+            assert curve["hi"][i] == pytest.approx(curve["mean"][i] + curve["std"][i])
+    assert b["n"] == [3, 2] and b["mean"] == pytest.approx([0.5, 0.5])
+    assert b["std"] == pytest.approx([math.sqrt(1 / 6), 0.5])
+    # Another metric groups the same way.
+    assert [c["name"] for c in data["metrics"]["episode"]] == ["a", "b"]
+    assert data["metrics"]["episode"][0]["mean"] == pytest.approx([4.0, 8.0])
+
+
+def test_experiment_csv_holds_every_point_of_every_run_arm_seed_and_run_first(api, client):
+    exp = _arms_experiment(api, client)
+    r = client.get(f"/experiments/{exp['id']}/metrics.csv")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
+    assert f"{exp['id']}-metrics.csv" in r.headers["content-disposition"]
+    header = r.text.splitlines()[0].split(",")
+    assert header == ["arm", "seed", "run", *CSV_FIELDS]
+    table = list(csv.DictReader(io.StringIO(r.text)))
+    assert len(table) == sum(len(v) for v in ARM_POINTS.values())
+    by_run = {x["id"]: x for x in exp["runs"]}
+    got = {}
+    for line in table:
+        run = by_run[line["run"]]
+        assert (line["arm"], int(line["seed"])) == (run["arm"], run["seed"])
+        got.setdefault((line["arm"], int(line["seed"])), []).append(
+            (int(line["episode"]), float(line["success_rate"]))
+        )
+    assert got == ARM_POINTS
+    assert [line["run"] for line in table] == sorted(
+        (line["run"] for line in table), key=lambda x: int(x.rsplit("-", 1)[1])
+    ), "runs in their order"
+    # A column only some points have comes after the standard ones, blank elsewhere.
+    store = Store(api.settings.db_path)
+    store.add_points(exp["runs"][0]["id"], [row(12, probe_extra=0.5)])
+    store.close()
+    text = client.get(f"/experiments/{exp['id']}/metrics.csv").text
+    assert text.splitlines()[0].endswith(f",{CSV_FIELDS[-1]},probe_extra")
+    lines = list(csv.DictReader(io.StringIO(text)))
+    assert [x["probe_extra"] for x in lines if x["probe_extra"]] == ["0.5"]
+
+
+def test_plot_overlays_every_arm_with_its_name_in_the_legend(api, client, tmp_path):
+    from services.api.plot import draw_curves, figure_legend, plot_curves
+
+    exp = _arms_experiment(api, client)
+    data = client.get(f"/experiments/{exp['id']}/curves", params={"metric": "success_rate"}).json()
+    fig = draw_curves(data, "success_rate")
+    assert figure_legend(fig) == ["a (3 seeds)", "b (3 seeds)"]
+    (ax,) = fig.axes
+    lines = ax.get_lines()
+    assert [list(line.get_ydata()) for line in lines] == [
+        c["mean"] for c in data["metrics"]["success_rate"]
+    ]
+    assert len(ax.collections) == 2, "one band per arm"
+    assert lines[0].get_color() != lines[1].get_color()
+    out = plot_curves(data, "success_rate", tmp_path / "fig" / "arms.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with Image.open(out) as png:
+        assert json.loads(png.text["Legend"]) == ["a (3 seeds)", "b (3 seeds)"]
+
+    # The command, from the API and from the store file; `macb ls` shows the arms.
+    for source in (("--api", api.url), ("--db", str(api.settings.db_path))):
+        png_path = tmp_path / f"cli{source[0]}.png"
+        done = macb("plot", exp["id"], "-o", str(png_path), *source)
+        assert done.returncode == 0, done.stderr
+        with Image.open(png_path) as png:
+            assert json.loads(png.text["Legend"]) == ["a (3 seeds)", "b (3 seeds)"]
+    listed = macb("ls", "--api", api.url)
+    assert listed.returncode == 0, listed.stderr
+    for run in exp["runs"]:
+        (line,) = [x for x in listed.stdout.splitlines() if run["id"] in x]
+        assert f"arm={run['arm']} " in line and f"seed={run['seed']}" in line
+
+
+def macb(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+
+
+# ---------------------------------------------------------------- store schema
+def _columns(path) -> list[str]:
+    with contextlib.closing(sqlite3.connect(path)) as conn:
+        return [r[1] for r in conn.execute("PRAGMA table_info(runs)")]
+
+
+def _schema1_files(tmp_path) -> list:
+    """The committed schema-1 file, and one written now by the schema-1 code from git."""
+    from tests.store_schema1 import COMMITTED, load_module, schema1_source, write_schema1_store
+
+    files = [shutil.copy(COMMITTED, tmp_path / "committed.sqlite3")]
+    source = schema1_source()
+    if source is not None:
+        fresh = tmp_path / "fresh.sqlite3"
+        write_schema1_store(load_module(source, tmp_path), fresh)
+        files.append(fresh)
+    return files
+
+
+def test_a_schema_1_store_is_migrated_and_its_runs_get_arm_names(tmp_path):
+    files = _schema1_files(tmp_path)
+    for path in files:
+        with contextlib.closing(sqlite3.connect(path)) as conn:
+            assert conn.execute("SELECT version FROM schema_version").fetchall() == [(1,)]
+        assert "arm" not in _columns(path), "written by the old code"
+        store = Store(path)
+        try:
+            with contextlib.closing(sqlite3.connect(path)) as conn:
+                assert conn.execute("SELECT version FROM schema_version").fetchall() == [
+                    (SCHEMA_VERSION,)
+                ]
+            assert SCHEMA_VERSION == 2 and "arm" in _columns(path)
+            runs = store.runs_of(["xgrid", "xplain"])
+            assert [r["arm"] for r in runs["xgrid"]] == ["beta=0.2"] * 2 + ["beta=0.8"] * 2
+            assert [r["arm"] for r in runs["xplain"]] == ["cen-maddpg + cen-macb"]
+            assert runs["xgrid"][1]["point"] == {"beta": 0.2}, "the rest is kept"
+            assert [p["success_rate"] for p in store.points("xgrid-3")] == pytest.approx([0.3, 0.6])
+            data = views.curves(store, "xgrid", ["success_rate"])
+            low, high = data["metrics"]["success_rate"]
+            assert (low["name"], low["seeds"], low["episode"]) == ("beta=0.2", [0, 1], [4, 8])
+            assert low["mean"] == pytest.approx([0.05, 0.1])
+            assert high["mean"] == pytest.approx([0.25, 0.5])
+            public = views.load_experiments(store, [store.experiment("xgrid")])[0]
+            assert public["arms"] is None and public["runs"][0]["arm"] == "beta=0.2"
+            # The migrated file takes new experiments with arms.
+            store.create_experiment(
+                "xnew",
+                "new",
+                {},
+                [{"id": "xnew-0", "seed": 0, "arm": "a", "point": {}, "config": {}, "actors": 1}],
+            )
+        finally:
+            store.close()
+        again = Store(path)  # opening a migrated file again changes nothing
+        try:
+            assert again.run("xnew-0")["arm"] == "a"
+            assert again.run("xgrid-0")["arm"] == "beta=0.2"
+        finally:
+            again.close()
+    print(f"migrated {len(files)} schema-1 file(s)")
+
+
 # ---------------------------------------------------------------- bad input
 BAD_BODIES = [
     # (what, request kwargs, status, field named in the answer)
@@ -219,8 +556,76 @@ BAD_BODIES = [
     ("grid out of range", {"json": {**TINY, "grid": {"k": [64, 99999]}}}, 422, "grid.k.1"),
     ("NaN", {"content": b'{"beta": NaN}', "json_ct": True}, 422, "beta"),
     ("unknown field", {"json": {**TINY, "betta": 0.3}}, 422, "betta"),
-    ("unknown grid key", {"json": {**TINY, "grid": {"gamma": [0.9]}}}, 422, "grid.gamma"),
+    ("unknown grid key", {"json": {**TINY, "grid": {"betta": [0.9]}}}, 422, "grid.betta"),
     ("bad combination", {"json": {"task": "simple", "algo": "cen-maddpg"}}, 422, "config"),
+    ("seed as a grid key", {"json": {**TINY, "grid": {"seed": [1, 2]}}}, 422, "grid.seed"),
+    ("seeds as a grid key", {"json": {**TINY, "grid": {"seeds": [1]}}}, 422, "grid.seeds"),
+    (
+        "grid value of a wrong kind",
+        {"json": {**TINY, "grid": {"explore": ["x"]}}},
+        422,
+        "grid.explore.0",
+    ),
+    ("repeated grid value", {"json": {**TINY, "grid": {"beta": [0.2, 0.2]}}}, 422, "grid.beta"),
+    ("empty grid list", {"json": {**TINY, "grid": {"reward": []}}}, 422, "grid.reward"),
+    (
+        "invalid grid combination",
+        {"json": {**TINY, "grid": {"algo": ["cen-maddpg", "ddpg"]}}},
+        422,
+        "grid",
+    ),
+    ("seed in an arm", {"json": {**TINY, "arms": [{"name": "a", "seed": 3}]}}, 422, "arms.0.seed"),
+    (
+        "unknown arm key",
+        {"json": {**TINY, "arms": [{"name": "a", "betta": 1}]}},
+        422,
+        "arms.0.betta",
+    ),
+    ("arm without a name", {"json": {**TINY, "arms": [{"explore": "none"}]}}, 422, "arms.0.name"),
+    (
+        "arm value out of range",
+        {"json": {**TINY, "arms": [{"name": "a", "k": 0}]}},
+        422,
+        "arms.0.k",
+    ),
+    (
+        "repeated arm name",
+        {"json": {**TINY, "arms": [{"name": "a"}, {"name": "a", "beta": 0.1}]}},
+        422,
+        "arms.1.name",
+    ),
+    (
+        "an arm sets a key the grid sweeps",
+        {"json": {**TINY, "arms": [{"name": "a", "beta": 0.1}], "grid": {"beta": [0.2, 0.8]}}},
+        422,
+        "arms.0.beta",
+    ),
+    (
+        "invalid arm combination",
+        {"json": {**TINY, "arms": [{"name": "ok"}, {"name": "dd", "algo": "ddpg"}]}},
+        422,
+        "arms.1",
+    ),
+    ("no arms", {"json": {**TINY, "arms": []}}, 422, "arms"),
+    (
+        "too many runs with arms",
+        {
+            "json": {
+                **TINY,
+                "arms": [{"name": str(i)} for i in range(4)],
+                "grid": {"k": list(range(1, 9))},
+                "seeds": list(range(9)),
+            }
+        },
+        422,
+        "arms x grid x seeds",
+    ),
+    (
+        "a huge product of grid lists",
+        {"json": {**TINY, "grid": {k: list(range(1, 33)) for k in ("k", "episodes", "threads")}}},
+        422,
+        "seeds x grid",
+    ),
     ("seed and seeds", {"json": {**TINY, "seed": 1, "seeds": [1]}}, 422, "seed"),
     ("repeated seed", {"json": {**TINY, "seeds": [1, 1]}}, 422, "seeds"),
     (
@@ -265,6 +670,7 @@ def test_bad_input_gets_the_right_status_names_the_field_and_changes_nothing(api
         ("GET", "/experiments/nope"),
         ("POST", "/experiments/nope/stop"),
         ("GET", "/experiments/nope/curves"),
+        ("GET", "/experiments/nope/metrics.csv"),
         ("GET", "/runs/nope"),
         ("POST", "/runs/nope/stop"),
         ("GET", "/runs/nope/metrics"),
@@ -332,6 +738,8 @@ def test_health_docs_and_dashboard(client):
         "/experiments",
         "/experiments/{exp_id}",
         "/experiments/{exp_id}/stop",
+        "/experiments/{exp_id}/curves",
+        "/experiments/{exp_id}/metrics.csv",
         "/runs/{run_id}",
         "/runs/{run_id}/stop",
         "/runs/{run_id}/metrics",
@@ -342,7 +750,10 @@ def test_health_docs_and_dashboard(client):
     ):
         assert path in spec["paths"], path
     body = spec["components"]["schemas"]["ExperimentCreate"]["properties"]
-    assert {"seeds", "grid", "name", "beta", "k", "episodes", "task"} <= set(body)
+    assert {"seeds", "grid", "arms", "name", "beta", "k", "episodes", "task"} <= set(body)
+    for schema in ("Grid", "Arm"):  # every config key but the seed, documented
+        keys = set(spec["components"]["schemas"][schema]["properties"]) - {"name"}
+        assert keys == set(TrainConfig.model_fields) - {"seed"}, schema
     page = client.get("/")
     assert page.status_code == 200 and "<svg" not in page.text.split("<script>")[0]
     external = re.findall(r"""(?:src|href)=["']?(?:https?:)?//|fetch\(["'`]https?:""", page.text)

@@ -328,10 +328,20 @@ def test_cli_run_ls_plot_and_stop_through_the_api(cluster, tmp_path):
         assert [int(r["episode"]) for r in table] == [4, 8, 12]
         assert json.loads((out / run["id"] / "config.json").read_text()) == run["config"]
     assert (out / "plot.png").stat().st_size > 10_000
+    # The experiment's CSV: every point of both runs, arm, seed and run first.
+    table = list(csv.DictReader((out / "metrics.csv").open()))
+    assert list(table[0])[:4] == ["arm", "seed", "run", "episode"]
+    assert [(r["seed"], int(r["episode"])) for r in table] == [
+        (s, e) for s in ("3", "4") for e in (4, 8, 12)
+    ]
+    assert {r["arm"] for r in table} == {"cen-maddpg + cen-macb"}
 
     listed = macb("ls", "--api", url)
     assert listed.returncode == 0 and exp_id in listed.stdout
     assert all(r["id"] in listed.stdout for r in exp["runs"])
+    for run in exp["runs"]:
+        (line,) = [x for x in listed.stdout.splitlines() if run["id"] in x]
+        assert "arm=cen-maddpg + cen-macb " in line, line
 
     for source in (("--api", url), ("--db", str(cluster.data / "api.sqlite3"))):
         png = tmp_path / f"plot{source[0]}.png"

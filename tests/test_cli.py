@@ -11,11 +11,15 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import re
+import subprocess
+import sys
 from types import ModuleType
 
 import pytest
 
-from shared.config import TrainConfig, make_config
+from shared.config import ConfigError, TrainConfig, make_config
+from tests.conftest import ROOT
 
 CONFIG_COMMANDS = ("train", "start", "run", "up")
 POSITIONALS = {"run": ["c.yaml"]}  # what a command needs before its flags parse
@@ -101,3 +105,113 @@ def test_string_values_stay_strings_and_the_rest_is_read_as_yaml(subparsers):
     assert {"task", "algo", "explore", "hash", "key", "reward"} <= flags.STRING_FIELDS
     assert "learner_lanes" not in flags.STRING_FIELDS, "'auto' or a number"
     assert flags.config_overrides(_parse(subparsers, "up")) == {}
+
+
+# ---------------------------------------------------------------- macb run: grid and arms
+def _body(subparsers, tmp_path, config: str, *flags: str) -> dict:
+    path = tmp_path / "c.yaml"
+    path.write_text(config)
+    api = _import("cli.api")
+    return api.experiment_body(subparsers["run"].parse_args([str(path), *flags]))
+
+
+BASE_YAML = "task: speaker_listener\nalgo: cen-maddpg\nk: 64\n"
+
+
+def test_grid_flags_take_any_config_key_and_read_values_like_its_flag(subparsers, tmp_path):
+    body = _body(
+        subparsers,
+        tmp_path,
+        BASE_YAML,
+        *("--grid", "explore=none,dis-macb,cen-macb", "--grid", "beta=0.2,0.8"),
+        *("--grid", "hidden=[64,64],[32]", "--grid", "time-limit-terminal=true,false"),
+        *("--grid", "learner_lanes=auto,2", "--grid", "task=on, off", "--seeds", "0", "1", "2"),
+    )
+    assert body["grid"] == {
+        "explore": ["none", "dis-macb", "cen-macb"],
+        "beta": [0.2, 0.8],
+        "hidden": [[64, 64], [32]],
+        "time_limit_terminal": [True, False],
+        "learner_lanes": ["auto", 2],
+        "task": ["on", "off"],  # a string field's values stay strings (YAML: booleans)
+    }
+    assert body["seeds"] == [0, 1, 2] and body["k"] == 64 and "arms" not in body
+
+
+def test_grid_flags_merge_over_the_files_grid(subparsers, tmp_path):
+    config = BASE_YAML + "grid: {beta: [0.1], k: [32, 64]}\n"
+    body = _body(subparsers, tmp_path, config, "--grid", "beta=0.2,0.4")
+    assert body["grid"] == {"beta": [0.2, 0.4], "k": [32, 64]}
+
+
+@pytest.mark.parametrize(
+    "item, says",
+    [
+        ("seed=0,1", "use --seeds"),
+        ("seeds=0,1", "use --seeds"),
+        ("gama=0.9", "'gama' is not a config key"),
+        ("beta=", "no values"),
+        ("beta", "no values"),
+        ("hidden=64,32", "as a list"),
+    ],
+)
+def test_bad_grid_flags_are_refused_before_the_api_is_asked(subparsers, tmp_path, item, says):
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        _body(subparsers, tmp_path, BASE_YAML, "--grid", item)
+
+
+def test_a_grid_key_given_twice_is_refused(subparsers, tmp_path):
+    with pytest.raises(ConfigError, match="given twice"):
+        _body(subparsers, tmp_path, BASE_YAML, "--grid", "beta=0.1", "--grid", "beta=0.2")
+
+
+def test_arms_file_is_sent_as_the_arms_list(subparsers, tmp_path):
+    arms = tmp_path / "arms.yaml"
+    arms.write_text(
+        "- {name: no bonus, explore: none}\n- {name: cen-macb, explore: cen-macb}\n"
+        "- name: control\n  explore: constant\n  beta: 0.5\n"
+    )
+    body = _body(subparsers, tmp_path, BASE_YAML, "--arms", str(arms), "--grid", "k=32,64")
+    assert body["arms"] == [
+        {"name": "no bonus", "explore": "none"},
+        {"name": "cen-macb", "explore": "cen-macb"},
+        {"name": "control", "explore": "constant", "beta": 0.5},
+    ]
+    assert body["grid"] == {"k": [32, 64]}
+    arms.write_text("arms:\n  - {name: a}\n")  # a mapping holding the list works too
+    assert _body(subparsers, tmp_path, BASE_YAML, "--arms", str(arms))["arms"] == [{"name": "a"}]
+    for bad in ("- {explore: none}\n", "name: a\n", "[]\n", "- [1, 2]\n", "- {name: [x\n"):
+        arms.write_text(bad)
+        with pytest.raises(ConfigError, match="arm|YAML"):
+            _body(subparsers, tmp_path, BASE_YAML, "--arms", str(arms))
+
+
+def test_with_arms_the_base_alone_may_break_a_cross_field_rule_but_not_a_field(
+    subparsers, tmp_path
+):
+    arms = tmp_path / "arms.yaml"
+    arms.write_text("- {name: ddpg, algo: ddpg}\n")
+    simple = "task: simple\n"  # with the default algo (cen-maddpg) this alone is invalid
+    body = _body(subparsers, tmp_path, simple, "--arms", str(arms))
+    assert body["task"] == "simple" and body["arms"] == [{"name": "ddpg", "algo": "ddpg"}]
+    body = _body(subparsers, tmp_path, simple, "--grid", "algo=ddpg")
+    assert body["grid"] == {"algo": ["ddpg"]}
+    with pytest.raises(ConfigError, match="config: algo cen-maddpg needs several agents"):
+        _body(subparsers, tmp_path, simple)
+    with pytest.raises(ConfigError, match="beta: Input should be less than or equal to 100"):
+        _body(subparsers, tmp_path, simple, "--arms", str(arms), "--beta", "1000")
+
+
+def test_macb_run_refuses_a_bad_grid_with_exit_2_without_an_api(tmp_path):
+    config = tmp_path / "c.yaml"
+    config.write_text(BASE_YAML)
+    proc = subprocess.run(
+        [sys.executable, "-m", "cli", "run", str(config), "--grid", "seed=1,2"]
+        + ["--api", "http://127.0.0.1:1"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "the seed is not a grid key: use --seeds" in proc.stderr

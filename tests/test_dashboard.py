@@ -4,7 +4,9 @@ A real cluster runs an experiment (two seeds x two grid points); Chromium loads
 GET /, lets the page fetch and draw, and dumps the DOM. The curves it drew must
 be the mean over seeds of the points the API stored, per episode, for the success
 rate, the count-1 percentage and the throughput; a screenshot is saved in the
-test's output folder (tmp_path).
+test's output folder (tmp_path). An experiment with named arms (its points written
+into the store, as the scheduler writes them) must come out overlaid on each chart,
+one curve per arm, with every arm's name in the legend.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from pathlib import Path
 import httpx
 import pytest
 
+from services.api.main import ApiServer, Settings
+from services.api.store import Store
 from tests.conftest import wait_for
 from tests.test_api_e2e import TINY, api_cluster
 
@@ -53,16 +57,33 @@ def chromium(url: str, out: Path, *action: str, budget_ms: int = 8000) -> str:
     return proc.stdout
 
 
+VOID = {"meta", "link", "br", "img", "input", "hr", "col", "wbr", "source"}
+
+
 class Dom(HTMLParser):
-    """Every element's tag and attributes, in document order."""
+    """Every element's tag and attributes, in document order; `#text` is the text
+    inside it (its children's included)."""
 
     def __init__(self, html: str) -> None:
         super().__init__()
         self.elements: list[tuple[str, dict[str, str]]] = []
+        self._open: list[tuple[str, dict[str, str]]] = []
         self.feed(html)
 
     def handle_starttag(self, tag, attrs):
-        self.elements.append((tag, {k: v or "" for k, v in attrs}))
+        element = (tag, {**{k: v or "" for k, v in attrs}, "#text": ""})
+        self.elements.append(element)
+        if tag not in VOID:
+            self._open.append(element)
+
+    def handle_endtag(self, tag):
+        while self._open:
+            if self._open.pop()[0] == tag:
+                break
+
+    def handle_data(self, data):
+        for _, attrs in self._open:
+            attrs["#text"] += data
 
     def find(self, tag: str, **attrs: str) -> list[dict[str, str]]:
         want = {k.rstrip("_").replace("_", "-"): v for k, v in attrs.items()}
@@ -130,5 +151,62 @@ def test_dashboard_draws_the_stored_learning_curves(finished_experiment, tmp_pat
         assert len(bands) >= 2 * len(CHARTS)
     shot = tmp_path / "dashboard.png"
     chromium(f"{url}/", tmp_path, f"--screenshot={shot}")
+    assert shot.stat().st_size > 20_000
+    print(f"screenshot: {shot}")
+
+
+def test_dashboard_overlays_an_experiments_arms_with_their_names_in_the_legend(tmp_path):
+    arms = [{"name": "Cen-MACB", "explore": "cen-macb"}, {"name": "control", "explore": "constant"}]
+    server = ApiServer(
+        Settings(port=0, data_dir=tmp_path / "api", connect=["tcp/127.0.0.1:1"])  # no bus
+    ).start()
+    try:
+        body = {**TINY, "seeds": [0, 1], "arms": arms, "name": "two arms"}
+        exp = httpx.post(f"{server.url}/experiments", json=body).json()
+        store = Store(server.settings.db_path)
+        values = {("Cen-MACB", 0): (0.2, 0.6), ("Cen-MACB", 1): (0.4, 1.0)}
+        values |= {("control", 0): (0.0, 0.1), ("control", 1): (0.1, 0.2)}
+        for run in exp["runs"]:
+            rows = [
+                {"episode": e, "env_steps": 20 * e, "success_rate": v, "count1_pct": 5.0 * e}
+                | {"count1_pct": 5.0 * e + (30 if run["arm"] == "control" else 0)}
+                | {"steps_per_sec": 100.0 + 10 * run["seed"]}
+                for e, v in zip((4, 8), values[(run["arm"], run["seed"])], strict=True)
+            ]
+            store.add_points(run["id"], rows)
+        store.close()
+        dom = Dom(chromium(f"{server.url}/", tmp_path, "--dump-dom"))
+        shot = tmp_path / "arms.png"
+        chromium(f"{server.url}/", tmp_path, f"--screenshot={shot}")
+    finally:
+        server.stop()
+    assert dom.find("body")[0]["data-ready"] == "1"
+    (card,) = dom.find("section", data_experiment=exp["id"])
+    legend = dom.find("span", class_="legend-item")
+    assert [x["data-arm"] for x in legend] == ["Cen-MACB", "control"]
+    assert [x["#text"] for x in legend] == ["Cen-MACB (2 seeds)", "control (2 seeds)"]
+    for metric in CHARTS:
+        curves = dom.find(
+            "path", class_="curve-mean", data_experiment=exp["id"], data_metric=metric
+        )
+        assert [c["data-label"] for c in curves] == ["Cen-MACB", "control"], metric
+        assert len({c["stroke"] for c in curves}) == 2, "each arm its own colour"
+        assert all(c["data-seeds"] == "2,2" for c in curves)
+    success = {
+        c["data-label"]: [float(v) for v in c["data-values"].split(",")]
+        for c in dom.find("path", class_="curve-mean", data_metric="success_rate")
+    }
+    assert success["Cen-MACB"] == pytest.approx([0.3, 0.8])
+    assert success["control"] == pytest.approx([0.05, 0.15])
+    count1 = {
+        c["data-label"]: [float(v) for v in c["data-values"].split(",")]
+        for c in dom.find("path", class_="curve-mean", data_metric="count1_pct")
+    }
+    assert count1 == {"Cen-MACB": [20.0, 40.0], "control": [50.0, 70.0]}
+    bands = dom.find("polygon", class_="curve-band")
+    assert sorted(b["data-label"] for b in bands) == sorted(["Cen-MACB", "control"] * len(CHARTS))
+    cells = {r["id"]: dom.find("tr", data_run=r["id"]) for r in exp["runs"]}
+    assert all(len(v) == 1 for v in cells.values())
+    assert [c["#text"] for c in dom.find("td", class_="arm")] == [r["arm"] for r in exp["runs"]]
     assert shot.stat().st_size > 20_000
     print(f"screenshot: {shot}")

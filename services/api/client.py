@@ -91,6 +91,9 @@ class ApiClient:
     def metrics_csv(self, run_id: str) -> str:
         return self._call("GET", f"/runs/{run_id}/metrics.csv").text
 
+    def experiment_csv(self, exp_id: str) -> str:
+        return self._call("GET", f"/experiments/{exp_id}/metrics.csv").text
+
     def curves(self, exp_id: str, metrics: list[str]) -> dict[str, Any]:
         return self._call("GET", f"/experiments/{exp_id}/curves", params={"metric": metrics})
 

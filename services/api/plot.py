@@ -1,10 +1,16 @@
-"""The thesis-style figure: a metric against training episodes, per arm the mean over
-seeds with a band (mean +- one standard deviation), from stored metrics."""
+"""The thesis-style figure: a metric against training episodes, every arm overlaid on one
+chart, each its mean over seeds with a band (mean +- one standard deviation), from
+stored metrics. The PNG also carries its legend texts (a `Legend` text chunk, JSON), so
+a figure can be checked, or its arms listed, without looking at it."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 LABELS = {
     "success_rate": "success rate",
@@ -15,20 +21,24 @@ LABELS = {
 }
 
 
-def plot_curves(curves: dict[str, Any], metric: str, out: Path) -> Path:
-    import matplotlib
+def legend_text(curve: dict[str, Any]) -> str:
+    """An arm's legend entry: its name and how many seeds it has."""
+    seeds = len(curve["runs"])
+    return f"{curve.get('name') or curve['label']} ({seeds} seed{'' if seeds == 1 else 's'})"
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def draw_curves(curves: dict[str, Any], metric: str) -> Figure:
+    """The figure (Agg, not shown): one mean line and band per arm with points stored."""
+    from matplotlib.figure import Figure
 
     groups = curves["metrics"].get(metric, [])
-    fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=120)
-    for g in groups:
+    fig = Figure(figsize=(6.4, 4.2), dpi=120)
+    ax = fig.subplots()
+    for g, color in zip(groups, _colors(len(groups)), strict=True):
         if not g["episode"]:
             continue
-        seeds = len(g["runs"])
-        (line,) = ax.plot(g["episode"], g["mean"], lw=1.6, label=f"{g['label']} ({seeds} seeds)")
-        ax.fill_between(g["episode"], g["lo"], g["hi"], color=line.get_color(), alpha=0.2, lw=0)
+        ax.plot(g["episode"], g["mean"], lw=1.6, color=color, label=legend_text(g))
+        ax.fill_between(g["episode"], g["lo"], g["hi"], color=color, alpha=0.2, lw=0)
     ax.set_xlabel("training episodes")
     ax.set_ylabel(LABELS.get(metric, metric))
     if metric == "success_rate":
@@ -41,8 +51,27 @@ def plot_curves(curves: dict[str, Any], metric: str, out: Path) -> Path:
     else:
         ax.text(0.5, 0.5, "no metric points stored yet", ha="center", transform=ax.transAxes)
     fig.tight_layout()
+    return fig
+
+
+def _colors(n: int) -> list[Any]:
+    """n colours: tab10's up to 10 arms, tab20's (paired shades) beyond, then repeating."""
+    from matplotlib import colormaps
+
+    cmap = colormaps["tab10" if n <= 10 else "tab20"]
+    return [cmap(i % cmap.N) for i in range(n)]
+
+
+def figure_legend(fig: Figure) -> list[str]:
+    """The legend texts of a figure drawn by `draw_curves` ([] without a legend)."""
+    legend = fig.axes[0].get_legend()
+    return [t.get_text() for t in legend.get_texts()] if legend else []
+
+
+def plot_curves(curves: dict[str, Any], metric: str, out: Path) -> Path:
+    """Draw and write the PNG; its `Legend` text chunk lists the legend entries."""
+    fig = draw_curves(curves, metric)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
-    plt.close(fig)
+    fig.savefig(out, metadata={"Legend": json.dumps(figure_legend(fig))})
     return out

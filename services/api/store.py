@@ -3,7 +3,9 @@
 WAL mode, so readers (HTTP requests) never wait for the writer (the scheduler);
 one connection per thread, and one lock that serialises writers. The schema has a
 version table; `Store` creates or checks it on open, so a newer file is refused
-instead of being misread.
+instead of being misread, and an older one is migrated in place (in one transaction):
+schema 2 gave each run its arm's name (`runs.arm`), which schema 1 files get from the
+run's grid point and config by the rule new runs are named by.
 
 A metric point is stored as the JSON of the evaluator's row with its `seq` (its
 number in the run, from 1, in arrival order) put in front; reads concatenate the
@@ -24,7 +26,9 @@ from typing import Any
 
 from shared.metrics import ALL_FIELDS
 
-SCHEMA_VERSION = 1
+from .naming import base_name, point_name
+
+SCHEMA_VERSION = 2  # 1: first; 2: runs.arm
 
 CSV_FIELDS = ALL_FIELDS  # the columns of `macb train`, then what the services add
 
@@ -37,14 +41,15 @@ CREATE TABLE IF NOT EXISTS experiments (
     id          TEXT PRIMARY KEY,
     name        TEXT NOT NULL,
     created     REAL NOT NULL,
-    spec        TEXT NOT NULL          -- JSON: base config, seeds, grid, actors
+    spec        TEXT NOT NULL          -- JSON: base config, seeds, grid, arms, actors
 );
 CREATE TABLE IF NOT EXISTS runs (
     id            TEXT PRIMARY KEY,
     experiment_id TEXT NOT NULL REFERENCES experiments(id),
     idx           INTEGER NOT NULL,
     seed          INTEGER NOT NULL,
-    point         TEXT NOT NULL,       -- JSON: the grid point ({"beta": .., "k": ..})
+    arm           TEXT NOT NULL DEFAULT '',  -- its arm's name (curves group by it)
+    point         TEXT NOT NULL,       -- JSON: keys set over the base ({"beta": .., "k": ..})
     config        TEXT NOT NULL,       -- JSON: the full TrainConfig of the run
     actors        INTEGER NOT NULL,
     status        TEXT NOT NULL CHECK (status IN
@@ -92,6 +97,22 @@ def run_row(r: sqlite3.Row) -> dict[str, Any]:
     ):
         d[col] = _loads(d.get(col), default)
     return d
+
+
+def default_arm(point: dict[str, Any], config: dict[str, Any]) -> str:
+    """The arm name of a run that was given none: its grid point's, or its algo and bonus'."""
+    return point_name(point) if point else base_name(config)
+
+
+def _add_arms(c: sqlite3.Connection) -> None:
+    """Schema 1 -> 2: a column with each run's arm name, named from its grid point (or,
+    without one, its algo and bonus), as the experiment would name it today."""
+    c.execute("ALTER TABLE runs ADD COLUMN arm TEXT NOT NULL DEFAULT ''")
+    rows = c.execute("SELECT id, point, config FROM runs").fetchall()
+    c.executemany(
+        "UPDATE runs SET arm = ? WHERE id = ?",
+        [(default_arm(_loads(r["point"], {}), _loads(r["config"], {})), r["id"]) for r in rows],
+    )
 
 
 class Store:
@@ -158,12 +179,17 @@ class Store:
                 raise StoreError(
                     f"{self.path} has store schema {row[0]}; this API knows {SCHEMA_VERSION}"
                 )
+            elif row[0] < SCHEMA_VERSION:
+                if row[0] < 2:
+                    _add_arms(c)
+                c.execute("UPDATE schema_version SET version = ?", (SCHEMA_VERSION,))
 
     # ------------------------------------------------------------ experiments
     def create_experiment(
         self, exp_id: str, name: str, spec: dict[str, Any], runs: list[dict[str, Any]]
     ) -> None:
-        """An experiment and its runs (all queued), in one transaction."""
+        """An experiment and its runs (all queued), in one transaction. Each run is a
+        dict of id, seed, arm, point, config and actors."""
         now = time.time()
         with self.tx() as c:
             c.execute(
@@ -171,14 +197,15 @@ class Store:
                 (exp_id, name, now, json.dumps(spec)),
             )
             c.executemany(
-                "INSERT INTO runs (id, experiment_id, idx, seed, point, config, actors, status,"
-                " created) VALUES (?, ?, ?, ?, ?, ?, ?, 'queued', ?)",
+                "INSERT INTO runs (id, experiment_id, idx, seed, arm, point, config, actors,"
+                " status, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?)",
                 [
                     (
                         r["id"],
                         exp_id,
                         i,
                         r["seed"],
+                        r.get("arm") or default_arm(r["point"], r["config"]),
                         json.dumps(r["point"]),
                         json.dumps(r["config"]),
                         r["actors"],

@@ -23,6 +23,7 @@ def run_public(run: dict[str, Any], stats: tuple[int, int, int]) -> dict[str, An
         "experiment_id": run["experiment_id"],
         "index": run["idx"],
         "seed": run["seed"],
+        "arm": run["arm"],
         "point": run["point"],
         "config": run["config"],
         "actors": run["actors"],
@@ -71,6 +72,7 @@ def experiment_public(
         "config": spec.get("config", {}),
         "seeds": spec.get("seeds", []),
         "grid": spec.get("grid"),
+        "arms": spec.get("arms"),
         "actors": spec.get("actors", 1),
         "runs": [run_public(r, stats[r["id"]]) for r in runs],
     }
@@ -90,12 +92,6 @@ def load_run(store: Store, run_id: str) -> dict[str, Any] | None:
 
 
 # ---------------------------------------------------------------- curves
-def point_label(point: dict[str, Any], config: dict[str, Any]) -> str:
-    if point:
-        return ", ".join(f"{'β' if k == 'beta' else k}={v:g}" for k, v in point.items())
-    return f"{config.get('algo')} + {config.get('explore')}"
-
-
 def _finite(x: Any) -> float | None:
     if isinstance(x, bool) or not isinstance(x, int | float):
         return None
@@ -104,18 +100,22 @@ def _finite(x: Any) -> float | None:
 
 
 def curves(store: Store, exp_id: str, metrics: list[str]) -> dict[str, Any] | None:
-    """Per metric and grid point: mean and mean +- std over seeds at each episode."""
+    """Per metric and arm: mean and mean +- std over the arm's seeds at each episode.
+
+    Runs are grouped by the arm name they carry, in the order of their first run, so a
+    figure's arms keep the order they were given in."""
     exp = store.experiment(exp_id)
     if exp is None:
         return None
     runs = store.runs_of([exp_id])[exp_id]
     groups: dict[str, dict[str, Any]] = {}
     for r in runs:
-        key = repr(sorted(r["point"].items()))
         g = groups.setdefault(
-            key, {"label": point_label(r["point"], r["config"]), "point": r["point"], "runs": []}
+            r["arm"],
+            {"name": r["arm"], "label": r["arm"], "point": r["point"], "runs": [], "seeds": []},
         )
         g["runs"].append(r["id"])
+        g["seeds"].append(r["seed"])
     points = {r["id"]: store.points(r["id"]) for r in runs}
     out: dict[str, list[dict[str, Any]]] = {}
     for metric in metrics:

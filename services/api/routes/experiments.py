@@ -1,14 +1,16 @@
-"""Experiments: one config, seeds and an optional beta x k grid, expanded into runs."""
+"""Experiments: one config, seeds, an optional grid and optional arms, expanded into runs;
+their learning curves per arm and every point of every run as one CSV."""
 
 from __future__ import annotations
 
+import csv
+import io
 import time
 import uuid
 from typing import Annotated
 
 from fastapi import APIRouter, Query
-
-from shared.config import TrainConfig
+from fastapi.responses import Response
 
 from ..deps import ExperimentRowDep, JsonBody, SchedulerDep, StoreDep, not_found
 from ..schemas import (
@@ -20,6 +22,7 @@ from ..schemas import (
     ExperimentStopResult,
     Problem,
 )
+from ..store import CSV_FIELDS
 from ..views import curves, load_experiments
 
 router = APIRouter(prefix="/experiments", tags=["experiments"])
@@ -43,28 +46,28 @@ def new_experiment_id() -> str:
     },
 )
 def create_experiment(body: ExperimentCreate, store: StoreDep, scheduler: SchedulerDep):
-    """Queue one run per seed and grid point; they start as services become free."""
+    """Queue one run per arm, grid point and seed; they start as services become free."""
     exp_id = new_experiment_id()
     expanded = body.expand()
     runs = [
         {
             "id": f"{exp_id}-{i}",
             "seed": r["seed"],
+            "arm": r["arm"],
             "point": r["point"],
             "config": r["config"].model_dump(mode="json"),
             "actors": body.actors,
         }
         for i, r in enumerate(expanded)
     ]
-    config = TrainConfig.model_validate(body.config_part()).model_dump(mode="json")
-    config.pop("seed")
-    name = body.name or f"{config['task']} {config['algo']} {config['explore']}"
     spec = {
-        "config": config,
+        "config": body.base_config(),
         "seeds": body.seed_list(),
-        "grid": body.grid.model_dump(exclude_none=True) if body.grid else None,
+        "grid": body.grid.model_dump(mode="json", exclude_none=True) if body.grid else None,
+        "arms": body.arms_spec(),
         "actors": body.actors,
     }
+    name = body.name or body.default_name()
     store.create_experiment(exp_id, name, spec, runs)
     if scheduler is not None:
         scheduler.wake()
@@ -110,8 +113,39 @@ def get_curves(
     store: StoreDep,
     metric: Annotated[list[MetricName] | None, Query(max_length=8)] = None,
 ):
-    """Learning curves: per grid point, the mean over seeds and mean +- std, per episode."""
+    """Learning curves: per arm (or grid point), the mean over its seeds and mean +- std,
+    per episode, each named as its runs' `arm`."""
     out = curves(store, exp_id, metric or ["success_rate", "count1_pct", "steps_per_sec"])
     if out is None:
         raise not_found("experiment", exp_id)
     return out
+
+
+@router.get(
+    "/{exp_id}/metrics.csv",
+    response_class=Response,
+    responses={
+        200: {"content": {"text/csv": {}}, "description": "one row per point of every run"},
+        **NOT_FOUND,
+    },
+)
+def get_experiment_csv(exp: ExperimentRowDep, store: StoreDep):
+    """Every stored point of every run, runs in order: `arm`, `seed`, `run` first (so one
+    file holds a whole figure), then the columns of GET /runs/{id}/metrics.csv."""
+    runs = store.runs_of([exp["id"]])[exp["id"]]
+    points = {r["id"]: store.points(r["id"]) for r in runs}
+    seen = {k for ps in points.values() for p in ps for k in p}
+    extra = sorted(seen - set(CSV_FIELDS) - {"seq", "arm", "seed", "run"})
+    buf = io.StringIO()
+    writer = csv.DictWriter(
+        buf, fieldnames=["arm", "seed", "run", *CSV_FIELDS, *extra], extrasaction="ignore"
+    )
+    writer.writeheader()
+    for r in runs:
+        for p in points[r["id"]]:
+            writer.writerow({**p, "arm": r["arm"], "seed": r["seed"], "run": r["id"]})
+    return Response(
+        buf.getvalue(),
+        media_type="text/csv",
+        headers={"Content-Disposition": f'attachment; filename="{exp["id"]}-metrics.csv"'},
+    )
