@@ -210,3 +210,41 @@ def test_dashboard_overlays_an_experiments_arms_with_their_names_in_the_legend(t
     assert [c["#text"] for c in dom.find("td", class_="arm")] == [r["arm"] for r in exp["runs"]]
     assert shot.stat().st_size > 20_000
     print(f"screenshot: {shot}")
+
+
+def test_dashboard_draws_the_bonus_and_says_when_it_is_a_constant_shift(tmp_path):
+    """The bonus diagnostics are charted per arm; an arm whose bonus had std 0 at its
+    last points (every key new, or the constant arm) gets a note saying so, the other
+    arm none."""
+    arms = [{"name": "counting", "explore": "cen-macb"}, {"name": "shifted", "explore": "constant"}]
+    server = ApiServer(
+        Settings(port=0, data_dir=tmp_path / "api", connect=["tcp/127.0.0.1:1"])  # no bus
+    ).start()
+    try:
+        body = {**TINY, "seeds": [0, 1], "arms": arms, "name": "bonus check"}
+        exp = httpx.post(f"{server.url}/experiments", json=body).json()
+        store = Store(server.settings.db_path)
+        for run in exp["runs"]:
+            counting = run["arm"] == "counting"
+            rows = [
+                {"episode": e, "env_steps": 20 * e, "success_rate": 0.0, "count1_pct": 50.0}
+                | {"steps_per_sec": 100.0, "bonus_mean": 0.5 if counting else 0.8}
+                | {"bonus_std": 0.1 if counting else 0.0}
+                | {"sampled_count1_pct": 60.0 - 10 * run["seed"] if counting else 0.0}
+                for e in (4, 8, 12)
+            ]
+            store.add_points(run["id"], rows)
+        store.close()
+        dom = Dom(chromium(f"{server.url}/", tmp_path, "--dump-dom"))
+    finally:
+        server.stop()
+    notes = dom.find("div", class_="shift-note")
+    assert [n["data-arm"] for n in notes] == ["shifted"]
+    assert "constant shift" in notes[0]["#text"]
+    drawn = {
+        (c["data-metric"], c["data-label"]): [float(v) for v in c["data-values"].split(",")]
+        for c in dom.find("path", class_="curve-mean", data_experiment=exp["id"])
+    }
+    assert drawn[("bonus_mean", "counting")] == pytest.approx([0.5] * 3)
+    assert drawn[("bonus_mean", "shifted")] == pytest.approx([0.8] * 3)
+    assert drawn[("sampled_count1_pct", "counting")] == pytest.approx([55.0] * 3)
