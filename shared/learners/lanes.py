@@ -83,15 +83,10 @@ class LaneTuner(Generic[O]):
     again, so a choice that is ruinous under the current load costs a single update
     now and then, while a change in load is still noticed.
 
-    Medians, not means: other processes on the machine stall an update now and then
-    (an evaluator's burst of episodes, ~20 ms, preempts a thread mid-update) whatever
-    the choice. With means and a cut at the first slow update, one such stall decided
-    a probe and the probed choice backed off for hundreds of blocks; in the local
-    cluster, where the evaluator's bursts start with every tick and so every block,
-    torch's two threads were locked out in 4 of 7 runs (median 117.8 steps/s against
-    132.9 with medians, docs/performance.md).
-    A choice that is slower under the load shows it in most of its updates, which
-    the median sees.
+    Medians, not means: other processes stall an update now and then whatever the
+    choice (an evaluator's burst preempts a thread mid-update), and one such stall must
+    not decide a probe; a choice that is slower under the load shows it in most of its
+    updates, which the median sees (docs/performance.md, "Session 3").
     """
 
     def __init__(
