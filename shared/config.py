@@ -66,6 +66,69 @@ class TrainConfig(BaseModel):
         description="treat the episode time limit as terminal (the thesis code did); "
         "by default targets bootstrap through it",
     )
+    # --- profile: which formulation. Each choice below is also an option of its own, so
+    # a user can switch one and measure its effect; docs/fidelity.md has one row each.
+    profile: Literal["mpe2", "thesis"] = Field(
+        "mpe2",
+        description="mpe2: the method as the thesis text states it on mpe2's tasks; "
+        "thesis: the thesis's public code wherever it differs (sets the options below "
+        "that are not given; docs/fidelity.md)",
+    )
+    success_terminal: bool = Field(
+        False,
+        description="a step where the task's success holds is terminal (not bootstrapped) "
+        "and the world resets at once, the 20-step window going on (the thesis code)",
+    )
+    cover: Literal["sum", "landmark"] = Field(
+        "sum",
+        description="navigation's sparse reward counts a landmark covered within the sum "
+        "of agent and landmark sizes (sum), or within the landmark's own size (landmark, "
+        "the thesis code); success always uses the sum",
+    )
+    landmark_size: float | None = Field(
+        None,
+        gt=0.0,
+        le=1.0,
+        description="landmark radius; default: the task's (speaker_listener 0.04 as "
+        "mpe2, 0.075 in the thesis code; navigation 0.125; simple 0.05)",
+    )
+    pad_obs: bool = Field(
+        False,
+        description="pad every agent's observation with zeros to the largest one "
+        "(the thesis code: the speaker's 3 values to 11)",
+    )
+    comm_obs: bool = Field(
+        True,
+        description="spread: keep mpe2's always-zero communication slots in each "
+        "observation (the thesis code has none)",
+    )
+    integrator: Literal["position-first", "velocity-first"] = Field(
+        "position-first",
+        description="world step order: position-first (mpe2: move, then damp and push) "
+        "or velocity-first (the thesis code's MPE: damp and push, then move)",
+    )
+    warmup: Literal["policy", "random"] = Field(
+        "policy",
+        description="actions while the first learning_starts transitions are collected: "
+        "the policy with noise, or uniform random (the thesis code)",
+    )
+    minibatch: Literal["shared", "per-agent"] = Field(
+        "shared",
+        description="one minibatch for all agents per update, or one per agent (the "
+        "thesis code; Algorithm 1's 'each agent samples')",
+    )
+    hash_round: int | None = Field(
+        None,
+        ge=0,
+        le=8,
+        description="round the counted vector to this many decimals before SimHash "
+        "(the thesis code: 2, for Cen-MACB only)",
+    )
+    same_init: bool = Field(
+        False,
+        description="agents of the same shape start from identical weights (the thesis "
+        "code reseeds torch for each agent)",
+    )
     threads: int = Field(1, ge=1, le=64, description="torch intra-op threads")
     learner_lanes: Literal["auto"] | Annotated[int, Field(ge=1, le=16)] = Field(
         "auto",
@@ -80,6 +143,14 @@ class TrainConfig(BaseModel):
         description="batched: all agents in stacked matrix products (fast); "
         "reference: one plain PyTorch update per agent (same math)",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _apply_profile(cls, data: Any) -> Any:
+        """`profile: thesis` fills in the thesis code's choice for every option not given."""
+        if isinstance(data, dict) and data.get("profile") == "thesis":
+            data = {**profile_preset("thesis", data), **data}
+        return data
 
     @model_validator(mode="after")
     def _check_combination(self) -> TrainConfig:
@@ -96,6 +167,45 @@ class TrainConfig(BaseModel):
     @property
     def n_agents(self) -> int:
         return {"simple": 1, "speaker_listener": 2}.get(self.task, self.agents)
+
+
+# The options a profile sets, and the value each takes under `profile: thesis` (where the
+# thesis's public code differs from the method as stated on mpe2; docs/fidelity.md).
+PROFILE_OPTIONS = (
+    "time_limit_terminal",
+    "success_terminal",
+    "cover",
+    "landmark_size",
+    "pad_obs",
+    "comm_obs",
+    "integrator",
+    "warmup",
+    "minibatch",
+    "hash_round",
+    "same_init",
+)
+
+
+def profile_preset(profile: str, data: dict[str, Any]) -> dict[str, Any]:
+    """The option values `profile` sets for a config given as `data` (some depend on its
+    task and exploration); mpe2 sets the defaults."""
+    if profile != "thesis":
+        return {}
+    task = data.get("task", TrainConfig.model_fields["task"].default)
+    explore = data.get("explore", TrainConfig.model_fields["explore"].default)
+    return {
+        "time_limit_terminal": True,
+        "success_terminal": True,
+        "cover": "landmark",
+        "landmark_size": 0.075 if task == "speaker_listener" else None,
+        "pad_obs": True,
+        "comm_obs": False,
+        "integrator": "velocity-first",
+        "warmup": "random",
+        "minibatch": "per-agent",
+        "hash_round": 2 if explore == "cen-macb" else None,
+        "same_init": True,
+    }
 
 
 class ConfigError(ValueError):

@@ -248,6 +248,8 @@ def _grid_values(name: str) -> list:
         "agents": 3,
         "episode_len": 25,
         "learning_starts": 0,
+        "landmark_size": 0.075,  # optional: None (the task's) and a size
+        "hash_round": 2,
     }.get(name, value + 1 if isinstance(value, int) else value)
     return [value, other]
 

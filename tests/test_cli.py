@@ -70,6 +70,8 @@ def test_every_config_field_is_a_flag_with_the_same_dest_on_every_config_command
 def _as_flag(name: str, value: object) -> str:
     if isinstance(value, tuple):
         return ",".join(map(str, value))
+    if value is None:
+        return "null"  # an optional field's "not set", as YAML writes it
     return str(value)
 
 
