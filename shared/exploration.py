@@ -33,6 +33,9 @@ class ExploreSpec:
     hash: str = "simhash"  # "simhash" or "none" (round to 2 decimals)
     key: str = "state-action"  # or "state"
     seed: int = 0
+    # Decimals the counted vector is rounded to before SimHash (None: not rounded); the
+    # thesis code rounds Cen-MACB's joint vector to 2.
+    round: int | None = None
 
 
 class CountExploration:
@@ -80,7 +83,13 @@ class CountExploration:
 
     def keys(self, obs: np.ndarray, act: np.ndarray) -> list[np.ndarray]:
         """Packed keys per table: (B, key_bytes) uint8 each."""
-        return [h.keys(v) for h, v in zip(self.hashers, self.vectors(obs, act))]
+        vectors = self.vectors(obs, act)
+        if self.spec.round is not None and self.spec.hash == "simhash":
+            # The same float32 values are rounded at collection and at sampling, so a
+            # sampled row always finds its counted key (the thesis code rounded float64
+            # at one and float32 at the other: docs/fidelity.md, row C4).
+            vectors = [np.round(v, self.spec.round) for v in vectors]
+        return [h.keys(v) for h, v in zip(self.hashers, vectors)]
 
     def observe(self, obs: np.ndarray, act: np.ndarray) -> None:
         """Count freshly collected training transitions (and nothing else)."""

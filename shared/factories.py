@@ -40,6 +40,7 @@ def build_learner(
         gamma=cfg.gamma,
         tau=cfg.tau,
         seed=derive_seed(cfg.seed, "learner"),
+        same_init=cfg.same_init,
     )
     if cfg.learner_impl != "batched":
         return MADDPG(agents, lspec)
@@ -57,5 +58,12 @@ def build_exploration(cfg: TrainConfig, spec: TaskSpec) -> CountExploration:
         hash=cfg.hash,
         key=cfg.key,
         seed=derive_seed(cfg.seed, "simhash"),
+        round=cfg.hash_round,
     )
     return CountExploration(espec, spec.obs_dims, spec.act_dims)
+
+
+def minibatches_per_update(cfg: TrainConfig) -> int:
+    """Minibatches sampled for one update: one shared by all agents, or one per agent
+    (`minibatch: per-agent`; with one agent the two are the same)."""
+    return cfg.n_agents if cfg.minibatch == "per-agent" else 1

@@ -66,3 +66,22 @@ class ReplayBuffer:
         return Batch(
             self.obs[idx], self.act[idx], self.rew[idx], self.next_obs[idx], self.done[idx], idx
         )
+
+
+def update_arrays(
+    batches: list[Batch], bonuses: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What a learner's `update` takes for one update: (obs, act, rew, next_obs, done) of
+    one shared minibatch with its reward plus bonus (rew (B, N)), or, given one
+    minibatch per agent, the same stacked with a leading agent axis (rew (N, B, N))."""
+    rews = [b.rew[:, None] + bonus for b, bonus in zip(batches, bonuses, strict=True)]
+    if len(batches) == 1:
+        b = batches[0]
+        return b.obs, b.act, rews[0], b.next_obs, b.done
+    return (
+        np.stack([b.obs for b in batches]),
+        np.stack([b.act for b in batches]),
+        np.stack(rews),
+        np.stack([b.next_obs for b in batches]),
+        np.stack([b.done for b in batches]),
+    )

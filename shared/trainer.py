@@ -22,10 +22,10 @@ from threadpoolctl import threadpool_limits
 
 from shared.config import TrainConfig
 from shared.exploration import BonusDiagnostics, CountExploration, constant_shift
-from shared.factories import build_exploration, build_learner
+from shared.factories import build_exploration, build_learner, minibatches_per_update
 from shared.learners import Learner
 from shared.metrics import TRAIN_FIELDS
-from shared.replay import ReplayBuffer
+from shared.replay import ReplayBuffer, update_arrays
 from shared.rollout import Collector, derive_seed, evaluate
 from shared.tasks import make_task
 
@@ -160,6 +160,7 @@ def _train(
 
         bar = tqdm(total=cfg.episodes, unit="ep", desc=f"{cfg.task} {cfg.algo}+{cfg.explore}")
     rows: list[dict] = []
+    draws = minibatches_per_update(cfg)
     diagnostics = BonusDiagnostics()
     shift_warned = False
     env_steps = collisions_cum = 0
@@ -174,11 +175,13 @@ def _train(
                 env_steps += 1
                 collisions_cum += tr.collisions
                 if env_steps > cfg.learning_starts:
-                    b = buffer.sample(cfg.batch_size, sample_rng)
-                    counts = explorer.counts(b.obs, b.act)
-                    bonus = explorer.bonus_from_counts(counts, len(b.rew))
-                    diagnostics.record(bonus, counts)
-                    learner.update(b.obs, b.act, b.rew[:, None] + bonus, b.next_obs, b.done)
+                    batches = [buffer.sample(cfg.batch_size, sample_rng) for _ in range(draws)]
+                    bonuses = []
+                    for b in batches:
+                        counts = explorer.counts(b.obs, b.act)
+                        bonuses.append(explorer.bonus_from_counts(counts, len(b.rew)))
+                        diagnostics.record(bonuses[-1], counts)
+                    learner.update(*update_arrays(batches, bonuses))
             if episode % cfg.eval_every == 0 or episode == cfg.episodes:
                 t0 = time.perf_counter()
                 ev = evaluate(learner.act, eval_envs, cfg.eval_episodes)

@@ -338,3 +338,67 @@ def test_rejects_what_the_reference_rejects():
         BatchedMADDPG(SIMPLE, LearnerSpec(algo="maddpg"))
     with pytest.raises(ValueError, match="one agent"):
         BatchedMADDPG(SPREAD2, LearnerSpec(algo="ddpg"))
+
+
+# ------------------------------------------------------ one minibatch per agent
+def per_agent_batch(m, n=100, seed=0):
+    """One minibatch per agent: every array with a leading agent axis (N, ...)."""
+    parts = [batch(m, n=n, seed=seed * 10 + i) for i in range(m.n)]
+    return tuple(np.stack([p[k] for p in parts]) for k in range(5))
+
+
+@pytest.mark.parametrize(("algo", "agents"), CASES, ids=IDS)
+@pytest.mark.parametrize("lanes", [1, 2])
+def test_per_agent_minibatches_batched_equals_reference(algo, agents, lanes):
+    """`minibatch: per-agent`: agent i learns from batch i alone; the batched learner
+    (one lane or two) does what the reference's per-agent loop does."""
+    ref = make(algo, agents)
+    fast = BatchedMADDPG(ref.agents, ref.spec, lanes=lanes)
+    fast.load_state_dict(ref.state_dict())
+    for step in range(4):
+        b = per_agent_batch(ref, seed=step)
+        ref_losses, fast_losses = ref.update(*b), fast.update(*b)
+        for k in ("critic_loss", "actor_loss"):
+            assert fast_losses[k] == pytest.approx(ref_losses[k], rel=1e-5, abs=1e-6)
+        assert_same_state(ref.state_dict(), fast.state_dict())
+
+
+def test_per_agent_minibatches_mean_each_agent_learns_from_its_own():
+    """Agent i's result depends on batch i only: changing batch j (j != i) leaves agent
+    i's networks exactly as they were; the shared-batch update is the case where every
+    agent's batch is the same."""
+    base = make("cen-maddpg", SPREAD2)
+    b = per_agent_batch(base, seed=1)
+    other = tuple(x.copy() for x in b)
+    other_parts = batch(base, seed=77)
+    for k in range(5):
+        other[k][1] = other_parts[k]  # a different batch for agent 1 only
+    one, two = make("cen-maddpg", SPREAD2), make("cen-maddpg", SPREAD2)
+    one.update(*b)
+    two.update(*other)
+    for key in ("actors", "critics"):
+        s1, s2 = one.state_dict()[key], two.state_dict()[key]
+        assert all(torch.equal(s1[0][n], s2[0][n]) for n in s1[0])  # agent 0 untouched
+        assert not all(torch.equal(s1[1][n], s2[1][n]) for n in s1[1])  # agent 1 differs
+    shared = batch(base, seed=5)
+    same = tuple(np.stack([x] * base.n) for x in shared)
+    a, c = make("cen-maddpg", SPREAD2), make("cen-maddpg", SPREAD2)
+    a.update(*shared)
+    c.update(*same)
+    assert_same_state(a.state_dict(), c.state_dict(), atol=1e-6)
+
+
+@pytest.mark.parametrize(("algo", "agents"), CASES, ids=IDS)
+def test_same_init_gives_agents_of_one_shape_identical_weights(algo, agents):
+    """`same_init` (the thesis code reseeds torch per agent): equal shapes start equal,
+    in both learners alike; without it they differ."""
+    ref = make(algo, agents, same_init=True)
+    fast = BatchedMADDPG(ref.agents, ref.spec)
+    assert_same_state(ref.state_dict(), fast.state_dict(), atol=0)
+    plain = make(algo, agents).state_dict()
+    sd = ref.state_dict()
+    for i in range(1, len(agents)):
+        if agents[i] == agents[0]:
+            for key in ("actors", "critics"):
+                assert all(torch.equal(sd[key][0][n], sd[key][i][n]) for n in sd[key][0])
+                assert not all(torch.equal(plain[key][0][n], plain[key][i][n]) for n in sd[key][0])

@@ -149,3 +149,19 @@ def test_bonus_diagnostics_of_several_tables_count_every_key():
     d = BonusDiagnostics()
     d.record(np.zeros((2, 2)), [np.array([1, 2]), np.array([1, 1])])
     assert d.take()["sampled_count1_pct"] == 75.0
+
+
+def test_hash_round_rounds_the_counted_vector_before_simhash():
+    """`hash_round: 2` (the thesis code's Cen-MACB): vectors that round to the same
+    2-decimal vector share a key; unrounded, a tiny difference changes the SimHash key
+    whenever it flips a projection's sign, which over 200 pairs happens."""
+    rng = np.random.default_rng(0)
+    obs, act = batch(200)
+    obs = np.round(obs, 2).astype(np.float32) + np.float32(0.001)
+    nudged = obs + rng.uniform(-0.0009, 0.0009, obs.shape).astype(np.float32)
+    rounded = CountExploration(ExploreSpec(mode="cen-macb", k=512, round=2), OBS, ACT)
+    plain = CountExploration(ExploreSpec(mode="cen-macb", k=512), OBS, ACT)
+    assert np.array_equal(rounded.keys(obs, act)[0], rounded.keys(nudged, act)[0])
+    assert not np.array_equal(plain.keys(obs, act)[0], plain.keys(nudged, act)[0])
+    rounded.observe(obs, act)
+    assert (rounded.counts(nudged, act)[0] == 1).all()  # priced as the counted key

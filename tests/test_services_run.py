@@ -93,11 +93,21 @@ def check_exact(watch, actors, config):
     return counter, learner
 
 
-@pytest.mark.parametrize("actors", [1, 2])
-def test_short_speaker_listener_cen_macb_run_is_exact(procs, bus, tmp_path, actors):
+@pytest.mark.parametrize(
+    ("actors", "options"),
+    [
+        (1, {}),
+        (2, {}),
+        # The thesis code's learner-side choices: one minibatch per agent (two bonus
+        # rows per update in the tick's query), rounded Cen keys, identical initial weights.
+        (1, {"minibatch": "per-agent", "hash_round": 2, "same_init": True}),
+    ],
+    ids=["1", "2", "1-per-agent"],
+)
+def test_short_speaker_listener_cen_macb_run_is_exact(procs, bus, tmp_path, actors, options):
     start_cluster(procs, tmp_path, actors)
     wait_services(bus, 3 + actors)
-    config = make_config(SMALL)
+    config = make_config({**SMALL, **options})
     watch = start_run(bus, config, actors=actors)
     assert watch.wait(timeout=240) == "completed", watch.states
     counter_stats = wait_for(lambda: watch.latest.get("counter"), what="counter stats")
@@ -108,7 +118,11 @@ def test_short_speaker_listener_cen_macb_run_is_exact(procs, bus, tmp_path, acto
         timeout=5,
         what="final counter stats",
     )
-    check_exact(watch, watch.assign["actors"], config)
+    counter, learner = check_exact(watch, watch.assign["actors"], config)
+    # Every update priced its minibatches: one per agent with `minibatch: per-agent`.
+    draws = config.n_agents if config.minibatch == "per-agent" else 1
+    rows = round(learner["bonus_rows_per_query"] * learner["bonus_queries"])
+    assert rows == draws * config.batch_size * learner["updates"], learner
     # Actors saw the weights version rise, and stamped transitions with it.
     for a in watch.assign["actors"]:
         assert watch.states[a]["policy_version"] > 1

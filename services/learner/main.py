@@ -35,11 +35,11 @@ from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
 from shared.exploration import BonusDiagnostics
-from shared.factories import build_learner
+from shared.factories import build_learner, minibatches_per_update
 from shared.learners import Learner
 from shared.networks import weights_as_arrays
 from shared.protocol import AckTracker, ReceiveCursor
-from shared.replay import ReplayBuffer
+from shared.replay import ReplayBuffer, update_arrays
 from shared.rollout import derive_seed
 from shared.tasks import TaskSpec, task_spec
 from shared.wire import WireError, check_dims, decode, encode
@@ -193,6 +193,7 @@ class LearnerRun:
     time: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_PHASES, 0.0))
     contended_updates: int = 0
     diagnostics: BonusDiagnostics = field(default_factory=BonusDiagnostics)
+    draws: int = 1  # minibatches per update (`minibatch: per-agent`: one per agent)
 
     @property
     def counting(self) -> bool:
@@ -245,6 +246,7 @@ class LearnerService(ServiceBase):
             received=ReceiveCursor(actors=actors, partial=False),
             counted=AckTracker(actors),
             held={a: collections.deque() for a in actors},
+            draws=minibatches_per_update(config),
         )
         self.publish_weights(eval_point=-1)  # version 0: every actor starts from these
         self.publish_status(run, "running", actors=actors)
@@ -355,7 +357,8 @@ class LearnerService(ServiceBase):
             todo = min(todo, max(0, st.boundaries[0].updates - learner.updates))
         spent = st.time
         t0 = time.perf_counter()
-        batches = [st.buffer.sample(cfg.batch_size, st.rng) for _ in range(todo)]
+        draws = st.draws  # minibatches per update: 1, or one per agent
+        batches = [st.buffer.sample(cfg.batch_size, st.rng) for _ in range(todo * draws)]
         spent["sample"] += time.perf_counter() - t0
         st.bonus.fresh = False
         bonuses = st.bonus.bonus_for(batches) if batches else []
@@ -364,20 +367,16 @@ class LearnerService(ServiceBase):
         t0 = time.perf_counter()
         evaluating = st.evaluations.busy
         counts = st.bonus.counts if len(st.bonus.counts) == len(bonuses) else None
-        for j, (batch, bonus) in enumerate(zip(batches, bonuses, strict=True)):
+        for u in range(len(batches) // draws):
+            mine = slice(u * draws, (u + 1) * draws)
             # Counted here for every kind of learner; a tuned one polls the same signal
             # for its tuners and its own count (in its stats(), which take precedence).
             contended = evaluating()
             st.contended_updates += contended
-            learner.update(
-                batch.obs,
-                batch.act,
-                batch.rew[:, None] + bonus,
-                batch.next_obs,
-                batch.done,
-            )
-            st.bonus_means.append(float(bonus.mean()))
-            st.diagnostics.record(bonus, counts[j] if counts is not None else [])
+            learner.update(*update_arrays(batches[mine], bonuses[mine]))
+            for j in range(mine.start, mine.stop):
+                st.bonus_means.append(float(bonuses[j].mean()))
+                st.diagnostics.record(bonuses[j], counts[j] if counts is not None else [])
             owed -= 1
         t1 = time.perf_counter()
         spent["update"] += t1 - t0

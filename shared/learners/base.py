@@ -44,6 +44,9 @@ class LearnerSpec:
     gamma: float = 0.99
     tau: float = 0.005
     seed: int = 0
+    # Agents of the same shape start from identical weights: torch reseeded with `seed`
+    # before each agent's actor and critic (what the thesis code's per-agent setup did).
+    same_init: bool = False
 
 
 def check_agents(agents: Sequence[AgentDims], spec: LearnerSpec) -> None:
@@ -64,7 +67,12 @@ def agent_slice(joint: torch.Tensor, offsets: Sequence[int], i: int) -> torch.Te
 class Learner(Protocol):
     """Networks, optimizers and the update step of DDPG / Dis- / Cen-MADDPG; no
     environment, no I/O. Joint batches are laid out as the replay buffer stores them:
-    agents in task order, observations (B, sum obs_dims), actions (B, sum act_dims)."""
+    agents in task order, observations (B, sum obs_dims), actions (B, sum act_dims).
+
+    `update` takes one minibatch for all agents (obs (B, joint), rew (B, N) with agent
+    i's reward in column i, done (B,)), or one minibatch per agent with a leading agent
+    axis (obs (N, B, joint), rew (N, B, N), done (N, B)): agent i then learns from
+    batch i alone (`minibatch: per-agent`, the thesis code)."""
 
     @property
     def updates(self) -> int:

@@ -126,27 +126,42 @@ class BatchedMADDPG:
 
     def _init_like_reference(self, critic_in: Sequence[int]) -> None:
         """The reference's initial weights for this seed: the same nn.Linear calls in order."""
+        stacks = (
+            (self.actor, [a.obs_dim for a in self.agents], [a.act_dim for a in self.agents]),
+            (self.critic, critic_in, [1] * self.n),
+        )
+
+        def init(stack: Stack, i: int, fan_in: int, fan_out: int) -> None:
+            sizes = [fan_in, *self.spec.hidden, fan_out]
+            sd = {}
+            for layer, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+                lin = torch.nn.Linear(a, b)
+                sd[stack.key(layer, False)] = lin.weight.detach()
+                sd[stack.key(layer, True)] = lin.bias.detach()
+            stack.load(stack.params, i, sd)
+            stack.load(stack.targets, i, sd)
+
         with torch.random.fork_rng(devices=[]):  # leave the caller's RNG stream alone
             torch.manual_seed(self.spec.seed)
-            for stack, ins, outs in (
-                (self.actor, [a.obs_dim for a in self.agents], [a.act_dim for a in self.agents]),
-                (self.critic, critic_in, [1] * self.n),
-            ):
+            if self.spec.same_init:  # the reference's order: per agent, reseeded
                 for i in range(self.n):
-                    sizes = [ins[i], *self.spec.hidden, outs[i]]
-                    sd = {}
-                    for layer, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:])):
-                        lin = torch.nn.Linear(fan_in, fan_out)
-                        sd[stack.key(layer, False)] = lin.weight.detach()
-                        sd[stack.key(layer, True)] = lin.bias.detach()
-                    stack.load(stack.params, i, sd)
-                    stack.load(stack.targets, i, sd)
+                    torch.manual_seed(self.spec.seed)
+                    for stack, ins, outs in stacks:
+                        init(stack, i, ins[i], outs[i])
+                return
+            for stack, ins, outs in stacks:
+                for i in range(self.n):
+                    init(stack, i, ins[i], outs[i])
 
     # ------------------------------------------------------------------ acting
     @staticmethod
     def _per_agent(joint: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-        """(B, joint) -> (N, B, pad): each agent's block, zero-padded."""
-        return torch.nn.functional.pad(joint, (0, 1))[:, idx].transpose(0, 1)
+        """(B, joint) -> (N, B, pad): each agent's block, zero-padded. From one minibatch
+        per agent, (N, B, joint), agent i's block of batch i."""
+        padded = torch.nn.functional.pad(joint, (0, 1))
+        if joint.dim() == 3:
+            return torch.gather(padded, 2, idx[:, None, :].expand(-1, joint.shape[1], -1))
+        return padded[:, idx].transpose(0, 1)
 
     def _joint_act(self, per_agent: torch.Tensor) -> torch.Tensor:
         """(N, B, act_pad) -> (B, joint_act)."""
@@ -177,7 +192,14 @@ class BatchedMADDPG:
         )
 
     def target_q(self, rew: torch.Tensor, next_obs: torch.Tensor, done: torch.Tensor):
-        """y_i = r_i + gamma (1 - done) Qbar_i(s', mubar_1(o'_1), ..., mubar_N(o'_N)): (N, B)."""
+        """y_i = r_i + gamma (1 - done) Qbar_i(s', mubar_1(o'_1), ..., mubar_N(o'_N)): (N, B).
+
+        With one minibatch per agent (next_obs (N, B, joint), rew (N, B, N), done (N, B))
+        y_i is computed on batch i: Cen critics then need every agent's target action on
+        every batch (one product over N x B rows), Dis critics only agent i's on batch i.
+        """
+        if next_obs.dim() == 3:
+            return self._target_q_per_agent(rew, next_obs, done)
         next_obs_pad = self._per_agent(next_obs, self._obs_idx)
         next_act = self._squash(torch.tanh(mlp_forward(self.actor.targets, next_obs_pad)[-1]))
         if self.centralized:
@@ -187,6 +209,22 @@ class BatchedMADDPG:
         qf_next_target = mlp_forward(self.critic.targets, q_in)[-1].squeeze(-1)
         # done is (B,); reshape so a (B, 1) done cannot broadcast y to (N, B, B).
         return rew.T + self.spec.gamma * (1.0 - done.reshape(1, -1)) * qf_next_target
+
+    def _target_q_per_agent(
+        self, rew: torch.Tensor, next_obs: torch.Tensor, done: torch.Tensor
+    ) -> torch.Tensor:
+        n, rows = next_obs.shape[:2]
+        if self.centralized:
+            flat = self._per_agent(next_obs.reshape(n * rows, -1), self._obs_idx)
+            every = self._squash(torch.tanh(mlp_forward(self.actor.targets, flat)[-1]))
+            q_in = torch.cat([next_obs, self._joint_act(every).reshape(n, rows, -1)], -1)
+        else:
+            own = self._per_agent(next_obs, self._obs_idx)
+            next_act = self._squash(torch.tanh(mlp_forward(self.actor.targets, own)[-1]))
+            q_in = torch.cat([own, next_act], -1)
+        qf_next_target = mlp_forward(self.critic.targets, q_in)[-1].squeeze(-1)
+        agents = torch.arange(n)
+        return rew[agents, :, agents] + self.spec.gamma * (1.0 - done) * qf_next_target
 
     def _critic_grads(
         self, obs: torch.Tensor, act: torch.Tensor, next_q_value: torch.Tensor, batch: int
@@ -203,7 +241,7 @@ class BatchedMADDPG:
         self, obs: torch.Tensor, act: torch.Tensor, next_q_value: torch.Tensor
     ) -> torch.Tensor:
         """One Adam step of every critic on mean((Q_i - y_i)^2); returns the (N,) losses."""
-        batch = obs.shape[0]
+        batch = obs.shape[-2]
         sq_sum, grads = self._critic_grads(obs, act, next_q_value, batch)
         self._adam_step(self.critic_optim, self.critic.params, grads)
         return sq_sum / batch
@@ -243,7 +281,7 @@ class BatchedMADDPG:
         Critic i is the one just updated; the other agents' actions come from the batch
         (Cen). Only dQ_i/da_i is taken from the critic, never its weight gradients.
         """
-        batch = obs.shape[0]
+        batch = obs.shape[-2]
         q_sum, grads = self._actor_grads(obs, act, batch)
         self._adam_step(self.actor_optim, self.actor.params, grads)
         return -q_sum / batch
@@ -320,7 +358,7 @@ class BatchedMADDPG:
         if lanes not in (1, self.lanes.n):
             raise ValueError(f"lanes must be 1 or {self.lanes.n}, got {lanes!r}")
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
-        if lanes > 1 and obs_t.shape[0] > 1:
+        if lanes > 1 and obs_t.shape[-2] > 1:
             critic_losses, actor_losses = self._update_in_lanes(obs_t, act_t, rew_t, next_t, done_t)
         else:
             y = self.target_q(rew_t, next_t, done_t)
@@ -349,9 +387,10 @@ class BatchedMADDPG:
         to the order of the additions, and one Adam step per network follows as before.
         Targets and both forward/backward passes run in the lanes; the two sums and the
         Adam steps between them run here."""
-        batch = obs.shape[0]
+        batch = obs.shape[-2]
+        per_agent = obs.dim() == 3  # rows are the second axis of every array then
         blocks = [
-            tuple(t[rows] for t in (obs, act, rew, next_obs, done))
+            tuple(t[:, rows] if per_agent else t[rows] for t in (obs, act, rew, next_obs, done))
             for rows in self.lanes.blocks(batch)
         ]
 

@@ -5,10 +5,11 @@ one-agent case) trains Q_i(o_i, a_i); Cen-MADDPG trains Q_i(s, x) on all
 observations and actions, and the actor gradient flows only through agent i's own
 action, the other actions coming from the batch (thesis eq. 14-15).
 
-All agents learn from one shared minibatch per update (as the original MADDPG code
-does), so one bonus query serves the whole update. Within an update, agents are
-independent: agent i's critic and actor steps touch only agent i's parameters and
-targets are read before any soft update, so the order of agents does not matter.
+By default all agents learn from one shared minibatch per update (as the original
+MADDPG code does), so one bonus query serves the whole update; `minibatch: per-agent`
+gives each agent its own (the thesis code). Within an update, agents are independent:
+agent i's critic and actor steps touch only agent i's parameters and targets are read
+before any soft update, so the order of agents does not matter.
 """
 
 from __future__ import annotations
@@ -38,13 +39,21 @@ class MADDPG:
         self.obs_off = offsets([a.obs_dim for a in agents])
         self.act_off = offsets([a.act_dim for a in agents])
         joint_in = self.obs_off[-1] + self.act_off[-1]
+
+        def critic(a: AgentDims) -> Critic:
+            return Critic(joint_in if self.centralized else a.obs_dim + a.act_dim, spec.hidden)
+
         with torch.random.fork_rng(devices=[]):  # seeded weights; the caller's RNG untouched
             torch.manual_seed(spec.seed)
-            self.actors = [Actor(a.obs_dim, a.act_low, a.act_high, spec.hidden) for a in agents]
-            self.critics = [
-                Critic(joint_in if self.centralized else a.obs_dim + a.act_dim, spec.hidden)
-                for a in agents
-            ]
+            if spec.same_init:  # reseeded per agent: equal shapes, equal weights
+                self.actors, self.critics = [], []
+                for a in agents:
+                    torch.manual_seed(spec.seed)
+                    self.actors.append(Actor(a.obs_dim, a.act_low, a.act_high, spec.hidden))
+                    self.critics.append(critic(a))
+            else:
+                self.actors = [Actor(a.obs_dim, a.act_low, a.act_high, spec.hidden) for a in agents]
+                self.critics = [critic(a) for a in agents]
         self.actor_targets = [copy.deepcopy(m).requires_grad_(False) for m in self.actors]
         self.critic_targets = [copy.deepcopy(m).requires_grad_(False) for m in self.critics]
         self.actor_optims = [
@@ -139,15 +148,23 @@ class MADDPG:
     ) -> dict[str, float]:
         """One critic and one actor step per agent, then soft target updates.
 
-        rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
+        rew is (B, N): the extrinsic reward plus agent i's bonus in column i. With a
+        leading agent axis on every array (one minibatch per agent, see `Learner`),
+        agent i's steps use batch i alone.
         """
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
         critic_losses, actor_losses = [], []
-        next_act = self.target_actions(next_t)  # targets do not move until soft_update
+        per_agent = obs_t.dim() == 3
+        # Targets do not move until soft_update: target actions once per minibatch.
+        next_acts = (
+            [self.target_actions(n) for n in next_t] if per_agent else [self.target_actions(next_t)]
+        )
+        batch = (obs_t, act_t, rew_t, next_t, done_t)
         for i in range(self.n):
-            y = self.target_q(i, rew_t, next_t, done_t, next_act)
-            critic_losses.append(self.critic_step(i, obs_t, act_t, y))
-            actor_losses.append(self.actor_step(i, obs_t, act_t))
+            o, a, r, o2, d = (t[i] for t in batch) if per_agent else batch
+            y = self.target_q(i, r, o2, d, next_acts[i if per_agent else 0])
+            critic_losses.append(self.critic_step(i, o, a, y))
+            actor_losses.append(self.actor_step(i, o, a))
         self.soft_update()
         self.updates += 1
         return {
