@@ -107,10 +107,10 @@ def exploration(config: dict[str, Any]):
     """(config, task spec, count exploration) of a run config, as a run builds them."""
     from shared.config import make_config
     from shared.factories import build_exploration
-    from shared.tasks import task_spec
+    from shared.tasks import task_spec_for
 
     cfg = make_config(config)
-    spec = task_spec(cfg.task, cfg.agents, cfg.episode_len)
+    spec = task_spec_for(cfg)
     return cfg, spec, build_exploration(cfg, spec)
 
 

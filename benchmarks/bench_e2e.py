@@ -135,19 +135,22 @@ def trainer_child(args: argparse.Namespace) -> None:
     """Run the one-process trainer; record the time of every episode end."""
     import resource
 
+    import shared.rollout as rollout_mod
     import shared.trainer as trainer_mod  # torch: only in this child, never the parent
 
     cfg = load_config(args.config, {"episodes": args.episodes, "eval_every": args.eval_every})
     marks: list[tuple[float, float]] = []  # (wall, CPU seconds of all threads)
 
-    class TimedCollector(trainer_mod.Collector):
+    class TimedCollector(rollout_mod.Collector):
         def step(self, policy):
             tr = super().step(policy)
             if tr.episode_end:
                 marks.append((time.perf_counter(), time.process_time()))
             return tr
 
-    trainer_mod.Collector = TimedCollector  # measurement only: one append per episode
+    # measurement only: one append per episode (the trainer builds its collector with
+    # shared.rollout.make_collector, which looks the class up there)
+    rollout_mod.Collector = TimedCollector
     t0 = time.perf_counter()
     rows = trainer_mod.train(cfg, Path(args.result).parent / "trainer-out", progress=False)
     wall = time.perf_counter() - t0

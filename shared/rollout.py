@@ -3,7 +3,9 @@
 The same code serves the one-process trainer and the actor service: a `Collector`
 steps one environment with exploration noise and yields joint transitions; the
 `evaluate` function runs evaluation episodes in lockstep so that one batched
-forward pass serves all of them. Neither ever touches a count table.
+forward pass serves all of them. Neither ever touches a count table. Both honour
+the env's `success_terminal` (a success step is terminal and the episode goes on in
+a new world), and `make_collector` builds an actor's collector from the run config.
 """
 
 from __future__ import annotations
@@ -11,10 +13,14 @@ from __future__ import annotations
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from shared.tasks import TaskEnv
+
+if TYPE_CHECKING:
+    from shared.config import TrainConfig
 
 Policy = Callable[[np.ndarray], np.ndarray]  # joint obs (B, O) -> joint actions (B, A)
 
@@ -30,18 +36,30 @@ class Transition:
     obs: np.ndarray  # (joint_obs,)
     act: np.ndarray  # (joint_act,)
     rew: float  # extrinsic
-    next_obs: np.ndarray
-    done: float  # 1.0 only when the time limit is treated as terminal
+    next_obs: np.ndarray  # at a terminal success, the world before its reset
+    done: float  # 1.0 at a terminal success, or at the time limit when it is terminal
     success: bool
     collisions: int
-    episode_end: bool
+    episode_end: bool  # the episode's time limit (not a success: the episode goes on)
 
 
 class Collector:
-    """Steps one env with Gaussian action noise (sigma relative to each dim's half-range)."""
+    """Steps one env with Gaussian action noise (sigma relative to each dim's half-range).
+
+    Its first `warmup_steps` actions are drawn uniformly from each agent's action box
+    instead of asking the policy, then noised like the policy's (the thesis code's
+    warm-up, `maddpg_countbased.py:198-202,219-223`: `action_space.sample()` goes
+    through the same noise and clipping). After a terminal success step (the env's
+    `success_terminal`) the next step starts from a new world, inside the same episode.
+    """
 
     def __init__(
-        self, env: TaskEnv, noise_sigma: float, seed: int, time_limit_terminal: bool = False
+        self,
+        env: TaskEnv,
+        noise_sigma: float,
+        seed: int,
+        time_limit_terminal: bool = False,
+        warmup_steps: int = 0,
     ) -> None:
         self.env = env
         spec = env.spec
@@ -50,7 +68,9 @@ class Collector:
         self.noise_scale = noise_sigma * (self.high - self.low) / 2
         self.rng = np.random.default_rng(seed)
         self.time_limit_terminal = time_limit_terminal
+        self.warmup_steps = warmup_steps
         self.obs = np.concatenate(env.reset(seed=seed))
+        self.steps = 0  # transitions collected
         self.episodes = 0
         self.episode_return = 0.0
 
@@ -58,13 +78,21 @@ class Collector:
         noise = self.rng.standard_normal(act.shape).astype(np.float32) * self.noise_scale
         return np.clip(act + noise, self.low, self.high)
 
+    def random_action(self) -> np.ndarray:
+        """Uniform in every agent's action box (float32, as the policy's actions)."""
+        return self.rng.uniform(self.low, self.high).astype(np.float32)
+
     def step(self, policy: Policy) -> Transition:
         obs = self.obs
-        act = self.noisy(policy(obs[None])[0])
+        if self.steps < self.warmup_steps:
+            act = self.noisy(self.random_action())
+        else:
+            act = self.noisy(policy(obs[None])[0])
         res = self.env.step_joint(act)
         next_obs = res.obs
+        self.steps += 1
         self.episode_return += res.reward
-        done = 1.0 if (res.truncated and self.time_limit_terminal) else 0.0
+        done = 1.0 if res.terminated or (res.truncated and self.time_limit_terminal) else 0.0
         tr = Transition(
             obs, act, res.reward, next_obs, done, res.success, res.collisions, res.truncated
         )
@@ -72,9 +100,32 @@ class Collector:
             self.episodes += 1
             self.episode_return = 0.0
             self.obs = np.concatenate(self.env.reset())
+        elif res.terminated:
+            self.obs = np.concatenate(self.env.reset_world())
         else:
             self.obs = next_obs
         return tr
+
+
+def warmup_share(learning_starts: int, actors: int) -> int:
+    """Random-action steps of each of `actors` actors: its own first ceil(L / R) steps,
+    i.e. while its own collected count times R is below L = learning_starts. With one
+    actor (macb train) exactly the run's first L transitions; with R actors about L in
+    all (at most R - 1 more), whatever order the learner ingests them in."""
+    return -(-learning_starts // actors)
+
+
+def make_collector(cfg: TrainConfig, env: TaskEnv, rank: int = 0, actors: int = 1) -> Collector:
+    """Actor `rank` of `actors`'s collector for a run: noise, seed, terminal time limit and
+    warm-up from the config, so `macb train` and the actor service collect alike."""
+    warmup = warmup_share(cfg.learning_starts, actors) if cfg.warmup == "random" else 0
+    return Collector(
+        env,
+        cfg.noise_sigma,
+        derive_seed(cfg.seed, "actor", rank),
+        cfg.time_limit_terminal,
+        warmup_steps=warmup,
+    )
 
 
 @dataclass
@@ -86,7 +137,12 @@ class EvalResult:
 
 
 def evaluate(policy: Policy, envs: list[TaskEnv], episodes: int) -> EvalResult:
-    """Noise-free episodes, len(envs) at a time in lockstep; counts are never touched."""
+    """Noise-free episodes, len(envs) at a time in lockstep; counts are never touched.
+
+    An episode succeeds when `success` held at some step. With `success_terminal` a
+    success resets the world and the episode runs on to its time limit, as the thesis
+    code's evaluation did (its env object resets when every agent is done), so the
+    return also sums the rewards of the new world."""
     successes, returns, steps = [], [], 0
     remaining = episodes
     while remaining > 0:
@@ -99,7 +155,10 @@ def evaluate(policy: Policy, envs: list[TaskEnv], episodes: int) -> EvalResult:
             acts = policy(obs)
             for j, env in enumerate(group):
                 res = env.step_joint(acts[j])
-                obs[j] = res.obs
+                # A terminal success goes on in a new world, as the thesis code's one
+                # env did in evaluation too; success was seen, so the rate is the same.
+                ended = res.terminated and not res.truncated
+                obs[j] = np.concatenate(env.reset_world()) if ended else res.obs
                 ok[j] |= res.success
                 ret[j] += res.reward
                 done = res.truncated

@@ -7,7 +7,11 @@ mpe2 gives the worlds, physics and observations; this module adds what the thesi
 * sparse rewards ("sparse", "sparse_offset") computed from the world state, with mpe2's own
   dense reward kept as an option;
 * success and collision measures, which the metrics need at every step;
-* agent and landmark size 0.125 in the navigation task (the thesis's original code).
+* agent and landmark size 0.125 in the navigation task (the thesis's original code);
+* the task-level options of `profile: thesis` (docs/fidelity.md), each off by default:
+  success as a terminal step with a new world, the sparse reward's cover radius, a
+  landmark size, zero-padded or comm-free observations, and the thesis code's order of
+  velocity and position updates.
 
 See docs/tasks.md for the layouts and the hashed vector sizes.
 """
@@ -15,9 +19,10 @@ See docs/tasks.md for the layouts and the hashed vector sizes.
 from __future__ import annotations
 
 import functools
+import types
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 from mpe2 import simple_speaker_listener_v4, simple_spread_v3, simple_v3
@@ -27,6 +32,8 @@ from shared.joint import offsets
 
 TASKS = ("simple", "spread", "speaker_listener")
 REWARDS = ("sparse", "sparse_offset", "dense")
+COVERS = ("sum", "landmark")
+INTEGRATORS = ("position-first", "velocity-first")
 
 #: Added to the sparse reward by "sparse_offset" (the thesis's shifted navigation reward).
 SPARSE_OFFSET = 0.7
@@ -92,13 +99,19 @@ class TaskSpec:
 
 
 class JointStep(NamedTuple):
-    """One joint step: the joint observation s' = o'_1 || ... || o'_N and the metrics."""
+    """One joint step: the joint observation s' = o'_1 || ... || o'_N and the metrics.
+
+    `terminated` is True only with `success_terminal`, at a step where success holds:
+    `obs` is then the terminal observation, and unless the time limit also ends the
+    episode the caller continues it from `reset_world()`.
+    """
 
     obs: np.ndarray
     reward: float
     success: bool
     collisions: int
     truncated: bool
+    terminated: bool = False
 
 
 @dataclass
@@ -110,6 +123,7 @@ class StepResult:
     success: bool
     collisions: int
     truncated: bool
+    terminated: bool = False
 
 
 def _check_task(task: str, agents: int, episode_len: int) -> int:
@@ -136,11 +150,43 @@ def _make_parallel(task: str, n_agents: int, episode_len: int) -> Any:
     return simple_speaker_listener_v4.parallel_env(max_cycles=episode_len, continuous_actions=True)
 
 
-def _resize_for_task(task: str, world: World) -> None:
-    """Apply the thesis's entity sizes (navigation only; the others keep mpe2's)."""
+def _resize_for_task(task: str, world: World, landmark_size: float | None = None) -> None:
+    """Apply the thesis's entity sizes (navigation only; the others keep mpe2's), then the
+    landmark radius asked for, if any. mpe2 sets sizes only when it builds a world, so
+    setting them on its world is enough; covering and success read them from there."""
     if task == "spread":
         for entity in world.entities:
             entity.size = SPREAD_ENTITY_SIZE
+    if landmark_size is not None:
+        for landmark in world.landmarks:
+            landmark.size = landmark_size
+
+
+def integrate_velocity_first(world: World, p_force: list[Any]) -> None:
+    """The thesis code's integration (its `ma_envs/multiagent/core.py:164-175`): damp the
+    velocity, add the force, cap the speed, then move with the *new* velocity. mpe2's own
+    `integrate_state` moves with the old velocity first, so there a force moves an agent
+    one step later. Bound onto an mpe2 World, which calls it from its `step`."""
+    for i, entity in enumerate(world.entities):
+        if not entity.movable:
+            continue
+        state = entity.state
+        state.p_vel = state.p_vel * (1 - world.damping)
+        force = p_force[i]
+        if force is not None:
+            state.p_vel += (force / entity.mass) * world.dt
+        if entity.max_speed is not None:
+            speed = np.sqrt(np.square(state.p_vel[0]) + np.square(state.p_vel[1]))
+            if speed > entity.max_speed:
+                state.p_vel = state.p_vel / speed * entity.max_speed
+        state.p_pos += state.p_vel * world.dt
+
+
+def _set_integrator(world: World, integrator: str) -> None:
+    """Velocity-first replaces the world's integration step on this world only."""
+    if integrator == "velocity-first":
+        bound = types.MethodType(integrate_velocity_first, world)
+        world.integrate_state = bound  # type: ignore[method-assign]
 
 
 def _obs_layout(task: str, agent: Agent, world: World) -> list[tuple[str, int]]:
@@ -165,15 +211,43 @@ def _obs_layout(task: str, agent: Agent, world: World) -> list[tuple[str, int]]:
     ]
 
 
-def _specs_from_env(task: str, env: Any) -> tuple[AgentSpec, ...]:
-    """Read each agent's sizes from a built env and cross-check them against the layouts."""
+def _shaped_layouts(
+    task: str, env: Any, pad_obs: bool, comm_obs: bool
+) -> list[tuple[list[tuple[str, int]], int]]:
+    """Each agent's observation blocks as the learners see them, and how many leading
+    values of mpe2's observation they keep (the rest are zeros).
+
+    comm_obs=False drops spread's trailing always-zero communication slots (the thesis
+    code has none); pad_obs appends zeros up to the largest agent's size (the thesis
+    code's speaker: 3 values then 8 zeros, since its buffers hold one size for all)."""
     world: World = env.unwrapped.world
-    specs = []
+    shaped = []
     for name, agent in zip(env.possible_agents, world.agents, strict=True):
         blocks = _obs_layout(task, agent, world)
         obs_dim = int(env.observation_space(name).shape[0])
         if sum(size for _, size in blocks) != obs_dim:
             raise RuntimeError(f"mpe2 observation of {name} ({obs_dim}) differs from {blocks}")
+        if not comm_obs and blocks[-1][0] == "other_comm_zero":
+            blocks = blocks[:-1]
+        shaped.append((blocks, sum(size for _, size in blocks)))
+    width = max(keep for _, keep in shaped)
+    if pad_obs:
+        shaped = [
+            (blocks + [("zero_pad", width - keep)] if keep < width else blocks, keep)
+            for blocks, keep in shaped
+        ]
+    return shaped
+
+
+def _specs_from_env(
+    task: str, env: Any, pad_obs: bool = False, comm_obs: bool = True
+) -> tuple[AgentSpec, ...]:
+    """Read each agent's sizes from a built env and cross-check them against the layouts."""
+    world: World = env.unwrapped.world
+    specs = []
+    shaped = _shaped_layouts(task, env, pad_obs, comm_obs)
+    for name, agent, (blocks, _) in zip(env.possible_agents, world.agents, shaped, strict=True):
+        obs_dim = sum(size for _, size in blocks)
         low: list[float] = []
         high: list[float] = []
         act_parts = []
@@ -199,19 +273,33 @@ def _specs_from_env(task: str, env: Any) -> tuple[AgentSpec, ...]:
 
 
 @functools.cache
-def _agent_specs(task: str, n_agents: int) -> tuple[AgentSpec, ...]:
-    """Build a throwaway env once per (task, agents): sizes then come from mpe2 itself."""
+def _agent_specs(
+    task: str, n_agents: int, pad_obs: bool = False, comm_obs: bool = True
+) -> tuple[AgentSpec, ...]:
+    """Build a throwaway env once per (task, agents, observation options): sizes then come
+    from mpe2 itself."""
     env = _make_parallel(task, n_agents, episode_len=1)
     try:
-        return _specs_from_env(task, env)
+        return _specs_from_env(task, env, pad_obs, comm_obs)
     finally:
         env.close()
 
 
-def task_spec(task: str, agents: int = 2, episode_len: int = 20) -> TaskSpec:
-    """Shapes of a task without keeping an env (for sizing networks in learners)."""
+def task_spec(
+    task: str,
+    agents: int = 2,
+    episode_len: int = 20,
+    *,
+    pad_obs: bool = False,
+    comm_obs: bool = True,
+) -> TaskSpec:
+    """Shapes of a task without keeping an env (for sizing networks in learners).
+
+    Takes the two options that change observation sizes; the other task options of
+    `make_task` change values, not shapes."""
     n_agents = _check_task(task, agents, episode_len)
-    return TaskSpec(name=task, agents=_agent_specs(task, n_agents), episode_len=episode_len)
+    specs = _agent_specs(task, n_agents, pad_obs, comm_obs)
+    return TaskSpec(name=task, agents=specs, episode_len=episode_len)
 
 
 @functools.cache
@@ -266,10 +354,20 @@ def _sparse_simple(world: World) -> tuple[float, bool]:
     return (0.0 if ok else -1.0), ok
 
 
-def _sparse_spread(world: World) -> tuple[float, bool]:
+def _sparse_spread(world: World, landmark_cover: bool = False) -> tuple[float, bool]:
+    """Success needs every landmark covered (sum of radii). With `landmark_cover` the
+    reward counts a landmark covered when an agent is within the landmark's own radius,
+    as the thesis code's reward does (`min_dist > size` is uncovered, so `<=` covers),
+    a different radius from its success test."""
     uncovered = sum(1 for lm in world.landmarks if not any(covers(a, lm) for a in world.agents))
+    if landmark_cover:
+        rewarded_uncovered = sum(
+            1 for lm in world.landmarks if not any(_dist(a, lm) <= lm.size for a in world.agents)
+        )
+    else:
+        rewarded_uncovered = uncovered
     collisions = count_collisions(world)
-    return -(uncovered + collisions) / len(world.agents), uncovered == 0
+    return -(rewarded_uncovered + collisions) / len(world.agents), uncovered == 0
 
 
 def _sparse_speaker_listener(world: World) -> tuple[float, bool]:
@@ -299,6 +397,10 @@ class TaskEnv:
     steps, 20 policy calls) 19.4 -> 12.4 ms with the same policy. tests/test_tasks.py
     checks that the paths give the same observations, rewards and ends, bit for bit.
     `direct=False` steps through the public API; `reset` always does.
+
+    The keyword options are the task-level choices of `profile: thesis` (shared/config.py
+    describes each; docs/fidelity.md rows T3, T4, T6-T8, T12, T16). Their defaults are
+    mpe2's behaviour with the adapter's changes above.
     """
 
     spec: TaskSpec
@@ -311,22 +413,40 @@ class TaskEnv:
         episode_len: int = 20,
         seed: int | None = None,
         direct: bool = True,
+        *,
+        success_terminal: bool = False,
+        cover: str = "sum",
+        landmark_size: float | None = None,
+        pad_obs: bool = False,
+        comm_obs: bool = True,
+        integrator: str = "position-first",
     ) -> None:
         n_agents = _check_task(task, agents, episode_len)
         if reward not in REWARDS:
             raise ValueError(f"unknown reward {reward!r}; expected one of {REWARDS}")
+        if cover not in COVERS:
+            raise ValueError(f"unknown cover {cover!r}; expected one of {COVERS}")
+        if integrator not in INTEGRATORS:
+            raise ValueError(f"unknown integrator {integrator!r}; expected one of {INTEGRATORS}")
+        if landmark_size is not None and not landmark_size > 0:
+            raise ValueError(f"landmark_size must be > 0, got {landmark_size}")
         self.task = task
         self.reward_kind = reward
+        self.success_terminal = success_terminal
+        self.landmark_size = landmark_size
+        self._landmark_cover = cover == "landmark" and task == "spread"
         self._env = _make_parallel(task, n_agents, episode_len)
         self._raw = self._env.unwrapped
-        _resize_for_task(task, self._raw.world)
-        self.spec = TaskSpec(task, _agent_specs(task, n_agents), episode_len)
+        _resize_for_task(task, self._raw.world, landmark_size)
+        _set_integrator(self._raw.world, integrator)
+        self.spec = TaskSpec(task, _agent_specs(task, n_agents, pad_obs, comm_obs), episode_len)
         if tuple(a.name for a in self.spec.agents) != tuple(self._env.possible_agents):
             raise RuntimeError("agent order differs between spec and env")
         # The constructor's seed is used by the first reset() that brings none, so that
         # make_task(seed=s).reset() equals make_task().reset(seed=s).
         self._pending_seed = seed
         self._t: int | None = None  # steps taken this episode; None until reset
+        self._world_ended = False  # success ended this world; reset_world() before stepping
         self.direct = direct
         spec = self.spec
         if [a.name for a in self._raw.world.agents] != [a.name for a in spec.agents]:
@@ -339,11 +459,28 @@ class TaskEnv:
         self._act_slices = list(zip(act_off[:-1], act_off[1:], strict=True))
         self._obs_slices = list(zip(obs_off[:-1], obs_off[1:], strict=True))
         self._move_dims = [a.move_dim for a in spec.agents]
+        # How many leading values of each mpe2 observation are kept; the rest of the
+        # agent's block is zero padding. Equal to mpe2's sizes under the defaults.
+        self._keep = [keep for _, keep in _shaped_layouts(task, self._env, pad_obs, comm_obs)]
+        self._reshaped = self._keep != list(spec.obs_dims) or any(
+            keep != int(self._env.observation_space(a.name).shape[0])
+            for a, keep in zip(spec.agents, self._keep, strict=True)
+        )
 
     @property
     def world(self) -> World:
         """The live mpe2 World (tests and debugging place entities through it)."""
         return self._raw.world
+
+    def _shape(self, i: int, o: np.ndarray) -> np.ndarray:
+        """Agent i's observation as the spec has it (comm slots dropped, zeros padded)."""
+        o = np.asarray(o, dtype=np.float32)
+        if not self._reshaped:
+            return o
+        out = np.zeros(self.spec.agents[i].obs_dim, np.float32)
+        keep = self._keep[i]
+        out[:keep] = o[:keep]
+        return out
 
     def reset(self, seed: int | None = None) -> list[np.ndarray]:
         """Start an episode; a seed reseeds mpe2's RNG, no seed continues it."""
@@ -352,9 +489,26 @@ class TaskEnv:
         else:
             self._pending_seed = None
         obs, _ = self._env.reset(seed=seed)
-        _resize_for_task(self.task, self._raw.world)
+        _resize_for_task(self.task, self._raw.world, self.landmark_size)
         self._t = 0
-        return [np.asarray(obs[a.name], dtype=np.float32) for a in self.spec.agents]
+        self._world_ended = False
+        return [self._shape(i, obs[a.name]) for i, a in enumerate(self.spec.agents)]
+
+    def reset_world(self) -> list[np.ndarray]:
+        """A new world inside the running episode: mpe2's `reset_world` (new positions and
+        goal, its RNG continuing), while the step count and the time limit go on.
+
+        What the thesis code's vec env does when success ends every agent's episode
+        (`common/vec_env/dummy_vec_env.py:51-54`) while its fixed window of 20 global
+        steps continues; with `success_terminal` callers call it after a terminal step.
+        """
+        if self._t is None:
+            raise RuntimeError("call reset() before reset_world()")
+        raw = self._raw
+        raw.scenario.reset_world(raw.world, raw.np_random)
+        _resize_for_task(self.task, raw.world, self.landmark_size)
+        self._world_ended = False
+        return [self._shape(i, raw.observe(a.name)) for i, a in enumerate(self.spec.agents)]
 
     def step(self, actions: Sequence[np.ndarray]) -> StepResult:
         """Apply one thesis-layout action per agent (spec order, each of shape (act_dim,))
@@ -373,6 +527,7 @@ class TaskEnv:
             success=res.success,
             collisions=res.collisions,
             truncated=res.truncated,
+            terminated=res.terminated,
         )
 
     def step_joint(self, action: np.ndarray) -> JointStep:
@@ -384,6 +539,8 @@ class TaskEnv:
             raise RuntimeError("call reset() before step()")
         if self._t >= self.spec.episode_len:
             raise RuntimeError("episode is over (time limit); call reset()")
+        if self._world_ended:
+            raise RuntimeError("success ended this world (success_terminal); call reset_world()")
         a = np.asarray(action, dtype=np.float32).reshape(-1)
         if a.shape[0] != self._act_total:
             raise ValueError(f"joint action has {a.shape[0]} values, expected {self._act_total}")
@@ -396,7 +553,7 @@ class TaskEnv:
             raise ValueError(f"non-finite action of {', '.join(bad)}: {a}")
         a = np.minimum(np.maximum(a, self._low), self._high)
         if self.direct:
-            obs, terminated, mpe_ended = self._step_direct(a)
+            obs, mpe_terminated, mpe_ended = self._step_direct(a)
             mpe_reward = None
         else:
             mpe_actions = {
@@ -404,9 +561,9 @@ class TaskEnv:
                 for ag, part in zip(self.spec.agents, self._split_act(a), strict=True)
             }
             obs_d, rewards, terminations, truncations, _ = self._env.step(mpe_actions)
-            terminated, mpe_ended = any(terminations.values()), any(truncations.values())
+            mpe_terminated, mpe_ended = any(terminations.values()), any(truncations.values())
             obs = np.concatenate(
-                [np.asarray(obs_d[ag.name], np.float32) for ag in self.spec.agents]
+                [self._shape(i, obs_d[ag.name]) for i, ag in enumerate(self.spec.agents)]
             )
             mpe_reward = float(np.mean([rewards[ag.name] for ag in self.spec.agents]))
         self._t += 1
@@ -414,9 +571,11 @@ class TaskEnv:
         if self.reward_kind == "dense" and mpe_reward is not None:
             reward = mpe_reward  # mpe2's own numbers, straight from the env
         truncated = self._t >= self.spec.episode_len
-        if terminated or mpe_ended != truncated:
+        if mpe_terminated or mpe_ended != truncated:
             raise RuntimeError("mpe2 ended the episode at an unexpected step")
-        return JointStep(obs, reward, success, collisions, truncated)
+        terminated = self.success_terminal and success
+        self._world_ended = terminated and not truncated
+        return JointStep(obs, reward, success, collisions, truncated, terminated)
 
     def _split_act(self, a: np.ndarray) -> list[np.ndarray]:
         return np.split(a, self._act_split)
@@ -444,16 +603,24 @@ class TaskEnv:
         raw.steps += 1
         ended = raw.steps >= raw.max_cycles
         terminated = not ended and bool(raw.scenario.is_terminal(world))
-        obs = np.empty(self._obs_total, np.float32)
         observation = raw.scenario.observation
-        for agent, (lo, hi) in zip(world.agents, self._obs_slices):
-            obs[lo:hi] = observation(agent, world)
+        if not self._reshaped:
+            obs = np.empty(self._obs_total, np.float32)
+            for agent, (lo, hi) in zip(world.agents, self._obs_slices):
+                obs[lo:hi] = observation(agent, world)
+        else:  # the padding stays zero
+            obs = np.zeros(self._obs_total, np.float32)
+            for agent, (lo, _), keep in zip(world.agents, self._obs_slices, self._keep):
+                obs[lo : lo + keep] = observation(agent, world)[:keep]
         return obs, terminated, ended
 
     def evaluate(self) -> tuple[float, bool, int]:
         """(reward, success, collisions) of the current world state, for the chosen reward."""
         world = self._raw.world
-        sparse, success = _SPARSE[self.task](world)
+        if self.task == "spread":
+            sparse, success = _sparse_spread(world, self._landmark_cover)
+        else:
+            sparse, success = _SPARSE[self.task](world)
         collisions = count_collisions(world)
         if self.reward_kind == "sparse":
             reward = sparse
@@ -488,8 +655,72 @@ def make_task(
     episode_len: int = 20,
     seed: int | None = None,
     direct: bool = True,
+    **options: Any,
 ) -> TaskEnv:
-    """Build a TaskEnv; `agents` sizes spread only (simple has 1 agent, speaker_listener 2)."""
+    """Build a TaskEnv; `agents` sizes spread only (simple has 1 agent, speaker_listener 2).
+
+    `options` are TaskEnv's keyword options (success_terminal, cover, landmark_size,
+    pad_obs, comm_obs, integrator)."""
     return TaskEnv(
-        task, agents=agents, reward=reward, episode_len=episode_len, seed=seed, direct=direct
+        task,
+        agents=agents,
+        reward=reward,
+        episode_len=episode_len,
+        seed=seed,
+        direct=direct,
+        **options,
+    )
+
+
+class TaskConfig(Protocol):
+    """What the task adapters read from a run config (a `shared.config.TrainConfig`, or
+    anything with these attributes): this module stays free of the config's imports."""
+
+    @property
+    def task(self) -> str: ...
+    @property
+    def agents(self) -> int: ...
+    @property
+    def reward(self) -> str: ...
+    @property
+    def episode_len(self) -> int: ...
+    @property
+    def success_terminal(self) -> bool: ...
+    @property
+    def cover(self) -> str: ...
+    @property
+    def landmark_size(self) -> float | None: ...
+    @property
+    def pad_obs(self) -> bool: ...
+    @property
+    def comm_obs(self) -> bool: ...
+    @property
+    def integrator(self) -> str: ...
+
+
+def task_options(cfg: TaskConfig) -> dict[str, Any]:
+    """The config's task-level options, as `make_task` takes them."""
+    return {
+        "success_terminal": cfg.success_terminal,
+        "cover": cfg.cover,
+        "landmark_size": cfg.landmark_size,
+        "pad_obs": cfg.pad_obs,
+        "comm_obs": cfg.comm_obs,
+        "integrator": cfg.integrator,
+    }
+
+
+def make_task_for(cfg: TaskConfig, seed: int | None = None, direct: bool = True) -> TaskEnv:
+    """The run's environment, with every task option of its config: the trainer, the
+    actors and the evaluators build theirs here, so they all step the same task."""
+    return make_task(
+        cfg.task, cfg.agents, cfg.reward, cfg.episode_len, seed, direct, **task_options(cfg)
+    )
+
+
+def task_spec_for(cfg: TaskConfig) -> TaskSpec:
+    """The run's shapes (the learner and the counter size networks, buffers and SimHash
+    projections from it): equal to `make_task_for(cfg).spec`."""
+    return task_spec(
+        cfg.task, cfg.agents, cfg.episode_len, pad_obs=cfg.pad_obs, comm_obs=cfg.comm_obs
     )

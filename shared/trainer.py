@@ -26,8 +26,8 @@ from shared.factories import build_exploration, build_learner, minibatches_per_u
 from shared.learners import Learner
 from shared.metrics import TRAIN_FIELDS
 from shared.replay import ReplayBuffer, update_arrays
-from shared.rollout import Collector, derive_seed, evaluate
-from shared.tasks import make_task
+from shared.rollout import derive_seed, evaluate, make_collector
+from shared.tasks import make_task_for
 
 log = logging.getLogger("macb.trainer")
 
@@ -131,12 +131,9 @@ def _train(
     stop_when: Callable[[dict], bool] | None,
 ) -> list[dict]:
     torch.set_num_threads(cfg.threads)
-    env = make_task(cfg.task, cfg.agents, cfg.reward, cfg.episode_len)
+    env = make_task_for(cfg)
     spec = env.spec
-    eval_envs = [
-        make_task(cfg.task, cfg.agents, cfg.reward, cfg.episode_len)
-        for _ in range(min(cfg.eval_episodes, 10))
-    ]
+    eval_envs = [make_task_for(cfg) for _ in range(min(cfg.eval_episodes, 10))]
     for j, e in enumerate(eval_envs):
         e.reset(seed=derive_seed(cfg.seed, "eval", j))
     learner = build_learner(cfg, spec)
@@ -144,9 +141,7 @@ def _train(
     buffer = ReplayBuffer(
         min(cfg.buffer_size, cfg.episodes * cfg.episode_len), spec.joint_obs_dim, spec.joint_act_dim
     )
-    collector = Collector(
-        env, cfg.noise_sigma, derive_seed(cfg.seed, "actor", 0), cfg.time_limit_terminal
-    )
+    collector = make_collector(cfg, env)
     sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
     writer = None
     if out is not None:

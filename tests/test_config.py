@@ -86,3 +86,40 @@ def test_shipped_configs_are_valid():
     for f in files:
         cfg = load_config(f)
         json.dumps(cfg.model_dump(mode="json"))
+
+
+def test_profile_thesis_sets_the_task_and_collection_options_a_config_does_not_give():
+    """The task-level options of docs/fidelity.md (T3, T4, T7, T8, T12, T13, T16, L1):
+    mpe2's behaviour by default, the thesis code's under profile thesis, a given value
+    kept either way."""
+    names = ("success_terminal", "cover", "landmark_size", "pad_obs", "comm_obs")
+    names += ("integrator", "warmup", "time_limit_terminal")
+
+    def options(**kw):
+        c = make_config(kw)
+        return tuple(getattr(c, n) for n in names)
+
+    mpe2 = (False, "sum", None, False, True, "position-first", "policy", False)
+    thesis = (True, "landmark", 0.075, True, False, "velocity-first", "random", True)
+    assert options() == options(profile="mpe2") == mpe2
+    assert options(profile="thesis") == thesis  # speaker_listener by default
+    spread = options(profile="thesis", task="spread", algo="cen-maddpg")
+    assert spread == thesis[:2] + (None,) + thesis[3:]  # navigation keeps 0.125
+    assert options(profile="thesis", pad_obs=False, warmup="policy", landmark_size=0.04) == (
+        True,
+        "landmark",
+        0.04,
+        False,
+        False,
+        "velocity-first",
+        "policy",
+        True,
+    )
+    assert options(success_terminal=True, integrator="velocity-first")[:6] == (
+        True,
+        "sum",
+        None,
+        False,
+        True,
+        "velocity-first",
+    )

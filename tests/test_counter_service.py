@@ -23,7 +23,7 @@ from services.counter.wal import WriteAheadLog, read_wal
 from shared.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
 from shared.config import make_config
 from shared.factories import build_exploration
-from shared.tasks import task_spec
+from shared.tasks import task_spec_for
 from shared.wire import decode, encode
 from tests.conftest import wait_for
 
@@ -64,7 +64,7 @@ def transitions(run: str, actor: str, seq: int, obs: np.ndarray, act: np.ndarray
 def model(config: dict, streams: list[Stream]):
     """The counts the counter must hold: the unique transitions of every stream."""
     cfg = make_config(config)
-    explorer = build_exploration(cfg, task_spec(cfg.task, cfg.agents, cfg.episode_len))
+    explorer = build_exploration(cfg, task_spec_for(cfg))
     for s in streams:
         explorer.observe(s.obs, s.act)
     return explorer

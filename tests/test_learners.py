@@ -16,7 +16,7 @@ from shared.learners import (
     LearnerSpec,
     TunedMADDPG,
 )
-from shared.tasks import task_spec
+from shared.tasks import task_spec_for
 
 SPEAKER = AgentDims(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
 LISTENER = AgentDims(11, (-1.0, -1.0), (1.0, 1.0))
@@ -131,9 +131,7 @@ def test_factory_builds_what_the_config_asks_for(impl, lanes, kind):
         {"task": "speaker_listener", "hidden": [16], "learner_impl": impl, "learner_lanes": lanes}
     )
     calls = []
-    learner = build_learner(
-        cfg, task_spec(cfg.task, cfg.agents, cfg.episode_len), lambda: calls.append(1) or True
-    )
+    learner = build_learner(cfg, task_spec_for(cfg), lambda: calls.append(1) or True)
     assert type(learner) is kind and isinstance(learner, Learner)
     learner.update(*batch(n=8))
     assert len(calls) == (kind is TunedMADDPG)

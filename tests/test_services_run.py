@@ -130,6 +130,26 @@ def test_short_speaker_listener_cen_macb_run_is_exact(procs, bus, tmp_path, acto
     wait_for(lambda: all(not i.get("run") for i in discover(bus)), timeout=10, what="free")
 
 
+def test_short_thesis_profile_run_is_exact(procs, bus, tmp_path):
+    """`profile: thesis` in the cluster: the actors' padded speaker observations (22-wide
+    joint, row T4) fit the learner's and counter's tables since all size from the same
+    config; successes reset the world inside the window and each actor warms up at
+    random for its share, and every count stays exact."""
+    start_cluster(procs, tmp_path, 2)
+    wait_services(bus, 5)
+    config = make_config({**SMALL, "profile": "thesis"})
+    assert config.pad_obs and config.success_terminal and config.warmup == "random"
+    watch = start_run(bus, config, actors=2)
+    assert watch.wait(timeout=240) == "completed", watch.states
+    wait_for(
+        lambda: watch.latest.get("counter", {}).get("counted_transitions") == 600,
+        timeout=10,
+        what="final counter stats",
+    )
+    check_exact(watch, watch.assign["actors"], config)
+    wait_for(lambda: all(not i.get("run") for i in discover(bus)), timeout=10, what="free")
+
+
 def test_counter_killed_mid_run_loses_no_count(procs, bus, tmp_path):
     data = start_cluster(procs, tmp_path, 1)
     wait_services(bus, 4)

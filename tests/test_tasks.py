@@ -7,12 +7,15 @@ import pytest
 from mpe2 import simple_speaker_listener_v4, simple_spread_v3, simple_v3
 
 from shared.tasks import (
+    INTEGRATORS,
     REWARDS,
     TASKS,
     StepResult,
     TaskEnv,
     make_task,
+    make_task_for,
     task_spec,
+    task_spec_for,
     to_mpe_action,
 )
 
@@ -513,3 +516,277 @@ def test_joint_step_clips_actions_into_the_box() -> None:
         assert x[1:] == y[1:]
     listener = wild.world.agents[1]
     assert np.abs(listener.state.p_vel).max() > 0  # the steps did move it
+
+
+# --- task options of profile thesis (docs/fidelity.md) ----------------------------------------
+
+
+def test_success_terminal_ends_the_world_and_the_window_goes_on() -> None:
+    """A success step is terminal with its own observation; the next world is new and the
+    episode still ends at its 20th step (the thesis code's fixed windows)."""
+    env = make_task("simple", seed=0, success_terminal=True)
+    env.reset()
+    agent, lm = env.world.agents[0], env.world.landmarks[0]
+    flags = [env.step(zero_actions(env)) for _ in range(4)]
+    assert not any(r.terminated or r.success for r in flags)  # seed 0 starts 1.3 apart
+    place(lm, 0.3, 0.3)
+    place(agent, 0.3, 0.3)
+    res = env.step(zero_actions(env))
+    assert res.success and res.terminated and not res.truncated
+    np.testing.assert_array_equal(res.obs[0], np.zeros(4, np.float32))  # on the landmark
+    with pytest.raises(RuntimeError, match="reset_world"):
+        env.step(zero_actions(env))
+    fresh = env.reset_world()[0]
+    assert not np.array_equal(lm.state.p_pos, [0.3, 0.3])  # a new world ...
+    assert not np.array_equal(agent.state.p_pos, [0.3, 0.3])
+    np.testing.assert_allclose(fresh[2:], lm.state.p_pos - agent.state.p_pos, rtol=1e-6)
+    assert np.linalg.norm(fresh[2:]) >= 0.1  # ... not already a success (seed 0)
+    rest = [env.step(zero_actions(env)) for _ in range(15)]  # steps 6..20
+    assert [r.truncated for r in rest] == [False] * 14 + [True]
+    with pytest.raises(RuntimeError, match="time limit"):
+        env.step(zero_actions(env))
+    env.close()
+    plain = make_task("simple", seed=0)  # the default: success is not terminal
+    plain.reset()
+    place(plain.world.landmarks[0], 0.3, 0.3)
+    place(plain.world.agents[0], 0.3, 0.3)
+    res = plain.step(zero_actions(plain))
+    assert res.success and not res.terminated
+    assert plain.step(zero_actions(plain)).success  # the same world goes on
+    plain.close()
+
+
+def test_success_terminal_at_the_last_step_needs_no_world_reset() -> None:
+    env = make_task("spread", episode_len=2, seed=0, success_terminal=True)
+    env.reset()
+    env.step(zero_actions(env))
+    (a0, a1), (l0, l1) = env.world.agents, env.world.landmarks
+    place(l0, 0.0, 0.0), place(l1, 1.0, 0.0), place(a0, 0.0, 0.0), place(a1, 1.0, 0.0)
+    res = env.step(zero_actions(env))
+    assert res.terminated and res.truncated
+    env.reset()  # the ordinary reset starts the next episode
+    assert not env.step(zero_actions(env)).truncated
+    env.close()
+
+
+def test_cover_landmark_counts_a_landmark_within_its_own_size_for_the_reward_only() -> None:
+    """Rows T8/T11: the reward's cover radius is 0.125 (the landmark), success's 0.25."""
+    envs = {c: make_task("spread", agents=2, seed=0, cover=c) for c in ("sum", "landmark")}
+    for env in envs.values():
+        env.reset()
+        (a0, a1), (l0, l1) = env.world.agents, env.world.landmarks
+        place(l0, 0.0, 0.0)
+        place(l1, 1.0, 0.0)
+        place(a0, 0.1, 0.0)
+        place(a1, 1.0, 0.2)  # landmark 1 at 0.2: < 0.25, > 0.125
+    assert evaluate_all(envs["sum"])["sparse"] == (0.0, True, 0)
+    assert evaluate_all(envs["landmark"])["sparse"] == (-0.5, True, 0)
+    assert envs["landmark"].evaluate() == (pytest.approx(-0.5 + 0.7), True, 0)  # offset too
+    # The thesis code calls a landmark uncovered when min_dist > size: 0.125 still covers.
+    place(envs["landmark"].world.agents[1], 1.125, 0.0)
+    assert evaluate_all(envs["landmark"])["sparse"] == (0.0, True, 0)
+    place(envs["landmark"].world.agents[0], 0.2, 0.0)  # landmark 0 at 0.2 too
+    assert evaluate_all(envs["landmark"])["sparse"] == (-0.5, True, 0)
+    for env in envs.values():
+        env.close()
+    # The other tasks use the sum in the thesis code as well: cover changes nothing there.
+    sl = make_task("speaker_listener", seed=4, cover="landmark")
+    sl.reset()
+    speaker, listener = sl.world.agents
+    place(speaker.goal_b, 0.5, 0.5)
+    place(listener, 0.6, 0.5)  # 0.1 < 0.075 + 0.04, > 0.04
+    assert sl.evaluate() == (0.0, True, 0)
+    sl.close()
+
+
+def test_landmark_size_sets_the_worlds_landmarks_and_the_success_radius() -> None:
+    """Rows T6/T7: speaker_listener's landmarks at the thesis code's 0.075, so covering
+    and success are within 0.15 instead of 0.115; the agents keep their sizes."""
+    sizes = {}
+    for size in (None, 0.075):
+        env = make_task("speaker_listener", seed=4, landmark_size=size, success_terminal=True)
+        env.reset()
+        for _ in range(2):
+            speaker, listener = env.world.agents
+            sizes[size] = [lm.size for lm in env.world.landmarks]
+            assert (speaker.size, listener.size) == (0.075, 0.075)
+            place(speaker.goal_b, 0.5, 0.5)
+            place(listener, 0.5 + 0.14, 0.5)  # 0.115 < 0.14 < 0.15
+            assert env.evaluate() == ((0.0, True, 0) if size else (-1.0, False, 0))
+            env.reset_world()  # sizes hold in a new world too
+        env.close()
+    assert sizes == {None: [0.04] * 3, 0.075: [0.075] * 3}
+    spread = make_task("spread", agents=2, seed=0, landmark_size=0.05)
+    for _ in range(2):
+        spread.reset()
+        assert [e.size for e in spread.world.agents] == [0.125, 0.125]
+        assert [e.size for e in spread.world.landmarks] == [0.05, 0.05]
+    (a0, a1), (l0, l1) = spread.world.agents, spread.world.landmarks
+    place(l0, 0.0, 0.0), place(l1, 1.0, 0.0), place(a0, 0.0, 0.0), place(a1, 1.0, 0.2)
+    assert spread.evaluate() == (-0.5, False, 0)  # 0.2 > 0.125 + 0.05
+    spread.close()
+    with pytest.raises(ValueError, match="landmark_size"):
+        make_task("simple", landmark_size=0.0)
+
+
+def test_pad_obs_pads_the_speaker_with_zeros_to_the_listeners_size() -> None:
+    """Row T4: the speaker's 3 colour values then 8 zeros; the listener unchanged."""
+    spec = task_spec("speaker_listener", pad_obs=True)
+    assert spec.obs_dims == (11, 11) and spec.joint_obs_dim == 22
+    assert spec.agents[0].obs_layout == "goal_colour(3) zero_pad(8)"
+    assert spec.act_dims == (3, 2)
+    for direct in (True, False):
+        padded = make_task("speaker_listener", seed=3, pad_obs=True, direct=direct)
+        plain = make_task("speaker_listener", seed=3, direct=direct)
+        assert padded.spec == spec
+        obs_p, obs_0 = padded.reset(), plain.reset()
+        rng = np.random.default_rng(1)
+        for t in range(4):
+            assert [o.shape for o in obs_p] == [(11,), (11,)]
+            assert all(o.dtype == np.float32 for o in obs_p)
+            np.testing.assert_array_equal(obs_p[0][:3], obs_0[0])
+            assert np.any(obs_p[0][:3] > 0.5)  # the target's colour is there
+            np.testing.assert_array_equal(obs_p[0][3:], np.zeros(8, np.float32))
+            np.testing.assert_array_equal(obs_p[1], obs_0[1])
+            acts = [rng.uniform(a.act_low, a.act_high).astype(np.float32) for a in spec.agents]
+            if t % 2:
+                obs_p, obs_0 = padded.step(acts).obs, plain.step(acts).obs
+            else:
+                j = padded.step_joint(np.concatenate(acts)).obs
+                obs_p, obs_0 = [j[:11], j[11:]], plain.step(acts).obs
+        assert np.abs(obs_p[1][-3:]).max() > 0  # the message reached the listener
+    # Equal sizes already: padding changes nothing.
+    assert task_spec("spread", agents=3, pad_obs=True) == task_spec("spread", agents=3)
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_comm_obs_false_drops_spreads_always_zero_comm_slots(n: int) -> None:
+    """Row T3: 10 values per agent for N=2 (the thesis code's layout), 4N + 2 in general."""
+    spec = task_spec("spread", agents=n, comm_obs=False)
+    assert spec.obs_dims == (4 * n + 2,) * n
+    assert "other_comm_zero" not in spec.agents[0].obs_layout
+    both = make_task("spread", agents=n, seed=2, comm_obs=False), make_task("spread", agents=n)
+    short, full = both
+    assert short.spec == spec
+    obs_s, obs_f = short.reset(), full.reset(seed=2)
+    for _ in range(3):
+        for s, f in zip(obs_s, obs_f, strict=True):
+            assert s.shape == (4 * n + 2,)
+            np.testing.assert_array_equal(s, f[: 4 * n + 2])
+            np.testing.assert_array_equal(f[4 * n + 2 :], np.zeros(2 * (n - 1), np.float32))
+        acts = [np.full(2, 0.4, np.float32)] * n
+        obs_s, obs_f = short.step(acts).obs, full.step(acts).obs
+    # The other tasks have no such slots (the listener's message is a real one).
+    assert task_spec("speaker_listener", comm_obs=False) == task_spec("speaker_listener")
+    for env in both:
+        env.close()
+
+
+def test_velocity_first_integrator_moves_with_the_new_velocity_by_hand() -> None:
+    """Row T16: one step by hand. Velocity-first (the thesis code): v' = 0.75 v + 0.1 * 5 a,
+    then p' = p + 0.1 v'. mpe2's position-first: p' = p + 0.1 v, the same v'."""
+    a = np.array([0.3, -0.6])
+    p, v = np.array([0.3, -0.2]), np.array([0.4, 0.1])
+    v_new = v * (1 - 0.25) + (a * SENSITIVITY / 1.0) * 0.1  # (0.45, -0.225)
+    expected = {"velocity-first": p + v_new * 0.1, "position-first": p + v * 0.1}
+    for integrator, p_new in expected.items():
+        for direct in (True, False):
+            env = make_task("simple", seed=0, integrator=integrator, direct=direct)
+            env.reset()
+            agent, lm = env.world.agents[0], env.world.landmarks[0]
+            place(lm, 0.0, 0.0)
+            agent.state.p_pos, agent.state.p_vel = p.copy(), v.copy()
+            res = env.step([a.astype(np.float32)])
+            np.testing.assert_allclose(agent.state.p_vel, v_new, rtol=1e-6)
+            np.testing.assert_allclose(agent.state.p_pos, p_new, rtol=1e-6)
+            np.testing.assert_allclose(res.obs[0][2:], -p_new, rtol=1e-6)
+            env.close()
+    assert not np.allclose(expected["velocity-first"], expected["position-first"])
+
+
+def test_velocity_first_keeps_mpe2s_contact_forces() -> None:
+    """Two overlapping spread agents push apart under either order (the force is the same,
+    only when it moves them differs)."""
+    moved = {}
+    for integrator in INTEGRATORS:
+        env = make_task("spread", agents=2, seed=0, integrator=integrator)
+        env.reset()
+        a0, a1 = env.world.agents
+        place(a0, 0.0, 0.0)
+        place(a1, 0.1, 0.0)
+        env.step(zero_actions(env))
+        moved[integrator] = a1.state.p_pos[0] - 0.1
+        env.close()
+    assert moved["position-first"] == 0.0  # moves one step later
+    assert moved["velocity-first"] > 0.0
+
+
+def test_thesis_options_direct_step_equals_the_pettingzoo_api() -> None:
+    """Every task option at once, through a forced success and its new world: the direct
+    path and PettingZoo's step agree bit for bit."""
+    opts = dict(
+        success_terminal=True,
+        cover="landmark",
+        landmark_size=0.075,
+        pad_obs=True,
+        comm_obs=False,
+        integrator="velocity-first",
+    )
+    for task in TASKS:
+        direct = make_task(task, 2, "sparse", episode_len=8, seed=5, **opts)
+        api = make_task(task, 2, "sparse", episode_len=8, seed=5, direct=False, **opts)
+        rng = np.random.default_rng(0)
+        terminal = 0
+        for _ in range(2):
+            for a, b in zip(direct.reset(), api.reset(), strict=True):
+                np.testing.assert_array_equal(a, b)
+            for t in range(8):
+                if t == 3:  # every landmark under an agent: a success
+                    for env in (direct, api):
+                        for ag, lm in zip(env.world.agents[-1:], env.world.landmarks):
+                            place(lm, *ag.state.p_pos)
+                        if task == "spread":
+                            place(env.world.landmarks[1], *env.world.agents[1].state.p_pos)
+                        if task == "speaker_listener":
+                            place(env.world.agents[0].goal_b, *env.world.agents[1].state.p_pos)
+                acts = [
+                    rng.uniform(-1.5, 1.5, s.act_dim).astype(np.float32) for s in direct.spec.agents
+                ]
+                if t == 3:
+                    acts = [np.zeros_like(x) for x in acts]
+                x, y = direct.step(acts), api.step(acts)
+                for a, b in zip(x.obs, y.obs, strict=True):
+                    np.testing.assert_array_equal(a, b)
+                assert (x.reward, x.success, x.terminated, x.truncated) == (
+                    y.reward,
+                    y.success,
+                    y.terminated,
+                    y.truncated,
+                )
+                if x.terminated and not x.truncated:
+                    terminal += 1
+                    for a, b in zip(direct.reset_world(), api.reset_world(), strict=True):
+                        np.testing.assert_array_equal(a, b)
+        assert terminal >= 2, task
+        direct.close()
+        api.close()
+
+
+@pytest.mark.parametrize("profile", ["mpe2", "thesis"])
+def test_task_spec_for_a_config_equals_its_envs_spec(profile: str) -> None:
+    """The learner and the counter size from `task_spec_for`, the actors step
+    `make_task_for`: the two must agree on every option that changes a shape."""
+    from shared.config import make_config
+
+    for task, algo in (
+        ("simple", "ddpg"),
+        ("spread", "cen-maddpg"),
+        ("speaker_listener", "cen-maddpg"),
+    ):
+        cfg = make_config({"task": task, "algo": algo, "profile": profile})
+        env = make_task_for(cfg, seed=0)
+        assert task_spec_for(cfg) == env.spec
+        assert [o.shape[0] for o in env.reset()] == list(env.spec.obs_dims)
+        env.close()
+    dims = task_spec_for(make_config({"profile": profile})).obs_dims
+    assert dims == {"mpe2": (3, 11), "thesis": (11, 11)}[profile]

@@ -28,8 +28,8 @@ from shared import bus as keys
 from shared.config import TrainConfig
 from shared.networks import JointPolicy
 from shared.protocol import Sender
-from shared.rollout import Collector, derive_seed
-from shared.tasks import TaskEnv, make_task
+from shared.rollout import Collector, make_collector
+from shared.tasks import TaskEnv, make_task_for
 from shared.wire import encode
 
 MAX_UNCOUNTED_BATCHES = 8  # episodes in flight that the counter has not acknowledged
@@ -80,14 +80,13 @@ class ActorService(ServiceBase):
         actors = list(assign["actors"])
         rank = actors.index(self.id)
         self.listen(keys.k_ack(run, "*"), "ack", run)
-        env = make_task(config.task, config.agents, config.reward, config.episode_len)
-        seed = derive_seed(config.seed, "actor", rank)
+        env = make_task_for(config)
         learner, counter = assign.get("learner"), assign.get("counter")
         counting = config.explore in ("dis-macb", "cen-macb")
         self.st = ActorRun(
             rank=rank,
             env=env,
-            collector=Collector(env, config.noise_sigma, seed, config.time_limit_terminal),
+            collector=make_collector(config, env, rank, len(actors)),
             policy=JointPolicy.for_task(env.spec, config.hidden),
             todo=episode_share(config.episodes, len(actors), rank),
             sender=Sender(

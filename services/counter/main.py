@@ -39,7 +39,7 @@ from shared.counting import CountTable
 from shared.exploration import CountExploration
 from shared.factories import build_exploration
 from shared.protocol import ReceiveCursor, Verdict
-from shared.tasks import task_spec
+from shared.tasks import task_spec_for
 from shared.wire import WireError, check_dims, encode
 
 DEFAULT_SNAPSHOT_S = 5.0
@@ -206,7 +206,7 @@ class CounterService(ServiceBase):
 
     def _open_run(self, run: str, config: TrainConfig, path: Path) -> tuple[RunState, int]:
         """Build the run's tables, load its snapshot and log; register it. Returns replayed."""
-        spec = task_spec(config.task, config.agents, config.episode_len)
+        spec = task_spec_for(config)
         explorer = build_exploration(config, spec)
         wal, records = WriteAheadLog.open(path / "wal.bin")
         st = RunState(

@@ -28,7 +28,7 @@ from shared import bus as keys
 from shared.config import TrainConfig
 from shared.networks import JointPolicy
 from shared.rollout import derive_seed, evaluate
-from shared.tasks import TaskEnv, make_task
+from shared.tasks import TaskEnv, make_task_for
 from shared.wire import encode
 
 HISTORY_RUNS = 64  # runs whose rows are kept for history queries
@@ -86,10 +86,7 @@ class EvaluatorService(ServiceBase):
 
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
         self.listen(keys.k_weights(run, "eval"), "weights", run)
-        envs = [
-            make_task(config.task, config.agents, config.reward, config.episode_len)
-            for _ in range(min(config.eval_episodes, 10))
-        ]
+        envs = [make_task_for(config) for _ in range(min(config.eval_episodes, 10))]
         for j, env in enumerate(envs):
             env.reset(seed=derive_seed(config.seed, "eval", j))
         self.st = EvaluatorRun(envs, JointPolicy.for_task(envs[0].spec, config.hidden))

@@ -41,7 +41,7 @@ from shared.networks import weights_as_arrays
 from shared.protocol import AckTracker, ReceiveCursor
 from shared.replay import ReplayBuffer, update_arrays
 from shared.rollout import derive_seed
-from shared.tasks import TaskSpec, task_spec
+from shared.tasks import TaskSpec, task_spec_for
 from shared.wire import WireError, check_dims, decode, encode
 
 WINDOW_EPISODES = 2  # credits per actor, in episodes
@@ -224,7 +224,7 @@ class LearnerService(ServiceBase):
             lambda key, payload: self.on_eval_row(evaluations, key, payload),
             run,
         )
-        spec = task_spec(config.task, config.agents, config.episode_len)
+        spec = task_spec_for(config)
         actors = list(assign["actors"])
         self.st = LearnerRun(
             config=config,
