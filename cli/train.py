@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from cli.config_flags import add_config_flags, resolve_config
-from shared.config import ConfigError
+from cli.config_flags import add_config_flags, config_overrides, flag_name, resolve_config
+from shared.config import ConfigError, load_config
 
 
 def add_train_parser(sub: argparse._SubParsersAction) -> None:
@@ -22,21 +22,59 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="FILE", help="YAML/JSON config file")
     p.add_argument("--out", metavar="DIR", default="runs/train", help="output directory")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--resume",
+        metavar="DIR",
+        help="continue the run in DIR (its config.json is the config; no other config "
+        "flags) from its newest usable cut: the same rows as if it had not stopped",
+    )
+    p.add_argument(
+        "--cut-every",
+        metavar="SECONDS",
+        type=float,
+        default=60.0,
+        help="write a cut (everything needed to resume) at the first evaluation point "
+        "after this many seconds since the last one, and at the end",
+    )
     add_config_flags(p)
     p.set_defaults(func=cmd_train)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
     """A bad config is refused (exit 2) before training starts or anything is written."""
+    from shared.cuts import CutError
     from shared.trainer import train
 
+    if args.resume:
+        given = sorted(config_overrides(args))
+        if args.config or given:
+            flags = ", ".join(["--config"] * bool(args.config) + [flag_name(n) for n in given])
+            print(
+                f"macb train: --resume takes the config from {args.resume}/config.json; "
+                f"drop {flags}",
+                file=sys.stderr,
+            )
+            return 2
+        try:
+            cfg = load_config(Path(args.resume) / "config.json")
+        except (ConfigError, OSError) as err:
+            print(f"macb train: cannot resume {args.resume}: {err}", file=sys.stderr)
+            return 2
+        out = Path(args.resume)
+    else:
+        try:
+            cfg = resolve_config(args)
+        except (ConfigError, OSError) as err:
+            print(f"macb train: invalid config: {err}", file=sys.stderr)
+            return 2
+        out = Path(args.out)
     try:
-        cfg = resolve_config(args)
-    except (ConfigError, OSError) as err:
-        print(f"macb train: invalid config: {err}", file=sys.stderr)
+        rows = train(
+            cfg, out, progress=not args.quiet, resume=bool(args.resume), cut_every_s=args.cut_every
+        )
+    except CutError as err:
+        print(f"macb train: cannot resume {out}: {err}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    rows = train(cfg, out, progress=not args.quiet)
     last = rows[-1] if rows else {}
     print(
         f"done: {cfg.episodes} episodes, final success {last.get('success_rate', 0):.2f}, "

@@ -13,7 +13,7 @@ from __future__ import annotations
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -70,6 +70,11 @@ class Collector:
         self.time_limit_terminal = time_limit_terminal
         self.warmup_steps = warmup_steps
         self.obs = np.concatenate(env.reset(seed=seed))
+        # The next episode's reset waits for its first step: at an episode boundary the
+        # collector's whole state is its counters and RNG states (`state`), which is what
+        # a resumed run restores. (The env's RNG is touched by nothing in between, so the
+        # episodes are the ones an eager reset gives.)
+        self.reset_due = False
         self.steps = 0  # transitions collected
         self.episodes = 0
         self.episode_return = 0.0
@@ -83,6 +88,9 @@ class Collector:
         return self.rng.uniform(self.low, self.high).astype(np.float32)
 
     def step(self, policy: Policy) -> Transition:
+        if self.reset_due:
+            self.obs = np.concatenate(self.env.reset())
+            self.reset_due = False
         obs = self.obs
         if self.steps < self.warmup_steps:
             act = self.noisy(self.random_action())
@@ -99,12 +107,30 @@ class Collector:
         if res.truncated:
             self.episodes += 1
             self.episode_return = 0.0
-            self.obs = np.concatenate(self.env.reset())
+            self.reset_due = True
         elif res.terminated:
             self.obs = np.concatenate(self.env.reset_world())
         else:
             self.obs = next_obs
         return tr
+
+    def state(self) -> dict[str, Any]:
+        """Counters and RNG states (JSON-able), at an episode boundary only."""
+        if not self.reset_due:
+            raise RuntimeError("a collector's state is saved between episodes only")
+        return {
+            "rng": dict(self.rng.bit_generator.state),
+            "env_rng": self.env.rng_state(),
+            "steps": self.steps,
+            "episodes": self.episodes,
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        self.rng.bit_generator.state = state["rng"]
+        self.env.set_rng_state(state["env_rng"])
+        self.steps, self.episodes = int(state["steps"]), int(state["episodes"])
+        self.episode_return = 0.0
+        self.reset_due = True
 
 
 def warmup_share(learning_starts: int, actors: int) -> int:

@@ -494,6 +494,18 @@ class TaskEnv:
         self._world_ended = False
         return [self._shape(i, obs[a.name]) for i, a in enumerate(self.spec.agents)]
 
+    def rng_state(self) -> dict[str, Any]:
+        """mpe2's RNG state (JSON-able): with it, a restored env's next `reset()` draws
+        the world this one would have drawn (what a resumed run needs at an episode
+        boundary; the world itself is not saved, the next episode starts with a reset)."""
+        if self._pending_seed is not None:
+            raise RuntimeError("reset the env once before saving its RNG state")
+        return dict(self._raw.np_random.bit_generator.state)
+
+    def set_rng_state(self, state: dict[str, Any]) -> None:
+        self._pending_seed = None
+        self._raw.np_random.bit_generator.state = state
+
     def reset_world(self) -> list[np.ndarray]:
         """A new world inside the running episode: mpe2's `reset_world` (new positions and
         goal, its RNG continuing), while the step count and the time limit go on.

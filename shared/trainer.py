@@ -21,6 +21,18 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from shared.config import TrainConfig
+from shared.cuts import (
+    CutError,
+    ReplayLog,
+    config_difference,
+    latest_cut,
+    load_tables,
+    tables_state,
+    write_cut,
+)
+from shared.cuts import (
+    clear as clear_cuts,
+)
 from shared.exploration import BonusDiagnostics, CountExploration, constant_shift
 from shared.factories import build_exploration, build_learner, minibatches_per_update
 from shared.learners import Learner
@@ -31,17 +43,28 @@ from shared.tasks import make_task_for
 
 log = logging.getLogger("macb.trainer")
 
+# A cut at the first evaluation point after this many seconds since the last one (and at
+# the end): at ~150 env steps/s that is every ~9,000 transitions, whose replay rows and
+# the learner's state are what a cut writes (docs/reliability.md).
+DEFAULT_CUT_EVERY_S = 60.0
+
 METRIC_FIELDS = TRAIN_FIELDS
 
 
 class MetricsWriter:
-    """Appends rows to metrics.csv and metrics.jsonl as they are produced."""
+    """Appends rows to metrics.csv and metrics.jsonl as they are produced; `rows` (a
+    resumed run's rows up to its cut) are written first, replacing what was there."""
 
-    def __init__(self, out: Path, fields: tuple[str, ...] = METRIC_FIELDS) -> None:
+    def __init__(
+        self, out: Path, fields: tuple[str, ...] = METRIC_FIELDS, rows: list[dict] = ()
+    ) -> None:
         self.csv_file = (out / "metrics.csv").open("w", newline="")
         self.csv = csv.DictWriter(self.csv_file, fieldnames=fields, extrasaction="ignore")
         self.csv.writeheader()
         self.jsonl = (out / "metrics.jsonl").open("w")
+        for row in rows:
+            self.csv.writerow(row)
+            self.jsonl.write(json.dumps(row) + "\n")
 
     def write(self, row: dict) -> None:
         self.csv.writerow(row)
@@ -62,14 +85,7 @@ def save_checkpoint(
     cfg: TrainConfig,
 ) -> None:
     """Networks, optimizers, step counters and count tables together, without pickle."""
-    tables = {}
-    for t, table in enumerate(explorer.tables):
-        keys, counts = table.to_arrays()
-        tables[f"table{t}"] = {
-            "keys": torch.from_numpy(keys.copy()),
-            "counts": torch.from_numpy(counts),
-            "total": table.total,
-        }
+    tables = {f"table{t}": table for t, table in enumerate(tables_state(explorer.tables))}
     state = {
         "config": json.dumps(cfg.model_dump(mode="json")),
         "learner": learner.state_dict(),
@@ -108,10 +124,16 @@ def train(
     progress: bool = True,
     on_metrics: Callable[[dict], None] | None = None,
     stop_when: Callable[[dict], bool] | None = None,
+    resume: bool = False,
+    cut_every_s: float = DEFAULT_CUT_EVERY_S,
 ) -> list[dict]:
     """Run one experiment; returns the metric rows (also written under `out`).
 
-    `stop_when(row)` returning True ends the run early after that evaluation.
+    `stop_when(row)` returning True ends the run early after that evaluation. With
+    `out`, a cut (shared/cuts.py) is written at an evaluation point whenever
+    `cut_every_s` seconds have passed since the last one, and at the end; `resume`
+    continues from the newest usable cut in `out` (its config.json must equal `cfg`),
+    keeping the rows written up to it, so the rows come out as without the stop.
 
     numpy's BLAS (the SimHash projections) runs on one thread while it trains, as in
     `macb train` and the services, which set it before numpy loads: from Python, numpy
@@ -119,104 +141,257 @@ def train(
     100-row batch then kept a second core busy (1.03 cores for counting against 0.04,
     bench_scaling) beside torch's own threads. The caller's setting is restored after.
     """
+    if resume and out is None:
+        raise ValueError("resume needs the run's output folder")
     with threadpool_limits(limits=1, user_api="blas"):
-        return _train(cfg, out, progress, on_metrics, stop_when)
+        run = _Run(cfg, out, cut_every_s)
+        if resume:
+            run.restore()
+        elif run.cuts is not None and run.cuts.exists():
+            clear_cuts(run.cuts)  # a fresh run: an earlier run's cuts are not its own
+        return run.go(progress, on_metrics, stop_when)
 
 
-def _train(
-    cfg: TrainConfig,
-    out: Path | None,
-    progress: bool,
-    on_metrics: Callable[[dict], None] | None,
-    stop_when: Callable[[dict], bool] | None,
-) -> list[dict]:
-    torch.set_num_threads(cfg.threads)
-    env = make_task_for(cfg)
-    spec = env.spec
-    eval_envs = [make_task_for(cfg) for _ in range(min(cfg.eval_episodes, 10))]
-    for j, e in enumerate(eval_envs):
-        e.reset(seed=derive_seed(cfg.seed, "eval", j))
-    learner = build_learner(cfg, spec)
-    explorer = build_exploration(cfg, spec)
-    buffer = ReplayBuffer(
-        min(cfg.buffer_size, cfg.episodes * cfg.episode_len), spec.joint_obs_dim, spec.joint_act_dim
-    )
-    collector = make_collector(cfg, env)
-    sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
-    writer = None
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2) + "\n")
-        writer = MetricsWriter(out)
+class _Run:
+    """One run's parts and counters: the loop, its cuts and their restore."""
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    def __init__(self, cfg: TrainConfig, out: Path | None, cut_every_s: float) -> None:
+        torch.set_num_threads(cfg.threads)
+        self.cfg, self.out, self.cut_every_s = cfg, out, cut_every_s
+        self.env = make_task_for(cfg)
+        spec = self.spec = self.env.spec
+        self.eval_envs = [make_task_for(cfg) for _ in range(min(cfg.eval_episodes, 10))]
+        for j, e in enumerate(self.eval_envs):
+            e.reset(seed=derive_seed(cfg.seed, "eval", j))
+        self.learner = build_learner(cfg, spec)
+        self.explorer = build_exploration(cfg, spec)
+        capacity = min(cfg.buffer_size, cfg.episodes * cfg.episode_len)
+        self.buffer = ReplayBuffer(capacity, spec.joint_obs_dim, spec.joint_act_dim)
+        self.collector = make_collector(cfg, self.env)
+        self.sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
+        self.draws = minibatches_per_update(cfg)
+        self.diagnostics = BonusDiagnostics()
+        self.rows: list[dict] = []
+        self.shift_warned = False
+        self.first_episode = 1
+        self.env_steps = self.collisions_cum = 0
+        self.eval_s = self.wall_before = 0.0  # time spent in earlier lives of the run
+        self.width = {
+            "obs": spec.joint_obs_dim,
+            "act": spec.joint_act_dim,
+            "rew": 1,
+            "next_obs": spec.joint_obs_dim,
+            "done": 1,
+        }
+        self.cuts = self.replay = None
+        self.replay_rows = 0  # rows of the replay log on disk, as of the last cut
+        self.last_cut = time.monotonic()
+        # Every transition collected, kept since the last cut for the replay log.
+        self.pending: list[tuple[np.ndarray, ...]] = []
+        if out is not None:
+            self.cuts = out / "cuts"
+            self.replay = ReplayLog(self.cuts)
 
-        bar = tqdm(total=cfg.episodes, unit="ep", desc=f"{cfg.task} {cfg.algo}+{cfg.explore}")
-    rows: list[dict] = []
-    draws = minibatches_per_update(cfg)
-    diagnostics = BonusDiagnostics()
-    shift_warned = False
-    env_steps = collisions_cum = 0
-    eval_s = 0.0
-    start = time.perf_counter()
-    try:
-        for episode in range(1, cfg.episodes + 1):
-            for _ in range(cfg.episode_len):
-                tr = collector.step(learner.act)
-                buffer.add(tr.obs, tr.act, tr.rew, tr.next_obs, tr.done)
-                explorer.observe(tr.obs[None], tr.act[None])
-                env_steps += 1
-                collisions_cum += tr.collisions
-                if env_steps > cfg.learning_starts:
-                    batches = [buffer.sample(cfg.batch_size, sample_rng) for _ in range(draws)]
-                    bonuses = []
-                    for b in batches:
-                        counts = explorer.counts(b.obs, b.act)
-                        bonuses.append(explorer.bonus_from_counts(counts, len(b.rew)))
-                        diagnostics.record(bonuses[-1], counts)
-                    learner.update(*update_arrays(batches, bonuses))
-            if episode % cfg.eval_every == 0 or episode == cfg.episodes:
-                t0 = time.perf_counter()
-                ev = evaluate(learner.act, eval_envs, cfg.eval_episodes)
-                eval_s += time.perf_counter() - t0
-                wall = time.perf_counter() - start
-                row = {
-                    "episode": episode,
-                    "env_steps": env_steps,
-                    "success_rate": ev.success_rate,
-                    "eval_return": ev.eval_return,
-                    "collisions_cum": collisions_cum,
-                    **explorer.stats(),
-                    **diagnostics.take(),
-                    "steps_per_sec": env_steps / wall,
-                    "train_steps_per_sec": env_steps / max(wall - eval_s, 1e-9),
-                    "updates": learner.updates,
-                    "wall_s": wall,
-                }
-                rows.append(row)
-                shift_warned = _say_if_constant_shift(rows, shift_warned)
-                if writer:
-                    writer.write(row)
-                if on_metrics:
-                    on_metrics(row)
+    # ------------------------------------------------------------------ the loop
+    def go(self, progress, on_metrics, stop_when) -> list[dict]:
+        cfg, out = self.cfg, self.out
+        writer = None
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            config = json.dumps(cfg.model_dump(mode="json"), indent=2) + "\n"
+            (out / "config.json").write_text(config)
+            writer = MetricsWriter(out, rows=self.rows)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            desc = f"{cfg.task} {cfg.algo}+{cfg.explore}"
+            bar = tqdm(total=cfg.episodes, initial=self.first_episode - 1, unit="ep", desc=desc)
+        self.start = time.perf_counter()
+        try:
+            for episode in range(self.first_episode, cfg.episodes + 1):
+                self.episode()
+                if episode % cfg.eval_every == 0 or episode == cfg.episodes:
+                    row = self.point(episode)
+                    if writer:
+                        writer.write(row)
+                    if self.cuts is not None and (
+                        time.monotonic() - self.last_cut >= self.cut_every_s
+                        or episode == cfg.episodes
+                    ):
+                        self.cut(episode)
+                    if on_metrics:
+                        on_metrics(row)
+                    if bar:
+                        bar.set_postfix(
+                            success=f"{row['success_rate']:.2f}",
+                            sps=f"{row['steps_per_sec']:.0f}",
+                        )
+                    if stop_when and stop_when(row):
+                        break
                 if bar:
-                    bar.set_postfix(
-                        success=f"{ev.success_rate:.2f}", sps=f"{row['steps_per_sec']:.0f}"
-                    )
-                if stop_when and stop_when(row):
-                    break
+                    bar.update(1)
+        finally:
             if bar:
-                bar.update(1)
-    finally:
-        if bar:
-            bar.close()
-        if writer:
-            writer.close()
-    if out is not None:
-        episodes = rows[-1]["episode"] if rows else 0
-        counters = {"env_steps": env_steps, "episodes": episodes, "updates": learner.updates}
-        save_checkpoint(out / "checkpoint.pt", learner, explorer, counters, cfg)
-        log.info("wrote %s", out)
-    return rows
+                bar.close()
+            if writer:
+                writer.close()
+        if out is not None:
+            episodes = self.rows[-1]["episode"] if self.rows else 0
+            counters = {
+                "env_steps": self.env_steps,
+                "episodes": episodes,
+                "updates": self.learner.updates,
+            }
+            save_checkpoint(out / "checkpoint.pt", self.learner, self.explorer, counters, cfg)
+            log.info("wrote %s", out)
+        return self.rows
+
+    def episode(self) -> None:
+        cfg, explorer, buffer = self.cfg, self.explorer, self.buffer
+        for _ in range(cfg.episode_len):
+            tr = self.collector.step(self.learner.act)
+            buffer.add(tr.obs, tr.act, tr.rew, tr.next_obs, tr.done)
+            if self.replay is not None:
+                self.pending.append((tr.obs, tr.act, tr.rew, tr.next_obs, tr.done))
+            explorer.observe(tr.obs[None], tr.act[None])
+            self.env_steps += 1
+            self.collisions_cum += tr.collisions
+            if self.env_steps > cfg.learning_starts:
+                batches = [
+                    buffer.sample(cfg.batch_size, self.sample_rng) for _ in range(self.draws)
+                ]
+                bonuses = []
+                for b in batches:
+                    counts = explorer.counts(b.obs, b.act)
+                    bonuses.append(explorer.bonus_from_counts(counts, len(b.rew)))
+                    self.diagnostics.record(bonuses[-1], counts)
+                self.learner.update(*update_arrays(batches, bonuses))
+
+    def point(self, episode: int) -> dict:
+        t0 = time.perf_counter()
+        ev = evaluate(self.learner.act, self.eval_envs, self.cfg.eval_episodes)
+        self.eval_s += time.perf_counter() - t0
+        wall = self.wall_before + time.perf_counter() - self.start
+        row = {
+            "episode": episode,
+            "env_steps": self.env_steps,
+            "success_rate": ev.success_rate,
+            "eval_return": ev.eval_return,
+            "collisions_cum": self.collisions_cum,
+            **self.explorer.stats(),
+            **self.diagnostics.take(),
+            "steps_per_sec": self.env_steps / wall,
+            "train_steps_per_sec": self.env_steps / max(wall - self.eval_s, 1e-9),
+            "updates": self.learner.updates,
+            "wall_s": wall,
+        }
+        self.rows.append(row)
+        self.shift_warned = _say_if_constant_shift(self.rows, self.shift_warned)
+        return row
+
+    # ------------------------------------------------------------------ cuts
+    def cut(self, episode: int) -> None:
+        """Replay rows since the last cut appended, then the cut itself (atomic)."""
+        assert self.cuts is not None and self.replay is not None
+        t0 = time.perf_counter()
+        if self.pending:
+            cols = list(zip(*self.pending))
+            arrays = {
+                "obs": np.stack(cols[0]),
+                "act": np.stack(cols[1]),
+                "rew": np.asarray(cols[2], np.float32),
+                "next_obs": np.stack(cols[3]),
+                "done": np.asarray(cols[4], np.float32),
+            }
+            self.replay.append(arrays, self.replay_rows, self.width)
+            self.replay_rows += len(self.pending)
+            self.pending = []
+        rng = {
+            "collector": self.collector.state(),
+            "sampler": dict(self.sample_rng.bit_generator.state),
+            "eval_envs": [e.rng_state() for e in self.eval_envs],
+        }
+        wall = self.wall_before + time.perf_counter() - self.start
+        write_cut(
+            self.cuts,
+            episode,
+            {
+                "config": json.dumps(self.cfg.model_dump(mode="json")),
+                "learner": self.learner.state_dict(),
+                "tables": tables_state(self.explorer.tables),
+                "replay_rows": self.replay_rows,
+                "counters": {
+                    "env_steps": self.env_steps,
+                    "collisions_cum": self.collisions_cum,
+                    "rows": len(self.rows),
+                    "shift_warned": self.shift_warned,
+                    "eval_s": self.eval_s,
+                    "wall_s": wall,
+                },
+                "rng": json.dumps(rng),
+                "torch_rng": torch.get_rng_state(),
+            },
+        )
+        self.last_cut = time.monotonic()
+        log.debug("cut at episode %d in %.3f s", episode, time.perf_counter() - t0)
+
+    def restore(self) -> None:
+        """Continue from the newest usable cut in `out`; the rows after it are dropped."""
+        assert self.out is not None and self.cuts is not None and self.replay is not None
+        config = self.cfg.model_dump(mode="json")
+        written = _read_json(self.out / "config.json")
+        if written is not None and (diff := config_difference(written, config)):
+            raise CutError(f"{self.out / 'config.json'}: another config ({diff})")
+        cut = latest_cut(self.cuts, config)
+        st = cut.state
+        try:
+            self.learner.load_state_dict(st["learner"])
+        except (ValueError, KeyError, RuntimeError) as err:
+            raise CutError(f"{cut.path}: learner state does not fit: {err}") from None
+        load_tables(self.explorer.tables, st["tables"], cut.path)
+        self.replay_rows = int(st["replay_rows"])
+        data = self.replay.read(self.replay_rows, self.width, cut.path)
+        keep = min(self.replay_rows, self.buffer.capacity)  # the ring's last rows
+        first = self.replay_rows - keep
+        self.buffer.added = first  # so add() puts row r at slot r % capacity
+        self.buffer.pos = first % self.buffer.capacity
+        self.buffer.add(*(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")))
+        rng = json.loads(st["rng"])
+        self.collector.load_state(rng["collector"])
+        self.sample_rng.bit_generator.state = rng["sampler"]
+        for e, state in zip(self.eval_envs, rng["eval_envs"], strict=True):
+            e.set_rng_state(state)
+        torch.set_rng_state(st["torch_rng"])
+        c = st["counters"]
+        self.env_steps, self.collisions_cum = int(c["env_steps"]), int(c["collisions_cum"])
+        self.shift_warned = bool(c["shift_warned"])
+        self.eval_s, self.wall_before = float(c["eval_s"]), float(c["wall_s"])
+        self.rows = _read_rows(self.out / "metrics.jsonl", int(c["rows"]), cut.path)
+        self.first_episode = cut.episode + 1
+        log.info(
+            "resuming %s from %s: episode %d, %d transitions, %d updates",
+            self.out,
+            cut.path.name,
+            cut.episode,
+            self.env_steps,
+            self.learner.updates,
+        )
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _read_rows(path: Path, n: int, where: Path) -> list[dict]:
+    """The first n metric rows written (a run killed after its last cut wrote more)."""
+    try:
+        lines = path.read_text().splitlines()
+    except OSError as err:
+        raise CutError(f"{where}: cannot read the run's {path.name}: {err}") from None
+    if len(lines) < n:
+        raise CutError(f"{where}: needs {n} metric rows, {path} holds {len(lines)}")
+    return [json.loads(line) for line in lines[:n]]

@@ -1,0 +1,162 @@
+"""`macb train --resume`: a one-process run continued from its cut gives the rows that not
+stopping gives, bit for bit (timing columns aside), and bad cuts are refused by name."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from cli.main import main
+from shared.config import make_config
+from shared.cuts import CUT_FORMAT, cut_files
+from shared.trainer import load_checkpoint, train
+
+ROOT = Path(__file__).resolve().parent.parent
+TIMING = ("steps_per_sec", "train_steps_per_sec", "wall_s")
+BASE = {
+    "task": "speaker_listener",
+    "episodes": 12,
+    "eval_every": 2,
+    "hidden": [32, 32],
+    "batch_size": 16,
+    "eval_episodes": 3,
+    "k": 32,
+    "learner_lanes": 1,  # a fixed lane count: bit-identical reruns
+}
+
+
+def strip(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if k not in TIMING} for r in rows]
+
+
+def jsonl(out: Path) -> list[dict]:
+    return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+
+
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+    """The uninterrupted runs each resumed run must match, by config."""
+    cache: dict[str, tuple[list[dict], dict]] = {}
+
+    def get(**extra) -> tuple[list[dict], dict]:
+        key = json.dumps(extra, sort_keys=True)
+        if key not in cache:
+            out = tmp_path_factory.mktemp("straight")
+            rows = train(make_config({**BASE, **extra}), out, progress=False, cut_every_s=0)
+            cache[key] = (rows, load_checkpoint(out / "checkpoint.pt"))
+        return cache[key]
+
+    return get
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        {},
+        {"profile": "thesis"},  # success resets, random warm-up, per-agent minibatches
+        {"task": "spread", "algo": "dis-maddpg", "explore": "dis-macb"},
+        {"task": "simple", "algo": "ddpg", "explore": "constant"},
+    ],
+    ids=["speaker_listener", "thesis-profile", "spread-dis", "simple-constant"],
+)
+def test_resuming_at_a_cut_gives_the_rows_of_not_stopping_bit_for_bit(tmp_path, straight, extra):
+    rows, final = straight(**extra)
+    cfg = make_config({**BASE, **extra})
+    stopped = train(
+        cfg, tmp_path, progress=False, cut_every_s=0, stop_when=lambda r: r["episode"] == 6
+    )
+    assert [r["episode"] for r in stopped] == [2, 4, 6]
+    resumed = train(cfg, tmp_path, progress=False, cut_every_s=0, resume=True)
+    assert strip(resumed) == strip(rows)
+    assert strip(jsonl(tmp_path)) == strip(rows)  # every point once, in order
+    got = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert got["counters"] == final["counters"]
+    for key in ("actors", "critics", "critic_targets"):
+        for a, b in zip(got["learner"][key], final["learner"][key], strict=True):
+            assert all(torch.equal(a[n], b[n]) for n in a), key
+    assert [int(t["counts"].sum()) for t in got["tables"].values()] == [
+        int(t["counts"].sum()) for t in final["tables"].values()
+    ]
+
+
+def test_a_killed_macb_train_resumes_to_the_same_rows(tmp_path, straight):
+    """SIGKILL of a real `macb train` process after a few cuts, then `--resume DIR`."""
+    cfg = {**BASE, "episodes": 40}
+    rows, _ = straight(episodes=40)
+    out = tmp_path / "run"
+    argv = [sys.executable, "-m", "cli", "train", "--out", str(out), "--quiet"]
+    argv += ["--cut-every", "0"]
+    for k, v in cfg.items():
+        argv += [
+            f"--{k.replace('_', '-')}",
+            ",".join(map(str, v)) if isinstance(v, list) else str(v),
+        ]
+    proc = subprocess.Popen(argv, cwd=ROOT, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            cuts = cut_files(out / "cuts") if (out / "cuts").exists() else []
+            if cuts and int(cuts[0].stem.split("-")[1]) >= 10:
+                break
+            assert proc.poll() is None, "the run ended before it could be killed"
+            time.sleep(0.02)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    killed_at = len(jsonl(out))
+    assert killed_at < len(rows), "killed too late to test anything"
+    assert main(["train", "--resume", str(out), "--quiet", "--cut-every", "0"]) == 0
+    assert strip(jsonl(out)) == strip(rows)
+
+
+def test_a_corrupt_newest_cut_is_refused_by_name_and_the_one_before_is_used(
+    tmp_path, straight, caplog
+):
+    rows, _ = straight()
+    cfg = make_config(BASE)
+    train(cfg, tmp_path, progress=False, cut_every_s=0, stop_when=lambda r: r["episode"] == 6)
+    newest, older = cut_files(tmp_path / "cuts")
+    newest.write_bytes(newest.read_bytes()[:100])  # truncated mid-write (say)
+    with caplog.at_level("WARNING", logger="macb.cuts"):
+        resumed = train(cfg, tmp_path, progress=False, cut_every_s=0, resume=True)
+    assert newest.name in caplog.text and "unreadable" in caplog.text
+    assert strip(resumed) == strip(rows)  # from episode 4's cut, the same rows again
+    assert newest.with_name(newest.name + ".refused").exists()
+
+
+def test_a_cut_from_another_config_or_format_is_refused_naming_it_and_nothing_changes(
+    tmp_path, capsys
+):
+    cfg = make_config(BASE)
+    train(cfg, tmp_path, progress=False, cut_every_s=0, stop_when=lambda r: r["episode"] == 4)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    edited = {**json.loads((tmp_path / "config.json").read_text()), "k": 64}
+    (tmp_path / "config.json").write_text(json.dumps(edited))
+    assert main(["train", "--resume", str(tmp_path), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "k: 32 in the cut, 64 in the run" in err
+    (tmp_path / "config.json").write_bytes(before[tmp_path / "config.json"])
+    for path in cut_files(tmp_path / "cuts"):
+        state = torch.load(path, weights_only=True)
+        torch.save({**state, "format": CUT_FORMAT + 1}, path)
+    assert main(["train", "--resume", str(tmp_path), "--quiet"]) == 2
+    assert f"cut format {CUT_FORMAT + 1}" in capsys.readouterr().err
+    after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    changed = {p for p in after if before.get(p) != after[p]} - set(cut_files(tmp_path / "cuts"))
+    assert changed == set() and set(after) == set(before)  # no file written or renamed
+
+
+def test_resume_refuses_config_flags(tmp_path, capsys):
+    assert main(["train", "--resume", str(tmp_path), "--k", "64", "--quiet"]) == 2
+    assert "drop --k" in capsys.readouterr().err
