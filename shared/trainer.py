@@ -144,7 +144,7 @@ def train(
     if resume and out is None:
         raise ValueError("resume needs the run's output folder")
     with threadpool_limits(limits=1, user_api="blas"):
-        run = _Run(cfg, out, cut_every_s)
+        run = Run(cfg, out, cut_every_s)
         if resume:
             run.restore()
         elif run.cuts is not None and run.cuts.exists():
@@ -152,7 +152,7 @@ def train(
         return run.go(progress, on_metrics, stop_when)
 
 
-class _Run:
+class Run:
     """One run's parts and counters: the loop, its cuts and their restore."""
 
     def __init__(self, cfg: TrainConfig, out: Path | None, cut_every_s: float) -> None:
@@ -186,6 +186,8 @@ class _Run:
         self.cuts = self.replay = None
         self.replay_rows = 0  # rows of the replay log on disk, as of the last cut
         self.last_cut = time.monotonic()
+        # (episode, seconds, replay bytes appended, cut file bytes) of each cut written.
+        self.cut_log: list[tuple[int, float, int, int]] = []
         # Every transition collected, kept since the last cut for the replay log.
         self.pending: list[tuple[np.ndarray, ...]] = []
         if out is not None:
@@ -295,6 +297,7 @@ class _Run:
         """Replay rows since the last cut appended, then the cut itself (atomic)."""
         assert self.cuts is not None and self.replay is not None
         t0 = time.perf_counter()
+        replay_bytes = 0
         if self.pending:
             cols = list(zip(*self.pending))
             arrays = {
@@ -304,7 +307,7 @@ class _Run:
                 "next_obs": np.stack(cols[3]),
                 "done": np.asarray(cols[4], np.float32),
             }
-            self.replay.append(arrays, self.replay_rows, self.width)
+            replay_bytes = self.replay.append(arrays, self.replay_rows, self.width)
             self.replay_rows += len(self.pending)
             self.pending = []
         rng = {
@@ -313,7 +316,7 @@ class _Run:
             "eval_envs": [e.rng_state() for e in self.eval_envs],
         }
         wall = self.wall_before + time.perf_counter() - self.start
-        write_cut(
+        path = write_cut(
             self.cuts,
             episode,
             {
@@ -334,7 +337,9 @@ class _Run:
             },
         )
         self.last_cut = time.monotonic()
-        log.debug("cut at episode %d in %.3f s", episode, time.perf_counter() - t0)
+        spent = time.perf_counter() - t0
+        self.cut_log.append((episode, spent, replay_bytes, path.stat().st_size))
+        log.debug("cut at episode %d in %.3f s", episode, spent)
 
     def restore(self) -> None:
         """Continue from the newest usable cut in `out`; the rows after it are dropped."""

@@ -28,3 +28,15 @@ def test_bench_rollout_refuses_an_unknown_task(tmp_path: Path) -> None:
     argv = [sys.executable, str(ROOT / "benchmarks" / "bench_rollout.py"), "--tasks", "nope"]
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
     assert proc.returncode == 2 and "unknown task(s) ['nope']" in proc.stderr
+
+
+def test_bench_cuts_runs_and_reports_bytes_and_time_per_cut(tmp_path: Path) -> None:
+    out = tmp_path / "cuts.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_cuts.py"), "--quick"]
+    argv += ["--episodes", "20", "--eval-every", "5", "--out", str(out)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(out.read_text())["summary"]
+    assert summary["cuts_per_often_run"] == 4  # one per evaluation point
+    assert summary["replay_bytes_per_cut"] > 0 and summary["cut_file_bytes"] > 0
+    assert 0 < summary["share_at_default_interval"] < 1
