@@ -55,7 +55,12 @@ def check_exact(watch, actors, config):
     assert published == config.episodes * config.episode_len
     counter = watch.latest["counter"]
     assert counter["counted_transitions"] == published
-    assert counter["duplicates"] == 0 and counter["gaps"] == 0, json.dumps([counter, watch.states])
+    # Duplicates are ignored (that is the guarantee); each one must be a batch an actor
+    # resent, after a second with no ack moving (a learner stalled on a loaded machine
+    # makes that happen), never a second delivery of one publication.
+    resent_rows = sum(watch.states[a].get("resends", 0) for a in actors) * config.episode_len
+    assert counter["duplicates"] <= resent_rows, json.dumps([counter, watch.states])
+    assert counter["gaps"] == 0, json.dumps([counter, watch.states])
     learner = watch.states[watch.assign["learner"]]
     assert learner["ingested"] == published
     expected_updates = published - config.learning_starts
@@ -130,16 +135,22 @@ def test_short_speaker_listener_cen_macb_run_is_exact(procs, bus, tmp_path, acto
     wait_for(lambda: all(not i.get("run") for i in discover(bus)), timeout=10, what="free")
 
 
-def test_short_thesis_profile_run_is_exact(procs, bus, tmp_path):
-    """`profile: thesis` in the cluster: the actors' padded speaker observations (22-wide
-    joint, row T4) fit the learner's and counter's tables since all size from the same
-    config; successes reset the world inside the window and each actor warms up at
-    random for its share, and every count stays exact."""
-    start_cluster(procs, tmp_path, 2)
-    wait_services(bus, 5)
-    config = make_config({**SMALL, "profile": "thesis"})
-    assert config.pad_obs and config.success_terminal and config.warmup == "random"
-    watch = start_run(bus, config, actors=2)
+@pytest.mark.parametrize(
+    ("task", "actors"),
+    [("speaker_listener", 2), ("spread", 1), ("simple", 1)],
+)
+def test_short_thesis_profile_run_is_exact(procs, bus, tmp_path, task, actors):
+    """`profile: thesis` in the cluster, on each task: the actors' padded speaker
+    observations (22-wide joint, row T4) or comm-free spread ones (row T3) fit the
+    learner's and counter's tables since all size from the same config; successes reset
+    the world inside the window, each actor warms up at random for its share, the
+    learner draws a minibatch per agent, and every count stays exact."""
+    start_cluster(procs, tmp_path, actors)
+    wait_services(bus, 3 + actors)
+    algo = {"simple": "ddpg", "spread": "cen-maddpg"}.get(task, SMALL["algo"])
+    config = make_config({**SMALL, "task": task, "algo": algo, "profile": "thesis"})
+    assert config.success_terminal and config.warmup == "random"
+    watch = start_run(bus, config, actors=actors)
     assert watch.wait(timeout=240) == "completed", watch.states
     wait_for(
         lambda: watch.latest.get("counter", {}).get("counted_transitions") == 600,
