@@ -134,6 +134,24 @@ def test_stop_is_idempotent_and_says_when_it_does_nothing(client):
     assert "nothing to stop" in again["detail"]
 
 
+def test_profile_thesis_fills_in_each_runs_options_through_the_api(client):
+    """A key the body leaves out is the profile's to fill in, per run: `hash_round` 2 is
+    the thesis code's for Cen-MACB only, so it follows each arm's bonus."""
+    arms = [{"name": "cen", "explore": "cen-macb"}, {"name": "dis", "explore": "dis-macb"}]
+    body = {**TINY, "profile": "thesis", "arms": arms, "landmark_size": 0.05}
+    exp = post(client, body).json()
+    cen, dis = (r["config"] for r in exp["runs"])
+    for config in (cen, dis):
+        assert config["profile"] == "thesis" and config["success_terminal"] is True
+        assert config["integrator"] == "velocity-first" and config["minibatch"] == "per-agent"
+        assert config["landmark_size"] == 0.05, "a key given wins over the profile"
+    assert (cen["hash_round"], dis["hash_round"]) == (2, None)
+    assert exp["config"]["success_terminal"] is True, "the base shows the profile's options"
+    plain = post(client, TINY).json()["runs"][0]["config"]
+    assert plain["profile"] == "mpe2" and plain["success_terminal"] is False
+    assert plain == TrainConfig(**{**TINY, "seed": 0}).model_dump(mode="json")
+
+
 # ---------------------------------------------------------------- metrics
 def test_metrics_json_csv_since_and_curves_serve_exactly_what_is_stored(api, client):
     exp = post(client, {**TINY, "seeds": [0, 1]}).json()
