@@ -369,6 +369,7 @@ def cmd_ls(args: argparse.Namespace) -> int:
             print(
                 f"  {r['id']:<28} {r['status']:<9} seed={r['seed']:<4} "
                 f"arm={r.get('arm', ''):<24} episode {p['episode']}/{p['episodes']}"
+                + (f"  attempt {r['attempts']}" if r.get("attempts", 1) > 1 else "")
                 + (f"  {r['reason']}" if r["reason"] else "")
             )
     return 0

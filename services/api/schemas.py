@@ -353,6 +353,9 @@ class RunPublic(BaseModel):
     ended: datetime | None = None
     progress: Progress
     points: int = Field(description="metric points stored")
+    attempts: int = Field(
+        1, description="how often it was queued: 1, plus one per retry (its points then go)"
+    )
     assign: dict[str, Any] | None = Field(None, description="the services serving it")
     services: dict[str, Any] = Field(description="each service's last status for this run")
     live: dict[str, Any] = Field(description="latest stats per source (learner, counter, ...)")
@@ -387,6 +390,13 @@ class ExperimentStopResult(BaseModel):
     changed: bool
     detail: str
     stopped: list[str] = Field(description="ids of the runs this call stopped")
+    experiment: ExperimentPublic
+
+
+class ExperimentRetryResult(BaseModel):
+    changed: bool = Field(description="false: no run was failed or stopped (a no-op)")
+    detail: str
+    retried: list[str] = Field(description="ids of the runs queued again by this call")
     experiment: ExperimentPublic
 
 
