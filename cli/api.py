@@ -187,11 +187,14 @@ def _check_base(config: dict[str, Any], varied: bool) -> None:
 
 def experiment_body(args: argparse.Namespace) -> dict[str, Any]:
     """The POST /experiments body from a config file, flags, --seeds, --grid and --arms
-    (the flags replace what the file says)."""
+    (the flags replace what the file says: `--seeds` or `--seed` its `seeds`)."""
     body: dict[str, Any] = {}
     if getattr(args, "config", None):
         body.update(_read_config_file(args.config))
-    body.update(config_overrides(args))
+    overrides = config_overrides(args)
+    if "seed" in overrides:
+        body.pop("seeds", None)  # `--seed 5` over a file's seeds: that one seed
+    body.update(overrides)
     grid = _grid(args.grid)
     if grid:
         in_file = body.get("grid")

@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cli.api import experiment_body, run_via_api
-from cli.config_flags import add_config_flags, config_overrides, resolve_config
-from shared.config import ConfigError, TrainConfig, load_config
+from cli.config_flags import add_config_flags, config_overrides, one_run_config, resolve_config
+from shared.config import ConfigError, TrainConfig
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -293,7 +293,9 @@ def _up_experiment(args: argparse.Namespace) -> tuple[TrainConfig | None, dict |
     (None, None) without --run. Raises ConfigError or OSError."""
     if not args.run:
         return None, None
-    cfg = load_config(args.run, config_overrides(args))
+    cfg, note = one_run_config(args.run, config_overrides(args))
+    if note and args.no_api:
+        print(f"note: {note}", file=sys.stderr)
     body = experiment_body(
         argparse.Namespace(**{**vars(args), "config": args.run, "grid": None, "name": None})
     )
