@@ -49,7 +49,9 @@ def _parse(subparsers, command: str, *flags: str) -> argparse.Namespace:
 
 
 def test_commands_and_their_order(subparsers):
-    assert list(subparsers) == ["train", "serve", "start", "stop", "run", "ls", "plot", "ps", "up"]
+    assert list(subparsers) == [
+        *("train", "serve", "start", "stop", "run", "ls", "plot", "ps", "up", "reproduce")
+    ]
 
 
 def test_every_config_field_is_a_flag_with_the_same_dest_on_every_config_command(subparsers):
