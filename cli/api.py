@@ -187,11 +187,14 @@ def _check_base(config: dict[str, Any], varied: bool) -> None:
 
 def experiment_body(args: argparse.Namespace) -> dict[str, Any]:
     """The POST /experiments body from a config file, flags, --seeds, --grid and --arms
-    (the flags replace what the file says)."""
+    (the flags replace what the file says: `--seeds` or `--seed` its `seeds`)."""
     body: dict[str, Any] = {}
     if getattr(args, "config", None):
         body.update(_read_config_file(args.config))
-    body.update(config_overrides(args))
+    overrides = config_overrides(args)
+    if "seed" in overrides:
+        body.pop("seeds", None)  # `--seed 5` over a file's seeds: that one seed
+    body.update(overrides)
     grid = _grid(args.grid)
     if grid:
         in_file = body.get("grid")
@@ -369,6 +372,7 @@ def cmd_ls(args: argparse.Namespace) -> int:
             print(
                 f"  {r['id']:<28} {r['status']:<9} seed={r['seed']:<4} "
                 f"arm={r.get('arm', ''):<24} episode {p['episode']}/{p['episodes']}"
+                + (f"  attempt {r['attempts']}" if r.get("attempts", 1) > 1 else "")
                 + (f"  {r['reason']}" if r["reason"] else "")
             )
     return 0

@@ -8,21 +8,23 @@ and `stop --bus` (the `stop` command itself lives with the API commands in cli.a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cli.api import experiment_body, run_via_api
-from cli.config_flags import add_config_flags, config_overrides, resolve_config
-from shared.config import ConfigError, TrainConfig, load_config
+from cli.config_flags import add_config_flags, config_overrides, one_run_config, resolve_config
+from shared.cluster import Cluster, cluster_plan
+from shared.config import ConfigError, TrainConfig
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
     from shared.bus import Bus
-    from shared.cluster import Cluster
 
 SERVICES = ("router", "counter", "learner", "actor", "evaluator", "api")
 
@@ -249,11 +251,9 @@ def cmd_ps(args: argparse.Namespace) -> int:
 def cmd_up(args: argparse.Namespace) -> int:
     """Start the local cluster, then run `--run CONFIG` on it or serve until a signal.
 
-    The config is checked before any process starts, and the `finally` stops every child
-    whichever way this returns, so no process outlives `macb up`.
+    The config is checked before any process starts, and `local_cluster` stops every
+    child whichever way this returns, so no process outlives `macb up`.
     """
-    from shared.bus import Bus
-
     try:
         cfg, body = _up_experiment(args)
     except (ConfigError, OSError) as err:
@@ -261,26 +261,63 @@ def cmd_up(args: argparse.Namespace) -> int:
         return 2
     data_dir = Path(args.data_dir)
     api_addr = None if args.no_api else f"127.0.0.1:{args.api_port}"
-    cluster = _local_cluster(args, data_dir, api_addr)
+    try:
+        with local_cluster(
+            args.actors, args.endpoint, data_dir, api_addr, echo=not args.quiet_services
+        ) as up:
+            if cfg is None or up.stop.is_set():
+                return _serve_until_stopped(up.cluster, up.stop)
+            code = up.run(_experiment(args, cfg, body, up.bus, up.api, data_dir))
+            if up.api is not None:
+                _print_where_results_stay(up.api, data_dir)
+            return code
+    except ClusterDidNotStart:
+        return 1
+
+
+class ClusterDidNotStart(RuntimeError):
+    """A service or the API did not come up (what and why is printed already)."""
+
+
+@dataclass
+class LocalCluster:
+    """The running local cluster: its processes, a bus session, the API client (None
+    without an API) and the event a signal sets."""
+
+    cluster: Cluster
+    bus: Bus
+    api: ApiClient | None
+    stop: threading.Event
+
+    def run(self, work: Callable[[], int]) -> int:
+        """`work`'s exit code, or 1 if a signal or a dead service ended it first."""
+        return _run_while_cluster_lives(work, self.cluster, self.stop)
+
+
+@contextlib.contextmanager
+def local_cluster(
+    actors: int, endpoint: str, data_dir: Path, api_addr: str | None, echo: bool = True
+) -> Iterator[LocalCluster]:
+    """Start the local cluster (`macb up`'s, and `macb reproduce`'s when no API answers)
+    and wait for every service and the API; stop every process on the way out, however
+    that is. SIGTERM and Ctrl-C only set `stop` from here on. Raises ClusterDidNotStart.
+    With a signal during start-up it yields at once, `stop` set (and `api` maybe None)."""
+    from shared.bus import Bus
+
+    plan = cluster_plan(actors, endpoint, str(data_dir), api=api_addr)
+    cluster = Cluster(plan, data_dir / "logs", echo=echo)
     stop = _stop_on_signals()
     api = None
     try:
         _start_cluster(cluster, data_dir)
-        with Bus([args.endpoint]) as bus:
+        with Bus([endpoint]) as bus:
             if not _services_came_up(bus, cluster, stop):
-                return 1
+                raise ClusterDidNotStart("services")
             if api_addr is not None and not stop.is_set():
                 api = _api_client_at(api_addr)
                 if not _api_came_up(api, cluster, data_dir):
-                    return 1
-            if cfg is None or stop.is_set():
-                return _serve_until_stopped(cluster, stop)
-            code = _run_while_cluster_lives(
-                _experiment(args, cfg, body, bus, api, data_dir), cluster, stop
-            )
-            if api is not None:
-                _print_where_results_stay(api, data_dir)
-            return code
+                    raise ClusterDidNotStart("api")
+            yield LocalCluster(cluster, bus, api, stop)
     finally:
         if api is not None:
             api.close()
@@ -293,18 +330,13 @@ def _up_experiment(args: argparse.Namespace) -> tuple[TrainConfig | None, dict |
     (None, None) without --run. Raises ConfigError or OSError."""
     if not args.run:
         return None, None
-    cfg = load_config(args.run, config_overrides(args))
+    cfg, note = one_run_config(args.run, config_overrides(args))
+    if note and args.no_api:
+        print(f"note: {note}", file=sys.stderr)
     body = experiment_body(
         argparse.Namespace(**{**vars(args), "config": args.run, "grid": None, "name": None})
     )
     return cfg, body
-
-
-def _local_cluster(args: argparse.Namespace, data_dir: Path, api_addr: str | None) -> Cluster:
-    from shared.cluster import Cluster, cluster_plan
-
-    plan = cluster_plan(args.actors, args.endpoint, str(data_dir), api=api_addr)
-    return Cluster(plan, data_dir / "logs", echo=not args.quiet_services)
 
 
 def _stop_on_signals() -> threading.Event:

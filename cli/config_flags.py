@@ -12,7 +12,7 @@ from typing import Any, Literal, get_args, get_origin
 
 import yaml
 
-from shared.config import TrainConfig, load_config, make_config
+from shared.config import ConfigError, TrainConfig, make_config, read_config_file
 
 # Exception: these tuple fields take a comma list (`--hidden 400,300`) rather than YAML,
 # and show their default that way; YAML would read "400,300" as one string.
@@ -80,9 +80,44 @@ def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+def one_run_config(path: str, overrides: dict[str, Any]) -> tuple[TrainConfig, str | None]:
+    """A config file as ONE run (`macb train`, `start`, `up --no-api`), flags over it,
+    and a note to show, if any. The shipped configs list the thesis's 3 `seeds` for
+    `macb run`; one run takes the first (or `--seed`), and the note says so. The other
+    experiment keys have no one-run meaning: a grid or arms is refused, naming `macb run`.
+    Raises ConfigError or OSError."""
+    data = read_config_file(path)
+    note = None
+    for key in ("grid", "arms"):
+        if key in data:
+            raise ConfigError(
+                f"{key}: {path} is an experiment of several runs; this command runs one "
+                f"config: `macb run {path}` runs them all"
+            )
+    if "seeds" in data:
+        seeds = data.pop("seeds")
+        if "seed" in data:
+            raise ConfigError(f"seeds: {path} gives seed and seeds; give one of them")
+        if not isinstance(seeds, list) or not seeds:
+            raise ConfigError(f"seeds: {path}: a non-empty list of seeds, like [0, 1, 2]")
+        data["seed"] = seeds[0]
+        if "seed" not in overrides and len(seeds) > 1:
+            note = (
+                f"{path} lists seeds {seeds}: this runs one run, seed {seeds[0]} (--seed "
+                f"picks another; `macb run {path}` runs every seed)"
+            )
+    return make_config({**data, **overrides}), note
+
+
 def resolve_config(args: argparse.Namespace) -> TrainConfig:
-    """`--config FILE` (if given) with the flags over it; raises ConfigError or OSError."""
+    """`--config FILE` (if given) with the flags over it, as one run (a note on stderr if
+    the file lists several seeds); raises ConfigError or OSError."""
+    import sys
+
     overrides = config_overrides(args)
-    if args.config:
-        return load_config(args.config, overrides)
-    return make_config(overrides)
+    if not args.config:
+        return make_config(overrides)
+    cfg, note = one_run_config(args.config, overrides)
+    if note:
+        print(f"note: {note}", file=sys.stderr)
+    return cfg

@@ -1,6 +1,6 @@
 """`macb`: the parser assembled from the command groups, and the entry point.
 
-Each group module (cli.train, cli.cluster, cli.api) adds its own subcommands; this
+Each group module (cli.train, cli.cluster, cli.api, cli.reproduce) adds its own subcommands; this
 module only fixes their order in `macb --help` and sets up logging.
 """
 
@@ -10,7 +10,7 @@ import argparse
 import logging
 from collections.abc import Callable
 
-from cli import api, cluster, train
+from cli import api, cluster, reproduce, train
 
 # In the order `macb --help` lists them.
 COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
@@ -23,6 +23,7 @@ COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     api.add_plot_parser,
     cluster.add_ps_parser,
     cluster.add_up_parser,
+    reproduce.add_reproduce_parser,
 )
 
 

@@ -163,7 +163,7 @@ class ServiceBase:
         if tag == "start":
             if not self.assigned(msg["assign"]):
                 return  # another service's run: not an error
-            if run in self.active:
+            if run in self.active and not self.start_replaces(run):
                 return  # repeated start: idempotent
             if len(self.active) >= self.max_runs:
                 self.log.warning("asked to start %s while serving %s: ignored", run, self.run_id)
@@ -218,6 +218,11 @@ class ServiceBase:
         self.active.pop(run, None)
 
     # ------------------------------------------------------------ hooks
+    def start_replaces(self, run: str) -> bool:
+        """A start for a run this service already serves: False ignores it (a repeated
+        start); True means it begins a new attempt, and the service has let the old go."""
+        return False
+
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None: ...
 
     def on_stop(self, run: str, reason: str) -> None: ...

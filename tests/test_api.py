@@ -134,6 +134,78 @@ def test_stop_is_idempotent_and_says_when_it_does_nothing(client):
     assert "nothing to stop" in again["detail"]
 
 
+def test_retry_queues_failed_and_stopped_runs_again_under_their_ids(api, client):
+    exp = post(client, {**TINY, "seeds": [0, 1, 2, 3]}).json()
+    stopped, failed, done, waiting = (r["id"] for r in exp["runs"])
+    store = Store(api.settings.db_path)  # a second connection, as the scheduler has
+    try:
+        for run in (stopped, failed, done):
+            store.add_points(run, [row(4), row(8)])
+        client.post(f"/runs/{stopped}/stop")
+        store.finish(failed, "failed", "learner learner died")
+        store.finish(done, "completed")
+    finally:
+        store.close()
+    r = client.post(f"/experiments/{exp['id']}/retry")
+    assert r.status_code == 200
+    out = r.json()
+    assert out["changed"] is True and out["retried"] == [stopped, failed]
+    assert out["detail"] == "queued 2 run(s) again"
+    runs = {x["id"]: x for x in out["experiment"]["runs"]}
+    assert [x["id"] for x in out["experiment"]["runs"]] == [r["id"] for r in exp["runs"]]
+    assert runs[stopped]["reason"] == "retried (attempt 2; was stopped: stopped by user)"
+    assert runs[failed]["reason"] == "retried (attempt 2; was failed: learner learner died)"
+    for run in (stopped, failed):
+        assert runs[run]["status"] == "queued" and runs[run]["attempts"] == 2
+        assert runs[run]["points"] == 0 and runs[run]["started"] is None
+        assert client.get(f"/runs/{run}/metrics").json()["points"] == [], "points deleted"
+    assert runs[done]["status"] == "completed" and runs[done]["attempts"] == 1
+    assert [p["episode"] for p in client.get(f"/runs/{done}/metrics").json()["points"]] == [4, 8]
+    assert runs[waiting]["status"] == "queued" and runs[waiting]["attempts"] == 1
+
+    again = client.post(f"/experiments/{exp['id']}/retry").json()  # idempotent
+    assert again["changed"] is False and again["retried"] == []
+    assert (
+        again["detail"] == "nothing to retry: no run is failed or stopped (3 queued, 1 completed)"
+    )
+    assert {x["id"]: x["attempts"] for x in again["experiment"]["runs"]} == {
+        stopped: 2,
+        failed: 2,
+        done: 1,
+        waiting: 1,
+    }
+
+    # Only the runs named; a run of another experiment, or none, is an unknown id.
+    client.post(f"/experiments/{exp['id']}/stop")
+    some = client.post(f"/experiments/{exp['id']}/retry", params={"run": [failed, done]}).json()
+    assert some["retried"] == [failed], "a completed run is not retried"
+    statuses = {x["id"]: x["status"] for x in some["experiment"]["runs"]}
+    assert statuses == {stopped: "stopped", failed: "queued", done: "completed", waiting: "stopped"}
+    unknown = client.post(f"/experiments/{exp['id']}/retry", params={"run": ["x-9"]})
+    assert unknown.status_code == 404 and "x-9" in unknown.json()["detail"]
+    missing = client.post("/experiments/no-such-experiment/retry")
+    assert missing.status_code == 404
+    assert "no experiment with id 'no-such-experiment'" in missing.json()["detail"]
+
+
+def test_profile_thesis_fills_in_each_runs_options_through_the_api(client):
+    """A key the body leaves out is the profile's to fill in, per run: `hash_round` 2 is
+    the thesis code's for Cen-MACB only, so it follows each arm's bonus."""
+    arms = [{"name": "cen", "explore": "cen-macb"}, {"name": "dis", "explore": "dis-macb"}]
+    body = {**TINY, "profile": "thesis", "arms": arms, "landmark_size": 0.05}
+    exp = post(client, body).json()
+    cen, dis = (r["config"] for r in exp["runs"])
+    for config in (cen, dis):
+        assert config["profile"] == "thesis" and config["success_terminal"] is True
+        assert config["integrator"] == "velocity-first" and config["minibatch"] == "per-agent"
+        assert config["landmark_size"] == 0.05, "a key given wins over the profile"
+    assert (cen["hash_round"], dis["hash_round"]) == (2, None)
+    assert exp["config"]["success_terminal"] is True, "the base shows the profile's options"
+    plain = post(client, TINY).json()["runs"][0]["config"]
+    assert plain["profile"] == "mpe2" and plain["success_terminal"] is False
+    assert plain == TrainConfig(**{**TINY, "seed": 0}).model_dump(mode="json")
+
+
 # ---------------------------------------------------------------- metrics
 def test_metrics_json_csv_since_and_curves_serve_exactly_what_is_stored(api, client):
     exp = post(client, {**TINY, "seeds": [0, 1]}).json()
@@ -513,7 +585,8 @@ def test_a_schema_1_store_is_migrated_and_its_runs_get_arm_names(tmp_path):
                 assert conn.execute("SELECT version FROM schema_version").fetchall() == [
                     (SCHEMA_VERSION,)
                 ]
-            assert SCHEMA_VERSION == 2 and "arm" in _columns(path)
+            assert SCHEMA_VERSION == 3 and {"arm", "attempts"} <= set(_columns(path))
+            assert {r["attempts"] for r in store.runs_of(["xgrid"])["xgrid"]} == {1}
             runs = store.runs_of(["xgrid", "xplain"])
             assert [r["arm"] for r in runs["xgrid"]] == ["beta=0.2"] * 2 + ["beta=0.8"] * 2
             assert [r["arm"] for r in runs["xplain"]] == ["cen-maddpg + cen-macb"]

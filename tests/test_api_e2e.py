@@ -301,6 +301,52 @@ def test_a_run_whose_learner_dies_fails_with_the_reason_and_the_others_go_on(clu
     assert httpx.get(f"{url}/experiments/{long['id']}").json()["status"] == "failed"
 
 
+def test_a_stopped_run_retried_runs_afresh_under_its_id(cluster):
+    """Stopped mid-run and queued again (POST /experiments/{id}/retry): the same run id
+    runs from the start on the same services, its earlier points gone, and the counter
+    counts the new attempt's transitions from nothing (not on top of the old ones)."""
+    url = cluster.url
+    episodes = 120
+    exp = httpx.post(f"{url}/experiments", json={**TINY, "episodes": episodes}).json()
+    run_id = exp["runs"][0]["id"]
+    wait_for(
+        lambda: httpx.get(f"{url}/runs/{run_id}").json()["points"] >= 2,
+        timeout=60,
+        what="two points stored",
+    )
+    httpx.post(f"{url}/experiments/{exp['id']}/stop")
+    wait_for(
+        lambda: all(w["run"] is None for w in httpx.get(f"{url}/workers").json()["workers"]),
+        timeout=20,
+        what="services freed by the stop",
+    )
+    stopped = httpx.get(f"{url}/runs/{run_id}").json()
+    assert stopped["status"] == "stopped" and stopped["points"] >= 2
+    out = httpx.post(f"{url}/experiments/{exp['id']}/retry").json()
+    assert out["retried"] == [run_id] and out["experiment"]["runs"][0]["attempts"] == 2
+    run = wait_for(
+        lambda: (
+            (r := httpx.get(f"{url}/runs/{run_id}").json())["status"] not in ("queued", "running")
+            and r
+        ),
+        timeout=180,
+        what="the retried run to end",
+    )
+    assert run["status"] == "completed" and run["reason"] is None, run
+    assert run["attempts"] == 2 and run["points"] == episodes // 4
+    points = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
+    assert [p["seq"] for p in points] == list(range(1, episodes // 4 + 1))
+    assert [p["episode"] for p in points] == list(range(4, episodes + 1, 4))
+
+    def counted():
+        live = httpx.get(f"{url}/runs/{run_id}").json()["live"]
+        return live.get("counter", {}).get("counted_transitions") == episodes * 20
+
+    wait_for(counted, timeout=10, what="the counter's final stats: counted afresh")
+    again = httpx.post(f"{url}/experiments/{exp['id']}/retry").json()
+    assert again["changed"] is False and again["retried"] == []
+
+
 def macb(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "cli", *args],

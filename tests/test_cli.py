@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import os
 import re
 import subprocess
@@ -48,7 +49,9 @@ def _parse(subparsers, command: str, *flags: str) -> argparse.Namespace:
 
 
 def test_commands_and_their_order(subparsers):
-    assert list(subparsers) == ["train", "serve", "start", "stop", "run", "ls", "plot", "ps", "up"]
+    assert list(subparsers) == [
+        *("train", "serve", "start", "stop", "run", "ls", "plot", "ps", "up", "reproduce")
+    ]
 
 
 def test_every_config_field_is_a_flag_with_the_same_dest_on_every_config_command(subparsers):
@@ -217,3 +220,60 @@ def test_macb_run_refuses_a_bad_grid_with_exit_2_without_an_api(tmp_path):
     )
     assert proc.returncode == 2, proc.stderr
     assert "the seed is not a grid key: use --seeds" in proc.stderr
+
+
+# ---------------------------------------------------------------- seeds in config files
+SHIPPED = ROOT / "configs" / "fig8" / "sparse-cen-macb.yaml"
+
+
+def test_one_run_of_a_file_listing_seeds_takes_the_first_and_says_so():
+    flags = _import("cli.config_flags")
+    cfg, note = flags.one_run_config(str(SHIPPED), {})
+    assert cfg.seed == 0 and cfg.explore == "cen-macb" and cfg.k == 512
+    assert f"{SHIPPED} lists seeds [0, 1, 2]: this runs one run, seed 0" in note
+    assert f"`macb run {SHIPPED}` runs every seed" in note
+    cfg, note = flags.one_run_config(str(SHIPPED), {"seed": 2})
+    assert cfg.seed == 2 and note is None, "--seed picks another, without a note"
+
+
+@pytest.mark.parametrize(
+    "text, says",
+    [
+        ("seed: 1\nseeds: [0, 1]\n", "gives seed and seeds"),
+        ("seeds: []\n", "a non-empty list of seeds"),
+        ("seeds: 3\n", "a non-empty list of seeds"),
+        ("grid: {beta: [0.1, 0.2]}\n", "grid: .* is an experiment of several runs"),
+        ("arms: [{name: a}]\n", "arms: .*`macb run .*` runs them all"),
+    ],
+)
+def test_one_run_refuses_what_only_an_experiment_has(tmp_path, text, says):
+    flags = _import("cli.config_flags")
+    path = tmp_path / "c.yaml"
+    path.write_text(BASE_YAML + text)
+    with pytest.raises(ConfigError, match=says):
+        flags.one_run_config(str(path), {})
+
+
+def test_macb_run_sends_the_files_seeds_unless_a_flag_says_otherwise(subparsers, tmp_path):
+    listed = BASE_YAML + "seeds: [0, 1, 2]\n"
+    assert _body(subparsers, tmp_path, listed)["seeds"] == [0, 1, 2]
+    assert _body(subparsers, tmp_path, listed, "--seeds", "4", "5")["seeds"] == [4, 5]
+    one = _body(subparsers, tmp_path, listed, "--seed", "5")
+    assert one["seed"] == 5 and "seeds" not in one
+
+
+def test_macb_train_runs_one_seed_of_a_shipped_config(tmp_path):
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "cli", "train", "--config", "configs/fig3/beta0.8.yaml"]
+        + ["--episodes", "2", "--eval-every", "2", "--eval-episodes", "1", "--hidden", "16"]
+        + ["--learning-starts", "10", "--out", str(out), "--quiet"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "lists seeds [0, 1, 2]: this runs one run, seed 0" in proc.stderr
+    config = json.loads((out / "config.json").read_text())
+    assert config["seed"] == 0 and config["beta"] == 0.8 and config["episodes"] == 2

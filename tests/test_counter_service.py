@@ -378,7 +378,22 @@ def test_stop_snapshots_and_frees_the_run_and_shutdown_saves_the_rest(counter):
     # Starting the stopped run's id again starts it afresh; the old state is archived.
     counter.start_run(stopped)
     assert counter.stats(stopped)["counted_transitions"] == 0
-    assert len(list((counter.data_dir / "counter" / ".archive").iterdir())) == 1
+    archive = counter.data_dir / "counter" / ".archive"
+    assert len(list(archive.iterdir())) == 1
+
+    # A start for the restored run is a new attempt of it (queued again after the first
+    # ended while this counter was down): fresh tables and expected numbers, the old
+    # state archived, and the new attempt's transitions, numbered from 0, all counted.
+    counter.bus.put(k_control("start"), encode("start", kept, config=BASE, assign=ASSIGN))
+    wait_for(lambda: counter.stats(kept)["counted_transitions"] == 0, 10, what="a new attempt")
+    assert len(list(archive.iterdir())) == 2
+    assert "started again while restored from disk" in counter.log()
+    counter.send(kept, "a0", stream, 0, 10)
+    wait_for(lambda: counter.stats(kept)["counted_transitions"] == 10, 10, what="counted anew")
+    # A run started by this process takes a repeated start as a no-op.
+    counter.bus.put(k_control("start"), encode("start", kept, config=BASE, assign=ASSIGN))
+    time.sleep(0.5)
+    assert counter.stats(kept)["counted_transitions"] == 10
 
 
 def test_timed_snapshots_wait_for_the_log_to_reach_a_quarter_of_the_table(counter):

@@ -70,8 +70,8 @@ class ApiClient:
     def create_experiment(self, body: dict[str, Any]) -> dict[str, Any]:
         return self._call("POST", "/experiments", json=body)
 
-    def experiments(self, limit: int = 100) -> dict[str, Any]:
-        return self._call("GET", "/experiments", params={"limit": limit})
+    def experiments(self, limit: int = 100, offset: int = 0) -> dict[str, Any]:
+        return self._call("GET", "/experiments", params={"limit": limit, "offset": offset})
 
     def experiment(self, exp_id: str) -> dict[str, Any]:
         return self._call("GET", f"/experiments/{exp_id}")
@@ -79,14 +79,31 @@ class ApiClient:
     def stop_experiment(self, exp_id: str) -> dict[str, Any]:
         return self._call("POST", f"/experiments/{exp_id}/stop")
 
+    def retry_experiment(self, exp_id: str, runs: list[str] | None = None) -> dict[str, Any]:
+        """Queue its failed and stopped runs again (only `runs`, if given)."""
+        params = {"run": runs} if runs else None
+        return self._call("POST", f"/experiments/{exp_id}/retry", params=params)
+
     def run(self, run_id: str) -> dict[str, Any]:
         return self._call("GET", f"/runs/{run_id}")
 
     def stop_run(self, run_id: str) -> dict[str, Any]:
         return self._call("POST", f"/runs/{run_id}/stop")
 
-    def metrics(self, run_id: str, since: int = 0) -> dict[str, Any]:
-        return self._call("GET", f"/runs/{run_id}/metrics", params={"since": since})
+    def metrics(self, run_id: str, since: int = 0, limit: int | None = None) -> dict[str, Any]:
+        params = {"since": since, **({"limit": limit} if limit else {})}
+        return self._call("GET", f"/runs/{run_id}/metrics", params=params)
+
+    def all_points(self, run_id: str, page: int = 50_000) -> list[dict[str, Any]]:
+        """Every stored point of a run, page by page (a 50,000-episode run has 50,000)."""
+        points: list[dict[str, Any]] = []
+        since = 0
+        while True:
+            got = self.metrics(run_id, since, limit=page)
+            points += got["points"]
+            if not got["more"] or not got["points"]:
+                return points
+            since = got["next_since"]
 
     def metrics_csv(self, run_id: str) -> str:
         return self._call("GET", f"/runs/{run_id}/metrics.csv").text

@@ -34,7 +34,7 @@ def draw_curves(curves: dict[str, Any], metric: str) -> Figure:
     groups = curves["metrics"].get(metric, [])
     fig = Figure(figsize=(6.4, 4.2), dpi=120)
     ax = fig.subplots()
-    for g, color in zip(groups, _colors(len(groups)), strict=True):
+    for g, color in zip(groups, palette(len(groups)), strict=True):
         if not g["episode"]:
             continue
         ax.plot(g["episode"], g["mean"], lw=1.6, color=color, label=legend_text(g))
@@ -54,7 +54,7 @@ def draw_curves(curves: dict[str, Any], metric: str) -> Figure:
     return fig
 
 
-def _colors(n: int) -> list[Any]:
+def palette(n: int) -> list[Any]:
     """n colours: tab10's up to 10 arms, tab20's (paired shades) beyond, then repeating."""
     from matplotlib import colormaps
 

@@ -20,6 +20,8 @@
   (`macb/run/{run}/history/eval`), so no point is lost while the API is down; a run
   whose services no longer serve it ended while nobody listened, and is resolved
   from what was stored. At a run's end, rows still missing are asked for once more.
+- A run queued again (POST /experiments/{id}/retry) starts afresh: what the attempt
+  that ended still sends (late rows, statuses) is not stored on the queued run.
 """
 
 from __future__ import annotations
@@ -234,11 +236,22 @@ class Scheduler:
         if rows:
             self._changed()
 
+    def _superseded(self, w: Watch) -> bool:
+        """The watch's run ended and was queued again since (a retry): what its ended
+        attempt still sends belongs to no attempt the store keeps. A look-up only for
+        ended watches, which live 3 s."""
+        if w.ended is None:
+            return False
+        row = self.store.run(w.run)
+        return row is None or row["status"] == "queued"
+
     def _store_points(self, run: str, rows: list[dict[str, Any]]) -> int:
         """Store evaluation rows (the store ignores episodes it has); count the new ones
         on the run's watch. Returns how many were new."""
-        added = self.store.add_points(run, rows)
         w = self.watches.get(run)
+        if w is not None and self._superseded(w):
+            return 0
+        added = self.store.add_points(run, rows)
         if w is not None and added:
             w.points += added
             w.last_episode = max([w.last_episode] + [int(r["episode"]) for r in rows])
@@ -274,7 +287,7 @@ class Scheduler:
             msg = decode(payload, "status")
         except WireError:
             return
-        if msg["run"] != run:
+        if msg["run"] != run or self._superseded(w):
             return
         w.states[msg["service"]] = {**flat_row(msg["detail"]), "state": msg["state"]}
         if msg["service"] == w.assign["evaluator"] and msg["state"] == "completed":
@@ -309,6 +322,9 @@ class Scheduler:
     def _watch(self, run: dict[str, Any], started: float) -> Watch:
         bus = self.bus
         assert bus is not None
+        old = self.watches.get(run["id"])
+        if old is not None:  # the ended attempt of a run queued again
+            self._unwatch(old)
         w = Watch(
             run=run["id"],
             assign=run["assign"],
@@ -411,6 +427,7 @@ class Scheduler:
             if not self.store.claim(run["id"], assign):
                 continue  # stopped meanwhile
             run["assign"] = assign
+            run["services"], run["live"] = {}, {}  # a new attempt: no states of its own yet
             self._watch(run, time.monotonic())
             send_start(self.bus, run["id"], config, assign)
             log.info("run %s started on %s", run["id"], assign)
@@ -424,6 +441,9 @@ class Scheduler:
     def _check_runs(self) -> None:
         now = time.monotonic()
         for w in list(self.watches.values()):
+            if self._superseded(w):
+                self._unwatch(w)
+                continue
             if w.live_dirty and (now - w.live_written > 1.0 or w.ended is not None):
                 self.store.set_live(w.run, w.live)
                 w.live_dirty, w.live_written = False, now
@@ -484,10 +504,13 @@ class Scheduler:
         for w in list(self.watches.values()):
             if w.ended is not None or now - w.started < self.start_timeout_s / 4:
                 continue
+            # Not the counter: it serves many runs and resumes those it had from disk
+            # when it restarts, including one whose learner is gone for good.
             serving = [
                 sid
-                for _, sid in w.services()
-                if sid in infos
+                for role, sid in w.services()
+                if role != "counter"
+                and sid in infos
                 and (infos[sid].get("run") == w.run or w.run in (infos[sid].get("runs") or []))
             ]
             learner_alive = ("learner", w.assign["learner"]) in self.alive

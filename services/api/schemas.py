@@ -28,7 +28,7 @@ from pydantic import (
     model_validator,
 )
 
-from shared.config import TrainConfig, format_errors
+from shared.config import TrainConfig, format_errors, profile_preset
 
 from .naming import point_name, run_name
 
@@ -162,12 +162,22 @@ class _ExperimentFields(BaseModel):
 
     # ------------------------------------------------------------ expansion
     def config_part(self) -> dict[str, Any]:
-        return {name: getattr(self, name) for name in TrainConfig.model_fields}
+        """The config keys the body gives. Only those: a key left out must stay out of
+        each run's config as given, so that TrainConfig fills it in, and `profile: thesis`
+        can fill in its options (a default passed on explicitly would win over them)."""
+        return {
+            name: getattr(self, name)
+            for name in TrainConfig.model_fields
+            if name in self.model_fields_set
+        }
 
     def base_config(self) -> dict[str, Any]:
-        """The base config as JSON values, seed left out. Not checked as a whole: only
-        each run's config must be valid (the base may set the task, each arm the algo)."""
-        config = TrainConfig.model_construct(**self.config_part()).model_dump(mode="json")
+        """The base config as JSON values (with the defaults and the profile's options of
+        keys not given), seed left out. Not checked as a whole: only each run's config
+        must be valid (the base may set the task, each arm the algo)."""
+        given = self.config_part()
+        given = {**profile_preset(getattr(self, "profile", "mpe2"), given), **given}
+        config = TrainConfig.model_construct(**given).model_dump(mode="json")
         config.pop("seed")
         return config
 
@@ -343,6 +353,9 @@ class RunPublic(BaseModel):
     ended: datetime | None = None
     progress: Progress
     points: int = Field(description="metric points stored")
+    attempts: int = Field(
+        1, description="how often it was queued: 1, plus one per retry (its points then go)"
+    )
     assign: dict[str, Any] | None = Field(None, description="the services serving it")
     services: dict[str, Any] = Field(description="each service's last status for this run")
     live: dict[str, Any] = Field(description="latest stats per source (learner, counter, ...)")
@@ -377,6 +390,13 @@ class ExperimentStopResult(BaseModel):
     changed: bool
     detail: str
     stopped: list[str] = Field(description="ids of the runs this call stopped")
+    experiment: ExperimentPublic
+
+
+class ExperimentRetryResult(BaseModel):
+    changed: bool = Field(description="false: no run was failed or stopped (a no-op)")
+    detail: str
+    retried: list[str] = Field(description="ids of the runs queued again by this call")
     experiment: ExperimentPublic
 
 

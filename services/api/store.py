@@ -11,6 +11,9 @@ A metric point is stored as the JSON of the evaluator's row with its `seq` (its
 number in the run, from 1, in arrival order) put in front; reads concatenate the
 stored JSON as it is, so serving 10,000 points decodes nothing. A point repeated
 for the same evaluation episode is ignored: storing is idempotent.
+
+A failed or stopped run can be queued again under its id (`retry_runs`): its points go,
+its `attempts` (schema 3) goes up by one, so the record says it ran more than once.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from shared.metrics import ALL_FIELDS
 
 from .naming import base_name, point_name
 
-SCHEMA_VERSION = 2  # 1: first; 2: runs.arm
+SCHEMA_VERSION = 3  # 1: first; 2: runs.arm; 3: runs.attempts
 
 CSV_FIELDS = ALL_FIELDS  # the columns of `macb train`, then what the services add
 
@@ -61,7 +64,8 @@ CREATE TABLE IF NOT EXISTS runs (
     assign        TEXT,                -- JSON: services serving it (counter, learner, ...)
     services      TEXT NOT NULL DEFAULT '{}',  -- JSON: service id -> last status
     live          TEXT NOT NULL DEFAULT '{}',  -- JSON: source -> latest stats
-    stop_sent     INTEGER NOT NULL DEFAULT 1   -- 0: a stop must still go on the bus
+    stop_sent     INTEGER NOT NULL DEFAULT 1,  -- 0: a stop must still go on the bus
+    attempts      INTEGER NOT NULL DEFAULT 1   -- 1 + how often it was queued again
 );
 CREATE INDEX IF NOT EXISTS runs_by_experiment ON runs(experiment_id, idx);
 CREATE INDEX IF NOT EXISTS runs_by_status ON runs(status, created, idx);
@@ -113,6 +117,11 @@ def _add_arms(c: sqlite3.Connection) -> None:
         "UPDATE runs SET arm = ? WHERE id = ?",
         [(default_arm(_loads(r["point"], {}), _loads(r["config"], {})), r["id"]) for r in rows],
     )
+
+
+def _add_attempts(c: sqlite3.Connection) -> None:
+    """Schema 2 -> 3: every run so far ran (or will run) once."""
+    c.execute("ALTER TABLE runs ADD COLUMN attempts INTEGER NOT NULL DEFAULT 1")
 
 
 class Store:
@@ -182,6 +191,8 @@ class Store:
             elif row[0] < SCHEMA_VERSION:
                 if row[0] < 2:
                     _add_arms(c)
+                if row[0] < 3:
+                    _add_attempts(c)
                 c.execute("UPDATE schema_version SET version = ?", (SCHEMA_VERSION,))
 
     # ------------------------------------------------------------ experiments
@@ -305,6 +316,31 @@ class Store:
                     (reason, now, int(r["status"] == "queued"), r["id"]),
                 )
             return [r["id"] for r in rows]
+
+    def retry_runs(self, exp_id: str, run_ids: list[str] | None = None) -> list[dict[str, Any]]:
+        """Queue the experiment's failed and stopped runs again (of `run_ids` only, if
+        given), under the same ids: their points are deleted, `attempts` goes up, the
+        reason says what they were. In one transaction; the runs retried (as they were
+        before), [] when there is nothing to retry. A stop not yet sent stays due: the
+        scheduler sends it before the run can be started again."""
+        with self.tx() as c:
+            rows = c.execute(
+                "SELECT id, status, reason, attempts FROM runs WHERE experiment_id = ?"
+                " AND status IN ('failed', 'stopped') ORDER BY idx",
+                (exp_id,),
+            ).fetchall()
+            rows = [r for r in rows if run_ids is None or r["id"] in run_ids]
+            for r in rows:
+                was = r["status"] + (f": {r['reason']}" if r["reason"] else "")
+                reason = f"retried (attempt {r['attempts'] + 1}; was {was})"
+                c.execute("DELETE FROM metrics WHERE run_id = ?", (r["id"],))
+                c.execute(
+                    "UPDATE runs SET status = 'queued', reason = ?, started = NULL,"
+                    " ended = NULL, assign = NULL, services = '{}', live = '{}',"
+                    " attempts = attempts + 1 WHERE id = ?",
+                    (reason, r["id"]),
+                )
+            return [dict(r) for r in rows]
 
     def stops_to_send(self) -> list[tuple[str, str]]:
         rows = self._conn().execute("SELECT id, reason FROM runs WHERE stop_sent = 0").fetchall()

@@ -39,6 +39,7 @@ def run_public(run: dict[str, Any], stats: tuple[int, int, int]) -> dict[str, An
             "trained_episodes": int(learner.get("episodes_ingested", 0) or 0),
         },
         "points": points,
+        "attempts": run.get("attempts", 1),
         "assign": run["assign"],
         "services": run["services"],
         "live": run["live"],

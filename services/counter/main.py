@@ -107,6 +107,7 @@ class CounterService(ServiceBase):
         self._lock = threading.RLock()  # tables and run states: ingestion vs queries/info
         self._reject_lock = threading.Lock()
         self._runs: dict[str, RunState] = {}
+        self._restored: set[str] = set()  # runs resumed from disk, not started here
         self._ready = False
         # Validated batches not yet taken: (run, state, actor, seq, obs, act), in order.
         self._burst: list[tuple[str, RunState, str, int, np.ndarray, np.ndarray]] = []
@@ -170,6 +171,19 @@ class CounterService(ServiceBase):
             )
         self.publish_status(run, "running", counted=st.counted)
 
+    def start_replaces(self, run: str) -> bool:
+        """A start for a run resumed from disk at startup: the run was queued again (its
+        earlier attempt ended while this counter was down, so no stop reached it). Its
+        old tables and expected numbers must not meet the new attempt's transitions,
+        numbered from 0 again: stop the old state (archived by on_start) and start anew.
+        A run started in this process ignores a repeated start as every service does."""
+        if run not in self._restored:
+            return False
+        self.log.warning("run %s: started again while restored from disk: a new attempt", run)
+        self.on_stop(run, "a new attempt of the run started")
+        self.free(run)
+        return True
+
     def on_stop(self, run: str, reason: str) -> None:
         st = self._runs.get(run)
         if st is None:
@@ -186,6 +200,7 @@ class CounterService(ServiceBase):
         )
 
     def free(self, run: str) -> None:
+        self._restored.discard(run)
         with self._lock:
             st = self._runs.pop(run, None)
             if st is not None:
@@ -245,6 +260,7 @@ class CounterService(ServiceBase):
                 config = make_config(_read_json(path / "config.json"))
                 self.active[run] = config
                 st, replayed = self._open_run(run, config, path)
+                self._restored.add(run)
             except Exception:
                 self.log.exception("could not restore run %s from %s", run, path)
                 self.active.pop(run, None)

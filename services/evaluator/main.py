@@ -90,6 +90,8 @@ class EvaluatorService(ServiceBase):
         for j, env in enumerate(envs):
             env.reset(seed=derive_seed(config.seed, "eval", j))
         self.st = EvaluatorRun(envs, JointPolicy.for_task(envs[0].spec, config.hidden))
+        with self._history_lock:  # a run queued again starts afresh: not the old rows
+            self.history.pop(run, None)
         self._remember(run, "running")
         self.publish_status(run, "running")
 

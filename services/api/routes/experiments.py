@@ -1,5 +1,6 @@
 """Experiments: one config, seeds, an optional grid and optional arms, expanded into runs;
-their learning curves per arm and every point of every run as one CSV."""
+stopping them, queueing their failed or stopped runs again (retry), their learning
+curves per arm and every point of every run as one CSV."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from ..schemas import (
     ExperimentCreate,
     ExperimentList,
     ExperimentPublic,
+    ExperimentRetryResult,
     ExperimentStopResult,
     Problem,
 )
@@ -28,6 +30,10 @@ from ..views import curves, load_experiments
 router = APIRouter(prefix="/experiments", tags=["experiments"])
 
 MetricName = Annotated[str, Query(pattern=r"^[A-Za-z0-9_]{1,64}$")]
+RunIds = Annotated[
+    list[Annotated[str, Query(max_length=200)]] | None,
+    Query(max_length=256, description="only these runs (default: every failed or stopped one)"),
+]
 
 
 def new_experiment_id() -> str:
@@ -104,6 +110,35 @@ def stop_experiment(exp: ExperimentRowDep, store: StoreDep, scheduler: Scheduler
         "detail": detail,
         "stopped": stopped,
         "experiment": load_experiments(store, [exp])[0],
+    }
+
+
+@router.post("/{exp_id}/retry", response_model=ExperimentRetryResult, responses=NOT_FOUND)
+def retry_experiment(
+    exp: ExperimentRowDep, store: StoreDep, scheduler: SchedulerDep, run: RunIds = None
+):
+    """Queue the failed and stopped runs again under their ids (completed, queued and
+    running runs are left as they are): their points are deleted and `attempts` goes
+    up. Idempotent: once they are queued, a second call retries nothing. A running
+    experiment is no exception: its retried runs queue behind the others."""
+    runs = store.runs_of([exp["id"]])[exp["id"]]
+    unknown = sorted(set(run or []) - {r["id"] for r in runs})
+    if unknown:
+        raise not_found(f"run of experiment {exp['id']!r}", ", ".join(unknown))
+    retried = store.retry_runs(exp["id"], list(run) if run else None)
+    if scheduler is not None and retried:
+        scheduler.wake()
+    public = load_experiments(store, [exp])[0]
+    if retried:
+        detail = f"queued {len(retried)} run(s) again"
+    else:
+        counts = ", ".join(f"{v} {k}" for k, v in public["counts"].items())
+        detail = f"nothing to retry: no run is failed or stopped ({counts})"
+    return {
+        "changed": bool(retried),
+        "detail": detail,
+        "retried": [r["id"] for r in retried],
+        "experiment": public,
     }
 
 

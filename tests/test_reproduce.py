@@ -1,0 +1,123 @@
+"""`macb reproduce` end to end: it starts its own cluster (no API answers on its port),
+runs figure 3's seven arms x two seeds, is interrupted, resumes where it stopped, writes
+the figure and the report, and a third time re-runs nothing.
+
+Real processes, HTTP and SQLite: the command is a child process with free ports and a
+temporary data dir; the store file is read with `Store` between the commands.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import httpx
+import pytest
+from PIL import Image
+
+from cli.figures import FIGURES
+from services.api.store import Store
+from tests.conftest import ROOT, free_port, wait_for
+from tests.test_up import cluster_processes
+
+EPISODES = 300
+
+
+def _completed(url: str) -> int:
+    try:
+        exps = httpx.get(f"{url}/experiments", timeout=5).json()["experiments"]
+    except (httpx.HTTPError, ValueError, KeyError):
+        return 0
+    return sum(r["status"] == "completed" for e in exps for r in e["runs"])
+
+
+def _runs(db) -> dict[str, dict]:
+    store = Store(db)
+    try:
+        (exp,) = store.experiments()
+        runs = store.runs_of([exp["id"]])[exp["id"]]
+        return {r["id"]: {**r, "data": store.points(r["id"])} for r in runs}
+    finally:
+        store.close()
+
+
+@pytest.mark.slow
+def test_reproduce_fig3_runs_resumes_and_then_reruns_nothing(tmp_path):
+    fig = FIGURES["fig3"]
+    url = f"http://127.0.0.1:{free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    data, out = tmp_path / "data", tmp_path / "out"
+    argv = [
+        *(sys.executable, "-m", "cli", "reproduce", "fig3", "--episodes", str(EPISODES)),
+        *("--seeds", "0", "1", "--api", url, "--endpoint", endpoint),
+        *("--data-dir", str(data), "--out", str(out), "--quiet", "--quiet-services"),
+    ]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    t0 = time.monotonic()
+
+    # 1. Interrupted after two runs: it stops the experiment and the cluster.
+    first = subprocess.Popen(
+        argv, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    try:
+        wait_for(lambda: _completed(url) >= 2, timeout=900, interval=1.0, what="two runs")
+    finally:
+        first.send_signal(signal.SIGINT)
+        said, _ = first.communicate(timeout=120)
+    assert first.returncode == 1, said
+    assert "no API answers" in said and "run the same command again to resume it" in said
+    before = _runs(data / "api.sqlite3")
+    assert len(before) == len(fig.arms) * 2
+    done = {r: x for r, x in before.items() if x["status"] == "completed"}
+    assert len(done) >= 2 and {x["status"] for x in before.values()} == {"completed", "stopped"}
+    assert cluster_processes(endpoint, tmp_path) == []
+
+    # 2. The same command: the stopped runs run again (their points go), the rest stay.
+    second = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1500)
+    assert second.returncode == 0, second.stderr
+    assert f"resuming experiment {next(iter(before.values()))['experiment_id']}" in second.stderr
+    retried = len(before) - len(done)
+    assert f"queued {retried} run(s) again" in second.stderr
+    after = _runs(data / "api.sqlite3")
+    assert list(after) == list(before), "the same run ids"
+    for run_id, x in after.items():
+        assert x["status"] == "completed", x
+        assert [p["episode"] for p in x["data"]] == list(range(1, EPISODES + 1)), run_id
+        if run_id in done:  # kept as they were
+            assert x["data"] == done[run_id]["data"] and x["ended"] == done[run_id]["ended"]
+            assert x["attempts"] == 1
+        else:
+            assert x["attempts"] == 2
+    assert cluster_processes(endpoint, tmp_path) == []
+
+    # The figure: every arm, the control included, in the legend and in the report.
+    with Image.open(out / "fig3.png") as png:
+        legend = json.loads(png.text["Legend"])
+    assert legend == [f"{arm.name} (2 seeds)" for arm in fig.arms]
+    md = (out / "fig3.md").read_text()
+    arms_table = md.split("## Arms")[1].split("## Claims")[0]
+    for arm in fig.arms:
+        (line,) = [x for x in arms_table.splitlines() if x.startswith(f"| {arm.name} |")]
+        cells = [c.strip() for c in line.strip("| ").split("|")]
+        assert cells[2] == "2" and cells[3] == (arm.thesis or "not in the thesis (control)")
+        assert cells[4].startswith("plateau ") and f"{EPISODES:,} episodes" in cells[4]
+    assert "| beta=0.8 | constant beta=0.8 (control) |" in md
+    assert "0 reproduced, 0 not reproduced, 3 not run to that length." in md
+    assert (out / "fig3.csv").read_text().count("\n") == 1 + len(after) * EPISODES
+    took = time.monotonic() - t0
+
+    # 3. Once more: nothing runs again, nothing is added.
+    third = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert third.returncode == 0, third.stderr
+    assert f"{len(after)} completed" in third.stderr and "queued" not in third.stderr
+    again = _runs(data / "api.sqlite3")
+    assert again == after, "the same runs, points, attempts and times"
+    assert cluster_processes(endpoint, tmp_path) == []
+    print(
+        f"fig3 x {EPISODES} episodes x 2 seeds ({len(after)} runs): {took:.0f} s interrupted "
+        f"and resumed, {time.monotonic() - t0 - took:.0f} s to find nothing to run"
+    )
