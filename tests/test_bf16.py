@@ -22,6 +22,7 @@ from shared.learners import (
     TunedMADDPG,
     precision,
 )
+from shared.learners.layers import relu_, relu_backward
 from shared.learners.precision import native_bf16 as detect_native_bf16  # before patching
 from shared.tasks import task_spec
 
@@ -312,3 +313,26 @@ def test_cpu_flags_are_read_from_cpuinfo():
         "avx2",
     }
     assert isinstance(detect_native_bf16.__wrapped__(), bool)  # the real file, if any
+
+
+def every_bf16() -> torch.Tensor:
+    """Every bf16 value but the NaNs."""
+    bits = torch.arange(-(2**15), 2**15, dtype=torch.int32).to(torch.int16)
+    x = bits.view(torch.bfloat16)
+    return x[~x.isnan()]
+
+
+def test_bf16_relu_through_int16_is_relu():
+    x = every_bf16()
+    got = relu_(x.clone())
+    assert torch.equal(got, x.relu())  # -0.0 == 0.0: values, not bits
+    assert (got.view(torch.int16) >= 0).all()  # +0 only, never -0: relu_backward's premise
+    f = torch.randn(100)
+    assert torch.equal(relu_(f.clone()), f.relu())  # fp32: torch's own
+
+
+def test_bf16_relu_backward_through_int16_is_threshold_backward():
+    x = relu_(every_bf16())
+    grad = every_bf16()[torch.randperm(x.numel(), generator=torch.Generator().manual_seed(0))]
+    want = torch.ops.aten.threshold_backward(grad, x, 0.0)
+    assert torch.equal(relu_backward(grad, x).view(torch.int16), want.view(torch.int16))
