@@ -1,10 +1,11 @@
 """Which precision the batched learner's matrix products run in, and whether the CPU can.
 
-`bf16` is only faster where the CPU has bfloat16 dot-product instructions (AVX512-BF16 or
-AMX-BF16), which torch's oneDNN matmul kernels use; elsewhere oneDNN or torch emulate
-bf16, slower than fp32 and no more exact, so a learner asked for bf16 on such a CPU runs
-fp32 and says so once, in its log and in its stats. The detection reads the CPU flags the
-kernel reports (docs/performance.md, "bf16", has what torch does on this project's CPU).
+`bf16` pays where the CPU has bfloat16 dot-product instructions (AVX512-BF16 or AMX-BF16),
+which torch's oneDNN matmul kernels use; elsewhere bf16 is emulated around fp32
+arithmetic and not known to pay for the precision it loses, so a learner asked for bf16
+on such a CPU runs fp32 and says so once, in its log and in its stats. The detection reads
+the CPU flags the kernel reports (docs/performance.md, "bf16", has what torch does on
+this project's CPU).
 """
 
 from __future__ import annotations
