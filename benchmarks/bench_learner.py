@@ -19,6 +19,11 @@ lane, two lanes, torch's own two intra-op threads, and `TunedMADDPG` (the defaul
 `learner_lanes: auto`: a tuner picks 1 or 2 by measured speed), to show what each does
 when the second core is not free.
 
+A second table (`precision: bf16`) times, per task, the fp32 batched update, the same
+update with bf16 matrix products (`bf16`), both floors (`floor_bf16`: the floor's
+products in bf16, with oneDNN's bf16 layouts) and bf16 on two lanes, in the same rounds;
+plus a 2-thread speaker_listener row. `--precision fp32` or `bf16` runs one table only.
+
 Measurements run in rounds (about 0.15 s of each of ref, batched, floor, in a rotating
 order) so load from other processes on the shared machine hits all three alike. Rates
 are medians over rounds; ratios are medians of the ratios within each round. The floor
@@ -26,7 +31,7 @@ runs on hot caches and still pays Python's cost of ~30 calls: it is a floor for
 arithmetic, not a reachable target. Threads: 1 for the table (the choice for a learner
 on 2 cores shared with actors and the counter), plus a 2-thread speaker_listener row.
 
-    .venv/bin/python benchmarks/bench_learner.py [--quick]
+    .venv/bin/python benchmarks/bench_learner.py [--quick] [--precision fp32|bf16|both]
 
 prints a markdown table and writes benchmarks/results/learner.json.
 """
@@ -49,6 +54,7 @@ from _stats import fmt, measure, ratio_median
 # them through the helpers below).
 from shared.learners import MADDPG, AgentDims, BatchedMADDPG, Lanes, LearnerSpec, TunedMADDPG
 from shared.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
+from shared.learners.precision import native_bf16
 
 BATCH = 100
 HIDDEN = (400, 300)
@@ -97,17 +103,23 @@ def random_batch(m: MADDPG, seed: int = 0) -> tuple[np.ndarray, ...]:
 
 
 def floor_ops(m: BatchedMADDPG, rows: int = BATCH) -> Callable[[], None]:
-    """The matrix products of one BatchedMADDPG.update (of `rows` rows), preallocated."""
-    n = m.n
+    """The matrix products of one BatchedMADDPG.update (of `rows` rows), preallocated, in
+    the dtype the learner's products run in (`m.dtype`: fp32, or bf16 with
+    `precision="bf16"`)."""
+    n, dt = m.n, m.dtype
 
     def layers(params: list[torch.Tensor], shared_input: bool) -> list[tuple]:
         out = []
         for k, w in enumerate(params[0::2]):
-            w = torch.randn_like(w.detach())
+            w = torch.randn_like(w.detach(), dtype=dt)
             _, fan_out, fan_in = w.shape
-            x = torch.randn(rows, fan_in).expand(n, -1, -1) if shared_input and k == 0 else None
-            x = x if x is not None else torch.randn(n, rows, fan_in)
-            out.append((x, w, torch.randn(n, 1, fan_out), torch.randn(n, rows, fan_out)))
+            x = (
+                torch.randn(rows, fan_in, dtype=dt).expand(n, -1, -1)
+                if shared_input and k == 0
+                else torch.randn(n, rows, fan_in, dtype=dt)
+            )
+            b, g = torch.randn(n, 1, fan_out, dtype=dt), torch.randn(n, rows, fan_out, dtype=dt)
+            out.append((x, w, b, g))
         return out
 
     actor = layers(m.actor.params, False)
@@ -141,7 +153,8 @@ def floor_ops(m: BatchedMADDPG, rows: int = BATCH) -> Callable[[], None]:
 
 
 def batched(agents: list[AgentDims], algo: str = "cen-maddpg", **kw: object) -> BatchedMADDPG:
-    """A BatchedMADDPG with the thesis settings (hidden 400-300); `kw`: lanes=..."""
+    """A BatchedMADDPG with the thesis settings (hidden 400-300); `kw`: lanes=...,
+    precision=..."""
     return BatchedMADDPG(agents, LearnerSpec(algo=algo, hidden=HIDDEN), **kw)
 
 
@@ -172,6 +185,81 @@ def bench_case(
         fns["lanes2"] = lambda: two.update(*b)
         fns["floor_lanes2"] = lanes_floor(fast, two.lanes)
     return measure(fns, repeats, budget_s)
+
+
+def bench_bf16_case(
+    agents: list[AgentDims], algo: str, repeats: int, budget_s: float, lanes: bool = True
+) -> dict[str, list[float]]:
+    """fp32 and bf16 updates of one learner state on one minibatch, and their floors (and
+    bf16 on two lanes), in the same rounds."""
+    _, fast, b = learner_pair(agents, algo)
+    low = batched(agents, algo, precision="bf16")
+    low.load_state_dict(fast.state_dict())
+    fns: dict[str, Callable[[], object]] = {
+        "batched": lambda: fast.update(*b),
+        "bf16": lambda: low.update(*b),
+        "floor": floor_ops(fast),
+        "floor_bf16": floor_ops(low),
+    }
+    if lanes:
+        two = batched(agents, algo, lanes=2, precision="bf16")
+        two.load_state_dict(fast.state_dict())
+        fns["bf16_lanes2"] = lambda: two.update(*b)
+    return measure(fns, repeats, budget_s)
+
+
+def bf16_row(task: str, algo: str, n: int, threads: int, samples: dict[str, list[float]]) -> dict:
+    """The bf16 table's row: medians of the rates, medians of the per-round ratios."""
+    rate = {f"{k}_updates_per_s": 1 / statistics.median(v) for k, v in samples.items()}
+    return {
+        "task": task,
+        "algo": algo,
+        "agents": n,
+        "threads": threads,
+        **rate,
+        "bf16_speedup": ratio(samples, "batched", "bf16"),
+        "floor_bf16_speedup": ratio(samples, "floor", "floor_bf16"),
+        "bf16_over_floor_bf16": ratio(samples, "bf16", "floor_bf16"),
+        "batched_over_floor": ratio(samples, "batched", "floor"),
+        "bf16_lanes2_speedup": ratio(samples, "bf16", "bf16_lanes2"),
+        "samples_s": samples,
+    }
+
+
+def bf16_table(repeats: int, budget_s: float) -> list[dict]:
+    """Every case on one torch thread, then speaker_listener on two."""
+    rows = []
+    torch.set_num_threads(1)
+    for task, n, algo, agents in CASES:
+        progress(f"bf16: {task} N={n} {algo} ...")
+        rows.append(bf16_row(task, algo, n, 1, bench_bf16_case(agents, algo, repeats, budget_s)))
+    torch.set_num_threads(2)
+    progress("bf16: speaker_listener, 2 threads ...")
+    sl2 = bench_bf16_case(SPEAKER_LISTENER, "cen-maddpg", repeats, budget_s, lanes=False)
+    rows.append(bf16_row("speaker_listener", "cen-maddpg", 2, 2, sl2))
+    torch.set_num_threads(1)
+    return rows
+
+
+def print_bf16_table(rows: list[dict]) -> None:
+    print(
+        "\n| task | algo | N | torch threads | fp32 upd/s | bf16 upd/s | bf16 / fp32 speed "
+        "| fp32 floor upd/s | bf16 floor upd/s | bf16 floor / fp32 floor speed "
+        "| bf16 / bf16 floor time | fp32 / fp32 floor time | bf16 2 lanes upd/s "
+        "| bf16 2 lanes / 1 lane speed |"
+    )
+    print("|" + "---|" * 14)
+    for r in rows:
+        print(
+            f"| {r['task']} | {r['algo']} | {r['agents']} | {r['threads']} "
+            f"| {r['batched_updates_per_s']:.1f} | {r['bf16_updates_per_s']:.1f} "
+            f"| {r['bf16_speedup']:.2f}x "
+            f"| {r['floor_updates_per_s']:.1f} | {r['floor_bf16_updates_per_s']:.1f} "
+            f"| {r['floor_bf16_speedup']:.2f}x | {r['bf16_over_floor_bf16']:.2f}x "
+            f"| {r['batched_over_floor']:.2f}x "
+            f"| {fmt(r.get('bf16_lanes2_updates_per_s'), '.1f')} "
+            f"| {fmt(r['bf16_lanes2_speedup'], '.2f')}x |"
+        )
 
 
 def spin() -> None:
@@ -242,14 +330,46 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--quick", action="store_true", help="3 rounds of ~0.05 s (smoke run)")
     parser.add_argument("--repeats", type=int, default=None, help="rounds per case (default 15)")
+    parser.add_argument(
+        "--precision",
+        choices=("fp32", "bf16", "both"),
+        default="both",
+        help="which tables: the fp32 one (reference, batched, floors, lanes, one core busy), "
+        "the bf16 one (fp32 vs bf16 updates and floors), or both (default)",
+    )
     add_out(parser, "learner.json")
     args = parser.parse_args(argv)
     repeats = args.repeats or (3 if args.quick else 15)
     budget_s = 0.05 if args.quick else 0.15
     check_dims()
-
-    rows = []
     load_before = os.getloadavg()
+    result = {
+        "command": command(__file__, argv),
+        "batch": BATCH,
+        "hidden": list(HIDDEN),
+        "repeats": repeats,
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "native_bf16": native_bf16(),
+        "loadavg_before": load_before,
+    }
+    if args.precision != "bf16":
+        result.update(fp32_tables(repeats, budget_s))
+    if args.precision != "fp32":
+        if native_bf16():
+            result["bf16_rows"] = bf16_table(repeats, budget_s)
+            print_bf16_table(result["bf16_rows"])
+        else:  # the learner would run fp32: nothing to compare
+            print("\nbf16: skipped, this CPU has no native bf16 (the learner would run fp32)")
+    result["loadavg_after"] = os.getloadavg()
+    write_result(args.out, result, load_before)
+
+
+def fp32_tables(repeats: int, budget_s: float) -> dict:
+    """The fp32 table (every case, one thread, plus a 2-thread row) and the one-core-busy
+    line, printed; their results."""
+    rows = []
     torch.set_num_threads(1)
     for task, n, algo, agents in CASES:
         progress(f"{task} N={n} {algo} ...")
@@ -288,20 +408,7 @@ def main(argv: list[str] | None = None) -> None:
         f"{busy_rates['threads2']:.1f} ({ratio(busy, 'batched', 'threads2'):.2f}x), "
         f"lanes auto {busy_rates['auto']:.1f} ({ratio(busy, 'batched', 'auto'):.2f}x)"
     )
-    result = {
-        "command": command(__file__, argv),
-        "batch": BATCH,
-        "hidden": list(HIDDEN),
-        "repeats": repeats,
-        "torch": torch.__version__,
-        "cpu": platform.processor() or platform.machine(),
-        "cores": os.cpu_count(),
-        "loadavg_before": load_before,
-        "loadavg_after": os.getloadavg(),
-        "rows": rows,
-        "one_core_busy": {"updates_per_s": busy_rates, "samples_s": busy},
-    }
-    write_result(args.out, result, load_before)
+    return {"rows": rows, "one_core_busy": {"updates_per_s": busy_rates, "samples_s": busy}}
 
 
 if __name__ == "__main__":

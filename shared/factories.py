@@ -27,7 +27,9 @@ from shared.tasks import TaskSpec
 def build_learner(
     cfg: TrainConfig, spec: TaskSpec, contended: Callable[[], bool] | None = None
 ) -> Learner:
-    """`cfg.learner_impl`'s learner; with `learner_lanes: auto` the batched one tuned.
+    """`cfg.learner_impl`'s learner; with `learner_lanes: auto` the batched one tuned; the
+    batched one's products in `cfg.precision` (the config refuses bf16 for the reference,
+    which stays the fp32 definition).
 
     `contended()`, polled before each tuned update, says whether other work known to
     the caller runs beside it (ignored by the untuned learners)."""
@@ -46,8 +48,9 @@ def build_learner(
         return MADDPG(agents, lspec)
     if cfg.learner_lanes == "auto":
         lanes = max(n for n, _ in AUTO_MODES)  # the most lanes a mode runs on
-        return TunedMADDPG(BatchedMADDPG(agents, lspec, lanes=lanes), contended)
-    return BatchedMADDPG(agents, lspec, lanes=cfg.learner_lanes)
+        learner = BatchedMADDPG(agents, lspec, lanes=lanes, precision=cfg.precision)
+        return TunedMADDPG(learner, contended)
+    return BatchedMADDPG(agents, lspec, lanes=cfg.learner_lanes, precision=cfg.precision)
 
 
 def build_exploration(cfg: TrainConfig, spec: TaskSpec) -> CountExploration:

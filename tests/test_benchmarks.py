@@ -40,3 +40,24 @@ def test_bench_cuts_runs_and_reports_bytes_and_time_per_cut(tmp_path: Path) -> N
     assert summary["cuts_per_often_run"] == 4  # one per evaluation point
     assert summary["replay_bytes_per_cut"] > 0 and summary["cut_file_bytes"] > 0
     assert 0 < summary["share_at_default_interval"] < 1
+
+
+def test_bench_learner_bf16_table_runs(tmp_path: Path) -> None:
+    """bench_learner's bf16 table, one quick round (skipped inside on a CPU without
+    native bf16, which it says)."""
+    out = tmp_path / "learner.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_learner.py"), "--quick"]
+    argv += ["--precision", "bf16", "--repeats", "1", "--out", str(out)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    assert "rows" not in result  # the fp32 table was not asked for
+    if not result["native_bf16"]:
+        assert "bf16: skipped" in proc.stdout
+        return
+    assert "| speaker_listener | cen-maddpg | 2 | 1 |" in proc.stdout
+    sl = [r for r in result["bf16_rows"] if r["task"] == "speaker_listener"]
+    assert [r["threads"] for r in sl] == [1, 2]
+    for row in sl:
+        for way in ("batched", "bf16", "floor", "floor_bf16"):
+            assert row[f"{way}_updates_per_s"] > 0

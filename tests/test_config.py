@@ -20,6 +20,7 @@ def test_defaults_are_the_thesis_settings():
         (400, 300),
     )
     assert c.eval_every == 1 and c.eval_episodes == 10 and not c.time_limit_terminal
+    assert c.precision == "fp32"  # bf16 is opt-in until learning parity is shown
 
 
 @pytest.mark.parametrize(
@@ -33,6 +34,12 @@ def test_defaults_are_the_thesis_settings():
         ({"betta": 0.2}, "betta", "unknown key"),
         ({"episodes": "many"}, "episodes", "valid integer"),
         ({"explore": "maybe"}, "explore", "Input should be"),
+        ({"precision": "fp16"}, "precision", "Input should be"),
+        (
+            {"precision": "bf16", "learner_impl": "reference"},
+            "config",
+            "precision bf16 needs learner_impl batched",
+        ),
     ],
 )
 def test_invalid_configs_name_field_and_reason(data, field, reason):

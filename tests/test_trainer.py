@@ -214,3 +214,28 @@ def test_macb_train_profile_thesis_runs_each_task(tmp_path, task, algo, explore,
     assert [int(t["counts"].sum()) for t in tables] == [140] * len(tables)
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert rows[-1]["env_steps"] == rows[-1]["counted_transitions"] == 140
+
+
+def test_bf16_run_trains_reruns_exactly_and_checkpoints_fp32(tmp_path, monkeypatch):
+    """`precision: bf16` in `macb train`: a run completes as an fp32 run does, reruns of
+    one seed are equal (fixed lanes), its weights differ from the fp32 run's, and its
+    checkpoint holds fp32 weights the reference learner loads."""
+    from shared.learners import MADDPG, AgentDims, LearnerSpec, precision
+
+    monkeypatch.setattr(precision, "native_bf16", lambda: True)  # bf16 on any CPU
+    base = dict(task="speaker_listener", algo="cen-maddpg", k=64, episodes=8, eval_every=4)
+    base.update(learner_lanes=1)
+    rows = train(cfg(**base, precision="bf16"), tmp_path / "bf16", progress=False)
+    again = train(cfg(**base, precision="bf16"), None, progress=False)
+    train(cfg(**base), tmp_path / "fp32", progress=False)
+    drop = ("steps_per_sec", "train_steps_per_sec", "wall_s")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in rows] == [
+        {k: v for k, v in r.items() if k not in drop} for r in again
+    ]
+    assert rows[-1]["updates"] == 60 and np.isfinite(rows[-1]["eval_return"])
+    low = load_checkpoint(tmp_path / "bf16" / "checkpoint.pt")["learner"]
+    full = load_checkpoint(tmp_path / "fp32" / "checkpoint.pt")["learner"]
+    w = low["critics"][0]["net.0.weight"]
+    assert w.dtype == torch.float32 and not torch.equal(w, full["critics"][0]["net.0.weight"])
+    agents = [AgentDims(3, (0.0,) * 3, (1.0,) * 3), AgentDims(11, (-1.0, -1.0), (1.0, 1.0))]
+    MADDPG(agents, LearnerSpec(hidden=SMALL["hidden"])).load_state_dict(low)

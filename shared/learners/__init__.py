@@ -5,7 +5,9 @@
   (layers.py) and its minibatch optionally split over threads (lanes.py);
 * tuning.py: `TunedMADDPG`, a `BatchedMADDPG` whose threads a tuner picks per block
   of updates (`learner_lanes: auto`);
-* checkpoint.py: the batched storage in the reference's checkpoint format.
+* checkpoint.py: the batched storage in the reference's checkpoint format;
+* precision.py: fp32 or bf16 matrix products for the batched learner, and whether the
+  CPU runs bf16 natively.
 
 shared/factories.py builds the one a config asks for.
 """
@@ -20,6 +22,7 @@ from shared.learners.base import (
 )
 from shared.learners.batched import BatchedMADDPG
 from shared.learners.lanes import Lanes, LaneTuner
+from shared.learners.precision import PRECISIONS
 from shared.learners.reference import MADDPG
 from shared.learners.tuning import AUTO_MODES, TunedMADDPG
 
@@ -27,6 +30,7 @@ __all__ = [
     "ALGOS",
     "AUTO_MODES",
     "MADDPG",
+    "PRECISIONS",
     "AgentDims",
     "BatchedMADDPG",
     "LaneTuner",

@@ -21,6 +21,13 @@ directly, one `_foreach_lerp_` for all targets, one conversion of the losses), a
 autograd. A fixed lane count leaves `torch.set_num_threads` to the process and gives
 bit-identical reruns. docs/performance.md, "Learner design and its measurements", has
 the numbers.
+
+`precision="bf16"` runs every matrix product (forward and backward, online and target
+networks) on bf16 copies of the weights and activations, cast once per weight version
+(`_weights`), with oneDNN's fp32 accumulation; master weights, gradients given to Adam,
+Adam's moments, targets, the soft update, losses and `act` stay fp32. It changes the
+arithmetic, not the algorithm: one update stays within bf16's rounding of the fp32 one
+(tests/test_bf16.py). On a CPU without native bf16 the learner runs fp32 (precision.py).
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ from shared.learners import checkpoint
 from shared.learners.base import AgentDims, LearnerSpec, check_agents
 from shared.learners.lanes import Lanes
 from shared.learners.layers import Stack, mlp_backward, mlp_forward
+from shared.learners.precision import DTYPES, resolve
 
 if TYPE_CHECKING:  # annotations only
     from shared.learners.reference import MADDPG
@@ -47,11 +55,21 @@ class BatchedMADDPG:
     The per-agent methods of the reference (`target_q(i, ...)`, `critic_step(i, ...)`,
     `actor_step(i, ...)`) are here for all agents at once and return (N, ...) tensors.
     `lanes` row blocks of each minibatch run in that many threads (`update`); a tuner
-    may run an update on one of them instead (`update_on`, see tuning.py).
+    may run an update on one of them instead (`update_on`, see tuning.py). `precision`
+    is what the matrix products run in, fp32 or bf16 (`self.precision` says what they
+    run in here: fp32 on a CPU without native bf16).
     """
 
-    def __init__(self, agents: Sequence[AgentDims], spec: LearnerSpec, lanes: int = 1) -> None:
+    def __init__(
+        self,
+        agents: Sequence[AgentDims],
+        spec: LearnerSpec,
+        lanes: int = 1,
+        precision: str = "fp32",
+    ) -> None:
         check_agents(agents, spec)
+        self.precision = resolve(precision)
+        self.dtype = DTYPES[self.precision]  # of the matrix products
         self.agents = list(agents)
         self.spec = spec
         self.n = n = len(agents)
@@ -123,6 +141,28 @@ class BatchedMADDPG:
                 f"got {lanes!r}"
             )
         self.lanes = Lanes(lanes)
+        # Per list of weights (online or target, actor or critic): the buffers its copies
+        # in the products' dtype are cast into (none in fp32: the products read the weights).
+        self._low: dict[int, list[torch.Tensor]] = {}
+        if self.dtype != torch.float32:
+            actor, critic = self.actor, self.critic
+            for tensors in (actor.params, actor.targets, critic.params, critic.targets):
+                self._low[id(tensors)] = [torch.empty_like(t, dtype=self.dtype) for t in tensors]
+
+    def _weights(self, tensors: list[torch.Tensor]) -> list[torch.Tensor]:
+        """One of the stacks' weight lists as the products read it: itself in fp32; in
+        bf16 its copies, cast now (one `_foreach_copy_`). Called once per weight version
+        an update uses (targets, critic before and after its step, actor), from the
+        caller's thread, never in a lane, so lanes share the copies."""
+        if self.dtype == torch.float32:
+            return tensors
+        low = self._low[id(tensors)]
+        torch._foreach_copy_(low, tensors)
+        return low
+
+    def _low_x(self, x: torch.Tensor) -> torch.Tensor:
+        """An input of a network's first layer in the products' dtype (fp32: x itself)."""
+        return x.to(self.dtype)
 
     def _init_like_reference(self, critic_in: Sequence[int]) -> None:
         """The reference's initial weights for this seed: the same nn.Linear calls in order."""
@@ -198,43 +238,75 @@ class BatchedMADDPG:
         y_i is computed on batch i: Cen critics then need every agent's target action on
         every batch (one product over N x B rows), Dis critics only agent i's on batch i.
         """
+        return self._target_q(self._target_weights(), rew, next_obs, done)
+
+    def _target_weights(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """The target actors' and critics' weights as the products read them."""
+        return self._weights(self.actor.targets), self._weights(self.critic.targets)
+
+    def _mu(self, actor: Sequence[torch.Tensor], obs_pad: torch.Tensor) -> torch.Tensor:
+        """Actions (N, rows, act_pad) of actors with these weights, in fp32."""
+        return self._squash(torch.tanh(mlp_forward(actor, self._low_x(obs_pad))[-1].float()))
+
+    def _q(self, critic: Sequence[torch.Tensor], q_in: torch.Tensor) -> torch.Tensor:
+        """Q values (N, rows) of critics with these weights, in fp32."""
+        return mlp_forward(critic, self._low_x(q_in))[-1].squeeze(-1).float()
+
+    def _target_q(
+        self,
+        weights: tuple[list[torch.Tensor], list[torch.Tensor]],
+        rew: torch.Tensor,
+        next_obs: torch.Tensor,
+        done: torch.Tensor,
+    ) -> torch.Tensor:
+        """`target_q` with the targets' weights given (`_target_weights`)."""
+        actor, critic = weights
         if next_obs.dim() == 3:
-            return self._target_q_per_agent(rew, next_obs, done)
+            return self._target_q_per_agent(actor, critic, rew, next_obs, done)
         next_obs_pad = self._per_agent(next_obs, self._obs_idx)
-        next_act = self._squash(torch.tanh(mlp_forward(self.actor.targets, next_obs_pad)[-1]))
+        next_act = self._mu(actor, next_obs_pad)
         if self.centralized:
             q_in = torch.cat([next_obs, self._joint_act(next_act)], -1)
         else:
             q_in = torch.cat([next_obs_pad, next_act], -1)
-        qf_next_target = mlp_forward(self.critic.targets, q_in)[-1].squeeze(-1)
+        qf_next_target = self._q(critic, q_in)
         # done is (B,); reshape so a (B, 1) done cannot broadcast y to (N, B, B).
         return rew.T + self.spec.gamma * (1.0 - done.reshape(1, -1)) * qf_next_target
 
     def _target_q_per_agent(
-        self, rew: torch.Tensor, next_obs: torch.Tensor, done: torch.Tensor
+        self,
+        actor: list[torch.Tensor],
+        critic: list[torch.Tensor],
+        rew: torch.Tensor,
+        next_obs: torch.Tensor,
+        done: torch.Tensor,
     ) -> torch.Tensor:
         n, rows = next_obs.shape[:2]
         if self.centralized:
-            flat = self._per_agent(next_obs.reshape(n * rows, -1), self._obs_idx)
-            every = self._squash(torch.tanh(mlp_forward(self.actor.targets, flat)[-1]))
+            every = self._mu(actor, self._per_agent(next_obs.reshape(n * rows, -1), self._obs_idx))
             q_in = torch.cat([next_obs, self._joint_act(every).reshape(n, rows, -1)], -1)
         else:
             own = self._per_agent(next_obs, self._obs_idx)
-            next_act = self._squash(torch.tanh(mlp_forward(self.actor.targets, own)[-1]))
-            q_in = torch.cat([own, next_act], -1)
-        qf_next_target = mlp_forward(self.critic.targets, q_in)[-1].squeeze(-1)
+            q_in = torch.cat([own, self._mu(actor, own)], -1)
+        qf_next_target = self._q(critic, q_in)
         agents = torch.arange(n)
         return rew[agents, :, agents] + self.spec.gamma * (1.0 - done) * qf_next_target
 
     def _critic_grads(
-        self, obs: torch.Tensor, act: torch.Tensor, next_q_value: torch.Tensor, batch: int
+        self,
+        critic: list[torch.Tensor],
+        obs: torch.Tensor,
+        act: torch.Tensor,
+        next_q_value: torch.Tensor,
+        batch: int,
     ) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """Summed squared errors (N,) of these rows and their gradients, as parts of
-        mean((Q_i - y_i)^2) over a minibatch of `batch` rows."""
-        acts = mlp_forward(self.critic.params, self._critic_input(obs, act))
-        diff = acts[-1].squeeze(-1) - next_q_value
-        grad = diff.mul(2.0 / batch).unsqueeze(-1)  # d qf_loss_i / d Q_i
-        grads, _ = mlp_backward(self.critic.params, acts, grad, weights=True, inputs=False)
+        """Summed squared errors (N,) of these rows and their fp32 gradients, as parts of
+        mean((Q_i - y_i)^2) over a minibatch of `batch` rows; `critic`: the critics'
+        weights as the products read them."""
+        acts = mlp_forward(critic, self._low_x(self._critic_input(obs, act)))
+        diff = acts[-1].squeeze(-1).float() - next_q_value
+        grad = diff.mul(2.0 / batch).unsqueeze(-1).to(self.dtype)  # d qf_loss_i / d Q_i
+        grads, _ = mlp_backward(critic, acts, grad, True, False, grad_dtype=torch.float32)
         return diff.square().sum(1), grads  # type: ignore[return-value]
 
     def critic_step(
@@ -242,18 +314,30 @@ class BatchedMADDPG:
     ) -> torch.Tensor:
         """One Adam step of every critic on mean((Q_i - y_i)^2); returns the (N,) losses."""
         batch = obs.shape[-2]
-        sq_sum, grads = self._critic_grads(obs, act, next_q_value, batch)
+        critic = self._weights(self.critic.params)
+        sq_sum, grads = self._critic_grads(critic, obs, act, next_q_value, batch)
         self._adam_step(self.critic_optim, self.critic.params, grads)
         return sq_sum / batch
 
+    def _actor_weights(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """The actors' and (just updated) critics' weights as the actor step's products
+        read them."""
+        return self._weights(self.actor.params), self._weights(self.critic.params)
+
     def _actor_grads(
-        self, obs: torch.Tensor, act: torch.Tensor, batch: int
+        self,
+        weights: tuple[list[torch.Tensor], list[torch.Tensor]],
+        obs: torch.Tensor,
+        act: torch.Tensor,
+        batch: int,
     ) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """Summed Q_i(.., mu_i(o_i), ..) (N,) of these rows and the gradients of
-        -mean(Q_i) over a minibatch of `batch` rows with respect to actor i."""
+        """Summed Q_i(.., mu_i(o_i), ..) (N,) of these rows and the fp32 gradients of
+        -mean(Q_i) over a minibatch of `batch` rows with respect to actor i; `weights`
+        from `_actor_weights`."""
+        actor, critic = weights
         obs_pad = self._per_agent(obs, self._obs_idx)
-        acts = mlp_forward(self.actor.params, obs_pad)
-        tanh_out = torch.tanh(acts[-1])
+        acts = mlp_forward(actor, self._low_x(obs_pad))
+        tanh_out = torch.tanh(acts[-1].float())
         a = self._squash(tanh_out)  # (N, rows, act_pad)
         rows = a.shape[1]
         if self.centralized:
@@ -263,17 +347,21 @@ class BatchedMADDPG:
             q_in = torch.cat([obs, act], -1) * self._keep + placed
         else:
             q_in = torch.cat([obs_pad, a], -1)
-        critic_acts = mlp_forward(self.critic.params, q_in)
-        grad_q = torch.full_like(critic_acts[-1], -1.0 / batch)  # d actor_loss_i / d Q_i
-        _, grad_in = mlp_backward(self.critic.params, critic_acts, grad_q, False, True)
+        critic_acts = mlp_forward(critic, self._low_x(q_in))
+        # d actor_loss_i / d Q_i (in bf16 -1/B is off by < 2^-9: a scale Adam divides out)
+        grad_q = torch.full_like(critic_acts[-1], -1.0 / batch)
+        _, grad_in = mlp_backward(critic, critic_acts, grad_q, False, True)
         if self.centralized:
             grad_a = torch.gather(grad_in, 2, self._own_cols.expand(-1, rows, -1))
         else:
             grad_a = grad_in[..., self.obs_pad :]
         # Through a = center + scale * tanh(out); scale is 0 in padded columns.
-        grad_out = torch.ops.aten.tanh_backward(grad_a * self.scale, tanh_out)
-        grads, _ = mlp_backward(self.actor.params, acts, grad_out, weights=True, inputs=False)
-        return critic_acts[-1].squeeze(-1).sum(1), grads  # type: ignore[return-value]
+        grad_out = torch.ops.aten.tanh_backward(grad_a.float() * self.scale, tanh_out)
+        grads, _ = mlp_backward(
+            actor, acts, grad_out.to(self.dtype), True, False, grad_dtype=torch.float32
+        )
+        q_sum = critic_acts[-1].squeeze(-1).sum(1, dtype=torch.float32)
+        return q_sum, grads  # type: ignore[return-value]
 
     def actor_step(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         """One Adam step of every actor on -mean(Q_i(.., mu_i(o_i), ..)); returns (N,) losses.
@@ -282,7 +370,7 @@ class BatchedMADDPG:
         (Cen). Only dQ_i/da_i is taken from the critic, never its weight gradients.
         """
         batch = obs.shape[-2]
-        q_sum, grads = self._actor_grads(obs, act, batch)
+        q_sum, grads = self._actor_grads(self._actor_weights(), obs, act, batch)
         self._adam_step(self.actor_optim, self.actor.params, grads)
         return -q_sum / batch
 
@@ -370,8 +458,10 @@ class BatchedMADDPG:
         return {"critic_loss": critic_loss, "actor_loss": actor_loss}
 
     def stats(self) -> dict[str, float]:
-        """The fixed lane count (a tuner reports its own picks, see tuning.py)."""
-        return {"lanes": float(self.lanes.n)}
+        """The fixed lane count (a tuner reports its own picks, see tuning.py), and `bf16`:
+        1 if the products run in bf16, 0 in fp32 (also when bf16 was asked for on a CPU
+        without it)."""
+        return {"lanes": float(self.lanes.n), "bf16": float(self.precision == "bf16")}
 
     def _update_in_lanes(
         self,
@@ -394,14 +484,18 @@ class BatchedMADDPG:
             for rows in self.lanes.blocks(batch)
         ]
 
+        # The weights' bf16 copies are cast here, once, and read by every lane.
+        targets, critic = self._target_weights(), self._weights(self.critic.params)
+
         def critic_part(b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, list[torch.Tensor]]:
             o, a, r, o2, d = b
-            return self._critic_grads(o, a, self.target_q(r, o2, d), batch)
+            return self._critic_grads(critic, o, a, self._target_q(targets, r, o2, d), batch)
 
         sq_sum, grads = self._sum_parts(self.lanes.map(critic_part, blocks))
         self._adam_step(self.critic_optim, self.critic.params, grads)
+        weights = self._actor_weights()
         q_sum, grads = self._sum_parts(
-            self.lanes.map(lambda b: self._actor_grads(b[0], b[1], batch), blocks)
+            self.lanes.map(lambda b: self._actor_grads(weights, b[0], b[1], batch), blocks)
         )
         self._adam_step(self.actor_optim, self.actor.params, grads)
         return sq_sum / batch, -q_sum / batch

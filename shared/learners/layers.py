@@ -19,8 +19,10 @@ import torch
 
 # The three products of a stacked linear layer. MKL on one core is 3-10x slower for
 # products with a narrow side (a last layer's 1-3 outputs, a first layer's 4-24 inputs)
-# in some layouts, e.g. the ones `bmm`'s autograd picks; these pick the fast one. The
-# floor in benchmarks/bench_learner.py times these same functions.
+# in some layouts, e.g. the ones `bmm`'s autograd picks; these pick the fast one. bf16
+# products run in oneDNN, whose kernels are fastest in the plain layouts, so the layout
+# trick is for fp32 only. The floor in benchmarks/bench_learner.py times these same
+# functions.
 def linear_forward(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """x W^T + b: x (N, B, in), W (N, out, in), b (N, 1, out) -> (N, B, out)."""
     return torch.baddbmm(b, x, w.mT)
@@ -28,16 +30,46 @@ def linear_forward(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.T
 
 def linear_grad_input(grad: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """dL/dx = grad W: grad (N, B, out), W (N, out, in) -> (N, B, in)."""
-    if w.shape[2] < w.shape[1]:  # narrow input: (W^T grad^T)^T is faster
-        return torch.bmm(w.mT, grad.mT).mT
+    if w.shape[2] < w.shape[1] and w.dtype != torch.bfloat16:  # narrow input (MKL)
+        return torch.bmm(w.mT, grad.mT).mT  # (W^T grad^T)^T is faster
     return torch.bmm(grad, w)
 
 
-def linear_grad_weight(grad: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """dL/dW = grad^T x: grad (N, B, out), x (N, B, in) -> (N, out, in), contiguous."""
-    if x.shape[2] < grad.shape[2]:  # narrow input: (x^T grad)^T is faster
-        return torch.bmm(x.mT, grad).mT.contiguous()
-    return torch.bmm(grad.mT, x)
+def linear_grad_weight(
+    grad: torch.Tensor, x: torch.Tensor, dtype: torch.dtype | None = None
+) -> torch.Tensor:
+    """dL/dW = grad^T x: grad (N, B, out), x (N, B, in) -> (N, out, in), contiguous, in
+    `dtype` (default the inputs'; a bf16 product's gradient goes to fp32 master weights)."""
+    if x.shape[2] < grad.shape[2] and x.dtype != torch.bfloat16:  # narrow input (MKL)
+        out = torch.bmm(x.mT, grad).mT.contiguous()  # (x^T grad)^T is faster
+    else:
+        out = torch.bmm(grad.mT, x)
+    return out if dtype is None else out.to(dtype)
+
+
+# ReLU and its backward. torch's bf16 kernels for both take 2-4x their fp32 time, more
+# than a whole first-layer product; bf16's int16 view does the same work in integer
+# kernels. bf16 is sign and magnitude: a value is below +0 exactly when its bits as an
+# int16 are, so clamping those at 0 is ReLU for every value but a NaN with the sign bit
+# set (which becomes 0 instead of staying NaN).
+def relu_(h: torch.Tensor) -> torch.Tensor:
+    """h.relu_(), in place; bf16 through its int16 view."""
+    if h.dtype == torch.bfloat16:
+        h.view(torch.int16).clamp_min_(0)
+        return h
+    return h.relu_()
+
+
+def relu_backward(grad: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """dL/d(pre-activation) from dL/dx, x a `relu_` output: grad where x > 0, else 0.
+
+    bf16: x's int16 bits are >= 0, and 0 only for +0, so clamped at 1 they are the 0/1
+    mask, and the int16 product keeps or zeroes grad's bits (a positive NaN in x passes
+    grad, where threshold_backward would zero it)."""
+    if grad.dtype == torch.bfloat16 and x.dtype == torch.bfloat16:
+        mask = x.view(torch.int16).clamp_max(1)
+        return torch.mul(grad.view(torch.int16), mask).view(torch.bfloat16)
+    return torch.ops.aten.threshold_backward(grad, x, 0.0)
 
 
 def mlp_forward(params: Sequence[torch.Tensor], x: torch.Tensor) -> list[torch.Tensor]:
@@ -52,7 +84,7 @@ def mlp_forward(params: Sequence[torch.Tensor], x: torch.Tensor) -> list[torch.T
     last = len(params) // 2 - 1
     for layer in range(last + 1):
         h = linear_forward(acts[-1], params[2 * layer], params[2 * layer + 1])
-        acts.append(h.relu_() if layer < last else h)
+        acts.append(relu_(h) if layer < last else h)
     return acts
 
 
@@ -62,24 +94,28 @@ def mlp_backward(
     grad: torch.Tensor,
     weights: bool,
     inputs: bool,
+    grad_dtype: torch.dtype | None = None,
 ) -> tuple[list[torch.Tensor] | None, torch.Tensor | None]:
     """Backpropagate dL/d(output) through `mlp_forward`'s layers.
 
     Returns (gradients for params, or None unless `weights`; dL/dx, or None unless
     `inputs`). Nothing else is computed: the actor step asks its critic for dL/dx only.
+    The params' gradients are in `grad_dtype` (default the params'): products run in the
+    params' dtype (bf16 copies), gradients go to fp32 master weights, and bias gradients,
+    sums over the batch, are summed in that dtype.
     """
     layers = len(params) // 2
     grads: list[torch.Tensor] = [None] * len(params)  # type: ignore[list-item]
     for layer in reversed(range(layers)):
         x = acts[layer]
         if weights:
-            grads[2 * layer] = linear_grad_weight(grad, x)
-            grads[2 * layer + 1] = grad.sum(1, keepdim=True)
+            grads[2 * layer] = linear_grad_weight(grad, x, grad_dtype)
+            grads[2 * layer + 1] = grad.sum(1, keepdim=True, dtype=grad_dtype)
         if layer == 0 and not inputs:
             break
         grad = linear_grad_input(grad, params[2 * layer])
         if layer > 0:  # x = relu(previous pre-activation): pass grad where x > 0
-            grad = torch.ops.aten.threshold_backward(grad, x, 0.0)
+            grad = relu_backward(grad, x)
     return (grads if weights else None), (grad if inputs else None)
 
 

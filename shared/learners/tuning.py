@@ -9,6 +9,7 @@ learner itself stays one way of computing the update and the caller only says, t
 while the evaluator evaluates weights it sent). Those updates get a tuner of their own,
 so their stalls do not spoil the choice for the rest. The modes differ only in the
 order of floating-point additions: reruns are equal up to rounding, not bit for bit.
+A bf16 learner is tuned the same way: its modes only take other times.
 """
 
 from __future__ import annotations
@@ -81,9 +82,10 @@ class TunedMADDPG:
         """The ordinary tuner's current mode, the tuners' picks and measured times
         (`lanesAxB_*` for ordinary updates, `contended_lanesAxB_*` for contended ones),
         `contended_share` the share of updates that were contended and
-        `contended_updates` their number."""
+        `contended_updates` their number; `bf16` as the learner reports it."""
         lanes, threads = self.tuner.current
         out = {"lanes": float(lanes), "threads": float(threads)}
+        out["bf16"] = float(self.learner.precision == "bf16")
         quiet = sum(self.tuner.chosen.values())
         contended = sum(self.contended_tuner.chosen.values())
         out["contended_share"] = contended / max(1, quiet + contended)
