@@ -226,19 +226,25 @@ def bf16_row(task: str, algo: str, n: int, threads: int, samples: dict[str, list
     }
 
 
-def bf16_table(repeats: int, budget_s: float) -> list[dict]:
-    """Every case on one torch thread, then speaker_listener on two."""
+def cases_table(bench, make_row, repeats: int, budget_s: float, label: str = "") -> list[dict]:
+    """Every case on one torch thread, then speaker_listener on two: the rows of one
+    table (`bench` times a case, `make_row` summarises it)."""
     rows = []
     torch.set_num_threads(1)
     for task, n, algo, agents in CASES:
-        progress(f"bf16: {task} N={n} {algo} ...")
-        rows.append(bf16_row(task, algo, n, 1, bench_bf16_case(agents, algo, repeats, budget_s)))
+        progress(f"{label}{task} N={n} {algo} ...")
+        rows.append(make_row(task, algo, n, 1, bench(agents, algo, repeats, budget_s)))
     torch.set_num_threads(2)
-    progress("bf16: speaker_listener, 2 threads ...")
-    sl2 = bench_bf16_case(SPEAKER_LISTENER, "cen-maddpg", repeats, budget_s, lanes=False)
-    rows.append(bf16_row("speaker_listener", "cen-maddpg", 2, 2, sl2))
+    progress(f"{label}speaker_listener, 2 threads ...")
+    sl2 = bench(SPEAKER_LISTENER, "cen-maddpg", repeats, budget_s, lanes=False)
+    rows.append(make_row("speaker_listener", "cen-maddpg", 2, 2, sl2))
     torch.set_num_threads(1)
     return rows
+
+
+def bf16_table(repeats: int, budget_s: float) -> list[dict]:
+    """Every case on one torch thread, then speaker_listener on two."""
+    return cases_table(bench_bf16_case, bf16_row, repeats, budget_s, "bf16: ")
 
 
 def print_bf16_table(rows: list[dict]) -> None:
@@ -369,16 +375,7 @@ def main(argv: list[str] | None = None) -> None:
 def fp32_tables(repeats: int, budget_s: float) -> dict:
     """The fp32 table (every case, one thread, plus a 2-thread row) and the one-core-busy
     line, printed; their results."""
-    rows = []
-    torch.set_num_threads(1)
-    for task, n, algo, agents in CASES:
-        progress(f"{task} N={n} {algo} ...")
-        rows.append(row(task, algo, n, 1, bench_case(agents, algo, repeats, budget_s)))
-    torch.set_num_threads(2)
-    progress("speaker_listener, 2 threads ...")
-    sl2 = bench_case(SPEAKER_LISTENER, "cen-maddpg", repeats, budget_s, lanes=False)
-    rows.append(row("speaker_listener", "cen-maddpg", 2, 2, sl2))
-    torch.set_num_threads(1)
+    rows = cases_table(bench_case, row, repeats, budget_s)
     progress("speaker_listener, one core busy ...")
     busy = contention(repeats, budget_s)
 

@@ -35,6 +35,7 @@ from shared.cuts import (
 )
 from shared.exploration import BonusDiagnostics, CountExploration, constant_shift
 from shared.factories import build_exploration, build_learner, minibatches_per_update
+from shared.files import read_json
 from shared.learners import Learner
 from shared.metrics import TRAIN_FIELDS
 from shared.replay import ReplayBuffer, update_arrays
@@ -345,7 +346,7 @@ class Run:
         """Continue from the newest usable cut in `out`; the rows after it are dropped."""
         assert self.out is not None and self.cuts is not None and self.replay is not None
         config = self.cfg.model_dump(mode="json")
-        written = _read_json(self.out / "config.json")
+        written = read_json(self.out / "config.json")
         if written is not None and (diff := config_difference(written, config)):
             raise CutError(f"{self.out / 'config.json'}: another config ({diff})")
         cut = latest_cut(self.cuts, config)
@@ -382,13 +383,6 @@ class Run:
             self.env_steps,
             self.learner.updates,
         )
-
-
-def _read_json(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
 
 
 def _read_rows(path: Path, n: int, where: Path) -> list[dict]:

@@ -38,6 +38,7 @@ from shared.config import TrainConfig, make_config
 from shared.counting import CountTable
 from shared.exploration import CountExploration
 from shared.factories import build_exploration
+from shared.files import read_json, write_json
 from shared.protocol import ReceiveCursor, Verdict
 from shared.tasks import task_spec_for
 from shared.wire import WireError, check_dims, encode
@@ -143,14 +144,14 @@ class CounterService(ServiceBase):
             raise ValueError(f"run id {run!r} is not a safe directory name")
         path = self.root / run
         if path.exists():
-            saved = _read_json(path / "config.json")
+            saved = read_json(path / "config.json")
             if (path / "stopped").exists() or saved != config.model_dump(mode="json"):
                 why = "was stopped" if (path / "stopped").exists() else "had another config"
                 dest = self._archive(path)
                 self.log.warning("run %s %s: old state moved to %s", run, why, dest)
         path.mkdir(parents=True, exist_ok=True)
-        _write_json(path / "config.json", config.model_dump(mode="json"))
-        _write_json(path / "assign.json", assign)
+        write_json(path / "config.json", config.model_dump(mode="json"))
+        write_json(path / "assign.json", assign)
         st, replayed = self._open_run(run, config, path)
         if replayed or st.counted:
             self.log.info(
@@ -190,7 +191,7 @@ class CounterService(ServiceBase):
             return
         self._take_burst()  # what arrived before the stop is in the final snapshot
         self._snapshot(run, st)
-        _write_json(st.path / "stopped", {"reason": reason, "time": time.time()})
+        write_json(st.path / "stopped", {"reason": reason, "time": time.time()})
         self.log.info(
             "stopped run %s (%s): %d counted, %d keys",
             run,
@@ -241,7 +242,7 @@ class CounterService(ServiceBase):
             raise
         st.rate_counted = st.counted
         if (path / "assign.json").exists():
-            st.learner = (_read_json(path / "assign.json") or {}).get("learner")
+            st.learner = (read_json(path / "assign.json") or {}).get("learner")
         with self._lock:
             self._runs[run] = st
         if replayed:
@@ -257,7 +258,7 @@ class CounterService(ServiceBase):
                 continue
             run = path.name
             try:
-                config = make_config(_read_json(path / "config.json"))
+                config = make_config(read_json(path / "config.json"))
                 self.active[run] = config
                 st, replayed = self._open_run(run, config, path)
                 self._restored.add(run)
@@ -659,19 +660,6 @@ class CounterService(ServiceBase):
 def _snapshot_bytes(st: RunState) -> int:
     """About what a snapshot of the run writes: keys plus an int64 count per key."""
     return sum(len(t) * (t.key_bytes + 8) for t in st.explorer.tables)
-
-
-def _write_json(path: Path, data: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
-    os.replace(tmp, path)
-
-
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> CounterService:
