@@ -11,9 +11,13 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 MULTI_AGENT_TASKS = ("spread", "speaker_listener")
+BUILTIN_TASKS = ("simple", *MULTI_AGENT_TASKS)
+# Options that only the built-in particle tasks have (their worlds' sizes, rewards,
+# observations and physics); a custom task refuses a value other than the default.
+WORLD_OPTIONS = ("cover", "landmark_size", "pad_obs", "comm_obs", "integrator")
 
 
 class TrainConfig(BaseModel):
@@ -21,9 +25,24 @@ class TrainConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    task: Literal["simple", "spread", "speaker_listener"] = Field(
+    task: str = Field(
         "speaker_listener",
-        description="simple (1-agent nav), spread (N-agent nav), speaker_listener",
+        max_length=300,
+        description="simple (1-agent nav), spread (N-agent nav), speaker_listener, or your "
+        "own: package.module:factory returning a PettingZoo ParallelEnv with Box spaces "
+        "(docs/tasks.md, 'Your own task')",
+    )
+    task_kwargs: dict[str, Any] | None = Field(
+        None,
+        description="a custom task's factory keyword arguments, e.g. "
+        "{continuous_actions: true, max_cycles: 25}",
+    )
+    success_key: str | None = Field(
+        None,
+        min_length=1,
+        max_length=100,
+        description="a custom task's info key whose true value marks success at a step "
+        "(some agent's info); without it the success rate stays 0",
     )
     agents: int = Field(2, ge=2, le=8, description="number of agents and landmarks (spread only)")
     algo: Literal["ddpg", "dis-maddpg", "cen-maddpg"] = Field(
@@ -151,16 +170,68 @@ class TrainConfig(BaseModel):
         "bf16 the learner runs fp32 and logs a warning",
     )
 
+    @field_validator("task")
+    @classmethod
+    def _task_name(cls, task: str) -> str:
+        if task in BUILTIN_TASKS or ":" in task:
+            return task
+        raise ValueError(
+            f"unknown task {task!r}: one of {', '.join(BUILTIN_TASKS)}, or your own as "
+            "package.module:factory"
+        )
+
     @model_validator(mode="before")
     @classmethod
     def _apply_profile(cls, data: Any) -> Any:
-        """`profile: thesis` fills in the thesis code's choice for every option not given."""
+        """`profile: thesis` fills in the thesis code's choice for every option not given;
+        a custom task's reward is its env's own (`dense`) unless given."""
         if isinstance(data, dict) and data.get("profile") == "thesis":
             data = {**profile_preset("thesis", data), **data}
+        if isinstance(data, dict) and ":" in str(data.get("task", "")) and "reward" not in data:
+            data = {**data, "reward": "dense"}
         return data
+
+    def _check_custom_task(self) -> None:
+        """Refuse what a custom task cannot take; import its factory, build one env and
+        check its spaces (shared/custom_task.py names the agent and the space)."""
+        from shared.custom_task import TaskError
+        from shared.tasks import task_spec_for
+
+        for name in WORLD_OPTIONS:
+            if getattr(self, name) != type(self).model_fields[name].default:
+                raise ValueError(
+                    f"{name}: an option of the built-in particle tasks; task {self.task} is "
+                    "a custom task"
+                )
+        if self.reward != "dense":
+            raise ValueError(
+                f"reward: a custom task's reward is its env's own (the mean over agents, "
+                f"reward dense), not {self.reward}"
+            )
+        try:
+            spec = task_spec_for(self)
+        except TaskError as err:
+            text = str(err)
+            raise ValueError(text if text.startswith("success_key:") else f"task: {text}") from None
+        if self.algo == "ddpg" and spec.n_agents != 1:
+            raise ValueError(
+                f"algo ddpg trains one agent; task {self.task} has {spec.n_agents}: use "
+                "dis-maddpg or cen-maddpg"
+            )
+        if self.algo != "ddpg" and spec.n_agents < 2:
+            raise ValueError(f"algo {self.algo} needs several agents; task {self.task} has one")
 
     @model_validator(mode="after")
     def _check_combination(self) -> TrainConfig:
+        if ":" in self.task:
+            self._check_custom_task()
+        else:
+            for name in ("task_kwargs", "success_key"):
+                if getattr(self, name) is not None:
+                    raise ValueError(
+                        f"{name}: only for a custom task (package.module:factory), not "
+                        f"task {self.task}"
+                    )
         if self.task == "simple" and self.algo != "ddpg":
             raise ValueError(
                 f"algo {self.algo} needs several agents; task simple has one: use ddpg"
@@ -178,6 +249,10 @@ class TrainConfig(BaseModel):
 
     @property
     def n_agents(self) -> int:
+        if ":" in self.task:  # the env's agents (its spec is cached once checked)
+            from shared.tasks import task_spec_for
+
+            return task_spec_for(self).n_agents
         return {"simple": 1, "speaker_listener": 2}.get(self.task, self.agents)
 
 
@@ -205,6 +280,15 @@ def profile_preset(profile: str, data: dict[str, Any]) -> dict[str, Any]:
         return {}
     task = data.get("task", TrainConfig.model_fields["task"].default)
     explore = data.get("explore", TrainConfig.model_fields["explore"].default)
+    if ":" in str(task):  # a custom task: the thesis code's choices that are not its world's
+        return {
+            "time_limit_terminal": True,
+            "success_terminal": True,
+            "warmup": "random",
+            "minibatch": "per-agent",
+            "hash_round": 2 if explore == "cen-macb" else None,
+            "same_init": True,
+        }
     return {
         "time_limit_terminal": True,
         "success_terminal": True,
@@ -234,6 +318,9 @@ def format_errors(err: ValidationError) -> str:
             loc = loc[:1]
         field = ".".join(str(p) for p in loc) or "config"
         msg = e["msg"].removeprefix("Value error, ")
+        named, _, rest = msg.partition(": ")
+        if not loc and rest and named in TrainConfig.model_fields:  # "beta: ..." names it
+            field, msg = named, rest
         if e["type"] == "extra_forbidden":
             msg = "unknown key (misspelt?)"
         reasons.setdefault(field, []).append(msg)

@@ -100,7 +100,9 @@ class Collector:
         next_obs = res.obs
         self.steps += 1
         self.episode_return += res.reward
-        done = 1.0 if res.terminated or (res.truncated and self.time_limit_terminal) else 0.0
+        # An env's own early time limit (`restart`, custom tasks) is a time limit too.
+        limit = res.truncated or res.restart
+        done = 1.0 if res.terminated or (limit and self.time_limit_terminal) else 0.0
         tr = Transition(
             obs, act, res.reward, next_obs, done, res.success, res.collisions, res.truncated
         )
@@ -108,7 +110,7 @@ class Collector:
             self.episodes += 1
             self.episode_return = 0.0
             self.reset_due = True
-        elif res.terminated:
+        elif res.terminated or res.restart:
             self.obs = np.concatenate(self.env.reset_world())
         else:
             self.obs = next_obs
@@ -183,7 +185,7 @@ def evaluate(policy: Policy, envs: list[TaskEnv], episodes: int) -> EvalResult:
                 res = env.step_joint(acts[j])
                 # A terminal success goes on in a new world, as the thesis code's one
                 # env did in evaluation too; success was seen, so the rate is the same.
-                ended = res.terminated and not res.truncated
+                ended = (res.terminated or res.restart) and not res.truncated
                 obs[j] = np.concatenate(env.reset_world()) if ended else res.obs
                 ok[j] |= res.success
                 ret[j] += res.reward

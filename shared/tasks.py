@@ -13,6 +13,10 @@ mpe2 gives the worlds, physics and observations; this module adds what the thesi
   landmark size, zero-padded or comm-free observations, and the thesis code's order of
   velocity and position updates.
 
+A task named `package.module:factory` is any PettingZoo ParallelEnv with Box spaces,
+adapted by shared/custom_task.py behind the same interface (`make_task_for`,
+`task_spec_for` dispatch), so no caller has a special case.
+
 See docs/tasks.md for the layouts and the hashed vector sizes.
 """
 
@@ -101,9 +105,12 @@ class TaskSpec:
 class JointStep(NamedTuple):
     """One joint step: the joint observation s' = o'_1 || ... || o'_N and the metrics.
 
-    `terminated` is True only with `success_terminal`, at a step where success holds:
-    `obs` is then the terminal observation, and unless the time limit also ends the
-    episode the caller continues it from `reset_world()`.
+    `terminated` is True only with `success_terminal`, at a step where success holds
+    (or, in a custom task, where its env terminated): `obs` is then the terminal
+    observation, and unless the time limit also ends the episode the caller continues
+    it from `reset_world()`. `restart` (custom tasks only) says the env ended its own
+    episode before `episode_len` without a terminal state: not terminal, but the caller
+    continues from `reset_world()` all the same.
     """
 
     obs: np.ndarray
@@ -112,6 +119,7 @@ class JointStep(NamedTuple):
     collisions: int
     truncated: bool
     terminated: bool = False
+    restart: bool = False
 
 
 @dataclass
@@ -124,6 +132,7 @@ class StepResult:
     collisions: int
     truncated: bool
     terminated: bool = False
+    restart: bool = False
 
 
 def _check_task(task: str, agents: int, episode_len: int) -> int:
@@ -672,7 +681,20 @@ def make_task(
     """Build a TaskEnv; `agents` sizes spread only (simple has 1 agent, speaker_listener 2).
 
     `options` are TaskEnv's keyword options (success_terminal, cover, landmark_size,
-    pad_obs, comm_obs, integrator)."""
+    pad_obs, comm_obs, integrator). A `package.module:factory` task is built by
+    shared/custom_task.py instead, from its `task_kwargs`, `success_key` and
+    `success_terminal` options (the env's own reward: `reward` is not used)."""
+    if is_custom(task):
+        from shared.custom_task import CustomTaskEnv
+
+        return CustomTaskEnv(  # type: ignore[return-value]
+            task,
+            options.get("task_kwargs"),
+            episode_len,
+            options.get("success_key"),
+            seed=seed,
+            success_terminal=bool(options.get("success_terminal", False)),
+        )
     return TaskEnv(
         task,
         agents=agents,
@@ -708,10 +730,26 @@ class TaskConfig(Protocol):
     def comm_obs(self) -> bool: ...
     @property
     def integrator(self) -> str: ...
+    @property
+    def task_kwargs(self) -> dict[str, Any] | None: ...
+    @property
+    def success_key(self) -> str | None: ...
+
+
+def is_custom(task: str) -> bool:
+    """Whether `task` names a `package.module:factory` (shared/custom_task.py) rather
+    than one of TASKS."""
+    return ":" in task
 
 
 def task_options(cfg: TaskConfig) -> dict[str, Any]:
     """The config's task-level options, as `make_task` takes them."""
+    if is_custom(cfg.task):
+        return {
+            "task_kwargs": cfg.task_kwargs,
+            "success_key": cfg.success_key,
+            "success_terminal": cfg.success_terminal,
+        }
     return {
         "success_terminal": cfg.success_terminal,
         "cover": cfg.cover,
@@ -732,7 +770,12 @@ def make_task_for(cfg: TaskConfig, seed: int | None = None, direct: bool = True)
 
 def task_spec_for(cfg: TaskConfig) -> TaskSpec:
     """The run's shapes (the learner and the counter size networks, buffers and SimHash
-    projections from it): equal to `make_task_for(cfg).spec`."""
+    projections from it): equal to `make_task_for(cfg).spec`. A custom task's is built
+    and checked once per process (one env, reset and stepped once)."""
+    if is_custom(cfg.task):
+        from shared.custom_task import custom_task_spec
+
+        return custom_task_spec(cfg.task, cfg.task_kwargs, cfg.episode_len, cfg.success_key)
     return task_spec(
         cfg.task, cfg.agents, cfg.episode_len, pad_obs=cfg.pad_obs, comm_obs=cfg.comm_obs
     )

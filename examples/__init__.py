@@ -1,0 +1,1 @@
+"""Example task factories for `task: package.module:factory` (docs/tasks.md)."""
