@@ -116,11 +116,8 @@ def _agent_spec(task: str, env: Any, name: str) -> tuple[AgentSpec, np.ndarray, 
             "(only Box observations can be hashed and fed to the networks)"
         )
     if not isinstance(act_space, Box):
-        hint = (
-            " (mpe2: task_kwargs {continuous_actions: true})"
-            if "Discrete" in str(act_space)
-            else ""
-        )
+        mpe2 = task.startswith("mpe2.") and "Discrete" in str(act_space)
+        hint = " (mpe2: task_kwargs {continuous_actions: true})" if mpe2 else ""
         raise TaskError(
             f"{task}: agent {name}: action space {act_space} is not a Box: DDPG "
             f"and MADDPG need continuous actions{hint}"
@@ -174,7 +171,7 @@ def _checked_spec(
         if success_key is not None and not env.seen_success_key:
             raise TaskError(
                 f"success_key: {success_key!r} is in no agent's info after a step of "
-                f"{task} (info keys: {sorted(env.info_keys) or 'none'})"
+                f"{task} (info keys: {', '.join(sorted(env.info_keys)) or 'none'})"
             )
         del res
         return env.spec

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
 
 from .scheduler import Scheduler
 from .store import Store
@@ -48,6 +49,54 @@ def require_json(request: Request) -> None:
         raise HTTPException(status_code=415, detail="send the body as application/json")
 
 
+def task_names(body: Any) -> list[tuple[tuple[str | int, ...], str]]:
+    """(where, name) of every task a POST /experiments body names: the base, the grid's
+    values and each arm's."""
+    if not isinstance(body, dict):
+        return []
+    found: list[tuple[tuple[str | int, ...], Any]] = [(("task",), body.get("task"))]
+    grid = body.get("grid")
+    if isinstance(grid, dict) and isinstance(grid.get("task"), list):
+        found += [(("grid", "task", i), t) for i, t in enumerate(grid["task"])]
+    arms = body.get("arms")
+    for i, arm in enumerate(arms if isinstance(arms, list) else []):
+        if isinstance(arm, dict):
+            found.append((("arms", i, "task"), arm.get("task")))
+    return [(where, t) for where, t in found if isinstance(t, str)]
+
+
+def module_allowed(module: str, allowed: list[str]) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in allowed)
+
+
+async def require_allowed_tasks(request: Request) -> None:
+    """A custom task (`package.module:factory`) is imported and called in this process
+    and on every service to check and run it: only modules under the API's
+    `task_modules` (MACB_API_TASK_MODULES) may be named, so a body cannot make the API
+    call an arbitrary function. Refused with 422 naming the field, before the body is
+    validated (which would call the factory)."""
+    try:
+        body = await request.json()
+    except ValueError:
+        return  # not JSON: the body's own validation says so (400)
+    allowed = list(request.app.state.settings.task_modules)
+    errors = []
+    for where, task in task_names(body):
+        module = task.split(":", 1)[0]
+        if ":" in task and not module_allowed(module, allowed):
+            errors.append(
+                {
+                    "loc": ("body", *where),
+                    "msg": f"module {module!r} is not one this API may import tasks from "
+                    f"({', '.join(allowed) or 'none'}; MACB_API_TASK_MODULES sets them)",
+                    "type": "value_error",
+                }
+            )
+    if errors:
+        raise RequestValidationError(errors)
+
+
 RunDep = Annotated[dict[str, Any], Depends(get_run)]
 ExperimentRowDep = Annotated[dict[str, Any], Depends(get_experiment_row)]
 JsonBody = Depends(require_json)
+AllowedTasks = Depends(require_allowed_tasks)

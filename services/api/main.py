@@ -57,6 +57,11 @@ class Settings(BaseSettings):
     sse_poll_s: float = Field(0.25, gt=0)
     counter_grace_s: float = Field(120.0, gt=0)
     start_timeout_s: float = Field(60.0, gt=0)
+    task_modules: list[str] = Field(
+        ["mpe2", "pettingzoo", "examples"],
+        description="packages a custom task (package.module:factory) may come from (the "
+        "API imports and calls it to check a body); MACB_API_TASK_MODULES takes a JSON list",
+    )
 
     @property
     def db_path(self) -> Path:

@@ -13,7 +13,14 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from ..deps import ExperimentRowDep, JsonBody, SchedulerDep, StoreDep, not_found
+from ..deps import (
+    AllowedTasks,
+    ExperimentRowDep,
+    JsonBody,
+    SchedulerDep,
+    StoreDep,
+    not_found,
+)
 from ..schemas import (
     NOT_FOUND,
     Curves,
@@ -44,7 +51,7 @@ def new_experiment_id() -> str:
     "",
     status_code=201,
     response_model=ExperimentPublic,
-    dependencies=[JsonBody],
+    dependencies=[JsonBody, AllowedTasks],
     responses={
         400: {"description": "the body is not JSON"},
         413: {"model": Problem, "description": "the body is over the size limit (64 KiB)"},
