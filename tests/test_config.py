@@ -26,7 +26,7 @@ def test_defaults_are_the_thesis_settings():
 @pytest.mark.parametrize(
     "data, field, reason",
     [
-        ({"task": "pong"}, "task", "Input should be"),
+        ({"task": "pong"}, "task", "unknown task 'pong'"),
         ({"beta": -0.1}, "beta", "greater than or equal to 0"),
         ({"k": 0}, "k", "greater than or equal to 1"),
         ({"task": "simple", "algo": "cen-maddpg"}, "config", "task simple has one"),
