@@ -1,7 +1,7 @@
 """`macb`: the parser assembled from the command groups, and the entry point.
 
-Each group module (cli.train, cli.cluster, cli.api, cli.reproduce) adds its own subcommands; this
-module only fixes their order in `macb --help` and sets up logging.
+Each group module (cli.train, cli.cluster, cli.api, cli.export, cli.reproduce) adds its own
+subcommands; this module only fixes their order in `macb --help` and sets up logging.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import argparse
 import logging
 from collections.abc import Callable
 
-from cli import api, cluster, reproduce, train
+from cli import api, cluster, export, reproduce, train
 
 # In the order `macb --help` lists them.
 COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
@@ -21,6 +21,7 @@ COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     api.add_run_parser,
     api.add_ls_parser,
     api.add_plot_parser,
+    export.add_export_parser,
     cluster.add_ps_parser,
     cluster.add_up_parser,
     reproduce.add_reproduce_parser,

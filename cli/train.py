@@ -15,7 +15,8 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         "train",
         help="run one experiment in this process",
         description="Run one experiment in one process and write DIR/metrics.csv, "
-        "DIR/metrics.jsonl, DIR/config.json and DIR/checkpoint.pt. Keys come from --config "
+        "DIR/metrics.jsonl, DIR/config.json and DIR/checkpoint.pt (and TensorBoard events "
+        "with --tensorboard). Keys come from --config "
         "(YAML or JSON) and are overridden by flags.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -36,8 +37,35 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         help="write a cut (everything needed to resume) at the first evaluation point "
         "after this many seconds since the last one, and at the end",
     )
+    p.add_argument(
+        "--tensorboard",
+        metavar="DIR",
+        help="also write every metric row as TensorBoard scalars (step = episode) to "
+        "DIR/<name of the output directory>/ as it is produced (tensorboard --logdir DIR)",
+    )
     add_config_flags(p)
     p.set_defaults(func=cmd_train)
+
+
+class _TensorBoardRows:
+    """`train`'s on_metrics for --tensorboard: the writer opens at the first row, so a
+    resumed run hides (purges) what its killed life wrote from that episode on."""
+
+    def __init__(self, folder: Path, resume: bool) -> None:
+        self.folder, self.resume = folder, resume
+        self.run = None
+
+    def __call__(self, row: dict) -> None:
+        if self.run is None:
+            from shared.tensorboard import TensorBoardRun
+
+            purge = row["episode"] if self.resume else None
+            self.run = TensorBoardRun(self.folder, fresh=not self.resume, purge_from=purge)
+        self.run.write(row)
+
+    def close(self) -> None:
+        if self.run is not None:
+            self.run.close()
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -68,17 +96,29 @@ def cmd_train(args: argparse.Namespace) -> int:
             print(f"macb train: invalid config: {err}", file=sys.stderr)
             return 2
         out = Path(args.out)
+    tb = None
+    if args.tensorboard:
+        tb = _TensorBoardRows(Path(args.tensorboard) / out.resolve().name, bool(args.resume))
     try:
         rows = train(
-            cfg, out, progress=not args.quiet, resume=bool(args.resume), cut_every_s=args.cut_every
+            cfg,
+            out,
+            progress=not args.quiet,
+            on_metrics=tb,
+            resume=bool(args.resume),
+            cut_every_s=args.cut_every,
         )
     except CutError as err:
         print(f"macb train: cannot resume {out}: {err}", file=sys.stderr)
         return 2
+    finally:
+        if tb is not None:
+            tb.close()
     last = rows[-1] if rows else {}
     print(
         f"done: {cfg.episodes} episodes, final success {last.get('success_rate', 0):.2f}, "
         f"{last.get('steps_per_sec', 0):.1f} env steps/s "
         f"({last.get('train_steps_per_sec', 0):.1f} without evaluation); results in {out}/"
+        + (f", TensorBoard events in {tb.folder}/" if tb is not None else "")
     )
     return 0
