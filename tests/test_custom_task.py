@@ -22,6 +22,7 @@ from shared.tasks import make_task_for, task_spec_for
 from shared.trainer import train
 from tests.conftest import ROOT, wait_for
 from tests.test_api_e2e import api_cluster
+from tests.test_tensorboard import assert_same, expected, read_back
 
 TINY = "tests.custom_envs:tiny"
 REFERENCE = {
@@ -284,4 +285,18 @@ def test_the_cluster_and_its_api_run_a_custom_task(tmp_path):
             assert p["env_steps"] <= p["counted_transitions"] <= episodes * 10
             assert 0.0 <= p["success_rate"] <= 1.0
         assert points[-1]["replay_ratio"] == pytest.approx(1.0)
+        # `macb export` writes the cluster run's points as TensorBoard scalars
+        tb = tmp_path / "tb"
+        proc = subprocess.run(
+            [sys.executable, "-m", "cli", "export", run["id"], "--api", url]
+            + ["--tensorboard", str(tb)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert proc.returncode == 0, proc.stderr
+        (folder,) = [p for p in tb.glob("*/*") if p.is_dir()]
+        assert folder.name == "cen-maddpg_+_cen-macb-seed0"
+        assert_same(read_back(folder), expected(points))
         print(f"custom task on the cluster: {[(p['episode'], p['success_rate']) for p in points]}")

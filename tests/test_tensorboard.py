@@ -1,0 +1,181 @@
+"""TensorBoard event files from `macb train --tensorboard` and `macb export`, read back
+with TensorBoard's own EventAccumulator: every metric of every row, at step = episode,
+one folder per run named by experiment, arm and seed."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from services.api.main import ApiServer, Settings
+from services.api.store import Store
+from shared.tensorboard import scalars
+from tests.conftest import ROOT
+from tests.test_api import TINY
+
+TRAIN = ["--task", "simple", "--algo", "ddpg", "--explore", "dis-macb", "--k", "32"]
+TRAIN += ["--hidden", "32,32", "--batch-size", "16", "--eval-episodes", "2"]
+TRAIN += ["--episodes", "8", "--eval-every", "2", "--learning-starts", "20"]
+TRAIN += ["--learner-lanes", "1", "--quiet", "--cut-every", "0"]
+
+
+def read_back(folder: Path) -> dict[str, list[tuple[int, float]]]:
+    """tag -> [(step, value)] as TensorBoard loads the folder."""
+    acc = EventAccumulator(str(folder), size_guidance={"scalars": 0})
+    acc.Reload()
+    return {tag: [(s.step, s.value) for s in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
+
+
+def expected(rows: list[dict]) -> dict[str, list[tuple[int, float]]]:
+    out: dict[str, list[tuple[int, float]]] = {}
+    for row in rows:
+        for tag, value in scalars(row).items():
+            out.setdefault(tag, []).append((row["episode"], value))
+    return out
+
+
+def assert_same(got: dict, want: dict) -> None:
+    assert sorted(got) == sorted(want)
+    for tag, points in want.items():
+        assert [s for s, _ in got[tag]] == [s for s, _ in points], tag
+        # TensorBoard keeps scalars as float32
+        assert [v for _, v in got[tag]] == pytest.approx([v for _, v in points], rel=1e-6), tag
+
+
+def macb(*args: str) -> subprocess.CompletedProcess:
+    proc = subprocess.run(
+        [sys.executable, "-m", "cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_macb_train_writes_every_metric_and_a_resume_does_not_repeat_steps(tmp_path):
+    out, tb = tmp_path / "ddpg-run", tmp_path / "tb"
+    proc = macb("train", *TRAIN, "--out", str(out), "--tensorboard", str(tb))
+    assert f"TensorBoard events in {tb / 'ddpg-run'}/" in proc.stdout
+    rows = jsonl(out / "metrics.jsonl")
+    got = read_back(tb / "ddpg-run")
+    assert_same(got, expected(rows))
+    assert {"success_rate", "count1_pct", "bonus_mean", "steps_per_sec", "updates"} <= set(got)
+    assert [s for s, _ in got["success_rate"]] == [2, 4, 6, 8]
+    # Killed after its cut at episode 6 (its newest cut removed): the resumed life writes
+    # episode 8 again, and TensorBoard shows each step once, the new values.
+    sorted((out / "cuts").glob("cut-*.pt"))[-1].unlink()
+    macb("train", "--resume", str(out), "--tensorboard", str(tb), "--quiet", "--cut-every", "0")
+    resumed = jsonl(out / "metrics.jsonl")
+    after = read_back(tb / "ddpg-run")
+    assert [s for s, _ in after["success_rate"]] == [2, 4, 6, 8]
+    assert_same(after, expected(resumed))
+
+
+def test_macb_export_writes_a_folder_per_run_named_by_experiment_arm_and_seed(tmp_path):
+    """An experiment of two arms x two seeds in a real API and store (its points written
+    as the scheduler writes them); exported from the API and from the store file."""
+    server = ApiServer(
+        Settings(port=0, data_dir=tmp_path / "api", connect=["tcp/127.0.0.1:1"])  # no bus
+    ).start()
+    try:
+        arms = [{"name": "Cen-MACB", "explore": "cen-macb"}, {"name": "a/b c", "explore": "none"}]
+        body = {**TINY, "seeds": [0, 1], "arms": arms, "name": "tb check"}
+        exp = httpx.post(f"{server.url}/experiments", json=body).json()
+        store = Store(server.settings.db_path)
+        points = {}
+        for i, run in enumerate(exp["runs"]):
+            rows = [
+                {"episode": e, "env_steps": 20 * e, "success_rate": 0.1 * i + 0.01 * e}
+                | {"count1_pct": 50.0 - e, "replay_ratio": 1.0, "policy_lag": i}
+                for e in (4, 8, 12)
+            ]
+            store.add_points(run["id"], rows)
+            points[run["id"]] = rows
+        store.close()
+        via_api = tmp_path / "from-api"
+        macb("export", exp["id"], "--api", server.url, "--tensorboard", str(via_api))
+        one = tmp_path / "one-run"
+        macb("export", exp["runs"][3]["id"], "--api", server.url, "--tensorboard", str(one))
+    finally:
+        server.stop()
+    via_db = tmp_path / "from-db"
+    db = str(server.settings.db_path)
+    proc = macb(
+        "export",
+        exp["id"],
+        "--db",
+        db,
+        "--tensorboard",
+        str(via_db),
+        "--csv",
+        str(tmp_path / "csv"),
+    )
+    assert "TensorBoard: 4 run(s), 12 points" in proc.stdout
+    top = f"tb_check-{exp['id']}"
+    names = {"Cen-MACB": "Cen-MACB", "a/b c": "a_b_c"}
+    for root in (via_api, via_db):
+        assert [p.name for p in root.iterdir()] == [top]
+        folders = sorted(p.name for p in (root / top).iterdir())
+        assert folders == sorted(f"{names[r['arm']]}-seed{r['seed']}" for r in exp["runs"])
+        for run in exp["runs"]:
+            got = read_back(root / top / f"{names[run['arm']]}-seed{run['seed']}")
+            assert_same(got, expected(points[run["id"]]))
+    run3 = exp["runs"][3]
+    assert [p.name for p in (one / top).iterdir()] == [f"a_b_c-seed{run3['seed']}"]
+    # exporting again replaces a run's events: still one value per step
+    macb("export", exp["id"], "--db", db, "--tensorboard", str(via_db))
+    again = read_back(via_db / top / "Cen-MACB-seed0")
+    assert [s for s, _ in again["success_rate"]] == [4, 8, 12]
+    assert (tmp_path / "csv" / "metrics.csv").read_text().count("\n") == 1 + 12
+
+
+def test_macb_export_refuses_what_it_cannot_find(tmp_path):
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cli",
+            "export",
+            "nope",
+            "--db",
+            str(tmp_path / "none.sqlite3"),
+            "--tensorboard",
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 2 and "no store file" in proc.stderr
+    Store(tmp_path / "s.sqlite3").close()
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "cli",
+            "export",
+            "nope",
+            "--db",
+            str(tmp_path / "s.sqlite3"),
+            "--tensorboard",
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 1 and "no run or experiment 'nope'" in proc.stderr
+    proc = subprocess.run(
+        [sys.executable, "-m", "cli", "export", "x"], cwd=ROOT, capture_output=True, text=True
+    )
+    assert proc.returncode == 2 and "--tensorboard DIR and/or --csv DIR" in proc.stderr
