@@ -20,6 +20,7 @@ import pytest
 
 from services.api.main import ApiServer, Settings
 from services.api.store import Store
+from tests.cdp import Browser
 from tests.conftest import wait_for
 from tests.test_api_e2e import TINY, api_cluster
 
@@ -248,3 +249,93 @@ def test_dashboard_draws_the_bonus_and_says_when_it_is_a_constant_shift(tmp_path
     assert drawn[("bonus_mean", "counting")] == pytest.approx([0.5] * 3)
     assert drawn[("bonus_mean", "shifted")] == pytest.approx([0.8] * 3)
     assert drawn[("sampled_count1_pct", "counting")] == pytest.approx([55.0] * 3)
+
+
+def test_the_form_creates_an_experiment_that_runs_and_the_buttons_stop_it(tmp_path):
+    """Through the page only, in headless Chromium driven over the DevTools protocol, on
+    a real cluster: a bad body's 422 reasons show beside the fields they name and
+    nothing is created; the form's experiment (a preset, seeds and a grid) runs, its
+    run's stop button stops that run, the experiment's stops the rest."""
+    (tmp_path / "cluster").mkdir()
+    with api_cluster(tmp_path / "cluster") as cluster, Browser(tmp_path / "chromium") as page:
+        url = cluster.url
+        page.goto(f"{url}/")
+        page.wait("document.getElementById('create-form').dataset.ready === '1'")
+        page.choose("#f-preset", "default")  # configs/default.yaml
+        keys = page.js("[...document.querySelectorAll('#f-rows input')].map(i => i.dataset.key)")
+        assert keys == ["task", "algo", "explore", "beta", "k", "episodes", "eval_every"]
+        assert page.js("document.getElementById('f-seeds').value") == "0"
+        page.type('#f-rows input[data-key="beta"]', "1000")
+        page.type("#f-grid", "gama=0.9,0.99")
+        page.type("#f-seeds", "0 1")
+        page.click("#f-submit")
+        page.wait("document.getElementById('create-form').dataset.refused === '1'")
+        beside = page.js(
+            "Object.fromEntries([...document.querySelectorAll('.field-error')]"
+            ".filter(e => e.textContent).map(e => [e.dataset.for, e.textContent]))"
+        )
+        assert beside == {
+            "beta": "Input should be less than or equal to 100",
+            "grid": "grid.gama: unknown key (misspelt?)",
+        }
+        invalid = "[...document.querySelectorAll('.invalid')].map(e => e.id)"
+        assert sorted(page.js(invalid)) == ["f-grid", "f-key-beta"]
+        assert httpx.get(f"{url}/experiments").json()["total"] == 0, "nothing was created"
+
+        page.type('#f-rows input[data-key="beta"]', "0.8")
+        page.type("#f-grid", "k=32,64")
+        page.type('#f-rows input[data-key="episodes"]', "2000")  # runs until stopped
+        page.type('#f-rows input[data-key="eval_every"]', "2")
+        for key, value in [("eval_episodes", "2"), ("hidden", "[32, 32]"), ("batch_size", "16")]:
+            page.choose("#f-add-key", key)
+            page.click("#f-add")
+            page.type(f'#f-rows input[data-key="{key}"]', value)
+        page.type("#f-name", "from the form")
+        page.click("#f-submit")
+        exp_id = page.wait("document.getElementById('create-form').dataset.created")
+        assert page.js(invalid) == [] and page.js(
+            "[...document.querySelectorAll('.field-error')].every(e => !e.textContent)"
+        )
+        exp = httpx.get(f"{url}/experiments/{exp_id}").json()
+        assert exp["name"] == "from the form" and exp["seeds"] == [0, 1]
+        assert [(r["seed"], r["point"]) for r in exp["runs"]] == [
+            (0, {"k": 32}),
+            (1, {"k": 32}),
+            (0, {"k": 64}),
+            (1, {"k": 64}),
+        ]
+        config = exp["runs"][0]["config"]
+        assert (config["task"], config["episodes"], config["hidden"]) == ("simple", 2000, [32, 32])
+        first, second = (r["id"] for r in exp["runs"][:2])
+        row = f"document.querySelector('tr[data-run=\"{first}\"]')"
+        page.wait(
+            f"{row} && {row}.dataset.status === 'running' && +{row}.dataset.points >= 2",
+            timeout=120,
+            what="the first run running, with points drawn",
+        )
+        page.screenshot(tmp_path / "running.png")
+        page.click(f'button.stop-run[data-run="{first}"]')
+        page.wait(f"{row}.dataset.status === 'stopped'", timeout=60, what="the run stopped")
+        run = httpx.get(f"{url}/runs/{first}").json()
+        assert run["status"] == "stopped" and run["reason"] == "stopped by user"
+        nxt = f"document.querySelector('tr[data-run=\"{second}\"]').dataset.status"
+        page.wait(f"{nxt} === 'running'", timeout=60, what="the next run started")
+        card = f"document.querySelector('section[data-experiment=\"{exp_id}\"]')"
+        page.click(f'button.stop-experiment[data-experiment="{exp_id}"]')
+        page.wait(f"{card}.dataset.status === 'stopped'", timeout=60, what="experiment stopped")
+        assert (
+            page.js(f"{card}.querySelectorAll('button.stop-run, button.stop-experiment').length")
+            == 0
+        )
+        page.screenshot(tmp_path / "stopped.png")
+        exp = httpx.get(f"{url}/experiments/{exp_id}").json()
+        assert [r["status"] for r in exp["runs"]] == ["stopped"] * 4
+        assert exp["runs"][0]["points"] >= 2 and exp["runs"][3]["points"] == 0
+
+        def free():
+            workers = httpx.get(f"{url}/workers").json()["workers"]
+            return all(w["run"] is None for w in workers)
+
+        wait_for(free, timeout=30, what="every service free again")
+    assert (tmp_path / "stopped.png").stat().st_size > 20_000
+    print(f"screenshots: {tmp_path / 'running.png'}, {tmp_path / 'stopped.png'}")

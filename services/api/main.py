@@ -31,7 +31,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from shared.bus import default_connect
 
-from .routes import experiments, runs, workers
+from .routes import experiments, presets, runs, workers
 from .scheduler import Scheduler
 from .store import Store
 
@@ -62,6 +62,17 @@ class Settings(BaseSettings):
         description="packages a custom task (package.module:factory) may come from (the "
         "API imports and calls it to check a body); MACB_API_TASK_MODULES takes a JSON list",
     )
+
+    configs_dir: Path | None = Field(
+        None, description="the presets the dashboard offers (default: the shipped configs/)"
+    )
+
+    @property
+    def presets_dir(self) -> Path:
+        if self.configs_dir is not None:
+            return self.configs_dir
+        shipped = Path(__file__).resolve().parents[2] / "configs"
+        return shipped if shipped.is_dir() else Path("configs")
 
     @property
     def db_path(self) -> Path:
@@ -243,6 +254,7 @@ def make_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(experiments.router)
     app.include_router(runs.router)
     app.include_router(workers.router)
+    app.include_router(presets.router)
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def dashboard() -> HTMLResponse:
