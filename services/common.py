@@ -84,7 +84,6 @@ class ServiceBase:
         self.listen(keys.k_control("start"), "start")
         self.listen(keys.k_control("stop"), "stop")
         self.bus.queryable(keys.k_info(self.role, self.id), self._info_reply)
-        self.bus.token(keys.k_live(self.role, self.id))
         put = self.inbox.put
         self.bus.watch_liveliness(
             keys.k_live("*", "*"), lambda key, alive: put(("live", key, b"1" if alive else b"0"))
@@ -286,6 +285,7 @@ class ServiceBase:
         if self.rejoins and not self.active:
             self._run_file().unlink(missing_ok=True)
         self.lost.clear()
+        self.resumed = None
 
     # ------------------------------------------------------------ hooks
     def start_replaces(self, run: str) -> bool:
@@ -360,6 +360,9 @@ class ServiceBase:
         last_check = 0.0
         try:
             self._rejoin()
+            # Announced only now, every subscription of the service (and of a run it
+            # rejoined) in place: what peers send when they see it arrives.
+            self.bus.token(keys.k_live(self.role, self.id))
             while not self.stop_event.is_set():
                 if self.lost and time.monotonic() - last_check > 0.25:
                     last_check = time.monotonic()
