@@ -183,6 +183,7 @@ class Cluster:
                         f"{RESTART_WINDOW_S:.0f} s (exit code {p.returncode}): giving it up",
                         file=sys.stderr,
                     )
+                    self._write_state()
                     return spec.name
                 delay = min(BACKOFF_S[1], BACKOFF_S[0] * 2 ** (len(deaths) - 1))
                 self._restart_at[spec.name] = now + delay
@@ -222,6 +223,8 @@ class Cluster:
         if router and router.poll() is None:
             router.send_signal(signal.SIGTERM)
             self._reap(router, time.monotonic() + 5)
+        if self.procs:
+            self._write_state()
 
     @staticmethod
     def _reap(p: subprocess.Popen, deadline: float) -> None:

@@ -12,6 +12,7 @@ folder and printed (docs/reliability.md has a measured table).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -109,10 +110,8 @@ class Up:
 
 
 def _kill(pid: int, sig: int) -> None:
-    try:
+    with contextlib.suppress(ProcessLookupError):
         os.kill(pid, sig)
-    except ProcessLookupError:
-        pass
 
 
 def _alive(pid: int) -> bool:
@@ -258,3 +257,115 @@ def test_everything_killed_then_macb_up_again_resumes_the_run(up):
         up.start()
 
     _fault_run(up, "SIGKILL all, macb up again", 40, everything)
+
+
+# ------------------------------------------------------------------ supervisor
+def test_a_service_that_keeps_dying_is_restarted_with_backoff_then_given_up(tmp_path):
+    """`macb up`'s supervisor: restarts after 0.5, 1, 2, 4 s; the fifth death within a
+    minute gives the service up (named), and cluster.json says how often it restarted."""
+    from shared.cluster import Cluster, ServiceSpec
+
+    cluster = Cluster([ServiceSpec("doomed", ("no-such-role",))], tmp_path / "logs", echo=False)
+    t0 = time.monotonic()
+    cluster.start()
+    try:
+        gone = wait_for(cluster.supervise, timeout=60, interval=0.05, what="the supervisor")
+    finally:
+        cluster.stop()
+    took = time.monotonic() - t0
+    assert gone == "doomed"
+    assert cluster.restarts["doomed"] == 4
+    assert took >= 0.5 + 1 + 2 + 4, f"backoff not respected: {took:.1f} s"
+    state = json.loads((tmp_path / "cluster.json").read_text())
+    assert state["doomed"]["restarts"] == 4 and state["doomed"]["alive"] is False
+    assert "no-such-role" in (tmp_path / "logs" / "doomed.log").read_text()
+
+
+# ------------------------------------------------------------------ the learner's cuts
+def _learner_rejoins(procs, tmp_path, cut: dict) -> tuple[dict, Path]:
+    """A learner restarted on a data dir whose cut is `cut`: its status for the run."""
+    import torch
+
+    from shared.bus import Bus, k_status
+    from shared.config import make_config
+    from shared.wire import decode
+
+    config = make_config({**CONFIG, "seed": 1}).model_dump(mode="json")
+    run, data = "cut-check", tmp_path / "data"
+    (data / "services").mkdir(parents=True)
+    assign = {"learner": "learner", "counter": "counter", "evaluator": "ev", "actors": ["a0"]}
+    (data / "services" / "learner.json").write_text(
+        json.dumps({"run": run, "config": config, "assign": assign})
+    )
+    folder = data / "learner" / run
+    folder.mkdir(parents=True)
+    torch.save(cut, folder / "checkpoint.pt")
+    before = (folder / "checkpoint.pt").read_bytes()
+    statuses: list[dict] = []
+    with Bus([procs.endpoint]) as bus:
+        bus.subscribe(k_status(run, "learner"), lambda k, p: statuses.append(decode(p, "status")))
+        procs.start("learner", "learner", "--id", "learner", "--data-dir", str(data))
+        wait_for(lambda: statuses, timeout=60, what="the learner's status")
+    assert (folder / "checkpoint.pt").read_bytes() == before, "the cut was overwritten"
+    assert sorted(p.name for p in folder.iterdir()) == ["checkpoint.pt", "transitions.wal"]
+    return statuses[0], folder / "checkpoint.pt"
+
+
+@pytest.mark.parametrize(
+    "change, named",
+    [
+        ({"k": 32}, "k: 32 in the cut, 64 in the run"),
+        ({"task": "spread"}, "task: 'spread' in the cut, 'speaker_listener' in the run"),
+        ({"format": 2}, "cut format 2, this version reads 1"),
+    ],
+)
+def test_a_cut_of_another_config_or_format_is_refused_naming_it(procs, tmp_path, change, named):
+    from shared.config import make_config
+
+    fields = {k: v for k, v in change.items() if k != "format"}
+    other = make_config({**CONFIG, "seed": 1, **fields}).model_dump(mode="json")
+    cut = {"format": change.get("format", 1), "config": json.dumps(other), "counters": {}}
+    status, path = _learner_rejoins(procs, tmp_path, cut)
+    assert status["state"] == "failed", status
+    reason = status["detail"]["reason"]
+    assert named in reason and str(path) in reason, reason
+
+
+@pytest.mark.slow
+def test_a_learner_killed_with_its_newest_cut_torn_resumes_from_the_one_before(procs, tmp_path):
+    """Kill the learner, tear its newest cut in half, start it again by hand: it refuses
+    that cut (naming it, renamed *.refused), resumes from the previous one plus its log,
+    and the run completes exactly."""
+    from shared.bus import Bus
+    from shared.config import make_config
+    from shared.control import start_run
+    from tests.test_services_run import check_exact, start_cluster, wait_services
+
+    procs.env["MACB_LEARNER_CUT_S"] = "0.5"
+    data = start_cluster(procs, tmp_path, 1)
+    config = make_config({**CONFIG, "seed": 2})
+    with Bus([procs.endpoint]) as bus:
+        wait_services(bus, 4)
+        watch = start_run(bus, config, actors=1)
+        wait_for(
+            lambda: watch.latest.get("learner", {}).get("cuts", 0) >= 3 and len(watch.rows) >= 2,
+            timeout=120,
+            what="cuts written and points stored",
+        )
+        procs.kill("learner")
+        folder = Path(data) / "learner" / watch.run
+        newest = folder / "checkpoint.pt"
+        newest.write_bytes(newest.read_bytes()[: newest.stat().st_size // 2])
+        procs.start("learner2", "learner", "--id", "learner", "--data-dir", data)
+        assert watch.wait(timeout=240) == "completed", watch.states
+        wait_for(
+            lambda: watch.latest["counter"]["counted_transitions"] == EPISODES * EPISODE_LEN,
+            timeout=10,
+            what="the counter's final stats",
+        )
+        check_exact(watch, watch.assign["actors"], config)
+    log = procs.log("learner2")
+    assert f"refusing cut {newest}" in log, log
+    assert (folder / "checkpoint.pt.refused").exists()
+    resumed = watch.states["learner"]["resumed"]
+    assert resumed["from_episode"] > 0 and resumed["updates"] > 0, resumed

@@ -235,6 +235,9 @@ class LearnerRun:
     shares: dict[str, int] = field(default_factory=dict)  # transitions each actor owes
     incarnation: str = ""  # this process's weights are newer than any before a restart
     resumed_from: int | None = None  # the cut's episode, when resumed
+    cuts: int = 0
+    cut_s: float = 0.0  # wall time spent writing cuts (the log's fsync included)
+    cut_bytes: int = 0  # size of the last cut file
 
     @property
     def counting(self) -> bool:
@@ -647,6 +650,9 @@ class LearnerService(ServiceBase):
             "rejects_total": sum(self.rejects.values()),
             "contended_updates": st.contended_updates,
             "eval_rows_seen": st.evaluations.reported_rows,
+            "cuts": st.cuts,
+            "cut_ms_mean": 1e3 * st.cut_s / st.cuts if st.cuts else 0.0,
+            "cut_bytes": st.cut_bytes,
             **spent,
             **st.learner.stats(),
         }
@@ -719,7 +725,17 @@ class LearnerService(ServiceBase):
         if path.exists():
             os.replace(path, st.folder / "checkpoint.prev.pt")
         atomic_torch_save(state, path)
-        self.log.info("run %s: cut at episode %d written to %s", self.run_id, st.episodes, path)
+        spent = time.monotonic() - st.last_ckpt
+        st.cuts += 1
+        st.cut_s += spent
+        st.cut_bytes = path.stat().st_size
+        self.log.debug(
+            "run %s: cut at episode %d (%d bytes, %.1f ms)",
+            self.run_id,
+            st.episodes,
+            st.cut_bytes,
+            1e3 * spent,
+        )
 
     def _load_cut(self, st: LearnerRun) -> int | None:
         """Load the newest good cut into `st`; its episode, or None (no cut: the log
