@@ -369,3 +369,37 @@ def test_a_learner_killed_with_its_newest_cut_torn_resumes_from_the_one_before(p
     assert (folder / "checkpoint.pt.refused").exists()
     resumed = watch.states["learner"]["resumed"]
     assert resumed["from_episode"] > 0 and resumed["updates"] > 0, resumed
+
+
+def test_a_logged_batch_reads_back_as_it_was_taken(tmp_path):
+    """The learner's log (shared/wal.py records, one byte column per field): a batch
+    comes back bit for bit, and a torn last record is cut off on open."""
+    import numpy as np
+
+    from services.learner.main import _columns, _log_columns
+    from shared.wal import WriteAheadLog
+
+    rng = np.random.default_rng(0)
+    n = 20
+    batch = {
+        "obs": rng.normal(size=(n, 14)).astype(np.float32),
+        "act": rng.uniform(size=(n, 5)).astype(np.float32),
+        "rew": rng.normal(size=n).astype(np.float32),
+        "next_obs": rng.normal(size=(n, 14)).astype(np.float32),
+        "done": (rng.uniform(size=n) < 0.1).astype(np.float32),
+        "collisions": rng.integers(0, 3, size=n).astype(np.int32),
+        "policy_version": 17,
+    }
+    log, _ = WriteAheadLog.open(tmp_path / "t.wal")
+    log.append("actor0", 40, n, _log_columns(batch))
+    log.append("actor1", 0, n, _log_columns({**batch, "policy_version": 18}))
+    log.close()
+    with open(tmp_path / "t.wal", "ab") as f:
+        f.write(b"\x10\x00\x00\x00torn")  # a record cut short by a kill
+    log, records = WriteAheadLog.open(tmp_path / "t.wal")
+    log.close()
+    assert [(r.actor, r.seq, r.n) for r in records] == [("actor0", 40, n), ("actor1", 0, n)]
+    back = _columns(records[0].keys, n)
+    for name in ("obs", "act", "rew", "next_obs", "done", "collisions"):
+        assert back[name].dtype == batch[name].dtype and np.array_equal(back[name], batch[name])
+    assert back["policy_version"] == 17 and _columns(records[1].keys, n)["policy_version"] == 18

@@ -364,7 +364,21 @@ class LearnerService(ServiceBase):
 
     def on_stop(self, run: str, reason: str) -> None:
         self.checkpoint()
+        self.retire_log()
         self.st = None
+
+    def retire_log(self) -> None:
+        """The run is over (completed or stopped: a retry starts afresh): its log and
+        the older cut are no longer needed (the log is 140 B per transition on
+        speaker_listener, ~130 MB for a thesis-length run). checkpoint.pt stays."""
+        st = self.st
+        if st is None or st.folder is None:
+            return
+        if st.log is not None:
+            st.log.close()
+            st.log = None
+        for name in ("transitions.wal", "checkpoint.prev.pt"):
+            (st.folder / name).unlink(missing_ok=True)
 
     def on_shutdown(self) -> None:
         if self.st is not None:
@@ -672,6 +686,7 @@ class LearnerService(ServiceBase):
             return
         run = self.run_id
         self.checkpoint()
+        self.retire_log()
         stats = self.stats()
         self.publish_metrics(run, stats, source="learner")
         self.publish_status(run, "completed", **stats, resumed=self.resumed)
