@@ -160,7 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     write_result(
         args.out,
-        {"command": command(__file__, argv), "rounds": rounds, "median": summary, **vars(args)}
+        {
+            "command": command(__file__, argv),
+            "args": vars(args),
+            "rounds": rounds,
+            "median": summary,
+        }
         | {"out": str(args.out)},
         load,
     )
