@@ -31,12 +31,14 @@ import signal
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from shared import bus as keys
 from shared.bus import Bus
 from shared.config import ConfigError, TrainConfig, make_config
+from shared.files import write_json
 from shared.wire import WireError, decode, encode
 
 DEFAULT_PEER_GRACE_S = 30.0
@@ -215,7 +217,12 @@ class ServiceBase:
             self.free(run)
 
     def _join(
-        self, run: str, config: TrainConfig, assign: dict[str, Any], raw: dict, hook: Any
+        self,
+        run: str,
+        config: TrainConfig,
+        assign: dict[str, Any],
+        raw: dict,
+        hook: Callable[[str, TrainConfig, dict[str, Any]], None],
     ) -> None:
         """Take the run (`hook` is on_start, or on_resume after a restart) and note it
         in the service's file, so that a restarted process rejoins it."""
@@ -232,8 +239,6 @@ class ServiceBase:
             self.free(run)
             return
         if self.rejoins:
-            from shared.files import write_json
-
             path = self._run_file()
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)

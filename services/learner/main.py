@@ -695,8 +695,12 @@ class LearnerService(ServiceBase):
         self.free(run)
 
     def on_peer_lost(self, role: str, peer: str) -> None:
-        """An actor that dies mid-run fails the run: its transitions cannot come."""
+        """A peer of the run that died and did not come back within the grace period
+        fails the run: an actor's transitions, or the evaluator's rows, cannot come."""
         st = self.st
+        if role == "evaluator" and st is not None and peer == self.assign.get("evaluator"):
+            self.fail(f"evaluator {peer} died and did not come back within {self.grace_s:g} s")
+            return
         if role == "actor" and st is not None and peer in st.actors and peer not in st.final:
             self.fail(
                 f"actor {peer} died before it finished its episodes "
