@@ -90,6 +90,14 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         "were running. No process outlives this command.",
     )
     up.add_argument("--actors", type=int, default=1, help="actor processes")
+    up.add_argument(
+        "--slots",
+        type=int,
+        default=1,
+        metavar="N",
+        help="runs at once: N learners and evaluators, N x --actors actors, one counter "
+        "(queued runs start on whichever are free)",
+    )
     up.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="router endpoint")
     up.add_argument("--data-dir", default="data", help="snapshots, checkpoints, logs")
     up.add_argument("--run", metavar="CONFIG", help="run this experiment, then stop")
@@ -258,6 +266,9 @@ def cmd_up(args: argparse.Namespace) -> int:
     The config is checked before any process starts, and `local_cluster` stops every
     child whichever way this returns, so no process outlives `macb up`.
     """
+    if args.slots < 1:
+        print(f"macb up: --slots must be at least 1, not {args.slots}", file=sys.stderr)
+        return 2
     try:
         cfg, body = _up_experiment(args)
     except (ConfigError, OSError) as err:
@@ -267,7 +278,12 @@ def cmd_up(args: argparse.Namespace) -> int:
     api_addr = None if args.no_api else f"127.0.0.1:{args.api_port}"
     try:
         with local_cluster(
-            args.actors, args.endpoint, data_dir, api_addr, echo=not args.quiet_services
+            args.actors,
+            args.endpoint,
+            data_dir,
+            api_addr,
+            echo=not args.quiet_services,
+            slots=args.slots,
         ) as up:
             if cfg is None or up.stop.is_set():
                 return _serve_until_stopped(up.cluster, up.stop)
@@ -300,7 +316,12 @@ class LocalCluster:
 
 @contextlib.contextmanager
 def local_cluster(
-    actors: int, endpoint: str, data_dir: Path, api_addr: str | None, echo: bool = True
+    actors: int,
+    endpoint: str,
+    data_dir: Path,
+    api_addr: str | None,
+    echo: bool = True,
+    slots: int = 1,
 ) -> Iterator[LocalCluster]:
     """Start the local cluster (`macb up`'s, and `macb reproduce`'s when no API answers)
     and wait for every service and the API; stop every process on the way out, however
@@ -308,7 +329,9 @@ def local_cluster(
     With a signal during start-up it yields at once, `stop` set (and `api` maybe None)."""
     from shared.bus import Bus
 
-    plan = cluster_plan(actors, endpoint, str(data_dir), api=api_addr)
+    if slots < 1:
+        raise ValueError(f"--slots must be at least 1, not {slots}")
+    plan = cluster_plan(actors, endpoint, str(data_dir), api=api_addr, slots=slots)
     cluster = Cluster(plan, data_dir / "logs", echo=echo)
     stop = _stop_on_signals()
     api = None

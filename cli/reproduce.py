@@ -52,6 +52,13 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "answers there, a local cluster is started with its API on that port",
     )
     rp.add_argument("--data-dir", default="data", help="the local cluster's data dir")
+    rp.add_argument(
+        "--slots",
+        type=int,
+        default=1,
+        metavar="N",
+        help="the local cluster runs N runs at once (see `macb up --slots`)",
+    )
     rp.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="its router endpoint")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     rp.add_argument("--quiet-services", action="store_true", help="service logs to files only")
@@ -67,6 +74,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     fig = FIGURES[args.figure]
     if args.episodes is not None and args.episodes < 1:
         return _refuse(f"--episodes {args.episodes}: give a number of episodes >= 1")
+    if args.slots < 1:
+        return _refuse(f"--slots {args.slots}: give a number of runs at once >= 1")
     try:
         body = experiment_body(fig, args.profile, args.seeds or file_seeds(fig), args.episodes)
         body["name"] = experiment_name(fig, body)
@@ -134,7 +143,12 @@ def _with_local_cluster(
     data_dir = Path(args.data_dir)
     try:
         with local_cluster(
-            1, args.endpoint, data_dir, f"127.0.0.1:{where.port}", echo=not args.quiet_services
+            1,
+            args.endpoint,
+            data_dir,
+            f"127.0.0.1:{where.port}",
+            echo=not args.quiet_services,
+            slots=args.slots,
         ) as up:
             if up.stop.is_set() or up.api is None:
                 return 1

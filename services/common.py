@@ -31,12 +31,14 @@ import signal
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from shared import bus as keys
 from shared.bus import Bus
 from shared.config import ConfigError, TrainConfig, make_config
+from shared.files import write_json
 from shared.wire import WireError, decode, encode
 
 DEFAULT_PEER_GRACE_S = 30.0
@@ -84,7 +86,6 @@ class ServiceBase:
         self.listen(keys.k_control("start"), "start")
         self.listen(keys.k_control("stop"), "stop")
         self.bus.queryable(keys.k_info(self.role, self.id), self._info_reply)
-        self.bus.token(keys.k_live(self.role, self.id))
         put = self.inbox.put
         self.bus.watch_liveliness(
             keys.k_live("*", "*"), lambda key, alive: put(("live", key, b"1" if alive else b"0"))
@@ -216,7 +217,12 @@ class ServiceBase:
             self.free(run)
 
     def _join(
-        self, run: str, config: TrainConfig, assign: dict[str, Any], raw: dict, hook: Any
+        self,
+        run: str,
+        config: TrainConfig,
+        assign: dict[str, Any],
+        raw: dict,
+        hook: Callable[[str, TrainConfig, dict[str, Any]], None],
     ) -> None:
         """Take the run (`hook` is on_start, or on_resume after a restart) and note it
         in the service's file, so that a restarted process rejoins it."""
@@ -233,8 +239,6 @@ class ServiceBase:
             self.free(run)
             return
         if self.rejoins:
-            from shared.files import write_json
-
             path = self._run_file()
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
@@ -286,6 +290,7 @@ class ServiceBase:
         if self.rejoins and not self.active:
             self._run_file().unlink(missing_ok=True)
         self.lost.clear()
+        self.resumed = None
 
     # ------------------------------------------------------------ hooks
     def start_replaces(self, run: str) -> bool:
@@ -360,6 +365,9 @@ class ServiceBase:
         last_check = 0.0
         try:
             self._rejoin()
+            # Announced only now, every subscription of the service (and of a run it
+            # rejoined) in place: what peers send when they see it arrives.
+            self.bus.token(keys.k_live(self.role, self.id))
             while not self.stop_event.is_set():
                 if self.lost and time.monotonic() - last_check > 0.25:
                     last_check = time.monotonic()

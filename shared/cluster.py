@@ -50,8 +50,14 @@ def cluster_plan(
     data_dir: str = "data",
     listen: str | None = None,
     api: str | None = "127.0.0.1:8000",
+    slots: int = 1,
 ) -> list[ServiceSpec]:
     """Router first; then counter, learner, evaluator, `actors` actors, and the API last.
+
+    `slots` > 1: that many runs at once, each on a learner, an evaluator and `actors`
+    actors of its own (ids `learner`, `learner1`, ...; actors numbered on), with the
+    one counter, which serves every run; the API's scheduler starts queued runs on
+    whichever are free.
 
     `endpoint` is where services connect; `listen` where the router listens (the same
     by default; docker-compose listens on all interfaces and connects by host name).
@@ -61,9 +67,12 @@ def cluster_plan(
     env = (("MACB_ZENOH_CONNECT", endpoint), *THREAD_ENV.items())
     router_args = ("router", "--listen", listen or endpoint)
     plan = [ServiceSpec("router", router_args, tuple(THREAD_ENV.items()))]
-    for role in ("counter", "learner", "evaluator"):
-        plan.append(ServiceSpec(role, (role, "--id", role, "--data-dir", data_dir), env))
-    for r in range(actors):
+    plan.append(ServiceSpec("counter", ("counter", "--id", "counter", "--data-dir", data_dir), env))
+    for slot in range(slots):
+        for role in ("learner", "evaluator"):
+            sid = role if slot == 0 else f"{role}{slot}"
+            plan.append(ServiceSpec(sid, (role, "--id", sid, "--data-dir", data_dir), env))
+    for r in range(actors * slots):
         plan.append(
             ServiceSpec(f"actor{r}", ("actor", "--id", f"actor{r}", "--data-dir", data_dir), env)
         )
@@ -183,6 +192,7 @@ class Cluster:
                         f"{RESTART_WINDOW_S:.0f} s (exit code {p.returncode}): giving it up",
                         file=sys.stderr,
                     )
+                    self._write_state()
                     return spec.name
                 delay = min(BACKOFF_S[1], BACKOFF_S[0] * 2 ** (len(deaths) - 1))
                 self._restart_at[spec.name] = now + delay
@@ -222,6 +232,8 @@ class Cluster:
         if router and router.poll() is None:
             router.send_signal(signal.SIGTERM)
             self._reap(router, time.monotonic() + 5)
+        if self.procs:
+            self._write_state()
 
     @staticmethod
     def _reap(p: subprocess.Popen, deadline: float) -> None:

@@ -91,6 +91,7 @@ class RunWatch:
     latest: dict[str, dict[str, Any]] = field(default_factory=dict)  # source -> last data
     changed: threading.Condition = field(default_factory=threading.Condition)
     on_row: Callable[[dict[str, Any]], None] | None = None
+    _episodes: set[Any] = field(default_factory=set)  # of the rows kept
 
     def attach(self, bus: Bus) -> None:
         bus.subscribe(keys.k_metrics(self.run, "**"), self._on_metrics)
@@ -103,7 +104,11 @@ class RunWatch:
             return
         with self.changed:
             self.latest[msg["source"]] = msg["data"]
-            if msg["source"] == "eval":
+            # Rows come at least once: an evaluation point the learner sent again (it
+            # restarted, or saw no row) is published again. One row per episode is kept.
+            episode = msg["data"].get("episode")
+            if msg["source"] == "eval" and episode not in self._episodes:
+                self._episodes.add(episode)
                 self.rows.append(msg["data"])
                 if self.on_row:
                     self.on_row(msg["data"])

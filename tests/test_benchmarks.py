@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -61,3 +63,17 @@ def test_bench_learner_bf16_table_runs(tmp_path: Path) -> None:
     for row in sl:
         for way in ("batched", "bf16", "floor", "floor_bf16"):
             assert row[f"{way}_updates_per_s"] > 0
+
+
+@pytest.mark.slow
+def test_bench_resume_kills_the_learner_and_times_its_resume(tmp_path: Path) -> None:
+    out = tmp_path / "resume.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_resume.py"), "--quick"]
+    proc = subprocess.run(
+        [*argv, "--out", str(out)], capture_output=True, text=True, timeout=300, check=False
+    )
+    assert proc.returncode == 0, proc.stderr
+    (round_,) = json.loads(out.read_text())["rounds"]
+    assert round_["counted"] == 60 * 20 and round_["replay_ratio"] == 1.0
+    assert 0 < round_["restart_after_kill_s"] < round_["first_update_after_restart_s"] + 1
+    assert round_["cut_bytes"] > 0 and round_["cut_ms_mean_after_resume"] > 0

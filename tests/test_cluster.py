@@ -27,3 +27,21 @@ def test_plan_gives_actors_distinct_ids_and_one_thread_each():
     assert ids == ["actor0", "actor1", "actor2"]
     for s in plan:
         assert dict(s.env)["OMP_NUM_THREADS"] == "1"
+
+
+def test_slots_give_each_run_its_own_learner_evaluator_and_actors():
+    plan = cluster_plan(2, "tcp/127.0.0.1:7447", "/data", slots=3)
+    names = [s.name for s in plan]
+    assert names == [
+        "router",
+        "counter",
+        "learner",
+        "evaluator",
+        "learner1",
+        "evaluator1",
+        "learner2",
+        "evaluator2",
+        *[f"actor{r}" for r in range(6)],
+        "api",
+    ]
+    assert cluster_plan(1) == cluster_plan(1, slots=1)  # one slot: the plan compose mirrors

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -72,6 +73,43 @@ def test_up_runs_an_experiment_and_leaves_nothing_running(tmp_path):
     assert "dashboard" in out and (tmp_path / "data" / "api.sqlite3").exists()
     for name in ("router", "counter", "learner", "evaluator", "actor0", "api"):
         assert (tmp_path / "data" / "logs" / f"{name}.log").exists()
+    assert cluster_processes(endpoint, tmp_path) == []
+
+
+def test_slots_run_two_runs_at_once_each_exact(tmp_path):
+    """`macb up --slots 2`: two learners and evaluators, two actors, one counter; an
+    experiment of two seeds has both runs running at once, and each is exact."""
+    import sqlite3
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY.replace("episodes: 12", "episodes: 40"))
+    proc, endpoint = up(
+        tmp_path,
+        "--slots",
+        "2",
+        "--run",
+        str(cfg),
+        "--seeds",
+        "0",
+        "1",
+        "--out",
+        str(tmp_path / "out"),
+    )
+    out, _ = proc.communicate(timeout=300)
+    assert proc.returncode == 0, out
+    with sqlite3.connect(tmp_path / "data" / "api.sqlite3") as db:
+        runs = db.execute("SELECT id, status, started, ended, assign FROM runs").fetchall()
+    assert [r[1] for r in runs] == ["completed", "completed"], runs
+    (a, b) = runs
+    assert a[2] < b[3] and b[2] < a[3], f"the two runs did not overlap: {runs}"
+    learners = {json.loads(r[4])["learner"] for r in runs}
+    assert learners == {"learner", "learner1"}, learners
+    for run_id, *_ in runs:
+        with open(tmp_path / "out" / run_id / "metrics.csv") as f:
+            rows = list(csv.DictReader(f))
+        assert [int(r["episode"]) for r in rows] == [4 * i for i in range(1, 11)]
+        assert int(rows[-1]["counted_transitions"]) == 40 * 20
+        assert float(rows[-1]["replay_ratio"]) == 1.0
     assert cluster_processes(endpoint, tmp_path) == []
 
 

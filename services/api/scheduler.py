@@ -303,13 +303,13 @@ class Scheduler:
         w.states[msg["service"]] = {**flat_row(msg["detail"]), "state": msg["state"]}
         resumed = msg["detail"].get("resumed")
         if msg["service"] == w.assign["learner"] and isinstance(resumed, dict):
-            note = (
-                f"learner {msg['service']} restarted and resumed from the cut at episode "
-                f"{resumed.get('from_episode')}"
-            )
-            w.notes.append(note)
-            log.info("run %s: %s", w.run, note)
-            self.store.set_reason(w.run, note)
+            cut = resumed.get("from_episode")
+            where = f"the cut at episode {cut}" if cut is not None else "its log (no cut yet)"
+            note = f"learner {msg['service']} restarted and resumed from {where}"
+            if note not in w.notes:
+                w.notes.append(note)
+                log.info("run %s: %s", w.run, note)
+                self.store.set_reason(w.run, "; ".join(w.notes))
         if msg["service"] == w.assign["evaluator"] and msg["state"] == "completed":
             w.evaluator_done = time.monotonic()
         self.store.set_services(w.run, w.states)

@@ -65,7 +65,9 @@ UPDATES_PER_TICK = 20  # bound on work between inbox checks; one bonus query eac
 # A cut every this many seconds (MACB_LEARNER_CUT_S overrides): what a restart redoes.
 CHECKPOINT_EVERY_S = float(os.environ.get("MACB_LEARNER_CUT_S", "30"))
 CUT_FORMAT = 1
-EVAL_RESEND_S = 15.0  # an evaluation point unreported this long is sent again
+# An evaluation point is sent again when the evaluator reported a later one (this one's
+# weights or row were lost), or when nothing was reported for this long (the last one's).
+EVAL_RESEND_S = 30.0
 # The columns of a logged batch, each stored as (n, bytes per row) uint8.
 LOG_COLUMNS = (
     ("obs", np.float32),
@@ -153,6 +155,7 @@ class EvaluationsInFlight:
         self.reported_rows = 0
         # Points sent and not reported yet: point -> (when sent, the weights message).
         self.unreported: dict[int, tuple[float, bytes]] = {}
+        self.reported_at = time.monotonic()
 
     def sent(self, point: int) -> None:
         self.last_sent, self.sent_at = point, time.monotonic()
@@ -161,6 +164,7 @@ class EvaluationsInFlight:
         self.last_reported = max(self.last_reported, point)
         self.reported_rows += 1
         self.unreported.pop(point, None)
+        self.reported_at = time.monotonic()
 
     def busy(self) -> bool:
         """The evaluator is (most likely) evaluating a point we sent."""
@@ -231,6 +235,9 @@ class LearnerRun:
     shares: dict[str, int] = field(default_factory=dict)  # transitions each actor owes
     incarnation: str = ""  # this process's weights are newer than any before a restart
     resumed_from: int | None = None  # the cut's episode, when resumed
+    cuts: int = 0
+    cut_s: float = 0.0  # wall time spent writing cuts (the log's fsync included)
+    cut_bytes: int = 0  # size of the last cut file
 
     @property
     def counting(self) -> bool:
@@ -267,9 +274,16 @@ class LearnerService(ServiceBase):
         cut = self._load_cut(st)
         for rec in records:
             rows = _columns(rec.keys, rec.n)
+            if not st.received.take(rec.actor, rec.seq, rec.n).took:
+                self.log.warning(
+                    "run %s: logged batch %s@%d out of order: skipped", run, rec.actor, rec.seq
+                )
+                continue
+            # Newer than any version an actor acted with: the lags stay >= 0.
+            st.version = max(st.version, int(rows["policy_version"]))
             if rec.seq < st.ingested_pos.get(rec.actor, 0):  # in replay at the cut
                 st.buffer.add(rows["obs"], rows["act"], rows["rew"], rows["next_obs"], rows["done"])
-            elif st.received.take(rec.actor, rec.seq, rec.n).took:
+            else:  # taken, not yet counted at the cut: waits for the counter's ack again
                 st.held[rec.actor].append({"actor": rec.actor, "seq": rec.seq, **rows})
         st.resumed_from = cut
         held = sum(len(h) for h in st.held.values())
@@ -350,7 +364,21 @@ class LearnerService(ServiceBase):
 
     def on_stop(self, run: str, reason: str) -> None:
         self.checkpoint()
+        self.retire_log()
         self.st = None
+
+    def retire_log(self) -> None:
+        """The run is over (completed or stopped: a retry starts afresh): its log and
+        the older cut are no longer needed (the log is 140 B per transition on
+        speaker_listener, ~130 MB for a thesis-length run). checkpoint.pt stays."""
+        st = self.st
+        if st is None or st.folder is None:
+            return
+        if st.log is not None:
+            st.log.close()
+            st.log = None
+        for name in ("transitions.wal", "checkpoint.prev.pt"):
+            (st.folder / name).unlink(missing_ok=True)
 
     def on_shutdown(self) -> None:
         if self.st is not None:
@@ -536,23 +564,29 @@ class LearnerService(ServiceBase):
             },
         )
         if eval_point >= 0:
-            st.eval_pub(payload)
-            st.evaluations.sent(eval_point)
+            # Noted before it goes out: the evaluator's report may come back at once.
             st.evaluations.unreported[eval_point] = (time.monotonic(), payload)
+            st.evaluations.sent(eval_point)
+            st.eval_pub(payload)
         else:
             st.weights_pub(payload)
 
     def resend_unreported(self, now: float, at_once: bool = False) -> None:
-        """Send again the evaluation points the evaluator has not reported for a while
-        (or, `at_once`, all of them: the evaluator just came back)."""
+        """Send again the evaluation points that were lost on the way: older than one the
+        evaluator reported, or the last ones once it has been silent for EVAL_RESEND_S
+        (a merely slow evaluator reports in order, so it is not sent duplicates); with
+        `at_once` all of them (the evaluator just came back)."""
         st = self.st
         assert st is not None
-        pending = st.evaluations.unreported
-        for point, (sent, payload) in sorted(pending.items()):
-            if at_once or now - sent > EVAL_RESEND_S:
+        ev = st.evaluations
+        silent = now - ev.reported_at > EVAL_RESEND_S
+        for point, (sent, payload) in sorted(ev.unreported.items()):
+            overtaken = point < ev.last_reported and now - sent > 2.0  # (give a resend time)
+            lost = overtaken or (silent and now - sent > EVAL_RESEND_S)
+            if at_once or lost:
                 self.log.info("run %s: evaluation point %d sent again", self.run_id, point)
                 st.eval_pub(payload)
-                pending[point] = (now, payload)
+                ev.unreported[point] = (now, payload)
 
     def on_peer_found(self, role: str, peer: str) -> None:
         """A service of the run came back: an actor gets weights and where to go on, the
@@ -630,6 +664,9 @@ class LearnerService(ServiceBase):
             "rejects_total": sum(self.rejects.values()),
             "contended_updates": st.contended_updates,
             "eval_rows_seen": st.evaluations.reported_rows,
+            "cuts": st.cuts,
+            "cut_ms_mean": 1e3 * st.cut_s / st.cuts if st.cuts else 0.0,
+            "cut_bytes": st.cut_bytes,
             **spent,
             **st.learner.stats(),
         }
@@ -645,18 +682,25 @@ class LearnerService(ServiceBase):
             return
         if st.learner.updates < st.owed_total:
             return
+        if st.evaluations.unreported:  # every point's row is out (or sent again) first
+            return
         run = self.run_id
         self.checkpoint()
+        self.retire_log()
         stats = self.stats()
         self.publish_metrics(run, stats, source="learner")
-        self.publish_status(run, "completed", **stats)
+        self.publish_status(run, "completed", **stats, resumed=self.resumed)
         self.log.info("run %s completed: %s", run, json.dumps(stats))
         self.st = None
         self.free(run)
 
     def on_peer_lost(self, role: str, peer: str) -> None:
-        """An actor that dies mid-run fails the run: its transitions cannot come."""
+        """A peer of the run that died and did not come back within the grace period
+        fails the run: an actor's transitions, or the evaluator's rows, cannot come."""
         st = self.st
+        if role == "evaluator" and st is not None and peer == self.assign.get("evaluator"):
+            self.fail(f"evaluator {peer} died and did not come back within {self.grace_s:g} s")
+            return
         if role == "actor" and st is not None and peer in st.actors and peer not in st.final:
             self.fail(
                 f"actor {peer} died before it finished its episodes "
@@ -700,6 +744,17 @@ class LearnerService(ServiceBase):
         if path.exists():
             os.replace(path, st.folder / "checkpoint.prev.pt")
         atomic_torch_save(state, path)
+        spent = time.monotonic() - st.last_ckpt
+        st.cuts += 1
+        st.cut_s += spent
+        st.cut_bytes = path.stat().st_size
+        self.log.debug(
+            "run %s: cut at episode %d (%d bytes, %.1f ms)",
+            self.run_id,
+            st.episodes,
+            st.cut_bytes,
+            1e3 * spent,
+        )
 
     def _load_cut(self, st: LearnerRun) -> int | None:
         """Load the newest good cut into `st`; its episode, or None (no cut: the log
