@@ -36,6 +36,7 @@ from shared.tasks import TaskEnv, make_task_for
 from shared.wire import encode
 
 HISTORY_RUNS = 64  # runs whose rows are kept for history queries
+REPUBLISH_AFTER_S = 5.0  # a row is published again for a resend only this long after
 
 
 @dataclass
@@ -47,6 +48,7 @@ class EvaluatorRun:
     pending: collections.deque[dict[str, Any]] = field(default_factory=collections.deque)
     points: int = 0
     last_point: int = -1  # the newest point evaluated: one sent again is not redone
+    published: dict[int, float] = field(default_factory=dict)  # point -> when its row went
     t0: float = field(default_factory=time.perf_counter)
 
 
@@ -114,7 +116,10 @@ class EvaluatorService(ServiceBase):
             if any(p["eval_point"] == point for p in st.pending):
                 return  # sent again while we are behind: it is evaluated once
             if point <= st.last_point:  # sent again: its row was lost on the way
-                self._publish_again(point)
+                # ... unless the row went out moments ago: then the learner's resend
+                # crossed it (it is resent again later if it was lost after all).
+                if time.monotonic() - st.published.get(point, 0.0) > REPUBLISH_AFTER_S:
+                    self._publish_again(point)
                 return
             st.pending.append(msg)
 
@@ -126,6 +131,8 @@ class EvaluatorService(ServiceBase):
         for row in rows:
             if row["episode"] == point:
                 self.publish_metrics(run, row, source="eval")
+                if self.st is not None:
+                    self.st.published[point] = time.monotonic()
                 return
 
     def tick(self) -> bool:
@@ -162,6 +169,7 @@ class EvaluatorService(ServiceBase):
         }
         self._remember(run, "running", row)
         self.publish_metrics(run, row, source="eval")
+        st.published[msg["eval_point"]] = time.monotonic()
         st.points += 1
         if msg["eval_point"] >= cfg.episodes:
             self._remember(run, "completed")
