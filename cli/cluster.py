@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from cli.api import experiment_body, run_via_api
 from cli.config_flags import add_config_flags, config_overrides, one_run_config, resolve_config
+from cli.security import add_security_flags
 from shared.cluster import Cluster, cluster_plan
 from shared.config import ConfigError, TrainConfig
 
@@ -40,8 +41,18 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument("role", choices=SERVICES)
     s.add_argument("--id", help="service id (default: role-host-pid); actors need distinct ids")
-    s.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
-    s.add_argument("--listen", action="append", metavar="ENDPOINT", help="router only: listen on")
+    s.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="router endpoint(s); for a router: other routers to peer with",
+    )
+    s.add_argument(
+        "--listen",
+        action="append",
+        metavar="ENDPOINT",
+        help="router only: listen on (beyond 127.0.0.0/8 only with TLS and a users file)",
+    )
     s.add_argument("--data-dir", default="data", help="where snapshots and checkpoints go")
     s.add_argument(
         "--listen-http",
@@ -52,6 +63,7 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument(
         "--db", metavar="FILE", help="api only: SQLite store (default DATA_DIR/api.sqlite3)"
     )
+    add_security_flags(s)
     s.set_defaults(func=cmd_serve)
 
 
@@ -68,12 +80,14 @@ def add_start_parser(sub: argparse._SubParsersAction) -> None:
     st.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint")
     st.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_flags(st)
+    add_security_flags(st)
     st.set_defaults(func=cmd_start)
 
 
 def add_ps_parser(sub: argparse._SubParsersAction) -> None:
     ps = sub.add_parser("ps", help="list live services and the runs they serve")
     ps.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint")
+    add_security_flags(ps)
     ps.set_defaults(func=cmd_ps)
 
 
@@ -107,11 +121,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import socket
 
     from shared.bus import DEFAULT_ENDPOINT, default_connect
+    from shared.security import Security, SecurityError
 
+    try:  # every file and setting checked before any session opens: nothing half-starts
+        sec = Security.from_env()
+        sec.for_router().check("router") if args.role == "router" else sec.check("client")
+    except SecurityError as err:
+        print(f"macb serve {args.role}: {err}", file=sys.stderr)
+        return 2
     if args.role == "router":
         from services.router.main import serve
 
-        serve(args.listen or [os.environ.get("MACB_ZENOH_LISTEN", DEFAULT_ENDPOINT)])
+        listen = args.listen or [os.environ.get("MACB_ZENOH_LISTEN", DEFAULT_ENDPOINT)]
+        try:
+            serve(listen, connect=args.connect, router_id=args.id or sec.user or "router")
+        except SecurityError as err:
+            print(f"macb serve router: {err}", file=sys.stderr)
+            return 2
         return 0
     if args.role == "api":
         return serve_api(args)

@@ -39,6 +39,7 @@ def cluster_plan(
     data_dir: str = "data",
     listen: str | None = None,
     api: str | None = "127.0.0.1:8000",
+    secrets: str | None = None,
 ) -> list[ServiceSpec]:
     """Router first; then counter, learner, evaluator, `actors` actors, and the API last.
 
@@ -46,21 +47,29 @@ def cluster_plan(
     by default; docker-compose listens on all interfaces and connects by host name).
     `api` is the API's HTTP address (None: no API). When the router listens on all
     interfaces (containers), so does the API, which then needs MACB_API_TOKEN.
+    `secrets`: a folder `macb certs` wrote; each service then signs in as its own id
+    (MACB_ZENOH_USER, the router as `router`) with its files there (docs/deploy.md).
     """
+
+    def signed_in(user: str, env: tuple[tuple[str, str], ...]) -> tuple[tuple[str, str], ...]:
+        if secrets is None:
+            return env
+        return (*env, ("MACB_ZENOH_SECRETS", secrets), ("MACB_ZENOH_USER", user))
+
     env = (("MACB_ZENOH_CONNECT", endpoint), *THREAD_ENV.items())
     router_args = ("router", "--listen", listen or endpoint)
-    plan = [ServiceSpec("router", router_args, tuple(THREAD_ENV.items()))]
+    plan = [ServiceSpec("router", router_args, signed_in("router", tuple(THREAD_ENV.items())))]
     for role in ("counter", "learner", "evaluator"):
-        plan.append(ServiceSpec(role, (role, "--id", role, "--data-dir", data_dir), env))
+        args = (role, "--id", role, "--data-dir", data_dir)
+        plan.append(ServiceSpec(role, args, signed_in(role, env)))
     for r in range(actors):
-        plan.append(
-            ServiceSpec(f"actor{r}", ("actor", "--id", f"actor{r}", "--data-dir", data_dir), env)
-        )
+        args = ("actor", "--id", f"actor{r}", "--data-dir", data_dir)
+        plan.append(ServiceSpec(f"actor{r}", args, signed_in(f"actor{r}", env)))
     if api is not None:
         if listen and listen.split("/", 1)[-1].startswith("0.0.0.0:"):
             api = "0.0.0.0:" + api.rsplit(":", 1)[1]
         args = ("api", "--id", "api", "--listen-http", api, "--data-dir", data_dir)
-        plan.append(ServiceSpec("api", args, env))
+        plan.append(ServiceSpec("api", args, signed_in("api", env)))
     return plan
 
 

@@ -24,7 +24,8 @@ class Procs:
         self.endpoint = endpoint
         self.procs: dict[str, subprocess.Popen] = {}
 
-    def start(self, name: str, *args: str) -> subprocess.Popen:
+    def start(self, name: str, *args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
+        """`env`: more variables for this process (a secure cluster's user and files)."""
         env = {
             **os.environ,
             "MACB_ZENOH_CONNECT": self.endpoint,
@@ -32,6 +33,7 @@ class Procs:
             "OMP_NUM_THREADS": "1",
             "OPENBLAS_NUM_THREADS": "1",
             "MKL_NUM_THREADS": "1",
+            **(env or {}),
         }
         log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 (the child owns it)
         p = subprocess.Popen(
