@@ -235,7 +235,14 @@ def acl_config(users: list[str]) -> dict[str, Any]:
             )
             ids.append(rid)
         subjects.append({"id": f"user.{user}", "usernames": [user]})
-        policies.append({"id": f"policy.{user}", "rules": ids, "subjects": [f"user.{user}"]})
+        names = [f"user.{user}"]
+        if role_of(user) == "router":
+            # A router that connects to another signs in there with its user name, but
+            # the one it connects to proves itself only by its TLS certificate: routers
+            # are also known by their certificate's common name (signed by the CA).
+            subjects.append({"id": f"cert.{user}", "cert_common_names": [user]})
+            names.append(f"cert.{user}")
+        policies.append({"id": f"policy.{user}", "rules": ids, "subjects": names})
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -109,8 +109,10 @@ def start_services(procs: Procs, secrets: Path, tmp_path: Path, actors: int = 1,
 def wait_final_counts(watch, config) -> None:
     """The counter publishes its stats each second: wait for the final ones."""
     wait_for(
-        lambda: (watch.latest.get("counter") or {}).get("counted_transitions")
-        == config.episodes * config.episode_len,
+        lambda: (
+            (watch.latest.get("counter") or {}).get("counted_transitions")
+            == config.episodes * config.episode_len
+        ),
         timeout=10,
         what="final counter stats",
     )

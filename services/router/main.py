@@ -118,7 +118,7 @@ def serve(
             f", connecting to {', '.join(connect)}" if connect else "",
             "; TLS" * sec.tls
             + "; user/password" * (sec.users_file is not None)
-            + f"; ACL for {len(acl['subjects'])} users" * (acl is not None),
+            + f"; ACL for {len(acl['policies'])} users" * (acl is not None),
         )
         done.wait()
     log.info("router stopped")
