@@ -111,6 +111,7 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--quiet", action="store_true", help="no progress bar")
     up.add_argument("--quiet-services", action="store_true", help="service logs to files only")
     add_config_flags(up)
+    add_security_flags(up)  # --secrets DIR: TLS, each service signed in as its id
     up.set_defaults(func=cmd_up)
 
 
@@ -287,9 +288,10 @@ def cmd_up(args: argparse.Namespace) -> int:
         return 2
     data_dir = Path(args.data_dir)
     api_addr = None if args.no_api else f"127.0.0.1:{args.api_port}"
+    endpoint, secrets = _secure_endpoint(args.endpoint)
     try:
         with local_cluster(
-            args.actors, args.endpoint, data_dir, api_addr, echo=not args.quiet_services
+            args.actors, endpoint, data_dir, api_addr, echo=not args.quiet_services, secrets=secrets
         ) as up:
             if cfg is None or up.stop.is_set():
                 return _serve_until_stopped(up.cluster, up.stop)
@@ -299,6 +301,20 @@ def cmd_up(args: argparse.Namespace) -> int:
             return code
     except ClusterDidNotStart:
         return 1
+
+
+def _secure_endpoint(endpoint: str) -> tuple[str, str | None]:
+    """With a secrets folder (--secrets / MACB_ZENOH_SECRETS), the cluster runs on TLS
+    (tcp/ becomes tls/) and `macb up` itself signs in as `cli` unless told otherwise."""
+    import os
+
+    secrets = os.environ.get("MACB_ZENOH_SECRETS")
+    if not secrets:
+        return endpoint, None
+    os.environ.setdefault("MACB_ZENOH_USER", "cli")
+    if endpoint.startswith("tcp/"):
+        endpoint = "tls/" + endpoint.removeprefix("tcp/")
+    return endpoint, secrets
 
 
 class ClusterDidNotStart(RuntimeError):
@@ -322,7 +338,12 @@ class LocalCluster:
 
 @contextlib.contextmanager
 def local_cluster(
-    actors: int, endpoint: str, data_dir: Path, api_addr: str | None, echo: bool = True
+    actors: int,
+    endpoint: str,
+    data_dir: Path,
+    api_addr: str | None,
+    echo: bool = True,
+    secrets: str | None = None,
 ) -> Iterator[LocalCluster]:
     """Start the local cluster (`macb up`'s, and `macb reproduce`'s when no API answers)
     and wait for every service and the API; stop every process on the way out, however
@@ -330,7 +351,7 @@ def local_cluster(
     With a signal during start-up it yields at once, `stop` set (and `api` maybe None)."""
     from shared.bus import Bus
 
-    plan = cluster_plan(actors, endpoint, str(data_dir), api=api_addr)
+    plan = cluster_plan(actors, endpoint, str(data_dir), api=api_addr, secrets=secrets)
     cluster = Cluster(plan, data_dir / "logs", echo=echo)
     stop = _stop_on_signals()
     api = None

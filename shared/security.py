@@ -586,3 +586,14 @@ class AclLog:
             return None
         zid = d.group("zid")
         return Denial(self.users.get(zid, zid), d.group("what"), d.group("flow"), d.group("key"))
+
+
+def permissions_markdown() -> str:
+    """The permission table of docs/deploy.md, rendered from `ROLES` (a test keeps the
+    doc equal to this, so the doc says what the ACL enforces)."""
+    rows = ["| role | may | on | why |", "|---|---|---|---|"]
+    for role, grants in ROLES.items():
+        for g in grants:
+            key = g.key.replace("{role}", role)
+            rows.append(f"| {role} | {g.action} | `{key}` | {g.why} |")
+    return "\n".join(rows) + "\n"

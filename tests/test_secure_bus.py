@@ -42,24 +42,6 @@ def macb(*args: str, env: dict[str, str] | None = None, timeout: float = 60):
     )
 
 
-@pytest.fixture(scope="module")
-def secrets(tmp_path_factory) -> Path:
-    """A cluster's CA, certificates and credentials, made by `macb certs`."""
-    out = tmp_path_factory.mktemp("secrets")
-    r = macb("certs", str(out), "--router", "router", "--router", "router-b", "--actors", "2")
-    assert r.returncode == 0, r.stderr
-    return out
-
-
-@pytest.fixture(scope="module")
-def other_ca(tmp_path_factory) -> Path:
-    """Another CA with the same names: its certificates must be refused."""
-    out = tmp_path_factory.mktemp("other")
-    r = macb("certs", str(out), "--actors", "1")
-    assert r.returncode == 0, r.stderr
-    return out
-
-
 def as_user(secrets: Path, user: str, endpoint: str | None = None) -> dict[str, str]:
     env = {"MACB_ZENOH_SECRETS": str(secrets), "MACB_ZENOH_USER": user}
     if endpoint:

@@ -18,13 +18,7 @@ import pytest
 from shared.config import make_config
 from shared.control import discover, start_run
 from tests.conftest import Procs, free_port, wait_for, wait_port
-from tests.test_secure_bus import (  # noqa: F401 (fixtures)
-    as_user,
-    router_stats,
-    secrets,
-    session,
-    wait_final_counts,
-)
+from tests.test_secure_bus import as_user, router_stats, session, wait_final_counts
 from tests.test_services_run import SMALL, check_exact
 
 
@@ -48,7 +42,9 @@ class TwoRouters:
         if api:
             listen = self.url.removeprefix("http://")
             env = as_user(secrets, "api", self.a)
-            self.procs.start("api", "api", "--listen-http", listen, "--data-dir", self.data, env=env)
+            self.procs.start(
+                "api", "api", "--listen-http", listen, "--data-dir", self.data, env=env
+            )
 
     def start_router(self, name: str, listen: str, connect: str | None = None) -> None:
         args = ["router", "--listen", listen] + (["--connect", connect] if connect else [])
@@ -114,9 +110,7 @@ def test_a_router_restarted_while_the_other_carries_on(two):
         assert {i["id"] for i in discover(cli)} == {"counter", "learner"}
         two.start_router("router-b", two.b, connect=two.a)
         two.wait_services(cli, 5, timeout=60)
-        wait_for(
-            lambda: all(not i.get("run") for i in discover(cli)), timeout=60, what="all free"
-        )
+        wait_for(lambda: all(not i.get("run") for i in discover(cli)), timeout=60, what="all free")
         watch = start_run(cli, config, actors=2)
         assert watch.wait(timeout=240) == "completed", watch.states
         wait_final_counts(watch, config)

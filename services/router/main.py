@@ -111,14 +111,15 @@ def serve(
             return json.dumps(body).encode()
 
         bus.queryable(k_router(router_id), stats)
+        secured = ["TLS"] * sec.tls + ["user/password"] * (sec.users_file is not None)
+        if acl is not None:
+            secured.append(f"ACL for {len(acl['policies'])} users")
         log.info(
-            "router %s listening on %s%s%s",
+            "router %s listening on %s%s; %s",
             router_id,
             ", ".join(listen),
             f", connecting to {', '.join(connect)}" if connect else "",
-            "; TLS" * sec.tls
-            + "; user/password" * (sec.users_file is not None)
-            + f"; ACL for {len(acl['policies'])} users" * (acl is not None),
+            ", ".join(secured) or "no TLS, no authentication (loopback only)",
         )
         done.wait()
     log.info("router stopped")

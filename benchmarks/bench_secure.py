@@ -1,0 +1,127 @@
+"""What the secure bus costs: the cluster's training throughput with TLS, user/password
+and the router's ACL against plain TCP, and the learner's bonus-query round trip.
+
+The workload is bench_e2e's (the thesis's speaker_listener arm: Cen-MADDPG + Cen-MACB,
+k=512, beta 0.8, batch 100, hidden 400-300), run by `macb up --run` as a user would,
+with evaluation only at the end so the bus's share of the work is largest. Variants,
+alternated A B / B A over rounds: `plain` (tcp/ on loopback, no credentials, today's
+default) and `secure` (`macb up --secrets DIR`: tls/ on every link, every service
+signed in as its own user, the router enforcing the ACL and reading its log for
+denials). Reported per variant: the steady-state updates/s (= training steps/s at
+replay ratio 1), its ratio secure/plain within each round (the target: >= 0.95), and
+the bonus query's p50/p99 as the learner times it (round trip through the router) and
+as the counter times it (answering only). Secrets are made by `macb certs` in the
+work directory. Processes are ended by PID; ports are free loopback ports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+from _harness import add_out, begin_run, bench_parser, command, macb_argv, progress, write_result
+from _stats import fmt, median, ratio_median, rotating_rounds
+from bench_e2e import CONFIG_YAML, run_cluster
+
+from shared.security import ENV
+
+RESULT = "secure.json"
+VARIANTS = ("plain", "secure")
+TARGET_RATIO = 0.95
+
+
+def run(variant: str, config: Path, secrets: Path, args, work: Path) -> dict:
+    """One `macb up --run` of the variant; the security variables only for `secure`."""
+    for key in (ENV["secrets"], ENV["user"]):
+        os.environ.pop(key, None)
+    extra: tuple = ()
+    if variant == "secure":
+        os.environ[ENV["secrets"]] = str(secrets)
+        os.environ[ENV["user"]] = "cli"  # the benchmark's own watcher session
+        extra = ("--secrets", str(secrets))
+    try:
+        return run_cluster(config, args.episodes, args.episodes, 1, work, args.timeout, extra)
+    finally:
+        for key in (ENV["secrets"], ENV["user"]):
+            os.environ.pop(key, None)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = bench_parser(__doc__, RESULT)
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--episodes", type=int, default=150, help="training episodes per run")
+    p.add_argument("--timeout", type=float, default=900)
+    p.add_argument("--quick", action="store_true", help="2 rounds of 40 episodes")
+    add_out(p, RESULT)
+    args: argparse.Namespace = p.parse_args(argv)
+    if args.quick:
+        args.rounds, args.episodes = 2, 40
+    load_before = os.getloadavg()
+    runs: dict[str, list[dict]] = {v: [] for v in VARIANTS}
+    root = Path(tempfile.mkdtemp(prefix="bench-secure-"))  # kept if a run fails: its logs
+    secrets = root / "secrets"
+    subprocess.run(macb_argv("certs", str(secrets)), check=True, capture_output=True)
+    config = root / "config.yaml"
+    config.write_text(CONFIG_YAML)
+    for r, variant in rotating_rounds(args.rounds, VARIANTS):
+        work = root / f"{variant}-{r}"
+        load = begin_run(work, f"round {r}: {variant}, {args.episodes} episodes")
+        res = run(variant, config, secrets, args, work)
+        res["load"] = load
+        runs[variant].append(res)
+        shutil.rmtree(work)
+        lrn = res["learner"]
+        progress(
+            f"  {res['steady']['rate'] or 0:.1f} updates/s, bonus query p50 "
+            f"{lrn.get('bonus_p50_ms')} ms, p99 {lrn.get('bonus_p99_ms')} ms"
+        )
+    shutil.rmtree(root)
+    rate = {v: [x["steady"]["rate"] for x in runs[v]] for v in VARIANTS}
+    summary = {
+        v: {
+            "updates_per_s": median(rate[v]),
+            "bonus_p50_ms": median(x["learner"].get("bonus_p50_ms") for x in runs[v]),
+            "bonus_p99_ms": median(x["learner"].get("bonus_p99_ms") for x in runs[v]),
+            "counter_query_p50_ms": median(x["counter"].get("query_p50_ms") for x in runs[v]),
+            "counter_query_p99_ms": median(x["counter"].get("query_p99_ms") for x in runs[v]),
+            "replay_ratio": median(x["learner"].get("replay_ratio") for x in runs[v]),
+        }
+        for v in VARIANTS
+    }
+    ratios = [s / b for s, b in zip(rate["secure"], rate["plain"], strict=True)]
+    ratio = ratio_median(rate["secure"], rate["plain"])
+    print("\n| variant | updates/s (median) | bonus query p50 / p99 (learner, ms) "
+          "| counter answers p50 / p99 (ms) | replay ratio |")  # fmt: skip
+    print("|---|---|---|---|---|")
+    for v in VARIANTS:
+        s = summary[v]
+        print(
+            f"| {v} | {fmt(s['updates_per_s'])} | {fmt(s['bonus_p50_ms'], '.2f')} / "
+            f"{fmt(s['bonus_p99_ms'], '.2f')} | {fmt(s['counter_query_p50_ms'], '.2f')} / "
+            f"{fmt(s['counter_query_p99_ms'], '.2f')} | {fmt(s['replay_ratio'], '.3f')} |"
+        )
+    verdict = "met" if ratio >= TARGET_RATIO else "NOT met"
+    print(
+        f"\nsecure / plain, per round: {', '.join(f'{x:.3f}' for x in ratios)}; median "
+        f"{ratio:.3f} (target >= {TARGET_RATIO}: {verdict})"
+    )
+    result = {
+        "command": command(__file__, argv),
+        "episodes": args.episodes,
+        "rounds": args.rounds,
+        "summary": summary,
+        "ratio_secure_over_plain": ratio,
+        "ratios": ratios,
+        "target_ratio": TARGET_RATIO,
+        "runs": runs,
+    }
+    write_result(args.out, result, load_before)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
