@@ -265,6 +265,10 @@ def cmd_ps(args: argparse.Namespace) -> int:
 
     with Bus(args.connect or default_connect()) as bus:
         infos = discover(bus)
+        routers = _router_stats(bus)
+    for r in routers:  # routers answer only with the ACL's account (docs/deploy.md)
+        acl = f"acl denied={r['denied_total']}" if r.get("acl") else "no acl"
+        print(f"{'router':<10} {r['id']:<24} {acl}")
     for i in infos:
         print(
             f"{i['role']:<10} {i['id']:<24} run={i.get('run') or '-'} rejects={i['rejects_total']}"
@@ -272,6 +276,19 @@ def cmd_ps(args: argparse.Namespace) -> int:
     if not infos:
         print("no services answer (is `macb up` running?)")
     return 0
+
+
+def _router_stats(bus: Bus) -> list[dict[str, Any]]:
+    """Each reachable router's answer on macb/router/*: its ACL's denial counts."""
+    import json
+
+    from shared.bus import k_router
+
+    out = []
+    for raw in bus.get(k_router("*"), timeout=1.0):
+        with contextlib.suppress(ValueError):
+            out.append(json.loads(raw))
+    return sorted(out, key=lambda r: str(r.get("id")))
 
 
 # ---------------------------------------------------------------- up

@@ -590,10 +590,24 @@ class AclLog:
 
 def permissions_markdown() -> str:
     """The permission table of docs/deploy.md, rendered from `ROLES` (a test keeps the
-    doc equal to this, so the doc says what the ACL enforces)."""
-    rows = ["| role | may | on | why |", "|---|---|---|---|"]
+    doc equal to this, so the doc says what the ACL enforces). `{id}` is the user."""
+    columns = (
+        ("pub", "puts on"),
+        ("sub", "subscribes to"),
+        ("query", "queries"),
+        ("serve", "answers queries on"),
+        ("token", "liveliness token"),
+        ("watch", "watches liveliness"),
+    )
+    rows = ["| role | " + " | ".join(title for _, title in columns) + " |"]
+    rows.append("|---" * (len(columns) + 1) + "|")
     for role, grants in ROLES.items():
-        for g in grants:
-            key = g.key.replace("{role}", role)
-            rows.append(f"| {role} | {g.action} | `{key}` | {g.why} |")
+        if any(g.action == "all" for g in grants):
+            rows.append(f"| {role} | everything, both ways (`**`) |" + " |" * (len(columns) - 1))
+            continue
+        cells = []
+        for action, _ in columns:
+            keys = [f"`{g.key.replace('{role}', role)}`" for g in grants if g.action == action]
+            cells.append(", ".join(keys) or "-")
+        rows.append(f"| {role} | " + " | ".join(cells) + " |")
     return "\n".join(rows) + "\n"
