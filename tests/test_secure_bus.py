@@ -128,6 +128,39 @@ def test_secure_run_is_exact_and_an_actor_cannot_stop_it(secure, secrets, tmp_pa
     }, stats
     log = secure.log("router")
     assert f"ACL denied: user actor0 (actor) Put (ingress) on {keys.k_control('stop')}" in log
+    ps = macb("ps", "--connect", secure.endpoint, env=as_user(secrets, "cli"))
+    assert ps.returncode == 0 and "acl denied=2" in ps.stdout, ps.stdout + ps.stderr
+
+
+def test_macb_certs_makes_a_ca_and_certificates_it_alone_signed(secrets, other_ca, tmp_path):
+    def verify(ca: Path, cert: Path) -> bool:
+        r = subprocess.run(["openssl", "verify", "-CAfile", ca, cert], capture_output=True)
+        return r.returncode == 0
+
+    assert verify(secrets / "ca.pem", secrets / "router-b.pem")
+    assert verify(secrets / "ca.pem", secrets / "actor1.pem")
+    assert not verify(other_ca / "ca.pem", secrets / "router.pem")
+    text = subprocess.run(
+        ["openssl", "x509", "-in", secrets / "router-b.pem", "-noout", "-text"],
+        capture_output=True,
+        text=True,
+    ).stdout
+    assert "DNS:localhost" in text and "IP Address:127.0.0.1" in text and "DNS:router-b" in text
+    users = dict(line.split(":", 1) for line in (secrets / "users.txt").read_text().split())
+    assert set(users) >= {"counter", "learner", "evaluator", "api", "cli", "actor0", "router-b"}
+    assert users["actor0"] == (secrets / "actor0.password").read_text().strip()
+    assert (secrets / "ca.key").stat().st_mode & 0o077 == 0
+    # again, with one more user: the others are kept as they were
+    out = tmp_path / "s"
+    shutil.copytree(secrets, out)
+    before = (out / "users.txt").read_text()
+    r = macb("certs", str(out), "--user", "actor-h2-0")
+    assert r.returncode == 0, r.stderr
+    assert (out / "users.txt").read_text().startswith(before)
+    assert "actor-h2-0:" in (out / "users.txt").read_text()
+    assert verify(out / "ca.pem", out / "actor-h2-0.pem")
+    r = macb("certs", str(out), "--user", "boss")
+    assert r.returncode == 2 and "names no role" in r.stderr
 
 
 @pytest.mark.parametrize(
@@ -212,3 +245,24 @@ def test_a_missing_or_unreadable_file_is_refused_at_start_naming_it(secrets, tmp
     env = {**as_user(secrets, "counter"), "MACB_ZENOH_PASSWORD_FILE": str(tmp_path)}
     r = macb("serve", "counter", env=env, timeout=30)
     assert r.returncode == 2 and f"password file {tmp_path}: cannot read it" in r.stderr
+
+
+def test_macb_up_with_secrets_runs_the_secure_bus_end_to_end(secrets, tmp_path):
+    """`macb up --secrets DIR --run`: TLS on loopback, every service (and the API, and
+    `macb up` itself as cli) signed in as its own user, the ACL on, nothing denied."""
+    from tests.test_up import TINY, cluster_processes, up
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY)
+    out_dir = tmp_path / "out"
+    run = ("--run", str(cfg), "--out", str(out_dir))
+    proc, endpoint = up(tmp_path, "--secrets", str(secrets), *run)
+    out, _ = proc.communicate(timeout=240)
+    assert proc.returncode == 0, out
+    assert "completed" in out
+    rows = (out_dir / "metrics.csv").read_text().splitlines()
+    assert len(rows) == 1 + 3
+    log = (tmp_path / "data" / "logs" / "router.log").read_text()
+    assert f"listening on tls/{endpoint.split('/', 1)[1]}" in log, log
+    assert "TLS, user/password, ACL for" in log and "ACL denied" not in log, log
+    assert cluster_processes(endpoint, tmp_path) == []
