@@ -23,7 +23,7 @@ from typing import Any
 
 import zenoh
 
-from shared.security import Security
+from shared.security import Security, check_endpoints_match
 
 log = logging.getLogger("macb.bus")
 
@@ -109,6 +109,7 @@ def session_config(
         conf["listen"] = {"endpoints": listen}
     if security is not None and security.configured:
         security.check(mode)
+        check_endpoints_match(connect or [], security)
         conf.update(security.zenoh_config(mode))
     if acl is not None:
         conf["access_control"] = acl

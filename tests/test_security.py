@@ -285,3 +285,10 @@ def test_cached_verdicts_are_not_denials_but_messages_dropped_are():
     assert log.feed("some other zenoh line\n") is None
     unknown = zlog(3, "Using cached result: 00ff is unauthorized to Query (egress) on a/b")
     assert log.feed(unknown) == Denial("00ff", "Query", "egress", "a/b")
+
+
+def test_with_tls_a_plain_tcp_endpoint_off_loopback_is_refused(folder):
+    sec = Security.from_env({"MACB_ZENOH_SECRETS": str(folder), "MACB_ZENOH_USER": "actor0"})
+    with pytest.raises(SecurityError, match="use tls/10.0.0.5:7447"):
+        session_config("client", ["tcp/10.0.0.5:7447"], None, sec)
+    session_config("client", ["tls/10.0.0.5:7447", "tcp/127.0.0.1:7447"], None, sec)

@@ -24,6 +24,7 @@ from shared.security import (
     AclLog,
     Denial,
     Security,
+    SecurityError,
     check_router_listen,
     role_of,
 )
@@ -95,6 +96,11 @@ def serve(
     sec = (security or Security.from_env()).for_router()
     sec.check("router")
     check_router_listen(listen, sec)
+    if connect and sec.users_file is not None and not sec.user:
+        raise SecurityError(
+            "a router that connects to other routers signs in there: set MACB_ZENOH_USER "
+            "(a router user of the users file, e.g. router-b)"
+        )
     acl = sec.router_acl()
     denials = Denials() if acl is not None else None
     if denials is not None:
