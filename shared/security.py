@@ -19,6 +19,7 @@ when the router starts.
 
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 import os
 import re
@@ -312,7 +313,9 @@ class Security:
         return cls(
             user=user,
             password=raw["password"],
-            password_file=path("password_file", f"{user}.password" if user else None),
+            password_file=path(
+                "password_file", f"{user}.password" if user and not raw["password"] else None
+            ),
             users_file=path("users_file", None),
             tls_ca=path("tls_ca", "ca.pem"),
             tls_cert=path("tls_cert", f"{user}.pem" if user else None),
@@ -326,7 +329,7 @@ class Security:
         if self.users_file is None and self.secrets is not None:
             candidate = self.secrets / "users.txt"
             if candidate.exists():
-                return Security(**{**self.__dict__, "users_file": candidate})
+                return dataclasses.replace(self, users_file=candidate)
         return self
 
     @property

@@ -4,6 +4,7 @@ log (on lines a zenoh 1.10.2 router really wrote)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -164,6 +165,13 @@ def test_a_secrets_folder_fills_in_the_files(folder):
     assert {p["id"] for p in router.router_acl()["policies"]} == {"policy.actor0", "policy.router"}
 
 
+def test_a_password_given_directly_wins_over_the_folders_file(folder):
+    env = {"MACB_ZENOH_SECRETS": str(folder), "MACB_ZENOH_USER": "actor0"}
+    sec = Security.from_env({**env, "MACB_ZENOH_PASSWORD": "other"})
+    sec.check("client")
+    assert sec.password_file is None and sec.password_value() == "other"
+
+
 def test_no_settings_change_nothing():
     sec = Security.from_env({})
     assert not sec.configured
@@ -230,7 +238,7 @@ def test_a_router_beyond_loopback_needs_tls_and_auth(folder):
     with pytest.raises(SecurityError, match="authentication") as err:
         check_router_listen(["tls/10.0.0.5:7447"], tls_only)
     assert "TLS (" not in str(err.value)
-    full = Security(**{**tls_only.__dict__, "users_file": folder / "users.txt"})
+    full = dataclasses.replace(tls_only, users_file=folder / "users.txt")
     check_router_listen(["tls/0.0.0.0:7447", "tls/[2001:db8::1]:7447"], full)
     with pytest.raises(SecurityError, match="tls/ endpoint"):
         check_router_listen(["tcp/0.0.0.0:7447"], full)
