@@ -338,7 +338,8 @@ class Security:
 
     @property
     def configured(self) -> bool:
-        return any((self.user, self.password, self.password_file, self.users_file, self.tls_ca))
+        fields = (self.user, self.password, self.password_file, self.users_file, self.tls_ca)
+        return any((*fields, self.tls_cert, self.tls_key, self.mtls))
 
     # ------------------------------------------------------------ checks
     def check(self, mode: str) -> None:
