@@ -50,12 +50,85 @@ def run(variant: str, config: Path, secrets: Path, args, work: Path) -> dict:
             os.environ.pop(key, None)
 
 
+def query_latency(secrets: Path | None, queries: int, rows: int, work: Path) -> dict:
+    """Bonus-query round trips through a router process, plain or secure: a queryable
+    signed in as `counter` answers every query with a reply the size of a real one
+    (counts int64 and bonuses float32 per row) and a querier signed in as `learner`
+    sends the learner's tick query (`rows` rows of speaker_listener's joint obs and
+    action, float32), both sessions in this process. The bus alone: no hashing."""
+    import numpy as np
+    from _procs import end, start, thread_env
+
+    from shared.bus import Bus, k_bonus
+    from shared.cluster import free_port, wait_port
+    from shared.security import Security
+    from shared.wire import encode
+
+    proto = "tls" if secrets else "tcp"
+    endpoint = f"{proto}/127.0.0.1:{free_port()}"
+    env = thread_env(True)
+    for key in ENV.values():
+        env.pop(key, None)
+    if secrets:
+        env.update({ENV["secrets"]: str(secrets), ENV["user"]: "router"})
+    router = start(macb_argv("serve", "router", "--listen", endpoint), work / "router.log", env)
+    try:
+        wait_port(endpoint)
+
+        def sec(user: str) -> Security:
+            if not secrets:
+                return Security()
+            return Security.from_env({ENV["secrets"]: str(secrets), ENV["user"]: user})
+
+        rng = np.random.default_rng(0)
+        query = encode(
+            "bonus_query",
+            "r",
+            obs=rng.random((rows, 14), dtype=np.float32),
+            act=rng.random((rows, 8), dtype=np.float32),
+        )
+        reply = encode(
+            "bonus_reply",
+            "r",
+            counts=np.ones((1, rows), dtype=np.int64),
+            bonus=np.ones((rows, 2), dtype=np.float32),
+        )
+        with Bus([endpoint], security=sec("counter")) as counter:
+            counter.queryable(k_bonus("*"), lambda key, payload: reply)
+            with Bus([endpoint], security=sec("learner")) as learner:
+                import time
+
+                deadline = time.monotonic() + 10
+                while not learner.get(k_bonus("r"), query, timeout=1.0):
+                    if time.monotonic() > deadline:
+                        raise RuntimeError("the queryable does not answer")
+                times = []
+                for _ in range(queries):
+                    t0 = time.perf_counter()
+                    got = learner.get(k_bonus("r"), query, timeout=2.0)
+                    times.append((time.perf_counter() - t0) * 1e3)
+                    if not got:
+                        raise RuntimeError("a query got no reply")
+        times.sort()
+        return {
+            "p50_ms": times[len(times) // 2],
+            "p99_ms": times[int(len(times) * 0.99)],
+            "query_bytes": len(query),
+            "reply_bytes": len(reply),
+        }
+    finally:
+        end(router)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = bench_parser(__doc__, RESULT)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--episodes", type=int, default=150, help="training episodes per run")
     p.add_argument("--timeout", type=float, default=900)
     p.add_argument("--quick", action="store_true", help="2 rounds of 40 episodes")
+    p.add_argument("--queries", type=int, default=500, help="per round of the latency part")
+    p.add_argument("--rows", type=int, default=2000, help="rows per bonus query")
+    p.add_argument("--skip-cluster", action="store_true", help="only the latency part")
     add_out(p, RESULT)
     args: argparse.Namespace = p.parse_args(argv)
     if args.quick:
@@ -67,7 +140,17 @@ def main(argv: list[str] | None = None) -> int:
     subprocess.run(macb_argv("certs", str(secrets)), check=True, capture_output=True)
     config = root / "config.yaml"
     config.write_text(CONFIG_YAML)
-    for r, variant in rotating_rounds(args.rounds, VARIANTS):
+    latency: dict[str, list[dict]] = {v: [] for v in VARIANTS}
+    for r, variant in rotating_rounds(max(args.rounds, 3), VARIANTS):
+        work = root / f"latency-{variant}-{r}"
+        work.mkdir()
+        lat = query_latency(secrets if variant == "secure" else None, args.queries, args.rows, work)
+        lat["load"] = os.getloadavg()
+        latency[variant].append(lat)
+        progress(
+            f"latency round {r}: {variant} p50 {lat['p50_ms']:.3f} ms, p99 {lat['p99_ms']:.3f}"
+        )
+    for r, variant in rotating_rounds(0 if args.skip_cluster else args.rounds, VARIANTS):
         work = root / f"{variant}-{r}"
         load = begin_run(work, f"round {r}: {variant}, {args.episodes} episodes")
         res = run(variant, config, secrets, args, work)
@@ -79,7 +162,26 @@ def main(argv: list[str] | None = None) -> int:
             f"  {res['steady']['rate'] or 0:.1f} updates/s, bonus query p50 "
             f"{lrn.get('bonus_p50_ms')} ms, p99 {lrn.get('bonus_p99_ms')} ms"
         )
-    shutil.rmtree(root)
+    lat_summary = {
+        v: {
+            "p50_ms": median(x["p50_ms"] for x in latency[v]),
+            "p99_ms": median(x["p99_ms"] for x in latency[v]),
+        }
+        for v in VARIANTS
+    }
+    q = latency["plain"][0]
+    print(
+        f"\nbonus query round trip, the bus alone ({args.rows} rows: {q['query_bytes']} bytes "
+        f"in, {q['reply_bytes']} out; median of {len(latency['plain'])} rounds of "
+        f"{args.queries}):\n\n| variant | p50 (ms) | p99 (ms) |\n|---|---|---|"
+    )
+    for v in VARIANTS:
+        print(f"| {v} | {lat_summary[v]['p50_ms']:.3f} | {lat_summary[v]['p99_ms']:.3f} |")
+    if args.skip_cluster:
+        shutil.rmtree(root)
+        result = {"command": command(__file__, argv), "latency": latency}
+        write_result(args.out, result | {"latency_summary": lat_summary}, load_before)
+        return 0
     rate = {v: [x["steady"]["rate"] for x in runs[v]] for v in VARIANTS}
     summary = {
         v: {
@@ -116,10 +218,13 @@ def main(argv: list[str] | None = None) -> int:
         "summary": summary,
         "ratio_secure_over_plain": ratio,
         "ratios": ratios,
+        "latency_summary": lat_summary,
+        "latency": latency,
         "target_ratio": TARGET_RATIO,
         "runs": runs,
     }
     write_result(args.out, result, load_before)
+    shutil.rmtree(root)
     return 0
 
 
