@@ -93,25 +93,21 @@ def test_a_run_across_two_routers_is_exact(two):
 
 
 def test_a_router_restarted_while_the_other_carries_on(two):
-    """router-b (actors, evaluator) is killed mid-run: the run in flight fails, saying
-    which service it lost (a lost liveliness token is a dead service, docs/deploy.md),
-    while router `router` and its counter and learner carry on and answer. router-b
-    comes back on its port, its services reconnect by themselves, and the next run
-    completes exactly."""
-    config = make_config({**SMALL, "episodes": 30})
+    """router-b (actors, evaluator) is killed mid-run and started again on its port a
+    second later: router `router` and its counter and learner carry on meanwhile (they
+    still answer), router-b's clients reconnect by themselves, the peers that went away
+    are back within their grace (MACB_PEER_GRACE_S), and the run completes exactly:
+    transitions lost in the outage are resent, none is counted twice."""
+    config = make_config({**SMALL, "episodes": 40})
     with session(two.secrets, "cli", two.a) as cli:
         two.wait_services(cli, 5)
         watch = start_run(cli, config, actors=2)
         wait_for(lambda: watch.rows, timeout=120, what="a first point")
         two.procs.kill("router-b", signal.SIGKILL)
-        assert watch.wait(timeout=60) == "failed", watch.states
-        assert "actor" in watch.failure() or "evaluator" in watch.failure(), watch.failure()
         time.sleep(1.0)  # router `router` alone: its services still answer
         assert {i["id"] for i in discover(cli)} == {"counter", "learner"}
+        assert watch.state() == "running", watch.states
         two.start_router("router-b", two.b, connect=two.a)
-        two.wait_services(cli, 5, timeout=60)
-        wait_for(lambda: all(not i.get("run") for i in discover(cli)), timeout=60, what="all free")
-        watch = start_run(cli, config, actors=2)
         assert watch.wait(timeout=240) == "completed", watch.states
         wait_final_counts(watch, config)
         check_exact(watch, watch.assign["actors"], config)
