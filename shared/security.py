@@ -177,22 +177,18 @@ SEE_DECLARATIONS = (
 
 
 def role_of(user: str) -> str:
-    """A user's role: its name, or its leading role word before a digit or `-`."""
+    """A user's role: its name, or its leading role word before a digit or `-`. Names
+    are letters, digits and `-_.` only: a name is part of the user's key expressions
+    (`transitions/{id}`), so `*`, `/` or `$` in it would widen them."""
     if user in ROLES:
         return user
-    m = re.fullmatch(r"([a-z]+)[-0-9].*", user)
+    m = re.fullmatch(r"([a-z]+)[-0-9][A-Za-z0-9_.-]*", user)
     if m and m.group(1) in ROLES:
         return m.group(1)
     raise SecurityError(
         f"user {user!r} names no role: a user is named after its role "
         f"({', '.join(ROLES)}), e.g. actor0, actor-h2-0, router-a"
     )
-
-
-def grants_for(user: str) -> list[tuple[str, str, str]]:
-    """(action, key expression, why) of everything `user` may do, `{id}` filled in."""
-    role = role_of(user)
-    return [(g.action, g.key.format(id=user, role=role), g.why) for g in ROLES[role]]
 
 
 def _messages(user: str) -> list[tuple[str, tuple[str, ...], str]]:

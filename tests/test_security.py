@@ -118,7 +118,9 @@ def test_a_user_name_says_its_role(user, role):
     assert role_of(user) == role
 
 
-@pytest.mark.parametrize("user", ["admin", "actorx", "Actor0", "", "-actor"])
+@pytest.mark.parametrize(
+    "user", ["admin", "actorx", "Actor0", "", "-actor", "actor-**", "actor0/x", "actor-$*"]
+)
 def test_a_user_named_after_no_role_is_refused(user):
     with pytest.raises(SecurityError, match="names no role"):
         role_of(user)
