@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import sys
 import threading
 import time
@@ -327,8 +328,6 @@ def cmd_up(args: argparse.Namespace) -> int:
 def _secure_endpoint(endpoint: str) -> tuple[str, str | None]:
     """With a secrets folder (--secrets / MACB_ZENOH_SECRETS), the cluster runs on TLS
     (tcp/ becomes tls/) and `macb up` itself signs in as `cli` unless told otherwise."""
-    import os
-
     secrets = os.environ.get("MACB_ZENOH_SECRETS")
     if not secrets:
         return endpoint, None
@@ -373,6 +372,12 @@ def local_cluster(
     from shared.bus import Bus
 
     plan = cluster_plan(actors, endpoint, str(data_dir), api=api_addr, secrets=secrets)
+    if secrets:  # every service's files, before any process starts (SecurityError: exit 2)
+        from shared.security import Security
+
+        for spec in plan:
+            sec = Security.from_env({**os.environ, **dict(spec.env)})
+            sec.for_router().check("router") if spec.name == "router" else sec.check("client")
     cluster = Cluster(plan, data_dir / "logs", echo=echo)
     stop = _stop_on_signals()
     api = None

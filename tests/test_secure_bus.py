@@ -266,3 +266,13 @@ def test_macb_up_with_secrets_runs_the_secure_bus_end_to_end(secrets, tmp_path):
     assert f"listening on tls/{endpoint.split('/', 1)[1]}" in log, log
     assert "TLS, user/password, ACL for" in log and "ACL denied" not in log, log
     assert cluster_processes(endpoint, tmp_path) == []
+
+
+def test_macb_up_refuses_a_secrets_folder_without_a_services_files(secrets, tmp_path):
+    """The folder has actor0 and actor1: a third actor's missing password is named, exit
+    2, before any process starts."""
+    args = ["up", "--secrets", str(secrets), "--actors", "3", "--no-api"]
+    r = macb(*args, "--data-dir", str(tmp_path / "d"), "--endpoint", f"tcp/127.0.0.1:{free_port()}")
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "user 'actor2' has no password" in r.stderr and "actor2.password" in r.stderr
+    assert not (tmp_path / "d").exists()
