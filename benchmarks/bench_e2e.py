@@ -217,21 +217,33 @@ def run_trainer(
 
 
 # ------------------------------------------------------------------ cluster
-def up_argv(config: Path, episodes: int, eval_every: int, actors: int, work: Path):
-    """The `macb up --run` command line on free loopback ports, and its endpoint."""
+def up_argv(
+    config: Path, episodes: int, eval_every: int, actors: int, work: Path, extra: tuple = ()
+):
+    """The `macb up --run` command line on free loopback ports, and its endpoint (`extra`:
+    more `macb up` flags; with `--secrets` the cluster's endpoint is tls/)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     argv = macb_argv("up", "--run", str(config), "--out", str(work / "cluster-out"))
     argv += ["--endpoint", endpoint, "--data-dir", str(work / "cluster-data")]
     argv += ["--actors", str(actors), "--quiet", "--quiet-services"]
     argv += ["--episodes", str(episodes), "--eval-every", str(eval_every)]
     argv += ["--api-port", str(free_port())]  # never the default port 8000: it may be taken
+    argv += list(extra)
+    if "--secrets" in extra:
+        endpoint = "tls/" + endpoint.removeprefix("tcp/")
     return argv, endpoint
 
 
 def run_cluster(
-    config: Path, episodes: int, eval_every: int, actors: int, work: Path, timeout: float
+    config: Path,
+    episodes: int,
+    eval_every: int,
+    actors: int,
+    work: Path,
+    timeout: float,
+    extra: tuple = (),
 ) -> dict:
-    argv, endpoint = up_argv(config, episodes, eval_every, actors, work)
+    argv, endpoint = up_argv(config, episodes, eval_every, actors, work, extra)
     t_launch = time.monotonic()
     p = start(argv, work / "up.log", thread_env(False))
     sampler = CpuSampler(p.pid)

@@ -15,6 +15,7 @@ import yaml
 from pydantic import ValidationError
 
 from cli.config_flags import COMMA_LIST_FIELDS, add_config_flags, config_overrides, read_flag_value
+from cli.security import add_security_flags
 from shared.config import ConfigError, TrainConfig, format_errors, read_config_file
 
 if TYPE_CHECKING:
@@ -35,6 +36,7 @@ def add_stop_parser(sub: argparse._SubParsersAction) -> None:
     sp.add_argument("--api", metavar="URL", help=API_HELP)
     sp.add_argument("--bus", action="store_true", help="send the stop on the bus, not the API")
     sp.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint")
+    add_security_flags(sp)
     sp.set_defaults(func=cmd_stop)
 
 

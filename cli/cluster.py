@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import sys
 import threading
 import time
@@ -19,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from cli.api import experiment_body, run_via_api
 from cli.config_flags import add_config_flags, config_overrides, one_run_config, resolve_config
+from cli.security import add_security_flags
 from shared.cluster import Cluster, cluster_plan
 from shared.config import ConfigError, TrainConfig
 
@@ -40,8 +42,18 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument("role", choices=SERVICES)
     s.add_argument("--id", help="service id (default: role-host-pid); actors need distinct ids")
-    s.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint(s)")
-    s.add_argument("--listen", action="append", metavar="ENDPOINT", help="router only: listen on")
+    s.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="router endpoint(s); for a router: other routers to peer with",
+    )
+    s.add_argument(
+        "--listen",
+        action="append",
+        metavar="ENDPOINT",
+        help="router only: listen on (beyond 127.0.0.0/8 only with TLS and a users file)",
+    )
     s.add_argument("--data-dir", default="data", help="where snapshots and checkpoints go")
     s.add_argument(
         "--listen-http",
@@ -52,6 +64,7 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument(
         "--db", metavar="FILE", help="api only: SQLite store (default DATA_DIR/api.sqlite3)"
     )
+    add_security_flags(s)
     s.set_defaults(func=cmd_serve)
 
 
@@ -68,12 +81,14 @@ def add_start_parser(sub: argparse._SubParsersAction) -> None:
     st.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint")
     st.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_flags(st)
+    add_security_flags(st)
     st.set_defaults(func=cmd_start)
 
 
 def add_ps_parser(sub: argparse._SubParsersAction) -> None:
     ps = sub.add_parser("ps", help="list live services and the runs they serve")
     ps.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint")
+    add_security_flags(ps)
     ps.set_defaults(func=cmd_ps)
 
 
@@ -108,6 +123,7 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--quiet", action="store_true", help="no progress bar")
     up.add_argument("--quiet-services", action="store_true", help="service logs to files only")
     add_config_flags(up)
+    add_security_flags(up)  # --secrets DIR: TLS, each service signed in as its id
     up.set_defaults(func=cmd_up)
 
 
@@ -118,11 +134,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import socket
 
     from shared.bus import DEFAULT_ENDPOINT, default_connect
+    from shared.security import Security, SecurityError
 
+    try:  # every file and setting checked before any session opens: nothing half-starts
+        sec = Security.from_env()
+        sec.for_router().check("router") if args.role == "router" else sec.check("client")
+    except SecurityError as err:
+        print(f"macb serve {args.role}: {err}", file=sys.stderr)
+        return 2
     if args.role == "router":
         from services.router.main import serve
 
-        serve(args.listen or [os.environ.get("MACB_ZENOH_LISTEN", DEFAULT_ENDPOINT)])
+        listen = args.listen or [os.environ.get("MACB_ZENOH_LISTEN", DEFAULT_ENDPOINT)]
+        try:
+            serve(listen, connect=args.connect, router_id=args.id or sec.user or "router")
+        except SecurityError as err:
+            print(f"macb serve router: {err}", file=sys.stderr)
+            return 2
         return 0
     if args.role == "api":
         return serve_api(args)
@@ -249,6 +277,10 @@ def cmd_ps(args: argparse.Namespace) -> int:
 
     with Bus(args.connect or default_connect()) as bus:
         infos = discover(bus)
+        routers = _router_stats(bus)
+    for r in routers:  # routers answer only with the ACL's account (docs/deploy.md)
+        acl = f"acl denied={r['denied_total']}" if r.get("acl") else "no acl"
+        print(f"{'router':<10} {r['id']:<24} {acl}")
     for i in infos:
         print(
             f"{i['role']:<10} {i['id']:<24} run={i.get('run') or '-'} "
@@ -257,6 +289,19 @@ def cmd_ps(args: argparse.Namespace) -> int:
     if not infos:
         print("no services answer (is `macb up` running?)")
     return 0
+
+
+def _router_stats(bus: Bus) -> list[dict[str, Any]]:
+    """Each reachable router's answer on macb/router/*: its ACL's denial counts."""
+    import json
+
+    from shared.bus import k_router
+
+    out = []
+    for raw in bus.get(k_router("*"), timeout=1.0):
+        with contextlib.suppress(ValueError):
+            out.append(json.loads(raw))
+    return sorted(out, key=lambda r: str(r.get("id")))
 
 
 # ---------------------------------------------------------------- up
@@ -276,14 +321,16 @@ def cmd_up(args: argparse.Namespace) -> int:
         return 2
     data_dir = Path(args.data_dir)
     api_addr = None if args.no_api else f"127.0.0.1:{args.api_port}"
+    endpoint, secrets = _secure_endpoint(args.endpoint)
     try:
         with local_cluster(
             args.actors,
-            args.endpoint,
+            endpoint,
             data_dir,
             api_addr,
             echo=not args.quiet_services,
             slots=args.slots,
+            secrets=secrets,
         ) as up:
             if cfg is None or up.stop.is_set():
                 return _serve_until_stopped(up.cluster, up.stop)
@@ -293,6 +340,18 @@ def cmd_up(args: argparse.Namespace) -> int:
             return code
     except ClusterDidNotStart:
         return 1
+
+
+def _secure_endpoint(endpoint: str) -> tuple[str, str | None]:
+    """With a secrets folder (--secrets / MACB_ZENOH_SECRETS), the cluster runs on TLS
+    (tcp/ becomes tls/) and `macb up` itself signs in as `cli` unless told otherwise."""
+    secrets = os.environ.get("MACB_ZENOH_SECRETS")
+    if not secrets:
+        return endpoint, None
+    os.environ.setdefault("MACB_ZENOH_USER", "cli")
+    if endpoint.startswith("tcp/"):
+        endpoint = "tls/" + endpoint.removeprefix("tcp/")
+    return endpoint, secrets
 
 
 class ClusterDidNotStart(RuntimeError):
@@ -322,6 +381,7 @@ def local_cluster(
     api_addr: str | None,
     echo: bool = True,
     slots: int = 1,
+    secrets: str | None = None,
 ) -> Iterator[LocalCluster]:
     """Start the local cluster (`macb up`'s, and `macb reproduce`'s when no API answers)
     and wait for every service and the API; stop every process on the way out, however
@@ -331,7 +391,13 @@ def local_cluster(
 
     if slots < 1:
         raise ValueError(f"--slots must be at least 1, not {slots}")
-    plan = cluster_plan(actors, endpoint, str(data_dir), api=api_addr, slots=slots)
+    plan = cluster_plan(actors, endpoint, str(data_dir), api=api_addr, slots=slots, secrets=secrets)
+    if secrets:  # every service's files, before any process starts (SecurityError: exit 2)
+        from shared.security import Security
+
+        for spec in plan:
+            sec = Security.from_env({**os.environ, **dict(spec.env)})
+            sec.for_router().check("router") if spec.name == "router" else sec.check("client")
     cluster = Cluster(plan, data_dir / "logs", echo=echo)
     stop = _stop_on_signals()
     api = None

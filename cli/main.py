@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from collections.abc import Callable
 
-from cli import api, cluster, export, reproduce, train
+from cli import api, cluster, export, reproduce, security, train
+from shared.security import SecurityError
 
 # In the order `macb --help` lists them.
 COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
@@ -25,6 +27,7 @@ COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     cluster.add_ps_parser,
     cluster.add_up_parser,
     reproduce.add_reproduce_parser,
+    security.add_certs_parser,
 )
 
 
@@ -44,4 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # not a line per API call
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    security.apply_security_flags(args)
+    try:
+        return args.func(args)
+    except SecurityError as err:  # a bus setting or file that cannot be used: say which
+        print(f"macb {args.command}: {err}", file=sys.stderr)
+        return 2

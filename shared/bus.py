@@ -3,7 +3,9 @@
 This is the only module that imports zenoh. Services connect as clients to one
 router (a Python session in router mode: no separate binary). Multicast scouting is
 off: endpoints are explicit, loopback by default, and set per host for multi-host
-clusters (`MACB_ZENOH_CONNECT=tcp/10.0.0.5:7447`).
+clusters (`MACB_ZENOH_CONNECT=tls/10.0.0.5:7447`). Security (TLS, user/password, the
+router's ACL) is built by `shared.security` from `MACB_ZENOH_*` variables; with none
+set, sessions are plain TCP without credentials, as on one machine.
 
 Callbacks run on Zenoh's threads; the wrappers here hand raw bytes to the caller's
 callback, which should only enqueue (see services/common.py).
@@ -15,10 +17,13 @@ import contextlib
 import json
 import logging
 import os
+import threading
 from collections.abc import Callable
 from typing import Any
 
 import zenoh
+
+from shared.security import Security, check_endpoints_match
 
 log = logging.getLogger("macb.bus")
 
@@ -69,6 +74,11 @@ def k_info(role: str = "*", service: str = "*") -> str:
     return f"{NS}/info/{role}/{service}"
 
 
+def k_router(router: str = "*") -> str:
+    """Queryable of each router: its ACL's denial counts (JSON)."""
+    return f"{NS}/router/{router}"
+
+
 def run_of(key: str) -> str | None:
     """The run id inside a per-run key, or None."""
     parts = key.split("/")
@@ -81,7 +91,14 @@ def default_connect() -> list[str]:
     return [e.strip() for e in raw.split(",") if e.strip()]
 
 
-def _config(mode: str, connect: list[str] | None, listen: list[str] | None) -> zenoh.Config:
+def session_config(
+    mode: str,
+    connect: list[str] | None,
+    listen: list[str] | None,
+    security: Security | None = None,
+    acl: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The session's Zenoh config as a dict (security checked first: SecurityError)."""
     conf: dict[str, Any] = {
         "mode": mode,
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
@@ -90,7 +107,23 @@ def _config(mode: str, connect: list[str] | None, listen: list[str] | None) -> z
         conf["connect"] = {"endpoints": connect}
     if listen:
         conf["listen"] = {"endpoints": listen}
-    return zenoh.Config.from_json5(json.dumps(conf))
+    if security is not None and security.configured:
+        security.check(mode)
+        check_endpoints_match(connect or [], security)
+        conf.update(security.zenoh_config(mode))
+    if acl is not None:
+        conf["access_control"] = acl
+    return conf
+
+
+def _config(
+    mode: str,
+    connect: list[str] | None,
+    listen: list[str] | None,
+    security: Security | None = None,
+    acl: dict[str, Any] | None = None,
+) -> zenoh.Config:
+    return zenoh.Config.from_json5(json.dumps(session_config(mode, connect, listen, security, acl)))
 
 
 _logging_ready = False
@@ -103,6 +136,38 @@ def _init_logging() -> None:
         _logging_ready = True
 
 
+def capture_zenoh_log(target: str, on_line: Callable[[str], None]) -> None:
+    """Turn on TRACE for one zenoh log target and hand its lines to `on_line`.
+
+    Zenoh's Rust logger writes to this process's stdout (fd 1), so fd 1 becomes a pipe
+    read by a thread here: lines of `target` go to `on_line`, every other line to the
+    real stdout. Call before the first session opens (the log level is set once per
+    process). The router uses it to count its ACL's denials, which zenoh only logs."""
+    global _logging_ready
+    if _logging_ready:
+        raise RuntimeError("capture_zenoh_log must come before the first session")
+    base = os.environ.get("RUST_LOG", "error")
+    os.environ["RUST_LOG"] = f"{base},{target}=trace"
+    real_stdout = os.dup(1)
+    r, w = os.pipe()
+    os.dup2(w, 1)
+    os.close(w)
+
+    def pump() -> None:
+        with os.fdopen(r, "rb", buffering=1 << 16) as pipe:
+            for raw in pipe:
+                if target.encode() in raw:
+                    try:
+                        on_line(raw.decode(errors="replace"))
+                    except Exception:  # a bad line must not stop the pump (zenoh would block)
+                        log.exception("zenoh log line handler failed")
+                else:
+                    os.write(real_stdout, raw)
+
+    threading.Thread(target=pump, name="zenoh-log", daemon=True).start()
+    _init_logging()
+
+
 class Bus:
     """One Zenoh session and what a service declares on it (kept alive until close)."""
 
@@ -111,15 +176,27 @@ class Bus:
         connect: list[str] | None = None,
         mode: str = "client",
         listen: list[str] | None = None,
+        security: Security | None = None,
+        acl: dict[str, Any] | None = None,
     ) -> None:
+        """`security` None: from the MACB_ZENOH_* variables (none set: plain, as before)."""
         _init_logging()
         self.mode = mode
-        self.session = zenoh.open(_config(mode, connect, listen))
+        if security is None:
+            security = Security.from_env()
+        self.session = zenoh.open(_config(mode, connect, listen, security, acl))
         self._held: list[Any] = []  # declared entities must outlive their callbacks
 
     @classmethod
-    def router(cls, listen: list[str]) -> Bus:
-        return cls(mode="router", listen=listen)
+    def router(
+        cls,
+        listen: list[str],
+        connect: list[str] | None = None,
+        security: Security | None = None,
+        acl: dict[str, Any] | None = None,
+    ) -> Bus:
+        """A router session; `connect` names other routers to peer with."""
+        return cls(connect=connect, mode="router", listen=listen, security=security, acl=acl)
 
     def close(self) -> None:
         for h in reversed(self._held):

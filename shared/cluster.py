@@ -51,6 +51,7 @@ def cluster_plan(
     listen: str | None = None,
     api: str | None = "127.0.0.1:8000",
     slots: int = 1,
+    secrets: str | None = None,
 ) -> list[ServiceSpec]:
     """Router first; then counter, learner, evaluator, `actors` actors, and the API last.
 
@@ -63,24 +64,33 @@ def cluster_plan(
     by default; docker-compose listens on all interfaces and connects by host name).
     `api` is the API's HTTP address (None: no API). When the router listens on all
     interfaces (containers), so does the API, which then needs MACB_API_TOKEN.
+    `secrets`: a folder `macb certs` wrote; each service then signs in as its own id
+    (MACB_ZENOH_USER, the router as `router`) with its files there (docs/deploy.md).
     """
+
+    def signed_in(user: str, env: tuple[tuple[str, str], ...]) -> tuple[tuple[str, str], ...]:
+        if secrets is None:
+            return env
+        return (*env, ("MACB_ZENOH_SECRETS", secrets), ("MACB_ZENOH_USER", user))
+
     env = (("MACB_ZENOH_CONNECT", endpoint), *THREAD_ENV.items())
     router_args = ("router", "--listen", listen or endpoint)
-    plan = [ServiceSpec("router", router_args, tuple(THREAD_ENV.items()))]
-    plan.append(ServiceSpec("counter", ("counter", "--id", "counter", "--data-dir", data_dir), env))
+    plan = [ServiceSpec("router", router_args, signed_in("router", tuple(THREAD_ENV.items())))]
+    counter_args = ("counter", "--id", "counter", "--data-dir", data_dir)
+    plan.append(ServiceSpec("counter", counter_args, signed_in("counter", env)))
     for slot in range(slots):
         for role in ("learner", "evaluator"):
             sid = role if slot == 0 else f"{role}{slot}"
-            plan.append(ServiceSpec(sid, (role, "--id", sid, "--data-dir", data_dir), env))
+            args = (role, "--id", sid, "--data-dir", data_dir)
+            plan.append(ServiceSpec(sid, args, signed_in(sid, env)))
     for r in range(actors * slots):
-        plan.append(
-            ServiceSpec(f"actor{r}", ("actor", "--id", f"actor{r}", "--data-dir", data_dir), env)
-        )
+        args = ("actor", "--id", f"actor{r}", "--data-dir", data_dir)
+        plan.append(ServiceSpec(f"actor{r}", args, signed_in(f"actor{r}", env)))
     if api is not None:
         if listen and listen.split("/", 1)[-1].startswith("0.0.0.0:"):
             api = "0.0.0.0:" + api.rsplit(":", 1)[1]
         args = ("api", "--id", "api", "--listen-http", api, "--data-dir", data_dir)
-        plan.append(ServiceSpec("api", args, env))
+        plan.append(ServiceSpec("api", args, signed_in("api", env)))
     return plan
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -25,7 +26,8 @@ class Procs:
         self.env = dict(env or {})  # on top of ours, for every process started
         self.procs: dict[str, subprocess.Popen] = {}
 
-    def start(self, name: str, *args: str) -> subprocess.Popen:
+    def start(self, name: str, *args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
+        """`env`: more variables for this process (a secure cluster's user and files)."""
         env = {
             **os.environ,
             "MACB_ZENOH_CONNECT": self.endpoint,
@@ -34,6 +36,7 @@ class Procs:
             "OPENBLAS_NUM_THREADS": "1",
             "MKL_NUM_THREADS": "1",
             **self.env,
+            **(env or {}),
         }
         log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 (the child owns it)
         p = subprocess.Popen(
@@ -67,6 +70,36 @@ class Procs:
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+
+
+def _certs(out: Path, *args: str) -> Path:
+    r = subprocess.run(
+        [sys.executable, "-m", "cli", "certs", str(out), *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+@pytest.fixture(scope="session")
+def secrets(tmp_path_factory) -> Path:
+    """A cluster's CA, certificates and credentials, made by `macb certs` (openssl):
+    routers `router` and `router-b`, actors actor0 and actor1, the other roles."""
+    if shutil.which("openssl") is None:
+        pytest.skip("macb certs needs the openssl command")
+    out = tmp_path_factory.mktemp("secrets")
+    return _certs(out, "--router", "router", "--router", "router-b", "--actors", "2")
+
+
+@pytest.fixture(scope="session")
+def other_ca(tmp_path_factory) -> Path:
+    """Another CA with the same names: its certificates must be refused."""
+    if shutil.which("openssl") is None:
+        pytest.skip("macb certs needs the openssl command")
+    return _certs(tmp_path_factory.mktemp("other-ca"), "--actors", "1")
 
 
 @pytest.fixture

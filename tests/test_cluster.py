@@ -11,7 +11,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def test_compose_runs_the_same_services_commands_and_settings_as_macb_up():
     compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
-    plan = cluster_plan(1, "tcp/router:7447", "/data", listen="tcp/0.0.0.0:7447")
+    plan = cluster_plan(
+        1, "tls/router:7447", "/data", listen="tls/0.0.0.0:7447", secrets="/run/secrets/macb"
+    )
     assert set(compose) == {s.name for s in plan}
     images = {svc.get("image") for svc in compose.values()}
     assert images == {"macb:latest"}, "one image for every service"
@@ -19,6 +21,18 @@ def test_compose_runs_the_same_services_commands_and_settings_as_macb_up():
         svc = compose[spec.name]
         assert svc["command"] == ["macb", "serve", *spec.args], spec.name
         assert {k: str(v) for k, v in svc["environment"].items()} == dict(spec.env), spec.name
+        # the secure bus (the router listens off loopback): every service has the secrets
+        assert "./secrets:/run/secrets/macb:ro" in svc["volumes"], spec.name
+
+
+def test_a_secure_plan_signs_every_service_in_as_its_own_id():
+    plan = cluster_plan(2, "tls/127.0.0.1:7447", secrets="/s")
+    for spec in plan:
+        env = dict(spec.env)
+        assert env["MACB_ZENOH_SECRETS"] == "/s"
+        sid = spec.args[spec.args.index("--id") + 1] if "--id" in spec.args else "router"
+        assert env["MACB_ZENOH_USER"] == sid, spec
+    assert all("MACB_ZENOH_USER" not in dict(s.env) for s in cluster_plan(2))
 
 
 def test_plan_gives_actors_distinct_ids_and_one_thread_each():

@@ -1,0 +1,278 @@
+"""The secure bus on real processes over 127.0.0.1: TLS, user/password, the router's ACL.
+
+Certificates and credentials are made per test module by `macb certs` (openssl) in a
+tmp dir. What could fail here: a session without or with wrong credentials getting in,
+a certificate of another CA accepted, the ACL letting an actor stop a run (or the ACL
+denying something a normal run needs: a normal run must see no denial at all), a
+router listening off loopback without TLS and auth, a bad file half-starting a service.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from shared import bus as keys
+from shared.bus import Bus
+from shared.config import make_config
+from shared.control import send_stop, start_run
+from shared.security import Security
+from shared.wire import encode
+from tests.conftest import ROOT, Procs, free_port, wait_for, wait_port
+from tests.test_services_run import SMALL, check_exact, wait_services
+
+pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+
+
+def macb(*args: str, env: dict[str, str] | None = None, timeout: float = 60):
+    return subprocess.run(
+        [sys.executable, "-m", "cli", *args],
+        cwd=ROOT,
+        env={**os.environ, **(env or {})},
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def as_user(secrets: Path, user: str, endpoint: str | None = None) -> dict[str, str]:
+    env = {"MACB_ZENOH_SECRETS": str(secrets), "MACB_ZENOH_USER": user}
+    if endpoint:
+        env["MACB_ZENOH_CONNECT"] = endpoint
+    return env
+
+
+def session(secrets: Path, user: str, endpoint: str, **override) -> Bus:
+    sec = Security.from_env({**as_user(secrets, user), **override})
+    return Bus([endpoint], security=sec)
+
+
+def router_stats(bus: Bus, router: str = "router") -> dict:
+    """The router's answer on macb/router/ID (it declares it just after it listens)."""
+    replies = wait_for(
+        lambda: bus.get(keys.k_router(router), timeout=2.0), timeout=10, what=f"{router} stats"
+    )
+    return json.loads(replies[0])
+
+
+@pytest.fixture
+def secure(secrets, tmp_path):
+    """A TLS router with user/password and the ACL on its own loopback port."""
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    procs = Procs(tmp_path, endpoint)
+    procs.start("router", "router", "--listen", endpoint, env=as_user(secrets, "router"))
+    wait_port(endpoint)
+    yield procs
+    procs.stop_all()
+
+
+def start_services(procs: Procs, secrets: Path, tmp_path: Path, actors: int = 1, **where):
+    data = str(tmp_path / "data")
+    for role in ("counter", "learner", "evaluator", *(f"actor{r}" for r in range(actors))):
+        sid, kind = role, role.rstrip("0123456789")
+        procs.start(
+            sid,
+            kind,
+            "--id",
+            sid,
+            "--data-dir",
+            data,
+            env=as_user(secrets, sid, where.get(sid)),
+        )
+
+
+def wait_final_counts(watch, config) -> None:
+    """The counter publishes its stats each second: wait for the final ones."""
+    wait_for(
+        lambda: (
+            (watch.latest.get("counter") or {}).get("counted_transitions")
+            == config.episodes * config.episode_len
+        ),
+        timeout=10,
+        what="final counter stats",
+    )
+
+
+def test_secure_run_is_exact_and_an_actor_cannot_stop_it(secure, secrets, tmp_path):
+    """A whole run over TLS with every service signed in: exact counts, ratio 1, and no
+    denial at all (the ACL grants what a run needs). Meanwhile an actor's credentials
+    try to stop the run and to publish another actor's transitions: both denied, logged
+    and counted by the router, and the run completes."""
+    start_services(secure, secrets, tmp_path, actors=1)
+    config = make_config({**SMALL, "episodes": 30})
+    with session(secrets, "cli", secure.endpoint) as cli:
+        wait_services(cli, 4)
+        watch = start_run(cli, config, actors=1)
+        with session(secrets, "actor0", secure.endpoint) as rogue:
+            wait_for(lambda: watch.rows, timeout=60, what="a first point")
+            send_stop(rogue, watch.run, "forged")
+            rogue.put(
+                keys.k_transitions(watch.run, "actor1"), encode("stop", watch.run, reason="x")
+            )
+            time.sleep(0.5)
+        assert watch.wait(timeout=240) == "completed", watch.states
+        wait_final_counts(watch, config)
+        check_exact(watch, watch.assign["actors"], config)
+        stats = router_stats(cli)
+    denied = {(d["user"], d["what"], d["key"]): d["count"] for d in stats["denied"]}
+    assert denied == {
+        ("actor0", "Put", keys.k_control("stop")): 1,
+        ("actor0", "Put", keys.k_transitions(watch.run, "actor1")): 1,
+    }, stats
+    log = secure.log("router")
+    assert f"ACL denied: user actor0 (actor) Put (ingress) on {keys.k_control('stop')}" in log
+    ps = macb("ps", "--connect", secure.endpoint, env=as_user(secrets, "cli"))
+    assert ps.returncode == 0 and "acl denied=2" in ps.stdout, ps.stdout + ps.stderr
+
+
+def test_macb_certs_makes_a_ca_and_certificates_it_alone_signed(secrets, other_ca, tmp_path):
+    def verify(ca: Path, cert: Path) -> bool:
+        r = subprocess.run(["openssl", "verify", "-CAfile", ca, cert], capture_output=True)
+        return r.returncode == 0
+
+    assert verify(secrets / "ca.pem", secrets / "router-b.pem")
+    assert verify(secrets / "ca.pem", secrets / "actor1.pem")
+    assert not verify(other_ca / "ca.pem", secrets / "router.pem")
+    text = subprocess.run(
+        ["openssl", "x509", "-in", secrets / "router-b.pem", "-noout", "-text"],
+        capture_output=True,
+        text=True,
+    ).stdout
+    assert "DNS:localhost" in text and "IP Address:127.0.0.1" in text and "DNS:router-b" in text
+    users = dict(line.split(":", 1) for line in (secrets / "users.txt").read_text().split())
+    assert set(users) >= {"counter", "learner", "evaluator", "api", "cli", "actor0", "router-b"}
+    assert users["actor0"] == (secrets / "actor0.password").read_text().strip()
+    assert (secrets / "ca.key").stat().st_mode & 0o077 == 0
+    # again, with one more user: the others are kept as they were
+    out = tmp_path / "s"
+    shutil.copytree(secrets, out)
+    before = (out / "users.txt").read_text()
+    r = macb("certs", str(out), "--user", "actor-h2-0")
+    assert r.returncode == 0, r.stderr
+    assert (out / "users.txt").read_text().startswith(before)
+    assert "actor-h2-0:" in (out / "users.txt").read_text()
+    assert verify(out / "ca.pem", out / "actor-h2-0.pem")
+    r = macb("certs", str(out), "--user", "boss")
+    assert r.returncode == 2 and "names no role" in r.stderr
+
+
+@pytest.mark.parametrize(
+    "case", ["no credentials", "wrong password", "unknown user", "no TLS", "another CA"]
+)
+def test_a_client_that_cannot_prove_itself_is_refused(secure, secrets, other_ca, tmp_path, case):
+    bad = tmp_path / "bad.password"
+    bad.write_text("not-the-password\n")
+    port = secure.endpoint.rsplit(":", 1)[1]
+    endpoint, sec = secure.endpoint, None
+    if case == "no credentials":
+        sec = Security(tls_ca=secrets / "ca.pem")
+    elif case == "wrong password":
+        sec = Security(user="cli", password_file=bad, tls_ca=secrets / "ca.pem")
+    elif case == "unknown user":
+        sec = Security(user="actor7", password_file=bad, tls_ca=secrets / "ca.pem")
+    elif case == "no TLS":
+        endpoint = f"tcp/127.0.0.1:{port}"
+        sec = Security(user="cli", password_file=secrets / "cli.password")
+    else:  # the client trusts another CA: the router's certificate is not one of its
+        sec = Security(
+            user="cli", password_file=secrets / "cli.password", tls_ca=other_ca / "ca.pem"
+        )
+    with pytest.raises(Exception, match="Unable to connect"):
+        Bus([endpoint], security=sec).close()
+    # the right credentials still get in
+    with session(secrets, "cli", secure.endpoint) as ok:
+        assert router_stats(ok)["acl"] is True
+
+
+def test_mtls_refuses_a_certificate_from_another_ca(secrets, other_ca, tmp_path):
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    procs = Procs(tmp_path, endpoint)
+    try:
+        env = {**as_user(secrets, "router"), "MACB_ZENOH_MTLS": "1"}
+        procs.start("router", "router", "--listen", endpoint, env=env)
+        wait_port(endpoint)
+        mtls = {"MACB_ZENOH_MTLS": "1"}
+        foreign = {
+            **mtls,
+            "MACB_ZENOH_TLS_CERT": str(other_ca / "cli.pem"),
+            "MACB_ZENOH_TLS_KEY": str(other_ca / "cli.key"),
+        }
+        with pytest.raises(Exception, match="Unable to connect"):
+            session(secrets, "cli", endpoint, **foreign).close()
+        with session(secrets, "cli", endpoint, **mtls) as ok:
+            assert router_stats(ok)["acl"] is True
+    finally:
+        procs.stop_all()
+
+
+def test_router_off_loopback_refuses_to_start_without_tls_and_auth(secrets, tmp_path):
+    port = free_port()
+    r = macb("serve", "router", "--listen", f"tcp/0.0.0.0:{port}", timeout=30)
+    assert r.returncode == 2, r.stderr
+    assert f"refusing to listen on tcp/0.0.0.0:{port}" in r.stderr
+    assert "TLS" in r.stderr and "authentication" in r.stderr
+    # TLS alone is not enough: authentication (the users file) is missing
+    env = {
+        "MACB_ZENOH_TLS_CA": str(secrets / "ca.pem"),
+        "MACB_ZENOH_TLS_CERT": str(secrets / "router.pem"),
+        "MACB_ZENOH_TLS_KEY": str(secrets / "router.key"),
+    }
+    r = macb("serve", "router", "--listen", f"tls/10.255.255.1:{port}", env=env, timeout=30)
+    assert r.returncode == 2 and "authentication" in r.stderr and "TLS (" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("role", ["router", "counter", "api"])
+def test_a_missing_or_unreadable_file_is_refused_at_start_naming_it(secrets, tmp_path, role):
+    missing = tmp_path / "nope" / "ca.pem"
+    env = {**as_user(secrets, role if role != "api" else "api"), "MACB_ZENOH_TLS_CA": str(missing)}
+    args = ["serve", role, "--data-dir", str(tmp_path / "d")]
+    if role == "router":
+        args += ["--listen", f"tls/127.0.0.1:{free_port()}"]
+    t0 = time.monotonic()
+    r = macb(*args, env=env, timeout=30)
+    assert r.returncode == 2, r.stderr
+    assert f"CA certificate {missing}: no such file" in r.stderr
+    assert time.monotonic() - t0 < 20
+    assert not (tmp_path / "d").exists(), "nothing half-started"
+    # a directory where the password file should be: unreadable, named
+    env = {**as_user(secrets, "counter"), "MACB_ZENOH_PASSWORD_FILE": str(tmp_path)}
+    r = macb("serve", "counter", env=env, timeout=30)
+    assert r.returncode == 2 and f"password file {tmp_path}: cannot read it" in r.stderr
+
+
+def test_macb_up_with_secrets_runs_the_secure_bus_end_to_end(secrets, tmp_path):
+    """`macb up --secrets DIR --run`: TLS on loopback, every service (and the API, and
+    `macb up` itself as cli) signed in as its own user, the ACL on, nothing denied."""
+    from tests.test_up import TINY, cluster_processes, up
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY)
+    out_dir = tmp_path / "out"
+    run = ("--run", str(cfg), "--out", str(out_dir))
+    proc, endpoint = up(tmp_path, "--secrets", str(secrets), *run)
+    out, _ = proc.communicate(timeout=240)
+    assert proc.returncode == 0, out
+    assert "completed" in out
+    rows = (out_dir / "metrics.csv").read_text().splitlines()
+    assert len(rows) == 1 + 3
+    log = (tmp_path / "data" / "logs" / "router.log").read_text()
+    assert f"listening on tls/{endpoint.split('/', 1)[1]}" in log, log
+    assert "TLS, user/password, ACL for" in log and "ACL denied" not in log, log
+    assert cluster_processes(endpoint, tmp_path) == []
+
+
+def test_macb_up_refuses_a_secrets_folder_without_a_services_files(secrets, tmp_path):
+    """The folder has actor0 and actor1: a third actor's missing password is named, exit
+    2, before any process starts."""
+    args = ["up", "--secrets", str(secrets), "--actors", "3", "--no-api"]
+    r = macb(*args, "--data-dir", str(tmp_path / "d"), "--endpoint", f"tcp/127.0.0.1:{free_port()}")
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "user 'actor2' has no password" in r.stderr and "actor2.password" in r.stderr
+    assert not (tmp_path / "d").exists()
