@@ -21,15 +21,16 @@ COPY docker/local/ /tmp/local/
 COPY pyproject.toml /tmp/pins/
 RUN python3 -m venv /opt/macb \
  && /opt/macb/bin/python -c 'import sys, tomllib; deps = tomllib.load(open(sys.argv[1], "rb"))["project"]["dependencies"]; print("\n".join(deps))' /tmp/pins/pyproject.toml > /tmp/pins/requirements.txt \
- && cert="${PIP_CA:+--cert /tmp/local/$PIP_CA}" \
- && /opt/macb/bin/pip install --no-cache-dir --disable-pip-version-check $cert ${TORCH_SOURCE} "$(grep '^torch==' /tmp/pins/requirements.txt)" \
- && /opt/macb/bin/pip install --no-cache-dir --disable-pip-version-check $cert -r /tmp/pins/requirements.txt
+ && if [ -n "$PIP_CA" ]; then export PIP_CERT="/tmp/local/$PIP_CA"; fi \
+ && /opt/macb/bin/pip install --no-cache-dir --disable-pip-version-check ${TORCH_SOURCE} "$(grep '^torch==' /tmp/pins/requirements.txt)" \
+ && /opt/macb/bin/pip install --no-cache-dir --disable-pip-version-check -r /tmp/pins/requirements.txt
 COPY pyproject.toml README.md /src/
 COPY shared /src/shared
 COPY services /src/services
 COPY cli /src/cli
-RUN cert="${PIP_CA:+--cert /tmp/local/$PIP_CA}" \
- && /opt/macb/bin/pip install --no-cache-dir --disable-pip-version-check --no-deps $cert /src
+# PIP_CERT (not --cert) so that pip's isolated build of the project trusts it too.
+RUN if [ -n "$PIP_CA" ]; then export PIP_CERT="/tmp/local/$PIP_CA"; fi \
+ && /opt/macb/bin/pip install --no-cache-dir --disable-pip-version-check --no-deps /src
 
 # The venv alone: the wheel, the CA bundle and the sources stay in the build stage.
 FROM ${BASE_IMAGE}

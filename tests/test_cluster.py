@@ -24,6 +24,31 @@ def test_compose_runs_the_same_services_commands_and_settings_as_macb_up():
         assert {k: str(v) for k, v in env.items()} == dict(spec.env), spec.name
 
 
+def load(name: str) -> dict:
+    return yaml.safe_load((ROOT / name).read_text())["services"]
+
+
+def test_default_override_publishes_the_router_and_api_on_loopback_only():
+    ports = {name: svc.get("ports") for name, svc in load("docker-compose.override.yml").items()}
+    assert ports == {"router": ["127.0.0.1:7447:7447"], "api": ["127.0.0.1:8000:8000"]}
+    assert not any("ports" in svc for svc in load("docker-compose.yml").values())
+
+
+def test_host_override_runs_macb_up_s_commands_on_loopback():
+    """docker-compose.host.yml over docker-compose.yml is `macb up` with its defaults:
+    every service on the host network, the router and the API on 127.0.0.1."""
+    base, host = load("docker-compose.yml"), load("docker-compose.host.yml")
+    plan = cluster_plan(1, "tcp/127.0.0.1:7447", "/data", api="127.0.0.1:8000")
+    assert set(host) == set(base) == {s.name for s in plan}
+    for spec in plan:
+        svc = {**base[spec.name], **host[spec.name]}
+        env = {**base[spec.name]["environment"], **host[spec.name].get("environment", {})}
+        env.pop("MACB_API_TOKEN", None)
+        assert svc["network_mode"] == "host", spec.name
+        assert svc["command"] == ["macb", "serve", *spec.args], spec.name
+        assert {k: str(v) for k, v in env.items()} == dict(spec.env), spec.name
+
+
 def test_compose_file_is_one_docker_compose_1_29_reads():
     """Debian's docker-compose is 1.29: no `version` key needed, but no compose-v2-only
     syntax either (an `env_file` entry as {path, required} needs v2.24)."""

@@ -21,6 +21,7 @@ import os
 import re
 import secrets
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -30,7 +31,6 @@ import httpx
 import pytest
 import yaml
 
-from shared.cluster import cluster_plan
 from tests.conftest import ROOT, free_port, wait_for
 
 pytestmark = pytest.mark.compose
@@ -54,6 +54,7 @@ def _offline():
     spec = importlib.util.spec_from_file_location("macb_offline", ROOT / "docker" / "offline.py")
     assert spec and spec.loader
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
 
@@ -146,20 +147,15 @@ class Compose:
         return httpx.Client(base_url=self.url, headers=headers, timeout=30)
 
 
-def host_override(tag: str, router_port: int, api_port: int) -> dict:
-    """Every service on the host network, on loopback ports of this test: the commands
-    and environment `macb up` gives them (cluster_plan) with 127.0.0.1 endpoints."""
-    endpoint = f"tcp/127.0.0.1:{router_port}"
-    plan = cluster_plan(1, endpoint, "/data", api=f"127.0.0.1:{api_port}")
-    services = {}
-    for spec in plan:
-        services[spec.name] = {
-            "image": tag,
-            "network_mode": "host",
-            "command": ["macb", "serve", *spec.args],
-            "environment": dict(spec.env),
-        }
-    return {"services": services}
+def host_override(tag: str, router_port: int, api_port: int) -> str:
+    """docker-compose.host.yml on this test's loopback ports, every service on the tag."""
+    text = (ROOT / "docker-compose.host.yml").read_text()
+    text = text.replace("127.0.0.1:7447", f"127.0.0.1:{router_port}")
+    text = text.replace("127.0.0.1:8000", f"127.0.0.1:{api_port}")
+    doc = yaml.safe_load(text)
+    for svc in doc["services"].values():
+        svc["image"] = tag
+    return yaml.safe_dump({"services": doc["services"]})
 
 
 @pytest.fixture(scope="module")
@@ -167,7 +163,7 @@ def compose(engine, image, tmp_path_factory) -> Iterator[Compose]:
     tmp = tmp_path_factory.mktemp("compose")
     router_port, api_port = free_port(), free_port()
     override = tmp / "docker-compose.host.yml"
-    override.write_text(yaml.safe_dump(host_override(image.tag, router_port, api_port)))
+    override.write_text(host_override(image.tag, router_port, api_port))
     c = Compose(
         engine,
         f"macbtest{os.getpid()}",
