@@ -10,7 +10,7 @@ nothing the second time. tests/test_compose.py (`make test-compose`) uses it; so
 user (README, "Containers without a registry"):
 
     python3 docker/offline.py engine     # install docker.io etc. (root), start dockerd
-    python3 docker/offline.py image      # base + project image; prints the tag
+    python3 docker/offline.py image      # base + project image, tagged macb:latest too
 
 Standard library only, so it runs before any virtualenv exists.
 """
@@ -318,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("engine", help="install docker.io etc. if missing, start dockerd")
     e.add_argument("--log", default="/var/log/macb-dockerd.log", help="dockerd's log")
-    sub.add_parser("image", help="build (or find) the base and the project image")
+    sub.add_parser("image", help="build (or find) the images; tag macb:latest")
     args = p.parse_args(argv)
     try:
         if args.cmd == "engine":
@@ -331,8 +331,10 @@ def main(argv: list[str] | None = None) -> int:
             raise Unavailable("no docker engine answers (python3 docker/offline.py engine)")
         assert docker is not None
         built = ensure_image(docker)
+        run([docker, "tag", built.tag, "macb:latest"])  # the name docker-compose.yml uses
         state = "cached" if built.cached else f"built in {built.seconds:.0f} s"
-        print(f"{built.tag} ({state}, {image_size(docker, built.tag) / 1e6:.0f} MB)")
+        size = image_size(docker, built.tag) / 1e6
+        print(f"{built.tag} ({state}, {size:.0f} MB), tagged macb:latest")
         return 0
     except (Unavailable, BuildFailed) as err:
         print(f"offline.py: {err}", file=sys.stderr)
