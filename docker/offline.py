@@ -288,8 +288,9 @@ def image_tag(docker: str, base: str, args: dict[str, str]) -> str:
 class Built:
     tag: str
     base: str
-    seconds: float  # 0 when both images were already there under their tags
-    cached: bool
+    seconds: float  # finding or building both images
+    base_seconds: float  # of which finding or making the base
+    cached: bool  # the project image was there under its tag
 
 
 def ensure_image(docker: str) -> Built:
@@ -297,15 +298,16 @@ def ensure_image(docker: str) -> Built:
     wheel, pip through the host network and CA bundle), cached under its digest tag."""
     t0 = time.monotonic()
     base = ensure_base(docker)
+    base_s = time.monotonic() - t0
     args = {"BASE_IMAGE": base, **stage_local_files()}
     tag = image_tag(docker, base, args)
     if image_exists(docker, tag):
-        return Built(tag, base, time.monotonic() - t0, cached=True)
+        return Built(tag, base, time.monotonic() - t0, base_s, cached=True)
     argv = [docker, "build", "--network", "host", "-t", tag]
     for k, v in args.items():
         argv += ["--build-arg", f"{k}={v}"]
     run(["nice", *argv, str(ROOT)], timeout=1800, env={**os.environ, "DOCKER_BUILDKIT": "0"})
-    return Built(tag, base, time.monotonic() - t0, cached=False)
+    return Built(tag, base, time.monotonic() - t0, base_s, cached=False)
 
 
 def image_size(docker: str, tag: str) -> int:

@@ -86,10 +86,13 @@ def expect_outcome_after_learner_kill(run: dict, episodes: int) -> None:
 @pytest.fixture(scope="module")
 def engine(tmp_path_factory) -> Iterator:
     log = tmp_path_factory.mktemp("dockerd") / "dockerd.log"
+    t0 = time.monotonic()
     try:
         engine = offline.ensure_engine(log, may_set_up=SETUP)
     except offline.Unavailable as err:
         pytest.skip(f"no docker for the compose test: {err}")
+    how = f"dockerd started (log {log})" if engine.started else "already running"
+    print(f"\ndocker engine in {time.monotonic() - t0:.1f} s: {how}, {' '.join(engine.compose)}")
     try:
         yield engine
     finally:
@@ -101,7 +104,7 @@ def image(engine):
     built = offline.ensure_image(engine.docker)
     size = offline.image_size(engine.docker, built.tag)
     state = "cached" if built.cached else "built"
-    took = f"{state} in {built.seconds:.1f} s"
+    took = f"{state} in {built.seconds:.1f} s ({built.base_seconds:.1f} s of it the base)"
     print(f"\nimage {built.tag} on {built.base}: {took}, {size / 1e6:.0f} MB")
     return built
 
