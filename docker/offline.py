@@ -129,9 +129,11 @@ def ensure_engine(log: Path, may_set_up: bool) -> Engine:
     if engine_answers(docker) and compose and not missing_packages(BASE_TOOLS):
         return Engine(docker, compose)
     if not may_set_up:
+        lacking = [] if engine_answers(docker) else ["no docker engine answers"]
+        lacking += [] if compose else ["no docker-compose"]
+        lacking += [f"no {p}" for p in missing_packages(BASE_TOOLS)]
         raise Unavailable(
-            "no docker engine with docker-compose and debootstrap here "
-            "(`make test-compose` installs and starts one, as root)"
+            f"{', '.join(lacking)} (`make test-compose` installs and starts them, as root)"
         )
     if os.geteuid() != 0:
         raise Unavailable("installing docker.io and starting dockerd needs root")
@@ -238,19 +240,33 @@ def torch_wheel() -> Path:
     raise Unavailable(f"no {pattern} in pip's find-links ({[str(d) for d in find_links()]})")
 
 
-def context_files() -> list[Path]:
-    """What goes into the build context: the paths .dockerignore lets through."""
+def context_files(root: Path = ROOT) -> list[Path]:
+    """What goes into the build context: the paths .dockerignore lets through (its "!"
+    lines), without Python's caches."""
     roots = [
         line[1:].strip()
-        for line in (ROOT / ".dockerignore").read_text().splitlines()
+        for line in (root / ".dockerignore").read_text().splitlines()
         if line.startswith("!")
     ]
     files: list[Path] = []
     for r in roots:
-        p = ROOT / r
+        p = root / r
         found = [p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file())
         files += [q for q in found if "__pycache__" not in q.parts and q.suffix != ".pyc"]
     return files
+
+
+def context_digest(base_id: str, args: dict[str, str], root: Path = ROOT) -> str:
+    """A digest of the base image's id, the build arguments, the Dockerfile and every
+    context file (a wheel by name and size: 190 MB, and its name says which build)."""
+    h = hashlib.sha256(f"{base_id}\n{sorted(args.items())}\n".encode())
+    for f in [root / "Dockerfile", root / ".dockerignore", *context_files(root)]:
+        h.update(f"{f.relative_to(root)}\n".encode())
+        if f.suffix == ".whl":
+            h.update(f"{f.stat().st_size}\n".encode())
+        else:
+            h.update(f.read_bytes())
+    return h.hexdigest()[:12]
 
 
 def stage_local_files() -> dict[str, str]:
@@ -272,16 +288,9 @@ def stage_local_files() -> dict[str, str]:
 
 
 def image_tag(docker: str, base: str, args: dict[str, str]) -> str:
-    """macb:<digest of the base image's id, the build args and every context file>."""
+    """macb:<context_digest>: the same tag for the same inputs, a new one for any change."""
     base_id = run([docker, "image", "inspect", "-f", "{{.Id}}", base]).stdout.strip()
-    h = hashlib.sha256(f"{base_id}\n{sorted(args.items())}\n".encode())
-    for f in [ROOT / "Dockerfile", ROOT / ".dockerignore", *context_files()]:
-        h.update(f"{f.relative_to(ROOT)}\n".encode())
-        if f.suffix == ".whl":  # 190 MB: its name and size say which build it is
-            h.update(f"{f.stat().st_size}\n".encode())
-        else:
-            h.update(f.read_bytes())
-    return f"macb:{h.hexdigest()[:12]}"
+    return f"macb:{context_digest(base_id, args)}"
 
 
 @dataclass
