@@ -449,7 +449,7 @@ class CounterHarness:
 # ------------------------------------------------------------------ in-process ceiling
 def in_process(k: int, rows: int, seconds: float, work: Path) -> dict:
     """The counter's per-batch work in this process: core, and with decode + ack encode."""
-    from services.counter.wal import WriteAheadLog
+    from shared.wal import WriteAheadLog
 
     _, spec, _ = run_exploration(k)
     rng = np.random.default_rng(7)

@@ -84,7 +84,10 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         description="Start every service as a local process with the same commands "
         "docker-compose.yml runs, the API last (its dashboard on 127.0.0.1:8000). With "
         "--run CONFIG, run that experiment through the API, write its results and stop; "
-        "otherwise serve until Ctrl-C / SIGTERM. No process outlives this command.",
+        "otherwise serve until Ctrl-C / SIGTERM. A service that dies is restarted (0.5 s "
+        "backoff doubling to 10 s) and rejoins its run; one that dies 5 times in a minute "
+        "stops the cluster. Run again on the same --data-dir, it resumes the runs that "
+        "were running. No process outlives this command.",
     )
     up.add_argument("--actors", type=int, default=1, help="actor processes")
     up.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="router endpoint")
@@ -240,7 +243,8 @@ def cmd_ps(args: argparse.Namespace) -> int:
         infos = discover(bus)
     for i in infos:
         print(
-            f"{i['role']:<10} {i['id']:<24} run={i.get('run') or '-'} rejects={i['rejects_total']}"
+            f"{i['role']:<10} {i['id']:<24} run={i.get('run') or '-'} "
+            f"rejects={i['rejects_total']} restarts={i.get('restarts', 0)}"
         )
     if not infos:
         print("no services answer (is `macb up` running?)")
@@ -410,15 +414,16 @@ def _experiment(
 def _run_while_cluster_lives(
     work: Callable[[], int], cluster: Cluster, stop: threading.Event
 ) -> int:
-    """Run `work` in a thread so that a signal or a dead service ends the wait (and then
-    `macb up` stops the cluster); its exit code, or 1 if it did not finish."""
+    """Run `work` in a thread, restarting services that die, so that a signal or a
+    service that keeps dying ends the wait (and then `macb up` stops the cluster); its
+    exit code, or 1 if it did not finish."""
     result: list[int] = []
     runner = threading.Thread(target=lambda: result.append(work()), daemon=True)
     runner.start()
     while runner.is_alive() and not stop.is_set():
         runner.join(0.2)
-        if cluster.dead():
-            print(f"service(s) died: {cluster.dead()}", file=sys.stderr)
+        if (gone := cluster.supervise()) is not None:
+            print(f"{gone} keeps dying: stopping the cluster", file=sys.stderr)
             stop.set()
     return result[0] if result else 1
 
@@ -433,14 +438,15 @@ def _print_where_results_stay(api: ApiClient, data_dir: Path) -> None:
 
 
 def _serve_until_stopped(cluster: Cluster, stop: threading.Event) -> int:
-    """No --run: keep the cluster up until a signal (0) or until a service dies (1)."""
+    """No --run: keep the cluster up, restarting services that die, until a signal (0)
+    or until one keeps dying (1)."""
     print(
         "waiting for runs (macb run CONFIG, or macb start CONFIG on the bus); "
         "Ctrl-C stops the cluster",
         file=sys.stderr,
     )
     while not stop.wait(0.5):
-        if cluster.dead():
-            print(f"service(s) died: {cluster.dead()}", file=sys.stderr)
+        if (gone := cluster.supervise()) is not None:
+            print(f"{gone} keeps dying: stopping the cluster", file=sys.stderr)
             return 1
     return 0

@@ -10,6 +10,14 @@ after a burst of messages, for work a service does once per burst.
 Run control: `macb/control/start` carries the run id, its config and the
 assignment of services (by id); a service takes a run only when it is named in the
 assignment and is free. `macb/control/stop` ends a run.
+
+Restarts (docs/reliability.md): a service that takes a run writes it to
+`DATA_DIR/services/ID.json`; started again with the same id and data dir (by `macb
+up`'s supervisor, a container's restart policy, or by hand) it rejoins that run
+(`on_resume`) instead of waiting for a new one. A peer whose liveliness token goes
+away is given `MACB_PEER_GRACE_S` (30 s) to come back before the run is given up, so
+a restarted service, or a restarted router (every token vanishes with it), costs a
+pause, not the run.
 """
 
 from __future__ import annotations
@@ -17,6 +25,7 @@ from __future__ import annotations
 import collections
 import json
 import logging
+import os
 import queue
 import signal
 import threading
@@ -29,6 +38,21 @@ from shared import bus as keys
 from shared.bus import Bus
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.wire import WireError, decode, encode
+
+DEFAULT_PEER_GRACE_S = 30.0
+
+
+def peer_grace_s() -> float:
+    """How long a lost peer may take to come back before its runs are given up."""
+    return float(os.environ.get("MACB_PEER_GRACE_S", DEFAULT_PEER_GRACE_S))
+
+
+def restarts() -> int:
+    """How many times this service was restarted (set by `macb up`'s supervisor)."""
+    try:
+        return int(os.environ.get("MACB_RESTARTS", "0"))
+    except ValueError:
+        return 0
 
 
 def learner_end_reason(msg: dict[str, Any]) -> str:
@@ -60,12 +84,14 @@ class ServiceBase:
         self.listen(keys.k_control("start"), "start")
         self.listen(keys.k_control("stop"), "stop")
         self.bus.queryable(keys.k_info(self.role, self.id), self._info_reply)
-        self.bus.token(keys.k_live(self.role, self.id))
         put = self.inbox.put
         self.bus.watch_liveliness(
             keys.k_live("*", "*"), lambda key, alive: put(("live", key, b"1" if alive else b"0"))
         )
         self.assign: dict[str, Any] = {}  # the services of the run served now
+        self.grace_s = peer_grace_s()
+        self.lost: dict[str, tuple[str, float]] = {}  # peer id -> (role, when it went)
+        self.resumed: dict[str, Any] | None = None  # what on_resume restored, for info()
 
     # ------------------------------------------------------------ plumbing
     def listen(self, key_expr: str, tag: str, run: str | None = None) -> None:
@@ -113,6 +139,8 @@ class ServiceBase:
         return msg
 
     max_runs = 1  # the counter serves many runs at once; the other services one
+    # Rejoin the run served when the process died (the counter restores its own runs).
+    rejoins = True
     # Actors and the evaluator work for one learner: its failure or loss ends their run.
     # The learner is that learner; the counter serves many runs and outlives learners.
     follows_learner = False
@@ -137,6 +165,8 @@ class ServiceBase:
             "runs": list(self.active),
             "rejects": dict(self.rejects),
             "rejects_total": sum(self.rejects.values()),
+            "restarts": restarts(),
+            "resumed": self.resumed,
         }
 
     def _info_reply(self, key: str, payload: bytes) -> bytes:
@@ -175,17 +205,7 @@ class ServiceBase:
                 self.publish_status(run, "failed", reason=f"invalid config: {err}")
                 return
             self.log.info("starting run %s", run)
-            self.active[run] = config
-            self.assign = dict(msg["assign"])
-            learner = self.assign.get("learner")
-            if self.follows_learner and isinstance(learner, str):
-                self.listen(keys.k_status(run, learner), "learner_status", run)
-            try:
-                self.on_start(run, config, msg["assign"])
-            except Exception as err:
-                self.log.exception("run %s failed to start", run)
-                self.publish_status(run, "failed", reason=f"{type(err).__name__}: {err}")
-                self.free(run)
+            self._join(run, config, dict(msg["assign"]), msg["config"], self.on_start)
         elif tag == "stop":
             if not self.serves(run):
                 return  # a run served by other services: not ours to stop
@@ -193,6 +213,52 @@ class ServiceBase:
             self.on_stop(run, msg["reason"])
             self.publish_status(run, "stopped", reason=msg["reason"])
             self.free(run)
+
+    def _join(
+        self, run: str, config: TrainConfig, assign: dict[str, Any], raw: dict, hook: Any
+    ) -> None:
+        """Take the run (`hook` is on_start, or on_resume after a restart) and note it
+        in the service's file, so that a restarted process rejoins it."""
+        self.active[run] = config
+        self.assign = assign
+        learner = assign.get("learner")
+        if self.follows_learner and isinstance(learner, str):
+            self.listen(keys.k_status(run, learner), "learner_status", run)
+        try:
+            hook(run, config, assign)
+        except Exception as err:
+            self.log.exception("run %s failed to start", run)
+            self.publish_status(run, "failed", reason=f"{type(err).__name__}: {err}")
+            self.free(run)
+            return
+        if self.rejoins:
+            from shared.files import write_json
+
+            path = self._run_file()
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_json(path, {"run": run, "config": raw, "assign": assign})
+            except OSError as err:  # the run goes on; only a restart cannot rejoin it
+                self.log.error("cannot write %s (%s): a restart will not rejoin %s", path, err, run)
+
+    def _run_file(self) -> Path:
+        return self.data_dir / "services" / f"{self.id}.json"
+
+    def _rejoin(self) -> None:
+        """After a restart: rejoin the run this service served when its process died."""
+        path = self._run_file()
+        if not self.rejoins or not path.exists():
+            return
+        try:
+            saved = json.loads(path.read_text())
+            run, raw, assign = saved["run"], saved["config"], saved["assign"]
+            config = make_config(raw)
+        except (OSError, ValueError, KeyError, TypeError, ConfigError) as err:
+            self.log.error("refusing %s (%s): renamed *.refused; not rejoining", path, err)
+            path.replace(path.with_name(path.name + ".refused"))
+            return
+        self.log.info("rejoining run %s after a restart (from %s)", run, path)
+        self._join(run, config, assign, raw, self.on_resume)
 
     def _on_learner_status(self, key: str, payload: bytes) -> None:
         """The run's learner failed or was stopped: this service's part is over too."""
@@ -216,6 +282,10 @@ class ServiceBase:
         if run in self.active:
             self.finished.append(run)
         self.active.pop(run, None)
+        if self.rejoins and not self.active:
+            self._run_file().unlink(missing_ok=True)
+        self.lost.clear()
+        self.resumed = None
 
     # ------------------------------------------------------------ hooks
     def start_replaces(self, run: str) -> bool:
@@ -225,10 +295,38 @@ class ServiceBase:
 
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None: ...
 
+    def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        """Rejoin `run` after this process restarted; by default, as if it started."""
+        self.on_start(run, config, assign)
+
     def on_stop(self, run: str, reason: str) -> None: ...
 
+    def on_peer_found(self, role: str, peer: str) -> None:
+        """A service's liveliness token appeared (it started, or came back)."""
+
+    def _peer_event(self, key: str, alive: bool) -> None:
+        parts = key.split("/", 3)
+        if len(parts) != 4 or not self.active:
+            return
+        role, peer = parts[2], parts[3]
+        if alive:
+            if self.lost.pop(peer, None) is not None:
+                self.log.info("%s %s is back", role, peer)
+            self.on_peer_found(role, peer)
+        elif peer not in self.lost:
+            self.lost[peer] = (role, time.monotonic())
+
+    def _check_lost(self) -> None:
+        """Give up on peers that stayed away past the grace period."""
+        now = time.monotonic()
+        for peer, (role, since) in list(self.lost.items()):
+            if now - since >= self.grace_s and self.active:
+                del self.lost[peer]
+                self.on_peer_lost(role, peer)
+
     def on_peer_lost(self, role: str, peer: str) -> None:
-        """A service's liveliness token vanished (it exited or was killed).
+        """A service's liveliness token vanished (it exited or was killed) and did not
+        come back within the grace period.
 
         A service that follows its run's learner gives the run up as failed when the
         learner is gone: without it no credits, weights or evaluation points can come."""
@@ -236,7 +334,8 @@ class ServiceBase:
             run = self.run_id
             self.log.error("run %s: learner %s is gone; giving the run up", run, peer)
             self.on_stop(run, "learner lost")
-            self.publish_status(run, "failed", reason=f"learner {peer} is gone")
+            why = f"learner {peer} is gone (not back within {self.grace_s:g} s)"
+            self.publish_status(run, "failed", reason=why)
             self.free(run)
 
     def handle(self, tag: str, key: str, payload: bytes) -> None: ...
@@ -258,8 +357,16 @@ class ServiceBase:
     def serve_forever(self) -> None:
         busy = False
         burst = False  # messages handled since the inbox was last seen empty
+        last_check = 0.0
         try:
+            self._rejoin()
+            # Announced only now, every subscription of the service (and of a run it
+            # rejoined) in place: what peers send when they see it arrives.
+            self.bus.token(keys.k_live(self.role, self.id))
             while not self.stop_event.is_set():
+                if self.lost and time.monotonic() - last_check > 0.25:
+                    last_check = time.monotonic()
+                    self._check_lost()
                 try:
                     if busy or burst:
                         tag, key, payload = self.inbox.get_nowait()
@@ -279,9 +386,7 @@ class ServiceBase:
                     elif tag == "learner_status":
                         self._on_learner_status(key, payload)
                     elif tag == "live":
-                        if payload == b"0" and self.active:
-                            _, _, role, peer = key.split("/", 3)
-                            self.on_peer_lost(role, peer)
+                        self._peer_event(key, payload == b"1")
                     else:
                         self.handle(tag, key, payload)
                 except WireError as err:

@@ -6,12 +6,20 @@ docker-compose.yml runs the same commands in containers (a test keeps the two in
 step). Children get one torch/BLAS thread each: on a 2-core machine shared by all
 services, more threads only make them fight.
 
+Supervision: a child that dies is started again with the same command (same id and
+data dir, so it rejoins its run) after a backoff of 0.5 s doubling to 10 s, with
+MACB_RESTARTS telling it how often (`macb ps` and the API's /workers show it); one
+that dies RESTART_LIMIT times within RESTART_WINDOW_S is given up and `macb up`
+stops, naming it. `DATA_DIR/cluster.json` lists each child's PID and restarts.
+
 Shutdown: Ctrl-C or SIGTERM stops the children with SIGTERM (they flush snapshots and
 checkpoints), waits, and SIGKILLs whatever is left, so no process outlives `macb up`.
 """
 
 from __future__ import annotations
 
+import collections
+import json
 import os
 import signal
 import socket
@@ -23,6 +31,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
+RESTART_LIMIT = 5  # deaths of one service within RESTART_WINDOW_S: it is given up
+RESTART_WINDOW_S = 60.0
+BACKOFF_S = (0.5, 10.0)  # first restart delay, doubling up to the second
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
@@ -94,7 +105,8 @@ def wait_port(endpoint: str, timeout: float = 20.0) -> None:
 
 
 class Cluster:
-    """Starts the plan's processes; `stop()` ends every one of them by PID."""
+    """Starts the plan's processes, restarts those that die (`supervise`), and
+    `stop()` ends every one of them by PID."""
 
     def __init__(self, plan: list[ServiceSpec], log_dir: Path, echo: bool = True) -> None:
         self.plan = plan
@@ -102,33 +114,99 @@ class Cluster:
         self.echo = echo
         self.procs: dict[str, subprocess.Popen] = {}
         self._threads: list[threading.Thread] = []
+        self.restarts: collections.Counter[str] = collections.Counter()
+        self._deaths: dict[str, collections.deque[float]] = collections.defaultdict(
+            collections.deque
+        )
+        self._restart_at: dict[str, float] = {}
+        self._stopping = False
 
     def start(self) -> None:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         for spec in self.plan:
-            env = {**os.environ, "PYTHONUNBUFFERED": "1", **dict(spec.env)}
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "cli", "serve", *spec.args],
-                env=env,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,  # our signal handler, not the terminal, ends them
-            )
-            self.procs[spec.name] = proc
-            log_file = (self.log_dir / f"{spec.name}.log").open("ab")
-            t = threading.Thread(
-                target=_pump, args=(spec.name, proc.stdout, log_file, self.echo), daemon=True
-            )
-            t.start()
-            self._threads.append(t)
-            if spec.name == "router":
-                wait_port(spec.args[spec.args.index("--listen") + 1])
+            self._spawn(spec)
+        self._write_state()
+
+    def _spawn(self, spec: ServiceSpec) -> None:
+        env = {
+            **os.environ,
+            "PYTHONUNBUFFERED": "1",
+            **dict(spec.env),
+            "MACB_RESTARTS": str(self.restarts[spec.name]),
+        }
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "cli", "serve", *spec.args],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,  # our signal handler, not the terminal, ends them
+        )
+        self.procs[spec.name] = proc
+        log_file = (self.log_dir / f"{spec.name}.log").open("ab")
+        t = threading.Thread(
+            target=_pump, args=(spec.name, proc.stdout, log_file, self.echo), daemon=True
+        )
+        t.start()
+        self._threads.append(t)
+        if spec.name == "router":
+            wait_port(spec.args[spec.args.index("--listen") + 1])
+
+    def _write_state(self) -> None:
+        state = {
+            name: {"pid": p.pid, "restarts": self.restarts[name], "alive": p.poll() is None}
+            for name, p in self.procs.items()
+        }
+        path = self.log_dir.parent / "cluster.json"
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(state, indent=2) + "\n")
+        os.replace(tmp, path)
+
+    def supervise(self, now: float | None = None) -> str | None:
+        """Restart dead children (after their backoff); the name of one that keeps dying
+        (RESTART_LIMIT deaths in RESTART_WINDOW_S), which is not restarted, else None."""
+        if self._stopping:
+            return None
+        now = time.monotonic() if now is None else now
+        for spec in self.plan:
+            p = self.procs.get(spec.name)
+            if p is None or p.poll() is None:
+                continue
+            if spec.name not in self._restart_at:
+                deaths = self._deaths[spec.name]
+                deaths.append(now)
+                while deaths and now - deaths[0] > RESTART_WINDOW_S:
+                    deaths.popleft()
+                if len(deaths) >= RESTART_LIMIT:
+                    print(
+                        f"{spec.name} died {len(deaths)} times within "
+                        f"{RESTART_WINDOW_S:.0f} s (exit code {p.returncode}): giving it up",
+                        file=sys.stderr,
+                    )
+                    return spec.name
+                delay = min(BACKOFF_S[1], BACKOFF_S[0] * 2 ** (len(deaths) - 1))
+                self._restart_at[spec.name] = now + delay
+                print(
+                    f"{spec.name} died (exit code {p.returncode}); restarting it in "
+                    f"{delay:g} s (restart {self.restarts[spec.name] + 1})",
+                    file=sys.stderr,
+                )
+                self._write_state()
+            elif now >= self._restart_at[spec.name]:
+                del self._restart_at[spec.name]
+                self.restarts[spec.name] += 1
+                try:
+                    self._spawn(spec)
+                except (OSError, TimeoutError) as err:
+                    print(f"restarting {spec.name} failed: {err}", file=sys.stderr)
+                self._write_state()
+        return None
 
     def dead(self) -> list[str]:
         return [name for name, p in self.procs.items() if p.poll() is not None]
 
     def stop(self, grace: float = 15.0) -> None:
+        self._stopping = True
         # Services first, router last, so they can flush over a live bus.
         order = [n for n in self.procs if n != "router"] + ["router"]
         for name in order[:-1]:

@@ -140,6 +140,11 @@ class AckTracker:
         return self._acked[actor]
 
 
+def episode_share(episodes: int, actors: int, rank: int) -> int:
+    """Episodes actor `rank` runs: the run's total split as evenly as possible."""
+    return episodes // actors + (1 if rank < episodes % actors else 0)
+
+
 @dataclass
 class Sender:
     """One actor's sending side: numbering, the unacknowledged batches, resends, credit.

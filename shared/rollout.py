@@ -141,16 +141,25 @@ def warmup_share(learning_starts: int, actors: int) -> int:
     return -(-learning_starts // actors)
 
 
-def make_collector(cfg: TrainConfig, env: TaskEnv, rank: int = 0, actors: int = 1) -> Collector:
+def make_collector(
+    cfg: TrainConfig, env: TaskEnv, rank: int = 0, actors: int = 1, steps_done: int = 0
+) -> Collector:
     """Actor `rank` of `actors`'s collector for a run: noise, seed, terminal time limit and
-    warm-up from the config, so `macb train` and the actor service collect alike."""
+    warm-up from the config, so `macb train` and the actor service collect alike.
+
+    `steps_done` > 0: an actor rejoining its run after a restart, `steps_done` of its
+    transitions already taken. It draws from a seed of its own for that position (not
+    the first episodes' randomness again) and owes only the rest of its warm-up."""
     warmup = warmup_share(cfg.learning_starts, actors) if cfg.warmup == "random" else 0
+    seed = derive_seed(cfg.seed, "actor", rank)
+    if steps_done:
+        seed = derive_seed(seed, "actor-resumed", steps_done)
     return Collector(
         env,
         cfg.noise_sigma,
-        derive_seed(cfg.seed, "actor", rank),
+        seed,
         cfg.time_limit_terminal,
-        warmup_steps=warmup,
+        warmup_steps=max(0, warmup - steps_done),
     )
 
 

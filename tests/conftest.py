@@ -34,9 +34,10 @@ offline = _load_offline()
 class Procs:
     """Starts `macb serve ...` processes with their own logs; ends every one by PID."""
 
-    def __init__(self, log_dir: Path, endpoint: str) -> None:
+    def __init__(self, log_dir: Path, endpoint: str, env: dict[str, str] | None = None) -> None:
         self.log_dir = log_dir
         self.endpoint = endpoint
+        self.env = dict(env or {})  # on top of ours, for every process started
         self.procs: dict[str, subprocess.Popen] = {}
 
     def start(self, name: str, *args: str) -> subprocess.Popen:
@@ -47,6 +48,7 @@ class Procs:
             "OMP_NUM_THREADS": "1",
             "OPENBLAS_NUM_THREADS": "1",
             "MKL_NUM_THREADS": "1",
+            **self.env,
         }
         log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 (the child owns it)
         p = subprocess.Popen(

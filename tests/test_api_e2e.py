@@ -65,7 +65,9 @@ class ApiCluster:
 def api_cluster(tmp: Path):
     """Router, counter, learner, evaluator, one actor and the API, all processes."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    procs = Procs(tmp, endpoint)
+    # A dead service that does not come back fails its run after this grace (30 s by
+    # default): shorter here, where the learner is killed for good.
+    procs = Procs(tmp, endpoint, env={"MACB_PEER_GRACE_S": "8"})
     try:
         procs.start("router", "router", "--listen", endpoint)
         wait_port(endpoint)

@@ -19,11 +19,11 @@ import msgpack
 import numpy as np
 import pytest
 
-from services.counter.wal import WriteAheadLog, read_wal
 from shared.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
 from shared.config import make_config
 from shared.factories import build_exploration
 from shared.tasks import task_spec_for
+from shared.wal import WriteAheadLog, read_wal
 from shared.wire import decode, encode
 from tests.conftest import wait_for
 

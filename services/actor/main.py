@@ -10,6 +10,10 @@ Every batch stays in a resend queue until the learner (and, when counting, the
 counter) have acknowledged it, and is resent after a second without progress; the
 learner's window of credits and a bound on batches the counter has not acknowledged
 hold the actor back when either falls behind or is down (`shared.protocol.Sender`).
+
+An actor restarted mid-run rejoins it (`on_resume`): it waits for the learner's ack,
+which says how many of its transitions the learner holds, numbers on from there (what
+it had in flight when it died is collected anew) and runs the rest of its episodes.
 """
 
 from __future__ import annotations
@@ -27,18 +31,13 @@ from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
 from shared.networks import JointPolicy
-from shared.protocol import Sender
+from shared.protocol import Sender, episode_share
 from shared.rollout import Collector, make_collector
 from shared.tasks import TaskEnv, make_task_for
 from shared.wire import encode
 
 MAX_UNCOUNTED_BATCHES = 8  # episodes in flight that the counter has not acknowledged
 RESEND_AFTER_S = 1.0
-
-
-def episode_share(episodes: int, actors: int, rank: int) -> int:
-    """Episodes actor `rank` runs: the run's total split as evenly as possible."""
-    return episodes // actors + (1 if rank < episodes % actors else 0)
 
 
 @dataclass
@@ -53,6 +52,8 @@ class ActorRun:
     sender: Sender  # numbering, unacknowledged batches, resends, credit
     pub: Callable[[bytes], None]
     version: int = -1  # weights version acting now; -1 until the learner's first weights
+    incarnation: Any = None  # the learner process whose weights those are
+    rejoining: bool = False  # restarted: waiting for the learner to say where to go on
     done: int = 0
     steps: int = 0
     last_stats: float = 0.0
@@ -76,6 +77,36 @@ class ActorService(ServiceBase):
         self._newest = (key, payload)  # overwrite: older versions are never looked at
 
     # ------------------------------------------------------------ lifecycle
+    def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        self.on_start(run, config, assign)
+        assert self.st is not None
+        self.st.rejoining = True
+
+    def _rejoin_at(self, position: int) -> None:
+        """The learner holds `position` of our transitions: go on from there."""
+        st, cfg = self.st, self.config
+        assert st is not None and cfg is not None
+        position -= position % cfg.episode_len  # whole episodes only (they always are)
+        st.sender.seq = position
+        for svc in st.sender.acked:
+            st.sender.acked[svc] = position
+        st.done = position // cfg.episode_len
+        st.collector = make_collector(
+            cfg, st.env, st.rank, len(self.assign["actors"]), steps_done=position
+        )
+        st.rejoining = False
+        self.resumed = {"run": self.run_id, "from_transition": position, "episodes": st.done}
+        self.log.info(
+            "run %s: rejoined at transition %d (%d of %d episodes done)",
+            self.run_id,
+            position,
+            st.done,
+            st.todo,
+        )
+        self.publish_status(
+            self.run_id, "running", rank=st.rank, episodes=st.todo, rejoined_at=position
+        )
+
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
         actors = list(assign["actors"])
         rank = actors.index(self.id)
@@ -111,6 +142,11 @@ class ActorService(ServiceBase):
         msg = self.decode_for_run(key, payload, "ack")
         if msg is None or self.st is None:
             return
+        if self.st.rejoining:
+            if msg["service"] != self.assign.get("learner"):
+                return
+            position = msg["acked"].get(self.id, 0)
+            self._rejoin_at(position if isinstance(position, int) else 0)
         self.st.sender.on_ack(
             msg["service"], msg["acked"].get(self.id), time.monotonic(), window=msg["window"]
         )
@@ -123,9 +159,15 @@ class ActorService(ServiceBase):
         if keys.run_of(key) != self.run_id:
             return
         msg = self.decode_for_run(key, payload, "weights")
-        if msg is not None and msg["version"] > st.version:
+        if msg is None:
+            return
+        # A restarted learner numbers its versions on from its last cut: its weights are
+        # newer than any of the process before, whatever their number.
+        incarnation = msg["info"].get("incarnation")
+        if msg["version"] > st.version or incarnation != st.incarnation:
             st.policy.load(msg["actors"])
             st.version = msg["version"]
+            st.incarnation = incarnation
 
     # ------------------------------------------------------------ work
     def tick(self) -> bool:
@@ -133,8 +175,8 @@ class ActorService(ServiceBase):
         if st is None:
             return False
         self.load_newest_weights()
-        if st.version < 0:
-            return False  # wait for the learner's initial weights
+        if st.version < 0 or st.rejoining:
+            return False  # wait for the learner's weights (and, rejoining, its ack)
         now = time.monotonic()
         for payload in st.sender.due(now):
             st.pub(payload)

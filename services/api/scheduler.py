@@ -8,11 +8,15 @@
   the latest stats into the store as they arrive. So a run keeps its history
   whether or not anyone watches it over HTTP.
 - Decides each run's status: failed as soon as a service reports it (with its
-  reason) or the liveliness token of its learner, evaluator or an actor goes away
-  (the process died); stopped when someone stops it; completed when the learner and
-  the evaluator have completed and every evaluation row is in. A dead counter is
-  not fatal (it restarts from its snapshot and log): the run fails only if no
-  counter is back within `counter_grace_s`.
+  reason), or when the liveliness token of its learner, evaluator or an actor goes
+  away and does not come back within `peer_grace_s` (MACB_PEER_GRACE_S, 30 s: a
+  restarted service rejoins its run, a restarted router brings every token back);
+  stopped when someone stops it; completed when the learner and the evaluator have
+  completed and every evaluation row is in. A dead counter is given
+  `counter_grace_s` (it restarts from its snapshot and log). A learner that resumed
+  from a cut says so in its status, and the run's record keeps it as its note.
+- A service that rejoins a run after a restart while that run had ended meanwhile is
+  told to stop it, so it is free again.
 - Sends the stop messages the HTTP side asks for (a failed run's other services are
   stopped too, so they are free for the next run).
 - On start (after an API restart), re-attaches to the runs the store says are
@@ -37,6 +41,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from services.common import peer_grace_s as peer_grace
+from services.common import restarts
 from shared import bus as keys
 from shared.bus import Bus
 from shared.config import ConfigError, make_config
@@ -93,6 +99,8 @@ class Watch:
     unserved_since: float | None = None
     ended: float | None = None  # monotonic time it reached a final status
     history_asked: bool = False  # the evaluator's history was asked for at the end
+    down: dict[str, tuple[str, float]] = field(default_factory=dict)  # id -> (role, since)
+    notes: list[str] = field(default_factory=list)  # resumes: kept as the run's reason
 
     def services(self) -> list[tuple[str, str]]:
         """(role, id) of every service serving the run."""
@@ -114,6 +122,7 @@ class Scheduler:
         completion_grace_s: float = 5.0,
         reconcile_s: float = 3.0,
         history_timeout_s: float = 2.0,
+        peer_grace_s: float | None = None,
     ) -> None:
         self.store = store
         self.connect = connect
@@ -125,6 +134,7 @@ class Scheduler:
         self.completion_grace_s = completion_grace_s
         self.reconcile_s = reconcile_s
         self.history_timeout_s = history_timeout_s
+        self.peer_grace_s = peer_grace() if peer_grace_s is None else peer_grace_s
         self.events: queue.Queue[tuple[str, str, Any]] = queue.Queue()
         self.bus: Bus | None = None
         self.connected = threading.Event()
@@ -200,6 +210,7 @@ class Scheduler:
                 "runs": [],
                 "rejects": {},
                 "rejects_total": 0,
+                "restarts": restarts(),
                 "http": self.http_url,
             }
         ).encode()
@@ -290,6 +301,15 @@ class Scheduler:
         if msg["run"] != run or self._superseded(w):
             return
         w.states[msg["service"]] = {**flat_row(msg["detail"]), "state": msg["state"]}
+        resumed = msg["detail"].get("resumed")
+        if msg["service"] == w.assign["learner"] and isinstance(resumed, dict):
+            cut = resumed.get("from_episode")
+            where = f"the cut at episode {cut}" if cut is not None else "its log (no cut yet)"
+            note = f"learner {msg['service']} restarted and resumed from {where}"
+            if note not in w.notes:
+                w.notes.append(note)
+                log.info("run %s: %s", w.run, note)
+                self.store.set_reason(w.run, "; ".join(w.notes))
         if msg["service"] == w.assign["evaluator"] and msg["state"] == "completed":
             w.evaluator_done = time.monotonic()
         self.store.set_services(w.run, w.states)
@@ -303,6 +323,12 @@ class Scheduler:
         if up:
             self.alive.add((role, sid))
             self._wake.set()
+            for w in self.watches.values():
+                if w.down.pop(sid, None) is not None and w.ended is None:
+                    log.info("run %s: %s %s is back", w.run, role, sid)
+                    if not w.down and w.counter_down is None:
+                        self.store.set_reason(w.run, "; ".join(w.notes) or None)
+                        self._changed()
             return
         self.alive.discard((role, sid))
         for w in list(self.watches.values()):
@@ -315,8 +341,12 @@ class Scheduler:
                 self.store.set_reason(w.run, f"counter {sid} is down; waiting for it to return")
                 self._changed()
                 continue
-            if role in ROLES_THAT_MUST_LIVE:
-                self._fail(w, f"{role} {sid} died (its liveliness token went away)")
+            if role in ROLES_THAT_MUST_LIVE and sid not in w.down:
+                w.down[sid] = (role, time.monotonic())
+                self.store.set_reason(
+                    w.run, f"{role} {sid} is down; waiting up to {self.peer_grace_s:g} s for it"
+                )
+                self._changed()
 
     # ------------------------------------------------------------ run control
     def _watch(self, run: dict[str, Any], started: float) -> Watch:
@@ -358,6 +388,8 @@ class Scheduler:
         if w.live_dirty:
             self.store.set_live(w.run, w.live)
             w.live_dirty, w.live_written = False, time.monotonic()
+        if reason is None and w.notes:
+            reason = "; ".join(w.notes)
         if self.store.finish(w.run, status, reason, stop_sent=not stop):
             log.info("run %s %s%s", w.run, status, f": {reason}" if reason else "")
         if stop:
@@ -453,7 +485,8 @@ class Scheduler:
                     self._unwatch(w)
                 continue
             self._decide(w, now)
-        if now - self._last_reconcile > self.reconcile_s and self.watches:
+        every = self.reconcile_s if self.watches else 5 * self.reconcile_s
+        if now - self._last_reconcile > every:
             self._last_reconcile = now
             self._reconcile(now)
 
@@ -486,6 +519,16 @@ class Scheduler:
                     stop=False,
                 )
             return
+        for sid, (role, since) in list(w.down.items()):
+            if (role, sid) in self.alive:
+                del w.down[sid]
+            elif now - since > self.peer_grace_s:
+                self._fail(
+                    w,
+                    f"{role} {sid} died (its liveliness token went away) and did not come "
+                    f"back within {self.peer_grace_s:g} s",
+                )
+                return
         if w.counter_down is not None:
             if (("counter", w.assign["counter"])) in self.alive:
                 w.counter_down = None
@@ -501,6 +544,7 @@ class Scheduler:
         """Runs whose services no longer serve them, with no end seen: resolve them."""
         assert self.bus is not None
         infos = {i["id"]: i for i in discover(self.bus, timeout=1.0)}
+        self._stop_stale(infos)
         for w in list(self.watches.values()):
             if w.ended is not None or now - w.started < self.start_timeout_s / 4:
                 continue
@@ -513,20 +557,20 @@ class Scheduler:
                 and sid in infos
                 and (infos[sid].get("run") == w.run or w.run in (infos[sid].get("runs") or []))
             ]
-            learner_alive = ("learner", w.assign["learner"]) in self.alive
-            if not learner_alive and w.assign["learner"] not in infos:
-                state = w.states.get(w.assign["learner"], {}).get("state")
-                if state != "completed":
-                    self._fail(w, f"learner {w.assign['learner']} is gone")
-                    continue
+            learner = w.assign["learner"]
+            learner_alive = ("learner", learner) in self.alive
+            if not learner_alive and learner not in infos and learner not in w.down:
+                state = w.states.get(learner, {}).get("state")
+                if state != "completed":  # gone unseen: the same grace as a lost token
+                    w.down[learner] = ("learner", now)
             if serving:
                 w.unserved_since = None
                 continue
             if w.unserved_since is None:
                 w.unserved_since = now
                 continue
-            if now - w.unserved_since < self.reconcile_s:
-                continue
+            if now - w.unserved_since < max(self.reconcile_s, self.peer_grace_s):
+                continue  # restarted services take a while to rejoin
             if w.last_episode >= w.episodes and w.episodes > 0:
                 self._end(
                     w, "completed", "its end was not observed (the API was not listening)", False
@@ -537,6 +581,24 @@ class Scheduler:
                     "its services no longer serve it and no end was seen (it ended while the "
                     f"API was not listening); last point stored: episode {w.last_episode}",
                 )
+
+    def _stop_stale(self, infos: dict[str, dict[str, Any]]) -> None:
+        """Services that rejoined (after a restart) a run that has ended: stop it."""
+        assert self.bus is not None
+        for info in infos.values():
+            run = info.get("run")
+            if info.get("role") == "counter" or not run or run in self.watches:
+                continue
+            row = self.store.run(run)
+            if row is not None and row["status"] in ("completed", "failed", "stopped"):
+                log.info(
+                    "%s %s serves run %s, which has %s: stopping it",
+                    info["role"],
+                    info["id"],
+                    run,
+                    row["status"],
+                )
+                send_stop(self.bus, run, f"the run had {row['status']} while this service was down")
 
     def _reattach(self) -> None:
         """After a (re)start: follow the runs the store says are running, and store the
@@ -608,6 +670,7 @@ class Scheduler:
                     "run": info.get("run") if info else None,
                     "runs": list(info.get("runs") or []) if info else [],
                     "rejects_total": int(info.get("rejects_total", 0)) if info else 0,
+                    "restarts": int(info.get("restarts", 0)) if info else 0,
                     "answers": info is not None,
                 }
             )

@@ -440,6 +440,7 @@ class Worker(BaseModel):
     run: str | None = None
     runs: list[str] = []
     rejects_total: int = 0
+    restarts: int = 0  # times `macb up`'s supervisor restarted it
     answers: bool = Field(description="false: alive (liveliness token) but not answering info")
 
 

@@ -32,7 +32,6 @@ from typing import Any
 import numpy as np
 
 from services.common import ServiceBase, learner_end_reason
-from services.counter.wal import WalRecord, WriteAheadLog
 from shared.bus import k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.config import TrainConfig, make_config
 from shared.counting import CountTable
@@ -41,6 +40,7 @@ from shared.factories import build_exploration
 from shared.files import read_json, write_json
 from shared.protocol import ReceiveCursor, Verdict
 from shared.tasks import task_spec_for
+from shared.wal import WalRecord, WriteAheadLog
 from shared.wire import WireError, check_dims, encode
 
 DEFAULT_SNAPSHOT_S = 5.0
@@ -95,6 +95,7 @@ class CounterService(ServiceBase):
     role = "counter"
     inbox_type = queue.SimpleQueue  # thousands of batches a second go through it
     max_runs = 1_000_000  # it owns the tables of every active run
+    rejoins = False  # it restores every unfinished run from its own files (_restore_all)
 
     def __init__(
         self,

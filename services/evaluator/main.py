@@ -6,6 +6,10 @@ in order, with `eval_episodes` episodes run in lockstep. Its row carries the
 trainer's metric fields; the learner put the counter's statistics at that boundary
 into the weights message.
 
+A point the learner sends again (it saw no row for it) is evaluated once: if its row
+is out already, that row is published again. An evaluator restarted mid-run rejoins
+the run and evaluates what the learner sends again.
+
 It also keeps every row it published for its recent runs (the last `HISTORY_RUNS`)
 and answers `macb/run/{run}/history/eval` with them, so a watcher that was away (the
 API restarting, say) fills its gaps instead of losing the points published meanwhile.
@@ -42,6 +46,7 @@ class EvaluatorRun:
     policy: JointPolicy
     pending: collections.deque[dict[str, Any]] = field(default_factory=collections.deque)
     points: int = 0
+    last_point: int = -1  # the newest point evaluated: one sent again is not redone
     t0: float = field(default_factory=time.perf_counter)
 
 
@@ -102,8 +107,26 @@ class EvaluatorService(ServiceBase):
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag == "weights":
             msg = self.decode_for_run(key, payload, "weights")
-            if msg is not None and msg["eval_point"] >= 0 and self.st is not None:
-                self.st.pending.append(msg)
+            st = self.st
+            if msg is None or st is None or msg["eval_point"] < 0:
+                return
+            point = msg["eval_point"]
+            if any(p["eval_point"] == point for p in st.pending):
+                return  # sent again while we are behind: it is evaluated once
+            if point <= st.last_point:  # sent again: its row was lost on the way
+                self._publish_again(point)
+                return
+            st.pending.append(msg)
+
+    def _publish_again(self, point: int) -> None:
+        """Publish the row of a point evaluated already (the learner did not see it)."""
+        run = self.run_id
+        with self._history_lock:
+            rows = list(self.history.get(run or "", ("", []))[1])
+        for row in rows:
+            if row["episode"] == point:
+                self.publish_metrics(run, row, source="eval")
+                return
 
     def tick(self) -> bool:
         st = self.st
@@ -111,6 +134,7 @@ class EvaluatorService(ServiceBase):
             return False
         run, cfg = self.run_id, self.config
         msg = st.pending.popleft()
+        st.last_point = max(st.last_point, msg["eval_point"])
         st.policy.load(msg["actors"])
         ev = evaluate(st.policy, st.envs, cfg.eval_episodes)
         info = msg["info"]

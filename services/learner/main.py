@@ -15,13 +15,26 @@ trip per tick instead of per update (docs/performance.md, "Learner service").
 Weights go out at every episode boundary (once its updates are done), marked
 `eval_point` every `eval_every` episodes. While the evaluator evaluates weights this
 learner sent (`EvaluationsInFlight`), updates are marked contended so the thread tuner
-can pick what is fastest beside it.
+can pick what is fastest beside it. An evaluation point the evaluator has not reported
+is sent again (a restarted evaluator, a restarted router), and the store keeps one row
+per point.
+
+Resume (docs/reliability.md, "The cluster"): every batch taken is appended to the
+run's log `DATA_DIR/learner/RUN/transitions.wal` before it is acknowledged, and every
+CUT_EVERY_S a cut (`checkpoint.pt`: networks, optimizers, targets, update and episode
+counters, the sampler's RNG, which logged batches the buffer holds, the episode
+boundaries still owed) is written atomically. A learner restarted with the same id and
+data dir loads the newest good cut, refills the buffer from the log and holds the
+logged batches beyond the cut until the counter's ack covers them, as on first
+arrival: nothing the counter counted is missing from replay, and the updates owed for
+those batches are done again.
 """
 
 from __future__ import annotations
 
 import collections
 import json
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -34,20 +47,37 @@ import torch
 from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
+from shared.cuts import CutError, atomic_torch_save, config_difference
 from shared.exploration import BonusDiagnostics
 from shared.factories import build_learner, minibatches_per_update
 from shared.learners import Learner
 from shared.networks import weights_as_arrays
-from shared.protocol import AckTracker, ReceiveCursor
+from shared.protocol import AckTracker, ReceiveCursor, episode_share
 from shared.replay import ReplayBuffer, update_arrays
 from shared.rollout import derive_seed
 from shared.tasks import TaskSpec, task_spec_for
+from shared.wal import WriteAheadLog
 from shared.wire import WireError, check_dims, decode, encode
 
 WINDOW_EPISODES = 2  # credits per actor, in episodes
 MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
 UPDATES_PER_TICK = 20  # bound on work between inbox checks; one bonus query each
-CHECKPOINT_EVERY_S = 60.0
+# A cut every this many seconds (MACB_LEARNER_CUT_S overrides): what a restart redoes.
+CHECKPOINT_EVERY_S = float(os.environ.get("MACB_LEARNER_CUT_S", "30"))
+CUT_FORMAT = 1
+# An evaluation point is sent again when the evaluator reported a later one (this one's
+# weights or row were lost), or when nothing was reported for this long (the last one's).
+EVAL_RESEND_S = 30.0
+# The columns of a logged batch, each stored as (n, bytes per row) uint8.
+LOG_COLUMNS = (
+    ("obs", np.float32),
+    ("act", np.float32),
+    ("rew", np.float32),
+    ("next_obs", np.float32),
+    ("done", np.float32),
+    ("collisions", np.int32),
+    ("policy_version", np.int32),
+)
 # Phases of the learner's wall time that stats() reports per update; the bonus wait is
 # BonusClient.wait_s, and what none of them covers (waiting for messages, acks, stats,
 # and the wait for the first `learning_starts` transitions) is reported as "other".
@@ -123,6 +153,9 @@ class EvaluationsInFlight:
         self.sent_at = 0.0
         self.last_reported = -1
         self.reported_rows = 0
+        # Points sent and not reported yet: point -> (when sent, the weights message).
+        self.unreported: dict[int, tuple[float, bytes]] = {}
+        self.reported_at = time.monotonic()
 
     def sent(self, point: int) -> None:
         self.last_sent, self.sent_at = point, time.monotonic()
@@ -130,6 +163,8 @@ class EvaluationsInFlight:
     def reported(self, point: int) -> None:
         self.last_reported = max(self.last_reported, point)
         self.reported_rows += 1
+        self.unreported.pop(point, None)
+        self.reported_at = time.monotonic()
 
     def busy(self) -> bool:
         """The evaluator is (most likely) evaluating a point we sent."""
@@ -194,6 +229,12 @@ class LearnerRun:
     contended_updates: int = 0
     diagnostics: BonusDiagnostics = field(default_factory=BonusDiagnostics)
     draws: int = 1  # minibatches per update (`minibatch: per-agent`: one per agent)
+    log: WriteAheadLog | None = None  # every batch taken, before it is acknowledged
+    folder: Path | None = None  # DATA_DIR/learner/RUN
+    ingested_pos: dict[str, int] = field(default_factory=dict)  # per actor, in replay
+    shares: dict[str, int] = field(default_factory=dict)  # transitions each actor owes
+    incarnation: str = ""  # this process's weights are newer than any before a restart
+    resumed_from: int | None = None  # the cut's episode, when resumed
 
     @property
     def counting(self) -> bool:
@@ -214,6 +255,58 @@ class LearnerService(ServiceBase):
 
     # ------------------------------------------------------------ run lifecycle
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        folder = self.data_dir / "learner" / run
+        for old in ("transitions.wal", "checkpoint.pt", "checkpoint.prev.pt"):
+            (folder / old).unlink(missing_ok=True)  # an earlier attempt of this run
+        st = self._open_run(run, config, assign)
+        self._logged(st)
+        self.publish_weights(eval_point=-1)  # version 0: every actor starts from these
+        self.publish_status(run, "running", actors=st.actors)
+
+    def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        """Restarted mid-run: the newest good cut, then the log beyond it (module doc)."""
+        t0 = time.perf_counter()
+        st = self._open_run(run, config, assign)
+        records, _ = self._logged(st)
+        cut = self._load_cut(st)
+        for rec in records:
+            rows = _columns(rec.keys, rec.n)
+            if not st.received.take(rec.actor, rec.seq, rec.n).took:
+                self.log.warning(
+                    "run %s: logged batch %s@%d out of order: skipped", run, rec.actor, rec.seq
+                )
+                continue
+            # Newer than any version an actor acted with: the lags stay >= 0.
+            st.version = max(st.version, int(rows["policy_version"]))
+            if rec.seq < st.ingested_pos.get(rec.actor, 0):  # in replay at the cut
+                st.buffer.add(rows["obs"], rows["act"], rows["rew"], rows["next_obs"], rows["done"])
+            else:  # taken, not yet counted at the cut: waits for the counter's ack again
+                st.held[rec.actor].append({"actor": rec.actor, "seq": rec.seq, **rows})
+        st.resumed_from = cut
+        held = sum(len(h) for h in st.held.values())
+        self.resumed = {
+            "run": run,
+            "from_episode": cut,
+            "updates": st.learner.updates,
+            "replay_rows": len(st.buffer),
+            "held_batches": held,
+            "seconds": round(time.perf_counter() - t0, 3),
+        }
+        self.log.info(
+            "run %s resumed from the cut at episode %s (%d updates, %d replay rows, "
+            "%d logged batches beyond it) in %.2f s",
+            run,
+            cut,
+            st.learner.updates,
+            len(st.buffer),
+            held,
+            time.perf_counter() - t0,
+        )
+        self.publish_weights(eval_point=-1)
+        self.publish_status(run, "running", actors=st.actors, resumed=self.resumed)
+        self.send_ack()  # the actors go on from what the log holds
+
+    def _open_run(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> LearnerRun:
         torch.set_num_threads(config.threads)
         self.listen(keys.k_transitions(run, "*"), "transitions", run)
         self.listen(keys.k_ack(run, "*"), "ack", run)
@@ -226,6 +319,8 @@ class LearnerService(ServiceBase):
         )
         spec = task_spec_for(config)
         actors = list(assign["actors"])
+        folder = self.data_dir / "learner" / run
+        folder.mkdir(parents=True, exist_ok=True)
         self.st = LearnerRun(
             config=config,
             spec=spec,
@@ -247,9 +342,22 @@ class LearnerService(ServiceBase):
             counted=AckTracker(actors),
             held={a: collections.deque() for a in actors},
             draws=minibatches_per_update(config),
+            folder=folder,
+            shares={
+                a: episode_share(config.episodes, len(actors), r) * config.episode_len
+                for r, a in enumerate(actors)
+            },
+            incarnation=f"{self.id}:{os.getpid()}:{time.time_ns()}",
         )
-        self.publish_weights(eval_point=-1)  # version 0: every actor starts from these
-        self.publish_status(run, "running", actors=actors)
+        return self.st
+
+    def _logged(self, st: LearnerRun) -> tuple[list, WriteAheadLog]:
+        """The run's log: what an earlier process of this learner took, and the log
+        opened for appending (a torn last record is cut off: it was never acked)."""
+        assert st.folder is not None
+        log, records = WriteAheadLog.open(st.folder / "transitions.wal")
+        st.log = log
+        return records, log
 
     def on_stop(self, run: str, reason: str) -> None:
         self.checkpoint()
@@ -321,6 +429,8 @@ class LearnerService(ServiceBase):
         # A duplicate (a resend) or a gap is not taken; either way the ack tells the
         # actor again where we are, and it resends from there.
         if st.received.take(actor, msg["seq"], n).took:
+            if st.log is not None:  # logged before the ack below says we have it
+                st.log.append(actor, msg["seq"], n, _log_columns(msg))
             st.held[actor].append(msg)
             self.release_counted()
         self.send_ack()
@@ -340,6 +450,7 @@ class LearnerService(ServiceBase):
         assert st is not None
         st.buffer.add(msg["obs"], msg["act"], msg["rew"], msg["next_obs"], msg["done"])
         st.ingested += len(msg["rew"])
+        st.ingested_pos[msg["actor"]] = msg["seq"] + len(msg["rew"])
         st.episodes += 1
         st.collisions_cum += int(msg["collisions"].sum())
         st.lags.append(st.version - msg["policy_version"])
@@ -390,6 +501,7 @@ class LearnerService(ServiceBase):
         if now - st.last_stats > 1.0:
             st.last_stats = now
             self.publish_metrics(self.run_id, self.stats(), source="learner")
+        self.resend_unreported(now)
         if now - st.last_ckpt > CHECKPOINT_EVERY_S:
             self.checkpoint()
         self.maybe_finish()
@@ -428,16 +540,48 @@ class LearnerService(ServiceBase):
             actors=weights_as_arrays(st.learner.actor_weights()),
             info={
                 **self.stats(),
+                "incarnation": st.incarnation,
                 "counter": self.counter_stats() if eval_point >= 0 else {},
                 # What the bonus did on the rows sampled since the last point.
                 "bonus": st.diagnostics.take() if eval_point >= 0 else {},
             },
         )
         if eval_point >= 0:
-            st.eval_pub(payload)
+            # Noted before it goes out: the evaluator's report may come back at once.
+            st.evaluations.unreported[eval_point] = (time.monotonic(), payload)
             st.evaluations.sent(eval_point)
+            st.eval_pub(payload)
         else:
             st.weights_pub(payload)
+
+    def resend_unreported(self, now: float, at_once: bool = False) -> None:
+        """Send again the evaluation points that were lost on the way: older than one the
+        evaluator reported, or the last ones once it has been silent for EVAL_RESEND_S
+        (a merely slow evaluator reports in order, so it is not sent duplicates); with
+        `at_once` all of them (the evaluator just came back)."""
+        st = self.st
+        assert st is not None
+        ev = st.evaluations
+        silent = now - ev.reported_at > EVAL_RESEND_S
+        for point, (sent, payload) in sorted(ev.unreported.items()):
+            overtaken = point < ev.last_reported and now - sent > 2.0  # (give a resend time)
+            lost = overtaken or (silent and now - sent > EVAL_RESEND_S)
+            if at_once or lost:
+                self.log.info("run %s: evaluation point %d sent again", self.run_id, point)
+                st.eval_pub(payload)
+                ev.unreported[point] = (now, payload)
+
+    def on_peer_found(self, role: str, peer: str) -> None:
+        """A service of the run came back: an actor gets weights and where to go on, the
+        evaluator the points it has not reported."""
+        st = self.st
+        if st is None:
+            return
+        if role == "actor" and peer in st.actors:
+            self.publish_weights(eval_point=-1)
+            self.send_ack()
+        elif role == "evaluator" and peer == self.assign.get("evaluator"):
+            self.resend_unreported(time.monotonic(), at_once=True)
 
     def counter_stats(self) -> dict[str, Any]:
         """The counter's stats for this run now (table size, count-1 %, counted): from the
@@ -510,19 +654,21 @@ class LearnerService(ServiceBase):
     def maybe_finish(self) -> None:
         st = self.st
         assert st is not None
-        if set(st.final) != set(st.actors):
-            return
-        if any(st.received.expected(a) < st.final[a] for a in st.actors):
+        # Each actor owes its share of the episodes (whether or not its "completed" came:
+        # a learner resumed after it may never see it).
+        if any(st.received.expected(a) < st.shares[a] for a in st.actors):
             return
         if any(st.held[a] for a in st.actors) or st.boundaries:
             return
         if st.learner.updates < st.owed_total:
             return
+        if st.evaluations.unreported:  # every point's row is out (or sent again) first
+            return
         run = self.run_id
         self.checkpoint()
         stats = self.stats()
         self.publish_metrics(run, stats, source="learner")
-        self.publish_status(run, "completed", **stats)
+        self.publish_status(run, "completed", **stats, resumed=self.resumed)
         self.log.info("run %s completed: %s", run, json.dumps(stats))
         self.st = None
         self.free(run)
@@ -531,7 +677,10 @@ class LearnerService(ServiceBase):
         """An actor that dies mid-run fails the run: its transitions cannot come."""
         st = self.st
         if role == "actor" and st is not None and peer in st.actors and peer not in st.final:
-            self.fail(f"actor {peer} died before it finished its episodes")
+            self.fail(
+                f"actor {peer} died before it finished its episodes "
+                f"(not back within {self.grace_s:g} s)"
+            )
 
     def fail(self, reason: str) -> None:
         run = self.run_id
@@ -541,14 +690,17 @@ class LearnerService(ServiceBase):
         self.free(run)
 
     def checkpoint(self) -> None:
-        """Networks, optimizers and step counters, loadable with weights_only=True."""
+        """A cut of the run (module doc): everything but the replay rows, which the log
+        holds; atomic, the previous cut kept. Taken between ticks, so the buffer, the
+        counters and the boundaries owed describe one moment."""
         st = self.st
-        if st is None:
+        if st is None or st.folder is None:
             return
         st.last_ckpt = time.monotonic()
-        out = self.data_dir / "learner" / self.run_id
-        out.mkdir(parents=True, exist_ok=True)
+        if st.log is not None:
+            st.log.sync()  # the rows the cut names are on disk before the cut is
         state = {
+            "format": CUT_FORMAT,
             "config": json.dumps(st.config.model_dump(mode="json")),
             "learner": st.learner.state_dict(),
             "counters": {
@@ -557,11 +709,81 @@ class LearnerService(ServiceBase):
                 "updates": st.learner.updates,
                 "expected": st.received.positions(),
                 "version": st.version,
+                "collisions_cum": st.collisions_cum,
             },
+            "ingested_pos": dict(st.ingested_pos),
+            "boundaries": [list(b) for b in st.boundaries],
+            "rng": json.dumps(st.rng.bit_generator.state),
         }
-        tmp = out / "checkpoint.tmp"
-        torch.save(state, tmp)
-        tmp.replace(out / "checkpoint.pt")
+        path = st.folder / "checkpoint.pt"
+        if path.exists():
+            os.replace(path, st.folder / "checkpoint.prev.pt")
+        atomic_torch_save(state, path)
+        self.log.info("run %s: cut at episode %d written to %s", self.run_id, st.episodes, path)
+
+    def _load_cut(self, st: LearnerRun) -> int | None:
+        """Load the newest good cut into `st`; its episode, or None (no cut: the log
+        alone, from the initial weights). An unreadable cut is renamed `*.refused`,
+        named in the log, and the previous one is used; a cut of another config or
+        format raises CutError naming the field, with nothing renamed or written."""
+        assert st.folder is not None
+        mine = st.config.model_dump(mode="json")
+        for name in ("checkpoint.pt", "checkpoint.prev.pt"):
+            path = st.folder / name
+            if not path.exists():
+                continue
+            try:
+                state = torch.load(path, weights_only=True)
+                counters = state["counters"]
+            except Exception as err:
+                self.log.warning(
+                    "refusing cut %s: unreadable (%s); trying the one before", path, err
+                )
+                path.replace(path.with_name(path.name + ".refused"))
+                continue
+            if state.get("format") != CUT_FORMAT:
+                raise CutError(
+                    f"{path}: cut format {state.get('format')}, this version reads {CUT_FORMAT}"
+                )
+            diff = config_difference(json.loads(state["config"]), mine)
+            if diff is not None:
+                raise CutError(f"{path}: written by another config ({diff})")
+            st.learner.load_state_dict(state["learner"])
+            st.ingested = int(counters["ingested"])
+            st.episodes = int(counters["episodes"])
+            st.version = int(counters["version"])
+            st.collisions_cum = int(counters["collisions_cum"])
+            st.ingested_pos = {str(a): int(p) for a, p in state["ingested_pos"].items()}
+            st.boundaries = collections.deque(Boundary(*map(int, b)) for b in state["boundaries"])
+            st.rng.bit_generator.state = json.loads(state["rng"])
+            return st.episodes
+        return None
+
+
+def _log_columns(msg: dict[str, Any]) -> list[np.ndarray]:
+    """A transitions batch as the log's byte columns (LOG_COLUMNS)."""
+    n = len(msg["rew"])
+    out = []
+    for name, dtype in LOG_COLUMNS:
+        if name == "policy_version":
+            col = np.full(n, msg["policy_version"], dtype)
+        else:
+            col = np.ascontiguousarray(msg[name], dtype=dtype)
+        out.append(col.reshape(n, -1).view(np.uint8))
+    return out
+
+
+def _columns(cols: list[np.ndarray], n: int) -> dict[str, Any]:
+    """The log's byte columns back as a batch (the inverse of _log_columns)."""
+    if len(cols) != len(LOG_COLUMNS):
+        raise ValueError(f"a logged batch has {len(cols)} columns, expected {len(LOG_COLUMNS)}")
+    out: dict[str, Any] = {}
+    for (name, dtype), col in zip(LOG_COLUMNS, cols):
+        values = np.ascontiguousarray(col).view(dtype).reshape(n, -1)
+        if name in ("rew", "done", "collisions"):
+            values = values[:, 0]
+        out[name] = int(values[0, 0]) if name == "policy_version" else values
+    return out
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> LearnerService:

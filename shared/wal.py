@@ -1,6 +1,9 @@
-"""The counter's write-ahead log: one append-only file of struct-packed batch records.
+"""A write-ahead log of batches: one append-only file of struct-packed records.
 
-The counter appends a record for every batch it takes (consecutive batches of one
+Two services keep one. The counter logs the SimHash keys of every batch it takes, the
+learner every batch of transitions it takes (the rows as byte columns), so that either,
+killed with SIGKILL, rebuilds what it acknowledged. For the counter: it appends a
+record for every batch it takes (consecutive batches of one
 actor taken together share one record; after hashing, before it increments its
 tables and before it acknowledges the batch), so that a counter
 killed with SIGKILL can rebuild everything it acknowledged from the last snapshot
@@ -97,7 +100,7 @@ def read_wal(path: Path) -> tuple[list[WalRecord], int, bool]:
     if not data.startswith(MAGIC):
         if MAGIC.startswith(data):
             return [], 0, True  # killed while writing the header
-        raise ValueError(f"{path}: not a counter write-ahead log")
+        raise ValueError(f"{path}: not a MACB write-ahead log")
     records: list[WalRecord] = []
     pos = len(MAGIC)
     while pos < len(data):
@@ -159,6 +162,11 @@ class WriteAheadLog:
         self._f.flush()
         self.records += len(batches)
         self.bytes += len(data)
+
+    def sync(self) -> None:
+        """fsync: what was appended survives the machine too, not only the process."""
+        self._f.flush()
+        os.fsync(self._f.fileno())
 
     def truncate(self) -> None:
         """Drop every record (they are in a snapshot now); keep the header."""
