@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test test-fast lint bench clean
+.PHONY: setup run test test-fast test-compose lint bench clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH"; exit 1; }
@@ -27,7 +27,15 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -rs
+
+# docker-compose.yml's cluster in containers (tests/test_compose.py): installs Debian's
+# docker.io, docker-compose and debootstrap when missing (as root; else it skips, saying
+# why), starts dockerd without bridge networking if none runs (and stops it after),
+# builds the images without a registry (cached by tag: docker/offline.py), runs the
+# cluster on the host network's loopback, removes its containers and volumes.
+test-compose: $(STAMP)
+	MACB_COMPOSE_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m compose tests/test_compose.py
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"

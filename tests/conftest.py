@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import signal
@@ -15,6 +16,20 @@ import pytest
 from shared.cluster import free_port, wait_port  # noqa: F401 (tests import them from here)
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def _load_offline():
+    """docker/offline.py (the image built without a registry): a stdlib-only script,
+    not a package, so it is loaded from its path."""
+    spec = importlib.util.spec_from_file_location("macb_offline", ROOT / "docker" / "offline.py")
+    assert spec and spec.loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+offline = _load_offline()
 
 
 class Procs:

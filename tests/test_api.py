@@ -895,6 +895,9 @@ def test_refuses_a_non_loopback_address_without_a_token(tmp_path):
     check_bind(Settings(host="0.0.0.0", token="t"))
     check_bind(Settings(host="127.0.0.1"))
     check_bind(Settings(host="::1"))
+    for empty in ("", "  "):  # "Authorization: Bearer " must not be a password
+        with pytest.raises(ValueError, match="empty"):
+            check_bind(Settings(host="127.0.0.1", token=empty))
     env = {k: v for k, v in os.environ.items() if k != "MACB_API_TOKEN"}
     proc = subprocess.run(
         [sys.executable, "-m", "cli", "serve", "api", "--listen-http"]

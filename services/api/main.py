@@ -94,7 +94,11 @@ def is_loopback(host: str) -> bool:
 
 
 def check_bind(settings: Settings) -> None:
-    """Refuse a non-loopback address without a token (raises ValueError)."""
+    """Refuse an empty token (a compose file passing an unset variable gives one, and
+    "Bearer " would then be the password), and a non-loopback address without a token
+    (raises ValueError)."""
+    if settings.token is not None and not settings.token.get_secret_value().strip():
+        raise ValueError("MACB_API_TOKEN is set but empty: give it a secret or unset it")
     if not is_loopback(settings.host) and settings.token is None:
         raise ValueError(
             f"refusing to listen on {settings.host}: not a loopback address and no token; "
