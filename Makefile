@@ -11,7 +11,9 @@ $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH"; exit 1; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet torch==2.13.0
+	# torch first, alone, at pyproject's pin (the one place): pip then takes the CPU
+	# wheel from find-links instead of resolving a multi-GB CUDA build for it.
+	$(BIN)/pip install --quiet "$$(grep -o '"torch==[^"]*"' pyproject.toml | tr -d '"')"
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
