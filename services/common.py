@@ -268,6 +268,9 @@ class ServiceBase:
     def _on_learner_status(self, key: str, payload: bytes) -> None:
         """The run's learner failed or was stopped: this service's part is over too."""
         msg = self.decode_for_run(key, payload, "status")
+        if msg is not None and msg["state"] == "completed":
+            self.on_learner_completed(msg["run"])
+            return
         if msg is None or msg["state"] not in ("failed", "stopped"):
             return
         run = msg["run"]
@@ -305,6 +308,9 @@ class ServiceBase:
         self.on_start(run, config, assign)
 
     def on_stop(self, run: str, reason: str) -> None: ...
+
+    def on_learner_completed(self, run: str) -> None:
+        """The run's learner completed (a follower that is done by then: nothing to do)."""
 
     def on_peer_found(self, role: str, peer: str) -> None:
         """A service's liveliness token appeared (it started, or came back)."""

@@ -7,8 +7,10 @@ trainer's metric fields; the learner put the counter's statistics at that bounda
 into the weights message.
 
 A point the learner sends again (it saw no row for it) is evaluated once: if its row
-is out already, that row is published again. An evaluator restarted mid-run rejoins
-the run and evaluates what the learner sends again.
+is out already, that row is published again. The evaluator's part ends when the
+learner completes (the learner waits for every point's row, so points whose weights
+were lost, e.g. sent before this service subscribed, come again first). An evaluator
+restarted mid-run rejoins the run and evaluates what the learner sends again.
 
 It also keeps every row it published for its recent runs (the last `HISTORY_RUNS`)
 and answers `macb/run/{run}/history/eval` with them, so a watcher that was away (the
@@ -47,7 +49,6 @@ class EvaluatorRun:
     policy: JointPolicy
     pending: collections.deque[dict[str, Any]] = field(default_factory=collections.deque)
     points: int = 0
-    last_point: int = -1  # the newest point evaluated: one sent again is not redone
     published: dict[int, float] = field(default_factory=dict)  # point -> when its row went
     t0: float = field(default_factory=time.perf_counter)
 
@@ -115,13 +116,13 @@ class EvaluatorService(ServiceBase):
             point = msg["eval_point"]
             if any(p["eval_point"] == point for p in st.pending):
                 return  # sent again while we are behind: it is evaluated once
-            if point <= st.last_point:  # sent again: its row was lost on the way
+            if point in st.published:  # sent again: its row was lost on the way
                 # ... unless the row went out moments ago: then the learner's resend
                 # crossed it (it is resent again later if it was lost after all).
-                if time.monotonic() - st.published.get(point, 0.0) > REPUBLISH_AFTER_S:
+                if time.monotonic() - st.published[point] > REPUBLISH_AFTER_S:
                     self._publish_again(point)
                 return
-            st.pending.append(msg)
+            st.pending.append(msg)  # new, or sent again because its weights were lost
 
     def _publish_again(self, point: int) -> None:
         """Publish the row of a point evaluated already (the learner did not see it)."""
@@ -141,7 +142,6 @@ class EvaluatorService(ServiceBase):
             return False
         run, cfg = self.run_id, self.config
         msg = st.pending.popleft()
-        st.last_point = max(st.last_point, msg["eval_point"])
         st.policy.load(msg["actors"])
         ev = evaluate(st.policy, st.envs, cfg.eval_episodes)
         info = msg["info"]
@@ -171,14 +171,23 @@ class EvaluatorService(ServiceBase):
         self.publish_metrics(run, row, source="eval")
         st.published[msg["eval_point"]] = time.monotonic()
         st.points += 1
-        if msg["eval_point"] >= cfg.episodes:
-            self._remember(run, "completed")
-            self.publish_status(run, "completed", points=st.points)
-            self.log.info("run %s: %d evaluation points", run, st.points)
-            self.st = None
-            self.free(run)
-            return False
+        # The last point is not the end: points lost on the way (weights published
+        # before this service had subscribed, a router restart) come again from the
+        # learner, which completes only once it has every point's row.
         return bool(st.pending)
+
+    def on_learner_completed(self, run: str) -> None:
+        """The learner has every point's row: this run's evaluation is over."""
+        st = self.st
+        if st is None or run != self.run_id:
+            return
+        while st.pending:  # (none left: the learner waited for their rows)
+            self.tick()
+        self._remember(run, "completed")
+        self.publish_status(run, "completed", points=st.points)
+        self.log.info("run %s: %d evaluation points", run, st.points)
+        self.st = None
+        self.free(run)
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> EvaluatorService:
