@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         args.out,
         {
             "command": command(__file__, argv),
-            "args": vars(args),
+            "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
             "rounds": rounds,
             "median": summary,
         }

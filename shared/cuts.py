@@ -44,7 +44,8 @@ class CutError(ValueError):
     """A cut that cannot be used: the message names the file and what is wrong."""
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_dir(path: Path) -> None:
+    """A rename inside `path` survives the machine once its directory is fsynced."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -60,7 +61,7 @@ def atomic_torch_save(obj: Any, path: Path) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
 
 
 def tables_state(tables: Sequence[CountTable]) -> list[dict[str, Any]]:
