@@ -53,13 +53,19 @@ def fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def atomic_torch_save(obj: Any, path: Path) -> None:
-    """Write `obj` to `path` so that a crash leaves the old file or the new one, whole."""
+def atomic_torch_save(obj: Any, path: Path, previous: Path | None = None) -> None:
+    """Write `obj` to `path` so that a crash leaves the old file or the new one, whole.
+
+    With `previous`, the old file is kept there, moved aside only once the new one is
+    written and fsynced: a kill at any point leaves a good file at `path` or, between
+    the two renames, at `previous`."""
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         torch.save(obj, f)
         f.flush()
         os.fsync(f.fileno())
+    if previous is not None and path.exists():
+        os.replace(path, previous)
     os.replace(tmp, path)
     fsync_dir(path.parent)
 

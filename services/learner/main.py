@@ -47,7 +47,7 @@ import torch
 from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
-from shared.cuts import CutError, config_difference, fsync_dir
+from shared.cuts import CutError, atomic_torch_save, config_difference
 from shared.exploration import BonusDiagnostics
 from shared.factories import build_learner, minibatches_per_update
 from shared.learners import Learner
@@ -740,17 +740,8 @@ class LearnerService(ServiceBase):
             "boundaries": [list(b) for b in st.boundaries],
             "rng": json.dumps(st.rng.bit_generator.state),
         }
-        # Written whole (fsynced) before the previous cut moves aside: a kill at any
-        # point leaves a good cut as checkpoint.pt or (between the renames) .prev.pt.
-        path, tmp = st.folder / "checkpoint.pt", st.folder / "checkpoint.pt.tmp"
-        with open(tmp, "wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        if path.exists():
-            os.replace(path, st.folder / "checkpoint.prev.pt")
-        os.replace(tmp, path)
-        fsync_dir(st.folder)
+        path = st.folder / "checkpoint.pt"
+        atomic_torch_save(state, path, previous=st.folder / "checkpoint.prev.pt")
         spent = time.monotonic() - st.last_ckpt
         st.cuts += 1
         st.cut_s += spent
