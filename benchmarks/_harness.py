@@ -27,6 +27,15 @@ from shared.cluster import Cluster, ServiceSpec
 from shared.control import RunWatch
 
 RESULTS = ROOT / "benchmarks" / "results"
+# The thesis's speaker_listener arm (figure 8's sparse Cen-MACB; appendix A's networks
+# and batch are the config defaults): what the learner-side benchmarks run.
+THESIS_ARM = {
+    "task": "speaker_listener",
+    "algo": "cen-maddpg",
+    "explore": "cen-macb",
+    "k": 512,
+    "beta": 0.8,
+}
 CLI_MODULE = "cli"  # what `macb` runs: `python -m cli ...`
 
 

@@ -27,20 +27,21 @@ import tempfile
 import time
 from pathlib import Path
 
-from _harness import add_out, begin_run, bench_parser, command, progress, write_result
+from _harness import (
+    THESIS_ARM,
+    add_out,
+    begin_run,
+    bench_parser,
+    command,
+    progress,
+    write_result,
+)
 from _stats import fmt, ratio_median
 
 from shared.config import make_config
 from shared.trainer import DEFAULT_CUT_EVERY_S, Run
 
-THESIS = {
-    "task": "speaker_listener",
-    "algo": "cen-maddpg",
-    "explore": "cen-macb",
-    "k": 512,
-    "beta": 0.8,
-    "learner_lanes": 1,
-}
+THESIS = {**THESIS_ARM, "learner_lanes": 1}
 
 
 def one_run(cfg, out: Path, cut_every_s: float) -> dict:

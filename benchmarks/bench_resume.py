@@ -23,7 +23,15 @@ from _procs import pin_threads
 
 pin_threads()
 
-from _harness import add_out, begin_run, bench_parser, command, progress, write_result  # noqa: E402
+from _harness import (  # noqa: E402
+    THESIS_ARM,
+    add_out,
+    begin_run,
+    bench_parser,
+    command,
+    progress,
+    write_result,
+)
 from _stats import fmt, median  # noqa: E402
 
 from shared.bus import Bus, k_weights  # noqa: E402
@@ -33,11 +41,7 @@ from shared.control import discover, start_run  # noqa: E402
 from shared.wire import decode  # noqa: E402
 
 THESIS = {
-    "task": "speaker_listener",
-    "algo": "cen-maddpg",
-    "explore": "cen-macb",
-    "k": 512,
-    "beta": 0.8,
+    **THESIS_ARM,
     "hidden": [400, 300],
     "batch_size": 100,
     "eval_every": 25,

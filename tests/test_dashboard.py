@@ -20,11 +20,10 @@ import pytest
 
 from services.api.main import ApiServer, Settings
 from services.api.store import Store
-from tests.cdp import Browser
+from tests.cdp import CHROMIUM, HEADLESS_FLAGS, Browser
 from tests.conftest import wait_for
 from tests.test_api_e2e import TINY, api_cluster
 
-CHROMIUM = Path("/usr/bin/chromium")
 pytestmark = pytest.mark.skipif(
     not CHROMIUM.exists(),
     reason="needs Debian's chromium at /usr/bin/chromium (apt-get install -y chromium; "
@@ -37,16 +36,7 @@ def chromium(url: str, out: Path, *action: str, budget_ms: int = 8000) -> str:
     out.mkdir(parents=True, exist_ok=True)
     cmd = [
         str(CHROMIUM),
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-quic",
-        "--no-first-run",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-        "--disable-dev-shm-usage",
-        "--hide-scrollbars",
+        *HEADLESS_FLAGS,
         f"--user-data-dir={out / 'chromium-profile'}",
         f"--virtual-time-budget={budget_ms}",
         "--window-size=1400,1800",
