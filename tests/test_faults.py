@@ -186,10 +186,15 @@ def _check_exact(up: Up, run_id: str) -> dict:
     return run
 
 
-def _fault_run(up: Up, fault: str, seed: int, hit) -> tuple[dict, float]:
-    """Post a run, apply `hit` at its second point; (the completed run, recovery s)."""
+def _fault_run(up: Up, fault: str, seed: int, hit, cut: bool = False) -> tuple[dict, float]:
+    """Post a run, apply `hit` at its second point (and, with `cut`, once the learner
+    has written a cut of it: a learner killed before its first cut resumes from its
+    log alone); (the completed run, recovery s)."""
     run_id = _post_run(up, seed)
     wait_for(lambda: _points(up, run_id) >= 2, timeout=120, what="the run's second point")
+    if cut:
+        checkpoint = up.data / "learner" / run_id / "checkpoint.pt"
+        wait_for(checkpoint.exists, timeout=60, what="the learner's first cut")
     at_fault = _points(up, run_id)
     t0 = time.monotonic()
     hit()
@@ -220,7 +225,9 @@ KILLED = ["learner", "counter", "evaluator", "actor0", "router", "api"]
 def test_sigkill_mid_run_then_the_run_completes_exactly(up, victim):
     before = up.restarts()[victim]
     pid = up.pids()[victim]
-    run, _ = _fault_run(up, f"SIGKILL {victim}", 10 + KILLED.index(victim), lambda: _kill(pid, 9))
+    seed = 10 + KILLED.index(victim)
+    hit = lambda: _kill(pid, 9)  # noqa: E731
+    run, _ = _fault_run(up, f"SIGKILL {victim}", seed, hit, cut=victim == "learner")
     assert up.restarts()[victim] == before + 1, "the supervisor restarted it once"
     assert up.pids()[victim] != pid
     if victim == "learner":
