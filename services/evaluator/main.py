@@ -10,7 +10,9 @@ A point the learner sends again (it saw no row for it) is evaluated once: if its
 is out already, that row is published again. The evaluator's part ends when the
 learner completes (the learner waits for every point's row, so points whose weights
 were lost, e.g. sent before this service subscribed, come again first). An evaluator
-restarted mid-run rejoins the run and evaluates what the learner sends again.
+restarted mid-run rejoins the run and evaluates what the learner sends again. Rows go
+out in episode order: each point names the earlier ones the learner had no row of when
+it was sent, and a point waits (at most ORDER_WAIT_S) until those are evaluated.
 
 It also keeps every row it published for its recent runs (the last `HISTORY_RUNS`)
 and answers `macb/run/{run}/history/eval` with them, so a watcher that was away (the
@@ -23,6 +25,7 @@ import collections
 import os
 import threading
 import time
+from collections.abc import Container, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +42,25 @@ from shared.wire import encode
 
 HISTORY_RUNS = 64  # runs whose rows are kept for history queries
 REPUBLISH_AFTER_S = 5.0  # a row is published again for a resend only this long after
+# A point is held back at most this long for an earlier one the learner has not had a
+# row of (the learner resends a lost point after 30 s of silence: EVAL_RESEND_S).
+ORDER_WAIT_S = 40.0
+
+
+def earliest_point(
+    pending: Iterable[dict[str, Any]], published: Container[int]
+) -> tuple[dict[str, Any], list[int]]:
+    """The pending weights message of the earliest point, and the earlier points it
+    names as unreported that are neither evaluated here nor pending (to wait for)."""
+    pending = list(pending)
+    msg = min(pending, key=lambda m: m["eval_point"])
+    here = {m["eval_point"] for m in pending}
+    missing = [
+        q
+        for q in msg["info"].get("unreported", [])
+        if q < msg["eval_point"] and q not in published and q not in here
+    ]
+    return msg, missing
 
 
 @dataclass
@@ -50,6 +72,7 @@ class EvaluatorRun:
     pending: collections.deque[dict[str, Any]] = field(default_factory=collections.deque)
     points: int = 0
     published: dict[int, float] = field(default_factory=dict)  # point -> when its row went
+    held_since: float | None = None  # the next point waits for an earlier one since then
     t0: float = field(default_factory=time.perf_counter)
 
 
@@ -136,12 +159,35 @@ class EvaluatorService(ServiceBase):
                     self.st.published[point] = time.monotonic()
                 return
 
-    def tick(self) -> bool:
+    def next_point(self) -> dict[str, Any] | None:
+        """The earliest pending point, unless an earlier one it names as unreported is
+        neither evaluated nor here yet (its resend is on the way: after an evaluator
+        restart the learner's newest point can arrive before the resends of the ones
+        missed); then None, for at most ORDER_WAIT_S, so rows go out in episode order."""
         st = self.st
         if st is None or not st.pending:
+            return None
+        msg, missing = earliest_point(st.pending, st.published)
+        now = time.monotonic()
+        if missing:
+            if st.held_since is None:
+                st.held_since = now
+            if now - st.held_since < ORDER_WAIT_S:
+                return None
+            self.log.warning(
+                "run %s: point %d evaluated without %s (not resent within %.0f s)",
+                self.run_id, msg["eval_point"], missing, ORDER_WAIT_S,
+            )  # fmt: skip
+        st.held_since = None
+        st.pending.remove(msg)
+        return msg
+
+    def tick(self) -> bool:
+        st = self.st
+        msg = self.next_point()
+        if st is None or msg is None:
             return False
         run, cfg = self.run_id, self.config
-        msg = st.pending.popleft()
         st.policy.load(msg["actors"])
         ev = evaluate(st.policy, st.envs, cfg.eval_episodes)
         info = msg["info"]
@@ -181,7 +227,7 @@ class EvaluatorService(ServiceBase):
         st = self.st
         if st is None or run != self.run_id:
             return
-        while st.pending:  # (none left: the learner waited for their rows)
+        for _ in range(len(st.pending)):  # (none left: the learner waited for their rows)
             self.tick()
         self._remember(run, "completed")
         self.publish_status(run, "completed", points=st.points)

@@ -558,6 +558,10 @@ class LearnerService(ServiceBase):
             info={
                 **self.stats(),
                 "incarnation": st.incarnation,
+                # The points before this one that had no row when it went out: the
+                # evaluator evaluates those first, so a run's rows come in episode order
+                # even after an evaluator restart (the new point can beat the resends).
+                "unreported": sorted(p for p in st.evaluations.unreported if p < eval_point),
                 "counter": self.counter_stats() if eval_point >= 0 else {},
                 # What the bonus did on the rows sampled since the last point.
                 "bonus": st.diagnostics.take() if eval_point >= 0 else {},

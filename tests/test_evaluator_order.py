@@ -1,0 +1,64 @@
+"""Rows in episode order after an evaluator restart (pure logic of the evaluator's choice).
+
+The end-to-end check is tests/test_faults.py's evaluator kill: there the learner's
+newest point reached the restarted evaluator before the resends of the points it had
+missed, and the run's rows came out as 20, 40, 140, 60, ... before this ordering."""
+
+from __future__ import annotations
+
+import collections
+import logging
+import types
+
+from services.evaluator import main as ev
+
+
+def _msg(point: int, unreported: list[int]) -> dict:
+    return {"eval_point": point, "info": {"unreported": unreported}}
+
+
+def test_the_earliest_pending_point_goes_first_whatever_the_arrival_order():
+    pending = [_msg(140, []), _msg(80, []), _msg(60, [])]
+    msg, missing = ev.earliest_point(pending, published={})
+    assert msg["eval_point"] == 60 and missing == []
+
+
+def test_a_point_waits_for_earlier_unreported_points_not_here_yet():
+    pending = [_msg(140, [60, 80, 100, 120])]
+    _, missing = ev.earliest_point(pending, published={20: 0.0, 40: 0.0})
+    assert missing == [60, 80, 100, 120]
+    # evaluated here already (the learner had not seen the row yet) or pending: no wait
+    pending.append(_msg(60, []))
+    msg, missing = ev.earliest_point(pending, published={80: 0.0, 100: 0.0})
+    assert msg["eval_point"] == 60 and missing == []
+    _, missing = ev.earliest_point([_msg(140, [60, 80, 120])], published={60: 0.0, 80: 0.0})
+    assert missing == [120]
+
+
+def test_messages_of_older_learners_without_the_list_are_taken_at_once():
+    msg, missing = ev.earliest_point([{"eval_point": 40, "info": {}}], published={})
+    assert msg["eval_point"] == 40 and missing == []
+
+
+def _service(pending: list[dict]) -> types.SimpleNamespace:
+    st = types.SimpleNamespace(pending=collections.deque(pending), published={}, held_since=None)
+    return types.SimpleNamespace(st=st, run_id="r", log=logging.getLogger("test"))
+
+
+def test_next_point_holds_then_gives_up_after_the_order_wait(monkeypatch):
+    clock = [1000.0]
+    monkeypatch.setattr(ev.time, "monotonic", lambda: clock[0])
+    svc = _service([_msg(140, [60])])
+    assert ev.EvaluatorService.next_point(svc) is None  # held: 60 is on its way
+    clock[0] += ev.ORDER_WAIT_S / 2
+    assert ev.EvaluatorService.next_point(svc) is None
+    svc.st.pending.append(_msg(60, []))  # the resend arrives: it goes first, then 140
+    assert ev.EvaluatorService.next_point(svc)["eval_point"] == 60
+    svc.st.published[60] = clock[0]
+    assert ev.EvaluatorService.next_point(svc)["eval_point"] == 140
+    assert not svc.st.pending
+
+    svc = _service([_msg(140, [60])])  # 60 never comes: 140 is not held for ever
+    assert ev.EvaluatorService.next_point(svc) is None
+    clock[0] += ev.ORDER_WAIT_S + 0.1
+    assert ev.EvaluatorService.next_point(svc)["eval_point"] == 140
