@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test test-fast test-compose lint bench clean
+.PHONY: setup run test test-slow test-compose lint bench clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH"; exit 1; }
@@ -26,10 +26,17 @@ setup: $(STAMP)
 run: $(STAMP)
 	$(BIN)/macb up --run configs/default.yaml --out runs/default --data-dir runs/cluster --quiet-services
 
+# Everything but the long checks (marked `slow`): ~10 minutes on 2 shared cores.
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python -m pytest -q -rs
+	$(BIN)/python -m pytest -q -rs -m "not slow"
+
+# The long checks: learning (DDPG learns sparse simple; bf16 learns like fp32; the
+# cluster learns like the trainer), the fault matrix, `macb reproduce` end to end:
+# ~15 minutes. `.ci/run` runs them after `make test`.
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -rs -m slow
 
 # docker-compose.yml's cluster in containers (tests/test_compose.py): installs Debian's
 # docker.io, docker-compose and debootstrap when missing (as root; else it skips, saying
@@ -38,9 +45,6 @@ test: $(STAMP)
 # cluster on the host network's loopback, removes its containers and volumes.
 test-compose: $(STAMP)
 	MACB_COMPOSE_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m compose tests/test_compose.py
-
-test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

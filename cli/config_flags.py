@@ -39,6 +39,16 @@ def flag_name(field: str) -> str:
     return f"--{field.replace('_', '-')}"
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults in --help, except where there is nothing to say: no value (None), an
+    off switch (False), or a help text that states its default itself (config keys)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default in (None, False) or "(default:" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
 def flag_dest(field: str) -> str:
     """The attribute a field's flag sets; prefixed so no command's own flag can clash."""
     return f"cfg_{field}"

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
+from cli.config_flags import HelpFormatter
 from cli.figures import FIGURES, PROFILES, FigureDef, experiment_body, experiment_name, file_seeds
 
 if TYPE_CHECKING:
@@ -36,7 +37,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "a std band), OUT/FIGURE.md (the thesis's claims beside the measured numbers, a "
         "verdict each) and OUT/FIGURE.csv. Running the same command again resumes: only "
         "the runs that did not complete run again.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     rp.add_argument("figure", metavar="FIGURE", choices=list(FIGURES), help=", ".join(FIGURES))
     rp.add_argument(

@@ -6,7 +6,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from cli.config_flags import add_config_flags, config_overrides, flag_name, resolve_config
+from cli.config_flags import (
+    HelpFormatter,
+    add_config_flags,
+    config_overrides,
+    flag_name,
+    resolve_config,
+)
 from shared.config import ConfigError, load_config
 
 
@@ -18,7 +24,7 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         "DIR/metrics.jsonl, DIR/config.json and DIR/checkpoint.pt (and TensorBoard events "
         "with --tensorboard). Keys come from --config "
         "(YAML or JSON) and are overridden by flags.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("--config", metavar="FILE", help="YAML/JSON config file")
     p.add_argument("--out", metavar="DIR", default="runs/train", help="output directory")

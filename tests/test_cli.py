@@ -55,6 +55,17 @@ def test_commands_and_their_order(subparsers):
     ]
 
 
+def test_help_states_each_default_once_and_only_where_there_is_one(subparsers):
+    for command in ("train", "reproduce"):
+        text = " ".join(subparsers[command].format_help().split())
+        assert "(default: runs/train)" in text or command != "train"
+        assert text.count("(default:") == len(re.findall(r"\(default: [^)]*\)", text))
+        assert not re.search(r"\(default: [^)]*\) \(default:", text), command  # twice
+        assert "--quiet no progress bar (default" not in text  # an off switch: nothing
+    train = " ".join(subparsers["train"].format_help().split())
+    assert "(default: 0.8)" in train and "(default: 60.0)" in train  # beta, --cut-every
+
+
 def test_every_config_field_is_a_flag_with_the_same_dest_on_every_config_command(subparsers):
     flags = _import("cli.config_flags")
     for command, p in subparsers.items():
