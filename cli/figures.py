@@ -769,17 +769,23 @@ def full_config(fig: FigureDef, arm: str, profile: str, **over: Any) -> TrainCon
 
 
 def experiment_body(
-    fig: FigureDef, profile: str, seeds: list[int], episodes: int | None
+    fig: FigureDef,
+    profile: str,
+    seeds: list[int],
+    episodes: int | None,
+    precision: str | None = None,
 ) -> dict[str, Any]:
     """The POST /experiments body of a figure: the shared keys as the base, one arm per
-    config file setting the rest; `episodes` (if given) cuts every run short."""
+    config file setting the rest; `episodes` (if given) cuts every run short and
+    `precision` (if given) sets every run's learner precision."""
     if profile not in PROFILES:
         raise ValueError(f"unknown profile {profile!r} (profiles: {', '.join(PROFILES)})")
     base, arms = split_base(arm_configs(fig))
     base = {**base, "profile": profile}
-    if episodes is not None:
-        base["episodes"] = episodes
-        arms = {n: {k: v for k, v in a.items() if k != "episodes"} for n, a in arms.items()}
+    for key, value in (("episodes", episodes), ("precision", precision)):
+        if value is not None:
+            base[key] = value
+            arms = {n: {k: v for k, v in a.items() if k != key} for n, a in arms.items()}
     return {
         **base,
         "seeds": list(seeds),
@@ -794,8 +800,10 @@ def experiment_name(fig: FigureDef, body: dict[str, Any]) -> str:
     digest = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()[:8]
     length = body.get("episodes") or "full"
     seeds = ",".join(map(str, body["seeds"]))
+    precision = f" precision={body['precision']}" if body.get("precision", "fp32") != "fp32" else ""
     return (
-        f"reproduce {fig.name} profile={body['profile']} episodes={length} seeds={seeds} [{digest}]"
+        f"reproduce {fig.name} profile={body['profile']} episodes={length} seeds={seeds}"
+        f"{precision} [{digest}]"
     )
 
 

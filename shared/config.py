@@ -166,8 +166,8 @@ class TrainConfig(BaseModel):
         "fp32",
         description="batched learner: the update's matrix products in fp32, or in bf16 with "
         "fp32 accumulation (~2x faster on CPUs with AVX512-BF16/AMX; master weights, Adam, "
-        "targets and acting stay fp32; learning parity not shown yet); without native "
-        "bf16 the learner runs fp32 and logs a warning",
+        "targets and acting stay fp32; whole runs not shown equivalent to fp32's: "
+        "docs/performance.md); without native bf16 the learner runs fp32 and logs a warning",
     )
 
     @field_validator("task")

@@ -20,7 +20,7 @@ def test_defaults_are_the_thesis_settings():
         (400, 300),
     )
     assert c.eval_every == 1 and c.eval_episodes == 10 and not c.time_limit_terminal
-    assert c.precision == "fp32"  # bf16 is opt-in until learning parity is shown
+    assert c.precision == "fp32"  # the code's; bf16 is opt-in (docs/performance.md: parity)
 
 
 @pytest.mark.parametrize(

@@ -46,6 +46,12 @@ def test_each_arm_is_a_valid_config_and_the_experiment_expands(name, profile):
         assert r["config"] == want, r["arm"]
     short = ExperimentCreate.model_validate(experiment_body(fig, profile, [4], 300)).expand()
     assert {r["config"].episodes for r in short} == {300} and {r["seed"] for r in short} == {4}
+    assert {r["config"].precision for r in short} == {"fp32"}  # the files' own
+    bf16 = experiment_body(fig, profile, [4], 300, "bf16")
+    runs = ExperimentCreate.model_validate(bf16).expand()
+    assert {r["config"].precision for r in runs} == {"bf16"}
+    for r, s in zip(runs, short, strict=True):  # nothing else changes
+        assert r["config"].model_copy(update={"precision": "fp32"}) == s["config"], r["arm"]
 
 
 @pytest.mark.parametrize("name", list(FIGURES))
@@ -89,6 +95,8 @@ def test_the_experiment_name_is_deterministic_and_follows_the_body():
     name = figures.experiment_name(fig, body)
     assert name == figures.experiment_name(fig, experiment_body(fig, "mpe2", [0, 1], 300))
     assert name.startswith("reproduce fig3 profile=mpe2 episodes=300 seeds=0,1 [")
+    bf16 = figures.experiment_name(fig, experiment_body(fig, "mpe2", [0, 1], 300, "bf16"))
+    assert bf16.startswith("reproduce fig3 profile=mpe2 episodes=300 seeds=0,1 precision=bf16 [")
     for other in (("thesis", [0, 1], 300), ("mpe2", [0], 300), ("mpe2", [0, 1], 301)):
         assert figures.experiment_name(fig, experiment_body(fig, *other)) != name
     with pytest.raises(ValueError, match="unknown profile 'pz'"):

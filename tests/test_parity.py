@@ -64,7 +64,7 @@ def test_identical_runs_are_equivalent_and_bad_input_is_refused():
 @pytest.mark.slow
 @pytest.mark.skipif(not native_bf16(), reason="this CPU has no native bf16: bf16 would run fp32")
 def test_bf16_learns_sparse_simple_like_fp32(tmp_path: Path) -> None:
-    """bench_parity --quick: DDPG + Dis-MACB on sparse simple, 3 seeds x 300 episodes in
+    """bench_parity --quick: DDPG + Dis-MACB on sparse simple, 3 seeds x 400 episodes in
     each precision. Three seeds cannot show equivalence (the benchmark's 8 seeds are
     for that, docs/performance.md); what they can show is that bf16 learns where fp32
     does: a bf16 whose updates were wrong stays near 0 success while fp32 reaches it."""
@@ -78,5 +78,5 @@ def test_bf16_learns_sparse_simple_like_fp32(tmp_path: Path) -> None:
     (res,) = json.loads(out.read_text())["results"]
     success = res["tests"][0]
     assert success["metric"] == "success_auc" and success["verdict"] != "different", success
-    assert success["mean_a"] > 0.2, "fp32 did not learn: the check would say nothing"
+    assert success["mean_a"] > 0.15, "fp32 did not learn: the check would say nothing"
     assert success["mean_b"] > 0.5 * success["mean_a"], success
