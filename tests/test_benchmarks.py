@@ -77,3 +77,25 @@ def test_bench_resume_kills_the_learner_and_times_its_resume(tmp_path: Path) -> 
     assert round_["counted"] == 60 * 20 and round_["replay_ratio"] == 1.0
     assert 0 < round_["restart_after_kill_s"] < round_["first_update_after_restart_s"] + 1
     assert round_["cut_bytes"] > 0 and round_["cut_ms_mean_after_resume"] > 0
+
+
+def test_bench_parity_refuses_an_unknown_case(tmp_path: Path) -> None:
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_parity.py"), "--cases", "nope"]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    assert proc.returncode == 2 and "unknown case(s) ['nope']" in proc.stderr
+
+
+@pytest.mark.slow
+def test_bench_cluster_bf16_runs_both_precisions_and_reports_ratios(tmp_path: Path) -> None:
+    """One short round of this tree's cluster in fp32 and bf16 (the baseline worktree is
+    left out: a shallow clone may lack its commit); rates come from real metric rows."""
+    out = tmp_path / "cluster.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_cluster_bf16.py")]
+    argv += ["--variants", "fp32,bf16", "--rounds", "1", "--episodes", "12", "--out", str(out)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    assert [r["variant"] for r in result["runs"]] == ["fp32", "bf16"]
+    for run in result["runs"]:
+        assert run["steady"] > 0 and run["overall"] > 0 and run["rows"] == 12
+    assert set(result["ratios"]) == {"bf16/fp32 steady", "bf16/fp32 overall"}

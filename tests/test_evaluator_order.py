@@ -62,3 +62,31 @@ def test_next_point_holds_then_gives_up_after_the_order_wait(monkeypatch):
     assert ev.EvaluatorService.next_point(svc) is None
     clock[0] += ev.ORDER_WAIT_S + 0.1
     assert ev.EvaluatorService.next_point(svc)["eval_point"] == 140
+
+
+def _learner(unreported: dict[int, float], last_sent: int, reported_at: float):
+    from services.learner import main as lm
+
+    ev = lm.EvaluationsInFlight()
+    ev.unreported = {p: (t, f"w{p}".encode()) for p, t in unreported.items()}
+    ev.last_sent, ev.reported_at = last_sent, reported_at
+    sent: list[bytes] = []
+    st = types.SimpleNamespace(evaluations=ev, eval_pub=sent.append)
+    svc = types.SimpleNamespace(st=st, run_id="r", log=logging.getLogger("test"))
+    return lm, svc, sent
+
+
+def test_the_learner_resends_a_point_the_evaluator_holds_later_ones_for_after_5_s():
+    now = 1000.0
+    # point 20 was lost; 40 went out after it, and the evaluator (holding 40) is silent
+    lm, svc, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 6)
+    lm.LearnerService.resend_unreported(svc, now)
+    assert sent == [b"w20"]  # not 40: the newest point waits for the long rule
+    # within 5 s of the evaluator's last report nothing is resent: it may just be busy
+    lm, svc, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 3)
+    lm.LearnerService.resend_unreported(svc, now)
+    assert sent == []
+    # the newest point alone is resent after 30 s of silence, as before
+    lm, svc, sent = _learner({40: now - 31}, last_sent=40, reported_at=now - 31)
+    lm.LearnerService.resend_unreported(svc, now)
+    assert sent == [b"w40"]

@@ -68,6 +68,10 @@ CUT_FORMAT = 1
 # An evaluation point is sent again when the evaluator reported a later one (this one's
 # weights or row were lost), or when nothing was reported for this long (the last one's).
 EVAL_RESEND_S = 30.0
+# A point with later points sent after it is resent after this much of the evaluator's
+# silence: the evaluator holds later points until it has the earlier ones (rows in
+# episode order), so no later report would come to show that this one was lost.
+EVAL_BEHIND_RESEND_S = 5.0
 # The columns of a logged batch, each stored as (n, bytes per row) uint8.
 LOG_COLUMNS = (
     ("obs", np.float32),
@@ -577,16 +581,19 @@ class LearnerService(ServiceBase):
 
     def resend_unreported(self, now: float, at_once: bool = False) -> None:
         """Send again the evaluation points that were lost on the way: older than one the
-        evaluator reported, or the last ones once it has been silent for EVAL_RESEND_S
-        (a merely slow evaluator reports in order, so it is not sent duplicates); with
-        `at_once` all of them (the evaluator just came back)."""
+        evaluator reported, older than one sent since once the evaluator has been silent
+        for EVAL_BEHIND_RESEND_S (it holds the later ones for them), or the last ones
+        once it has been silent for EVAL_RESEND_S (a merely slow evaluator reports in
+        order, so it is rarely sent duplicates, which it drops); with `at_once` all of
+        them (the evaluator just came back)."""
         st = self.st
         assert st is not None
         ev = st.evaluations
-        silent = now - ev.reported_at > EVAL_RESEND_S
+        quiet = now - ev.reported_at
         for point, (sent, payload) in sorted(ev.unreported.items()):
             overtaken = point < ev.last_reported and now - sent > 2.0  # (give a resend time)
-            lost = overtaken or (silent and now - sent > EVAL_RESEND_S)
+            held = point < ev.last_sent and min(quiet, now - sent) > EVAL_BEHIND_RESEND_S
+            lost = overtaken or held or min(quiet, now - sent) > EVAL_RESEND_S
             if at_once or lost:
                 self.log.info("run %s: evaluation point %d sent again", self.run_id, point)
                 st.eval_pub(payload)
