@@ -11,6 +11,7 @@ import logging
 import types
 
 from services.evaluator import main as ev
+from shared.wire import decode, encode
 
 
 def _msg(point: int, unreported: list[int]) -> dict:
@@ -64,11 +65,21 @@ def test_next_point_holds_then_gives_up_after_the_order_wait(monkeypatch):
     assert ev.EvaluatorService.next_point(svc)["eval_point"] == 140
 
 
+def _weights(point: int, unreported: list[int]) -> bytes:
+    fields = dict(version=1, updates=0, env_steps=0, episodes=point, collisions_cum=0)
+    return encode("weights", "r", eval_point=point, actors=[], info={"unreported": unreported},
+                  **fields)  # fmt: skip
+
+
+def _points(sent: list[bytes]) -> list[tuple[int, list[int]]]:
+    return [(m["eval_point"], m["info"]["unreported"]) for m in map(decode, sent)]
+
+
 def _learner(unreported: dict[int, float], last_sent: int, reported_at: float):
     from services.learner import main as lm
 
     ev = lm.EvaluationsInFlight()
-    ev.unreported = {p: (t, f"w{p}".encode()) for p, t in unreported.items()}
+    ev.unreported = {p: (t, _weights(p, [20] if p > 20 else [])) for p, t in unreported.items()}
     ev.last_sent, ev.reported_at = last_sent, reported_at
     sent: list[bytes] = []
     st = types.SimpleNamespace(evaluations=ev, eval_pub=sent.append)
@@ -81,7 +92,7 @@ def test_the_learner_resends_a_point_the_evaluator_holds_later_ones_for_after_5_
     # point 20 was lost; 40 went out after it, and the evaluator (holding 40) is silent
     lm, svc, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 6)
     lm.LearnerService.resend_unreported(svc, now)
-    assert sent == [b"w20"]  # not 40: the newest point waits for the long rule
+    assert _points(sent) == [(20, [])]  # not 40: the newest point waits for the long rule
     # within 5 s of the evaluator's last report nothing is resent: it may just be busy
     lm, svc, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 3)
     lm.LearnerService.resend_unreported(svc, now)
@@ -89,4 +100,12 @@ def test_the_learner_resends_a_point_the_evaluator_holds_later_ones_for_after_5_
     # the newest point alone is resent after 30 s of silence, as before
     lm, svc, sent = _learner({40: now - 31}, last_sent=40, reported_at=now - 31)
     lm.LearnerService.resend_unreported(svc, now)
-    assert sent == [b"w40"]
+    assert _points(sent) == [(40, [])]  # its list of when it first went out named 20,
+    # whose row has come since: the resend no longer does
+
+
+def test_a_resend_at_once_names_only_the_points_still_without_a_row():
+    now = 1000.0
+    lm, svc, sent = _learner({20: now - 1, 40: now - 1}, last_sent=40, reported_at=now - 1)
+    lm.LearnerService.resend_unreported(svc, now, at_once=True)
+    assert _points(sent) == [(20, []), (40, [20])]

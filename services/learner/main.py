@@ -144,6 +144,16 @@ class BonusClient:
         return None
 
 
+def with_unreported(payload: bytes, unreported: list[int]) -> bytes:
+    """A kept weights message with its list of earlier unreported points brought up to
+    date for a resend: the list of when it first went out may name points whose rows
+    have come since (an evaluator restarted in between would wait for them)."""
+    msg = decode(payload, "weights")
+    msg["info"]["unreported"] = unreported
+    fields = {k: v for k, v in msg.items() if k not in ("v", "type", "run")}
+    return encode("weights", msg["run"], **fields)
+
+
 class EvaluationsInFlight:
     """Evaluation points sent to the evaluator that it has not reported yet.
 
@@ -596,6 +606,7 @@ class LearnerService(ServiceBase):
             lost = overtaken or held or min(quiet, now - sent) > EVAL_RESEND_S
             if at_once or lost:
                 self.log.info("run %s: evaluation point %d sent again", self.run_id, point)
+                payload = with_unreported(payload, sorted(p for p in ev.unreported if p < point))
                 st.eval_pub(payload)
                 ev.unreported[point] = (now, payload)
 
