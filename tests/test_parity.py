@@ -74,7 +74,7 @@ def test_bf16_learns_sparse_simple_like_fp32(tmp_path: Path) -> None:
         [*argv, "--out", str(out)], capture_output=True, text=True, timeout=900, check=False
     )
     assert proc.returncode == 0, proc.stderr
-    assert "| simple | success_auc | 3 |" in proc.stdout
+    assert "| simple | bf16 | success_auc | 3 |" in proc.stdout
     (res,) = json.loads(out.read_text())["results"]
     success = res["tests"][0]
     assert success["metric"] == "success_auc" and success["verdict"] != "different", success
