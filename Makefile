@@ -34,7 +34,7 @@ test: $(STAMP)
 
 # The long checks: learning (DDPG learns sparse simple; bf16 learns like fp32; the
 # cluster learns like the trainer), the fault matrix, `macb reproduce` end to end:
-# ~15 minutes. `.ci/run` runs them after `make test`.
+# ~19 minutes. `.ci/run` runs them after `make test`.
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -rs -m slow
 
