@@ -12,6 +12,7 @@ the environments: the counter benchmark's publisher processes import it and star
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import subprocess
@@ -157,6 +158,13 @@ def begin_run(work: Path, what: str) -> tuple[float, float, float]:
 def command(script: str, argv: list[str] | None) -> str:
     """The command line a result came from, for its JSON."""
     return " ".join([f"benchmarks/{Path(script).name}", *(argv or sys.argv[1:])])
+
+
+def metric_rows(out: Path) -> list[dict[str, str]]:
+    """The metric rows a `macb train --out` or `macb up --run --out` run wrote to
+    out/metrics.csv (its header's names, values as text); every version writes it."""
+    with open(out / "metrics.csv", newline="") as f:
+        return list(csv.DictReader(f))
 
 
 def write_result(out: Path, result: dict[str, Any], load_before: tuple[float, ...]) -> None:

@@ -20,7 +20,6 @@ command's time. Ratios are taken within a round; medians over rounds.
 
 from __future__ import annotations
 
-import csv
 import os
 import shutil
 import subprocess
@@ -30,7 +29,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from _harness import THESIS_ARM, add_out, bench_parser, command, progress, write_result
+from _harness import (
+    THESIS_ARM,
+    add_out,
+    bench_parser,
+    command,
+    metric_rows,
+    progress,
+    write_result,
+)
 from _procs import ROOT
 from _stats import fmt, median, ratio_median, rotating_rounds
 
@@ -73,8 +80,7 @@ def run_variant(variant: str, base_tree: Path, work: Path, episodes: int) -> dic
     total = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"{variant} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    with open(out / "metrics.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = metric_rows(out)
     steady, overall = steady_rate(rows)
     shutil.rmtree(data, ignore_errors=True)
     return {"variant": variant, "steady": steady, "overall": overall, "command_s": total,

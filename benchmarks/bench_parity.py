@@ -23,7 +23,6 @@ rounding alone, the yardstick for bf16's differences. Runs go `--jobs` at a time
 
 from __future__ import annotations
 
-import csv
 import os
 import statistics
 import subprocess
@@ -33,7 +32,15 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from _harness import add_out, bench_parser, command, macb_argv, progress, write_result
+from _harness import (
+    add_out,
+    bench_parser,
+    command,
+    macb_argv,
+    metric_rows,
+    progress,
+    write_result,
+)
 from _procs import ROOT
 
 from shared.parity import curve_auc, paired_equivalence
@@ -75,8 +82,7 @@ def run_one(work: Path, case: str, seed: int, variant: str, episodes: int) -> di
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"{case} seed {seed} {variant} failed:\n{proc.stderr[-2000:]}")
-    with open(out / "metrics.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = metric_rows(out)
     if variant == "bf16" and "runs fp32" in proc.stderr:
         raise SystemExit(f"no native bf16 here: {proc.stderr.strip().splitlines()[-1]}")
     return {

@@ -602,8 +602,9 @@ class LearnerService(ServiceBase):
         quiet = now - ev.reported_at
         for point, (sent, payload) in sorted(ev.unreported.items()):
             overtaken = point < ev.last_reported and now - sent > 2.0  # (give a resend time)
-            held = point < ev.last_sent and min(quiet, now - sent) > EVAL_BEHIND_RESEND_S
-            lost = overtaken or held or min(quiet, now - sent) > EVAL_RESEND_S
+            waited = min(quiet, now - sent)  # silence since this point and since a row
+            held = point < ev.last_sent and waited > EVAL_BEHIND_RESEND_S
+            lost = overtaken or held or waited > EVAL_RESEND_S
             if at_once or lost:
                 self.log.info("run %s: evaluation point %d sent again", self.run_id, point)
                 payload = with_unreported(payload, sorted(p for p in ev.unreported if p < point))
