@@ -21,8 +21,10 @@ when the second core is not free.
 
 A second table (`precision: bf16`) times, per task, the fp32 batched update, the same
 update with bf16 matrix products (`bf16`), both floors (`floor_bf16`: the floor's
-products in bf16, with oneDNN's bf16 layouts) and bf16 on two lanes, in the same rounds;
-plus a 2-thread speaker_listener row. `--precision fp32` or `bf16` runs one table only.
+products in bf16, with oneDNN's bf16 layouts), bf16 without the fused master-weight
+kernel (`bf16_unfused`: torch's Adam, lerp and casts; shared/learners/fused.py) and bf16
+on two lanes, in the same rounds; plus a 2-thread speaker_listener row (where the
+learner runs torch's ops, so fused and unfused are the same code). `--precision fp32` or `bf16` runs one table only.
 
 Measurements run in rounds (about 0.15 s of each of ref, batched, floor, in a rotating
 order) so load from other processes on the shared machine hits all three alike. Rates
@@ -53,6 +55,7 @@ from _stats import fmt, measure, ratio_median
 # The benchmarks' one import site of the learners (bench_scaling and floor_probe.py use
 # them through the helpers below).
 from shared.learners import MADDPG, AgentDims, BatchedMADDPG, Lanes, LearnerSpec, TunedMADDPG
+from shared.learners.fused import kernel as fused_kernel
 from shared.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
 from shared.learners.precision import native_bf16
 
@@ -191,13 +194,16 @@ def bench_bf16_case(
     agents: list[AgentDims], algo: str, repeats: int, budget_s: float, lanes: bool = True
 ) -> dict[str, list[float]]:
     """fp32 and bf16 updates of one learner state on one minibatch, and their floors (and
-    bf16 on two lanes), in the same rounds."""
+    bf16 without the fused kernel, and on two lanes), in the same rounds."""
     _, fast, b = learner_pair(agents, algo)
     low = batched(agents, algo, precision="bf16")
     low.load_state_dict(fast.state_dict())
+    unfused = batched(agents, algo, precision="bf16", fused=False)
+    unfused.load_state_dict(fast.state_dict())
     fns: dict[str, Callable[[], object]] = {
         "batched": lambda: fast.update(*b),
         "bf16": lambda: low.update(*b),
+        "bf16_unfused": lambda: unfused.update(*b),
         "floor": floor_ops(fast),
         "floor_bf16": floor_ops(low),
     }
@@ -220,6 +226,8 @@ def bf16_row(task: str, algo: str, n: int, threads: int, samples: dict[str, list
         "bf16_speedup": ratio(samples, "batched", "bf16"),
         "floor_bf16_speedup": ratio(samples, "floor", "floor_bf16"),
         "bf16_over_floor_bf16": ratio(samples, "bf16", "floor_bf16"),
+        "fused_speedup": ratio(samples, "bf16_unfused", "bf16"),
+        "bf16_unfused_over_floor_bf16": ratio(samples, "bf16_unfused", "floor_bf16"),
         "batched_over_floor": ratio(samples, "batched", "floor"),
         "bf16_lanes2_speedup": ratio(samples, "bf16", "bf16_lanes2"),
         "samples_s": samples,
@@ -252,9 +260,10 @@ def print_bf16_table(rows: list[dict]) -> None:
         "\n| task | algo | N | torch threads | fp32 upd/s | bf16 upd/s | bf16 / fp32 speed "
         "| fp32 floor upd/s | bf16 floor upd/s | bf16 floor / fp32 floor speed "
         "| bf16 / bf16 floor time | fp32 / fp32 floor time | bf16 2 lanes upd/s "
-        "| bf16 2 lanes / 1 lane speed |"
+        "| bf16 2 lanes / 1 lane speed | bf16 unfused upd/s | fused / unfused speed "
+        "| unfused / bf16 floor time |"
     )
-    print("|" + "---|" * 14)
+    print("|" + "---|" * 17)
     for r in rows:
         print(
             f"| {r['task']} | {r['algo']} | {r['agents']} | {r['threads']} "
@@ -264,7 +273,9 @@ def print_bf16_table(rows: list[dict]) -> None:
             f"| {r['floor_bf16_speedup']:.2f}x | {r['bf16_over_floor_bf16']:.2f}x "
             f"| {r['batched_over_floor']:.2f}x "
             f"| {fmt(r.get('bf16_lanes2_updates_per_s'), '.1f')} "
-            f"| {fmt(r['bf16_lanes2_speedup'], '.2f')}x |"
+            f"| {fmt(r['bf16_lanes2_speedup'], '.2f')}x "
+            f"| {r['bf16_unfused_updates_per_s']:.1f} | {r['fused_speedup']:.2f}x "
+            f"| {r['bf16_unfused_over_floor_bf16']:.2f}x |"
         )
 
 
@@ -358,6 +369,7 @@ def main(argv: list[str] | None = None) -> None:
         "cpu": platform.processor() or platform.machine(),
         "cores": os.cpu_count(),
         "native_bf16": native_bf16(),
+        "fused_kernel": fused_kernel() is not None,
         "loadavg_before": load_before,
     }
     if args.precision != "bf16":

@@ -181,7 +181,7 @@ def test_contended_updates_have_a_tuner_of_their_own():
     b = batch(ref, seed=99)
     ref.update(*b), one.update(*b)
     assert_same_state(ref.state_dict(), one.state_dict())
-    assert one.stats() == {"lanes": 1.0, "bf16": 0.0}
+    assert one.stats() == {"lanes": 1.0, "bf16": 0.0, "fused": 0.0}
 
 
 def test_lanes_must_be_a_count():

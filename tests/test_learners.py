@@ -98,7 +98,7 @@ def test_actor_weights_and_checkpoints_move_through_the_protocol():
 def test_stats_say_how_the_update_runs():
     made = learners()
     assert made["reference"].stats() == {}
-    assert made["batched"].stats() == {"lanes": 1.0, "bf16": 0.0}
+    assert made["batched"].stats() == {"lanes": 1.0, "bf16": 0.0, "fused": 0.0}
     tuned = made["tuned"].stats()
     assert tuned["lanes"] == 1.0 and tuned["threads"] == 1.0 and tuned["bf16"] == 0.0
     assert tuned["contended_updates"] == 0 and tuned["contended_share"] == 0.0

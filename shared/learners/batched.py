@@ -28,6 +28,10 @@ networks) on bf16 copies of the weights and activations, cast once per weight ve
 Adam's moments, targets, the soft update, losses and `act` stay fp32. It changes the
 arithmetic, not the algorithm: one update stays within bf16's rounding of the fp32 one
 (tests/test_bf16.py). On a CPU without native bf16 the learner runs fp32 (precision.py).
+In bf16 the master-weight work (Adam with the weights' bf16 copies, the soft update with
+the targets') runs in fused.py's compiled kernel where a C compiler is at hand, with the
+same results bit for bit; the copies then stay valid between updates, and every other
+write to the weights (`load_state_dict`, `load_actor_weights`) marks them stale.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ import torch
 
 from shared.joint import offsets
 from shared.learners import checkpoint
+from shared.learners import fused as fused_kernel
 from shared.learners.base import AgentDims, LearnerSpec, check_agents
 from shared.learners.lanes import Lanes
 from shared.learners.layers import Stack, mlp_backward, mlp_forward
@@ -57,7 +62,9 @@ class BatchedMADDPG:
     `lanes` row blocks of each minibatch run in that many threads (`update`); a tuner
     may run an update on one of them instead (`update_on`, see tuning.py). `precision`
     is what the matrix products run in, fp32 or bf16 (`self.precision` says what they
-    run in here: fp32 on a CPU without native bf16).
+    run in here: fp32 on a CPU without native bf16). `fused` (bf16 only): None runs the
+    master-weight work in fused.py's kernel where it builds, True insists on it (an error
+    if it cannot be built), False keeps torch's ops; the results are the same.
     """
 
     def __init__(
@@ -66,6 +73,7 @@ class BatchedMADDPG:
         spec: LearnerSpec,
         lanes: int = 1,
         precision: str = "fp32",
+        fused: bool | None = None,
     ) -> None:
         check_agents(agents, spec)
         self.precision = resolve(precision)
@@ -148,6 +156,24 @@ class BatchedMADDPG:
             actor, critic = self.actor, self.critic
             for tensors in (actor.params, actor.targets, critic.params, critic.targets):
                 self._low[id(tensors)] = [torch.empty_like(t, dtype=self.dtype) for t in tensors]
+        # The fused kernel (bf16 only) and the weight lists whose copies it has kept
+        # current since they were last cast; any other write to the weights empties it.
+        self._kernel = self._fused_kernel(fused) if self.dtype == torch.bfloat16 else None
+        if fused and self._kernel is None and self.dtype != torch.bfloat16:
+            raise ValueError(f"fused needs precision bf16 (this learner runs {self.precision})")
+        self._current: set[int] = set()
+
+    @staticmethod
+    def _fused_kernel(fused: bool | None) -> fused_kernel.MasterKernel | None:
+        if fused is False:
+            return None
+        found = fused_kernel.kernel()
+        if fused and found is None:
+            raise ValueError(
+                "fused=True, but the fused kernel cannot be built here (see the log; "
+                f"a C compiler as cc or $CC, and {fused_kernel.ENV_SWITCH} not off)"
+            )
+        return found
 
     def _weights(self, tensors: list[torch.Tensor]) -> list[torch.Tensor]:
         """One of the stacks' weight lists as the products read it: itself in fp32; in
@@ -157,8 +183,17 @@ class BatchedMADDPG:
         if self.dtype == torch.float32:
             return tensors
         low = self._low[id(tensors)]
+        if id(tensors) in self._current:  # the fused kernel wrote them with the weights
+            return low
         torch._foreach_copy_(low, tensors)
+        if self._kernel is not None:  # from now on the kernel keeps them current
+            self._current.add(id(tensors))
         return low
+
+    def weights_changed(self) -> None:
+        """Call after writing any weights other than through `update`: the bf16 copies
+        are cast anew before their next use."""
+        self._current.clear()
 
     def _low_x(self, x: torch.Tensor) -> torch.Tensor:
         """An input of a network's first layer in the products' dtype (fp32: x itself)."""
@@ -306,7 +341,9 @@ class BatchedMADDPG:
         acts = mlp_forward(critic, self._low_x(self._critic_input(obs, act)))
         diff = acts[-1].squeeze(-1).float() - next_q_value
         grad = diff.mul(2.0 / batch).unsqueeze(-1).to(self.dtype)  # d qf_loss_i / d Q_i
-        grads, _ = mlp_backward(critic, acts, grad, True, False, grad_dtype=torch.float32)
+        grads, _ = mlp_backward(
+            critic, acts, grad, True, False, torch.float32, self._low_grads(batch, obs)
+        )
         return diff.square().sum(1), grads  # type: ignore[return-value]
 
     def critic_step(
@@ -316,7 +353,7 @@ class BatchedMADDPG:
         batch = obs.shape[-2]
         critic = self._weights(self.critic.params)
         sq_sum, grads = self._critic_grads(critic, obs, act, next_q_value, batch)
-        self._adam_step(self.critic_optim, self.critic.params, grads)
+        self._step(self.critic_optim, self.critic.params, grads)
         return sq_sum / batch
 
     def _actor_weights(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
@@ -358,7 +395,13 @@ class BatchedMADDPG:
         # Through a = center + scale * tanh(out); scale is 0 in padded columns.
         grad_out = torch.ops.aten.tanh_backward(grad_a.float() * self.scale, tanh_out)
         grads, _ = mlp_backward(
-            actor, acts, grad_out.to(self.dtype), True, False, grad_dtype=torch.float32
+            actor,
+            acts,
+            grad_out.to(self.dtype),
+            True,
+            False,
+            torch.float32,
+            self._low_grads(batch, obs),
         )
         q_sum = critic_acts[-1].squeeze(-1).sum(1, dtype=torch.float32)
         return q_sum, grads  # type: ignore[return-value]
@@ -371,8 +414,62 @@ class BatchedMADDPG:
         """
         batch = obs.shape[-2]
         q_sum, grads = self._actor_grads(self._actor_weights(), obs, act, batch)
-        self._adam_step(self.actor_optim, self.actor.params, grads)
+        self._step(self.actor_optim, self.actor.params, grads)
         return -q_sum / batch
+
+    def _fusing(self) -> bool:
+        """Whether this step runs in the fused kernel: with one torch thread. On two,
+        torch's own ops run it on both cores, faster than the kernel on one (fused.py);
+        both give the same bits, so a tuner may switch between them at any update."""
+        return self._kernel is not None and torch.get_num_threads() == 1
+
+    def _low_grads(self, batch: int, obs: torch.Tensor) -> bool:
+        """Whether the weight gradients of these rows (`obs`) stay bf16 for the fused
+        Adam: yes, unless they are a lane's block, whose gradients are summed with the
+        other lanes' first (in fp32, as unfused: a bf16 sum would round)."""
+        return self._fusing() and obs.shape[-2] == batch
+
+    def _step(
+        self, optim: torch.optim.Adam, params: list[torch.Tensor], grads: Sequence[torch.Tensor]
+    ) -> None:
+        """One Adam step of one network: in the fused kernel (writing the weights' bf16
+        copies too) or `_adam_step`."""
+        group = optim.param_groups[0]
+        plain = not (group["amsgrad"] or group["weight_decay"] or group["maximize"])
+        if not (self._fusing() and plain):
+            self._adam_step(optim, params, grads)
+            self._current.discard(id(params))
+            return
+        states = self._adam_states(optim, params)
+        steps = [s["step"] for s in states]
+        torch._foreach_add_(steps, 1)
+        beta1, beta2 = group["betas"]
+        self._kernel.adam(
+            params,
+            grads,
+            [s["exp_avg"] for s in states],
+            [s["exp_avg_sq"] for s in states],
+            self._low[id(params)],
+            steps[0].item(),
+            lr=group["lr"],
+            beta1=beta1,
+            beta2=beta2,
+            eps=group["eps"],
+        )
+        self._current.add(id(params))
+
+    @staticmethod
+    def _adam_states(optim: torch.optim.Adam, params: Sequence[torch.Tensor]) -> list[dict]:
+        """Adam's per-weight state, made at the first step as Adam(fused=True) makes it."""
+        state = optim.state
+        if params[0] not in state:
+            for p in params:
+                state[p] = {
+                    "step": torch.zeros((), dtype=torch.float32),
+                    "exp_avg": torch.zeros_like(p),
+                    "exp_avg_sq": torch.zeros_like(p),
+                }
+        return [state[p] for p in params]
 
     @staticmethod
     def _adam_step(
@@ -388,15 +485,7 @@ class BatchedMADDPG:
                 p.grad = g
             optim.step()
             return
-        state = optim.state
-        if params[0] not in state:  # first step: initialise state as Adam(fused=True) does
-            for p in params:
-                state[p] = {
-                    "step": torch.zeros((), dtype=torch.float32),
-                    "exp_avg": torch.zeros_like(p),
-                    "exp_avg_sq": torch.zeros_like(p),
-                }
-        states = [state[p] for p in params]
+        states = BatchedMADDPG._adam_states(optim, params)
         steps = [s["step"] for s in states]
         torch._foreach_add_(steps, 1)
         beta1, beta2 = group["betas"]
@@ -461,7 +550,11 @@ class BatchedMADDPG:
         """The fixed lane count (a tuner reports its own picks, see tuning.py), and `bf16`:
         1 if the products run in bf16, 0 in fp32 (also when bf16 was asked for on a CPU
         without it)."""
-        return {"lanes": float(self.lanes.n), "bf16": float(self.precision == "bf16")}
+        return {
+            "lanes": float(self.lanes.n),
+            "bf16": float(self.precision == "bf16"),
+            "fused": float(self._kernel is not None),
+        }
 
     def _update_in_lanes(
         self,
@@ -492,12 +585,12 @@ class BatchedMADDPG:
             return self._critic_grads(critic, o, a, self._target_q(targets, r, o2, d), batch)
 
         sq_sum, grads = self._sum_parts(self.lanes.map(critic_part, blocks))
-        self._adam_step(self.critic_optim, self.critic.params, grads)
+        self._step(self.critic_optim, self.critic.params, grads)
         weights = self._actor_weights()
         q_sum, grads = self._sum_parts(
             self.lanes.map(lambda b: self._actor_grads(weights, b[0], b[1], batch), blocks)
         )
-        self._adam_step(self.actor_optim, self.actor.params, grads)
+        self._step(self.actor_optim, self.actor.params, grads)
         return sq_sum / batch, -q_sum / batch
 
     @staticmethod
@@ -511,12 +604,22 @@ class BatchedMADDPG:
         return total, grads
 
     def soft_update(self) -> None:
-        """theta' <- tau theta + (1 - tau) theta' for every target network, in one call."""
+        """theta' <- tau theta + (1 - tau) theta' for every target network, in one call
+        (fused: with the targets' bf16 copies)."""
+        actor, critic = self.actor, self.critic
+        if self._fusing() and self.spec.tau < 0.5:
+            self._kernel.soft_update(
+                actor.targets + critic.targets,
+                actor.params + critic.params,
+                self._low[id(actor.targets)] + self._low[id(critic.targets)],
+                self.spec.tau,
+            )
+            self._current.update((id(actor.targets), id(critic.targets)))
+            return
         torch._foreach_lerp_(
-            self.actor.targets + self.critic.targets,
-            self.actor.params + self.critic.params,
-            self.spec.tau,
+            actor.targets + critic.targets, actor.params + critic.params, self.spec.tau
         )
+        self._current.difference_update((id(actor.targets), id(critic.targets)))
 
     # ----------------------------------------------------------------- state
     def state_dict(self) -> dict:
@@ -526,6 +629,7 @@ class BatchedMADDPG:
 
     def load_state_dict(self, state: dict) -> None:
         checkpoint.import_state(self, state)
+        self.weights_changed()
 
     @classmethod
     def from_reference(cls, ref: MADDPG) -> BatchedMADDPG:
@@ -541,3 +645,4 @@ class BatchedMADDPG:
     def load_actor_weights(self, weights: Sequence[dict[str, Any]]) -> None:
         for i, sd in enumerate(weights):
             self.actor.load(self.actor.params, i, sd)
+        self.weights_changed()

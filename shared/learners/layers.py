@@ -95,6 +95,7 @@ def mlp_backward(
     weights: bool,
     inputs: bool,
     grad_dtype: torch.dtype | None = None,
+    low_weight_grads: bool = False,
 ) -> tuple[list[torch.Tensor] | None, torch.Tensor | None]:
     """Backpropagate dL/d(output) through `mlp_forward`'s layers.
 
@@ -102,14 +103,16 @@ def mlp_backward(
     `inputs`). Nothing else is computed: the actor step asks its critic for dL/dx only.
     The params' gradients are in `grad_dtype` (default the params'): products run in the
     params' dtype (bf16 copies), gradients go to fp32 master weights, and bias gradients,
-    sums over the batch, are summed in that dtype.
+    sums over the batch, are summed in that dtype. `low_weight_grads` leaves the weight
+    gradients in the products' dtype, as the products round them anyway (the fused Adam,
+    fused.py, reads bf16 gradients: the same values without a conversion pass).
     """
     layers = len(params) // 2
     grads: list[torch.Tensor] = [None] * len(params)  # type: ignore[list-item]
     for layer in reversed(range(layers)):
         x = acts[layer]
         if weights:
-            grads[2 * layer] = linear_grad_weight(grad, x, grad_dtype)
+            grads[2 * layer] = linear_grad_weight(grad, x, None if low_weight_grads else grad_dtype)
             grads[2 * layer + 1] = grad.sum(1, keepdim=True, dtype=grad_dtype)
         if layer == 0 and not inputs:
             break

@@ -82,10 +82,11 @@ class TunedMADDPG:
         """The ordinary tuner's current mode, the tuners' picks and measured times
         (`lanesAxB_*` for ordinary updates, `contended_lanesAxB_*` for contended ones),
         `contended_share` the share of updates that were contended and
-        `contended_updates` their number; `bf16` as the learner reports it."""
+        `contended_updates` their number; `bf16` and `fused` as the learner reports them."""
         lanes, threads = self.tuner.current
         out = {"lanes": float(lanes), "threads": float(threads)}
         out["bf16"] = float(self.learner.precision == "bf16")
+        out["fused"] = self.learner.stats()["fused"]
         quiet = sum(self.tuner.chosen.values())
         contended = sum(self.contended_tuner.chosen.values())
         out["contended_share"] = contended / max(1, quiet + contended)

@@ -1,0 +1,205 @@
+"""The bf16 learner's master-weight work (Adam, the soft update, the weights' bf16 copies)
+in one pass over the weights each, from a small C kernel (master.c) compiled on first use.
+
+Why: in a bf16 update the matrix products are ~3x cheaper than in fp32, and what is left
+is mostly memory traffic over the ~0.5 M fp32 master weights: torch's fused Adam (reads
+weight, gradient and both moments, writes three), `_foreach_lerp_` for the targets, five
+`_foreach_copy_` casts to bf16 copies and the gradients' bf16 -> fp32 conversions, each a
+pass of its own. torch has no op doing them together. The kernel's Adam reads bf16
+gradients as they come out of the products and writes the weight's bf16 copy in the same
+pass, its soft update writes the target's copy, so no cast pass is left (the copies stay
+valid from one update to the next; `BatchedMADDPG` re-casts them after any other write to
+the weights). The arithmetic is torch's, operation for operation: the results equal the
+unfused bf16 path's bit for bit (tests/test_fused.py), so `fused` changes speed only.
+
+The kernel is built with the system C compiler (`cc`, or $CC) into a cache directory
+($MACB_KERNEL_CACHE, default ~/.cache/macb/kernels), named by a digest of the source, the
+compiler's version and the flags, so a rebuilt or changed compiler gets its own file and
+concurrent processes never see a half-written one (written under a temporary name, then
+renamed). Where no compiler works (a slim container image), `kernel()` returns None, says
+why once in the log, and the learner runs the unfused torch path: same numbers, slower.
+`-march=native` is right because the file is built where it runs. One thread: where torch
+runs its ops on two, `BatchedMADDPG` keeps torch's ops for that update (a second thread
+of the kernel's own, a pthread, ran 10-17% slower there: torch's OpenMP worker spins on
+the other core between its ops). ctypes releases the GIL while the kernel runs.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import logging
+import math
+import os
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+log = logging.getLogger("macb.learners")
+
+SOURCE = Path(__file__).with_name("master.c")
+FLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-shared", "-fPIC")
+# "0", "off", "false" or "no" turn the kernel off in every learner of the process.
+ENV_SWITCH = "MACB_FUSED"
+
+_P = ctypes.POINTER
+_ptrs = ctypes.c_void_p
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("MACB_KERNEL_CACHE") or Path.home() / ".cache" / "macb" / "kernels")
+
+
+def _compiler() -> str | None:
+    cc = os.environ.get("CC") or "cc"
+    return shutil.which(cc)
+
+
+def _build(cc: str) -> Path:
+    """The kernel's shared object for this source, compiler and flags: built once, cached."""
+    version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30).stdout
+    digest = hashlib.sha256(
+        SOURCE.read_bytes() + version.encode() + " ".join(FLAGS).encode()
+    ).hexdigest()[:16]
+    target = cache_dir() / f"master-{digest}.so"
+    if target.exists():
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+        out = Path(tmp) / target.name
+        done = subprocess.run(
+            [cc, *FLAGS, "-o", str(out), str(SOURCE), "-lm"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        if done.returncode != 0:
+            raise RuntimeError(f"{cc} failed: {done.stderr.strip()[:500]}")
+        os.replace(out, target)
+    return target
+
+
+def switched_off() -> bool:
+    return os.environ.get(ENV_SWITCH, "").strip().lower() in ("0", "off", "false", "no")
+
+
+@functools.cache
+def kernel() -> MasterKernel | None:
+    """The compiled kernel, or None (logged once) where it cannot be built or loaded, or
+    where $MACB_FUSED turns it off."""
+    if switched_off():
+        log.info("%s is off: the bf16 learner's master weights go through torch's ops", ENV_SWITCH)
+        return None
+    cc = _compiler()
+    if cc is None:
+        log.warning(
+            "no C compiler (cc or $CC) on PATH: the bf16 learner runs its master-weight "
+            "work unfused (same results, slower; docs/performance.md 'bf16: the fused pass')"
+        )
+        return None
+    try:
+        return MasterKernel(ctypes.CDLL(str(_build(cc))))
+    except (OSError, RuntimeError, subprocess.SubprocessError) as err:
+        log.warning(
+            "the bf16 learner's fused kernel could not be built (%s): its master-weight "
+            "work runs unfused (same results, slower)",
+            err,
+        )
+        return None
+
+
+def _array(tensors: Sequence[torch.Tensor]) -> ctypes.Array:
+    return (_ptrs * len(tensors))(*[t.data_ptr() for t in tensors])
+
+
+class MasterKernel:
+    """The two entry points of master.c over lists of contiguous CPU tensors."""
+
+    def __init__(self, lib: ctypes.CDLL) -> None:
+        f = ctypes.c_float
+        i64 = ctypes.c_int64
+        lib.macb_adam.restype = None
+        lib.macb_adam.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(ctypes.c_int32), _P(_ptrs)]
+        lib.macb_adam.argtypes += [_P(_ptrs), _P(_ptrs), _P(i64)] + [f] * 7
+        lib.macb_soft_update.restype = None
+        lib.macb_soft_update.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(_ptrs), _P(i64), f]
+        self.lib = lib
+
+    @staticmethod
+    @staticmethod
+    def _check(*lists: Sequence[torch.Tensor]) -> None:
+        sizes = [t.numel() for t in lists[0]]
+        for tensors in lists:
+            if [t.numel() for t in tensors] != sizes or not all(
+                t.is_contiguous() and t.device.type == "cpu" for t in tensors
+            ):
+                raise ValueError("the fused kernel needs contiguous CPU tensors of equal sizes")
+
+    def adam(
+        self,
+        params: Sequence[torch.Tensor],
+        grads: Sequence[torch.Tensor],
+        exp_avgs: Sequence[torch.Tensor],
+        exp_avg_sqs: Sequence[torch.Tensor],
+        lows: Sequence[torch.Tensor],
+        step: float,
+        lr: float,
+        beta1: float,
+        beta2: float,
+        eps: float,
+    ) -> None:
+        """One Adam step (torch's fused kernel's arithmetic) at step number `step` (already
+        counted), then every weight's bf16 copy into `lows`."""
+        self._check(params, grads, exp_avgs, exp_avg_sqs, lows)
+        if any(t.dtype != torch.float32 for t in (*params, *exp_avgs, *exp_avg_sqs)) or any(
+            g.dtype not in (torch.float32, torch.bfloat16) for g in grads
+        ):
+            raise ValueError("Adam's weights and moments must be fp32, gradients fp32 or bf16")
+        if any(t.dtype != torch.bfloat16 for t in lows):
+            raise ValueError("the copies must be bf16")
+        n = len(params)
+        bias_correction1 = 1 - beta1**step
+        bias_correction2 = 1 - beta2**step
+        self.lib.macb_adam(
+            n,
+            _array(params),
+            _array(grads),
+            (ctypes.c_int32 * n)(*[g.dtype == torch.bfloat16 for g in grads]),
+            _array(exp_avgs),
+            _array(exp_avg_sqs),
+            _array(lows),
+            (ctypes.c_int64 * n)(*[t.numel() for t in params]),
+            beta1,
+            beta2,
+            1 - beta1,
+            1 - beta2,
+            lr / bias_correction1,
+            math.sqrt(bias_correction2),
+            eps,
+        )
+
+    def soft_update(
+        self,
+        targets: Sequence[torch.Tensor],
+        params: Sequence[torch.Tensor],
+        lows: Sequence[torch.Tensor],
+        tau: float,
+    ) -> None:
+        """targets <- lerp(targets, params, tau) (tau < 0.5), then their bf16 copies."""
+        if not 0 <= tau < 0.5:
+            raise ValueError(f"the fused soft update needs 0 <= tau < 0.5, got {tau}")
+        self._check(targets, params, lows)
+        n = len(targets)
+        self.lib.macb_soft_update(
+            n,
+            _array(targets),
+            _array(params),
+            _array(lows),
+            (ctypes.c_int64 * n)(*[t.numel() for t in targets]),
+            tau,
+        )

@@ -1,0 +1,104 @@
+/* The bf16 learner's fp32 master-weight work, one pass over the weights per call.
+
+   Adam: torch 2.13's fused CPU Adam for float, operation for operation, including where
+   its build fuses a multiply-add (m = fma(1 - beta1, g - m, m) as its lerp; v =
+   fma((1 - beta2) g, g, beta2 v) in its vector loop, another fma in its scalar loop,
+   see TORCH_VEC) and where it does not (everything else: this file is built with
+   -ffp-contract=off and writes each fma out), reading a weight's gradient in
+   bf16 or fp32, then writing the weight's bf16 copy.
+   Soft update: torch's lerp for a weight below 0.5 (start + w * (end - start), as one
+   fused multiply-add, as torch's vectorized CPU lerp computes it), then the target's
+   bf16 copy. The bf16 copies round to nearest even as torch's float -> bfloat16
+   conversion does (a NaN becomes the quiet NaN 0x7fc0).
+
+   tests/test_fused.py checks both against torch bit for bit; shared/learners/fused.py
+   compiles this file and says why it is there. */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+/* torch's float Vectorized width in its fused Adam here: the first n - n % 8 elements of
+   a tensor go through its vector loop, the rest through its scalar loop, which its
+   build contracts differently (v = fma(v, beta2, (1 - beta2) g g)). */
+#define TORCH_VEC 8
+
+static inline uint16_t to_bf16(float f) {
+    uint32_t u;
+    memcpy(&u, &f, sizeof u);
+    if (isnan(f)) return 0x7fc0;
+    return (uint16_t)((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
+}
+
+static inline float from_bf16(uint16_t h) {
+    uint32_t u = (uint32_t)h << 16;
+    float f;
+    memcpy(&f, &u, sizeof f);
+    return f;
+}
+
+/* Elements [lo, hi) of one tensor; `n` its size (which element is in torch's tail). */
+#define ADAM_LOOP(LOAD)                                                                  \
+    const int64_t body = n - n % TORCH_VEC;                                              \
+    for (int64_t i = lo; i < hi; i++) {                                                  \
+        float gi = LOAD;                                                                 \
+        float mi = fmaf(c1, gi - m[i], m[i]);                                            \
+        float vi = i < body ? fmaf(c2 * gi, gi, v[i] * beta2) : fmaf(v[i], beta2, c2 * gi * gi); \
+        m[i] = mi;                                                                       \
+        v[i] = vi;                                                                       \
+        float denom = sqrtf(vi) / bc2_sqrt + eps;                                        \
+        float pi = p[i] + -step_size * mi / denom;                                       \
+        p[i] = pi;                                                                       \
+        low[i] = to_bf16(pi);                                                            \
+    }
+
+typedef struct {
+    float beta1, beta2, c1, c2, step_size, bc2_sqrt, eps;
+} adam_args;
+
+static void adam_f32(float *restrict p, const float *restrict g, float *restrict m,
+                     float *restrict v, uint16_t *restrict low, int64_t n, int64_t lo,
+                     int64_t hi, adam_args a) {
+    const float beta2 = a.beta2, c1 = a.c1, c2 = a.c2, step_size = a.step_size;
+    const float bc2_sqrt = a.bc2_sqrt, eps = a.eps;
+    ADAM_LOOP(g[i])
+}
+
+static void adam_bf16(float *restrict p, const uint16_t *restrict g, float *restrict m,
+                      float *restrict v, uint16_t *restrict low, int64_t n, int64_t lo,
+                      int64_t hi, adam_args a) {
+    const float beta2 = a.beta2, c1 = a.c1, c2 = a.c2, step_size = a.step_size;
+    const float bc2_sqrt = a.bc2_sqrt, eps = a.eps;
+    ADAM_LOOP(from_bf16(g[i]))
+}
+
+static void soft(float *restrict t, const float *restrict p, uint16_t *restrict low,
+                 int64_t lo, int64_t hi, float tau) {
+    for (int64_t i = lo; i < hi; i++) {
+        float ti = fmaf(tau, p[i] - t[i], t[i]);
+        t[i] = ti;
+        low[i] = to_bf16(ti);
+    }
+}
+
+/* One Adam step of `count` tensors: p, m, v fp32; g bf16 where g_bf16[k], else fp32;
+   low[k] receives p's bf16 copy. The scalars are torch's, rounded to float as its
+   kernel rounds them: beta1, beta2, c1 = 1 - beta1, c2 = 1 - beta2,
+   step_size = lr / (1 - beta1^step), bc2_sqrt = sqrt(1 - beta2^step), eps. */
+void macb_adam(int64_t count, float **p, void **g, const int32_t *g_bf16, float **m,
+               float **v, uint16_t **low, const int64_t *numel, float beta1, float beta2,
+               float c1, float c2, float step_size, float bc2_sqrt, float eps) {
+    adam_args a = {beta1, beta2, c1, c2, step_size, bc2_sqrt, eps};
+    for (int64_t k = 0; k < count; k++) {
+        int64_t n = numel[k];
+        if (g_bf16[k])
+            adam_bf16(p[k], (const uint16_t *)g[k], m[k], v[k], low[k], n, 0, n, a);
+        else
+            adam_f32(p[k], (const float *)g[k], m[k], v[k], low[k], n, 0, n, a);
+    }
+}
+
+/* t <- t + tau (p - t) for `count` tensors (tau < 0.5), then low[k] <- bf16(t). */
+void macb_soft_update(int64_t count, float **t, float **p, uint16_t **low,
+                      const int64_t *numel, float tau) {
+    for (int64_t k = 0; k < count; k++) soft(t[k], p[k], low[k], 0, numel[k], tau);
+}

@@ -1,0 +1,314 @@
+"""The bf16 learner's fused master-weight kernel (shared/learners/fused.py, master.c):
+its Adam and soft update equal torch's bit for bit, a whole fused update equals the
+unfused one bit for bit, weights written between updates are cast anew, and where the
+kernel cannot be built the learner says so and runs torch's ops."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from shared.learners import AgentDims, BatchedMADDPG, LearnerSpec, TunedMADDPG, fused, precision
+
+MOVE = ((-1.0, -1.0), (1.0, 1.0))
+CASES = {
+    "simple-ddpg": ("ddpg", [AgentDims(4, *MOVE)], False),
+    "spread-dis": ("dis-maddpg", [AgentDims(12, *MOVE)] * 2, False),
+    "speaker_listener-cen": (
+        "cen-maddpg",
+        [AgentDims(3, (0.0,) * 3, (1.0,) * 3), AgentDims(11, *MOVE)],
+        False,
+    ),
+    "speaker_listener-cen-per-agent": (
+        "cen-maddpg",
+        [AgentDims(3, (0.0,) * 3, (1.0,) * 3), AgentDims(11, *MOVE)],
+        True,
+    ),
+}
+# Sizes on both sides of torch's vector width (8) and cache line (16), and a layer's.
+SIZES = [1, 2, 7, 8, 9, 15, 16, 17, 600, 120_003]
+
+
+@pytest.fixture(autouse=True)
+def one_thread(monkeypatch):
+    """bf16 counts as native (the arithmetic is checked on any CPU); one torch thread,
+    where the kernel runs (restored after)."""
+    monkeypatch.setattr(precision, "native_bf16", lambda: True)
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture
+def kernel() -> fused.MasterKernel:
+    k = fused.kernel()
+    if k is None:
+        pytest.skip(
+            "no C compiler here: the fused kernel cannot be built (the learner runs unfused)"
+        )
+    return k
+
+
+def moments(n: int, gen: torch.Generator) -> tuple[torch.Tensor, ...]:
+    p = torch.randn(n, generator=gen) * 0.1
+    g = torch.randn(n, generator=gen) * 1e-2
+    m = torch.randn(n, generator=gen) * 1e-3
+    v = torch.rand(n, generator=gen) * 1e-4
+    return p, g, m, v
+
+
+@pytest.mark.parametrize("grad_dtype", [torch.float32, torch.bfloat16], ids=["fp32", "bf16"])
+@pytest.mark.parametrize("step", [1, 2, 7, 1000])
+def test_adam_equals_torch_fused_adam_bit_for_bit(kernel, step, grad_dtype):
+    gen = torch.Generator().manual_seed(step)
+    tensors = [moments(n, gen) for n in SIZES]
+    ours = [[t.clone() for t in ts] for ts in tensors]
+    theirs = [[t.clone() for t in ts] for ts in tensors]
+    grads = [ts[1].to(grad_dtype) for ts in tensors]
+    lows = [torch.empty(n, dtype=torch.bfloat16) for n in SIZES]
+    lr, beta1, beta2, eps = 1e-3, 0.9, 0.999, 1e-8
+    kernel.adam(
+        [o[0] for o in ours], grads, [o[2] for o in ours], [o[3] for o in ours], lows, step,
+        lr, beta1, beta2, eps,
+    )  # fmt: skip
+    torch._fused_adam_(
+        [t[0] for t in theirs],
+        [g.float() for g in grads],
+        [t[2] for t in theirs],
+        [t[3] for t in theirs],
+        [],
+        [torch.tensor(float(step)) for _ in SIZES],
+        amsgrad=False,
+        lr=lr,
+        beta1=beta1,
+        beta2=beta2,
+        weight_decay=0.0,
+        eps=eps,
+        maximize=False,
+    )
+    for n, o, t, low in zip(SIZES, ours, theirs, lows):
+        for name, a, b in (("weight", o[0], t[0]), ("exp_avg", o[2], t[2]), ("sq", o[3], t[3])):
+            assert torch.equal(a, b), f"{name} of a tensor of {n}: {(a - b).abs().max()}"
+        assert torch.equal(low, t[0].bfloat16()), f"bf16 copy of a tensor of {n}"
+
+
+def test_soft_update_equals_torch_lerp_and_its_bf16_copy_bit_for_bit(kernel):
+    gen = torch.Generator().manual_seed(0)
+    params = [torch.randn(n, generator=gen) for n in SIZES]
+    targets = [p + 0.1 * torch.randn(n, generator=gen) for p, n in zip(params, SIZES)]
+    ours = [t.clone() for t in targets]
+    lows = [torch.empty(n, dtype=torch.bfloat16) for n in SIZES]
+    kernel.soft_update(ours, params, lows, 0.01)
+    torch._foreach_lerp_(targets, params, 0.01)
+    for n, a, b, low in zip(SIZES, ours, targets, lows):
+        assert torch.equal(a, b), f"target of {n}"
+        assert torch.equal(low, b.bfloat16()), f"bf16 copy of a target of {n}"
+
+
+def test_bf16_copies_round_like_torch_on_ties_and_edge_values(kernel):
+    """tau 0 leaves the targets as they are, so their copies are the conversion alone.
+    A NaN stays a NaN; its bits are not compared (torch's own conversion gives 0xffff in
+    its vector loop and 0x7fc0 in its scalar one). Infinities cannot pass a lerp."""
+    tiny = torch.finfo(torch.float32).tiny
+    values = torch.tensor(
+        [
+            1.0 + 2.0**-8,  # a tie: rounds to even (1.0)
+            1.0 + 3 * 2.0**-8,  # a tie: rounds to even (up)
+            1.0 + 2.0**-8 + 2.0**-20,  # just above a tie
+            -(1.0 + 2.0**-8),
+            tiny,
+            tiny / 3,  # subnormal
+            3.3895313892515355e38,  # the largest finite that stays finite
+            0.0,
+            1e-30,
+            -7.25,
+        ]
+        * 2  # past the vector width, so both of torch's loops are met
+    )
+    targets = [values.clone()]
+    lows = [torch.empty_like(values, dtype=torch.bfloat16)]
+    kernel.soft_update(targets, [values.clone()], lows, 0.0)
+    want = values.bfloat16().view(torch.int16)
+    assert torch.equal(lows[0].view(torch.int16), want), (lows[0].view(torch.int16), want)
+    nan = [torch.tensor([float("nan")] * 20)]
+    kernel.soft_update([nan[0].clone()], nan, lows, 0.0)
+    assert lows[0].isnan().all()
+
+
+def test_the_kernel_refuses_what_it_cannot_read(kernel):
+    p = [torch.zeros(4)]
+    with pytest.raises(ValueError, match="contiguous CPU tensors of equal sizes"):
+        kernel.adam(p, [torch.zeros(5)], [torch.zeros(4)], [torch.zeros(4)],
+                    [torch.zeros(4, dtype=torch.bfloat16)], 1, 1e-3, 0.9, 0.999, 1e-8)  # fmt: skip
+    with pytest.raises(ValueError, match="fp32"):
+        kernel.adam([torch.zeros(4, dtype=torch.float64)], p, p, p,
+                    [torch.zeros(4, dtype=torch.bfloat16)], 1, 1e-3, 0.9, 0.999, 1e-8)  # fmt: skip
+    with pytest.raises(ValueError, match="tau < 0.5"):
+        kernel.soft_update(p, p, [torch.zeros(4, dtype=torch.bfloat16)], 0.5)
+
+
+def learner(case: str, fused_: bool | None, lanes: int = 1) -> BatchedMADDPG:
+    algo, agents, _ = CASES[case]
+    spec = LearnerSpec(algo=algo, hidden=(400, 300), seed=3)
+    return BatchedMADDPG(agents, spec, lanes=lanes, precision="bf16", fused=fused_)
+
+
+def batch(m: BatchedMADDPG, per_agent: bool, seed: int, rows: int = 100) -> tuple:
+    rng = np.random.default_rng(seed)
+    lead = (m.n, rows) if per_agent else (rows,)
+    f = np.float32
+    return (
+        rng.standard_normal((*lead, m.joint_obs)).astype(f),
+        rng.uniform(-1, 1, (*lead, m.joint_act)).astype(f),
+        rng.uniform(-1, 0, (*lead, m.n)).astype(f),
+        rng.standard_normal((*lead, m.joint_obs)).astype(f),
+        (rng.uniform(0, 1, lead) < 0.1).astype(f),
+    )
+
+
+def flat(state, prefix: str = ""):
+    if isinstance(state, dict):
+        for k, v in state.items():
+            yield from flat(v, f"{prefix}/{k}")
+    elif isinstance(state, (list, tuple)):
+        for k, v in enumerate(state):
+            yield from flat(v, f"{prefix}/{k}")
+    else:
+        yield prefix, state
+
+
+def differences(a: BatchedMADDPG, b: BatchedMADDPG) -> list[str]:
+    fa, fb = dict(flat(a.state_dict())), dict(flat(b.state_dict()))
+    assert fa.keys() == fb.keys()
+    return [
+        k
+        for k in fa
+        if not (torch.equal(fa[k], fb[k]) if torch.is_tensor(fa[k]) else fa[k] == fb[k])
+    ]
+
+
+@pytest.mark.parametrize("lanes", [1, 2])
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_fused_update_equals_the_unfused_one_bit_for_bit(kernel, case, lanes):
+    plain, fast = learner(case, False, lanes), learner(case, True, lanes)
+    assert fast.stats()["fused"] == 1.0 and plain.stats()["fused"] == 0.0
+    per_agent = CASES[case][2]
+    for i in range(4):
+        b = batch(plain, per_agent, i)
+        assert plain.update(*b) == fast.update(*b), f"losses of update {i}"
+    assert differences(plain, fast) == []
+
+
+def test_weights_written_between_updates_are_cast_anew(kernel):
+    """The kernel keeps the bf16 copies from one update to the next; a checkpoint load or
+    new actor weights must not be run on the old copies."""
+    case = "speaker_listener-cen"
+    a, other = learner(case, True), learner(case, True)
+    for i in range(3):
+        a.update(*batch(a, False, i))
+        other.update(*batch(a, False, 10 + i))
+    a.load_state_dict(other.state_dict())
+    fresh = learner(case, False)
+    fresh.load_state_dict(other.state_dict())
+    b = batch(a, False, 99)
+    assert a.update(*b) == fresh.update(*b)
+    assert differences(a, fresh) == []
+
+    a.load_actor_weights(other.actor_weights())
+    fresh.load_actor_weights(other.actor_weights())
+    b = batch(a, False, 100)
+    assert a.update(*b) == fresh.update(*b)
+    assert differences(a, fresh) == []
+
+
+def test_switching_torch_threads_between_updates_keeps_the_bits(kernel):
+    """On two torch threads the learner runs torch's ops (fused.py says why); a tuner
+    switches threads block by block, so the two ways must hand over exactly."""
+    case = "spread-dis"
+    plain, fast = learner(case, False), learner(case, True)
+    try:
+        for i, threads in enumerate([1, 2, 2, 1, 1, 2, 1]):
+            torch.set_num_threads(threads)
+            b = batch(plain, False, i)
+            assert plain.update(*b) == fast.update(*b), f"update {i} on {threads} threads"
+    finally:
+        torch.set_num_threads(1)
+    assert differences(plain, fast) == []
+
+
+def test_the_tuner_runs_the_fused_learner(kernel):
+    """The tuner switching torch's threads between blocks (one lane: the same sums as
+    the plain learner run right after each update on the same threads)."""
+    algo, agents, _ = CASES["spread-dis"]
+    spec = LearnerSpec(algo=algo, hidden=(64, 64), seed=1)
+    tuned = TunedMADDPG(BatchedMADDPG(agents, spec, precision="bf16"), modes=[(1, 1), (1, 2)])
+    plain = BatchedMADDPG(agents, spec, precision="bf16", fused=False)
+    try:
+        for i in range(300):
+            b = batch(plain, False, i, rows=32)
+            assert tuned.update(*b) == plain.update(*b), f"update {i}"
+    finally:
+        torch.set_num_threads(1)
+    stats = tuned.stats()
+    assert stats["fused"] == 1.0
+    assert stats["lanes1x1_share"] > 0 and stats["lanes1x2_share"] > 0  # both were run
+    assert differences(tuned.learner, plain) == []
+
+
+@pytest.fixture
+def fresh_kernel_lookup(monkeypatch, tmp_path):
+    """kernel() looked up anew (it is cached per process) in an empty cache directory."""
+    monkeypatch.setenv("MACB_KERNEL_CACHE", str(tmp_path / "kernels"))
+    fused.kernel.cache_clear()
+    yield tmp_path / "kernels"
+    fused.kernel.cache_clear()
+
+
+def test_without_a_compiler_the_learner_runs_unfused_and_says_so(
+    monkeypatch, caplog, fresh_kernel_lookup
+):
+    monkeypatch.setenv("CC", "no-such-compiler-here")
+    with caplog.at_level(logging.WARNING, logger="macb.learners"):
+        m = learner("simple-ddpg", None)
+    assert m.stats()["fused"] == 0.0 and m.stats()["bf16"] == 1.0
+    assert "no C compiler" in caplog.text
+    with pytest.raises(ValueError, match="fused kernel cannot be built here"):
+        learner("simple-ddpg", True)
+
+
+def test_a_failing_build_is_reported_and_the_learner_runs_unfused(
+    monkeypatch, caplog, tmp_path, fresh_kernel_lookup
+):
+    broken = tmp_path / "cc"
+    broken.write_text("#!/bin/sh\n[ \"$1\" = --version ] && { echo broken 1.0; exit 0; }\n"
+                      "echo 'cc: internal error' >&2; exit 1\n")  # fmt: skip
+    broken.chmod(0o755)
+    monkeypatch.setenv("CC", str(broken))
+    with caplog.at_level(logging.WARNING, logger="macb.learners"):
+        assert learner("simple-ddpg", None).stats()["fused"] == 0.0
+    assert "could not be built" in caplog.text and "internal error" in caplog.text
+    assert list(fresh_kernel_lookup.glob("*.so")) == []  # nothing half-written left
+
+
+def test_macb_fused_0_turns_it_off(monkeypatch, fresh_kernel_lookup):
+    monkeypatch.setenv("MACB_FUSED", "0")
+    assert learner("simple-ddpg", None).stats()["fused"] == 0.0
+
+
+def test_the_build_is_cached_by_source_compiler_and_flags(kernel, fresh_kernel_lookup):
+    cc = fused._compiler()
+    first = fused._build(cc)
+    stamp = first.stat().st_mtime_ns
+    assert fused._build(cc) == first and first.stat().st_mtime_ns == stamp  # not rebuilt
+    assert [p.name for p in fresh_kernel_lookup.iterdir()] == [first.name]
+
+
+def test_fp32_learners_have_no_kernel():
+    m = BatchedMADDPG(CASES["simple-ddpg"][1], LearnerSpec(algo="ddpg"), precision="fp32")
+    assert m.stats()["fused"] == 0.0
+    with pytest.raises(ValueError, match="fused needs precision bf16"):
+        BatchedMADDPG(CASES["simple-ddpg"][1], LearnerSpec(algo="ddpg"), fused=True)
