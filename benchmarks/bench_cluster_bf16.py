@@ -8,7 +8,9 @@ evaluator, actor, API as processes, as a user runs it), in rounds whose order ro
 * `base`: the baseline commit (default 968ebf2, the cluster before bf16), checked out
   in a git worktree and run from it with this venv (its own code first on PYTHONPATH);
 * `fp32`: this tree, `precision: fp32` (the default);
-* `bf16`: this tree, `precision: bf16`.
+* `bf16`: this tree, `precision: bf16`;
+* `bf16-unfused`: the same with `MACB_FUSED=0`: the learner's master-weight work in
+  torch's ops instead of the fused kernel (shared/learners/fused.py).
 
 A run's throughput is its steady rate from its own metric rows: env steps between the
 first row past a third of the run and the last, over the learner's wall clock between
@@ -43,7 +45,7 @@ from _stats import fmt, median, ratio_median, rotating_rounds
 
 from shared.cluster import free_port
 
-VARIANTS = ("base", "fp32", "bf16")
+VARIANTS = ("base", "fp32", "bf16", "bf16-unfused")
 
 
 def steady_rate(rows: list[dict[str, str]]) -> tuple[float, float]:
@@ -68,12 +70,15 @@ def run_variant(variant: str, base_tree: Path, work: Path, episodes: int) -> dic
     tree = base_tree if variant == "base" else ROOT
     cli = "shared.cli" if (tree / "shared" / "cli.py").exists() else "cli"
     cfg = work / f"{variant}.yaml"
-    write_config(cfg, episodes, None if variant == "base" else variant)
+    precision = {"base": None, "bf16-unfused": "bf16"}.get(variant, variant)
+    write_config(cfg, episodes, precision)
     out, data = work / f"{variant}-out", work / f"{variant}-data"
     argv = [sys.executable, "-m", cli, "up", "--run", str(cfg), "--out", str(out)]
     argv += ["--data-dir", str(data), "--endpoint", f"tcp/127.0.0.1:{free_port()}"]
     argv += ["--api-port", str(free_port()), "--quiet", "--quiet-services"]
     env = {**os.environ, "PYTHONPATH": str(tree)}
+    if variant == "bf16-unfused":
+        env["MACB_FUSED"] = "0"
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.run(argv, cwd=tree, env=env, capture_output=True, text=True, check=False)
@@ -136,7 +141,8 @@ def main(argv: list[str] | None = None) -> None:
             f"| {fmt(median(x['command_s'] for x in by[v]))} |"
         )
     ratios = {}
-    for a, b in (("bf16", "base"), ("fp32", "base"), ("bf16", "fp32")):
+    pairs = [("bf16", "base"), ("fp32", "base"), ("bf16", "fp32"), ("bf16-unfused", "base")]
+    for a, b in [*pairs, ("bf16", "bf16-unfused")]:
         if a in by and b in by:
             for what in ("steady", "overall"):
                 ratios[f"{a}/{b} {what}"] = ratio_median(

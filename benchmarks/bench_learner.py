@@ -24,7 +24,8 @@ update with bf16 matrix products (`bf16`), both floors (`floor_bf16`: the floor'
 products in bf16, with oneDNN's bf16 layouts), bf16 without the fused master-weight
 kernel (`bf16_unfused`: torch's Adam, lerp and casts; shared/learners/fused.py) and bf16
 on two lanes, in the same rounds; plus a 2-thread speaker_listener row (where the
-learner runs torch's ops, so fused and unfused are the same code). `--precision fp32` or `bf16` runs one table only.
+learner runs torch's ops, so fused and unfused are the same code). `--precision fp32`
+or `bf16` runs one table only.
 
 Measurements run in rounds (about 0.15 s of each of ref, batched, floor, in a rotating
 order) so load from other processes on the shared machine hits all three alike. Rates

@@ -6,6 +6,7 @@ kernel cannot be built the learner says so and runs torch's ops."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,6 +31,13 @@ CASES = {
 }
 # Sizes on both sides of torch's vector width (8) and cache line (16), and a layer's.
 SIZES = [1, 2, 7, 8, 9, 15, 16, 17, 600, 120_003]
+
+
+def test_the_kernel_shares_torchs_openmp_runtime(kernel):
+    """One OpenMP runtime in the process: the kernel's libgomp is torch's (fused.py)."""
+    maps = Path("/proc/self/maps").read_text().splitlines()
+    gomp = {line.split()[-1] for line in maps if "libgomp" in line}
+    assert len(gomp) == 1, gomp
 
 
 @pytest.fixture(autouse=True)
@@ -226,8 +234,8 @@ def test_weights_written_between_updates_are_cast_anew(kernel):
 
 
 def test_switching_torch_threads_between_updates_keeps_the_bits(kernel):
-    """On two torch threads the learner runs torch's ops (fused.py says why); a tuner
-    switches threads block by block, so the two ways must hand over exactly."""
+    """The kernel splits large tensors over torch's threads (its OpenMP pool); the bits
+    do not depend on the split, and a tuner switches threads block by block."""
     case = "spread-dis"
     plain, fast = learner(case, False), learner(case, True)
     try:

@@ -418,10 +418,8 @@ class BatchedMADDPG:
         return -q_sum / batch
 
     def _fusing(self) -> bool:
-        """Whether this step runs in the fused kernel: with one torch thread. On two,
-        torch's own ops run it on both cores, faster than the kernel on one (fused.py);
-        both give the same bits, so a tuner may switch between them at any update."""
-        return self._kernel is not None and torch.get_num_threads() == 1
+        """Whether the master-weight work runs in the fused kernel (bf16, where it built)."""
+        return self._kernel is not None
 
     def _low_grads(self, batch: int, obs: torch.Tensor) -> bool:
         """Whether the weight gradients of these rows (`obs`) stay bf16 for the fused

@@ -18,10 +18,13 @@ compiler's version and the flags, so a rebuilt or changed compiler gets its own 
 concurrent processes never see a half-written one (written under a temporary name, then
 renamed). Where no compiler works (a slim container image), `kernel()` returns None, says
 why once in the log, and the learner runs the unfused torch path: same numbers, slower.
-`-march=native` is right because the file is built where it runs. One thread: where torch
-runs its ops on two, `BatchedMADDPG` keeps torch's ops for that update (a second thread
-of the kernel's own, a pthread, ran 10-17% slower there: torch's OpenMP worker spins on
-the other core between its ops). ctypes releases the GIL while the kernel runs.
+`-march=native` is right because the file is built where it runs. Threads: OpenMP, as many
+as torch's intra-op setting (which the learner's tuner switches), on a large tensor. The
+kernel is linked against libgomp.so.1, the soname of the runtime torch's wheel carries
+and has loaded already, so the loader binds it to torch's: one OpenMP runtime and one pool
+of threads in the process (a pthread of the kernel's own ran the update 10-17% slower on
+two threads: torch's OpenMP worker spins on the other core between its ops). ctypes
+releases the GIL while the kernel runs.
 """
 
 from __future__ import annotations
@@ -43,7 +46,15 @@ import torch
 log = logging.getLogger("macb.learners")
 
 SOURCE = Path(__file__).with_name("master.c")
-FLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-fno-math-errno", "-shared", "-fPIC")
+FLAGS = (
+    "-O3",
+    "-march=native",
+    "-ffp-contract=off",
+    "-fno-math-errno",
+    "-fopenmp",
+    "-shared",
+    "-fPIC",
+)
 # "0", "off", "false" or "no" turn the kernel off in every learner of the process.
 ENV_SWITCH = "MACB_FUSED"
 
@@ -125,9 +136,10 @@ class MasterKernel:
         i64 = ctypes.c_int64
         lib.macb_adam.restype = None
         lib.macb_adam.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(ctypes.c_int32), _P(_ptrs)]
-        lib.macb_adam.argtypes += [_P(_ptrs), _P(_ptrs), _P(i64)] + [f] * 7
+        lib.macb_adam.argtypes += [_P(_ptrs), _P(_ptrs), _P(i64)] + [f] * 7 + [ctypes.c_int32]
         lib.macb_soft_update.restype = None
         lib.macb_soft_update.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(_ptrs), _P(i64), f]
+        lib.macb_soft_update.argtypes += [ctypes.c_int32]
         self.lib = lib
 
     @staticmethod
@@ -181,6 +193,7 @@ class MasterKernel:
             lr / bias_correction1,
             math.sqrt(bias_correction2),
             eps,
+            torch.get_num_threads(),
         )
 
     def soft_update(
@@ -202,4 +215,5 @@ class MasterKernel:
             _array(lows),
             (ctypes.c_int64 * n)(*[t.numel() for t in targets]),
             tau,
+            torch.get_num_threads(),
         )

@@ -80,25 +80,57 @@ static void soft(float *restrict t, const float *restrict p, uint16_t *restrict 
     }
 }
 
+/* The share [lo, hi) of a tensor of n elements that thread `part` of `parts` takes: cut
+   at multiples of 16 (a cache line of floats; also a multiple of TORCH_VEC, though which
+   loop an element is in is decided by its index in the whole tensor, not the share). */
+static void share(int64_t n, int part, int parts, int64_t *lo, int64_t *hi) {
+    int64_t lines = (n + 15) / 16;
+    *lo = lines * part / parts * 16;
+    *hi = lines * (part + 1) / parts * 16;
+    if (*lo > n) *lo = n;
+    if (*hi > n) *hi = n;
+}
+
+/* Tensors smaller than this run in the calling thread alone. */
+#define PARALLEL_MIN 4096
+
 /* One Adam step of `count` tensors: p, m, v fp32; g bf16 where g_bf16[k], else fp32;
    low[k] receives p's bf16 copy. The scalars are torch's, rounded to float as its
    kernel rounds them: beta1, beta2, c1 = 1 - beta1, c2 = 1 - beta2,
-   step_size = lr / (1 - beta1^step), bc2_sqrt = sqrt(1 - beta2^step), eps. */
+   step_size = lr / (1 - beta1^step), bc2_sqrt = sqrt(1 - beta2^step), eps. `threads`:
+   OpenMP threads for a large tensor (the process's one OpenMP runtime, torch's: the
+   same pool its ops use). */
 void macb_adam(int64_t count, float **p, void **g, const int32_t *g_bf16, float **m,
                float **v, uint16_t **low, const int64_t *numel, float beta1, float beta2,
-               float c1, float c2, float step_size, float bc2_sqrt, float eps) {
+               float c1, float c2, float step_size, float bc2_sqrt, float eps,
+               int32_t threads) {
     adam_args a = {beta1, beta2, c1, c2, step_size, bc2_sqrt, eps};
     for (int64_t k = 0; k < count; k++) {
         int64_t n = numel[k];
-        if (g_bf16[k])
-            adam_bf16(p[k], (const uint16_t *)g[k], m[k], v[k], low[k], n, 0, n, a);
-        else
-            adam_f32(p[k], (const float *)g[k], m[k], v[k], low[k], n, 0, n, a);
+        int parts = n >= PARALLEL_MIN && threads > 1 ? threads : 1;
+#pragma omp parallel for num_threads(parts) schedule(static, 1) if (parts > 1)
+        for (int part = 0; part < parts; part++) {
+            int64_t lo, hi;
+            share(n, part, parts, &lo, &hi);
+            if (g_bf16[k])
+                adam_bf16(p[k], (const uint16_t *)g[k], m[k], v[k], low[k], n, lo, hi, a);
+            else
+                adam_f32(p[k], (const float *)g[k], m[k], v[k], low[k], n, lo, hi, a);
+        }
     }
 }
 
 /* t <- t + tau (p - t) for `count` tensors (tau < 0.5), then low[k] <- bf16(t). */
 void macb_soft_update(int64_t count, float **t, float **p, uint16_t **low,
-                      const int64_t *numel, float tau) {
-    for (int64_t k = 0; k < count; k++) soft(t[k], p[k], low[k], 0, numel[k], tau);
+                      const int64_t *numel, float tau, int32_t threads) {
+    for (int64_t k = 0; k < count; k++) {
+        int64_t n = numel[k];
+        int parts = n >= PARALLEL_MIN && threads > 1 ? threads : 1;
+#pragma omp parallel for num_threads(parts) schedule(static, 1) if (parts > 1)
+        for (int part = 0; part < parts; part++) {
+            int64_t lo, hi;
+            share(n, part, parts, &lo, &hi);
+            soft(t[k], p[k], low[k], lo, hi, tau);
+        }
+    }
 }
