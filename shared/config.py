@@ -162,6 +162,13 @@ class TrainConfig(BaseModel):
         description="batched: all agents in stacked matrix products (fast); "
         "reference: one plain PyTorch update per agent (same math)",
     )
+    flush_denormals: bool = Field(
+        True,
+        description="the learner's updates read and make subnormal floats (below 1.2e-38) as "
+        "0 (x86 DAZ/FTZ): Adam's first moments of weights with zero gradient otherwise "
+        "stay subnormal and slow every update 1.4-1.7x on Intel CPUs (docs/performance.md, "
+        "'Subnormal Adam moments'); false keeps IEEE subnormals, as the thesis code",
+    )
     precision: Literal["fp32", "bf16"] = Field(
         "fp32",
         description="batched learner: the update's matrix products in fp32, or in bf16 with "

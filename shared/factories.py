@@ -43,6 +43,7 @@ def build_learner(
         tau=cfg.tau,
         seed=derive_seed(cfg.seed, "learner"),
         same_init=cfg.same_init,
+        flush_denormals=cfg.flush_denormals,
     )
     if cfg.learner_impl != "batched":
         return MADDPG(agents, lspec)

@@ -9,13 +9,16 @@ per-agent steps) is for tests and benchmarks, which know which one they built.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
+import torch
+
 if TYPE_CHECKING:  # annotations only
     import numpy as np
-    import torch
 
 ALGOS = ("ddpg", "dis-maddpg", "cen-maddpg")
 
@@ -47,6 +50,48 @@ class LearnerSpec:
     # Agents of the same shape start from identical weights: torch reseeded with `seed`
     # before each agent's actor and critic (what the thesis code's per-agent setup did).
     same_init: bool = False
+    # Subnormal floats are flushed to zero inside an update (`denormals_flushed`).
+    flush_denormals: bool = True
+
+
+@contextmanager
+def denormals_flushed(on: bool) -> Iterator[None]:
+    """Within: subnormal floats (below 1.2e-38) read and made as zero (x86 DAZ and FTZ),
+    in this thread and in torch's OpenMP threads (through fused.py's library where it
+    builds; without a C compiler only in the threads torch starts meanwhile, which take
+    their creator's mode: torch starts its pool at its first two-thread op, in a learner
+    an update's).
+
+    Why: Adam's first moment of a weight whose gradient stays 0 (a dead ReLU unit) decays
+    by beta1 per step into the subnormal range and stays there (0.9 x the smallest
+    subnormal rounds back to it), and every multiply on a subnormal costs a microcode
+    assist on Intel CPUs: after 300 speaker_listener episodes 57% of the actors' and 28%
+    of the critics' first moments were subnormal and an update took 1.44x (fp32) to 1.67x
+    (bf16) as long as flushed (docs/performance.md, "Subnormal Adam moments"). What it
+    changes: values below 1.2e-38 become 0 (docs/fidelity.md L9)."""
+    if not on or getattr(_flushing, "on", False):  # off, or an outer one holds it
+        yield
+        return
+    # torch's pool of OpenMP threads keeps the mode its threads started with: set theirs
+    # too, through the fused kernel's library, which shares torch's OpenMP runtime.
+    from shared.learners.fused import kernel  # here: fused imports this module's torch
+
+    threads = torch.get_num_threads()
+    pool = kernel() if threads > 1 else None
+    torch.set_flush_denormal(True)
+    if pool is not None:
+        pool.flush_denormals(True, threads)
+    _flushing.on = True
+    try:
+        yield
+    finally:
+        _flushing.on = False
+        if pool is not None:
+            pool.flush_denormals(False, threads)
+        torch.set_flush_denormal(False)
+
+
+_flushing = threading.local()  # whether this thread is inside denormals_flushed
 
 
 def check_agents(agents: Sequence[AgentDims], spec: LearnerSpec) -> None:

@@ -45,7 +45,7 @@ import torch
 from shared.joint import offsets
 from shared.learners import checkpoint
 from shared.learners import fused as fused_kernel
-from shared.learners.base import AgentDims, LearnerSpec, check_agents
+from shared.learners.base import AgentDims, LearnerSpec, check_agents, denormals_flushed
 from shared.learners.lanes import Lanes
 from shared.learners.layers import Stack, mlp_backward, mlp_forward
 from shared.learners.precision import DTYPES, resolve
@@ -533,13 +533,16 @@ class BatchedMADDPG:
         if lanes not in (1, self.lanes.n):
             raise ValueError(f"lanes must be 1 or {self.lanes.n}, got {lanes!r}")
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
-        if lanes > 1 and obs_t.shape[-2] > 1:
-            critic_losses, actor_losses = self._update_in_lanes(obs_t, act_t, rew_t, next_t, done_t)
-        else:
-            y = self.target_q(rew_t, next_t, done_t)
-            critic_losses = self.critic_step(obs_t, act_t, y)
-            actor_losses = self.actor_step(obs_t, act_t)
-        self.soft_update()
+        with denormals_flushed(self.spec.flush_denormals):
+            if lanes > 1 and obs_t.shape[-2] > 1:
+                critic_losses, actor_losses = self._update_in_lanes(
+                    obs_t, act_t, rew_t, next_t, done_t
+                )
+            else:
+                y = self.target_q(rew_t, next_t, done_t)
+                critic_losses = self.critic_step(obs_t, act_t, y)
+                actor_losses = self.actor_step(obs_t, act_t)
+            self.soft_update()
         self.updates += 1
         critic_loss, actor_loss = torch.stack([critic_losses.mean(), actor_losses.mean()]).tolist()
         return {"critic_loss": critic_loss, "actor_loss": actor_loss}
@@ -578,16 +581,21 @@ class BatchedMADDPG:
         # The weights' bf16 copies are cast here, once, and read by every lane.
         targets, critic = self._target_weights(), self._weights(self.critic.params)
 
+        flush = self.spec.flush_denormals  # in the lanes' threads too
+
         def critic_part(b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, list[torch.Tensor]]:
             o, a, r, o2, d = b
-            return self._critic_grads(critic, o, a, self._target_q(targets, r, o2, d), batch)
+            with denormals_flushed(flush):
+                return self._critic_grads(critic, o, a, self._target_q(targets, r, o2, d), batch)
+
+        def actor_part(b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+            with denormals_flushed(flush):
+                return self._actor_grads(weights, b[0], b[1], batch)
 
         sq_sum, grads = self._sum_parts(self.lanes.map(critic_part, blocks))
         self._step(self.critic_optim, self.critic.params, grads)
         weights = self._actor_weights()
-        q_sum, grads = self._sum_parts(
-            self.lanes.map(lambda b: self._actor_grads(weights, b[0], b[1], batch), blocks)
-        )
+        q_sum, grads = self._sum_parts(self.lanes.map(actor_part, blocks))
         self._step(self.actor_optim, self.actor.params, grads)
         return sq_sum / batch, -q_sum / batch
 

@@ -137,12 +137,18 @@ class MasterKernel:
         lib.macb_adam.restype = None
         lib.macb_adam.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(ctypes.c_int32), _P(_ptrs)]
         lib.macb_adam.argtypes += [_P(_ptrs), _P(_ptrs), _P(i64)] + [f] * 7 + [ctypes.c_int32]
+        lib.macb_flush_denormals.restype = ctypes.c_int32
+        lib.macb_flush_denormals.argtypes = [ctypes.c_int32, ctypes.c_int32]
         lib.macb_soft_update.restype = None
         lib.macb_soft_update.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(_ptrs), _P(i64), f]
         lib.macb_soft_update.argtypes += [ctypes.c_int32]
         self.lib = lib
 
-    @staticmethod
+    def flush_denormals(self, on: bool, threads: int) -> bool:
+        """DAZ and FTZ on (or off) in every thread of an OpenMP team of `threads` (torch's
+        pool); False where the CPU has no such mode."""
+        return bool(self.lib.macb_flush_denormals(int(on), threads))
+
     @staticmethod
     def _check(*lists: Sequence[torch.Tensor]) -> None:
         sizes = [t.numel() for t in lists[0]]

@@ -16,6 +16,10 @@
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+#if defined(__x86_64__) || defined(__i386__)
+#include <xmmintrin.h>
+#define MACB_MXCSR 1
+#endif
 
 /* torch's float Vectorized width in its fused Adam here: the first n - n % 8 elements of
    a tensor go through its vector loop, the rest through its scalar loop, which its
@@ -133,4 +137,23 @@ void macb_soft_update(int64_t count, float **t, float **p, uint16_t **low,
             soft(t[k], p[k], low[k], lo, hi, tau);
         }
     }
+}
+
+/* Subnormals read and made as zero (x86 DAZ and FTZ: MXCSR bits 6 and 15), or not, in
+   every thread of an OpenMP team of `threads`: torch's pool, whose workers keep the mode
+   they started with, which torch.set_flush_denormal (the calling thread's) cannot reach.
+   Returns 0 where there is no MXCSR. */
+int32_t macb_flush_denormals(int32_t on, int32_t threads) {
+#ifdef MACB_MXCSR
+#pragma omp parallel num_threads(threads)
+    {
+        unsigned int csr = _mm_getcsr();
+        _mm_setcsr(on ? (csr | 0x8040u) : (csr & ~0x8040u));
+    }
+    return 1;
+#else
+    (void)on;
+    (void)threads;
+    return 0;
+#endif
 }

@@ -23,7 +23,13 @@ import torch
 import torch.nn.functional as F
 
 from shared.joint import offsets
-from shared.learners.base import AgentDims, LearnerSpec, agent_slice, check_agents
+from shared.learners.base import (
+    AgentDims,
+    LearnerSpec,
+    agent_slice,
+    check_agents,
+    denormals_flushed,
+)
 from shared.networks import Actor, Critic
 
 
@@ -152,6 +158,17 @@ class MADDPG:
         leading agent axis on every array (one minibatch per agent, see `Learner`),
         agent i's steps use batch i alone.
         """
+        with denormals_flushed(self.spec.flush_denormals):
+            return self._update(obs, act, rew, next_obs, done)
+
+    def _update(
+        self,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: np.ndarray,
+        next_obs: np.ndarray,
+        done: np.ndarray,
+    ) -> dict[str, float]:
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
         critic_losses, actor_losses = [], []
         per_agent = obs_t.dim() == 3
