@@ -417,15 +417,11 @@ class BatchedMADDPG:
         self._step(self.actor_optim, self.actor.params, grads)
         return -q_sum / batch
 
-    def _fusing(self) -> bool:
-        """Whether the master-weight work runs in the fused kernel (bf16, where it built)."""
-        return self._kernel is not None
-
     def _low_grads(self, batch: int, obs: torch.Tensor) -> bool:
         """Whether the weight gradients of these rows (`obs`) stay bf16 for the fused
         Adam: yes, unless they are a lane's block, whose gradients are summed with the
         other lanes' first (in fp32, as unfused: a bf16 sum would round)."""
-        return self._fusing() and obs.shape[-2] == batch
+        return self._kernel is not None and obs.shape[-2] == batch
 
     def _step(
         self, optim: torch.optim.Adam, params: list[torch.Tensor], grads: Sequence[torch.Tensor]
@@ -434,7 +430,7 @@ class BatchedMADDPG:
         copies too) or `_adam_step`."""
         group = optim.param_groups[0]
         plain = not (group["amsgrad"] or group["weight_decay"] or group["maximize"])
-        if not (self._fusing() and plain):
+        if self._kernel is None or not plain:
             self._adam_step(optim, params, grads)
             self._current.discard(id(params))
             return
@@ -613,7 +609,7 @@ class BatchedMADDPG:
         """theta' <- tau theta + (1 - tau) theta' for every target network, in one call
         (fused: with the targets' bf16 copies)."""
         actor, critic = self.actor, self.critic
-        if self._fusing() and self.spec.tau < 0.5:
+        if self._kernel is not None and self.spec.tau < 0.5:
             self._kernel.soft_update(
                 actor.targets + critic.targets,
                 actor.params + critic.params,

@@ -158,31 +158,23 @@ class MADDPG:
         leading agent axis on every array (one minibatch per agent, see `Learner`),
         agent i's steps use batch i alone.
         """
-        with denormals_flushed(self.spec.flush_denormals):
-            return self._update(obs, act, rew, next_obs, done)
-
-    def _update(
-        self,
-        obs: np.ndarray,
-        act: np.ndarray,
-        rew: np.ndarray,
-        next_obs: np.ndarray,
-        done: np.ndarray,
-    ) -> dict[str, float]:
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
-        critic_losses, actor_losses = [], []
-        per_agent = obs_t.dim() == 3
-        # Targets do not move until soft_update: target actions once per minibatch.
-        next_acts = (
-            [self.target_actions(n) for n in next_t] if per_agent else [self.target_actions(next_t)]
-        )
-        batch = (obs_t, act_t, rew_t, next_t, done_t)
-        for i in range(self.n):
-            o, a, r, o2, d = (t[i] for t in batch) if per_agent else batch
-            y = self.target_q(i, r, o2, d, next_acts[i if per_agent else 0])
-            critic_losses.append(self.critic_step(i, o, a, y))
-            actor_losses.append(self.actor_step(i, o, a))
-        self.soft_update()
+        with denormals_flushed(self.spec.flush_denormals):
+            critic_losses, actor_losses = [], []
+            per_agent = obs_t.dim() == 3
+            # Targets do not move until soft_update: target actions once per minibatch.
+            next_acts = (
+                [self.target_actions(n) for n in next_t]
+                if per_agent
+                else [self.target_actions(next_t)]
+            )
+            batch = (obs_t, act_t, rew_t, next_t, done_t)
+            for i in range(self.n):
+                o, a, r, o2, d = (t[i] for t in batch) if per_agent else batch
+                y = self.target_q(i, r, o2, d, next_acts[i if per_agent else 0])
+                critic_losses.append(self.critic_step(i, o, a, y))
+                actor_losses.append(self.actor_step(i, o, a))
+            self.soft_update()
         self.updates += 1
         return {
             "critic_loss": float(np.mean(critic_losses)),
