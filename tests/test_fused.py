@@ -320,3 +320,15 @@ def test_fp32_learners_have_no_kernel():
     assert m.stats()["fused"] == 0.0
     with pytest.raises(ValueError, match="fused needs precision bf16"):
         BatchedMADDPG(CASES["simple-ddpg"][1], LearnerSpec(algo="ddpg"), fused=True)
+
+
+def test_the_kernel_finds_torchs_vector_width_and_refuses_a_wrong_one(
+    kernel, monkeypatch, caplog, fresh_kernel_lookup
+):
+    """Which of torch's two Adam loops an element goes through depends on torch's vector
+    width; the kernel finds it by comparing with torch, and runs only where one matches."""
+    assert kernel.vec in fused.VEC_WIDTHS
+    monkeypatch.setattr(fused, "VEC_WIDTHS", (1,))  # every element in the vector loop
+    with caplog.at_level(logging.WARNING, logger="macb.learners"):
+        assert fused.kernel() is None
+    assert "does not reproduce this torch's Adam bit for bit" in caplog.text

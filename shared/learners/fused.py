@@ -58,6 +58,9 @@ FLAGS = (
 # "0", "off", "false" or "no" turn the kernel off in every learner of the process.
 ENV_SWITCH = "MACB_FUSED"
 
+# Widths of torch's fused-Adam vector loop to try (fused.py's probe, master.c's `vec`).
+VEC_WIDTHS = (8, 16, 4, 32)
+
 _P = ctypes.POINTER
 _ptrs = ctypes.c_void_p
 
@@ -114,7 +117,7 @@ def kernel() -> MasterKernel | None:
         )
         return None
     try:
-        return MasterKernel(ctypes.CDLL(str(_build(cc))))
+        found = MasterKernel(ctypes.CDLL(str(_build(cc))))
     except (OSError, RuntimeError, subprocess.SubprocessError) as err:
         log.warning(
             "the bf16 learner's fused kernel could not be built (%s): its master-weight "
@@ -122,6 +125,14 @@ def kernel() -> MasterKernel | None:
             err,
         )
         return None
+    if found.vec is None:
+        log.warning(
+            "the bf16 learner's fused kernel does not reproduce this torch's Adam bit for bit "
+            "(for no vector width in %s): its master-weight work runs unfused",
+            VEC_WIDTHS,
+        )
+        return None
+    return found
 
 
 def _array(tensors: Sequence[torch.Tensor]) -> ctypes.Array:
@@ -136,13 +147,45 @@ class MasterKernel:
         i64 = ctypes.c_int64
         lib.macb_adam.restype = None
         lib.macb_adam.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(ctypes.c_int32), _P(_ptrs)]
-        lib.macb_adam.argtypes += [_P(_ptrs), _P(_ptrs), _P(i64)] + [f] * 7 + [ctypes.c_int32]
+        lib.macb_adam.argtypes += [_P(_ptrs), _P(_ptrs), _P(i64)] + [f] * 7 + [ctypes.c_int32] * 2
         lib.macb_flush_denormals.restype = ctypes.c_int32
         lib.macb_flush_denormals.argtypes = [ctypes.c_int32, ctypes.c_int32]
         lib.macb_soft_update.restype = None
         lib.macb_soft_update.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(_ptrs), _P(i64), f]
         lib.macb_soft_update.argtypes += [ctypes.c_int32]
         self.lib = lib
+        self.vec: int | None = 8  # the probe's first try; then what matched, or None
+        self.vec = self._probe_vec()
+
+    def _probe_vec(self) -> int | None:
+        """The width of torch's vector loop in its fused Adam, found by running both on
+        tensors whose every element-count between 1 and 47 puts elements on both sides of
+        that loop's end: the width whose results equal torch's bit for bit, else None."""
+        gen = torch.Generator().manual_seed(0)
+        sizes = list(range(1, 48))
+
+        def tensors() -> list[list[torch.Tensor]]:
+            out = [[torch.randn(n, generator=gen) * 0.1 for n in sizes]]
+            out.append([torch.randn(n, generator=gen) * 1e-2 for n in sizes])
+            out.append([torch.randn(n, generator=gen) * 1e-3 for n in sizes])
+            out.append([torch.rand(n, generator=gen) * 1e-4 for n in sizes])
+            return out
+
+        p, g, m, v = tensors()
+        theirs = [[t.clone() for t in ts] for ts in (p, m, v)]
+        torch._fused_adam_(
+            theirs[0], g, theirs[1], theirs[2], [], [torch.tensor(3.0) for _ in sizes],
+            amsgrad=False, lr=1e-3, beta1=0.9, beta2=0.999, weight_decay=0.0, eps=1e-8,
+            maximize=False,
+        )  # fmt: skip
+        for vec in VEC_WIDTHS:
+            self.vec = vec
+            ours = [[t.clone() for t in ts] for ts in (p, m, v)]
+            lows = [torch.empty(n, dtype=torch.bfloat16) for n in sizes]
+            self.adam(ours[0], g, ours[1], ours[2], lows, 3.0, 1e-3, 0.9, 0.999, 1e-8)
+            if all(torch.equal(a, b) for xs, ys in zip(ours, theirs) for a, b in zip(xs, ys)):
+                return vec
+        return None
 
     def flush_denormals(self, on: bool, threads: int) -> bool:
         """DAZ and FTZ on (or off) in every thread of an OpenMP team of `threads` (torch's
@@ -199,6 +242,7 @@ class MasterKernel:
             lr / bias_correction1,
             math.sqrt(bias_correction2),
             eps,
+            self.vec or 1,
             torch.get_num_threads(),
         )
 

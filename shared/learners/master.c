@@ -3,7 +3,7 @@
    Adam: torch 2.13's fused CPU Adam for float, operation for operation, including where
    its build fuses a multiply-add (m = fma(1 - beta1, g - m, m) as its lerp; v =
    fma((1 - beta2) g, g, beta2 v) in its vector loop, another fma in its scalar loop,
-   see TORCH_VEC) and where it does not (everything else: this file is built with
+   see `vec`) and where it does not (everything else: this file is built with
    -ffp-contract=off and writes each fma out), reading a weight's gradient in
    bf16 or fp32, then writing the weight's bf16 copy.
    Soft update: torch's lerp for a weight below 0.5 (start + w * (end - start), as one
@@ -21,10 +21,10 @@
 #define MACB_MXCSR 1
 #endif
 
-/* torch's float Vectorized width in its fused Adam here: the first n - n % 8 elements of
-   a tensor go through its vector loop, the rest through its scalar loop, which its
-   build contracts differently (v = fma(v, beta2, (1 - beta2) g g)). */
-#define TORCH_VEC 8
+/* `vec` below: the width of torch's vector loop in its fused Adam (8 with torch 2.13 on
+   the project's machines): the first n - n % vec elements of a tensor go through it, the
+   rest through its scalar loop, which its build contracts differently (v = fma(v, beta2,
+   (1 - beta2) g g)). fused.py finds it by comparing with torch when it loads this file. */
 
 static inline uint16_t to_bf16(float f) {
     uint32_t u;
@@ -42,7 +42,7 @@ static inline float from_bf16(uint16_t h) {
 
 /* Elements [lo, hi) of one tensor; `n` its size (which element is in torch's tail). */
 #define ADAM_LOOP(LOAD)                                                                  \
-    const int64_t body = n - n % TORCH_VEC;                                              \
+    const int64_t body = n - n % a.vec;                                                  \
     for (int64_t i = lo; i < hi; i++) {                                                  \
         float gi = LOAD;                                                                 \
         float mi = fmaf(c1, gi - m[i], m[i]);                                            \
@@ -57,6 +57,7 @@ static inline float from_bf16(uint16_t h) {
 
 typedef struct {
     float beta1, beta2, c1, c2, step_size, bc2_sqrt, eps;
+    int64_t vec;
 } adam_args;
 
 static void adam_f32(float *restrict p, const float *restrict g, float *restrict m,
@@ -85,8 +86,8 @@ static void soft(float *restrict t, const float *restrict p, uint16_t *restrict 
 }
 
 /* The share [lo, hi) of a tensor of n elements that thread `part` of `parts` takes: cut
-   at multiples of 16 (a cache line of floats; also a multiple of TORCH_VEC, though which
-   loop an element is in is decided by its index in the whole tensor, not the share). */
+   at multiples of 16 (a cache line of floats; which of torch's loops an element is in
+   is decided by its index in the whole tensor, not by the share). */
 static void share(int64_t n, int part, int parts, int64_t *lo, int64_t *hi) {
     int64_t lines = (n + 15) / 16;
     *lo = lines * part / parts * 16;
@@ -107,8 +108,8 @@ static void share(int64_t n, int part, int parts, int64_t *lo, int64_t *hi) {
 void macb_adam(int64_t count, float **p, void **g, const int32_t *g_bf16, float **m,
                float **v, uint16_t **low, const int64_t *numel, float beta1, float beta2,
                float c1, float c2, float step_size, float bc2_sqrt, float eps,
-               int32_t threads) {
-    adam_args a = {beta1, beta2, c1, c2, step_size, bc2_sqrt, eps};
+               int32_t vec, int32_t threads) {
+    adam_args a = {beta1, beta2, c1, c2, step_size, bc2_sqrt, eps, vec > 0 ? vec : 1};
     for (int64_t k = 0; k < count; k++) {
         int64_t n = numel[k];
         int parts = n >= PARALLEL_MIN && threads > 1 ? threads : 1;
