@@ -18,6 +18,7 @@ it had in flight when it died is collected anew) and runs the rest of its episod
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,6 +39,9 @@ from shared.wire import encode
 
 MAX_UNCOUNTED_BATCHES = 8  # episodes in flight that the counter has not acknowledged
 RESEND_AFTER_S = 1.0
+# Runs whose newest weights an actor keeps (it serves one at a time; the others are
+# runs beside it on the bus, or over).
+NEWEST_RUNS_KEPT = 16
 
 
 @dataclass
@@ -67,14 +71,25 @@ class ActorService(ServiceBase):
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         super().__init__(service_id, connect, data_dir)
         torch.set_num_threads(1)
-        self._newest: tuple[str, bytes] | None = None  # the newest weights message only
+        # The newest weights message of each run (older versions are never looked at).
+        # Per run: with several runs on the bus (`macb up --slots`) another run's weights,
+        # published every episode, must not overwrite this run's first ones, which are
+        # published once before any episode (an actor waited for them forever).
+        self._newest: dict[str, tuple[str, bytes]] = {}
+        self._newest_lock = threading.Lock()
         # Subscribed for the service's lifetime: the learner's first weights may be out
         # before this actor has handled the start message. The slot holds one message.
         self.bus.subscribe(keys.k_weights("*", "*"), self._on_weights)
         self.st: ActorRun | None = None
 
     def _on_weights(self, key: str, payload: bytes) -> None:
-        self._newest = (key, payload)  # overwrite: older versions are never looked at
+        run = keys.run_of(key)
+        with self._newest_lock:  # Zenoh's threads
+            newest = self._newest
+            newest.pop(run, None)  # re-inserted: the order is then the order of arrival
+            newest[run] = (key, payload)
+            while len(newest) > NEWEST_RUNS_KEPT:  # runs long over
+                newest.pop(next(iter(newest)))
 
     # ------------------------------------------------------------ lifecycle
     def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
@@ -152,12 +167,11 @@ class ActorService(ServiceBase):
         )
 
     def load_newest_weights(self) -> None:
-        newest, st = self._newest, self.st
-        if newest is None or st is None:
+        st = self.st
+        newest = self._newest.get(self.run_id) if st is not None else None
+        if newest is None:
             return
         key, payload = newest
-        if keys.run_of(key) != self.run_id:
-            return
         msg = self.decode_for_run(key, payload, "weights")
         if msg is None:
             return

@@ -72,6 +72,8 @@ EVAL_RESEND_S = 30.0
 # silence: the evaluator holds later points until it has the earlier ones (rows in
 # episode order), so no later report would come to show that this one was lost.
 EVAL_BEHIND_RESEND_S = 5.0
+# Until the first transition comes, the initial weights go out again this often.
+FIRST_WEIGHTS_RESEND_S = 1.0
 # The columns of a logged batch, each stored as (n, bytes per row) uint8.
 LOG_COLUMNS = (
     ("obs", np.float32),
@@ -232,6 +234,7 @@ class LearnerRun:
     lags: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=200))
     window_open: bool = True
     last_ack: float = 0.0
+    last_weights: float = 0.0  # when weights last went to the actors
     last_stats: float = 0.0
     last_ckpt: float = field(default_factory=time.monotonic)
     t0: float = field(default_factory=time.perf_counter)
@@ -529,6 +532,10 @@ class LearnerService(ServiceBase):
         if window_open != st.window_open or now - st.last_ack > 0.5:
             st.window_open = window_open
             self.send_ack()
+        if st.ingested == 0 and now - st.last_weights > FIRST_WEIGHTS_RESEND_S:
+            # No transition yet: the first weights, which actors wait for, may have gone
+            # out before the bus had a route to them.
+            self.publish_weights(eval_point=-1)
         if now - st.last_stats > 1.0:
             st.last_stats = now
             self.publish_metrics(self.run_id, self.stats(), source="learner")
@@ -588,6 +595,7 @@ class LearnerService(ServiceBase):
             st.eval_pub(payload)
         else:
             st.weights_pub(payload)
+            st.last_weights = time.monotonic()
 
     def resend_unreported(self, now: float, at_once: bool = False) -> None:
         """Send again the evaluation points that were lost on the way: older than one the
