@@ -22,7 +22,7 @@ why once in the log, and the learner runs the unfused torch path: same numbers, 
 as torch's intra-op setting (which the learner's tuner switches), on a large tensor. The
 kernel is linked against libgomp.so.1, the soname of the runtime torch's wheel carries
 and has loaded already, so the loader binds it to torch's: one OpenMP runtime and one pool
-of threads in the process (a pthread of the kernel's own ran the update 10-17% slower on
+of threads in the process (a pthread of the kernel's own ran the update 7-17% slower on
 two threads: torch's OpenMP worker spins on the other core between its ops). ctypes
 releases the GIL while the kernel runs.
 """
@@ -105,15 +105,18 @@ def switched_off() -> bool:
 @functools.cache
 def kernel() -> MasterKernel | None:
     """The compiled kernel, or None (logged once) where it cannot be built or loaded, or
-    where $MACB_FUSED turns it off."""
+    where $MACB_FUSED turns it off. Also the way into torch's OpenMP threads for
+    `flush_denormals` (base.py), in fp32 learners too."""
     if switched_off():
         log.info("%s is off: the bf16 learner's master weights go through torch's ops", ENV_SWITCH)
         return None
     cc = _compiler()
     if cc is None:
         log.warning(
-            "no C compiler (cc or $CC) on PATH: the bf16 learner runs its master-weight "
-            "work unfused (same results, slower; docs/performance.md 'bf16: the fused pass')"
+            "no C compiler (cc or $CC) on PATH: a bf16 learner runs its master-weight work "
+            "unfused (same results, slower), and flush_denormals reaches only the OpenMP "
+            "threads an update starts (docs/performance.md, 'bf16: the fused master-weight "
+            "pass', 'Subnormal Adam moments')"
         )
         return None
     try:
@@ -140,7 +143,8 @@ def _array(tensors: Sequence[torch.Tensor]) -> ctypes.Array:
 
 
 class MasterKernel:
-    """The two entry points of master.c over lists of contiguous CPU tensors."""
+    """master.c's entry points: Adam and the soft update over lists of contiguous CPU
+    tensors, and the floating-point mode of torch's OpenMP threads."""
 
     def __init__(self, lib: ctypes.CDLL) -> None:
         f = ctypes.c_float
