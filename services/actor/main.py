@@ -78,7 +78,7 @@ class ActorService(ServiceBase):
         self._newest: dict[str, tuple[str, bytes]] = {}
         self._newest_lock = threading.Lock()
         # Subscribed for the service's lifetime: the learner's first weights may be out
-        # before this actor has handled the start message. The slot holds one message.
+        # before this actor has handled the start message.
         self.bus.subscribe(keys.k_weights("*", "*"), self._on_weights)
         self.st: ActorRun | None = None
 

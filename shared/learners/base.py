@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import torch
 
+from shared.learners.fused import kernel
+
 if TYPE_CHECKING:  # annotations only
     import numpy as np
 
@@ -74,8 +76,6 @@ def denormals_flushed(on: bool) -> Iterator[None]:
         return
     # torch's pool of OpenMP threads keeps the mode its threads started with: set theirs
     # too, through the fused kernel's library, which shares torch's OpenMP runtime.
-    from shared.learners.fused import kernel  # here: fused imports this module's torch
-
     threads = torch.get_num_threads()
     pool = kernel() if threads > 1 else None
     torch.set_flush_denormal(True)

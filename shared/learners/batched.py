@@ -138,7 +138,7 @@ class BatchedMADDPG:
         self.center = (high + low) / 2
 
         self._init_like_reference([len(c) for c in critic_in])
-        # Adam over the stacked tensors, stepped by _adam_step with the fused kernel. The
+        # Adam over the stacked tensors, stepped by _step with a fused kernel. The
         # optimizers hold the settings and state that state_dict() reads and writes.
         self.actor_optim = torch.optim.Adam(self.actor.params, lr=spec.lr_actor, fused=True)
         self.critic_optim = torch.optim.Adam(self.critic.params, lr=spec.lr_critic, fused=True)
@@ -158,9 +158,9 @@ class BatchedMADDPG:
                 self._low[id(tensors)] = [torch.empty_like(t, dtype=self.dtype) for t in tensors]
         # The fused kernel (bf16 only) and the weight lists whose copies it has kept
         # current since they were last cast; any other write to the weights empties it.
-        self._kernel = self._fused_kernel(fused) if self.dtype == torch.bfloat16 else None
-        if fused and self._kernel is None and self.dtype != torch.bfloat16:
+        if fused and self.dtype != torch.bfloat16:
             raise ValueError(f"fused needs precision bf16 (this learner runs {self.precision})")
+        self._kernel = self._fused_kernel(fused) if self.dtype == torch.bfloat16 else None
         self._current: set[int] = set()
 
     @staticmethod
@@ -426,68 +426,45 @@ class BatchedMADDPG:
     def _step(
         self, optim: torch.optim.Adam, params: list[torch.Tensor], grads: Sequence[torch.Tensor]
     ) -> None:
-        """One Adam step of one network: in the fused kernel (writing the weights' bf16
-        copies too) or `_adam_step`."""
+        """One Adam step of one network, as `optim.step()` with `grads` would take it, without
+        Optimizer.step's per-call bookkeeping (hooks, grouping, state checks), which costs
+        about 0.1 ms a call, a tenth of a whole update on small networks: torch's fused
+        kernel, or in bf16 fused.py's (the same bits, and the weights' bf16 copies written
+        in the same pass). Settings outside the plain Adam the learner uses (amsgrad,
+        weight decay) go through `optim.step()` itself."""
         group = optim.param_groups[0]
-        plain = not (group["amsgrad"] or group["weight_decay"] or group["maximize"])
-        if self._kernel is None or not plain:
-            self._adam_step(optim, params, grads)
+        if group["amsgrad"] or group["weight_decay"] or group["maximize"]:
+            for p, g in zip(params, grads):
+                p.grad = g
+            optim.step()
             self._current.discard(id(params))
             return
-        states = self._adam_states(optim, params)
-        steps = [s["step"] for s in states]
-        torch._foreach_add_(steps, 1)
-        beta1, beta2 = group["betas"]
-        self._kernel.adam(
-            params,
-            grads,
-            [s["exp_avg"] for s in states],
-            [s["exp_avg_sq"] for s in states],
-            self._low[id(params)],
-            steps[0].item(),
-            lr=group["lr"],
-            beta1=beta1,
-            beta2=beta2,
-            eps=group["eps"],
-        )
-        self._current.add(id(params))
-
-    @staticmethod
-    def _adam_states(optim: torch.optim.Adam, params: Sequence[torch.Tensor]) -> list[dict]:
-        """Adam's per-weight state, made at the first step as Adam(fused=True) makes it."""
         state = optim.state
-        if params[0] not in state:
+        if params[0] not in state:  # first step: initialise state as Adam(fused=True) does
             for p in params:
                 state[p] = {
                     "step": torch.zeros((), dtype=torch.float32),
                     "exp_avg": torch.zeros_like(p),
                     "exp_avg_sq": torch.zeros_like(p),
                 }
-        return [state[p] for p in params]
-
-    @staticmethod
-    def _adam_step(
-        optim: torch.optim.Adam, params: Sequence[torch.Tensor], grads: Sequence[torch.Tensor]
-    ) -> None:
-        """`optim.step()` with `grads`: the same fused kernel, without Optimizer.step's
-        per-call bookkeeping (hooks, grouping, state checks), which costs about 0.1 ms a
-        call, a tenth of a whole update on small networks. Settings outside the plain Adam
-        the learner uses (amsgrad, weight decay) go through `optim.step()` itself."""
-        group = optim.param_groups[0]
-        if group["amsgrad"] or group["weight_decay"] or group["maximize"]:
-            for p, g in zip(params, grads):
-                p.grad = g
-            optim.step()
-            return
-        states = BatchedMADDPG._adam_states(optim, params)
+        states = [state[p] for p in params]
         steps = [s["step"] for s in states]
         torch._foreach_add_(steps, 1)
         beta1, beta2 = group["betas"]
+        exp_avgs = [s["exp_avg"] for s in states]
+        exp_avg_sqs = [s["exp_avg_sq"] for s in states]
+        if self._kernel is not None:
+            self._kernel.adam(
+                params, grads, exp_avgs, exp_avg_sqs, self._low[id(params)], steps[0].item(),
+                lr=group["lr"], beta1=beta1, beta2=beta2, eps=group["eps"],
+            )  # fmt: skip
+            self._current.add(id(params))
+            return
         torch._fused_adam_(
             list(params),
             list(grads),
-            [s["exp_avg"] for s in states],
-            [s["exp_avg_sq"] for s in states],
+            exp_avgs,
+            exp_avg_sqs,
             [],
             steps,
             amsgrad=False,

@@ -99,17 +99,36 @@ static void share(int64_t n, int part, int parts, int64_t *lo, int64_t *hi) {
 /* Tensors smaller than this run in the calling thread alone. */
 #define PARALLEL_MIN 4096
 
-/* One Adam step of `count` tensors: p, m, v fp32; g bf16 where g_bf16[k], else fp32;
-   low[k] receives p's bf16 copy. The scalars are torch's, rounded to float as its
-   kernel rounds them: beta1, beta2, c1 = 1 - beta1, c2 = 1 - beta2,
-   step_size = lr / (1 - beta1^step), bc2_sqrt = sqrt(1 - beta2^step), eps. `threads`:
-   OpenMP threads for a large tensor (the process's one OpenMP runtime, torch's: the
-   same pool its ops use). */
-void macb_adam(int64_t count, float **p, void **g, const int32_t *g_bf16, float **m,
-               float **v, uint16_t **low, const int64_t *numel, float beta1, float beta2,
-               float c1, float c2, float step_size, float bc2_sqrt, float eps,
-               int32_t vec, int32_t threads) {
-    adam_args a = {beta1, beta2, c1, c2, step_size, bc2_sqrt, eps, vec > 0 ? vec : 1};
+/* One call's tensors and scalars (those of Adam or of the soft update). */
+typedef struct {
+    float **p, **m, **v, **t;
+    void **g;
+    const int32_t *g_bf16;
+    uint16_t **low;
+    adam_args a;
+    float tau;
+} work;
+
+/* Elements [lo, hi) of tensor k, of n elements. */
+typedef void (*range_fn)(const work *w, int64_t k, int64_t n, int64_t lo, int64_t hi);
+
+static void adam_range(const work *w, int64_t k, int64_t n, int64_t lo, int64_t hi) {
+    if (w->g_bf16[k])
+        adam_bf16(w->p[k], (const uint16_t *)w->g[k], w->m[k], w->v[k], w->low[k], n, lo, hi,
+                  w->a);
+    else
+        adam_f32(w->p[k], (const float *)w->g[k], w->m[k], w->v[k], w->low[k], n, lo, hi, w->a);
+}
+
+static void soft_range(const work *w, int64_t k, int64_t n, int64_t lo, int64_t hi) {
+    (void)n;
+    soft(w->t[k], w->p[k], w->low[k], lo, hi, w->tau);
+}
+
+/* `fn` over every element of `count` tensors; a large tensor split over `threads` OpenMP
+   threads (the process's one OpenMP runtime, torch's: the same pool its ops use). */
+static void each_tensor(const work *w, range_fn fn, int64_t count, const int64_t *numel,
+                        int32_t threads) {
     for (int64_t k = 0; k < count; k++) {
         int64_t n = numel[k];
         int parts = n >= PARALLEL_MIN && threads > 1 ? threads : 1;
@@ -117,27 +136,39 @@ void macb_adam(int64_t count, float **p, void **g, const int32_t *g_bf16, float 
         for (int part = 0; part < parts; part++) {
             int64_t lo, hi;
             share(n, part, parts, &lo, &hi);
-            if (g_bf16[k])
-                adam_bf16(p[k], (const uint16_t *)g[k], m[k], v[k], low[k], n, lo, hi, a);
-            else
-                adam_f32(p[k], (const float *)g[k], m[k], v[k], low[k], n, lo, hi, a);
+            fn(w, k, n, lo, hi);
         }
     }
+}
+
+/* One Adam step of `count` tensors: p, m, v fp32; g bf16 where g_bf16[k], else fp32;
+   low[k] receives p's bf16 copy. The scalars are torch's, rounded to float as its
+   kernel rounds them: beta1, beta2, c1 = 1 - beta1, c2 = 1 - beta2,
+   step_size = lr / (1 - beta1^step), bc2_sqrt = sqrt(1 - beta2^step), eps. */
+void macb_adam(int64_t count, float **p, void **g, const int32_t *g_bf16, float **m,
+               float **v, uint16_t **low, const int64_t *numel, float beta1, float beta2,
+               float c1, float c2, float step_size, float bc2_sqrt, float eps,
+               int32_t vec, int32_t threads) {
+    work w = {0};
+    w.p = p;
+    w.g = g;
+    w.g_bf16 = g_bf16;
+    w.m = m;
+    w.v = v;
+    w.low = low;
+    w.a = (adam_args){beta1, beta2, c1, c2, step_size, bc2_sqrt, eps, vec > 0 ? vec : 1};
+    each_tensor(&w, adam_range, count, numel, threads);
 }
 
 /* t <- t + tau (p - t) for `count` tensors (tau < 0.5), then low[k] <- bf16(t). */
 void macb_soft_update(int64_t count, float **t, float **p, uint16_t **low,
                       const int64_t *numel, float tau, int32_t threads) {
-    for (int64_t k = 0; k < count; k++) {
-        int64_t n = numel[k];
-        int parts = n >= PARALLEL_MIN && threads > 1 ? threads : 1;
-#pragma omp parallel for num_threads(parts) schedule(static, 1) if (parts > 1)
-        for (int part = 0; part < parts; part++) {
-            int64_t lo, hi;
-            share(n, part, parts, &lo, &hi);
-            soft(t[k], p[k], low[k], lo, hi, tau);
-        }
-    }
+    work w = {0};
+    w.t = t;
+    w.p = p;
+    w.low = low;
+    w.tau = tau;
+    each_tensor(&w, soft_range, count, numel, threads);
 }
 
 /* Subnormals read and made as zero (x86 DAZ and FTZ: MXCSR bits 6 and 15), or not, in
