@@ -10,7 +10,10 @@ evaluator, actor, API as processes, as a user runs it), in rounds whose order ro
 * `fp32`: this tree, `precision: fp32` (the default);
 * `bf16`: this tree, `precision: bf16`;
 * `bf16-unfused`: the same with `MACB_FUSED=0`: the learner's master-weight work in
-  torch's ops instead of the fused kernel (shared/learners/fused.py).
+  torch's ops instead of the fused kernel (shared/learners/fused.py);
+* `fp32-1t`, `bf16-1t`: `fp32`, `bf16` with `learner_lanes: 1`, the update on one
+  thread always instead of the tuner's pick (shared/learners/tuning.py), which leaves
+  the other core to the evaluator, actor, counter and router.
 
 A run's throughput is its steady rate from its own metric rows: env steps between the
 first row past a third of the run and the last, over the learner's wall clock between
@@ -45,7 +48,7 @@ from _stats import fmt, median, ratio_median, rotating_rounds
 
 from shared.cluster import free_port
 
-VARIANTS = ("base", "fp32", "bf16", "bf16-unfused")
+VARIANTS = ("base", "fp32", "bf16", "bf16-unfused", "fp32-1t", "bf16-1t")
 
 
 def steady_rate(rows: list[dict[str, str]]) -> tuple[float, float]:
@@ -58,11 +61,13 @@ def steady_rate(rows: list[dict[str, str]]) -> tuple[float, float]:
     return (steps[-1] - steps[i]) / (wall[-1] - wall[i]), steps[-1] / wall[-1]
 
 
-def write_config(path: Path, episodes: int, precision: str | None) -> None:
+def write_config(path: Path, episodes: int, precision: str | None, lanes: str | None) -> None:
     lines = [f"{k}: {v}" for k, v in THESIS_ARM.items()]
     lines += [f"episodes: {episodes}", "eval_every: 1", "seed: 0"]
     if precision is not None:  # the baseline's schema may not know the key
         lines.append(f"precision: {precision}")
+    if lanes is not None:
+        lines.append(f"learner_lanes: {lanes}")
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -70,8 +75,8 @@ def run_variant(variant: str, base_tree: Path, work: Path, episodes: int) -> dic
     tree = base_tree if variant == "base" else ROOT
     cli = "shared.cli" if (tree / "shared" / "cli.py").exists() else "cli"
     cfg = work / f"{variant}.yaml"
-    precision = {"base": None, "bf16-unfused": "bf16"}.get(variant, variant)
-    write_config(cfg, episodes, precision)
+    precision = None if variant == "base" else variant.split("-")[0]
+    write_config(cfg, episodes, precision, "1" if variant.endswith("-1t") else None)
     out, data = work / f"{variant}-out", work / f"{variant}-data"
     argv = [sys.executable, "-m", cli, "up", "--run", str(cfg), "--out", str(out)]
     argv += ["--data-dir", str(data), "--endpoint", f"tcp/127.0.0.1:{free_port()}"]
@@ -142,7 +147,8 @@ def main(argv: list[str] | None = None) -> None:
         )
     ratios = {}
     pairs = [("bf16", "base"), ("fp32", "base"), ("bf16", "fp32"), ("bf16-unfused", "base")]
-    for a, b in [*pairs, ("bf16", "bf16-unfused")]:
+    pairs += [("bf16", "bf16-unfused"), ("bf16-1t", "base"), ("fp32-1t", "base")]
+    for a, b in [*pairs, ("bf16-1t", "bf16"), ("fp32-1t", "fp32")]:
         if a in by and b in by:
             for what in ("steady", "overall"):
                 ratios[f"{a}/{b} {what}"] = ratio_median(
