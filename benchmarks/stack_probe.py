@@ -8,7 +8,13 @@ run's, the same shapes a stacked learner would have; Cen critics would each read
 own run's joint input, a copy more per update), against one run's two agents. Per-run
 update time = stacked time / R; rotating rounds, per-round ratios, one torch thread.
 
-    .venv/bin/python benchmarks/stack_probe.py [--runs 3] [--rounds 9]
+`--two-cores` asks the question for the 2-core machine instead, in total run-updates/s
+over a few seconds of each case, in rotating rounds: two runs as two processes (each
+one run's learner on one torch thread, as `macb up --slots 2` runs them), one process
+whose learner stacks both runs on two torch threads, and two processes stacking
+`--runs` runs each on one thread (2 x runs runs at once).
+
+    .venv/bin/python benchmarks/stack_probe.py [--runs 3] [--rounds 9] [--two-cores]
 
 prints a markdown table.
 """
@@ -16,18 +22,82 @@ prints a markdown table.
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import statistics
+import time
 
 import torch
-from _stats import measure, ratio_median
+from _stats import measure, ratio_median, rotating_rounds
 from bench_learner import SPEAKER_LISTENER, batched, learner_pair
+
+
+def _updates_for(runs: int, precision: str, threads: int, seconds: float, start, out) -> None:
+    """In a process of its own: a learner stacking `runs` runs, updated for `seconds`
+    from `start` (a barrier), its run-updates/s put on `out`."""
+    torch.set_num_threads(threads)
+    agents = SPEAKER_LISTENER * runs
+    _, fast, b = learner_pair(agents, "dis-maddpg")
+    m = batched(agents, "dis-maddpg", precision=precision)
+    m.load_state_dict(fast.state_dict())
+    for _ in range(20):
+        m.update(*b)
+    start.wait()
+    done, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        m.update(*b)
+        done += 1
+    out.put(runs * done / (time.perf_counter() - t0))
+
+
+def two_cores(runs: int, rounds: int, seconds: float = 3.0) -> None:
+    """Runs on the two cores: as processes, or stacked in one on two threads, or stacked
+    in each of two processes on one thread each."""
+    ctx = multiprocessing.get_context("spawn")
+    cases = {  # (runs stacked, torch threads) per process
+        "procs": [(1, 1), (1, 1)],
+        "stacked": [(2, 2)],
+        "per_core": [(runs, 1), (runs, 1)],
+    }
+    print(f"\n| precision | 2 processes x 1 run: run-updates/s | 1 process, 2 stacked, 2 "
+          f"threads | stacked / processes | 2 processes x {runs} stacked, 1 thread each "
+          "| per-core stacked / processes |")  # fmt: skip
+    print("|---|---|---|---|---|---|")
+    for precision in ("fp32", "bf16"):
+        totals: dict[str, list[float]] = {case: [] for case in cases}
+        for _, case in rotating_rounds(rounds, list(cases)):
+            jobs = cases[case]
+            start, out = ctx.Barrier(len(jobs)), ctx.Queue()
+            procs = [
+                ctx.Process(target=_updates_for, args=(n, precision, t, seconds, start, out))
+                for n, t in jobs
+            ]
+            for p in procs:
+                p.start()
+            rates = [out.get(timeout=300) for _ in procs]
+            for p in procs:
+                p.join()
+            totals[case].append(sum(rates))
+        med = {case: statistics.median(totals[case]) for case in cases}
+        stacked = ratio_median(totals["stacked"], totals["procs"])
+        per_core = ratio_median(totals["per_core"], totals["procs"])
+        print(
+            f"| {precision} | {med['procs']:.1f} | {med['stacked']:.1f} | {stacked:.2f}x "
+            f"| {med['per_core']:.1f} | {per_core:.2f}x |"
+        )
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=3, help="runs stacked (default 3)")
     parser.add_argument("--rounds", type=int, default=9, help="rotating rounds (default 9)")
+    parser.add_argument(
+        "--two-cores", action="store_true",
+        help="two runs as two processes against two stacked in one on two threads",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    if args.two_cores:
+        two_cores(args.runs, args.rounds)
+        return
     torch.set_num_threads(1)
     rows = []
     for precision in ("fp32", "bf16"):
