@@ -71,12 +71,21 @@ def write_config(path: Path, episodes: int, precision: str | None, lanes: str | 
     path.write_text("\n".join(lines) + "\n")
 
 
+def variant_keys(variant: str) -> tuple[str | None, str | None]:
+    """(precision, learner_lanes) a variant's config sets; None: the key is left out
+    (the baseline's schema may not know it)."""
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown variant {variant!r}; known: {list(VARIANTS)}")
+    if variant == "base":
+        return None, None
+    return variant.split("-")[0], "1" if variant.endswith("-1t") else None
+
+
 def run_variant(variant: str, base_tree: Path, work: Path, episodes: int) -> dict[str, Any]:
     tree = base_tree if variant == "base" else ROOT
     cli = "shared.cli" if (tree / "shared" / "cli.py").exists() else "cli"
     cfg = work / f"{variant}.yaml"
-    precision = None if variant == "base" else variant.split("-")[0]
-    write_config(cfg, episodes, precision, "1" if variant.endswith("-1t") else None)
+    write_config(cfg, episodes, *variant_keys(variant))
     out, data = work / f"{variant}-out", work / f"{variant}-data"
     argv = [sys.executable, "-m", cli, "up", "--run", str(cfg), "--out", str(out)]
     argv += ["--data-dir", str(data), "--endpoint", f"tcp/127.0.0.1:{free_port()}"]

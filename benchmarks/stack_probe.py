@@ -15,6 +15,7 @@ whose learner stacks both runs on two torch threads, and two processes stacking
 `--runs` runs each on one thread (2 x runs runs at once).
 
     .venv/bin/python benchmarks/stack_probe.py [--runs 3] [--rounds 9] [--two-cores]
+        [--seconds 3]
 
 prints a markdown table.
 """
@@ -91,12 +92,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--runs", type=int, default=3, help="runs stacked (default 3)")
     parser.add_argument("--rounds", type=int, default=9, help="rotating rounds (default 9)")
     parser.add_argument(
+        "--seconds", type=float, default=3.0,
+        help="--two-cores: seconds of updates per case (default 3)",
+    )  # fmt: skip
+    parser.add_argument(
         "--two-cores", action="store_true",
         help="two runs as two processes against two stacked in one on two threads",
     )  # fmt: skip
     args = parser.parse_args(argv)
     if args.two_cores:
-        two_cores(args.runs, args.rounds)
+        two_cores(args.runs, args.rounds, args.seconds)
         return
     torch.set_num_threads(1)
     rows = []

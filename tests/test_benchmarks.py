@@ -99,3 +99,66 @@ def test_bench_cluster_bf16_runs_both_precisions_and_reports_ratios(tmp_path: Pa
     for run in result["runs"]:
         assert run["steady"] > 0 and run["overall"] > 0 and run["rows"] == 12
     assert set(result["ratios"]) == {"bf16/fp32 steady", "bf16/fp32 overall"}
+
+
+def test_bench_cluster_bf16_variants_set_precision_and_lanes(tmp_path: Path) -> None:
+    """What each variant's config says: `-1t` pins the update to one thread, `base`
+    sets neither key (968ebf2's schema has no `precision`)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from bench_cluster_bf16 import VARIANTS, variant_keys, write_config
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    assert variant_keys("base") == (None, None)
+    assert variant_keys("fp32") == ("fp32", None)
+    assert variant_keys("bf16-unfused") == ("bf16", None)
+    assert variant_keys("fp32-1t") == ("fp32", "1")
+    assert variant_keys("bf16-1t") == ("bf16", "1")
+    assert set(VARIANTS) == {"base", "fp32", "bf16", "bf16-unfused", "fp32-1t", "bf16-1t"}
+    with pytest.raises(ValueError, match="unknown variant 'bf17'"):
+        variant_keys("bf17")
+    cfg = tmp_path / "c.yaml"
+    write_config(cfg, 12, *variant_keys("bf16-1t"))
+    lines = cfg.read_text().splitlines()
+    assert "precision: bf16" in lines and "learner_lanes: 1" in lines
+    write_config(cfg, 12, *variant_keys("base"))
+    assert not any(
+        line.startswith(("precision", "learner_lanes")) for line in cfg.read_text().splitlines()
+    )
+
+
+def test_stack_probe_two_cores_prints_both_precisions() -> None:
+    argv = [sys.executable, str(ROOT / "benchmarks" / "stack_probe.py"), "--two-cores"]
+    argv += ["--runs", "2", "--rounds", "1", "--seconds", "0.3"]
+    proc = subprocess.run(
+        argv, capture_output=True, text=True, timeout=300, check=False, cwd=ROOT / "benchmarks"
+    )
+    assert proc.returncode == 0, proc.stderr
+    rows = {
+        line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+        for line in proc.stdout.splitlines()
+        if line.startswith(("| fp32 ", "| bf16 "))
+    }
+    assert set(rows) == {"fp32", "bf16"}
+    for cells in rows.values():
+        assert len(cells) == 5
+        rates = [float(cells[i]) for i in (0, 1, 3)]  # run-updates/s of the three cases
+        ratios = [float(cells[i].rstrip("x")) for i in (2, 4)]
+        assert all(r > 0 for r in rates + ratios)
+
+
+@pytest.mark.slow
+def test_bench_slots_runs_one_and_two_at_once(tmp_path: Path) -> None:
+    """One short round of one run alone and two at once, through `macb up --slots`;
+    every run's rate comes from its own metric rows."""
+    out = tmp_path / "slots.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_slots.py"), "--rounds", "1"]
+    argv += ["--episodes", "12", "--precision", "fp32", "--out", str(out)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    assert [(r["slots"], len(r["per_run"])) for r in result["runs"]] == [(1, 1), (2, 2)]
+    for run in result["runs"]:
+        assert all(x > 0 for x in run["per_run"]) and run["total"] == sum(run["per_run"])
+    assert result["ratio"] > 0 and result["fig8_pair_hours"] > 0
+    assert "figure 8's headline pair" in proc.stdout
