@@ -155,9 +155,12 @@ def main(argv: list[str] | None = None) -> None:
             f"| {fmt(median(x['command_s'] for x in by[v]))} |"
         )
     ratios = {}
-    pairs = [("bf16", "base"), ("fp32", "base"), ("bf16", "fp32"), ("bf16-unfused", "base")]
-    pairs += [("bf16", "bf16-unfused"), ("bf16-1t", "base"), ("fp32-1t", "base")]
-    for a, b in [*pairs, ("bf16-1t", "bf16"), ("fp32-1t", "fp32")]:
+    pairs = [
+        ("bf16", "base"), ("fp32", "base"), ("bf16", "fp32"), ("bf16-unfused", "base"),
+        ("bf16", "bf16-unfused"), ("bf16-1t", "base"), ("fp32-1t", "base"),
+        ("bf16-1t", "bf16"), ("fp32-1t", "fp32"),
+    ]  # fmt: skip
+    for a, b in pairs:
         if a in by and b in by:
             for what in ("steady", "overall"):
                 ratios[f"{a}/{b} {what}"] = ratio_median(

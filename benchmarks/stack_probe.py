@@ -29,17 +29,24 @@ import time
 
 import torch
 from _stats import measure, ratio_median, rotating_rounds
-from bench_learner import SPEAKER_LISTENER, batched, learner_pair
+from bench_learner import SPEAKER_LISTENER, BatchedMADDPG, batched, learner_pair
+
+
+def stacked(runs: int, precision: str) -> tuple[BatchedMADDPG, tuple]:
+    """A learner whose stacks hold `runs` runs of speaker_listener's agents (Dis-MADDPG),
+    with the reference's initial weights, and a random minibatch for it."""
+    agents = SPEAKER_LISTENER * runs
+    _, fast, b = learner_pair(agents, "dis-maddpg")
+    m = batched(agents, "dis-maddpg", precision=precision)
+    m.load_state_dict(fast.state_dict())
+    return m, b
 
 
 def _updates_for(runs: int, precision: str, threads: int, seconds: float, start, out) -> None:
     """In a process of its own: a learner stacking `runs` runs, updated for `seconds`
     from `start` (a barrier), its run-updates/s put on `out`."""
     torch.set_num_threads(threads)
-    agents = SPEAKER_LISTENER * runs
-    _, fast, b = learner_pair(agents, "dis-maddpg")
-    m = batched(agents, "dis-maddpg", precision=precision)
-    m.load_state_dict(fast.state_dict())
+    m, b = stacked(runs, precision)
     for _ in range(20):
         m.update(*b)
     start.wait()
@@ -108,10 +115,7 @@ def main(argv: list[str] | None = None) -> None:
     for precision in ("fp32", "bf16"):
         fns = {}
         for r in (1, args.runs):
-            agents = SPEAKER_LISTENER * r
-            _, fast, b = learner_pair(agents, "dis-maddpg")
-            m = batched(agents, "dis-maddpg", precision=precision)
-            m.load_state_dict(fast.state_dict())
+            m, b = stacked(r, precision)
             fns[r] = lambda m=m, b=b: m.update(*b)
         samples = measure(fns, args.rounds, 0.3)
         per_run = {r: [t / r for t in samples[r]] for r in samples}
