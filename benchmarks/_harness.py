@@ -167,6 +167,17 @@ def metric_rows(out: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def ran_precision(out: Path) -> str | None:
+    """The precision the run in `out` ran in, from its provenance.json (its latest
+    start); None where it has none (a commit from before the file). A variant that asks
+    for bf16 runs fp32 on a CPU without native bf16: its label alone would mislead."""
+    try:
+        starts = json.loads((out / "provenance.json").read_text())["starts"]
+        return str(starts[-1]["learner"]["precision"])
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        return None
+
+
 def write_result(out: Path, result: dict[str, Any], load_before: tuple[float, ...]) -> None:
     """The JSON result, and the load average around the benchmark: on a shared machine
     a number means little without it."""

@@ -41,6 +41,7 @@ from _harness import (
     command,
     metric_rows,
     progress,
+    ran_precision,
     write_result,
 )
 from _procs import ROOT
@@ -103,7 +104,12 @@ def run_variant(variant: str, base_tree: Path, work: Path, episodes: int) -> dic
     steady, overall = steady_rate(rows)
     shutil.rmtree(data, ignore_errors=True)
     return {"variant": variant, "steady": steady, "overall": overall, "command_s": total,
-            "rows": len(rows), "load": load}  # fmt: skip
+            "rows": len(rows), "load": load, "ran": ran_precision(out)}  # fmt: skip
+
+
+def fell_back_to_fp32(run: dict[str, Any]) -> bool:
+    """A bf16 variant's run whose learner ran fp32 (no native bf16 on this CPU)."""
+    return variant_keys(run["variant"])[0] == "bf16" and run["ran"] == "fp32"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -146,13 +152,19 @@ def main(argv: list[str] | None = None) -> None:
                     check=False,
                 )  # fmt: skip
     by = {v: [x for x in runs if x["variant"] == v] for v in variants}
-    lines = ["| variant | steady env steps/s | overall env steps/s | command s |",
-             "|---|---|---|---|"]  # fmt: skip
+    lines = ["| variant | ran in | steady env steps/s | overall env steps/s | command s |",
+             "|---|---|---|---|---|"]  # fmt: skip
     for v in variants:
+        ran = sorted({str(x["ran"] or "-") for x in by[v]})
         lines.append(
-            f"| {v} | {fmt(median(x['steady'] for x in by[v]))} "
+            f"| {v} | {', '.join(ran)} | {fmt(median(x['steady'] for x in by[v]))} "
             f"| {fmt(median(x['overall'] for x in by[v]))} "
             f"| {fmt(median(x['command_s'] for x in by[v]))} |"
+        )
+    if fell_back := sorted({x["variant"] for x in runs if fell_back_to_fp32(x)}):
+        lines.append(
+            f"\n**{', '.join(fell_back)} ran fp32**: this CPU has no native bf16, so their "
+            "ratios compare fp32 with fp32 (the runs' provenance.json)."
         )
     ratios = {}
     pairs = [

@@ -15,7 +15,10 @@ arms, 3 seeds each, 1.75e4 episodes of 25 steps: 2.6e6 env steps, ~2.1e6 updates
 the measured total rate, the arms run S at a time.
 
     .venv/bin/python benchmarks/bench_slots.py [--rounds 3] [--episodes 300]
-        [--slots 2] [--precision bf16] [--config configs/fig8/sparse-cen-macb.yaml]
+        [--slots 2 [3 ...]] [--precision bf16] [--config configs/fig8/sparse-cen-macb.yaml]
+
+Several counts (`--slots 2 3`) are variants of the same rounds, each against the same
+runs alone.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from _harness import (
     macb_argv,
     metric_rows,
     progress,
+    ran_precision,
     write_result,
 )
 from _procs import ROOT
@@ -65,16 +69,17 @@ def run_variant(slots: int, args: Any, work: Path) -> dict[str, Any]:
     run_dirs = sorted(d for d in out.iterdir() if (d / "metrics.csv").is_file())
     if slots == 1 and not run_dirs:
         run_dirs = [out]  # one run: its rows are out/metrics.csv itself
-    rates, steps = [], 0.0
+    rates, steps, ran = [], 0.0, []
     for d in run_dirs:
         rows = metric_rows(d)
         rates.append(steady_rate(rows)[0])
         steps += float(rows[-1]["env_steps"])
+        ran.append(ran_precision(d))
     if len(rates) != slots:
         raise SystemExit(f"--slots {slots}: {len(rates)} runs' metrics in {out}, not {slots}")
     shutil.rmtree(data, ignore_errors=True)
     shutil.rmtree(out, ignore_errors=True)
-    return {"slots": slots, "per_run": rates, "total": sum(rates),
+    return {"slots": slots, "per_run": rates, "total": sum(rates), "ran": ran,
             "command_rate": steps / total_s, "command_s": total_s, "load": load}  # fmt: skip
 
 
@@ -82,7 +87,10 @@ def main(argv: list[str] | None = None) -> None:
     parser = bench_parser(__doc__, "slots.json")
     parser.add_argument("--rounds", type=int, default=3, help="rounds (default 3)")
     parser.add_argument("--episodes", type=int, default=300, help="per run (default 300)")
-    parser.add_argument("--slots", type=int, default=2, help="runs at once (default 2)")
+    parser.add_argument(
+        "--slots", type=int, nargs="+", default=[2],
+        help="runs at once, one or more counts, each its own variant (default 2)",
+    )  # fmt: skip
     parser.add_argument("--precision", choices=("fp32", "bf16"), default="bf16")
     parser.add_argument(
         "--config", type=Path, default=ROOT / "configs" / "fig8" / "sparse-cen-macb.yaml",
@@ -90,12 +98,13 @@ def main(argv: list[str] | None = None) -> None:
     )  # fmt: skip
     add_out(parser, "slots.json")
     args = parser.parse_args(argv)
-    if args.rounds < 1 or args.episodes < 6 or args.slots < 2:
-        parser.error("--rounds must be >= 1, --episodes >= 6 and --slots >= 2")
+    if args.rounds < 1 or args.episodes < 6 or min(args.slots) < 2:
+        parser.error("--rounds must be >= 1, --episodes >= 6 and every --slots >= 2")
+    counts = sorted(set(args.slots))
     load = os.getloadavg()
     runs: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="macb-slots-") as tmp:
-        for r, slots in rotating_rounds(args.rounds, [1, args.slots]):
+        for r, slots in rotating_rounds(args.rounds, [1, *counts]):
             load_now = os.getloadavg()[0]
             progress(f"round {r + 1}/{args.rounds}: --slots {slots} (load {load_now:.2f})")
             run = run_variant(slots, args, Path(tmp))
@@ -103,37 +112,60 @@ def main(argv: list[str] | None = None) -> None:
                      f"{', '.join(f'{x:.1f}' for x in run['per_run'])}), command "
                      f"{run['command_rate']:.1f} over {run['command_s']:.0f} s")  # fmt: skip
             runs.append({"round": r, **run})
-    alone = [x for x in runs if x["slots"] == 1]
-    many = [x for x in runs if x["slots"] == args.slots]
-    ratio = ratio_median([x["total"] for x in many], [x["total"] for x in alone])
-    command_ratio = ratio_median(
-        [x["command_rate"] for x in many], [x["command_rate"] for x in alone]
-    )
-    total = median(x["total"] for x in many)
-    hours = FIG8_PAIR_ENV_STEPS / total / 3600 if total else None
+    summary = summarise(runs, counts)
     arm = args.config.relative_to(ROOT) if args.config.is_relative_to(ROOT) else args.config
-    print(f"\n{arm}, {args.precision}, {args.episodes} episodes per run\n")
-    print("| variant | total env steps/s (median) | per round | command rate |")
-    print("|---|---|---|---|")
-    for name, group in (("1 run alone", alone), (f"{args.slots} runs at once", many)):
+    ran = sorted({str(p) for x in runs for p in x["ran"]})
+    note = (
+        " (**ran fp32**: no native bf16 here)" if args.precision != "fp32" and "fp32" in ran else ""
+    )
+    print(f"\n{arm}, {args.precision}{note}, {args.episodes} episodes per run\n")
+    print("| variant | total env steps/s (median) | per round | command rate | / alone "
+          "| figure 8's pair |")  # fmt: skip
+    print("|---|---|---|---|---|---|")
+    for slots in [1, *counts]:
+        group = [x for x in runs if x["slots"] == slots]
+        name = "1 run alone" if slots == 1 else f"{slots} runs at once"
+        s = summary.get(slots, {})
+        ratio = f"**{s['ratio']:.2f}x** (command {s['command_ratio']:.2f}x)" if s else "-"
         print(f"| {name} | {fmt(median(x['total'] for x in group))} "
               f"| {', '.join(fmt(x['total']) for x in group)} "
-              f"| {fmt(median(x['command_rate'] for x in group))} |")  # fmt: skip
+              f"| {fmt(median(x['command_rate'] for x in group))} | {ratio} "
+              f"| {fmt(hours(group), '.1f')} h |")  # fmt: skip
     print(
-        f"\n- {args.slots} at once / alone, total steady: **{ratio:.2f}x** (median of "
-        f"per-round ratios); command rate {command_ratio:.2f}x"
-    )
-    print(
-        f"- figure 8's headline pair (2.6e6 env steps) at {fmt(total)} env steps/s: "
-        f"**{fmt(hours, '.1f')} hours**"
+        "\n- / alone: median of per-round ratios of total steady env steps/s (the command "
+        "rate's ratio beside it)\n- figure 8's headline pair: 2.6e6 env steps at the "
+        "variant's median total"
     )
     write_result(
         args.out,
-        {"command": command(__file__, argv), "config": str(args.config), "slots": args.slots,
+        {"command": command(__file__, argv), "config": str(args.config), "slots": counts,
          "precision": args.precision, "episodes": args.episodes, "runs": runs,
-         "ratio": ratio, "command_ratio": command_ratio, "fig8_pair_hours": hours},
+         "summary": {str(k): v for k, v in summary.items()}},
         load,
     )  # fmt: skip
+
+
+def hours(group: list[dict[str, Any]]) -> float | None:
+    """Figure 8's headline pair, in hours, at the median total rate of these runs."""
+    total = median(x["total"] for x in group)
+    return FIG8_PAIR_ENV_STEPS / total / 3600 if total else None
+
+
+def summarise(runs: list[dict[str, Any]], counts: list[int]) -> dict[int, dict[str, Any]]:
+    """Per slot count: its ratio to one run alone (median of the rounds' ratios), by
+    steady total and by command rate, and figure 8's pair in hours at its rate."""
+    alone = [x for x in runs if x["slots"] == 1]
+    out: dict[int, dict[str, Any]] = {}
+    for slots in counts:
+        many = [x for x in runs if x["slots"] == slots]
+        out[slots] = {
+            "ratio": ratio_median([x["total"] for x in many], [x["total"] for x in alone]),
+            "command_ratio": ratio_median(
+                [x["command_rate"] for x in many], [x["command_rate"] for x in alone]
+            ),
+            "fig8_pair_hours": hours(many),
+        }
+    return out
 
 
 if __name__ == "__main__":

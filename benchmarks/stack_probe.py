@@ -31,6 +31,17 @@ import torch
 from _stats import measure, ratio_median, rotating_rounds
 from bench_learner import SPEAKER_LISTENER, BatchedMADDPG, batched, learner_pair
 
+from shared.learners.precision import native_bf16
+
+
+def precisions() -> tuple[str, ...]:
+    """The precisions this CPU runs: bf16 only with native bf16 (elsewhere a bf16
+    learner runs fp32, and its row would be fp32's under bf16's name)."""
+    if native_bf16():
+        return ("fp32", "bf16")
+    print("bf16: skipped, this CPU has no native bf16 (the learner would run fp32)")
+    return ("fp32",)
+
 
 def stacked(runs: int, precision: str) -> tuple[BatchedMADDPG, tuple]:
     """A learner whose stacks hold `runs` runs of speaker_listener's agents (Dis-MADDPG),
@@ -70,7 +81,7 @@ def two_cores(runs: int, rounds: int, seconds: float = 3.0) -> None:
           f"threads | stacked / processes | 2 processes x {runs} stacked, 1 thread each "
           "| per-core stacked / processes |")  # fmt: skip
     print("|---|---|---|---|---|---|")
-    for precision in ("fp32", "bf16"):
+    for precision in precisions():
         totals: dict[str, list[float]] = {case: [] for case in cases}
         for _, case in rotating_rounds(rounds, list(cases)):
             jobs = cases[case]
@@ -112,7 +123,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     torch.set_num_threads(1)
     rows = []
-    for precision in ("fp32", "bf16"):
+    for precision in precisions():
         fns = {}
         for r in (1, args.runs):
             m, b = stacked(r, precision)

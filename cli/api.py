@@ -217,12 +217,15 @@ def experiment_body(args: argparse.Namespace) -> dict[str, Any]:
 def write_results(
     api: ApiClient, exp: dict[str, Any], out: Path, plot: bool = True, data_dir: Path | None = None
 ) -> list[Path]:
-    """Each run's metrics.csv, metrics.jsonl, config.json (and, with the cluster's data
-    dir, the learner's checkpoint.pt) in out/ for one run or out/<run id>/ for several,
+    """Each run's metrics.csv, metrics.jsonl, config.json, provenance.json (what its
+    learner ran on, as it reported at its latest start) and, with the cluster's data
+    dir, the learner's checkpoint.pt in out/ for one run or out/<run id>/ for several,
     then every run's points in out/metrics.csv (with `arm`, `seed`, `run` columns);
     out/plot.png, every arm overlaid."""
     import json
     import shutil
+
+    from shared import provenance
 
     out.mkdir(parents=True, exist_ok=True)
     written = []
@@ -235,6 +238,8 @@ def write_results(
             for p in points:
                 f.write(json.dumps({k: v for k, v in p.items() if k != "seq"}) + "\n")
         (d / "config.json").write_text(json.dumps(run["config"], indent=2) + "\n")
+        if start := run.get("live", {}).get("provenance"):  # the learner's latest start
+            provenance.write(d / provenance.FILE, [start])
         written.append(d / "metrics.csv")
         checkpoint = data_dir / "learner" / run["id"] / "checkpoint.pt" if data_dir else None
         if checkpoint is not None and checkpoint.exists():

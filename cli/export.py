@@ -25,8 +25,8 @@ def add_export_parser(sub: argparse._SubParsersAction) -> None:
         help="write a run's or an experiment's metrics as TensorBoard events or CSV",
         description="Write every stored metric point of a run, or of every run of an "
         "experiment, as TensorBoard scalars (one folder per run, named by experiment, arm "
-        "and seed; step = episode) and/or as CSV files (metrics.csv, metrics.jsonl and "
-        "config.json per run, the experiment's metrics.csv).",
+        "and seed; step = episode) and/or as CSV files (metrics.csv, metrics.jsonl, "
+        "config.json and provenance.json per run, the experiment's metrics.csv).",
     )
     ex.add_argument("id", metavar="RUN_OR_EXPERIMENT", help="a run id or an experiment id")
     ex.add_argument("--tensorboard", metavar="DIR", help="write TensorBoard event files here")
@@ -103,10 +103,12 @@ def write_tensorboard(root: Path, exp: dict[str, Any], runs: list[dict[str, Any]
 
 def write_csv(root: Path, exp: dict[str, Any], runs: list[dict[str, Any]]) -> None:
     """Per run (in root/ for one run, root/<run id>/ for several) metrics.csv with the
-    store's columns, metrics.jsonl and config.json; the experiment's metrics.csv."""
+    store's columns, metrics.jsonl, config.json and provenance.json (what its learner ran
+    on, where it reported it); the experiment's metrics.csv."""
     import csv
 
     from services.api.store import CSV_FIELDS
+    from shared import provenance
 
     def table(path: Path, rows: list[dict[str, Any]], first: list[str]) -> None:
         seen = {k for r in rows for k in r}
@@ -125,6 +127,8 @@ def write_csv(root: Path, exp: dict[str, Any], runs: list[dict[str, Any]]) -> No
             for p in run["points"]:
                 f.write(json.dumps({k: v for k, v in p.items() if k != "seq"}) + "\n")
         (d / "config.json").write_text(json.dumps(run["config"], indent=2) + "\n")
+        if start := (run.get("live") or {}).get("provenance"):
+            provenance.write(d / provenance.FILE, [start])
     if len(runs) > 1:
         rows = [
             {**p, "arm": r["arm"], "seed": r["seed"], "run": r["id"]}

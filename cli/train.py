@@ -21,8 +21,9 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         "train",
         help="run one experiment in this process",
         description="Run one experiment in one process and write DIR/metrics.csv, "
-        "DIR/metrics.jsonl, DIR/config.json and DIR/checkpoint.pt (and TensorBoard events "
-        "with --tensorboard). Keys come from --config "
+        "DIR/metrics.jsonl, DIR/config.json, DIR/provenance.json (what it ran on: code, "
+        "machine, libraries, the precision the learner ran in) and DIR/checkpoint.pt (and "
+        "TensorBoard events with --tensorboard). Keys come from --config "
         "(YAML or JSON) and are overridden by flags.",
         formatter_class=HelpFormatter,
     )

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
+from shared import provenance
 from shared.config import TrainConfig
 from shared.cuts import (
     CutError,
@@ -175,6 +176,7 @@ class Run:
         self.rows: list[dict] = []
         self.shift_warned = False
         self.first_episode = 1
+        self.resumed = False
         self.env_steps = self.collisions_cum = 0
         self.eval_s = self.wall_before = 0.0  # time spent in earlier lives of the run
         self.width = {
@@ -201,6 +203,12 @@ class Run:
         writer = None
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
+            # What this start runs on (a resume adds its own entry: it may be elsewhere).
+            start = provenance.entry(cfg.precision, self.learner.stats(), "trainer")
+            if self.resumed:
+                provenance.append(out / provenance.FILE, start)
+            else:
+                provenance.write(out / provenance.FILE, [start])
             config = json.dumps(cfg.model_dump(mode="json"), indent=2) + "\n"
             (out / "config.json").write_text(config)
             writer = MetricsWriter(out, rows=self.rows)
@@ -349,6 +357,11 @@ class Run:
         written = read_json(self.out / "config.json")
         if written is not None and (diff := config_difference(written, config)):
             raise CutError(f"{self.out / 'config.json'}: another config ({diff})")
+        try:  # refused before anything is loaded: the resume appends to it
+            provenance.read(self.out / provenance.FILE)
+        except provenance.ProvenanceError as err:
+            raise CutError(str(err)) from None
+        self.resumed = True
         cut = latest_cut(self.cuts, config)
         st = cut.state
         try:

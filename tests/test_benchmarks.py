@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from shared.learners.precision import native_bf16
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -99,6 +101,9 @@ def test_bench_cluster_bf16_runs_both_precisions_and_reports_ratios(tmp_path: Pa
     for run in result["runs"]:
         assert run["steady"] > 0 and run["overall"] > 0 and run["rows"] == 12
     assert set(result["ratios"]) == {"bf16/fp32 steady", "bf16/fp32 overall"}
+    # What each run ran in, from its provenance.json: bf16 only where the CPU has it.
+    assert [r["ran"] for r in result["runs"]] == ["fp32", "bf16" if native_bf16() else "fp32"]
+    assert ("bf16 ran fp32" in proc.stdout) == (not native_bf16())
 
 
 def test_bench_cluster_bf16_variants_set_precision_and_lanes(tmp_path: Path) -> None:
@@ -127,7 +132,9 @@ def test_bench_cluster_bf16_variants_set_precision_and_lanes(tmp_path: Path) -> 
     )
 
 
-def test_stack_probe_two_cores_prints_both_precisions() -> None:
+def test_stack_probe_two_cores_prints_the_precisions_this_cpu_runs() -> None:
+    """fp32 and bf16 rows where the CPU has native bf16; elsewhere fp32 only, and it
+    says bf16 was skipped (a bf16 learner there runs fp32: its row would be mislabelled)."""
     argv = [sys.executable, str(ROOT / "benchmarks" / "stack_probe.py"), "--two-cores"]
     argv += ["--runs", "2", "--rounds", "1", "--seconds", "0.3"]
     proc = subprocess.run(
@@ -139,7 +146,8 @@ def test_stack_probe_two_cores_prints_both_precisions() -> None:
         for line in proc.stdout.splitlines()
         if line.startswith(("| fp32 ", "| bf16 "))
     }
-    assert set(rows) == {"fp32", "bf16"}
+    assert set(rows) == ({"fp32", "bf16"} if native_bf16() else {"fp32"})
+    assert ("bf16: skipped" in proc.stdout) == (not native_bf16())
     for cells in rows.values():
         assert len(cells) == 5
         rates = [float(cells[i]) for i in (0, 1, 3)]  # run-updates/s of the three cases
@@ -148,17 +156,26 @@ def test_stack_probe_two_cores_prints_both_precisions() -> None:
 
 
 @pytest.mark.slow
-def test_bench_slots_runs_one_and_two_at_once(tmp_path: Path) -> None:
-    """One short round of one run alone and two at once, through `macb up --slots`;
-    every run's rate comes from its own metric rows."""
+def test_bench_slots_runs_one_two_and_three_at_once(tmp_path: Path) -> None:
+    """One short round of one run alone, two and three at once, through `macb up
+    --slots`; every run's rate comes from its own metric rows, and each count has its
+    ratio to the same round's run alone."""
     out = tmp_path / "slots.json"
     argv = [sys.executable, str(ROOT / "benchmarks" / "bench_slots.py"), "--rounds", "1"]
-    argv += ["--episodes", "12", "--precision", "fp32", "--out", str(out)]
-    proc = subprocess.run(argv, capture_output=True, text=True, timeout=600, check=False)
+    argv += ["--episodes", "12", "--precision", "fp32", "--slots", "3", "2", "--out", str(out)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=900, check=False)
     assert proc.returncode == 0, proc.stderr
     result = json.loads(out.read_text())
-    assert [(r["slots"], len(r["per_run"])) for r in result["runs"]] == [(1, 1), (2, 2)]
+    assert result["slots"] == [2, 3]
+    assert [(r["slots"], len(r["per_run"])) for r in result["runs"]] == [(1, 1), (2, 2), (3, 3)]
     for run in result["runs"]:
         assert all(x > 0 for x in run["per_run"]) and run["total"] == sum(run["per_run"])
-    assert result["ratio"] > 0 and result["fig8_pair_hours"] > 0
-    assert "figure 8's headline pair" in proc.stdout
+        assert run["ran"] == ["fp32"] * run["slots"]  # each run's provenance.json
+    alone = result["runs"][0]["total"]
+    for slots, run in zip(("2", "3"), result["runs"][1:]):
+        summary = result["summary"][slots]
+        assert summary["ratio"] == pytest.approx(run["total"] / alone)
+        assert summary["fig8_pair_hours"] == pytest.approx(
+            2 * 3 * 17_500 * 25 / run["total"] / 3600
+        )
+    assert "| 3 runs at once |" in proc.stdout and "figure 8's headline pair" in proc.stdout

@@ -10,6 +10,8 @@ import subprocess
 import sys
 import time
 
+from shared import provenance
+from shared.learners.precision import native_bf16
 from tests.conftest import ROOT, free_port, wait_for
 
 TINY = """\
@@ -57,8 +59,10 @@ def up(tmp_path, *extra: str) -> tuple[subprocess.Popen, str]:
 
 
 def test_up_runs_an_experiment_and_leaves_nothing_running(tmp_path):
+    """Asked for bf16, which runs where the CPU has it: out/provenance.json, as the
+    learner reported it, says which precision ran."""
     cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(TINY)
+    cfg.write_text(TINY + "precision: bf16\n")
     proc, endpoint = up(tmp_path, "--run", str(cfg), "--out", str(tmp_path / "out"))
     out, _ = proc.communicate(timeout=240)
     assert proc.returncode == 0, out
@@ -70,6 +74,10 @@ def test_up_runs_an_experiment_and_leaves_nothing_running(tmp_path):
     assert float(rows[-1]["replay_ratio"]) == 1.0
     assert (tmp_path / "out" / "plot.png").stat().st_size > 10_000
     assert (tmp_path / "out" / "checkpoint.pt").stat().st_size > 1000
+    (start,) = json.loads((tmp_path / "out" / "provenance.json").read_text())["starts"]
+    assert start["role"] == "learner" and start["code"] == provenance.code()
+    ran = "bf16" if native_bf16() else "fp32"
+    assert start["learner"]["precision_asked"] == "bf16" and start["learner"]["precision"] == ran
     assert "dashboard" in out and (tmp_path / "data" / "api.sqlite3").exists()
     for name in ("router", "counter", "learner", "evaluator", "actor0", "api"):
         assert (tmp_path / "data" / "logs" / f"{name}.log").exists()

@@ -358,7 +358,10 @@ class RunPublic(BaseModel):
     )
     assign: dict[str, Any] | None = Field(None, description="the services serving it")
     services: dict[str, Any] = Field(description="each service's last status for this run")
-    live: dict[str, Any] = Field(description="latest stats per source (learner, counter, ...)")
+    live: dict[str, Any] = Field(
+        description="latest stats per source (learner, counter, ...; provenance: what the "
+        "learner runs on, docs/reliability.md)"
+    )
 
 
 class ExperimentPublic(BaseModel):

@@ -46,6 +46,7 @@ import torch
 
 from services.common import ServiceBase
 from shared import bus as keys
+from shared import provenance
 from shared.config import TrainConfig
 from shared.cuts import CutError, atomic_torch_save, config_difference
 from shared.exploration import BonusDiagnostics
@@ -282,6 +283,7 @@ class LearnerService(ServiceBase):
         self._logged(st)
         self.publish_weights(eval_point=-1)  # version 0: every actor starts from these
         self.publish_status(run, "running", actors=st.actors)
+        self.publish_provenance(run, config)
 
     def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
         """Restarted mid-run: the newest good cut, then the log beyond it (module doc)."""
@@ -324,7 +326,15 @@ class LearnerService(ServiceBase):
         )
         self.publish_weights(eval_point=-1)
         self.publish_status(run, "running", actors=st.actors, resumed=self.resumed)
+        self.publish_provenance(run, config)
         self.send_ack()  # the actors go on from what the log holds
+
+    def publish_provenance(self, run: str, config: TrainConfig) -> None:
+        """What this start of the run runs on (shared/provenance.py), once: the API keeps
+        it as the run's `live.provenance`, and `macb up --out` writes it beside the rows."""
+        assert self.st is not None
+        start = provenance.entry(config.precision, self.st.learner.stats(), "learner")
+        self.publish_metrics(run, start, source="provenance")
 
     def _open_run(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> LearnerRun:
         torch.set_num_threads(config.threads)
