@@ -23,6 +23,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -299,6 +300,30 @@ def _milestone(arm: ArmCurve, episode: int, metric: str) -> str:
     return f"{v:.0%}"
 
 
+def what_ran(runs: list[dict[str, Any]]) -> str:
+    """The report's line on what the runs ran on, from each run's provenance (the
+    learner's report, `live.provenance`): the precision as run, which may not be the one
+    asked (bf16 on a CPU without it runs fp32), the CPUs and the code."""
+    starts = [(r.get("live") or {}).get("provenance") for r in runs]
+    known = [s for s in starts if isinstance(s, dict)]
+    if not known:
+        return "- What ran: no run reported its provenance (docs/reliability.md)."
+    ran = Counter(str((s.get("learner") or {}).get("precision")) for s in known)
+    asked = sorted({str((s.get("learner") or {}).get("precision_asked")) for s in known})
+    cpus = sorted({str((s.get("machine") or {}).get("cpu")) for s in known})
+    commits = sorted(
+        {str((s.get("code") or {}).get("commit") or "not a git checkout")[:12] for s in known}
+    )
+    precision = ", ".join(f"{p} on {n} run(s)" for p, n in sorted(ran.items()))
+    line = f"- What ran (each run's provenance): learner precision {precision}"
+    if set(ran) != set(asked):
+        line += f" (**asked {', '.join(asked)}**: a CPU without native bf16 runs fp32)"
+    line += f"; CPU {', '.join(cpus)}; code {', '.join(commits)}"
+    if missing := len(starts) - len(known):
+        line += f"; {missing} run(s) reported none"
+    return line + "."
+
+
 def markdown(a: Analysis, profile: str, out_png: str = "") -> str:
     """FIGURE.md: what ran, the definitions, each arm beside what the thesis reports for
     it, a verdict per claim, and each MACB arm against its control."""
@@ -339,6 +364,7 @@ def markdown(a: Analysis, profile: str, out_png: str = "") -> str:
         "length when a run stopped short of the episodes the claim is about (the measured "
         "number is still given).",
     ]
+    lines += [what_ran(runs)]
     if fig.note:
         lines += [f"- {fig.note}"]
     if out_png:

@@ -163,6 +163,31 @@ FIG3_AS_THESIS = {  # (midpoint, top): beta 0 converges ~4000, 0.6/0.8 fastest, 
 }
 
 
+def test_the_report_says_what_ran_and_when_bf16_ran_fp32():
+    """From each run's provenance: the precision as run, not only as asked."""
+
+    def run(ran: str, asked: str = "bf16") -> dict:
+        start = {
+            "learner": {"precision_asked": asked, "precision": ran},
+            "machine": {"cpu": "AMD EPYC 7B13"},
+            "code": {"commit": "0123456789abcdef0123"},
+        }
+        return {"live": {"provenance": start}}
+
+    fell_back = report.what_ran([run("fp32"), run("fp32")])
+    assert "learner precision fp32 on 2 run(s) (**asked bf16**" in fell_back
+    assert "CPU AMD EPYC 7B13; code 0123456789ab." in fell_back
+    native = report.what_ran([run("bf16"), {"live": {}}])
+    assert "bf16 on 1 run(s);" in native and "asked" not in native
+    assert native.endswith("; 1 run(s) reported none.")
+    assert "no run reported" in report.what_ran([{"live": {}}])
+    fig = FIGURES["fig3"]
+    exp, points = synthetic(fig, FIG3_AS_THESIS, 500)
+    exp["runs"] = [{**r, **run("fp32", "fp32")} for r in exp["runs"]]
+    md = report.markdown(report.analyse(fig, exp, points), "mpe2")
+    assert f"learner precision fp32 on {len(exp['runs'])} run(s); CPU" in md
+
+
 def test_smoothing_is_a_centred_moving_average_shrunk_symmetrically_at_the_ends():
     steps = np.repeat([0.0, 1.0], 50)
     s = report.smooth(steps, share=0.05)  # a 5-point window

@@ -107,6 +107,7 @@ def test_reproduce_fig3_runs_resumes_and_then_reruns_nothing(tmp_path):
         assert cells[4].startswith("plateau ") and f"{EPISODES:,} episodes" in cells[4]
     assert "| beta=0.8 | constant beta=0.8 (control) |" in md
     assert "0 reproduced, 0 not reproduced, 3 not run to that length." in md
+    assert f"learner precision fp32 on {len(after)} run(s); CPU" in md  # each learner's report
     assert (out / "fig3.csv").read_text().count("\n") == 1 + len(after) * EPISODES
     took = time.monotonic() - t0
 
