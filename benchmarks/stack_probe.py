@@ -77,11 +77,12 @@ def two_cores(runs: int, rounds: int, seconds: float = 3.0) -> None:
         "stacked": [(2, 2)],
         "per_core": [(runs, 1), (runs, 1)],
     }
+    which = precisions()  # says so first when bf16 is skipped
     print(f"\n| precision | 2 processes x 1 run: run-updates/s | 1 process, 2 stacked, 2 "
           f"threads | stacked / processes | 2 processes x {runs} stacked, 1 thread each "
           "| per-core stacked / processes |")  # fmt: skip
     print("|---|---|---|---|---|---|")
-    for precision in precisions():
+    for precision in which:
         totals: dict[str, list[float]] = {case: [] for case in cases}
         for _, case in rotating_rounds(rounds, list(cases)):
             jobs = cases[case]
