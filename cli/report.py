@@ -311,9 +311,7 @@ def what_ran(runs: list[dict[str, Any]]) -> str:
     ran = Counter(str((s.get("learner") or {}).get("precision")) for s in known)
     asked = sorted({str((s.get("learner") or {}).get("precision_asked")) for s in known})
     cpus = sorted({str((s.get("machine") or {}).get("cpu")) for s in known})
-    commits = sorted(
-        {str((s.get("code") or {}).get("commit") or "not a git checkout")[:12] for s in known}
-    )
+    commits = sorted({_commit(s.get("code") or {}) for s in known})
     precision = ", ".join(f"{p} on {n} run(s)" for p, n in sorted(ran.items()))
     line = f"- What ran (each run's provenance): learner precision {precision}"
     if set(ran) != set(asked):
@@ -322,6 +320,15 @@ def what_ran(runs: list[dict[str, Any]]) -> str:
     if missing := len(starts) - len(known):
         line += f"; {missing} run(s) reported none"
     return line + "."
+
+
+def _commit(code: dict[str, Any]) -> str:
+    """A provenance's code as the report names it: the commit's first 12 digits, and
+    whether tracked files differed from it."""
+    commit = code.get("commit")
+    if not commit:
+        return "not a git checkout"
+    return f"{str(commit)[:12]}{' (dirty)' if code.get('dirty') else ''}"
 
 
 def markdown(a: Analysis, profile: str, out_png: str = "") -> str:

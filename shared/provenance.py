@@ -10,6 +10,7 @@ adds one entry to the run's `provenance.json`; docs/reliability.md has the forma
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import subprocess
@@ -17,6 +18,8 @@ import time
 from importlib import metadata
 from pathlib import Path
 from typing import Any
+
+import torch
 
 from shared.files import write_json
 from shared.learners.precision import NATIVE_BF16_FLAGS, cpu_flags
@@ -45,7 +48,8 @@ def code(root: Path = ROOT) -> dict[str, Any]:
             return None
         return proc.stdout.strip() if proc.returncode == 0 else None
 
-    commit = git("rev-parse", "HEAD")
+    top = git("rev-parse", "--show-toplevel")  # this checkout's, not an enclosing repo's
+    commit = git("rev-parse", "HEAD") if top and Path(top).resolve() == root.resolve() else None
     changed = git("status", "--porcelain", "--untracked-files=no") if commit else None
     return {"commit": commit, "dirty": None if changed is None else bool(changed)}
 
@@ -104,8 +108,6 @@ def learner_record(precision_asked: str, stats: dict[str, Any]) -> dict[str, Any
 
 def entry(precision_asked: str, learner_stats: dict[str, Any], role: str) -> dict[str, Any]:
     """One start of a run: when, by whom (`role`: "trainer", "learner"), and on what."""
-    import torch
-
     return {
         "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "role": role,
@@ -120,8 +122,6 @@ def entry(precision_asked: str, learner_stats: dict[str, Any], role: str) -> dic
 def read(path: Path) -> list[dict[str, Any]]:
     """The starts recorded in `path` ([] when it does not exist); a file that is not a
     provenance record is refused, naming it."""
-    import json
-
     if not path.exists():
         return []
     try:

@@ -142,6 +142,7 @@ ROLES: dict[str, tuple[Grant, ...]] = {
         Grant("pub", f"{NS}/run/*/weights/*", "weights"),
         Grant("pub", f"{NS}/run/*/ack/{{id}}", "its acks (credits)"),
         Grant("pub", f"{NS}/run/*/metrics/learner", "its stats"),
+        Grant("pub", f"{NS}/run/*/metrics/provenance", "what it runs on (once per start)"),
         Grant("query", f"{NS}/run/*/bonus", "bonus queries"),
         Grant("query", f"{NS}/info/counter/*", "the counter's state"),
     ),

@@ -180,6 +180,12 @@ def test_the_report_says_what_ran_and_when_bf16_ran_fp32():
     native = report.what_ran([run("bf16"), {"live": {}}])
     assert "bf16 on 1 run(s);" in native and "asked" not in native
     assert native.endswith("; 1 run(s) reported none.")
+    elsewhere = run("fp32", "fp32")
+    elsewhere["live"]["provenance"]["code"] = {"commit": None, "dirty": None}
+    dirty = run("fp32", "fp32")
+    dirty["live"]["provenance"]["code"]["dirty"] = True
+    both = report.what_ran([elsewhere, dirty])
+    assert "code 0123456789ab (dirty), not a git checkout." in both
     assert "no run reported" in report.what_ran([{"live": {}}])
     fig = FIGURES["fig3"]
     exp, points = synthetic(fig, FIG3_AS_THESIS, 500)

@@ -55,6 +55,16 @@ def test_code_is_this_checkouts_commit_and_none_outside_git(tmp_path):
         assert got["commit"] == head.stdout.decode().strip()
         assert isinstance(got["dirty"], bool)
     assert provenance.code(tmp_path) == {"commit": None, "dirty": None}
+    # A copy inside someone else's repository is not that repository's commit.
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    subprocess.run(
+        ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t"]
+        + ["commit", "-q", "--allow-empty", "-m", "t"],
+        check=True,
+    )
+    assert provenance.code(tmp_path)["commit"] is not None  # its own top: its commit
+    (tmp_path / "copy").mkdir()
+    assert provenance.code(tmp_path / "copy") == {"commit": None, "dirty": None}
 
 
 @pytest.mark.parametrize("text", ["{", "[]", '{"starts": 3}', '{"starts": [1]}'])
