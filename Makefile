@@ -26,7 +26,7 @@ setup: $(STAMP)
 run: $(STAMP)
 	$(BIN)/macb up --run configs/default.yaml --out runs/default --data-dir runs/cluster --quiet-services
 
-# Everything but the long checks (marked `slow`): ~10 minutes on 2 shared cores.
+# Everything but the long checks (marked `slow`): 10-16 minutes on 2 shared cores (the slower machines take longer).
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
