@@ -238,7 +238,7 @@ def write_results(
             for p in points:
                 f.write(json.dumps({k: v for k, v in p.items() if k != "seq"}) + "\n")
         (d / "config.json").write_text(json.dumps(run["config"], indent=2) + "\n")
-        if start := run.get("live", {}).get("provenance"):  # the learner's latest start
+        if start := provenance.reported(run):
             provenance.write(d / provenance.FILE, [start])
         written.append(d / "metrics.csv")
         checkpoint = data_dir / "learner" / run["id"] / "checkpoint.pt" if data_dir else None

@@ -127,7 +127,7 @@ def write_csv(root: Path, exp: dict[str, Any], runs: list[dict[str, Any]]) -> No
             for p in run["points"]:
                 f.write(json.dumps({k: v for k, v in p.items() if k != "seq"}) + "\n")
         (d / "config.json").write_text(json.dumps(run["config"], indent=2) + "\n")
-        if start := (run.get("live") or {}).get("provenance"):
+        if start := provenance.reported(run):
             provenance.write(d / provenance.FILE, [start])
     if len(runs) > 1:
         rows = [

@@ -142,6 +142,13 @@ def append(path: Path, start: dict[str, Any]) -> list[dict[str, Any]]:
     return starts
 
 
+def reported(run: dict[str, Any]) -> dict[str, Any] | None:
+    """The learner's latest start as a cluster run's record holds it (the API's run,
+    `live.provenance`), or None where the learner reported none."""
+    start = (run.get("live") or {}).get("provenance")
+    return start if isinstance(start, dict) else None
+
+
 def write(path: Path, starts: list[dict[str, Any]]) -> None:
     """`path` holding exactly these starts (what a cluster run's learners reported)."""
     write_json(path, {"starts": starts})
