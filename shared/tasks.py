@@ -444,6 +444,7 @@ class TaskEnv:
         self.success_terminal = success_terminal
         self.landmark_size = landmark_size
         self._landmark_cover = cover == "landmark" and task == "spread"
+        self._velocity_first = integrator == "velocity-first"
         self._env = _make_parallel(task, n_agents, episode_len)
         self._raw = self._env.unwrapped
         _resize_for_task(task, self._raw.world, landmark_size)
