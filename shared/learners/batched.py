@@ -138,10 +138,7 @@ class BatchedMADDPG:
         self.center = (high + low) / 2
 
         self._init_like_reference([len(c) for c in critic_in])
-        # Adam over the stacked tensors, stepped by _step with a fused kernel. The
-        # optimizers hold the settings and state that state_dict() reads and writes.
-        self.actor_optim = torch.optim.Adam(self.actor.params, lr=spec.lr_actor, fused=True)
-        self.critic_optim = torch.optim.Adam(self.critic.params, lr=spec.lr_critic, fused=True)
+        self._make_optimizers()
         self.updates = 0
         if not isinstance(lanes, int):
             raise ValueError(
@@ -149,19 +146,37 @@ class BatchedMADDPG:
                 f"got {lanes!r}"
             )
         self.lanes = Lanes(lanes)
-        # Per list of weights (online or target, actor or critic): the buffers its copies
-        # in the products' dtype are cast into (none in fp32: the products read the weights).
-        self._low: dict[int, list[torch.Tensor]] = {}
-        if self.dtype != torch.float32:
-            actor, critic = self.actor, self.critic
-            for tensors in (actor.params, actor.targets, critic.params, critic.targets):
-                self._low[id(tensors)] = [torch.empty_like(t, dtype=self.dtype) for t in tensors]
         # The fused kernel (bf16 only) and the weight lists whose copies it has kept
         # current since they were last cast; any other write to the weights empties it.
         if fused and self.dtype != torch.bfloat16:
             raise ValueError(f"fused needs precision bf16 (this learner runs {self.precision})")
         self._kernel = self._fused_kernel(fused) if self.dtype == torch.bfloat16 else None
         self._current: set[int] = set()
+
+    #: Parts each stacked tensor is given to the elementwise passes (Adam, soft update) as.
+    _parts_per_tensor = 1
+
+    def _parts(self, tensors: Sequence[torch.Tensor]) -> list[torch.Tensor]:
+        """The tensors as the elementwise passes take them: whole here. (A group gives
+        each run's part as a tensor of its own, so that every element of a run takes the
+        same vector-or-scalar path through the kernels as the run's tensor alone.)"""
+        return list(tensors)
+
+    def _make_optimizers(self) -> None:
+        """Adam over the stacked tensors, and the weights' copies in the products' dtype.
+
+        The optimizers hold the settings and state that state_dict() reads and writes
+        (stepped by _step with a fused kernel). Per list of weights (online or target,
+        actor or critic), the buffers its copies are cast into: none in fp32, where the
+        products read the weights."""
+        spec = self.spec
+        self.actor_optim = torch.optim.Adam(self.actor.params, lr=spec.lr_actor, fused=True)
+        self.critic_optim = torch.optim.Adam(self.critic.params, lr=spec.lr_critic, fused=True)
+        self._low: dict[int, list[torch.Tensor]] = {}
+        if self.dtype != torch.float32:
+            actor, critic = self.actor, self.critic
+            for tensors in (actor.params, actor.targets, critic.params, critic.targets):
+                self._low[id(tensors)] = [torch.empty_like(t, dtype=self.dtype) for t in tensors]
 
     @staticmethod
     def _fused_kernel(fused: bool | None) -> fused_kernel.MasterKernel | None:
@@ -381,7 +396,7 @@ class BatchedMADDPG:
             placed = torch.gather(
                 torch.nn.functional.pad(a, (0, 1)), 2, self._place_idx.expand(-1, rows, -1)
             )
-            q_in = torch.cat([obs, act], -1) * self._keep + placed
+            q_in = self._critic_input(obs, act) * self._keep + placed
         else:
             q_in = torch.cat([obs_pad, a], -1)
         critic_acts = mlp_forward(critic, self._low_x(q_in))
@@ -453,20 +468,22 @@ class BatchedMADDPG:
         beta1, beta2 = group["betas"]
         exp_avgs = [s["exp_avg"] for s in states]
         exp_avg_sqs = [s["exp_avg_sq"] for s in states]
+        part = self._parts
         if self._kernel is not None:
             self._kernel.adam(
-                params, grads, exp_avgs, exp_avg_sqs, self._low[id(params)], steps[0].item(),
+                part(params), part(grads), part(exp_avgs), part(exp_avg_sqs),
+                part(self._low[id(params)]), steps[0].item(),
                 lr=group["lr"], beta1=beta1, beta2=beta2, eps=group["eps"],
             )  # fmt: skip
             self._current.add(id(params))
             return
         torch._fused_adam_(
-            list(params),
-            list(grads),
-            exp_avgs,
-            exp_avg_sqs,
+            part(params),
+            part(grads),
+            part(exp_avgs),
+            part(exp_avg_sqs),
             [],
-            steps,
+            [s for s in steps for _ in range(self._parts_per_tensor)],
             amsgrad=False,
             lr=group["lr"],
             beta1=beta1,
@@ -585,18 +602,18 @@ class BatchedMADDPG:
     def soft_update(self) -> None:
         """theta' <- tau theta + (1 - tau) theta' for every target network, in one call
         (fused: with the targets' bf16 copies)."""
-        actor, critic = self.actor, self.critic
+        actor, critic, part = self.actor, self.critic, self._parts
         if self._kernel is not None and self.spec.tau < 0.5:
             self._kernel.soft_update(
-                actor.targets + critic.targets,
-                actor.params + critic.params,
-                self._low[id(actor.targets)] + self._low[id(critic.targets)],
+                part(actor.targets + critic.targets),
+                part(actor.params + critic.params),
+                part(self._low[id(actor.targets)] + self._low[id(critic.targets)]),
                 self.spec.tau,
             )
             self._current.update((id(actor.targets), id(critic.targets)))
             return
         torch._foreach_lerp_(
-            actor.targets + critic.targets, actor.params + critic.params, self.spec.tau
+            part(actor.targets + critic.targets), part(actor.params + critic.params), self.spec.tau
         )
         self._current.difference_update((id(actor.targets), id(critic.targets)))
 

@@ -24,7 +24,15 @@ import torch
 # trick is for fp32 only. The floor in benchmarks/bench_learner.py times these same
 # functions.
 def linear_forward(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """x W^T + b: x (N, B, in), W (N, out, in), b (N, 1, out) -> (N, B, out)."""
+    """x W^T + b: x (N, B, in), W (N, out, in), b (N, 1, out) -> (N, B, out).
+
+    A stack of one network with one output (DDPG's critic head) goes through torch's
+    batched kernel as a stack of two (the same entry twice, not copied): alone, torch
+    takes a matrix-vector path whose rounding differs, and a network's output would then
+    depend on how many networks share its stack (a run alone vs. in a group)."""
+    if w.shape[0] == 1 and w.shape[1] == 1:
+        two = (2, -1, -1)
+        return torch.baddbmm(b.expand(two), x.expand(two), w.expand(two).mT)[:1]
     return torch.baddbmm(b, x, w.mT)
 
 

@@ -1,0 +1,281 @@
+"""R runs of one task and network shape in one learner: a figure's seeds and arms
+updated by one call.
+
+`GroupMADDPG` is `BatchedMADDPG` with a run axis: its stacks hold R x N networks (run
+r's agent i at entry r * N + i), so one layer of every agent of every run is one
+`baddbmm`, one Adam pass steps every run's weights, one `lerp` soft-updates every
+target. Each run keeps its own initial weights (its own `LearnerSpec` seed), its own
+Adam moments (elementwise, so stacking them changes nothing), and reads only its own
+batch: run r's critics read run r's joint rows, never another run's. The products are
+per stack entry and independent of how many entries there are, so run r's update is
+the one `BatchedMADDPG` alone does on the same batch (tests/test_group_learner.py,
+bit for bit in fp32 and in bf16).
+
+Inputs carry the run axis first: obs (R, B, joint) with one minibatch per run shared
+by its agents, or (R, N, B, joint) with one per agent (`minibatch: per-agent`); rew
+(R, B, N) or (R, N, B, N); done (R, B) or (R, N, B). What the runs of a group must
+share is their update's arithmetic: algorithm, hidden sizes, learning rates, gamma,
+tau and the subnormal flushing (`group_key`); seeds and `same_init` may differ.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from shared.learners.base import AgentDims, LearnerSpec
+from shared.learners.batched import BatchedMADDPG
+from shared.learners.layers import Stack, mlp_forward
+
+#: LearnerSpec fields every run of a group must share.
+SHARED_FIELDS = ("algo", "hidden", "lr_actor", "lr_critic", "gamma", "tau", "flush_denormals")
+
+
+class GroupMADDPG(BatchedMADDPG):
+    """R runs' learners as one (see the module docstring); lanes are not used."""
+
+    def __init__(
+        self,
+        agents: Sequence[AgentDims],
+        specs: Sequence[LearnerSpec],
+        precision: str = "fp32",
+        fused: bool | None = None,
+    ) -> None:
+        specs = list(specs)
+        if not specs:
+            raise ValueError("a group needs at least one run")
+        for field in SHARED_FIELDS:
+            values = {getattr(s, field) for s in specs}
+            if len(values) > 1:
+                raise ValueError(f"the runs of a group must share {field}; got {sorted(values)}")
+        super().__init__(agents, specs[0], lanes=1, precision=precision, fused=fused)
+        self.specs = specs
+        self.runs = r = len(specs)
+        n = self.n
+        self._per_entry = False
+        # One run's stacks, then R copies of their layout, each run's from its own seed.
+        one = (self.actor, self.critic)
+        self.actor, self.critic = (self._widen(s, r) for s in one)
+        for run, spec in enumerate(specs):
+            init = one if run == 0 else (lambda b: (b.actor, b.critic))(
+                BatchedMADDPG(agents, spec)
+            )
+            for wide, single in zip((self.actor, self.critic), init):
+                for dst, src in ((wide.params, single.params), (wide.targets, single.targets)):
+                    for d, s in zip(dst, src):
+                        d[run * n : (run + 1) * n] = s
+        self._make_optimizers()
+        self._parts_per_tensor = r
+        self._current.clear()
+        # Per-agent constants, tiled per run.
+        tile = lambda t: t.repeat(r, *([1] * (t.dim() - 1)))  # noqa: E731
+        self.scale, self.center = tile(self.scale), tile(self.center)
+        if self.centralized:
+            self._keep, self._place_idx = tile(self._keep), tile(self._place_idx)
+            self._own_cols = tile(self._own_cols)
+        self._tiled = {id(self._obs_idx): tile(self._obs_idx), id(self._act_idx): tile(self._act_idx)}
+        self._agent_of = torch.arange(n).repeat(r)  # entry -> its agent
+
+    def _parts(self, tensors: Sequence[torch.Tensor]) -> list[torch.Tensor]:
+        """Each stacked tensor as R views, run by run: the elementwise kernels (Adam, the
+        soft update) take vectors of a tensor from its start and its last elements one
+        by one, with different rounding (fused multiply-adds); given per run, run r's
+        elements fall where they fall in its tensor alone."""
+        n = self.n
+        return [t[r * n : (r + 1) * n] for t in tensors for r in range(self.runs)]
+
+    @staticmethod
+    def _widen(stack: Stack, runs: int) -> Stack:
+        """A stack of `runs` copies of `stack`'s networks (zeros), same layout per copy."""
+        first = stack.index[0]
+        sizes = [stack.params[0].shape[2]] + [stack.params[2 * k].shape[1] for k in range(len(first))]
+        n = len(stack.index)
+        ins = [stack.index[i][0][0] for i in range(n)] * runs
+        outs = [stack.index[i][-1][1] for i in range(n)] * runs
+        return Stack(n * runs, sizes, ins, outs)
+
+    # ------------------------------------------------------------- layout
+    def _per_agent(self, joint: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        """Each entry's agent block, zero-padded, (R*N, rows, pad): in an update on one
+        minibatch per entry, of (R*N, rows, joint), else of (R, rows, joint) per run."""
+        if self._per_entry:
+            return self._split_entries(joint, idx)
+        return self._split_runs(joint, idx)
+
+    def _split_runs(self, joint: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """(R, rows, joint) -> (R*N, rows, pad): run r's rows for each of its agents."""
+        padded = torch.nn.functional.pad(joint, (0, 1))
+        rows = joint.shape[1]
+        split = padded[:, :, idx]  # (R, rows, N, pad)
+        return split.permute(0, 2, 1, 3).reshape(self.runs * self.n, rows, idx.shape[1])
+
+    def _split_entries(self, joint: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """(R*N, rows, joint) -> (R*N, rows, pad): entry e's agent block of its own rows."""
+        padded = torch.nn.functional.pad(joint, (0, 1))
+        rows = joint.shape[1]
+        tiled = self._tiled[id(idx)]
+        return torch.gather(padded, 2, tiled[:, None, :].expand(-1, rows, -1))
+
+    def _joint_act(self, per_agent: torch.Tensor) -> torch.Tensor:
+        """(R*N, rows, act_pad) -> (R, rows, joint_act): each run's joint actions."""
+        r, n = self.runs, self.n
+        rows = per_agent.shape[1]
+        x = per_agent.reshape(r, n, rows, self.act_pad).permute(0, 2, 1, 3)
+        return x.reshape(r, rows, n * self.act_pad)[..., self._joint_act_idx]
+
+    def _entries(self, x: torch.Tensor) -> torch.Tensor:
+        """(R, rows, D) per run -> (R*N, rows, D): what each of a run's networks reads."""
+        r, rows = x.shape[:2]
+        return x.unsqueeze(1).expand(r, self.n, rows, x.shape[2]).reshape(r * self.n, rows, -1)
+
+    def _critic_input(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        if not self.centralized:
+            return super()._critic_input(obs, act)
+        joint = torch.cat([obs, act], -1)
+        return joint if self._per_entry else self._entries(joint)
+
+    # ------------------------------------------------------------- acting
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Deterministic joint actions of every run: (R, ..., joint_obs) -> (R, ..., joint_act)."""
+        o = torch.as_tensor(obs, dtype=torch.float32)
+        if o.shape[0] != self.runs:
+            raise ValueError(f"obs has {o.shape[0]} runs, the group {self.runs}")
+        lead = o.shape[1:-1]
+        o_pad = self._split_runs(o.reshape(self.runs, -1, self.joint_obs), self._obs_idx)
+        mu = self._squash(torch.tanh(mlp_forward(self.actor.params, o_pad)[-1]))
+        return self._joint_act(mu).reshape(self.runs, *lead, self.joint_act).numpy()
+
+    # ------------------------------------------------------------- learning
+    def _target_q(self, weights, rew, next_obs, done):  # type: ignore[override]
+        actor, critic = weights
+        r, n = self.runs, self.n
+        gamma = self.spec.gamma
+        if self._per_entry:  # (R*N, B, joint): entry e's own minibatch
+            rows = next_obs.shape[1]
+            if self.centralized:
+                # run r's actors on all of run r's N minibatches (N x B rows)
+                runs_rows = next_obs.reshape(r, n * rows, -1)
+                every = self._mu(actor, self._split_runs(runs_rows, self._obs_idx))
+                joint = self._joint_act(every).reshape(r * n, rows, -1)
+                q_in = torch.cat([next_obs, joint], -1)
+            else:
+                own = self._per_agent(next_obs, self._obs_idx)
+                q_in = torch.cat([own, self._mu(actor, own)], -1)
+            q = self._q(critic, q_in)
+            entries = torch.arange(r * n)
+            return rew[entries, :, self._agent_of] + gamma * (1.0 - done) * q
+        next_obs_pad = self._per_agent(next_obs, self._obs_idx)
+        next_act = self._mu(actor, next_obs_pad)
+        if self.centralized:
+            q_in = self._entries(torch.cat([next_obs, self._joint_act(next_act)], -1))
+        else:
+            q_in = torch.cat([next_obs_pad, next_act], -1)
+        q = self._q(critic, q_in)
+        rows = next_obs.shape[1]
+        y_rew = rew.permute(0, 2, 1).reshape(r * n, rows)
+        not_done = (1.0 - done.reshape(r, 1, rows)).expand(r, n, rows).reshape(r * n, rows)
+        return y_rew + gamma * not_done * q
+
+    def update(self, obs, act, rew, next_obs, done) -> dict[str, float]:  # type: ignore[override]
+        """One critic and one actor step for every agent of every run, then the soft
+        updates: run r's from its own batch (shapes in the module docstring)."""
+        obs = np.asarray(obs)
+        if obs.shape[0] != self.runs:
+            raise ValueError(f"obs has {obs.shape[0]} runs, the group {self.runs}")
+        self._per_entry = obs.ndim == 4
+        if self._per_entry:  # (R, N, B, ...) -> (R*N, B, ...)
+            flat = lambda x: np.asarray(x).reshape(self.runs * self.n, *np.shape(x)[2:])  # noqa: E731
+            obs, act, rew, next_obs, done = map(flat, (obs, act, rew, next_obs, done))
+        try:
+            return self.update_on(1, obs, act, rew, next_obs, done)
+        finally:
+            self._per_entry = False
+
+    # ------------------------------------------------------------- per run
+    def run_learner(self, run: int) -> BatchedMADDPG:
+        """Run `run`'s learner alone: a BatchedMADDPG holding its weights, targets, Adam
+        state and update count (copies; for checkpoints and evaluation elsewhere)."""
+        one = BatchedMADDPG(self.agents, self.specs[run])
+        sl = slice(run * self.n, (run + 1) * self.n)
+        pairs = (
+            (self.actor.params, one.actor.params),
+            (self.actor.targets, one.actor.targets),
+            (self.critic.params, one.critic.params),
+            (self.critic.targets, one.critic.targets),
+        )
+        with torch.no_grad():
+            for src, dst in pairs:
+                for s, d in zip(src, dst):
+                    d.copy_(s[sl])
+        for mine, theirs, params, their_params in (
+            (self.actor_optim, one.actor_optim, self.actor.params, one.actor.params),
+            (self.critic_optim, one.critic_optim, self.critic.params, one.critic.params),
+        ):
+            for p, q in zip(params, their_params):
+                if p in mine.state:
+                    st = mine.state[p]
+                    theirs.state[q] = {
+                        "step": st["step"].clone(),
+                        "exp_avg": st["exp_avg"][sl].clone(),
+                        "exp_avg_sq": st["exp_avg_sq"][sl].clone(),
+                    }
+        one.updates = self.updates
+        return one
+
+    def run_state_dict(self, run: int) -> dict:
+        """Run `run`'s checkpoint in the reference's format (what `macb train` writes)."""
+        return self.run_learner(run).state_dict()
+
+    def load_run_state_dicts(self, states: Sequence[dict]) -> None:
+        """Every run's checkpoint at once (they must be at the same update: a group's runs
+        update together)."""
+        if len(states) != self.runs:
+            raise ValueError(f"{len(states)} states for a group of {self.runs} runs")
+        ones = []
+        for spec, state in zip(self.specs, states):
+            one = BatchedMADDPG(self.agents, spec)
+            one.load_state_dict(state)
+            ones.append(one)
+        updates = {o.updates for o in ones}
+        if len(updates) != 1:
+            raise ValueError(f"the runs' checkpoints are at different updates: {sorted(updates)}")
+        n = self.n
+        with torch.no_grad():
+            for run, one in enumerate(ones):
+                sl = slice(run * n, (run + 1) * n)
+                for dst, src in (
+                    (self.actor.params, one.actor.params),
+                    (self.actor.targets, one.actor.targets),
+                    (self.critic.params, one.critic.params),
+                    (self.critic.targets, one.critic.targets),
+                ):
+                    for d, s in zip(dst, src):
+                        d[sl] = s
+        for optim, params, name in (
+            (self.actor_optim, self.actor.params, "actor_optim"),
+            (self.critic_optim, self.critic.params, "critic_optim"),
+        ):
+            optim.state.clear()
+            theirs = [(getattr(o, name), getattr(o, name.split("_")[0]).params) for o in ones]
+            if not all(p[0] in o.state for o, p in theirs):
+                continue
+            for k, p in enumerate(params):
+                first = theirs[0][0].state[theirs[0][1][k]]
+                optim.state[p] = {
+                    "step": first["step"].clone(),
+                    "exp_avg": torch.cat([o.state[ps[k]]["exp_avg"] for o, ps in theirs]),
+                    "exp_avg_sq": torch.cat([o.state[ps[k]]["exp_avg_sq"] for o, ps in theirs]),
+                }
+        self.updates = updates.pop()
+        self.weights_changed()
+
+    def state_dict(self) -> dict:  # type: ignore[override]
+        raise TypeError("a group has one state per run: run_state_dict(run)")
+
+    def load_state_dict(self, state: dict) -> None:  # type: ignore[override]
+        raise TypeError("a group loads one state per run: load_run_state_dicts(states)")
+
+    def actor_weights(self):  # type: ignore[override]
+        raise TypeError("a group's actors are per run: run_learner(run).actor_weights()")
