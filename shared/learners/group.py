@@ -59,9 +59,7 @@ class GroupMADDPG(BatchedMADDPG):
         one = (self.actor, self.critic)
         self.actor, self.critic = (self._widen(s, r) for s in one)
         for run, spec in enumerate(specs):
-            init = one if run == 0 else (lambda b: (b.actor, b.critic))(
-                BatchedMADDPG(agents, spec)
-            )
+            init = one if run == 0 else (lambda b: (b.actor, b.critic))(BatchedMADDPG(agents, spec))
             for wide, single in zip((self.actor, self.critic), init):
                 for dst, src in ((wide.params, single.params), (wide.targets, single.targets)):
                     for d, s in zip(dst, src):
@@ -75,7 +73,7 @@ class GroupMADDPG(BatchedMADDPG):
         if self.centralized:
             self._keep, self._place_idx = tile(self._keep), tile(self._place_idx)
             self._own_cols = tile(self._own_cols)
-        self._tiled = {id(self._obs_idx): tile(self._obs_idx), id(self._act_idx): tile(self._act_idx)}
+        self._tiled = {id(i): tile(i) for i in (self._obs_idx, self._act_idx)}
         self._agent_of = torch.arange(n).repeat(r)  # entry -> its agent
 
     def _parts(self, tensors: Sequence[torch.Tensor]) -> list[torch.Tensor]:
@@ -89,8 +87,8 @@ class GroupMADDPG(BatchedMADDPG):
     @staticmethod
     def _widen(stack: Stack, runs: int) -> Stack:
         """A stack of `runs` copies of `stack`'s networks (zeros), same layout per copy."""
-        first = stack.index[0]
-        sizes = [stack.params[0].shape[2]] + [stack.params[2 * k].shape[1] for k in range(len(first))]
+        layers = len(stack.index[0])
+        sizes = [stack.params[0].shape[2]] + [stack.params[2 * k].shape[1] for k in range(layers)]
         n = len(stack.index)
         ins = [stack.index[i][0][0] for i in range(n)] * runs
         outs = [stack.index[i][-1][1] for i in range(n)] * runs
