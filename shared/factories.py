@@ -24,17 +24,14 @@ from shared.rollout import derive_seed
 from shared.tasks import TaskSpec
 
 
-def build_learner(
-    cfg: TrainConfig, spec: TaskSpec, contended: Callable[[], bool] | None = None
-) -> Learner:
-    """`cfg.learner_impl`'s learner; with `learner_lanes: auto` the batched one tuned; the
-    batched one's products in `cfg.precision` (the config refuses bf16 for the reference,
-    which stays the fp32 definition).
+def agent_dims(spec: TaskSpec) -> list[AgentDims]:
+    """What a learner needs of a task's agents."""
+    return [AgentDims(a.obs_dim, a.act_low, a.act_high) for a in spec.agents]
 
-    `contended()`, polled before each tuned update, says whether other work known to
-    the caller runs beside it (ignored by the untuned learners)."""
-    agents = [AgentDims(a.obs_dim, a.act_low, a.act_high) for a in spec.agents]
-    lspec = LearnerSpec(
+
+def learner_spec(cfg: TrainConfig) -> LearnerSpec:
+    """The run's algorithm settings; its learner seed derives from the run seed."""
+    return LearnerSpec(
         algo=cfg.algo,
         hidden=tuple(cfg.hidden),
         lr_actor=cfg.lr_actor,
@@ -45,6 +42,19 @@ def build_learner(
         same_init=cfg.same_init,
         flush_denormals=cfg.flush_denormals,
     )
+
+
+def build_learner(
+    cfg: TrainConfig, spec: TaskSpec, contended: Callable[[], bool] | None = None
+) -> Learner:
+    """`cfg.learner_impl`'s learner; with `learner_lanes: auto` the batched one tuned; the
+    batched one's products in `cfg.precision` (the config refuses bf16 for the reference,
+    which stays the fp32 definition).
+
+    `contended()`, polled before each tuned update, says whether other work known to
+    the caller runs beside it (ignored by the untuned learners)."""
+    agents = agent_dims(spec)
+    lspec = learner_spec(cfg)
     if cfg.learner_impl != "batched":
         return MADDPG(agents, lspec)
     if cfg.learner_lanes == "auto":

@@ -204,3 +204,156 @@ def evaluate(policy: Policy, envs: list[TaskEnv], episodes: int) -> EvalResult:
         returns += ret.tolist()
         remaining -= len(group)
     return EvalResult(float(np.mean(successes)), float(np.mean(returns)), episodes, steps)
+
+
+# ---------------------------------------------------------------------- run groups
+GroupPolicy = Callable[[np.ndarray], np.ndarray]  # (R, rows, joint_obs) -> (R, rows, joint_act)
+
+
+@dataclass
+class VecTransitions:
+    """One step of R runs' collectors: (R, ...) arrays, row r what run r's `Collector`
+    would have given as its `Transition`."""
+
+    obs: np.ndarray
+    act: np.ndarray
+    rew: np.ndarray
+    next_obs: np.ndarray
+    done: np.ndarray
+    success: np.ndarray
+    collisions: np.ndarray
+    episode_end: np.ndarray
+
+
+class VecCollector:
+    """R runs' `Collector`s over one world each of a VecTask (world r is run r's).
+
+    Run r draws its noise, warm-up actions and worlds from its own streams exactly as
+    its `Collector` alone does (same seed, same order of draws), so its transitions are
+    the same; the policy is asked once per step for every run. Episodes of a group end
+    together (one `episode_len`), so a cut's episode boundary is every run's."""
+
+    def __init__(
+        self,
+        venv: Any,
+        noise_sigmas: list[float],
+        seeds: list[int],
+        time_limit_terminal: list[bool],
+        warmup_steps: list[int],
+    ) -> None:
+        self.venv = venv
+        self.runs = r = venv.e
+        spec = venv.spec
+        self.low = np.concatenate([np.asarray(a.act_low, np.float32) for a in spec.agents])
+        self.high = np.concatenate([np.asarray(a.act_high, np.float32) for a in spec.agents])
+        self.noise_scale = [s * (self.high - self.low) / 2 for s in noise_sigmas]
+        self.rngs = [np.random.default_rng(seed) for seed in seeds]
+        self.time_limit_terminal = np.array(time_limit_terminal)
+        self.warmup_steps = list(warmup_steps)
+        self.obs = np.stack([venv.reset(i, seed=seed) for i, seed in enumerate(seeds)])
+        self.reset_due = np.zeros(r, bool)
+        self.steps = 0  # transitions collected by each run
+        self.episodes = 0
+
+    def _noisy(self, r: int, act: np.ndarray) -> np.ndarray:
+        rng = self.rngs[r]
+        noise = rng.standard_normal(act.shape).astype(np.float32) * self.noise_scale[r]
+        return np.clip(act + noise, self.low, self.high)
+
+    def step(self, policy: GroupPolicy) -> VecTransitions:
+        venv = self.venv
+        for r in np.nonzero(self.reset_due)[0]:
+            self.obs[r] = venv.reset(int(r))
+        self.reset_due[:] = False
+        obs = self.obs.copy()
+        warm = [self.steps < w for w in self.warmup_steps]
+        policy_act = None if all(warm) else policy(obs[:, None])[:, 0]
+        act = np.empty((self.runs, len(self.low)), np.float32)
+        for r in range(self.runs):
+            if warm[r]:
+                a = self.rngs[r].uniform(self.low, self.high).astype(np.float32)
+            else:
+                a = policy_act[r]
+            act[r] = self._noisy(r, a)
+        res = venv.step(act)
+        self.steps += 1
+        limit = res.truncated | res.restart
+        done = (res.terminated | (limit & self.time_limit_terminal)).astype(np.float32)
+        tr = VecTransitions(
+            obs, act, res.reward, res.obs, done, res.success, res.collisions, res.truncated
+        )
+        for r in range(self.runs):
+            if res.truncated[r]:
+                self.reset_due[r] = True
+            elif res.terminated[r] or res.restart[r]:
+                self.obs[r] = venv.reset_world(r)
+            else:
+                self.obs[r] = res.obs[r]
+        if res.truncated.all():
+            self.episodes += 1
+        return tr
+
+    def state(self, r: int) -> dict[str, Any]:
+        """Run r's collector state, in `Collector.state`'s format (between episodes)."""
+        if not self.reset_due[r]:
+            raise RuntimeError("a collector's state is saved between episodes only")
+        return {
+            "rng": dict(self.rngs[r].bit_generator.state),
+            "env_rng": self.venv.rng_state(r),
+            "steps": self.steps,
+            "episodes": self.episodes,
+        }
+
+    def load_state(self, states: list[dict[str, Any]]) -> None:
+        """Every run's state (`Collector.state`'s format; the runs are at one step)."""
+        steps = {int(s["steps"]) for s in states}
+        if len(steps) != 1:
+            raise ValueError(f"the runs' collectors are at different steps: {sorted(steps)}")
+        for r, s in enumerate(states):
+            self.rngs[r].bit_generator.state = s["rng"]
+            self.venv.set_rng_state(r, s["env_rng"])
+        self.steps = steps.pop()
+        self.episodes = int(states[0]["episodes"])
+        self.reset_due[:] = True
+
+
+def evaluate_group(policy: GroupPolicy, venv: Any, runs: int, episodes: int) -> list[EvalResult]:
+    """`evaluate` for R runs at once: `venv` holds m worlds per run (run r's are worlds
+    r*m .. r*m+m-1, each its lone evaluation env), stepped together; one policy call per
+    step serves every run's episodes. Run r's result is what `evaluate` gives it."""
+    from shared.vectask import vectorize
+
+    m = venv.e // runs
+    successes: list[list[bool]] = [[] for _ in range(runs)]
+    returns: list[list[float]] = [[] for _ in range(runs)]
+    steps, remaining = 0, episodes
+    while remaining > 0:
+        k = min(m, remaining)
+        w = (
+            venv
+            if k == m
+            else vectorize([venv.envs[r * m + j] for r in range(runs) for j in range(k)])
+        )
+        obs = np.stack([w.reset(i) for i in range(w.e)])
+        ok = np.zeros(w.e, bool)
+        ret = np.zeros(w.e)
+        done = False
+        while not done:
+            acts = policy(obs.reshape(runs, k, -1)).reshape(w.e, -1)
+            res = w.step(acts)
+            ended = (res.terminated | res.restart) & ~res.truncated
+            obs = res.obs.copy()
+            for i in np.nonzero(ended)[0]:
+                obs[i] = w.reset_world(int(i))
+            ok |= res.success
+            ret += res.reward
+            done = bool(res.truncated[-1])
+            steps += k
+        for r in range(runs):
+            successes[r] += ok[r * k : (r + 1) * k].tolist()
+            returns[r] += ret[r * k : (r + 1) * k].tolist()
+        remaining -= k
+    return [
+        EvalResult(float(np.mean(s)), float(np.mean(rt)), episodes, steps)
+        for s, rt in zip(successes, returns)
+    ]

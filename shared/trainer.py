@@ -227,7 +227,8 @@ class Run:
                     if writer:
                         writer.write(row)
                     if self.cuts is not None and (
-                        time.monotonic() - self.last_cut >= self.cut_every_s
+                        len(self.rows) == 1  # a run killed in its first minute resumes too
+                        or time.monotonic() - self.last_cut >= self.cut_every_s
                         or episode == cfg.episodes
                     ):
                         self.cut(episode)

@@ -58,7 +58,9 @@ class VecTask:
         self.e = len(envs)
         self.spec = spec = first.spec
         self.task = first.task
-        self.reward_kind = first.reward_kind
+        # The reward may differ from world to world (a group's sparse and dense arms).
+        self.reward_kinds = np.array([e.reward_kind for e in envs])
+        self.any_dense = bool((self.reward_kinds == "dense").any())
         self.success_terminal = first.success_terminal
         self.landmark_cover = first._landmark_cover
         self.velocity_first = first._velocity_first
@@ -265,12 +267,10 @@ class VecTask:
                 rewarded += ~(near if self.landmark_cover else cov)
             sparse = -(rewarded + collisions) / n
             success = uncovered == 0
-        if self.reward_kind == "sparse":
-            reward = sparse.astype(np.float64)
-        elif self.reward_kind == "sparse_offset":
-            reward = sparse + SPARSE_OFFSET
-        else:
-            reward = self._dense()
+        reward = sparse.astype(np.float64)
+        reward = np.where(self.reward_kinds == "sparse_offset", reward + SPARSE_OFFSET, reward)
+        if self.any_dense:
+            reward = np.where(self.reward_kinds == "dense", self._dense(), reward)
         return reward, success, collisions
 
     def _dense(self) -> np.ndarray:
@@ -346,7 +346,6 @@ def _signature(env: TaskEnv) -> tuple:
     return (
         env.task,
         env.spec,
-        env.reward_kind,
         env.success_terminal,
         env.landmark_size,
         env._landmark_cover,

@@ -160,3 +160,28 @@ def test_a_cut_from_another_config_or_format_is_refused_naming_it_and_nothing_ch
 def test_resume_refuses_config_flags(tmp_path, capsys):
     assert main(["train", "--resume", str(tmp_path), "--k", "64", "--quiet"]) == 2
     assert "drop --k" in capsys.readouterr().err
+
+
+def test_a_run_stopped_after_its_first_point_resumes(tmp_path):
+    """The first evaluation point is cut, whatever --cut-every says: a run killed in its
+    first minute can be continued."""
+    cfg = make_config({"task": "simple", "algo": "ddpg", "episodes": 3, "hidden": [16, 16],
+                       "learner_lanes": 1, "learning_starts": 10})  # fmt: skip
+    out = tmp_path / "run"
+
+    class Stop(Exception):
+        pass
+
+    def stop(row):
+        if row["episode"] == 2:
+            raise Stop
+
+    with pytest.raises(Stop):
+        train(cfg, out, progress=False, on_metrics=stop, cut_every_s=1e9)
+    assert [p.name for p in (out / "cuts").glob("cut-*.pt")] == ["cut-000000001.pt"]
+    resumed = train(cfg, out, progress=False, resume=True)
+    straight = train(cfg, tmp_path / "straight", progress=False)
+    drop = ("steps_per_sec", "train_steps_per_sec", "wall_s")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in resumed] == [
+        {k: v for k, v in r.items() if k not in drop} for r in straight
+    ]

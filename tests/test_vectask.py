@@ -129,7 +129,23 @@ def test_refuses_bad_use():
     with pytest.raises(ValueError, match="non-finite actions in worlds \\[1\\]"):
         vec.step(np.array([[0, 0], [np.nan, 0]], np.float32))
     with pytest.raises(ValueError, match="same task"):
-        VecTask([make_task("simple"), make_task("simple", reward="dense")])
+        VecTask([make_task("simple"), make_task("simple", integrator="velocity-first")])
+
+
+def test_rewards_may_differ_per_world():
+    """A group's sparse, offset and dense arms share one VecTask: each world is scored
+    with its own reward, as its lone env scores it."""
+    kinds = ["sparse", "dense", "sparse_offset", "dense"]
+    lone = [make_task("speaker_listener", reward=k, seed=i) for i, k in enumerate(kinds)]
+    vec = VecTask([make_task("speaker_listener", reward=k) for k in kinds])
+    for i, e in enumerate(lone):
+        e.reset()
+        vec.reset(i, seed=i)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        acts = rng.uniform(-1, 1, (4, vec.spec.joint_act_dim)).astype(np.float32)
+        res = vec.step(acts)
+        assert [e.step_joint(a).reward for e, a in zip(lone, acts)] == res.reward.tolist()
 
 
 def test_custom_tasks_step_world_by_world():

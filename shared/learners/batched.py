@@ -251,7 +251,9 @@ class BatchedMADDPG:
         padded = torch.nn.functional.pad(joint, (0, 1))
         if joint.dim() == 3:
             return torch.gather(padded, 2, idx[:, None, :].expand(-1, joint.shape[1], -1))
-        return padded[:, idx].transpose(0, 1)
+        # Contiguous, as a group's are: a product's rounding may depend on its input's
+        # layout (seen with 3 rows), and a run alone must compute what it does in a group.
+        return padded[:, idx].transpose(0, 1).contiguous()
 
     def _joint_act(self, per_agent: torch.Tensor) -> torch.Tensor:
         """(N, B, act_pad) -> (B, joint_act)."""

@@ -1,0 +1,448 @@
+"""Run groups: R runs of one task and network shape trained as one, in one process.
+
+The thesis's loop (shared/trainer.py) for every run of the group at once: each step,
+one policy call acts for every run (with the current weights), the R worlds step as
+arrays (shared/vectask.py), each run stores and counts its own transition (collection
+is the only place counts change), samples its own minibatch, prices its bonus from its
+own counts, and one `GroupMADDPG.update` updates every run. After every `eval_every`
+episodes one batched rollout runs every run's noise-free evaluation episodes.
+
+What stays per run is everything that makes it a run: its config (seed, exploration,
+beta, k, reward, noise, ...), replay buffer, count tables, RNG streams, metrics, output
+folder, cuts and provenance. Run r's rows are those `macb train` gives it alone (fp32,
+`learner_lanes: 1`, timing columns aside; tests/test_group_trainer.py), and each run's
+cut is a `macb train` cut: a group resumes from them, and so could the run alone.
+
+Runs may be grouped when their update and their task's steps can be shared:
+`group_key` is the config without the fields a run may choose for itself
+(`PER_RUN_FIELDS`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from threadpoolctl import threadpool_limits
+
+from shared import provenance
+from shared.config import TrainConfig
+from shared.cuts import (
+    CutError,
+    ReplayLog,
+    config_difference,
+    latest_cut,
+    load_tables,
+    read_cut,
+    tables_state,
+    write_cut,
+)
+from shared.cuts import clear as clear_cuts
+from shared.exploration import BonusDiagnostics
+from shared.factories import (
+    agent_dims,
+    build_exploration,
+    learner_spec,
+    minibatches_per_update,
+)
+from shared.files import read_json
+from shared.learners.group import GroupMADDPG
+from shared.replay import ReplayBuffer, update_arrays
+from shared.rollout import VecCollector, derive_seed, evaluate_group, warmup_share
+from shared.tasks import make_task_for, task_spec_for
+from shared.trainer import (
+    DEFAULT_CUT_EVERY_S,
+    MetricsWriter,
+    _read_rows,
+    _say_if_constant_shift,
+    save_checkpoint,
+)
+from shared.vectask import vectorize
+
+log = logging.getLogger("macb.group")
+
+#: Config fields that may differ between the runs of a group; every other field is
+#: shared (task and its options, algorithm and network, update settings, episodes,
+#: evaluation, precision and threads).
+PER_RUN_FIELDS = frozenset(
+    {
+        "seed",
+        "explore",
+        "beta",
+        "k",
+        "hash",
+        "key",
+        "hash_round",
+        "reward",
+        "noise_sigma",
+        "time_limit_terminal",
+        "warmup",
+        "same_init",
+        "buffer_size",
+        "profile",
+        "learner_lanes",
+        "learner_impl",
+    }
+)
+
+
+def group_key(cfg: TrainConfig) -> str:
+    """What runs of one group must share, as one comparable string."""
+    shared = {k: v for k, v in cfg.model_dump(mode="json").items() if k not in PER_RUN_FIELDS}
+    return json.dumps(shared, sort_keys=True)
+
+
+def check_group(cfgs: Sequence[TrainConfig]) -> None:
+    """Refuse runs that cannot share a group, naming the first field that differs."""
+    if not cfgs:
+        raise ValueError("a group needs at least one run")
+    first = json.loads(group_key(cfgs[0]))
+    for r, cfg in enumerate(cfgs[1:], 1):
+        diff = config_difference(first, json.loads(group_key(cfg)))
+        if diff is not None:
+            field = diff.split(":")[0]
+            raise ValueError(
+                f"runs 0 and {r} cannot share a group: they differ in {field} "
+                f"({getattr(cfgs[0], field)!r} != {getattr(cfg, field)!r})"
+            )
+
+
+def form_groups(cfgs: Sequence[TrainConfig], max_runs: int | None = None) -> list[list[int]]:
+    """Indices of `cfgs` in groups of runs that can share one (in order of first
+    appearance), each at most `max_runs` long."""
+    by_key: dict[str, list[int]] = {}
+    for i, cfg in enumerate(cfgs):
+        by_key.setdefault(group_key(cfg), []).append(i)
+    groups = []
+    for members in by_key.values():
+        step = max_runs or len(members)
+        groups += [members[i : i + step] for i in range(0, len(members), step)]
+    return groups
+
+
+class Member:
+    """One run of a group: its own parts, counters, rows and files."""
+
+    def __init__(self, cfg: TrainConfig, out: Path | None, spec) -> None:
+        self.cfg, self.out = cfg, out
+        self.explorer = build_exploration(cfg, spec)
+        capacity = min(cfg.buffer_size, cfg.episodes * cfg.episode_len)
+        self.buffer = ReplayBuffer(capacity, spec.joint_obs_dim, spec.joint_act_dim)
+        self.sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
+        self.diagnostics = BonusDiagnostics()
+        self.rows: list[dict] = []
+        self.shift_warned = False
+        self.env_steps = self.collisions_cum = 0
+        self.eval_s = self.wall_before = 0.0
+        self.cuts = self.replay = None
+        self.replay_rows = 0
+        self.pending: list[tuple[np.ndarray, ...]] = []
+        self.writer: MetricsWriter | None = None
+        if out is not None:
+            self.cuts = out / "cuts"
+            self.replay = ReplayLog(self.cuts)
+
+
+def train_group(
+    cfgs: Sequence[TrainConfig],
+    outs: Sequence[Path | None],
+    progress: bool = True,
+    on_metrics: Callable[[int, dict], None] | None = None,
+    resume: bool = False,
+    cut_every_s: float = DEFAULT_CUT_EVERY_S,
+) -> list[list[dict]]:
+    """Train `cfgs` as one group; returns each run's metric rows (also written under
+    its `outs` folder). `on_metrics(r, row)` sees run r's rows as they come. With
+    `resume`, every run continues from its newest cut that all runs have (one episode),
+    keeping its rows up to it."""
+    if resume and any(o is None for o in outs):
+        raise ValueError("resume needs every run's output folder")
+    with threadpool_limits(limits=1, user_api="blas"):
+        group = GroupRun(cfgs, outs, cut_every_s)
+        if resume:
+            group.restore()
+        else:
+            for m in group.members:
+                if m.cuts is not None and m.cuts.exists():
+                    clear_cuts(m.cuts)
+        return group.go(progress, on_metrics)
+
+
+class GroupRun:
+    """A group's shared parts (worlds, learner, collector) and its runs (`Member`s)."""
+
+    def __init__(
+        self, cfgs: Sequence[TrainConfig], outs: Sequence[Path | None], cut_every_s: float
+    ) -> None:
+        cfgs = list(cfgs)
+        if len(outs) != len(cfgs):
+            raise ValueError(f"{len(cfgs)} runs but {len(outs)} output folders")
+        check_group(cfgs)
+        c0 = self.cfg = cfgs[0]
+        torch.set_num_threads(c0.threads)
+        self.runs = len(cfgs)
+        self.cut_every_s = cut_every_s
+        self.spec = spec = task_spec_for(c0)
+        self.members = [Member(cfg, out, spec) for cfg, out in zip(cfgs, outs)]
+        self.venv = vectorize([make_task_for(cfg) for cfg in cfgs])
+        m = min(c0.eval_episodes, 10)
+        eval_envs = []
+        for cfg in cfgs:
+            for j in range(m):
+                env = make_task_for(cfg)
+                env.reset(seed=derive_seed(cfg.seed, "eval", j))
+                eval_envs.append(env)
+        self.eval_venv = vectorize(eval_envs)
+        self.learner = GroupMADDPG(
+            agent_dims(spec), [learner_spec(cfg) for cfg in cfgs], precision=c0.precision
+        )
+        self.collector = VecCollector(
+            self.venv,
+            [cfg.noise_sigma for cfg in cfgs],
+            [derive_seed(cfg.seed, "actor", 0) for cfg in cfgs],
+            [cfg.time_limit_terminal for cfg in cfgs],
+            [warmup_share(cfg.learning_starts, 1) if cfg.warmup == "random" else 0 for cfg in cfgs],
+        )
+        self.draws = minibatches_per_update(c0)
+        self.first_episode = 1
+        self.resumed = False
+        self.width = {
+            "obs": spec.joint_obs_dim,
+            "act": spec.joint_act_dim,
+            "rew": 1,
+            "next_obs": spec.joint_obs_dim,
+            "done": 1,
+        }
+        self.last_cut = time.monotonic()
+        self.cut_log: list[tuple[int, float]] = []
+
+    # ------------------------------------------------------------------ the loop
+    def go(self, progress: bool, on_metrics) -> list[list[dict]]:
+        c0 = self.cfg
+        stats = self.learner.stats()
+        for m in self.members:
+            if m.out is None:
+                continue
+            m.out.mkdir(parents=True, exist_ok=True)
+            start = provenance.entry(m.cfg.precision, stats, "group")
+            start["group"] = {"runs": self.runs}
+            if self.resumed:
+                provenance.append(m.out / provenance.FILE, start)
+            else:
+                provenance.write(m.out / provenance.FILE, [start])
+            config = json.dumps(m.cfg.model_dump(mode="json"), indent=2) + "\n"
+            (m.out / "config.json").write_text(config)
+            m.writer = MetricsWriter(m.out, rows=m.rows)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            desc = f"{self.runs} runs: {c0.task} {c0.algo}"
+            bar = tqdm(total=c0.episodes, initial=self.first_episode - 1, unit="ep", desc=desc)
+        self.start = time.perf_counter()
+        try:
+            for episode in range(self.first_episode, c0.episodes + 1):
+                self.episode()
+                if episode % c0.eval_every == 0 or episode == c0.episodes:
+                    rows = self.point(episode)
+                    for r, (m, row) in enumerate(zip(self.members, rows)):
+                        if m.writer:
+                            m.writer.write(row)
+                        if on_metrics:
+                            on_metrics(r, row)
+                    first = len(self.members[0].rows) == 1
+                    if self.members[0].cuts is not None and (
+                        first
+                        or time.monotonic() - self.last_cut >= self.cut_every_s
+                        or episode == c0.episodes
+                    ):
+                        self.cut(episode)
+                    if bar:
+                        mean = np.mean([row["success_rate"] for row in rows])
+                        sps = sum(row["steps_per_sec"] for row in rows)
+                        bar.set_postfix(success=f"{mean:.2f}", run_sps=f"{sps:.0f}")
+                if bar:
+                    bar.update(1)
+        finally:
+            if bar:
+                bar.close()
+            for m in self.members:
+                if m.writer:
+                    m.writer.close()
+        for r, m in enumerate(self.members):
+            if m.out is None:
+                continue
+            episodes = m.rows[-1]["episode"] if m.rows else 0
+            counters = {
+                "env_steps": m.env_steps,
+                "episodes": episodes,
+                "updates": self.learner.updates,
+            }
+            one = self.learner.run_learner(r)
+            save_checkpoint(m.out / "checkpoint.pt", one, m.explorer, counters, m.cfg)
+            log.info("wrote %s", m.out)
+        return [m.rows for m in self.members]
+
+    def episode(self) -> None:
+        c0, members = self.cfg, self.members
+        for _ in range(c0.episode_len):
+            tr = self.collector.step(self.learner.act)
+            for r, m in enumerate(members):
+                obs, act, next_obs = tr.obs[r], tr.act[r], tr.next_obs[r]
+                rew, done = float(tr.rew[r]), float(tr.done[r])
+                m.buffer.add(obs, act, rew, next_obs, done)
+                if m.replay is not None:
+                    m.pending.append((obs, act, rew, next_obs, done))
+                m.explorer.observe(obs[None], act[None])
+                m.env_steps += 1
+                m.collisions_cum += int(tr.collisions[r])
+            if members[0].env_steps > c0.learning_starts:
+                parts = []
+                for m in members:
+                    batches = [
+                        m.buffer.sample(c0.batch_size, m.sample_rng) for _ in range(self.draws)
+                    ]
+                    bonuses = []
+                    for b in batches:
+                        counts = m.explorer.counts(b.obs, b.act)
+                        bonuses.append(m.explorer.bonus_from_counts(counts, len(b.rew)))
+                        m.diagnostics.record(bonuses[-1], counts)
+                    parts.append(update_arrays(batches, bonuses))
+                self.learner.update(*(np.stack(cols) for cols in zip(*parts)))
+
+    def point(self, episode: int) -> list[dict]:
+        t0 = time.perf_counter()
+        results = evaluate_group(
+            self.learner.act, self.eval_venv, self.runs, self.cfg.eval_episodes
+        )
+        spent = time.perf_counter() - t0
+        rows = []
+        for m, ev in zip(self.members, results):
+            m.eval_s += spent
+            wall = m.wall_before + time.perf_counter() - self.start
+            row = {
+                "episode": episode,
+                "env_steps": m.env_steps,
+                "success_rate": ev.success_rate,
+                "eval_return": ev.eval_return,
+                "collisions_cum": m.collisions_cum,
+                **m.explorer.stats(),
+                **m.diagnostics.take(),
+                "steps_per_sec": m.env_steps / wall,
+                "train_steps_per_sec": m.env_steps / max(wall - m.eval_s, 1e-9),
+                "updates": self.learner.updates,
+                "wall_s": wall,
+            }
+            m.rows.append(row)
+            m.shift_warned = _say_if_constant_shift(m.rows, m.shift_warned)
+            rows.append(row)
+        return rows
+
+    # ------------------------------------------------------------------ cuts
+    def cut(self, episode: int) -> None:
+        """Each run's cut, in `macb train`'s format (its replay rows appended first)."""
+        t0 = time.perf_counter()
+        m_eval = min(self.cfg.eval_episodes, 10)
+        for r, m in enumerate(self.members):
+            assert m.cuts is not None and m.replay is not None
+            if m.pending:
+                cols = list(zip(*m.pending))
+                arrays = {
+                    "obs": np.stack(cols[0]),
+                    "act": np.stack(cols[1]),
+                    "rew": np.asarray(cols[2], np.float32),
+                    "next_obs": np.stack(cols[3]),
+                    "done": np.asarray(cols[4], np.float32),
+                }
+                m.replay.append(arrays, m.replay_rows, self.width)
+                m.replay_rows += len(m.pending)
+                m.pending = []
+            rng = {
+                "collector": self.collector.state(r),
+                "sampler": dict(m.sample_rng.bit_generator.state),
+                "eval_envs": [self.eval_venv.rng_state(r * m_eval + j) for j in range(m_eval)],
+            }
+            wall = m.wall_before + time.perf_counter() - self.start
+            write_cut(
+                m.cuts,
+                episode,
+                {
+                    "config": json.dumps(m.cfg.model_dump(mode="json")),
+                    "learner": self.learner.run_state_dict(r),
+                    "tables": tables_state(m.explorer.tables),
+                    "replay_rows": m.replay_rows,
+                    "counters": {
+                        "env_steps": m.env_steps,
+                        "collisions_cum": m.collisions_cum,
+                        "rows": len(m.rows),
+                        "shift_warned": m.shift_warned,
+                        "eval_s": m.eval_s,
+                        "wall_s": wall,
+                    },
+                    "rng": json.dumps(rng),
+                    "torch_rng": torch.get_rng_state(),
+                },
+            )
+        self.last_cut = time.monotonic()
+        self.cut_log.append((episode, time.perf_counter() - t0))
+
+    def restore(self) -> None:
+        """Continue every run from its cut at the newest episode all runs have a cut of."""
+        cuts = []
+        for m in self.members:
+            assert m.out is not None and m.cuts is not None
+            config = m.cfg.model_dump(mode="json")
+            written = read_json(m.out / "config.json")
+            if written is not None and (diff := config_difference(written, config)):
+                raise CutError(f"{m.out / 'config.json'}: another config ({diff})")
+            try:
+                provenance.read(m.out / provenance.FILE)
+            except provenance.ProvenanceError as err:
+                raise CutError(str(err)) from None
+            cuts.append(latest_cut(m.cuts, config))
+        episode = min(c.episode for c in cuts)
+        for i, (m, c) in enumerate(zip(self.members, cuts)):
+            if c.episode != episode:  # a group stopped while writing its runs' cuts
+                path = m.cuts / f"cut-{episode:09d}.pt"
+                if not path.exists():
+                    raise CutError(f"{m.cuts}: no cut at episode {episode}, where the others are")
+                cuts[i] = read_cut(path, m.cfg.model_dump(mode="json"))
+        try:
+            self.learner.load_run_state_dicts([c.state["learner"] for c in cuts])
+        except (ValueError, KeyError, RuntimeError) as err:
+            raise CutError(f"{cuts[0].path}: learner states do not fit: {err}") from None
+        rngs = [json.loads(c.state["rng"]) for c in cuts]
+        self.collector.load_state([rng["collector"] for rng in rngs])
+        m_eval = min(self.cfg.eval_episodes, 10)
+        for r, (m, cut, rng) in enumerate(zip(self.members, cuts, rngs)):
+            st = cut.state
+            load_tables(m.explorer.tables, st["tables"], cut.path)
+            m.replay_rows = int(st["replay_rows"])
+            data = m.replay.read(m.replay_rows, self.width, cut.path)
+            keep = min(m.replay_rows, m.buffer.capacity)
+            first = m.replay_rows - keep
+            m.buffer.added = first
+            m.buffer.pos = first % m.buffer.capacity
+            m.buffer.add(*(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")))
+            m.sample_rng.bit_generator.state = rng["sampler"]
+            for j, state in enumerate(rng["eval_envs"]):
+                self.eval_venv.set_rng_state(r * m_eval + j, state)
+            c = st["counters"]
+            m.env_steps, m.collisions_cum = int(c["env_steps"]), int(c["collisions_cum"])
+            m.shift_warned = bool(c["shift_warned"])
+            m.eval_s, m.wall_before = float(c["eval_s"]), float(c["wall_s"])
+            m.rows = _read_rows(m.out / "metrics.jsonl", int(c["rows"]), cut.path)
+        torch.set_rng_state(cuts[0].state["torch_rng"])
+        self.resumed = True
+        self.first_episode = episode + 1
+        log.info(
+            "resuming a group of %d runs from episode %d (%d updates)",
+            self.runs,
+            episode,
+            self.learner.updates,
+        )

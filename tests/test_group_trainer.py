@@ -1,0 +1,132 @@
+"""A run in a group gives the metric rows it gives alone.
+
+`train_group` trains several runs of one task and network shape as one (shared/
+group_trainer.py); each run's rows are compared with `train` of the same config alone
+(fp32, one torch thread, `learner_lanes: 1`), every column but the timing ones, over
+several evaluation points, in profile mpe2 and profile thesis (one minibatch per
+agent, success as a terminal, random warm-up) and with arms that differ in exploration,
+beta, k, reward and seed. A group stopped between cuts resumes to the same rows."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from shared.config import make_config
+from shared.group_trainer import check_group, form_groups, train_group
+from shared.trainer import train
+
+TIMING = ("steps_per_sec", "train_steps_per_sec", "wall_s")
+
+BASE = {
+    "hidden": [32, 32],
+    "episodes": 6,
+    "eval_every": 2,
+    "eval_episodes": 4,
+    "learning_starts": 40,
+    "batch_size": 16,
+    "learner_lanes": 1,
+    "threads": 1,
+}
+
+
+def cfgs_of(common: dict, arms: list[dict]):
+    return [make_config({**BASE, **common, **arm}) for arm in arms]
+
+
+def strip(rows):
+    return [{k: v for k, v in r.items() if k not in TIMING} for r in rows]
+
+
+GROUPS = {
+    "speaker_listener-mpe2": (
+        {"task": "speaker_listener", "algo": "cen-maddpg", "k": 16},
+        [
+            {"explore": "cen-macb", "seed": 0},
+            {"explore": "cen-macb", "seed": 1, "beta": 0.4},
+            {"explore": "dis-macb", "seed": 2},
+            {"explore": "none", "seed": 3, "reward": "dense"},
+        ],
+    ),
+    "speaker_listener-thesis": (
+        {"task": "speaker_listener", "algo": "cen-maddpg", "profile": "thesis", "k": 16},
+        [
+            {"explore": "cen-macb", "seed": 0},
+            {"explore": "constant", "seed": 1},
+            {"explore": "none", "seed": 2},
+        ],
+    ),
+    "simple-ddpg": (
+        {"task": "simple", "algo": "ddpg", "explore": "dis-macb", "k": 8},
+        [{"beta": 0.0, "seed": 0}, {"beta": 1.2, "seed": 0}, {"explore": "constant", "seed": 4}],
+    ),
+    "spread-thesis": (
+        {"task": "spread", "algo": "dis-maddpg", "profile": "thesis", "agents": 2},
+        [{"explore": "dis-macb", "k": 8, "seed": 5}, {"explore": "none", "seed": 6}],
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(GROUPS))
+def test_each_run_of_a_group_gives_its_rows_alone(name, tmp_path):
+    common, arms = GROUPS[name]
+    cfgs = cfgs_of(common, arms)
+    outs = [tmp_path / f"group-{r}" for r in range(len(cfgs))]
+    grouped = train_group(cfgs, outs, progress=False)
+    for r, cfg in enumerate(cfgs):
+        alone = train(cfg, tmp_path / f"alone-{r}", progress=False)
+        assert len(grouped[r]) == 3
+        assert strip(grouped[r]) == strip(alone), f"run {r} ({arms[r]}) differs"
+        written = [json.loads(x) for x in (outs[r] / "metrics.jsonl").read_text().splitlines()]
+        assert strip(written) == strip(alone)
+        assert (outs[r] / "checkpoint.pt").exists() and (outs[r] / "provenance.json").exists()
+
+
+class Stop(Exception):
+    pass
+
+
+def test_a_stopped_group_resumes_to_the_same_rows(tmp_path):
+    common, arms = GROUPS["speaker_listener-thesis"]
+    cfgs = cfgs_of(common, arms)
+    straight = train_group(cfgs, [tmp_path / f"a{r}" for r in range(3)], progress=False)
+    outs = [tmp_path / f"b{r}" for r in range(3)]
+
+    def stop_at_4(r, row):
+        if row["episode"] == 4:
+            raise Stop
+
+    with pytest.raises(Stop):  # the cut of episode 4 is not written: resume from 2
+        train_group(cfgs, outs, progress=False, on_metrics=stop_at_4, cut_every_s=0.0)
+    resumed = train_group(cfgs, outs, progress=False, resume=True, cut_every_s=0.0)
+    for r in range(3):
+        assert strip(resumed[r]) == strip(straight[r])
+        starts = json.loads((outs[r] / "provenance.json").read_text())["starts"]
+        assert len(starts) == 2 and starts[0]["role"] == "group"
+
+
+def test_a_group_cut_resumes_alone(tmp_path):
+    """Each run's cut is a `macb train` cut: one run of a stopped group continues alone."""
+    common, arms = GROUPS["simple-ddpg"]
+    cfgs = cfgs_of(common, arms)
+    outs = [tmp_path / f"g{r}" for r in range(3)]
+
+    def stop_at_4(r, row):
+        if row["episode"] == 4:
+            raise Stop
+
+    with pytest.raises(Stop):
+        train_group(cfgs, outs, progress=False, on_metrics=stop_at_4, cut_every_s=0.0)
+    alone = train(cfgs[1], outs[1], progress=False, resume=True)
+    assert strip(alone) == strip(train(cfgs[1], tmp_path / "straight", progress=False))
+
+
+def test_groups_are_formed_and_refused_by_what_runs_share():
+    a = make_config({**BASE, "task": "simple", "algo": "ddpg", "seed": 1})
+    b = make_config({**BASE, "task": "simple", "algo": "ddpg", "beta": 0.2})
+    c = make_config({**BASE, "task": "simple", "algo": "ddpg", "batch_size": 32})
+    assert form_groups([a, b, c]) == [[0, 1], [2]]
+    assert form_groups([a, b, a], max_runs=2) == [[0, 1], [2]]
+    with pytest.raises(ValueError, match="batch_size"):
+        check_group([a, c])
