@@ -70,6 +70,20 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
     rn.add_argument("--api", metavar="URL", help=API_HELP)
     rn.add_argument("--out", metavar="DIR", help="write metrics.csv and plot.png here")
     rn.add_argument("--detach", action="store_true", help="submit, print the id and return")
+    rn.add_argument(
+        "--local",
+        action="store_true",
+        help="no API or cluster: run every run in this process, as run groups (runs that "
+        "share task, network and update settings train as one; each run's results are "
+        "those it gives alone), each in OUT/<arm>-s<seed>/ (OUT default runs/local); "
+        "the same command again continues where it stopped",
+    )
+    rn.add_argument(
+        "--group-size",
+        type=int,
+        metavar="N",
+        help="--local: at most N runs per group (default: every run that can share one)",
+    )
     rn.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_flags(rn)
     rn.set_defaults(func=cmd_run)
@@ -343,6 +357,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     except (ConfigError, OSError) as err:
         print(f"macb run: invalid config: {err}", file=sys.stderr)
         return 2
+    if args.local:
+        return _run_local(args, body)
     try:
         with _api_client(args) as api:
             if args.detach:
@@ -357,6 +373,42 @@ def cmd_run(args: argparse.Namespace) -> int:
         return _api_failed("run", err)
     except httpx.HTTPError as err:
         return _api_failed("run", f"cannot reach the API: {err} (is `macb up` running?)")
+
+
+def _run_local(args: argparse.Namespace, body: dict[str, Any]) -> int:
+    """`macb run --local`: the experiment's runs as run groups in this process."""
+    from pydantic import ValidationError
+
+    from cli.local import expand_body, local_experiment, local_points, run_groups
+
+    if args.group_size is not None and args.group_size < 1:
+        print(f"macb run: --group-size {args.group_size}: give N >= 1", file=sys.stderr)
+        return 2
+    try:
+        name, seeds, runs = expand_body(body)
+    except (ValidationError, ValueError) as err:
+        print(f"macb run: invalid config: {err}", file=sys.stderr)
+        return 2
+    out = Path(args.out or "runs/local")
+    code = run_groups(runs, out, args.group_size, args.quiet)
+    exp = local_experiment(name, seeds, runs, out)
+    points = local_points(runs, out)
+    for run in exp["runs"]:
+        last = points[run["id"]][-1] if points[run["id"]] else {}
+        print(
+            f"run {run['id']} {run['status']}: {len(points[run['id']])} evaluation points, "
+            f"final success {last.get('success_rate', 0):.2f}",
+            file=sys.stderr,
+        )
+    if len(runs) > 1:
+        from services.api.plot import plot_curves
+        from services.api.views import curves_of
+
+        described = [{**r, "point": {}} for r in exp["runs"]]
+        curves = curves_of(exp["id"], name, described, points, ["success_rate"])
+        plot_curves(curves, "success_rate", out / "plot.png")
+    print(f"results in {out}/", file=sys.stderr)
+    return code
 
 
 def cmd_ls(args: argparse.Namespace) -> int:

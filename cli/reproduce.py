@@ -70,6 +70,32 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         help="the local cluster runs N runs at once (see `macb up --slots`)",
     )
     rp.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="its router endpoint")
+    rp.add_argument(
+        "--local",
+        action="store_true",
+        help="no API or cluster: train the figure's runs in this process as run groups "
+        "(runs of one task and network train as one, each giving the rows it gives "
+        "alone; the thesis's step-by-step loop), each in OUT/runs/<arm>-s<seed>/; the "
+        "same command again continues where it stopped (docs/performance.md, 'Run groups')",
+    )
+    rp.add_argument(
+        "--group-size",
+        type=int,
+        metavar="N",
+        help="--local: at most N runs per group (default: every run that can share one)",
+    )
+    rp.add_argument(
+        "--threads",
+        type=int,
+        metavar="N",
+        help="every run's torch threads (a group's update runs on them; default the files', 1)",
+    )
+    rp.add_argument(
+        "--report-only",
+        action="store_true",
+        help="train nothing: rebuild OUT/FIGURE.png/.md/.csv from the runs a --local "
+        "reproduce stored in OUT/runs/",
+    )
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     rp.add_argument("--quiet-services", action="store_true", help="service logs to files only")
     rp.set_defaults(func=cmd_reproduce)
@@ -86,15 +112,22 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         return _refuse(f"--episodes {args.episodes}: give a number of episodes >= 1")
     if args.slots < 1:
         return _refuse(f"--slots {args.slots}: give a number of runs at once >= 1")
+    for flag, value in (("--group-size", args.group_size), ("--threads", args.threads)):
+        if value is not None and value < 1:
+            return _refuse(f"{flag} {value}: give N >= 1")
     try:
         seeds = args.seeds or file_seeds(fig)
         body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
+        if args.threads is not None:
+            body["threads"] = args.threads
         body["name"] = experiment_name(fig, body)
         ExperimentCreate.model_validate(body)  # refused here, before any process starts
     except (ValueError, OSError, ValidationError) as err:
         return _refuse(str(err))
     suffix = f"-{args.precision}" if args.precision not in (None, "fp32") else ""
     out = Path(args.out or f"runs/reproduce/{fig.name}-{args.profile}{suffix}")
+    if args.local or args.report_only:
+        return reproduce_local(fig, body, args.profile, out, args)
     url = (args.api or _env_url() or DEFAULT_URL).rstrip("/")
     probe = ApiClient(url, timeout=3.0)
     try:
@@ -110,6 +143,37 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
             except KeyboardInterrupt:
                 return session.interrupted()
     return _with_local_cluster(args, url, fig, body, out)
+
+
+def reproduce_local(
+    fig: FigureDef, body: dict[str, Any], profile: str, out: Path, args: argparse.Namespace
+) -> int:
+    """The figure's runs as run groups in this process (or, with --report-only, none),
+    then the report from the runs' folders."""
+    from cli.local import expand_body, local_experiment, local_points, run_groups
+    from cli.report import analyse, claim_verdicts, columns, write_report
+
+    name, seeds, runs = expand_body(body)
+    runs_dir = out / "runs"
+    code = 0
+    if not args.report_only:
+        t0 = time.monotonic()
+        code = run_groups(runs, runs_dir, args.group_size, args.quiet)
+        print(f"trained in {time.monotonic() - t0:,.0f} s", file=sys.stderr)
+    elif not runs_dir.exists():
+        return _refuse(f"--report-only: no runs stored in {runs_dir}")
+    exp = local_experiment(name, seeds, runs, runs_dir)
+    points = {k: columns(v) for k, v in local_points(runs, runs_dir).items()}
+    analysis = analyse(fig, exp, points)
+    paths = write_report(analysis, points, profile, out)
+    verdicts = [v for *_, v in claim_verdicts(analysis)]
+    tally = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
+    counts = ", ".join(f"{v} {k}" for k, v in exp["counts"].items())
+    print(
+        f"{fig.name}: {counts}; claims: {tally}; wrote " + ", ".join(str(p) for p in paths),
+        file=sys.stderr,
+    )
+    return code or (0 if exp["status"] == "completed" else 1)
 
 
 def _refuse(msg: str) -> int:

@@ -109,6 +109,19 @@ def curves(store: Store, exp_id: str, metrics: list[str]) -> dict[str, Any] | No
     if exp is None:
         return None
     runs = store.runs_of([exp_id])[exp_id]
+    points = {r["id"]: store.points(r["id"]) for r in runs}
+    return curves_of(exp_id, exp["name"], runs, points, metrics)
+
+
+def curves_of(
+    exp_id: str,
+    name: str,
+    runs: list[dict[str, Any]],
+    points: dict[str, list[dict[str, Any]]],
+    metrics: list[str],
+) -> dict[str, Any]:
+    """`curves` of given runs (each with id, arm, point, seed) and their points: also
+    what `macb run --local` plots from its runs' folders."""
     groups: dict[str, dict[str, Any]] = {}
     for r in runs:
         g = groups.setdefault(
@@ -117,7 +130,6 @@ def curves(store: Store, exp_id: str, metrics: list[str]) -> dict[str, Any] | No
         )
         g["runs"].append(r["id"])
         g["seeds"].append(r["seed"])
-    points = {r["id"]: store.points(r["id"]) for r in runs}
     out: dict[str, list[dict[str, Any]]] = {}
     for metric in metrics:
         out[metric] = []
@@ -142,7 +154,7 @@ def curves(store: Store, exp_id: str, metrics: list[str]) -> dict[str, Any] | No
             out[metric].append(curve)
     return {
         "experiment": exp_id,
-        "name": exp["name"],
+        "name": name,
         "band": "mean ± one standard deviation over seeds",
         "metrics": out,
     }
