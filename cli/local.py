@@ -54,14 +54,16 @@ def _same_config(folder: Path, cfg: TrainConfig) -> bool:
 
 
 def run_state(folder: Path, cfg: TrainConfig) -> str:
-    """'done' (every episode run, checkpoint written), 'cut' (can resume) or 'new'."""
+    """'done' (every episode run, checkpoint written), 'cut-<episode>' (can resume from
+    its newest cut, of that episode) or 'new'."""
     if not _same_config(folder, cfg):
         return "new"
     rows = _rows(folder)
     if rows and rows[-1].get("episode") == cfg.episodes and (folder / "checkpoint.pt").exists():
         return "done"
-    if any((folder / "cuts").glob("cut-*.pt")):
-        return "cut"
+    cuts = sorted((folder / "cuts").glob("cut-*.pt"))
+    if cuts:
+        return f"cut-{int(cuts[-1].stem.split('-')[1])}"
     return "new"
 
 
@@ -73,27 +75,37 @@ def run_groups(
     cut_every_s: float = 60.0,
 ) -> int:
     """Train `runs` as groups under `out`, continuing what an earlier call left; 0 when
-    every run completed, 2 when a group could not resume (the reason printed)."""
+    every run completed, 2 when a group could not resume (the reason printed).
+
+    Complete runs are skipped one by one; the others are grouped by what they share and
+    by where they stopped (runs that stopped together, at one cut, resume together;
+    runs never started start together), so adding arms to a figure later neither
+    restarts nor holds back the runs already under way."""
     from shared.cuts import CutError
     from shared.group_trainer import form_groups, train_group
 
-    groups = form_groups([r.config for r in runs], max_runs)
-    for g, members in enumerate(groups, 1):
+    states = [run_state(out / r.name, r.config) for r in runs]
+    todo = [i for i, s in enumerate(states) if s != "done"]
+    if len(todo) < len(runs):
+        print(f"{len(runs) - len(todo)} of {len(runs)} runs complete, skipped", file=sys.stderr)
+    by_state: dict[str, list[int]] = {}
+    for i in todo:
+        by_state.setdefault(states[i], []).append(i)
+    groups = []
+    for state, idx in by_state.items():
+        groups += [
+            (state, [idx[j] for j in g])
+            for g in form_groups([runs[i].config for i in idx], max_runs)
+        ]
+    for g, (state, members) in enumerate(groups, 1):
         chosen = [runs[i] for i in members]
-        folders = [out / r.name for r in chosen]
-        states = [run_state(f, r.config) for f, r in zip(folders, chosen)]
+        resume = state != "new"
         what = f"group {g}/{len(groups)} ({len(chosen)} runs: {chosen[0].config.task})"
-        if all(s == "done" for s in states):
-            print(f"{what}: complete, skipped", file=sys.stderr)
-            continue
-        resume = all(s != "new" for s in states)
-        if not resume and any(s != "new" for s in states):
-            print(f"{what}: not every run can resume; starting the group afresh", file=sys.stderr)
-        print(f"{what}: {'resuming' if resume else 'starting'}", file=sys.stderr)
+        print(f"{what}: {'resuming from ' + state if resume else 'starting'}", file=sys.stderr)
         try:
             train_group(
                 [r.config for r in chosen],
-                folders,
+                [out / r.name for r in chosen],
                 progress=not quiet,
                 resume=resume,
                 cut_every_s=cut_every_s,

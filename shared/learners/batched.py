@@ -153,14 +153,15 @@ class BatchedMADDPG:
         self._kernel = self._fused_kernel(fused) if self.dtype == torch.bfloat16 else None
         self._current: set[int] = set()
 
-    #: Parts each stacked tensor is given to the elementwise passes (Adam, soft update) as.
-    _parts_per_tensor = 1
-
     def _parts(self, tensors: Sequence[torch.Tensor]) -> list[torch.Tensor]:
         """The tensors as the elementwise passes take them: whole here. (A group gives
-        each run's part as a tensor of its own, so that every element of a run takes the
-        same vector-or-scalar path through the kernels as the run's tensor alone.)"""
+        some as one tensor per run, so that every element of a run takes the same
+        vector-or-scalar path through the kernels as in the run's tensor alone.)"""
         return list(tensors)
+
+    def _part_counts(self, tensors: Sequence[torch.Tensor]) -> list[int]:
+        """How many parts `_parts` gives each tensor."""
+        return [1] * len(tensors)
 
     def _make_optimizers(self) -> None:
         """Adam over the stacked tensors, and the weights' copies in the products' dtype.
@@ -485,7 +486,7 @@ class BatchedMADDPG:
             part(exp_avgs),
             part(exp_avg_sqs),
             [],
-            [s for s in steps for _ in range(self._parts_per_tensor)],
+            [s for s, k in zip(steps, self._part_counts(params)) for _ in range(k)],
             amsgrad=False,
             lr=group["lr"],
             beta1=beta1,

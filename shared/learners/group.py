@@ -30,6 +30,9 @@ from shared.learners.batched import BatchedMADDPG
 from shared.learners.layers import Stack, mlp_forward
 
 #: LearnerSpec fields every run of a group must share.
+#: Elements of a whole number of vectors for every elementwise kernel (fp32 and bf16).
+VECTOR_SPAN = 64
+
 SHARED_FIELDS = ("algo", "hidden", "lr_actor", "lr_critic", "gamma", "tau", "flush_denormals")
 
 
@@ -65,7 +68,6 @@ class GroupMADDPG(BatchedMADDPG):
                     for d, s in zip(dst, src):
                         d[run * n : (run + 1) * n] = s
         self._make_optimizers()
-        self._parts_per_tensor = r
         self._current.clear()
         # Per-agent constants, tiled per run.
         tile = lambda t: t.repeat(r, *([1] * (t.dim() - 1)))  # noqa: E731
@@ -77,12 +79,24 @@ class GroupMADDPG(BatchedMADDPG):
         self._agent_of = torch.arange(n).repeat(r)  # entry -> its agent
 
     def _parts(self, tensors: Sequence[torch.Tensor]) -> list[torch.Tensor]:
-        """Each stacked tensor as R views, run by run: the elementwise kernels (Adam, the
-        soft update) take vectors of a tensor from its start and its last elements one
-        by one, with different rounding (fused multiply-adds); given per run, run r's
-        elements fall where they fall in its tensor alone."""
-        n = self.n
-        return [t[r * n : (r + 1) * n] for t in tensors for r in range(self.runs)]
+        """Each stacked tensor whole, or as R views run by run: the elementwise kernels
+        (Adam, the soft update) take vectors of a tensor from its start and its last
+        elements one by one, with other rounding (fused multiply-adds). Where a run's
+        part is a whole number of vectors (of 64 elements, any kernel's width or more)
+        its elements fall on vectors as they do in its tensor alone; any other tensor is
+        given run by run, so that they fall where they fall alone."""
+        n, runs = self.n, self.runs
+        out: list[torch.Tensor] = []
+        for t in tensors:
+            if (t.numel() // runs) % VECTOR_SPAN == 0:
+                out.append(t)
+            else:
+                out += [t[r * n : (r + 1) * n] for r in range(runs)]
+        return out
+
+    def _part_counts(self, tensors: Sequence[torch.Tensor]) -> list[int]:
+        """How many parts `_parts` gives each tensor."""
+        return [1 if (t.numel() // self.runs) % VECTOR_SPAN == 0 else self.runs for t in tensors]
 
     @staticmethod
     def _widen(stack: Stack, runs: int) -> Stack:
