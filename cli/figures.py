@@ -394,7 +394,11 @@ FIG3 = FigureDef(
         ArmDef(_b("0.6"), "fig3/beta0.6.yaml", "faster than beta=0.0, among the fastest"),
         ArmDef(_b("0.8"), "fig3/beta0.8.yaml", "faster than beta=0.0, among the fastest"),
         ArmDef(_b("1.2"), "fig3/beta1.2.yaml", "no learning"),
+        ArmDef("constant beta=0.2 (control)", "fig3/constant0.2.yaml"),
+        ArmDef("constant beta=0.4 (control)", "fig3/constant0.4.yaml"),
+        ArmDef("constant beta=0.6 (control)", "fig3/constant0.6.yaml"),
         ArmDef("constant beta=0.8 (control)", "fig3/constant0.8.yaml"),
+        ArmDef("constant beta=1.2 (control)", "fig3/constant1.2.yaml"),
     ),
     claims=(
         Claim(
@@ -424,8 +428,8 @@ FIG3 = FigureDef(
             NoLearning(_b("1.2"), needs=5000),
         ),
     ),
-    note="One control for the sweep: the constant bonus at beta 0.8, the thesis's best "
-    "beta (a control per beta would double the figure).",
+    note="A control per beta: the constant bonus of that beta on every reward, no "
+    "counting (beta 0.0's would be the same run as beta 0.0 itself).",
 )
 
 _NAV_MACB = ("Dis-MACB", "Cen-MACB")
