@@ -7,6 +7,7 @@ They are clients of services.api (`macb up` or `macb serve api` must be running)
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -82,7 +83,16 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
         "--group-size",
         type=int,
         metavar="N",
-        help="--local: at most N runs per group (default: every run that can share one)",
+        help="--local: at most N runs per group (default: the runs that can share one, "
+        "split into --jobs groups)",
+    )
+    rn.add_argument(
+        "--jobs",
+        type=int,
+        default=os.cpu_count() or 1,
+        metavar="N",
+        help="--local: groups at a time, each in a process of its own (default: one per "
+        "CPU; each group's update runs on the runs' `threads`, 1 by default)",
     )
     rn.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_flags(rn)
@@ -381,16 +391,17 @@ def _run_local(args: argparse.Namespace, body: dict[str, Any]) -> int:
 
     from cli.local import expand_body, local_experiment, local_points, run_groups
 
-    if args.group_size is not None and args.group_size < 1:
-        print(f"macb run: --group-size {args.group_size}: give N >= 1", file=sys.stderr)
-        return 2
+    for flag, value in (("--group-size", args.group_size), ("--jobs", args.jobs)):
+        if value is not None and value < 1:
+            print(f"macb run: {flag} {value}: give N >= 1", file=sys.stderr)
+            return 2
     try:
         name, seeds, runs = expand_body(body)
     except (ValidationError, ValueError) as err:
         print(f"macb run: invalid config: {err}", file=sys.stderr)
         return 2
     out = Path(args.out or "runs/local")
-    code = run_groups(runs, out, args.group_size, args.quiet)
+    code = run_groups(runs, out, args.group_size, args.quiet, jobs=args.jobs)
     exp = local_experiment(name, seeds, runs, out)
     points = local_points(runs, out)
     for run in exp["runs"]:

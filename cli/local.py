@@ -73,17 +73,18 @@ def run_groups(
     max_runs: int | None = None,
     quiet: bool = False,
     cut_every_s: float = 60.0,
+    jobs: int = 1,
 ) -> int:
-    """Train `runs` as groups under `out`, continuing what an earlier call left; 0 when
-    every run completed, 2 when a group could not resume (the reason printed).
+    """Train `runs` as groups under `out`, `jobs` groups at a time in processes of their
+    own, continuing what an earlier call left; 0 when every run completed, 2 when a
+    group could not resume (the reason printed).
 
     Complete runs are skipped one by one; the others are grouped by what they share and
     by where they stopped (runs that stopped together, at one cut, resume together;
     runs never started start together), so adding arms to a figure later neither
-    restarts nor holds back the runs already under way."""
-    from shared.cuts import CutError
-    from shared.group_trainer import form_groups, train_group
-
+    restarts nor holds back the runs already under way. Without `max_runs`, runs that
+    could share one group are split into `jobs` groups, one per process: on a CPU the
+    products of one thread per group keep the cores busier than two threads on one."""
     states = [run_state(out / r.name, r.config) for r in runs]
     todo = [i for i, s in enumerate(states) if s != "done"]
     if len(todo) < len(runs):
@@ -91,29 +92,70 @@ def run_groups(
     by_state: dict[str, list[int]] = {}
     for i in todo:
         by_state.setdefault(states[i], []).append(i)
+    from shared.group_trainer import form_groups
+
     groups = []
     for state, idx in by_state.items():
-        groups += [
-            (state, [idx[j] for j in g])
-            for g in form_groups([runs[i].config for i in idx], max_runs)
-        ]
+        for g in form_groups([runs[i].config for i in idx]):
+            size = max_runs or -(-len(g) // jobs)
+            groups += [(state, [idx[j] for j in g[k : k + size]]) for k in range(0, len(g), size)]
+    tasks = []
     for g, (state, members) in enumerate(groups, 1):
         chosen = [runs[i] for i in members]
-        resume = state != "new"
         what = f"group {g}/{len(groups)} ({len(chosen)} runs: {chosen[0].config.task})"
+        resume = state != "new"
         print(f"{what}: {'resuming from ' + state if resume else 'starting'}", file=sys.stderr)
-        try:
-            train_group(
-                [r.config for r in chosen],
-                [out / r.name for r in chosen],
-                progress=not quiet,
-                resume=resume,
-                cut_every_s=cut_every_s,
-            )
-        except CutError as err:
-            print(f"{what}: cannot resume: {err}", file=sys.stderr)
-            return 2
-    return 0
+        args = (
+            [r.config.model_dump(mode="json") for r in chosen],
+            [str(out / r.name) for r in chosen],
+            not quiet,
+            resume,
+            cut_every_s,
+            what,
+            (g - 1) % max(jobs, 1) if jobs > 1 else None,
+        )
+        tasks.append(args)
+    if jobs <= 1 or len(tasks) <= 1:
+        failed = [err for t in tasks if (err := _train_group_job(*t)) is not None]
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+            failed = [err for err in pool.map(_train_group_job, *zip(*tasks)) if err]
+    for err in failed:
+        print(err, file=sys.stderr)
+    return 2 if failed else 0
+
+
+def _train_group_job(
+    configs: list[dict[str, Any]],
+    folders: list[str],
+    progress: bool,
+    resume: bool,
+    cut_every_s: float,
+    what: str,
+    position: int | None = None,
+) -> str | None:
+    """One group, in this process or a pool's: None, or why it could not resume."""
+    from shared.config import make_config
+    from shared.cuts import CutError
+    from shared.group_trainer import train_group
+
+    try:
+        train_group(
+            [make_config(c) for c in configs],
+            [Path(f) for f in folders],
+            progress=progress,
+            resume=resume,
+            cut_every_s=cut_every_s,
+            desc=what,
+            position=position,
+        )
+    except CutError as err:
+        return f"{what}: cannot resume: {err}"
+    return None
 
 
 def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Path) -> dict:

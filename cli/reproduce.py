@@ -12,6 +12,7 @@ completed runs and their points are kept.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -82,7 +83,16 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "--group-size",
         type=int,
         metavar="N",
-        help="--local: at most N runs per group (default: every run that can share one)",
+        help="--local: at most N runs per group (default: the runs that can share one, "
+        "split into --jobs groups)",
+    )
+    rp.add_argument(
+        "--jobs",
+        type=int,
+        default=os.cpu_count() or 1,
+        metavar="N",
+        help="--local: groups at a time, each in a process of its own (default: one per "
+        "CPU; each group's update runs on the runs' `threads`, 1 by default)",
     )
     rp.add_argument(
         "--threads",
@@ -112,7 +122,11 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         return _refuse(f"--episodes {args.episodes}: give a number of episodes >= 1")
     if args.slots < 1:
         return _refuse(f"--slots {args.slots}: give a number of runs at once >= 1")
-    for flag, value in (("--group-size", args.group_size), ("--threads", args.threads)):
+    for flag, value in (
+        ("--group-size", args.group_size),
+        ("--threads", args.threads),
+        ("--jobs", args.jobs),
+    ):
         if value is not None and value < 1:
             return _refuse(f"{flag} {value}: give N >= 1")
     try:
@@ -158,7 +172,7 @@ def reproduce_local(
     code = 0
     if not args.report_only:
         t0 = time.monotonic()
-        code = run_groups(runs, runs_dir, args.group_size, args.quiet)
+        code = run_groups(runs, runs_dir, args.group_size, args.quiet, jobs=args.jobs)
         print(f"trained in {time.monotonic() - t0:,.0f} s", file=sys.stderr)
     elif not runs_dir.exists():
         return _refuse(f"--report-only: no runs stored in {runs_dir}")

@@ -155,6 +155,8 @@ def train_group(
     on_metrics: Callable[[int, dict], None] | None = None,
     resume: bool = False,
     cut_every_s: float = DEFAULT_CUT_EVERY_S,
+    desc: str | None = None,
+    position: int | None = None,
 ) -> list[list[dict]]:
     """Train `cfgs` as one group; returns each run's metric rows (also written under
     its `outs` folder). `on_metrics(r, row)` sees run r's rows as they come. With
@@ -170,7 +172,7 @@ def train_group(
             for m in group.members:
                 if m.cuts is not None and m.cuts.exists():
                     clear_cuts(m.cuts)
-        return group.go(progress, on_metrics)
+        return group.go(progress, on_metrics, desc, position)
 
 
 class GroupRun:
@@ -220,9 +222,16 @@ class GroupRun:
         }
         self.last_cut = time.monotonic()
         self.cut_log: list[tuple[int, float]] = []
+        # Seconds spent acting and stepping the worlds, storing and counting, sampling
+        # and pricing, updating, evaluating (what benchmarks/bench_group.py reports).
+        self.timing = dict.fromkeys(
+            ("act_env", "store_count", "sample_price", "update", "eval"), 0.0
+        )
 
     # ------------------------------------------------------------------ the loop
-    def go(self, progress: bool, on_metrics) -> list[list[dict]]:
+    def go(
+        self, progress: bool, on_metrics, desc: str | None = None, position: int | None = None
+    ) -> list[list[dict]]:
         c0 = self.cfg
         stats = self.learner.stats()
         for m in self.members:
@@ -242,8 +251,14 @@ class GroupRun:
         if progress:
             from tqdm import tqdm
 
-            desc = f"{self.runs} runs: {c0.task} {c0.algo}"
-            bar = tqdm(total=c0.episodes, initial=self.first_episode - 1, unit="ep", desc=desc)
+            desc = desc or f"{self.runs} runs: {c0.task} {c0.algo}"
+            bar = tqdm(
+                total=c0.episodes,
+                initial=self.first_episode - 1,
+                unit="ep",
+                desc=desc,
+                position=position,
+            )
         self.start = time.perf_counter()
         try:
             for episode in range(self.first_episode, c0.episodes + 1):
@@ -289,9 +304,13 @@ class GroupRun:
         return [m.rows for m in self.members]
 
     def episode(self) -> None:
-        c0, members = self.cfg, self.members
+        c0, members, timing = self.cfg, self.members, self.timing
+        clock = time.perf_counter
         for _ in range(c0.episode_len):
+            t0 = clock()
             tr = self.collector.step(self.learner.act)
+            t1 = clock()
+            timing["act_env"] += t1 - t0
             for r, m in enumerate(members):
                 obs, act, next_obs = tr.obs[r], tr.act[r], tr.next_obs[r]
                 rew, done = float(tr.rew[r]), float(tr.done[r])
@@ -301,6 +320,8 @@ class GroupRun:
                 m.explorer.observe(obs[None], act[None])
                 m.env_steps += 1
                 m.collisions_cum += int(tr.collisions[r])
+            t2 = clock()
+            timing["store_count"] += t2 - t1
             if members[0].env_steps > c0.learning_starts:
                 parts = []
                 for m in members:
@@ -313,7 +334,11 @@ class GroupRun:
                         bonuses.append(m.explorer.bonus_from_counts(counts, len(b.rew)))
                         m.diagnostics.record(bonuses[-1], counts)
                     parts.append(update_arrays(batches, bonuses))
-                self.learner.update(*(np.stack(cols) for cols in zip(*parts)))
+                arrays = [np.stack(cols) for cols in zip(*parts)]
+                t3 = clock()
+                self.learner.update(*arrays)
+                timing["sample_price"] += t3 - t2
+                timing["update"] += clock() - t3
 
     def point(self, episode: int) -> list[dict]:
         t0 = time.perf_counter()
@@ -321,6 +346,7 @@ class GroupRun:
             self.learner.act, self.eval_venv, self.runs, self.cfg.eval_episodes
         )
         spent = time.perf_counter() - t0
+        self.timing["eval"] += spent
         rows = []
         for m, ev in zip(self.members, results):
             m.eval_s += spent
