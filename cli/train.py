@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -49,6 +50,15 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         metavar="DIR",
         help="also write every metric row as TensorBoard scalars (step = episode) to "
         "DIR/<name of the output directory>/ as it is produced (tensorboard --logdir DIR)",
+    )
+    p.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        metavar="SEED",
+        help="several runs of this config, one per seed, trained as one run group in this "
+        "process (each run's rows are those it gives alone), in DIR/seed-SEED/; the same "
+        "command again continues them from their cuts",
     )
     add_config_flags(p)
     p.set_defaults(func=cmd_train)
@@ -103,6 +113,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             print(f"macb train: invalid config: {err}", file=sys.stderr)
             return 2
         out = Path(args.out)
+        if args.seeds:
+            return _train_seeds(args, cfg, out)
     tb = None
     if args.tensorboard:
         tb = _TensorBoardRows(Path(args.tensorboard) / out.resolve().name, bool(args.resume))
@@ -129,3 +141,22 @@ def cmd_train(args: argparse.Namespace) -> int:
         + (f", TensorBoard events in {tb.folder}/" if tb is not None else "")
     )
     return 0
+
+
+def _train_seeds(args: argparse.Namespace, cfg, out: Path) -> int:
+    """`--seeds`: one run per seed as a run group, each in out/seed-S/."""
+    from cli.local import LocalRun, run_groups
+
+    if args.tensorboard:
+        print("macb train: --tensorboard takes one run; drop it or --seeds", file=sys.stderr)
+        return 2
+    if len(set(args.seeds)) != len(args.seeds):
+        print(f"macb train: --seeds {args.seeds}: a seed is given twice", file=sys.stderr)
+        return 2
+    runs = [LocalRun(f"seed-{s}", None, s, cfg.model_copy(update={"seed": s})) for s in args.seeds]
+    code = run_groups(runs, out, quiet=args.quiet, cut_every_s=args.cut_every, jobs=1)
+    for r in runs:
+        rows = (out / r.name / "metrics.jsonl").read_text().splitlines()
+        last = json.loads(rows[-1]) if rows else {}
+        print(f"seed {r.seed}: final success {last.get('success_rate', 0):.2f}; {out / r.name}/")
+    return code

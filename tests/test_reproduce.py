@@ -1,5 +1,5 @@
 """`macb reproduce` end to end: it starts its own cluster (no API answers on its port),
-runs figure 3's seven arms x two seeds, is interrupted, resumes where it stopped, writes
+runs figure 3's arms x two seeds, is interrupted, resumes where it stopped, writes
 the figure and the report, and a third time re-runs nothing.
 
 Real processes, HTTP and SQLite: the command is a child process with free ports and a

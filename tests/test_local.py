@@ -1,0 +1,124 @@
+"""Run groups where users get them: `macb train --seeds`, `macb run --local` and
+`macb reproduce --local` (real processes, real files): each run's folder holds what
+`macb train` writes for it alone, a killed command continues to the same rows, a
+finished one re-runs nothing, and `--report-only` rebuilds a figure's page from the
+stored runs, its numbers those of its CSV."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import ROOT
+
+TIMING = ("steps_per_sec", "train_steps_per_sec", "wall_s")
+SMALL = ["--hidden", "16,16", "--learning-starts", "20", "--batch-size", "8",
+         "--learner-lanes", "1"]  # fmt: skip
+
+
+def macb(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "cli", *args],
+        cwd=ROOT, capture_output=True, text=True, timeout=timeout, check=False,
+    )  # fmt: skip
+
+
+def rows(folder: Path) -> list[dict]:
+    lines = (folder / "metrics.jsonl").read_text().splitlines()
+    return [{k: v for k, v in json.loads(x).items() if k not in TIMING} for x in lines]
+
+
+def test_train_seeds_runs_a_group_whose_runs_equal_their_lone_runs(tmp_path):
+    base = ["train", "--task", "simple", "--algo", "ddpg", "--episodes", "4", *SMALL, "--quiet"]
+    got = macb(*base, "--seeds", "3", "5", "--out", str(tmp_path / "g"))
+    assert got.returncode == 0, got.stderr
+    for seed in (3, 5):
+        alone = macb(*base, "--seed", str(seed), "--out", str(tmp_path / f"a{seed}"))
+        assert alone.returncode == 0, alone.stderr
+        folder = tmp_path / "g" / f"seed-{seed}"
+        assert rows(folder) == rows(tmp_path / f"a{seed}")
+        for name in ("metrics.csv", "config.json", "provenance.json", "checkpoint.pt"):
+            assert (folder / name).exists(), name
+    again = macb(*base, "--seeds", "3", "5", "--out", str(tmp_path / "g"))
+    assert "2 of 2 runs complete, skipped" in again.stderr
+    bad = macb(*base, "--seeds", "3", "3", "--out", str(tmp_path / "bad"))
+    assert bad.returncode == 2 and "given twice" in bad.stderr
+
+
+def test_a_killed_local_run_continues_to_the_same_rows(tmp_path):
+    config = tmp_path / "exp.yaml"
+    config.write_text(
+        "task: speaker_listener\nalgo: cen-maddpg\nexplore: cen-macb\nk: 16\nepisodes: 40\n"
+        "hidden: [32, 32]\nbatch_size: 16\nlearning_starts: 40\nlearner_lanes: 1\n"
+        "arms:\n  - {name: counted, explore: cen-macb}\n  - {name: constant, explore: constant}\n"
+    )
+    args = ["run", str(config), "--local", "--seeds", "0", "1", "--jobs", "1", "--quiet"]
+    straight = macb(*args, "--out", str(tmp_path / "straight"))
+    assert straight.returncode == 0, straight.stderr
+    names = sorted(p.name for p in (tmp_path / "straight").iterdir() if p.is_dir())
+    assert names == ["constant-s0", "constant-s1", "counted-s0", "counted-s1"]
+    assert (tmp_path / "straight" / "plot.png").exists()
+
+    out = tmp_path / "killed"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cli", *args, "--out", str(out)],
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:  # past the first cut (every run cuts its 1st point)
+            cuts = list(out.glob("*/cuts/cut-*.pt"))
+            done = [p for p in out.glob("*/metrics.jsonl") if len(p.read_text().splitlines()) > 5]
+            if len(cuts) >= 4 and done:
+                break
+            time.sleep(0.1)
+        assert proc.poll() is None, "the run ended before it could be killed"
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert len(rows(out / "counted-s0")) < 40, "killed too late to test anything"
+    resumed = macb(*args, "--out", str(out))
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming from cut-" in resumed.stderr
+    for name in names:
+        assert rows(out / name) == rows(tmp_path / "straight" / name), name
+
+
+def test_reproduce_local_and_report_only(tmp_path):
+    out = tmp_path / "fig3"
+    got = macb("reproduce", "fig3", "--local", "--episodes", "6", "--seeds", "0",
+               "--jobs", "2", "--quiet", "--out", str(out))  # fmt: skip
+    assert got.returncode == 0, got.stderr
+    assert "11 completed" in got.stderr
+    md = (out / "fig3.md").read_text()
+    with open(out / "fig3.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    # every stored row is in the CSV, with the same numbers
+    for run in (out / "runs").iterdir():
+        mine = [r for r in table if r["run"] == run.name]
+        stored = rows(run)
+        assert len(mine) == len(stored) == 6
+        assert [float(r["success_rate"]) for r in mine] == [r["success_rate"] for r in stored]
+    (out / "fig3.md").unlink()
+    again = macb("reproduce", "fig3", "--report-only", "--episodes", "6", "--seeds", "0",
+                 "--out", str(out))  # fmt: skip
+    assert again.returncode == 0, again.stderr
+    rebuilt = (out / "fig3.md").read_text()
+    drop = lambda text: [x for x in text.splitlines() if "Reproduced with" not in x]  # noqa: E731
+    assert drop(rebuilt) == drop(md)
+    none = macb("reproduce", "fig3", "--report-only", "--out", str(tmp_path / "empty"))
+    assert none.returncode == 2 and "no runs stored" in none.stderr
+
+
+@pytest.mark.parametrize("flag", ["--jobs", "--group-size", "--threads"])
+def test_reproduce_refuses_bad_counts(flag, tmp_path):
+    got = macb("reproduce", "fig3", "--local", flag, "0", "--out", str(tmp_path))
+    assert got.returncode == 2 and flag in got.stderr
