@@ -24,7 +24,7 @@ from services.api.store import Store
 from tests.conftest import ROOT, free_port, wait_for
 from tests.test_up import cluster_processes
 
-EPISODES = 300
+EPISODES = 200  # x 11 arms x 2 seeds: about the episodes of the 7-arm figure at 300
 
 
 def _completed(url: str) -> int:
