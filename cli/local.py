@@ -142,6 +142,7 @@ def _train_group_job(
     from shared.config import make_config
     from shared.cuts import CutError
     from shared.group_trainer import train_group
+    from shared.learners.precision import DeviceError
 
     try:
         train_group(
@@ -155,6 +156,8 @@ def _train_group_job(
         )
     except CutError as err:
         return f"{what}: cannot resume: {err}"
+    except DeviceError as err:
+        return f"{what}: {err}"
     return None
 
 

@@ -88,6 +88,7 @@ class _TensorBoardRows:
 def cmd_train(args: argparse.Namespace) -> int:
     """A bad config is refused (exit 2) before training starts or anything is written."""
     from shared.cuts import CutError
+    from shared.learners.precision import DeviceError
     from shared.trainer import train
 
     if args.resume:
@@ -129,6 +130,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         )
     except CutError as err:
         print(f"macb train: cannot resume {out}: {err}", file=sys.stderr)
+        return 2
+    except DeviceError as err:
+        print(f"macb train: {err}", file=sys.stderr)
         return 2
     finally:
         if tb is not None:

@@ -177,6 +177,14 @@ class TrainConfig(BaseModel):
         "docs/performance.md); without native bf16 the learner runs fp32 and logs a warning",
     )
 
+    device: str = Field(
+        "cpu",
+        pattern=r"^(cpu|cuda(:[0-9]+)?|xpu(:[0-9]+)?|mps)$",
+        description="torch device of the batched learner's networks and updates (cpu, "
+        "cuda, cuda:N, xpu, mps); acting, replay and counting stay on the CPU. A device "
+        "this torch build or machine lacks is refused when the learner is built",
+    )
+
     @field_validator("task")
     @classmethod
     def _task_name(cls, task: str) -> str:
@@ -247,6 +255,11 @@ class TrainConfig(BaseModel):
             raise ValueError(f"algo ddpg trains one agent; task {self.task} has several")
         if any(h < 1 for h in self.hidden):
             raise ValueError("hidden sizes must be >= 1")
+        if self.device != "cpu" and self.learner_impl == "reference":
+            raise ValueError(
+                f"device {self.device} needs learner_impl batched; learner_impl reference "
+                "is the CPU definition the batched learner is checked against"
+            )
         if self.precision == "bf16" and self.learner_impl == "reference":
             raise ValueError(
                 "precision bf16 needs learner_impl batched; learner_impl reference is the "

@@ -59,9 +59,13 @@ def build_learner(
         return MADDPG(agents, lspec)
     if cfg.learner_lanes == "auto":
         lanes = max(n for n, _ in AUTO_MODES)  # the most lanes a mode runs on
-        learner = BatchedMADDPG(agents, lspec, lanes=lanes, precision=cfg.precision)
+        learner = BatchedMADDPG(
+            agents, lspec, lanes=lanes, precision=cfg.precision, device=cfg.device
+        )
         return TunedMADDPG(learner, contended)
-    return BatchedMADDPG(agents, lspec, lanes=cfg.learner_lanes, precision=cfg.precision)
+    return BatchedMADDPG(
+        agents, lspec, lanes=cfg.learner_lanes, precision=cfg.precision, device=cfg.device
+    )
 
 
 def build_exploration(cfg: TrainConfig, spec: TaskSpec) -> CountExploration:

@@ -201,7 +201,10 @@ class GroupRun:
                 eval_envs.append(env)
         self.eval_venv = vectorize(eval_envs)
         self.learner = GroupMADDPG(
-            agent_dims(spec), [learner_spec(cfg) for cfg in cfgs], precision=c0.precision
+            agent_dims(spec),
+            [learner_spec(cfg) for cfg in cfgs],
+            precision=c0.precision,
+            device=c0.device,
         )
         self.collector = VecCollector(
             self.venv,

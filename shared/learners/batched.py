@@ -48,7 +48,7 @@ from shared.learners import fused as fused_kernel
 from shared.learners.base import AgentDims, LearnerSpec, check_agents, denormals_flushed
 from shared.learners.lanes import Lanes
 from shared.learners.layers import Stack, mlp_backward, mlp_forward
-from shared.learners.precision import DTYPES, resolve
+from shared.learners.precision import DTYPES, resolve, resolve_device
 
 if TYPE_CHECKING:  # annotations only
     from shared.learners.reference import MADDPG
@@ -74,9 +74,11 @@ class BatchedMADDPG:
         lanes: int = 1,
         precision: str = "fp32",
         fused: bool | None = None,
+        device: str | torch.device = "cpu",
     ) -> None:
         check_agents(agents, spec)
-        self.precision = resolve(precision)
+        self.device = resolve_device(device)
+        self.precision = resolve(precision, self.device)
         self.dtype = DTYPES[self.precision]  # of the matrix products
         self.agents = list(agents)
         self.spec = spec
@@ -138,6 +140,7 @@ class BatchedMADDPG:
         self.center = (high + low) / 2
 
         self._init_like_reference([len(c) for c in critic_in])
+        self._place(self.device)
         self._make_optimizers()
         self.updates = 0
         if not isinstance(lanes, int):
@@ -148,10 +151,26 @@ class BatchedMADDPG:
         self.lanes = Lanes(lanes)
         # The fused kernel (bf16 only) and the weight lists whose copies it has kept
         # current since they were last cast; any other write to the weights empties it.
-        if fused and self.dtype != torch.bfloat16:
-            raise ValueError(f"fused needs precision bf16 (this learner runs {self.precision})")
-        self._kernel = self._fused_kernel(fused) if self.dtype == torch.bfloat16 else None
+        if fused and (self.dtype != torch.bfloat16 or self.device.type != "cpu"):
+            raise ValueError(
+                f"fused needs precision bf16 on the CPU (this learner runs {self.precision} "
+                f"on {self.device})"
+            )
+        on_cpu_bf16 = self.dtype == torch.bfloat16 and self.device.type == "cpu"
+        self._kernel = self._fused_kernel(fused) if on_cpu_bf16 else None
         self._current: set[int] = set()
+
+    def _place(self, device: torch.device) -> None:
+        """Every tensor the update reads, on `device` (built on the CPU; a no-op there)."""
+        for stack in (self.actor, self.critic):
+            stack.params = [t.to(device) for t in stack.params]
+            stack.targets = [t.to(device) for t in stack.targets]
+        for name in (
+            "_obs_idx", "_act_idx", "_joint_act_idx", "scale", "center",
+            "_keep", "_place_idx", "_own_cols",
+        ):  # fmt: skip
+            if hasattr(self, name):
+                setattr(self, name, getattr(self, name).to(device))
 
     def _parts(self, tensors: Sequence[torch.Tensor]) -> list[torch.Tensor]:
         """The tensors as the elementwise passes take them: whole here. (A group gives
@@ -266,15 +285,15 @@ class BatchedMADDPG:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """Deterministic joint actions for joint observations (B, joint_obs) -> (B, joint_act)."""
-        o = torch.as_tensor(obs, dtype=torch.float32)
+        o = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         lead = o.shape[:-1]
         o_pad = self._per_agent(o.reshape(-1, self.joint_obs), self._obs_idx)
         mu = self._squash(torch.tanh(mlp_forward(self.actor.params, o_pad)[-1]))
-        return self._joint_act(mu).reshape(*lead, self.joint_act).numpy()
+        return self._joint_act(mu).reshape(*lead, self.joint_act).cpu().numpy()
 
     # ----------------------------------------------------------------- learning
     def tensors(self, *arrays: np.ndarray) -> list[torch.Tensor]:
-        return [torch.as_tensor(a, dtype=torch.float32) for a in arrays]
+        return [torch.as_tensor(a, dtype=torch.float32, device=self.device) for a in arrays]
 
     def _critic_input(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         """What the critics read: cat(s, x) (B, D) shared by all (Cen), or (N, B, D) own."""
@@ -461,7 +480,7 @@ class BatchedMADDPG:
         if params[0] not in state:  # first step: initialise state as Adam(fused=True) does
             for p in params:
                 state[p] = {
-                    "step": torch.zeros((), dtype=torch.float32),
+                    "step": torch.zeros((), dtype=torch.float32, device=p.device),
                     "exp_avg": torch.zeros_like(p),
                     "exp_avg_sq": torch.zeros_like(p),
                 }

@@ -68,7 +68,7 @@ def load_optim(optim: torch.optim.Adam, stack: Stack, sds: Sequence[dict]) -> No
     if len(steps) != 1 or not all(len(sd["state"]) == len(stack.params) for sd in sds):
         raise ValueError("the agents' optimizers are at different steps; cannot stack them")
     names = list(stack.export(stack.params, 0))
-    step = torch.tensor(steps.pop(), dtype=torch.float32)
+    step = torch.tensor(steps.pop(), dtype=torch.float32, device=stack.params[0].device)
     for p in stack.params:
         optim.state[p] = {"step": step.clone()}
     for k in (k for k in sds[0]["state"][0] if k != "step"):
@@ -84,16 +84,29 @@ def export_state(learner: BatchedMADDPG) -> dict:
     with torch.load(weights_only=True) into either MADDPG or BatchedMADDPG."""
     n = range(learner.n)
     actor, critic = learner.actor, learner.critic
-    return {
-        "algo": learner.spec.algo,
-        "updates": learner.updates,
-        "actors": [actor_state(learner, actor.params, i) for i in n],
-        "critics": [critic.export(critic.params, i) for i in n],
-        "actor_targets": [actor_state(learner, actor.targets, i) for i in n],
-        "critic_targets": [critic.export(critic.targets, i) for i in n],
-        "actor_optims": optim_states(learner.actor_optim, actor),
-        "critic_optims": optim_states(learner.critic_optim, critic),
-    }
+    return _on_cpu(
+        {
+            "algo": learner.spec.algo,
+            "updates": learner.updates,
+            "actors": [actor_state(learner, actor.params, i) for i in n],
+            "critics": [critic.export(critic.params, i) for i in n],
+            "actor_targets": [actor_state(learner, actor.targets, i) for i in n],
+            "critic_targets": [critic.export(critic.targets, i) for i in n],
+            "actor_optims": optim_states(learner.actor_optim, actor),
+            "critic_optims": optim_states(learner.critic_optim, critic),
+        }
+    )
+
+
+def _on_cpu(tree):
+    """Every tensor of a state on the CPU: a checkpoint loads anywhere."""
+    if isinstance(tree, torch.Tensor):
+        return tree.cpu()
+    if isinstance(tree, dict):
+        return {k: _on_cpu(v) for k, v in tree.items()}
+    if isinstance(tree, list):
+        return [_on_cpu(v) for v in tree]
+    return tree
 
 
 def import_state(learner: BatchedMADDPG, state: dict) -> None:

@@ -45,6 +45,7 @@ class GroupMADDPG(BatchedMADDPG):
         specs: Sequence[LearnerSpec],
         precision: str = "fp32",
         fused: bool | None = None,
+        device: str | torch.device = "cpu",
     ) -> None:
         specs = list(specs)
         if not specs:
@@ -53,7 +54,7 @@ class GroupMADDPG(BatchedMADDPG):
             values = {getattr(s, field) for s in specs}
             if len(values) > 1:
                 raise ValueError(f"the runs of a group must share {field}; got {sorted(values)}")
-        super().__init__(agents, specs[0], lanes=1, precision=precision, fused=fused)
+        super().__init__(agents, specs[0], lanes=1, precision=precision, fused=fused, device=device)
         self.specs = specs
         self.runs = r = len(specs)
         n = self.n
@@ -62,11 +63,13 @@ class GroupMADDPG(BatchedMADDPG):
         one = (self.actor, self.critic)
         self.actor, self.critic = (self._widen(s, r) for s in one)
         for run, spec in enumerate(specs):
-            init = one if run == 0 else (lambda b: (b.actor, b.critic))(BatchedMADDPG(agents, spec))
+            other = None if run == 0 else BatchedMADDPG(agents, spec, device=self.device)
+            init = one if other is None else (other.actor, other.critic)
             for wide, single in zip((self.actor, self.critic), init):
                 for dst, src in ((wide.params, single.params), (wide.targets, single.targets)):
                     for d, s in zip(dst, src):
                         d[run * n : (run + 1) * n] = s
+        self._place(self.device)
         self._make_optimizers()
         self._current.clear()
         # Per-agent constants, tiled per run.
@@ -76,7 +79,7 @@ class GroupMADDPG(BatchedMADDPG):
             self._keep, self._place_idx = tile(self._keep), tile(self._place_idx)
             self._own_cols = tile(self._own_cols)
         self._tiled = {id(i): tile(i) for i in (self._obs_idx, self._act_idx)}
-        self._agent_of = torch.arange(n).repeat(r)  # entry -> its agent
+        self._agent_of = torch.arange(n, device=self.device).repeat(r)  # entry -> its agent
 
     def _parts(self, tensors: Sequence[torch.Tensor]) -> list[torch.Tensor]:
         """Each stacked tensor whole, or as R views run by run: the elementwise kernels
@@ -151,13 +154,13 @@ class GroupMADDPG(BatchedMADDPG):
     # ------------------------------------------------------------- acting
     def act(self, obs: np.ndarray) -> np.ndarray:
         """Deterministic joint actions of every run: (R, ..., joint_obs) -> (R, ..., joint_act)."""
-        o = torch.as_tensor(obs, dtype=torch.float32)
+        o = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
         if o.shape[0] != self.runs:
             raise ValueError(f"obs has {o.shape[0]} runs, the group {self.runs}")
         lead = o.shape[1:-1]
         o_pad = self._split_runs(o.reshape(self.runs, -1, self.joint_obs), self._obs_idx)
         mu = self._squash(torch.tanh(mlp_forward(self.actor.params, o_pad)[-1]))
-        return self._joint_act(mu).reshape(self.runs, *lead, self.joint_act).numpy()
+        return self._joint_act(mu).reshape(self.runs, *lead, self.joint_act).cpu().numpy()
 
     # ------------------------------------------------------------- learning
     def _target_q(self, weights, rew, next_obs, done):  # type: ignore[override]
@@ -176,7 +179,7 @@ class GroupMADDPG(BatchedMADDPG):
                 own = self._per_agent(next_obs, self._obs_idx)
                 q_in = torch.cat([own, self._mu(actor, own)], -1)
             q = self._q(critic, q_in)
-            entries = torch.arange(r * n)
+            entries = torch.arange(r * n, device=self.device)
             return rew[entries, :, self._agent_of] + gamma * (1.0 - done) * q
         next_obs_pad = self._per_agent(next_obs, self._obs_idx)
         next_act = self._mu(actor, next_obs_pad)
@@ -209,7 +212,7 @@ class GroupMADDPG(BatchedMADDPG):
     def run_learner(self, run: int) -> BatchedMADDPG:
         """Run `run`'s learner alone: a BatchedMADDPG holding its weights, targets, Adam
         state and update count (copies; for checkpoints and evaluation elsewhere)."""
-        one = BatchedMADDPG(self.agents, self.specs[run])
+        one = BatchedMADDPG(self.agents, self.specs[run], device=self.device)
         sl = slice(run * self.n, (run + 1) * self.n)
         pairs = (
             (self.actor.params, one.actor.params),
@@ -247,7 +250,7 @@ class GroupMADDPG(BatchedMADDPG):
             raise ValueError(f"{len(states)} states for a group of {self.runs} runs")
         ones = []
         for spec, state in zip(self.specs, states):
-            one = BatchedMADDPG(self.agents, spec)
+            one = BatchedMADDPG(self.agents, spec, device=self.device)
             one.load_state_dict(state)
             ones.append(one)
         updates = {o.updates for o in ones}

@@ -167,5 +167,6 @@ class Stack:
     def load(self, tensors: Sequence[torch.Tensor], i: int, sd: dict[str, Any]) -> None:
         """Agent i's per-agent state dict `sd` written into its place in `tensors`."""
         for layer, (ins, outs) in enumerate(self.index[i]):
-            tensors[2 * layer][i][outs[:, None], ins] = torch.as_tensor(sd[self.key(layer, False)])
-            tensors[2 * layer + 1][i, 0, outs] = torch.as_tensor(sd[self.key(layer, True)])
+            w, b = tensors[2 * layer], tensors[2 * layer + 1]
+            w[i][outs[:, None], ins] = torch.as_tensor(sd[self.key(layer, False)], device=w.device)
+            b[i, 0, outs] = torch.as_tensor(sd[self.key(layer, True)], device=b.device)

@@ -45,11 +45,14 @@ def native_bf16() -> bool:
     return any(flag in cpu_flags(text) for flag in NATIVE_BF16_FLAGS)
 
 
-def resolve(precision: str) -> str:
+def resolve(precision: str, device: torch.device | None = None) -> str:
     """The precision a learner asked for `precision` runs in: bf16 only where the CPU has
-    native bf16 (`native_bf16`), otherwise fp32, with one warning."""
+    native bf16 (`native_bf16`), otherwise fp32, with one warning. On an accelerator
+    bf16 is the device's to run."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if device is not None and device.type != "cpu":
+        return precision
     if precision == "bf16" and not native_bf16():
         log.warning(
             "precision bf16 asked for, but this CPU has no native bf16 (no %s in its flags): "
@@ -58,3 +61,28 @@ def resolve(precision: str) -> str:
         )
         return "fp32"
     return precision
+
+
+class DeviceError(ValueError):
+    """A device this torch build or machine cannot run the learner on."""
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """The learner's torch device, refused with the reason when it cannot be used here."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as err:
+        raise DeviceError(f"device {device!r}: not a torch device ({err})") from None
+    if dev.type == "cpu":
+        return dev
+    module = getattr(torch, dev.type, None)
+    available = getattr(module, "is_available", None)
+    if available is None or not available():
+        raise DeviceError(
+            f"device {device}: not available here (torch {torch.__version__} on this machine "
+            f"has no usable {dev.type}); use device cpu"
+        )
+    count = getattr(module, "device_count", lambda: 1)()
+    if dev.index is not None and dev.index >= count:
+        raise DeviceError(f"device {device}: this machine has {count} {dev.type} device(s)")
+    return dev
