@@ -370,6 +370,10 @@ class FigureDef:
     milestones: tuple[int, ...] = ()  # episodes the arms table reports the metric at
     kind: str = "curves"  # or "table"
     note: str = ""
+    # Under `profile: thesis`, what every counting arm (Dis-/Cen-MACB) sets over its
+    # file: the method the thesis's code most likely ran for this figure, where it
+    # differs from the text's (docs/fidelity.md, "which loop produced which result").
+    thesis_method: tuple[tuple[str, Any], ...] = ()
 
     def arm(self, name: str) -> ArmDef:
         (arm,) = [a for a in self.arms if a.name == name]
@@ -429,7 +433,14 @@ FIG3 = FigureDef(
         ),
     ),
     note="A control per beta: the constant bonus of that beta on every reward, no "
-    "counting (beta 0.0's would be the same run as beta 0.0 itself).",
+    "counting (beta 0.0's would be the same run as beta 0.0 itself). Under profile "
+    "thesis the beta arms run the thesis code's fig. 3 loop (SMADDPG at 92fc6f5): the "
+    "raw observation bytes as the key, priced at collection and stored with the reward "
+    "(hash raw, key state, bonus_at collection); continuous observations make every key "
+    "new, so that is a constant beta stored on every transition: the control's method. "
+    "Under profile mpe2 they run the text's method (SimHash k 64 over o||a, priced at "
+    "sample time).",
+    thesis_method=(("hash", "raw"), ("key", "state"), ("bonus_at", "collection")),
 )
 
 _NAV_MACB = ("Dis-MACB", "Cen-MACB")
@@ -767,9 +778,25 @@ def split_base(configs: dict[str, dict[str, Any]]) -> tuple[dict[str, Any], dict
     return base, {n: {k: v for k, v in c.items() if k not in base} for n, c in configs.items()}
 
 
+COUNTING = ("dis-macb", "cen-macb")  # the explore modes that count
+
+
+def profile_arm_configs(fig: FigureDef, profile: str) -> dict[str, dict[str, Any]]:
+    """Every arm's config keys under a profile: its file's, and under `profile: thesis`
+    the figure's `thesis_method` over each counting arm."""
+    configs = arm_configs(fig)
+    if profile == "thesis" and fig.thesis_method:
+        method = dict(fig.thesis_method)
+        configs = {
+            n: {**c, **method} if c.get("explore") in COUNTING else c for n, c in configs.items()
+        }
+    return configs
+
+
 def full_config(fig: FigureDef, arm: str, profile: str, **over: Any) -> TrainConfig:
     """An arm's whole run config under a profile (what its runs get, but the seed)."""
-    return TrainConfig.model_validate({**arm_configs(fig)[arm], "profile": profile, **over})
+    configs = profile_arm_configs(fig, profile)
+    return TrainConfig.model_validate({**configs[arm], "profile": profile, **over})
 
 
 def experiment_body(
@@ -784,7 +811,7 @@ def experiment_body(
     `precision` (if given) sets every run's learner precision."""
     if profile not in PROFILES:
         raise ValueError(f"unknown profile {profile!r} (profiles: {', '.join(PROFILES)})")
-    base, arms = split_base(arm_configs(fig))
+    base, arms = split_base(profile_arm_configs(fig, profile))
     base = {**base, "profile": profile}
     for key, value in (("episodes", episodes), ("precision", precision)):
         if value is not None:

@@ -55,11 +55,20 @@ class TrainConfig(BaseModel):
     )
     beta: float = Field(0.8, ge=0.0, le=100.0, description="bonus scale: r' = r + beta / sqrt(n)")
     k: int = Field(512, ge=1, le=4096, description="SimHash code length in bits")
-    hash: Literal["simhash", "none"] = Field(
-        "simhash", description="simhash, or none (key = vector rounded to 2 decimals)"
+    hash: Literal["simhash", "none", "raw"] = Field(
+        "simhash",
+        description="simhash, none (key = vector rounded to 2 decimals) or raw (key = the "
+        "vector's float32 bytes: the thesis code's strategy 'None', its fig. 3 loop)",
     )
     key: Literal["state-action", "state"] = Field(
         "state-action", description="count s||a (state-action) or s only (state)"
+    )
+    bonus_at: Literal["sample", "collection"] = Field(
+        "sample",
+        description="when a transition's bonus is priced: sample (at every sampling, from "
+        "the counts then; the thesis text's Alg. 2) or collection (once, when it is "
+        "collected and counted, stored with its reward: the thesis code's fig. 3 loop); "
+        "collection runs in macb train and run groups (--local), not in the cluster",
     )
     reward: Literal["sparse", "sparse_offset", "dense"] = Field(
         "sparse", description="sparse (thesis), sparse_offset (sparse + 0.7), dense (mpe2's own)"

@@ -107,7 +107,7 @@ class ReplayLog:
 
     def rows_on_disk(self, width: dict[str, int]) -> int:
         sizes = []
-        for name in REPLAY_FIELDS:
+        for name in width:
             p = self.path(name)
             sizes.append(p.stat().st_size // (4 * width[name]) if p.exists() else 0)
         return min(sizes)
@@ -117,7 +117,7 @@ class ReplayLog:
         written. Rows beyond `start` already on disk (a run killed after appending but
         before its cut was written) are cut off first."""
         written = 0
-        for name in REPLAY_FIELDS:
+        for name in width:  # REPLAY_FIELDS, and a stored bonus where the run keeps one
             data = np.ascontiguousarray(arrays[name], dtype=np.float32)
             with open(self.path(name), "ab") as f:
                 f.truncate(start * 4 * width[name])
@@ -129,7 +129,7 @@ class ReplayLog:
 
     def read(self, rows: int, width: dict[str, int], where: Path) -> dict[str, np.ndarray]:
         out = {}
-        for name in REPLAY_FIELDS:
+        for name in width:
             p, w = self.path(name), width[name]
             have = p.stat().st_size // (4 * w) if p.exists() else 0
             if have < rows:

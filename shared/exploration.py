@@ -20,7 +20,7 @@ import numpy as np
 
 from shared.counting import CountTable, count_bonus
 from shared.joint import offsets
-from shared.simhash import RoundKey, SimHash
+from shared.simhash import RawKey, RoundKey, SimHash
 
 EXPLORE_MODES = ("none", "dis-macb", "cen-macb", "constant")
 
@@ -30,7 +30,7 @@ class ExploreSpec:
     mode: str = "cen-macb"
     beta: float = 0.8
     k: int = 512
-    hash: str = "simhash"  # "simhash" or "none" (round to 2 decimals)
+    hash: str = "simhash"  # "simhash", "none" (round to 2 decimals) or "raw" (float32 bytes)
     key: str = "state-action"  # or "state"
     seed: int = 0
     # Decimals the counted vector is rounded to before SimHash (None: not rounded); the
@@ -57,8 +57,12 @@ class CountExploration:
             self.table_dims = [sum(obs_dims) + (sum(act_dims) if with_act else 0)]
         else:
             self.table_dims = []
-        self.hashers: list[SimHash | RoundKey] = [
-            SimHash(d, spec.k, seed=spec.seed + t) if spec.hash == "simhash" else RoundKey(d)
+        self.hashers: list[SimHash | RoundKey | RawKey] = [
+            SimHash(d, spec.k, seed=spec.seed + t)
+            if spec.hash == "simhash"
+            else RawKey(d)
+            if spec.hash == "raw"
+            else RoundKey(d)
             for t, d in enumerate(self.table_dims)
         ]
         self.tables = [CountTable(h.key_bytes) for h in self.hashers]

@@ -60,6 +60,8 @@ from shared.trainer import (
     MetricsWriter,
     _read_rows,
     _say_if_constant_shift,
+    price_at_collection,
+    price_batches,
     save_checkpoint,
 )
 from shared.vectask import vectorize
@@ -76,6 +78,7 @@ PER_RUN_FIELDS = frozenset(
         "beta",
         "k",
         "hash",
+        "bonus_at",
         "key",
         "hash_round",
         "reward",
@@ -132,7 +135,9 @@ class Member:
         self.cfg, self.out = cfg, out
         self.explorer = build_exploration(cfg, spec)
         capacity = min(cfg.buffer_size, cfg.episodes * cfg.episode_len)
-        self.buffer = ReplayBuffer(capacity, spec.joint_obs_dim, spec.joint_act_dim)
+        self.collection = cfg.bonus_at == "collection"
+        stored = spec.n_agents if self.collection else 0
+        self.buffer = ReplayBuffer(capacity, spec.joint_obs_dim, spec.joint_act_dim, stored)
         self.sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
         self.diagnostics = BonusDiagnostics()
         self.rows: list[dict] = []
@@ -317,10 +322,12 @@ class GroupRun:
             for r, m in enumerate(members):
                 obs, act, next_obs = tr.obs[r], tr.act[r], tr.next_obs[r]
                 rew, done = float(tr.rew[r]), float(tr.done[r])
-                m.buffer.add(obs, act, rew, next_obs, done)
-                if m.replay is not None:
-                    m.pending.append((obs, act, rew, next_obs, done))
                 m.explorer.observe(obs[None], act[None])
+                stored = price_at_collection(m.explorer, obs, act, m.diagnostics, m.collection)
+                m.buffer.add(obs, act, rew, next_obs, done, stored)
+                if m.replay is not None:
+                    row = (obs, act, rew, next_obs, done)
+                    m.pending.append(row if stored is None else (*row, stored))
                 m.env_steps += 1
                 m.collisions_cum += int(tr.collisions[r])
             t2 = clock()
@@ -331,11 +338,7 @@ class GroupRun:
                     batches = [
                         m.buffer.sample(c0.batch_size, m.sample_rng) for _ in range(self.draws)
                     ]
-                    bonuses = []
-                    for b in batches:
-                        counts = m.explorer.counts(b.obs, b.act)
-                        bonuses.append(m.explorer.bonus_from_counts(counts, len(b.rew)))
-                        m.diagnostics.record(bonuses[-1], counts)
+                    bonuses = price_batches(m.explorer, batches, m.diagnostics)
                     parts.append(update_arrays(batches, bonuses))
                 arrays = [np.stack(cols) for cols in zip(*parts)]
                 t3 = clock()
@@ -373,6 +376,12 @@ class GroupRun:
         return rows
 
     # ------------------------------------------------------------------ cuts
+    def width_of(self, m: Member) -> dict[str, int]:
+        """Run m's replay log columns (its stored bonus too, where it stores one)."""
+        if m.collection:
+            return {**self.width, "bonus": self.spec.n_agents}
+        return self.width
+
     def cut(self, episode: int) -> None:
         """Each run's cut, in `macb train`'s format (its replay rows appended first)."""
         t0 = time.perf_counter()
@@ -388,7 +397,9 @@ class GroupRun:
                     "next_obs": np.stack(cols[3]),
                     "done": np.asarray(cols[4], np.float32),
                 }
-                m.replay.append(arrays, m.replay_rows, self.width)
+                if m.collection:
+                    arrays["bonus"] = np.stack(cols[5])
+                m.replay.append(arrays, m.replay_rows, self.width_of(m))
                 m.replay_rows += len(m.pending)
                 m.pending = []
             rng = {
@@ -452,12 +463,15 @@ class GroupRun:
             st = cut.state
             load_tables(m.explorer.tables, st["tables"], cut.path)
             m.replay_rows = int(st["replay_rows"])
-            data = m.replay.read(m.replay_rows, self.width, cut.path)
+            data = m.replay.read(m.replay_rows, self.width_of(m), cut.path)
             keep = min(m.replay_rows, m.buffer.capacity)
             first = m.replay_rows - keep
             m.buffer.added = first
             m.buffer.pos = first % m.buffer.capacity
-            m.buffer.add(*(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")))
+            m.buffer.add(
+                *(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")),
+                data["bonus"][first:] if m.collection else None,
+            )
             m.sample_rng.bit_generator.state = rng["sampler"]
             for j, state in enumerate(rng["eval_envs"]):
                 self.eval_venv.set_rng_state(r * m_eval + j, state)

@@ -19,13 +19,18 @@ class Batch:
     next_obs: np.ndarray  # (B, joint_obs_dim) float32
     done: np.ndarray  # (B,) float32, 1 where the target must not bootstrap
     idx: np.ndarray  # (B,) buffer rows
+    bonus: np.ndarray | None = None  # (B, N) the bonus stored at collection, if any
 
 
 class ReplayBuffer:
-    def __init__(self, capacity: int, obs_dim: int, act_dim: int) -> None:
+    """`stored_bonus` N > 0 keeps a per-agent bonus with each transition (`bonus_at:
+    collection`, the thesis code's fig. 3 loop); without it no bonus is stored."""
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, stored_bonus: int = 0) -> None:
         if capacity < 1:
             raise ValueError("capacity must be >= 1")
         self.capacity = capacity
+        self.bonus = np.zeros((capacity, stored_bonus), np.float32) if stored_bonus else None
         self.obs = np.zeros((capacity, obs_dim), np.float32)
         self.act = np.zeros((capacity, act_dim), np.float32)
         self.rew = np.zeros(capacity, np.float32)
@@ -44,11 +49,17 @@ class ReplayBuffer:
         rew: np.ndarray | float,
         next_obs: np.ndarray,
         done: np.ndarray | float,
+        bonus: np.ndarray | None = None,
     ) -> None:
-        """Add one transition or a batch of them (leading axis = transitions)."""
+        """Add one transition or a batch of them (leading axis = transitions); `bonus`
+        (N,) or (n, N) where the buffer stores bonuses."""
         obs = np.atleast_2d(obs)
         n = len(obs)
         rows = (self.pos + np.arange(n)) % self.capacity
+        if self.bonus is not None:
+            if bonus is None:
+                raise ValueError("this buffer stores a bonus with every transition")
+            self.bonus[rows] = np.atleast_2d(bonus)
         self.obs[rows] = obs
         self.act[rows] = np.atleast_2d(act)
         self.rew[rows] = rew
@@ -63,9 +74,11 @@ class ReplayBuffer:
         if size == 0:
             raise ValueError("cannot sample from an empty buffer")
         idx = rng.integers(0, size, size=batch_size)
+        bonus = None if self.bonus is None else self.bonus[idx]
         return Batch(
-            self.obs[idx], self.act[idx], self.rew[idx], self.next_obs[idx], self.done[idx], idx
-        )
+            self.obs[idx], self.act[idx], self.rew[idx], self.next_obs[idx], self.done[idx], idx,
+            bonus,
+        )  # fmt: skip
 
 
 def update_arrays(

@@ -177,9 +177,11 @@ def evaluate(policy: Policy, envs: list[TaskEnv], episodes: int) -> EvalResult:
     """Noise-free episodes, len(envs) at a time in lockstep; counts are never touched.
 
     An episode succeeds when `success` held at some step. With `success_terminal` a
-    success resets the world and the episode runs on to its time limit, as the thesis
-    code's evaluation did (its env object resets when every agent is done), so the
-    return also sums the rewards of the new world."""
+    success resets the world and the episode runs on to its time limit, so the return
+    also sums the rewards of the new world. The thesis code's evaluation did not reset
+    (it stepped the raw MultiAgentEnv, which never resets; only training's vec-env
+    wrapper does): the success rate is the same either way, the return is not
+    comparable with the code's (docs/fidelity.md, E2)."""
     successes, returns, steps = [], [], 0
     remaining = episodes
     while remaining > 0:
@@ -192,8 +194,8 @@ def evaluate(policy: Policy, envs: list[TaskEnv], episodes: int) -> EvalResult:
             acts = policy(obs)
             for j, env in enumerate(group):
                 res = env.step_joint(acts[j])
-                # A terminal success goes on in a new world, as the thesis code's one
-                # env did in evaluation too; success was seen, so the rate is the same.
+                # A terminal success goes on in a new world (the code's evaluation went
+                # on in the old one); success was seen, so the rate is the same.
                 ended = (res.terminated or res.restart) and not res.truncated
                 obs[j] = np.concatenate(env.reset_world()) if ended else res.obs
                 ok[j] |= res.success

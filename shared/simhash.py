@@ -66,6 +66,24 @@ class RoundKey:
         return np.ascontiguousarray(scaled.view(np.uint8).reshape(len(v), -1))
 
 
+class RawKey:
+    """The thesis code's strategy 'None' (its fig. 3 loop at commit 92fc6f5,
+    `count_based.py:33`): the key is the vector's raw float32 bytes, no hash, no rounding
+    (-0.0 and 0.0 made one key). Continuous observations then almost never repeat, so
+    priced at collection every key has n = 1: a constant bonus beta."""
+
+    def __init__(self, dim: int) -> None:
+        self.dim = dim
+        self.key_bytes = 4 * dim
+
+    def keys(self, batch: np.ndarray) -> np.ndarray:
+        v = np.asarray(batch, dtype=np.float32)
+        if v.ndim != 2 or v.shape[1] != self.dim:
+            raise ValueError(f"expected a (B, {self.dim}) batch, got shape {v.shape}")
+        v = v + np.float32(0.0)  # -0.0 -> 0.0
+        return np.ascontiguousarray(v.view(np.uint8).reshape(len(v), -1))
+
+
 def as_void(keys: np.ndarray) -> np.ndarray:
     """View a (B, W) uint8 key matrix as B fixed-width void scalars (hashable, sortable)."""
     keys = np.ascontiguousarray(keys, dtype=np.uint8)

@@ -120,6 +120,40 @@ def _say_if_constant_shift(rows: list[dict], warned: bool) -> bool:
     return shift
 
 
+def price_at_collection(
+    explorer: CountExploration,
+    obs: np.ndarray,
+    act: np.ndarray,
+    diagnostics: BonusDiagnostics,
+    on: bool,
+) -> np.ndarray | None:
+    """`bonus_at: collection`: the just-counted transition's per-agent bonus (N,), from
+    its count including itself, to store with it (the diagnostics then describe the
+    collected transitions); None when bonuses are priced at sample time."""
+    if not on:
+        return None
+    counts = explorer.counts(obs[None], act[None])
+    bonus = explorer.bonus_from_counts(counts, 1)
+    diagnostics.record(bonus, counts)
+    return bonus[0]
+
+
+def price_batches(
+    explorer: CountExploration, batches: list, diagnostics: BonusDiagnostics
+) -> list[np.ndarray]:
+    """Each sampled minibatch's per-agent bonus: the stored one (`bonus_at: collection`),
+    or priced now from the current counts (recorded in the diagnostics)."""
+    bonuses = []
+    for b in batches:
+        if b.bonus is not None:
+            bonuses.append(b.bonus)
+            continue
+        counts = explorer.counts(b.obs, b.act)
+        bonuses.append(explorer.bonus_from_counts(counts, len(b.rew)))
+        diagnostics.record(bonuses[-1], counts)
+    return bonuses
+
+
 def train(
     cfg: TrainConfig,
     out: Path | None,
@@ -168,7 +202,10 @@ class Run:
         self.learner = build_learner(cfg, spec)
         self.explorer = build_exploration(cfg, spec)
         capacity = min(cfg.buffer_size, cfg.episodes * cfg.episode_len)
-        self.buffer = ReplayBuffer(capacity, spec.joint_obs_dim, spec.joint_act_dim)
+        # bonus_at collection: priced once, when collected, and stored with the reward
+        self.collection = cfg.bonus_at == "collection"
+        stored = spec.n_agents if self.collection else 0
+        self.buffer = ReplayBuffer(capacity, spec.joint_obs_dim, spec.joint_act_dim, stored)
         self.collector = make_collector(cfg, self.env)
         self.sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
         self.draws = minibatches_per_update(cfg)
@@ -186,6 +223,8 @@ class Run:
             "next_obs": spec.joint_obs_dim,
             "done": 1,
         }
+        if self.collection:
+            self.width["bonus"] = spec.n_agents
         self.cuts = self.replay = None
         self.replay_rows = 0  # rows of the replay log on disk, as of the last cut
         self.last_cut = time.monotonic()
@@ -263,21 +302,20 @@ class Run:
         cfg, explorer, buffer = self.cfg, self.explorer, self.buffer
         for _ in range(cfg.episode_len):
             tr = self.collector.step(self.learner.act)
-            buffer.add(tr.obs, tr.act, tr.rew, tr.next_obs, tr.done)
-            if self.replay is not None:
-                self.pending.append((tr.obs, tr.act, tr.rew, tr.next_obs, tr.done))
             explorer.observe(tr.obs[None], tr.act[None])
+            diag = self.diagnostics
+            stored = price_at_collection(explorer, tr.obs, tr.act, diag, self.collection)
+            buffer.add(tr.obs, tr.act, tr.rew, tr.next_obs, tr.done, stored)
+            if self.replay is not None:
+                row = (tr.obs, tr.act, tr.rew, tr.next_obs, tr.done)
+                self.pending.append(row if stored is None else (*row, stored))
             self.env_steps += 1
             self.collisions_cum += tr.collisions
             if self.env_steps > cfg.learning_starts:
                 batches = [
                     buffer.sample(cfg.batch_size, self.sample_rng) for _ in range(self.draws)
                 ]
-                bonuses = []
-                for b in batches:
-                    counts = explorer.counts(b.obs, b.act)
-                    bonuses.append(explorer.bonus_from_counts(counts, len(b.rew)))
-                    self.diagnostics.record(bonuses[-1], counts)
+                bonuses = price_batches(explorer, batches, self.diagnostics)
                 self.learner.update(*update_arrays(batches, bonuses))
 
     def point(self, episode: int) -> dict:
@@ -317,6 +355,8 @@ class Run:
                 "next_obs": np.stack(cols[3]),
                 "done": np.asarray(cols[4], np.float32),
             }
+            if self.collection:
+                arrays["bonus"] = np.stack(cols[5])
             replay_bytes = self.replay.append(arrays, self.replay_rows, self.width)
             self.replay_rows += len(self.pending)
             self.pending = []
@@ -376,7 +416,10 @@ class Run:
         first = self.replay_rows - keep
         self.buffer.added = first  # so add() puts row r at slot r % capacity
         self.buffer.pos = first % self.buffer.capacity
-        self.buffer.add(*(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")))
+        self.buffer.add(
+            *(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")),
+            data["bonus"][first:] if self.collection else None,
+        )
         rng = json.loads(st["rng"])
         self.collector.load_state(rng["collector"])
         self.sample_rng.bit_generator.state = rng["sampler"]

@@ -325,6 +325,7 @@ def _grid_values(name: str) -> list:
         "task": "spread",
         "task_kwargs": {"max_cycles": 25},  # over a custom task's base (CUSTOM_BASE)
         "success_key": "at_goal",
+        "device": "cuda",  # a name the config takes; the learner checks it is there
     }.get(name, value + 1 if isinstance(value, int) else value)
     return [value, other]
 

@@ -330,3 +330,20 @@ def test_the_png_is_written_with_every_arm_in_its_legend(tmp_path, name):
     rows = (tmp_path / f"{name}.csv").read_text().splitlines()
     assert rows[0] == ",".join(report.CSV_COLUMNS)
     assert len(rows) == 1 + sum(len(p) for p in points.values())
+
+
+def test_fig3_under_profile_thesis_runs_the_code_s_fig3_loop():
+    """Its beta arms: raw observation keys priced at collection and stored (the
+    SMADDPG loop); under mpe2 the text's SimHash over o||a at sample time; the
+    controls and beta 0.0 unchanged in both."""
+    from cli.figures import experiment_body
+
+    fig = FIGURES["fig3"]
+    thesis = {a["name"]: a for a in experiment_body(fig, "thesis", [0], 10)["arms"]}
+    mpe2 = {a["name"]: a for a in experiment_body(fig, "mpe2", [0], 10)["arms"]}
+    for name, arm in thesis.items():
+        counting = arm.get("explore") == "dis-macb"
+        method = {k: arm.get(k) for k in ("hash", "key", "bonus_at")}
+        want = {"hash": "raw", "key": "state", "bonus_at": "collection"}
+        assert method == (want if counting else dict.fromkeys(want)), name
+        assert all(k not in mpe2[name] for k in want), name

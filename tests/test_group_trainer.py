@@ -59,7 +59,13 @@ GROUPS = {
     ),
     "simple-ddpg": (
         {"task": "simple", "algo": "ddpg", "explore": "dis-macb", "k": 8},
-        [{"beta": 0.0, "seed": 0}, {"beta": 1.2, "seed": 0}, {"explore": "constant", "seed": 4}],
+        [
+            {"beta": 0.0, "seed": 0},
+            {"beta": 1.2, "seed": 0},
+            {"explore": "constant", "seed": 4},
+            {"bonus_at": "collection", "hash": "raw", "key": "state", "seed": 7},
+            {"bonus_at": "collection", "hash": "none", "seed": 8},
+        ],
     ),
     "spread-thesis": (
         {"task": "spread", "algo": "dis-maddpg", "profile": "thesis", "agents": 2},
@@ -110,7 +116,7 @@ def test_a_group_cut_resumes_alone(tmp_path):
     """Each run's cut is a `macb train` cut: one run of a stopped group continues alone."""
     common, arms = GROUPS["simple-ddpg"]
     cfgs = cfgs_of(common, arms)
-    outs = [tmp_path / f"g{r}" for r in range(3)]
+    outs = [tmp_path / f"g{r}" for r in range(len(cfgs))]
 
     def stop_at_4(r, row):
         if row["episode"] == 4:
@@ -118,8 +124,9 @@ def test_a_group_cut_resumes_alone(tmp_path):
 
     with pytest.raises(Stop):
         train_group(cfgs, outs, progress=False, on_metrics=stop_at_4, cut_every_s=0.0)
-    alone = train(cfgs[1], outs[1], progress=False, resume=True)
-    assert strip(alone) == strip(train(cfgs[1], tmp_path / "straight", progress=False))
+    for r in (1, 4):  # 4 stores its bonuses with the replay rows
+        alone = train(cfgs[r], outs[r], progress=False, resume=True)
+        assert strip(alone) == strip(train(cfgs[r], tmp_path / f"straight{r}", progress=False))
 
 
 def test_groups_are_formed_and_refused_by_what_runs_share():

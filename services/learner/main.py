@@ -337,6 +337,11 @@ class LearnerService(ServiceBase):
         self.publish_metrics(run, start, source="provenance")
 
     def _open_run(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> LearnerRun:
+        if config.bonus_at == "collection":  # the run fails, saying so (not a silent change)
+            raise ValueError(
+                "bonus_at collection: the cluster prices bonuses when it samples; run this "
+                "config with macb train or as a run group (macb run/reproduce --local)"
+            )
         torch.set_num_threads(config.threads)
         self.listen(keys.k_transitions(run, "*"), "transitions", run)
         self.listen(keys.k_ack(run, "*"), "ack", run)
