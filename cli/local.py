@@ -46,11 +46,13 @@ def _rows(folder: Path) -> list[dict[str, Any]]:
 
 
 def _same_config(folder: Path, cfg: TrainConfig) -> bool:
+    from shared.cuts import config_difference
+
     try:
         written = json.loads((folder / "config.json").read_text())
     except (OSError, ValueError):
         return False
-    return written == cfg.model_dump(mode="json")
+    return config_difference(written, cfg.model_dump(mode="json")) is None
 
 
 def run_state(folder: Path, cfg: TrainConfig) -> str:

@@ -171,8 +171,17 @@ def write_cut(folder: Path, episode: int, state: dict[str, Any]) -> Path:
 
 
 def config_difference(saved: dict[str, Any], config: dict[str, Any]) -> str | None:
-    """The first field where a cut's config and the run's differ, as 'field: a != b'."""
+    """The first field where a cut's config and the run's differ, as 'field: a != b'.
+
+    A key the saved config lacks counts as its default (a run written before the key
+    existed ran with what the default does), so adding a config key does not make
+    earlier runs unresumable."""
+    from shared.config import TrainConfig
+
+    fields = TrainConfig.model_fields
     for key in sorted(set(saved) | set(config)):
+        if key not in saved and key in fields and config.get(key) == _default(fields[key]):
+            continue
         if saved.get(key) != config.get(key):
             return f"{key}: {saved.get(key)!r} in the cut, {config.get(key)!r} in the run"
     return None
@@ -219,3 +228,9 @@ def latest_cut(folder: Path, config: dict[str, Any]) -> Cut:
     if not reasons:
         raise CutError(f"{folder}: no cut to resume from")
     raise CutError("no usable cut: " + "; ".join(reasons))
+
+
+def _default(field: Any) -> Any:
+    """A config field's default as JSON (what model_dump(mode="json") writes)."""
+    value = field.default
+    return list(value) if isinstance(value, tuple) else value

@@ -185,3 +185,16 @@ def test_a_run_stopped_after_its_first_point_resumes(tmp_path):
     assert [{k: v for k, v in r.items() if k not in drop} for r in resumed] == [
         {k: v for k, v in r.items() if k not in drop} for r in straight
     ]
+
+
+def test_a_cut_written_before_a_config_key_existed_still_resumes(tmp_path):
+    """A key the saved config lacks counts as its default: a run from before the key
+    (here `device` and `bonus_at`) resumes; one that differs from the default is still
+    refused, naming it."""
+    from shared.cuts import config_difference
+
+    cfg = make_config({"task": "simple", "algo": "ddpg"}).model_dump(mode="json")
+    old = {k: v for k, v in cfg.items() if k not in ("device", "bonus_at")}
+    assert config_difference(old, cfg) is None
+    assert "device" in config_difference(old, {**cfg, "device": "cuda"})
+    assert "beta" in config_difference({**old, "beta": 0.1}, cfg)
