@@ -332,7 +332,7 @@ def _commit(code: dict[str, Any]) -> str:
     return f"{str(commit)[:12]}{' (dirty)' if code.get('dirty') else ''}"
 
 
-def markdown(a: Analysis, profile: str, out_png: str = "") -> str:
+def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None = None) -> str:
     """FIGURE.md: what ran, the definitions, each arm beside what the thesis reports for
     it, a verdict per claim, and each MACB arm against its control."""
     fig, exp = a.fig, a.experiment
@@ -347,7 +347,7 @@ def markdown(a: Analysis, profile: str, out_png: str = "") -> str:
     lines = [
         f"# {fig.title}",
         "",
-        f"Reproduced with `macb reproduce {fig.name} --profile {profile}` on "
+        f"Reproduced with `{command or f'macb reproduce {fig.name} --profile {profile}'}` on "
         f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC. The thesis: {fig.section} of "
         "`count-based-exploration-for-multi-agent-learning.txt`.",
         "",
@@ -562,12 +562,16 @@ def _cell(x: Any) -> Any:
 
 
 def write_report(
-    a: Analysis, points: dict[str, Columns | list], profile: str, out: Path
+    a: Analysis,
+    points: dict[str, Columns | list],
+    profile: str,
+    out: Path,
+    command: str | None = None,
 ) -> list[Path]:
     """FIGURE.png, FIGURE.md and FIGURE.csv in out/."""
     out.mkdir(parents=True, exist_ok=True)
     name = a.fig.name
     png = write_png(a, profile, out / f"{name}.png")
     md = out / f"{name}.md"
-    md.write_text(markdown(a, profile, png.name))
+    md.write_text(markdown(a, profile, png.name, command))
     return [png, md, write_csv(a.experiment, points, out / f"{name}.csv")]

@@ -179,7 +179,11 @@ def reproduce_local(
     exp = local_experiment(name, seeds, runs, runs_dir)
     points = {k: columns(v) for k, v in local_points(runs, runs_dir).items()}
     analysis = analyse(fig, exp, points)
-    paths = write_report(analysis, points, profile, out)
+    import shlex
+
+    trained = "" if args.report_only else shlex.join(["macb", *sys.argv[1:]])
+    command = trained or f"macb reproduce {fig.name} --local --profile {profile}"
+    paths = write_report(analysis, points, profile, out, command)
     verdicts = [v for *_, v in claim_verdicts(analysis)]
     tally = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
     counts = ", ".join(f"{v} {k}" for k, v in exp["counts"].items())
