@@ -1,7 +1,9 @@
 """Would several runs in one stacked update pay? A probe for issue 13's optional item.
 
 Stacked runs (seeds or arms of one task and network shape as further entries of the
-learner's stacks) are not built. This measures what they could buy, with what exists:
+learner's stacks) were not built when this was written; they are now run groups
+(shared/learners/group.py; benchmarks/bench_group.py measures them). This measures what
+they could buy with the batched learner alone:
 a BatchedMADDPG of R x speaker_listener's two agents under Dis-MADDPG (every network
 reads its own agent's columns, so R runs' networks are R independent copies of one
 run's, the same shapes a stacked learner would have; Cen critics would each read their
