@@ -191,7 +191,9 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
     for d in described:
         counts[d["status"]] = counts.get(d["status"], 0) + 1
     done = all(d["status"] == "completed" for d in described)
+    walls = [rows[-1].get("wall_s", 0.0) for r in runs if (rows := _rows(out / r.name))]
     return {
+        "wall_s": max(walls, default=0.0),
         "id": f"local:{out}",
         "name": name,
         "status": "completed" if done else "incomplete",

@@ -373,6 +373,11 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         "number is still given).",
     ]
     lines += [what_ran(runs)]
+    if exp.get("wall_s"):  # local runs: their own clocks, over every start
+        lines += [
+            f"- Wall time: {exp['wall_s'] / 3600:.2f} h, the longest run's own clock (its "
+            "`wall_s`, summed over its starts; runs of a group share it)."
+        ]
     if fig.note:
         lines += [f"- {fig.note}"]
     if out_png:

@@ -99,6 +99,7 @@ def test_reproduce_local_and_report_only(tmp_path):
     assert got.returncode == 0, got.stderr
     assert "11 completed" in got.stderr
     md = (out / "fig3.md").read_text()
+    assert "- Wall time: " in md and "macb reproduce fig3 --local --episodes 6" in md
     with open(out / "fig3.csv", newline="") as f:
         table = list(csv.DictReader(f))
     # every stored row is in the CSV, with the same numbers
