@@ -287,3 +287,38 @@ def test_run_verdict_stopped_names_the_service():
     states = {"L": {"state": "completed"}, "E": {"state": "stopped", "reason": "by user"}}
     v = run_verdict(states, ASSIGN, 0)
     assert (v.state, v.reason) == ("stopped", "E: by user")
+
+
+def test_a_batch_lost_in_a_router_restart_makes_a_gap_not_a_lost_count():
+    """What a restarted router does (tests/test_topology.py, where `gaps == 0` once
+    failed): batch k dies with the router while batch k+1, sent after it is back,
+    arrives. The counter refuses k+1 (it expects k): one gap, nothing counted. No ack
+    moves, so the actor resends both after `resend_after_s`; the counter then takes k
+    and k+1. Every row is counted once: a gap is a refused batch that a resend answers,
+    which is what the cluster checks with faults (`check_exact(..., faults=True)`:
+    gaps <= resends, counted == published)."""
+    n = 20
+    sender = Sender(confirm=("counter",), credit_from="counter", resend_after_s=1.0)
+    sender.on_ack("counter", 0, now=0.0, window=2 * n)
+    counter = ReceiveCursor()
+    counted: list[int] = []
+
+    def deliver(seq: int) -> None:
+        d = counter.take("a", seq, n)
+        if d.took:
+            counted.extend(range(seq + d.skip, seq + n))
+            sender.on_ack("counter", counter.expected("a"), now=now)
+
+    now = 0.0
+    k0 = sender.send(n, b"k", now)  # lost: the router died with it
+    now = 0.5
+    k1 = sender.send(n, b"k+1", now)
+    deliver(k1)  # arrives first
+    assert counter.gaps == 1 and counted == []
+    now = 1.6
+    resent = sender.due(now)
+    assert resent == [b"k", b"k+1"] and sender.resends == 2
+    for seq in (k0, k1):
+        deliver(seq)
+    assert counted == list(range(2 * n)) and counter.gaps == 1
+    assert counter.gaps <= sender.resends and sender.settled

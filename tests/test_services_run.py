@@ -48,8 +48,14 @@ def info(bus, role, sid):
     return json.loads(replies[0]) if replies else None
 
 
-def check_exact(watch, actors, config):
-    """Counted == published, no duplicates or gaps, updates == collected - warm-up."""
+def check_exact(watch, actors, config, faults: bool = False):
+    """Counted == published, no duplicates or gaps, updates == collected - warm-up.
+
+    `faults` (a router was killed mid-run): a batch lost in transit makes the batch
+    after it a gap (refused, not counted) until the actor resends both, so gaps may
+    occur there, each answered by a resend (tests/test_protocol.py,
+    `test_a_batch_lost_in_a_router_restart_makes_a_gap_not_a_lost_count`); the
+    counts stay exact either way."""
     assert watch.state() == "completed", (watch.state(), watch.states)
     published = sum(watch.states[a]["final_seq"] for a in actors)
     assert published == config.episodes * config.episode_len
@@ -60,7 +66,9 @@ def check_exact(watch, actors, config):
     # makes that happen), never a second delivery of one publication.
     resent_rows = sum(watch.states[a].get("resends", 0) for a in actors) * config.episode_len
     assert counter["duplicates"] <= resent_rows, json.dumps([counter, watch.states])
-    assert counter["gaps"] == 0, json.dumps([counter, watch.states])
+    resends = sum(watch.states[a].get("resends", 0) for a in actors)
+    allowed = resends if faults else 0
+    assert counter["gaps"] <= allowed, json.dumps([counter, watch.states])
     learner = watch.states[watch.assign["learner"]]
     assert learner["ingested"] == published
     expected_updates = published - config.learning_starts

@@ -110,5 +110,5 @@ def test_a_router_restarted_while_the_other_carries_on(two):
         two.start_router("router-b", two.b, connect=two.a)
         assert watch.wait(timeout=240) == "completed", watch.states
         wait_final_counts(watch, config)
-        check_exact(watch, watch.assign["actors"], config)
+        check_exact(watch, watch.assign["actors"], config, faults=True)
         two.no_denials(cli)
