@@ -101,6 +101,12 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         help="every run's torch threads (a group's update runs on them; default the files', 1)",
     )
     rp.add_argument(
+        "--runs",
+        metavar="DIR",
+        help="--local / --report-only: where the runs' folders are (default OUT/runs), so "
+        "a page can be written elsewhere (e.g. docs/results/FIGURE-PROFILE) from stored runs",
+    )
+    rp.add_argument(
         "--report-only",
         action="store_true",
         help="train nothing: rebuild OUT/FIGURE.png/.md/.csv from the runs a --local "
@@ -159,6 +165,25 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     return _with_local_cluster(args, url, fig, body, out)
 
 
+#: A figure's CSV over this size is written gzipped (FIGURE.csv.gz).
+CSV_GZIP_BYTES = 4 * 1024 * 1024
+
+
+def write_runs_record(exp: dict[str, Any], path: Path) -> Path:
+    """Every run of a local reproduce: id, arm, seed, status, config and the provenance
+    of its latest start (code, machine, libraries, the precision as run)."""
+    import json
+
+    keep = ("id", "arm", "seed", "status", "config")
+    runs = [
+        {**{k: r[k] for k in keep}, "provenance": (r.get("live") or {}).get("provenance")}
+        for r in exp["runs"]
+    ]
+    record = {"experiment": exp["name"], "wall_s": exp.get("wall_s"), "runs": runs}
+    path.write_text(json.dumps(record, indent=1) + "\n")
+    return path
+
+
 def reproduce_local(
     fig: FigureDef, body: dict[str, Any], profile: str, out: Path, args: argparse.Namespace
 ) -> int:
@@ -168,7 +193,7 @@ def reproduce_local(
     from cli.report import analyse, claim_verdicts, columns, write_report
 
     name, seeds, runs = expand_body(body)
-    runs_dir = out / "runs"
+    runs_dir = Path(args.runs) if args.runs else out / "runs"
     code = 0
     if not args.report_only:
         t0 = time.monotonic()
@@ -184,6 +209,16 @@ def reproduce_local(
     trained = "" if args.report_only else shlex.join(["macb", *sys.argv[1:]])
     command = trained or f"macb reproduce {fig.name} --local --profile {profile}"
     paths = write_report(analysis, points, profile, out, command)
+    paths.append(write_runs_record(exp, out / f"{fig.name}-runs.json"))
+    csv_path = out / f"{fig.name}.csv"
+    if csv_path.stat().st_size > CSV_GZIP_BYTES:  # a full-length figure's points
+        import gzip
+        import shutil
+
+        with csv_path.open("rb") as src, gzip.open(f"{csv_path}.gz", "wb") as dst:
+            shutil.copyfileobj(src, dst)
+        csv_path.unlink()
+        paths = [Path(f"{csv_path}.gz") if p == csv_path else p for p in paths]
     verdicts = [v for *_, v in claim_verdicts(analysis)]
     tally = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
     counts = ", ".join(f"{v} {k}" for k, v in exp["counts"].items())

@@ -99,6 +99,8 @@ def test_reproduce_local_and_report_only(tmp_path):
     assert got.returncode == 0, got.stderr
     assert "11 completed" in got.stderr
     md = (out / "fig3.md").read_text()
+    record = json.loads((out / "fig3-runs.json").read_text())
+    assert len(record["runs"]) == 11 and all(r["provenance"]["machine"] for r in record["runs"])
     assert "- Wall time: " in md and "macb reproduce fig3 --local --episodes 6" in md
     with open(out / "fig3.csv", newline="") as f:
         table = list(csv.DictReader(f))
@@ -115,6 +117,11 @@ def test_reproduce_local_and_report_only(tmp_path):
     rebuilt = (out / "fig3.md").read_text()
     drop = lambda text: [x for x in text.splitlines() if "Reproduced with" not in x]  # noqa: E731
     assert drop(rebuilt) == drop(md)
+    page = tmp_path / "page"  # a page written elsewhere from the stored runs
+    moved = macb("reproduce", "fig3", "--report-only", "--episodes", "6", "--seeds", "0",
+                 "--runs", str(out / "runs"), "--out", str(page))  # fmt: skip
+    assert moved.returncode == 0, moved.stderr
+    assert drop((page / "fig3.md").read_text()) == drop(md) and not (page / "runs").exists()
     none = macb("reproduce", "fig3", "--report-only", "--out", str(tmp_path / "empty"))
     assert none.returncode == 2 and "no runs stored" in none.stderr
 
