@@ -55,6 +55,22 @@ def _same_config(folder: Path, cfg: TrainConfig) -> bool:
     return config_difference(written, cfg.model_dump(mode="json")) is None
 
 
+def config_conflict(folder: Path, cfg: TrainConfig) -> str | None:
+    """Why `folder` holds another config's run ('field: a in the folder, b here'), or
+    None (no config written there yet, or the same)."""
+    from shared.cuts import config_difference
+
+    path = folder / "config.json"
+    if not path.exists():
+        return None
+    try:
+        written = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        return f"{path} is unreadable ({err})"
+    diff = config_difference(written, cfg.model_dump(mode="json"))
+    return None if diff is None else diff.replace("in the cut", "in the folder")
+
+
 def run_state(folder: Path, cfg: TrainConfig) -> str:
     """'done' (every episode run, checkpoint written), 'cut-<episode>' (can resume from
     its newest cut, of that episode) or 'new'."""
@@ -87,6 +103,17 @@ def run_groups(
     restarts nor holds back the runs already under way. Without `max_runs`, runs that
     could share one group are split into `jobs` groups, one per process: on a CPU the
     products of one thread per group keep the cores busier than two threads on one."""
+    # A folder holding another config's run is refused, not overwritten: its results
+    # may be all someone has (another --episodes, --threads, an edited file, ...).
+    conflicts = [(r, why) for r in runs if (why := config_conflict(out / r.name, r.config))]
+    for r, why in conflicts:
+        print(
+            f"{out / r.name}: holds a run of another config ({why}); move it away or give "
+            "another --out: nothing was run",
+            file=sys.stderr,
+        )
+    if conflicts:
+        return 2
     states = [run_state(out / r.name, r.config) for r in runs]
     todo = [i for i, s in enumerate(states) if s != "done"]
     if len(todo) < len(runs):
@@ -160,6 +187,10 @@ def _train_group_job(
         return f"{what}: cannot resume: {err}"
     except DeviceError as err:
         return f"{what}: {err}"
+    except Exception as err:  # any other failure of one group: said, the others go on
+        import traceback
+
+        return f"{what}: failed: {type(err).__name__}: {err}\n{traceback.format_exc()}"
     return None
 
 

@@ -101,9 +101,16 @@ def group_key(cfg: TrainConfig) -> str:
 
 
 def check_group(cfgs: Sequence[TrainConfig]) -> None:
-    """Refuse runs that cannot share a group, naming the first field that differs."""
+    """Refuse runs that cannot share a group, naming the first field that differs, and
+    runs asking for the reference learner (a group updates with the batched one)."""
     if not cfgs:
         raise ValueError("a group needs at least one run")
+    for r, cfg in enumerate(cfgs):
+        if cfg.learner_impl == "reference":
+            raise ValueError(
+                f"run {r}: learner_impl reference: a run group updates with the batched "
+                "learner; run it alone with macb train"
+            )
     first = json.loads(group_key(cfgs[0]))
     for r, cfg in enumerate(cfgs[1:], 1):
         diff = config_difference(first, json.loads(group_key(cfg)))
@@ -189,6 +196,8 @@ class GroupRun:
         cfgs = list(cfgs)
         if len(outs) != len(cfgs):
             raise ValueError(f"{len(cfgs)} runs but {len(outs)} output folders")
+        if len({o is None for o in outs}) > 1:
+            raise ValueError("give every run of a group an output folder, or none")
         check_group(cfgs)
         c0 = self.cfg = cfgs[0]
         torch.set_num_threads(c0.threads)

@@ -137,3 +137,14 @@ def test_groups_are_formed_and_refused_by_what_runs_share():
     assert form_groups([a, b, a], max_runs=2) == [[0, 1], [2]]
     with pytest.raises(ValueError, match="batch_size"):
         check_group([a, c])
+    ref = make_config({**BASE, "task": "simple", "algo": "ddpg", "learner_impl": "reference"})
+    with pytest.raises(ValueError, match="learner_impl reference"):
+        check_group([a, ref])
+
+
+def test_every_run_of_a_group_has_a_folder_or_none(tmp_path):
+    from shared.group_trainer import GroupRun
+
+    a = make_config({**BASE, "task": "simple", "algo": "ddpg"})
+    with pytest.raises(ValueError, match="every run of a group an output folder, or none"):
+        GroupRun([a, a], [tmp_path / "x", None], 60.0)

@@ -49,6 +49,12 @@ def test_train_seeds_runs_a_group_whose_runs_equal_their_lone_runs(tmp_path):
             assert (folder / name).exists(), name
     again = macb(*base, "--seeds", "3", "5", "--out", str(tmp_path / "g"))
     assert "2 of 2 runs complete, skipped" in again.stderr
+    # Another config over the same folders: refused, naming the field; nothing touched.
+    before = (tmp_path / "g" / "seed-3" / "metrics.jsonl").read_text()
+    other = macb(*base[:-1], "--episodes", "6", "--quiet", "--seeds", "3", "5",
+                 "--out", str(tmp_path / "g"))  # fmt: skip
+    assert other.returncode == 2 and "holds a run of another config (episodes" in other.stderr
+    assert (tmp_path / "g" / "seed-3" / "metrics.jsonl").read_text() == before
     bad = macb(*base, "--seeds", "3", "3", "--out", str(tmp_path / "bad"))
     assert bad.returncode == 2 and "given twice" in bad.stderr
 

@@ -89,9 +89,11 @@ class GroupMADDPG(BatchedMADDPG):
         its elements fall on vectors as they do in its tensor alone; any other tensor is
         given run by run, so that they fall where they fall alone."""
         n, runs = self.n, self.runs
+        # On several threads torch splits a large tensor at its own boundaries: per run.
+        whole_ok = torch.get_num_threads() == 1
         out: list[torch.Tensor] = []
         for t in tensors:
-            if (t.numel() // runs) % VECTOR_SPAN == 0:
+            if whole_ok and (t.numel() // runs) % VECTOR_SPAN == 0:
                 out.append(t)
             else:
                 out += [t[r * n : (r + 1) * n] for r in range(runs)]
@@ -99,7 +101,11 @@ class GroupMADDPG(BatchedMADDPG):
 
     def _part_counts(self, tensors: Sequence[torch.Tensor]) -> list[int]:
         """How many parts `_parts` gives each tensor."""
-        return [1 if (t.numel() // self.runs) % VECTOR_SPAN == 0 else self.runs for t in tensors]
+        whole_ok = torch.get_num_threads() == 1
+        return [
+            1 if whole_ok and (t.numel() // self.runs) % VECTOR_SPAN == 0 else self.runs
+            for t in tensors
+        ]
 
     @staticmethod
     def _widen(stack: Stack, runs: int) -> Stack:
