@@ -4,8 +4,9 @@ what `macb train --seeds`, `macb run --local` and `macb reproduce --local` share
 Each run writes to its own folder under OUT (metrics.csv/jsonl, config.json,
 provenance.json, checkpoint.pt, cuts/), exactly what `macb train --out` writes for it
 alone. Runs are grouped by what they can share (`form_groups`); the same command run
-again continues where it stopped: a group whose runs are all complete is skipped, one
-whose runs all have cuts resumes from them, any other starts afresh.
+again continues where it stopped: complete runs are skipped, runs that stopped at one
+cut resume together, runs never started start together. A folder holding another
+config's run is refused, never overwritten.
 """
 
 from __future__ import annotations
