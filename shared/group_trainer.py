@@ -60,6 +60,7 @@ from shared.trainer import (
     MetricsWriter,
     _read_rows,
     _say_if_constant_shift,
+    metric_row,
     price_at_collection,
     price_batches,
     save_checkpoint,
@@ -366,19 +367,7 @@ class GroupRun:
         for m, ev in zip(self.members, results):
             m.eval_s += spent
             wall = m.wall_before + time.perf_counter() - self.start
-            row = {
-                "episode": episode,
-                "env_steps": m.env_steps,
-                "success_rate": ev.success_rate,
-                "eval_return": ev.eval_return,
-                "collisions_cum": m.collisions_cum,
-                **m.explorer.stats(),
-                **m.diagnostics.take(),
-                "steps_per_sec": m.env_steps / wall,
-                "train_steps_per_sec": m.env_steps / max(wall - m.eval_s, 1e-9),
-                "updates": self.learner.updates,
-                "wall_s": wall,
-            }
+            row = metric_row(episode, ev, m, self.learner.updates, wall)
             m.rows.append(row)
             m.shift_warned = _say_if_constant_shift(m.rows, m.shift_warned)
             rows.append(row)

@@ -120,6 +120,25 @@ def _say_if_constant_shift(rows: list[dict], warned: bool) -> bool:
     return shift
 
 
+def metric_row(episode: int, ev, run, updates: int, wall: float) -> dict:
+    """One evaluation point's row: `run` has the run's counters (`env_steps`,
+    `collisions_cum`, `eval_s`), `explorer` and `diagnostics` (a `Run` or a group's
+    `Member`)."""
+    return {
+        "episode": episode,
+        "env_steps": run.env_steps,
+        "success_rate": ev.success_rate,
+        "eval_return": ev.eval_return,
+        "collisions_cum": run.collisions_cum,
+        **run.explorer.stats(),
+        **run.diagnostics.take(),
+        "steps_per_sec": run.env_steps / wall,
+        "train_steps_per_sec": run.env_steps / max(wall - run.eval_s, 1e-9),
+        "updates": updates,
+        "wall_s": wall,
+    }
+
+
 def price_at_collection(
     explorer: CountExploration,
     obs: np.ndarray,
@@ -323,19 +342,7 @@ class Run:
         ev = evaluate(self.learner.act, self.eval_envs, self.cfg.eval_episodes)
         self.eval_s += time.perf_counter() - t0
         wall = self.wall_before + time.perf_counter() - self.start
-        row = {
-            "episode": episode,
-            "env_steps": self.env_steps,
-            "success_rate": ev.success_rate,
-            "eval_return": ev.eval_return,
-            "collisions_cum": self.collisions_cum,
-            **self.explorer.stats(),
-            **self.diagnostics.take(),
-            "steps_per_sec": self.env_steps / wall,
-            "train_steps_per_sec": self.env_steps / max(wall - self.eval_s, 1e-9),
-            "updates": self.learner.updates,
-            "wall_s": wall,
-        }
+        row = metric_row(episode, ev, self, self.learner.updates, wall)
         self.rows.append(row)
         self.shift_warned = _say_if_constant_shift(self.rows, self.shift_warned)
         return row
