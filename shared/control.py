@@ -22,6 +22,9 @@ from shared.config import TrainConfig
 from shared.protocol import RunVerdict, run_verdict
 from shared.wire import WireError, decode, encode
 
+# How long a finished run waits for the counter's last report (sent after its snapshot).
+COUNTER_GRACE_S = 5.0
+
 
 class NoFreeServices(RuntimeError):
     """Not enough free services for a run right now (it can wait in a queue)."""
@@ -92,6 +95,7 @@ class RunWatch:
     changed: threading.Condition = field(default_factory=threading.Condition)
     on_row: Callable[[dict[str, Any]], None] | None = None
     _episodes: set[Any] = field(default_factory=set)  # of the rows kept
+    _finishing_since: float | None = None
 
     def attach(self, bus: Bus) -> None:
         bus.subscribe(keys.k_metrics(self.run, "**"), self._on_metrics)
@@ -128,10 +132,20 @@ class RunWatch:
         return run_verdict(self.states, self.assign, len(self.rows))
 
     def state(self) -> str:
-        """running, completed (learner and evaluator done, every point seen), stopped or
-        failed. Until the evaluator's last rows arrive the run is still running."""
-        state = self.verdict().state
-        return "running" if state == "finishing" else state
+        """running, completed (learner and evaluator done, every point seen, the
+        counter's final report in), stopped or failed. Until the evaluator's last rows
+        arrive the run is still running; a counter that does not report its end within
+        `COUNTER_GRACE_S` (it was down when the learner finished) does not hold it."""
+        v = self.verdict()
+        if v.state != "finishing":
+            self._finishing_since = None
+            return v.state
+        now = time.monotonic()
+        if self._finishing_since is None:
+            self._finishing_since = now
+        if not v.missing and now - self._finishing_since > COUNTER_GRACE_S:
+            return "completed"
+        return "running"
 
     def failure(self) -> str | None:
         v = self.verdict()

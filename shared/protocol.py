@@ -224,8 +224,10 @@ class RunVerdict:
     """A run's status from its services' reports.
 
     `finishing`: learner and evaluator have completed but fewer metric points were seen
-    than the evaluator says it published (`missing`): the watcher waits for them (or
-    asks for them) before it calls the run completed.
+    than the evaluator says it published (`missing`), or the counter's last report (its
+    final count, sent after its snapshot) has not come (`counter_pending`): the watcher
+    waits for them (or asks for the points) before it calls the run completed, so a
+    completed run's record holds every service's final numbers.
     """
 
     state: str
@@ -233,6 +235,7 @@ class RunVerdict:
     service: str | None = None  # the service whose report decided a failure or stop
     points_expected: int = 0
     missing: int = 0
+    counter_pending: bool = False
 
 
 def run_verdict(
@@ -257,7 +260,11 @@ def run_verdict(
     if learner != "completed" or evaluator.get("state") != "completed":
         return RunVerdict("running")
     expected = int(evaluator.get("points", 0))
-    if points_seen >= expected:
+    missing = max(0, expected - points_seen)  # the evaluator's status may overtake its rows
+    counter = assign.get("counter")
+    pending = counter is not None and states.get(counter, {}).get("state") != "completed"
+    if missing == 0 and not pending:
         return RunVerdict("completed", points_expected=expected)
-    # The evaluator's status may overtake its last metric rows.
-    return RunVerdict("finishing", points_expected=expected, missing=expected - points_seen)
+    return RunVerdict(
+        "finishing", points_expected=expected, missing=missing, counter_pending=pending
+    )

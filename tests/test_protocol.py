@@ -267,9 +267,29 @@ def test_run_verdict_running_until_learner_and_evaluator_complete():
 
 
 def test_run_verdict_waits_for_the_evaluators_last_points():
-    states = {"L": {"state": "completed"}, "E": {"state": "completed", "points": 5}}
+    states = {
+        "L": {"state": "completed"},
+        "E": {"state": "completed", "points": 5},
+        "C": {"state": "completed", "counted_transitions": 100},
+    }
     v = run_verdict(states, ASSIGN, 3)
     assert (v.state, v.points_expected, v.missing) == ("finishing", 5, 2)
+    assert not v.counter_pending
+    assert run_verdict(states, ASSIGN, 5).state == "completed"
+
+
+def test_run_verdict_waits_for_the_counters_final_report():
+    """The counter reports its final count after its snapshot, which can come after
+    the learner's and evaluator's reports: a run called completed before it would have
+    no final count in its record (a fault test once read it there and found none)."""
+    states = {
+        "L": {"state": "completed"},
+        "E": {"state": "completed", "points": 5},
+        "C": {"state": "running", "counted": 40},
+    }
+    v = run_verdict(states, ASSIGN, 5)
+    assert (v.state, v.missing, v.counter_pending) == ("finishing", 0, True)
+    states["C"] = {"state": "completed", "counted_transitions": 100}
     assert run_verdict(states, ASSIGN, 5).state == "completed"
 
 

@@ -47,7 +47,7 @@ from shared import bus as keys
 from shared.bus import Bus
 from shared.config import ConfigError, make_config
 from shared.control import NoFreeServices, assign_services, discover, send_start, send_stop
-from shared.protocol import run_verdict
+from shared.protocol import RunVerdict, run_verdict
 from shared.wire import WireError, decode
 
 from .store import Store
@@ -77,6 +77,19 @@ def flat_row(data: dict[str, Any]) -> dict[str, Any]:
             continue
         out[k] = v
     return out
+
+
+def finishing_note(verdict: RunVerdict) -> str:
+    """Why a run completed with something missing, once its grace ran out."""
+    notes = []
+    if verdict.missing:
+        notes.append(
+            f"{verdict.missing} of {verdict.points_expected} metric points were "
+            "published while the API was not listening"
+        )
+    if verdict.counter_pending:
+        notes.append("the counter's final report did not come (its count is not recorded)")
+    return "; ".join(notes)
 
 
 @dataclass
@@ -502,7 +515,7 @@ class Scheduler:
         if verdict.state == "stopped":
             self._end(w, "stopped", verdict.reason, stop=True)
             return
-        if verdict.state == "finishing" and not w.history_asked:
+        if verdict.state == "finishing" and verdict.missing and not w.history_asked:
             w.history_asked = True  # points lost on the way: ask for them once
             self._fill_gaps(w)
             verdict = run_verdict(w.states, w.assign, w.points)
@@ -511,13 +524,7 @@ class Scheduler:
             return
         if verdict.state == "finishing":
             if w.evaluator_done is not None and now - w.evaluator_done > self.completion_grace_s:
-                self._end(
-                    w,
-                    "completed",
-                    f"{verdict.missing} of {verdict.points_expected} metric points were "
-                    "published while the API was not listening",
-                    stop=False,
-                )
+                self._end(w, "completed", finishing_note(verdict), stop=False)
             return
         for sid, (role, since) in list(w.down.items()):
             if (role, sid) in self.alive:
