@@ -45,6 +45,16 @@ def k_weights(run: str, kind: str = "*") -> str:
     return f"{NS}/run/{run}/weights/{kind}"
 
 
+def k_act(run: str, actor: str = "*") -> str:
+    """Lockstep: an actor's requests for the policy's action at its next step."""
+    return f"{NS}/run/{run}/act/{actor}"
+
+
+def k_action(run: str, actor: str = "*") -> str:
+    """Lockstep: the learner's answers to one actor's act requests."""
+    return f"{NS}/run/{run}/action/{actor}"
+
+
 def k_bonus(run: str) -> str:
     return f"{NS}/run/{run}/bonus"
 

@@ -157,6 +157,15 @@ class TrainConfig(BaseModel):
         description="agents of the same shape start from identical weights (the thesis "
         "code reseeds torch for each agent)",
     )
+    interleave: Literal["async", "lockstep"] = Field(
+        "async",
+        description="how a cluster run interleaves acting, counting and learning: "
+        "lockstep (the thesis's loop, as macb train runs it: each step's action comes "
+        "from the current weights, computed by the learner, and the step is counted and "
+        "learnt before the next; one actor) or async (actors collect whole episodes with "
+        "weights published at episode ends, the learner catches up: faster, not the "
+        "thesis's interleaving). macb train and run groups always run the thesis's loop",
+    )
     threads: int = Field(1, ge=1, le=64, description="torch intra-op threads")
     learner_lanes: Literal["auto"] | Annotated[int, Field(ge=1, le=16)] = Field(
         "auto",
@@ -299,6 +308,7 @@ PROFILE_OPTIONS = (
     "minibatch",
     "hash_round",
     "same_init",
+    "interleave",
 )
 
 
@@ -317,6 +327,7 @@ def profile_preset(profile: str, data: dict[str, Any]) -> dict[str, Any]:
             "minibatch": "per-agent",
             "hash_round": 2 if explore == "cen-macb" else None,
             "same_init": True,
+            "interleave": "lockstep",
         }
     return {
         "time_limit_terminal": True,
@@ -330,6 +341,7 @@ def profile_preset(profile: str, data: dict[str, Any]) -> dict[str, Any]:
         "minibatch": "per-agent",
         "hash_round": 2 if explore == "cen-macb" else None,
         "same_init": True,
+        "interleave": "lockstep",
     }
 
 

@@ -171,6 +171,10 @@ def start_run(
     on_row: Callable[[dict[str, Any]], None] | None = None,
 ) -> RunWatch:
     """Assign free services (waiting up to `wait_for_services` s), start and watch a run."""
+    if config.interleave == "lockstep" and actors != 1:
+        raise ValueError(
+            f"interleave lockstep runs one actor, not {actors} (interleave: async for several)"
+        )
     run = run or new_run_id()
     deadline = time.monotonic() + wait_for_services
     while True:

@@ -87,11 +87,17 @@ class Collector:
         """Uniform in every agent's action box (float32, as the policy's actions)."""
         return self.rng.uniform(self.low, self.high).astype(np.float32)
 
-    def step(self, policy: Policy) -> Transition:
+    def next_obs(self) -> np.ndarray:
+        """The joint observation the next step acts on. A reset due at an episode's end
+        happens now rather than in `step` (nothing touches the env's RNG in between, so
+        the world is the same): lockstep actors send it to the learner for the action."""
         if self.reset_due:
             self.obs = np.concatenate(self.env.reset())
             self.reset_due = False
-        obs = self.obs
+        return self.obs
+
+    def step(self, policy: Policy) -> Transition:
+        obs = self.next_obs()
         if self.steps < self.warmup_steps:
             act = self.noisy(self.random_action())
         else:

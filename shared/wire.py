@@ -47,6 +47,11 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "actors": list,  # per agent: {param name: ndarray}
         "info": dict,  # learner stats at this point (replay_ratio, policy_lag, wall_s, ...)
     },
+    # interleave lockstep (central inference): actor -> learner, the observation its
+    # step `seq` acts on; the learner answers once every step before it is learnt
+    "act_request": {"actor": str, "seq": int, "obs": "nd"},  # obs (joint_obs,) float32
+    # learner -> that actor: the policy's action for step `seq` (noise is the actor's)
+    "action": {"seq": int, "act": "nd"},  # (joint_act,) float32
     "bonus_query": {"obs": "nd", "act": "nd"},
     "bonus_reply": {"counts": "nd", "bonus": "nd"},
     # any service -> watchers: a metric point or stats

@@ -11,6 +11,13 @@ counter) have acknowledged it, and is resent after a second without progress; th
 learner's window of credits and a bound on batches the counter has not acknowledged
 hold the actor back when either falls behind or is down (`shared.protocol.Sender`).
 
+With `interleave: lockstep` (the thesis's loop over the bus) the actor steps once per
+action the learner sends: it asks for the action at its next observation (`act_request`,
+resent after ACT_RESEND_S without an answer), which the learner computes with its current
+weights once every earlier step is counted and learnt, adds its own noise, steps and
+publishes that one transition. Actions come from the learner's own network, so they are
+the one-process trainer's to the bit (SEED RL's central inference).
+
 An actor restarted mid-run rejoins it (`on_resume`): it waits for the learner's ack,
 which says how many of its transitions the learner holds, numbers on from there (what
 it had in flight when it died is collected anew) and runs the rest of its episodes.
@@ -39,6 +46,7 @@ from shared.wire import encode
 
 MAX_UNCOUNTED_BATCHES = 8  # episodes in flight that the counter has not acknowledged
 RESEND_AFTER_S = 1.0
+ACT_RESEND_S = 1.0  # lockstep: an act request with no answer is sent again
 # Runs whose newest weights an actor keeps (it serves one at a time; the others are
 # runs beside it on the bus, or over).
 NEWEST_RUNS_KEPT = 16
@@ -62,6 +70,12 @@ class ActorRun:
     steps: int = 0
     last_stats: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
+    lockstep: bool = False
+    act_pub: Callable[[bytes], None] | None = None
+    # lockstep: the open request's (seq, first sent, last sent)
+    asked: tuple[int, float, float] | None = None
+    action: tuple[int, np.ndarray] | None = None  # lockstep: the learner's answer
+    act_wait_s: float = 0.0  # lockstep: time from a request to its answer
 
 
 class ActorService(ServiceBase):
@@ -101,7 +115,8 @@ class ActorService(ServiceBase):
         """The learner holds `position` of our transitions: go on from there."""
         st, cfg = self.st, self.config
         assert st is not None and cfg is not None
-        position -= position % cfg.episode_len  # whole episodes only (they always are)
+        if not st.lockstep:  # whole episodes only (they always are)
+            position -= position % cfg.episode_len
         st.sender.seq = position
         for svc in st.sender.acked:
             st.sender.acked[svc] = position
@@ -145,6 +160,10 @@ class ActorService(ServiceBase):
             ),
             pub=self.bus.publisher(keys.k_transitions(run, self.id)),
         )
+        if config.interleave == "lockstep":
+            self.st.lockstep = True
+            self.st.act_pub = self.bus.publisher(keys.k_act(run, self.id))
+            self.listen(keys.k_action(run, self.id), "action", run)
         self.publish_status(run, "running", rank=rank, episodes=self.st.todo)
 
     def on_stop(self, run: str, reason: str) -> None:
@@ -152,6 +171,9 @@ class ActorService(ServiceBase):
 
     # ------------------------------------------------------------ inbound
     def handle(self, tag: str, key: str, payload: bytes) -> None:
+        if tag == "action":
+            self.on_action(key, payload)
+            return
         if tag != "ack":
             return
         msg = self.decode_for_run(key, payload, "ack")
@@ -183,11 +205,24 @@ class ActorService(ServiceBase):
             st.version = msg["version"]
             st.incarnation = incarnation
 
+    def on_action(self, key: str, payload: bytes) -> None:
+        msg = self.decode_for_run(key, payload, "action")
+        st = self.st
+        if msg is None or st is None or st.asked is None or msg["seq"] != st.asked[0]:
+            return  # an answer to a request resent earlier, already taken
+        act = msg["act"]
+        if act.shape != st.collector.low.shape or not np.isfinite(act).all():
+            self.reject(key, f"action: shape {act.shape} or non-finite values")
+            return
+        st.action = (msg["seq"], act.astype(np.float32, copy=False))
+
     # ------------------------------------------------------------ work
     def tick(self) -> bool:
         st = self.st
         if st is None:
             return False
+        if st.lockstep:
+            return self.lockstep_tick()
         self.load_newest_weights()
         if st.version < 0 or st.rejoining:
             return False  # wait for the learner's weights (and, rejoining, its ack)
@@ -202,6 +237,44 @@ class ActorService(ServiceBase):
                 self.run_episode()
                 return True
             return False
+        return self.finish_if_settled()
+
+    def lockstep_tick(self) -> bool:
+        """One step per answered act request; a request for the next step goes out at
+        once (the learner answers it after learning this one)."""
+        st = self.st
+        assert st is not None and st.act_pub is not None
+        if st.rejoining:
+            return False
+        now = time.monotonic()
+        for payload in st.sender.due(now):
+            st.pub(payload)
+        if now - st.last_stats > 1.0:
+            st.last_stats = now
+            self.publish_metrics(self.run_id, self.stats())
+        if st.done >= st.todo:
+            return self.finish_if_settled()
+        seq = st.sender.seq
+        if st.action is not None and st.asked is not None and st.action[0] == seq:
+            act = st.action[1]
+            st.act_wait_s += now - st.asked[1]
+            st.action = st.asked = None
+            self.publish_steps([st.collector.step(lambda obs: act[None])])
+            st.steps += 1
+            if st.sender.seq % self.config.episode_len == 0:
+                st.done += 1
+            if st.done >= st.todo:
+                return True
+            seq = st.sender.seq
+        if st.asked is None or now - st.asked[2] > ACT_RESEND_S:
+            obs = st.collector.next_obs()
+            st.act_pub(encode("act_request", self.run_id, actor=self.id, seq=seq, obs=obs))
+            st.asked = (seq, now if st.asked is None else st.asked[1], now)
+        return False
+
+    def finish_if_settled(self) -> bool:
+        st = self.st
+        assert st is not None
         if st.sender.settled:
             run = self.run_id
             self.publish_metrics(run, self.stats())
@@ -211,11 +284,10 @@ class ActorService(ServiceBase):
             self.free(run)
         return False
 
-    def run_episode(self) -> None:
+    def publish_steps(self, rows: list) -> None:
+        """Publish transitions as one numbered batch (resent until acknowledged)."""
         st = self.st
         assert st is not None
-        collector, policy = st.collector, st.policy
-        rows = [collector.step(policy) for _ in range(self.config.episode_len)]
         payload = encode(
             "transitions",
             self.run_id,
@@ -231,6 +303,13 @@ class ActorService(ServiceBase):
         )
         st.sender.send(len(rows), payload, time.monotonic())
         st.pub(payload)
+
+    def run_episode(self) -> None:
+        st = self.st
+        assert st is not None
+        collector, policy = st.collector, st.policy
+        rows = [collector.step(policy) for _ in range(self.config.episode_len)]
+        self.publish_steps(rows)
         st.done += 1
         st.steps += len(rows)
 
@@ -246,6 +325,9 @@ class ActorService(ServiceBase):
             "resends": st.sender.resends,
             "steps_per_sec": st.steps / wall if wall > 0 else 0.0,
             "rejects_total": sum(self.rejects.values()),
+            # lockstep: mean time from an act request to its action (the learner's
+            # update, the count before it and the bus's round trips)
+            "act_wait_ms": 1e3 * st.act_wait_s / st.steps if st.lockstep and st.steps else 0.0,
         }
 
 

@@ -284,6 +284,13 @@ class _ExperimentFields(BaseModel):
             except ValidationError as err:
                 failures.append(self._where(cell) + format_errors(err))
                 continue
+            if config.interleave == "lockstep" and self.actors != 1:
+                failures.append(
+                    self._where(cell) + f"actors: interleave lockstep (the thesis's loop; "
+                    f"profile thesis's default) runs one actor, not {self.actors}; set "
+                    "interleave: async for several"
+                )
+                continue
             name = run_name(cell["arm"], cell["grid_point"], config.model_dump(mode="json"))
             if name in run_names:
                 raise ValueError(f"arms: two combinations are both named {name!r}; rename an arm")

@@ -30,14 +30,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
+from shared.factories import build_learner
 from shared.networks import JointPolicy
 from shared.rollout import derive_seed, evaluate
-from shared.tasks import TaskEnv, make_task_for
+from shared.tasks import TaskEnv, TaskSpec, make_task_for
 from shared.wire import encode
 
 HISTORY_RUNS = 64  # runs whose rows are kept for history queries
@@ -63,12 +65,30 @@ def earliest_point(
     return msg, missing
 
 
+class LearnerPolicy:
+    """The learner's own `act` on the weights it sent: with `interleave: lockstep` the
+    points are `macb train`'s to the bit, and it evaluates with this very function
+    (JointPolicy's numpy forward equals it only up to float32 rounding)."""
+
+    def __init__(self, config: TrainConfig, spec: TaskSpec) -> None:
+        exact = config.model_copy(update={"learner_lanes": 1})  # acting: no lanes to tune
+        self.learner = build_learner(exact, spec)
+
+    def load(self, weights: list[dict[str, Any]]) -> None:
+        self.learner.load_actor_weights(
+            [{k: torch.as_tensor(np.array(v)) for k, v in sd.items()} for sd in weights]
+        )
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self.learner.act(obs)
+
+
 @dataclass
 class EvaluatorRun:
     """The evaluation environments and the points waiting, for the run served."""
 
     envs: list[TaskEnv]
-    policy: JointPolicy
+    policy: JointPolicy | LearnerPolicy
     pending: collections.deque[dict[str, Any]] = field(default_factory=collections.deque)
     points: int = 0
     published: dict[int, float] = field(default_factory=dict)  # point -> when its row went
@@ -120,7 +140,12 @@ class EvaluatorService(ServiceBase):
         envs = [make_task_for(config) for _ in range(min(config.eval_episodes, 10))]
         for j, env in enumerate(envs):
             env.reset(seed=derive_seed(config.seed, "eval", j))
-        self.st = EvaluatorRun(envs, JointPolicy.for_task(envs[0].spec, config.hidden))
+        policy: JointPolicy | LearnerPolicy
+        if config.interleave == "lockstep":
+            policy = LearnerPolicy(config, envs[0].spec)
+        else:
+            policy = JointPolicy.for_task(envs[0].spec, config.hidden)
+        self.st = EvaluatorRun(envs, policy)
         with self._history_lock:  # a run queued again starts afresh: not the old rows
             self.history.pop(run, None)
         self._remember(run, "running")

@@ -19,6 +19,13 @@ can pick what is fastest beside it. An evaluation point the evaluator has not re
 is sent again (a restarted evaluator, a restarted router), and the store keeps one row
 per point.
 
+With `interleave: lockstep` the thesis's loop runs over the bus (central inference, as
+SEED RL does it): the one actor sends each step's observation (`act_request`) and one
+transition per step; the learner answers a request with `learner.act` of its current
+weights only when every earlier step has been counted, taken into replay and learnt
+(its update done, priced with counts that include it). The run's updates, counts,
+weights and evaluation points are then those of `macb train` with the same config.
+
 Resume (docs/reliability.md, "The cluster"): every batch taken is appended to the
 run's log `DATA_DIR/learner/RUN/transitions.wal` before it is acknowledged, and every
 CUT_EVERY_S a cut (`checkpoint.pt`: networks, optimizers, targets, update and episode
@@ -256,6 +263,10 @@ class LearnerRun:
     cuts: int = 0
     cut_s: float = 0.0  # wall time spent writing cuts (the log's fsync included)
     cut_bytes: int = 0  # size of the last cut file
+    lockstep: bool = False  # interleave lockstep: actions are computed here, per step
+    wanted: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)  # open requests
+    answered: dict[str, tuple[int, bytes]] = field(default_factory=dict)  # last answers
+    action_pubs: dict[str, Callable[[bytes], None]] = field(default_factory=dict)
 
     @property
     def counting(self) -> bool:
@@ -354,6 +365,12 @@ class LearnerService(ServiceBase):
         )
         spec = task_spec_for(config)
         actors = list(assign["actors"])
+        lockstep = config.interleave == "lockstep"
+        if lockstep and len(actors) != 1:
+            raise ValueError(
+                f"interleave lockstep runs one actor (the thesis's one environment), "
+                f"the run was given {len(actors)}"
+            )
         folder = self.data_dir / "learner" / run
         folder.mkdir(parents=True, exist_ok=True)
         self.st = LearnerRun(
@@ -383,7 +400,11 @@ class LearnerService(ServiceBase):
                 for r, a in enumerate(actors)
             },
             incarnation=f"{self.id}:{os.getpid()}:{time.time_ns()}",
+            lockstep=lockstep,
         )
+        if lockstep:
+            self.listen(keys.k_act(run, "*"), "act_request", run)
+            self.st.action_pubs = {a: self.bus.publisher(keys.k_action(run, a)) for a in actors}
         return self.st
 
     def _logged(self, st: LearnerRun) -> tuple[list, WriteAheadLog]:
@@ -432,6 +453,10 @@ class LearnerService(ServiceBase):
             msg = self.decode_for_run(key, payload, "transitions")
             if msg is not None:
                 self.on_transitions(key, msg)
+        elif tag == "act_request":
+            msg = self.decode_for_run(key, payload, "act_request")
+            if msg is not None:
+                self.on_act_request(key, msg)
         elif tag == "ack":
             msg = self.decode_for_run(key, payload, "ack")
             if msg is not None and self.st is not None and msg["service"] == self.st.counter:
@@ -471,10 +496,10 @@ class LearnerService(ServiceBase):
             return
         check_dims(msg, st.spec.joint_obs_dim, st.spec.joint_act_dim)
         n = len(msg["rew"])
-        if n != st.config.episode_len:
-            raise WireError(
-                f"transitions: a batch is one episode ({st.config.episode_len}), got {n}"
-            )
+        if n != (1 if st.lockstep else st.config.episode_len):
+            length = st.config.episode_len
+            what = "one step (lockstep)" if st.lockstep else f"one episode ({length})"
+            raise WireError(f"transitions: a batch is {what}, got {n}")
         # A duplicate (a resend) or a gap is not taken; either way the ack tells the
         # actor again where we are, and it resends from there.
         if st.received.take(actor, msg["seq"], n).took:
@@ -497,13 +522,17 @@ class LearnerService(ServiceBase):
     def ingest(self, msg: dict[str, Any]) -> None:
         st = self.st
         assert st is not None
+        n, seq, length = len(msg["rew"]), msg["seq"], st.config.episode_len
         st.buffer.add(msg["obs"], msg["act"], msg["rew"], msg["next_obs"], msg["done"])
-        st.ingested += len(msg["rew"])
-        st.ingested_pos[msg["actor"]] = msg["seq"] + len(msg["rew"])
-        st.episodes += 1
+        st.ingested += n
+        st.ingested_pos[msg["actor"]] = seq + n
         st.collisions_cum += int(msg["collisions"].sum())
-        st.lags.append(st.version - msg["policy_version"])
-        st.boundaries.append(Boundary(st.episodes, st.owed_total, st.ingested, st.collisions_cum))
+        # Lockstep: every action came from the weights of that moment (no lag).
+        st.lags.append(0 if st.lockstep else st.version - msg["policy_version"])
+        if (seq + n) // length > seq // length:  # the batch ends one of the actor's episodes
+            st.episodes += 1
+            boundary = Boundary(st.episodes, st.owed_total, st.ingested, st.collisions_cum)
+            st.boundaries.append(boundary)
 
     # ------------------------------------------------------------ work
     def tick(self) -> bool:
@@ -557,8 +586,42 @@ class LearnerService(ServiceBase):
         self.resend_unreported(now)
         if now - st.last_ckpt > CHECKPOINT_EVERY_S:
             self.checkpoint()
+        if st.lockstep and owed == 0:
+            self.answer_act_requests()
         self.maybe_finish()
         return owed > 0 and self.st is not None
+
+    # ------------------------------------------------------------ lockstep
+    def on_act_request(self, key: str, msg: dict[str, Any]) -> None:
+        st = self.st
+        assert st is not None
+        actor, obs = msg["actor"], msg["obs"]
+        if not st.lockstep or actor not in st.action_pubs:
+            self.reject(key, f"act_request from {actor}: not a lockstep actor of this run")
+            return
+        if obs.shape != (st.spec.joint_obs_dim,) or not np.isfinite(obs).all():
+            raise WireError(f"act_request: obs {obs.shape}, run has ({st.spec.joint_obs_dim},)")
+        last = st.answered.get(actor)
+        if last is not None and last[0] == msg["seq"]:
+            st.action_pubs[actor](last[1])  # the answer was lost: the same action again
+            return
+        st.wanted[actor] = (msg["seq"], np.array(obs, np.float32))
+
+    def answer_act_requests(self) -> None:
+        """Act for each request whose earlier steps are all counted, in replay and
+        learnt: the thesis's `act` with the weights after the last step's update."""
+        st = self.st
+        assert st is not None
+        for actor, (seq, obs) in list(st.wanted.items()):
+            if seq != st.ingested_pos.get(actor, 0) or st.held[actor]:
+                continue  # a step before it is not in replay yet (or not counted)
+            if st.learner.updates < st.owed_total or st.boundaries:
+                return  # its updates (and the weights of an episode's end) come first
+            act = st.learner.act(obs[None])[0].astype(np.float32)
+            payload = encode("action", self.run_id, seq=seq, act=act)
+            del st.wanted[actor]
+            st.answered[actor] = (seq, payload)
+            st.action_pubs[actor](payload)
 
     def pass_boundaries(self) -> None:
         """Publish weights at each episode boundary whose updates are done."""
@@ -651,10 +714,10 @@ class LearnerService(ServiceBase):
         reply to this tick's bonus query when there was one, else by asking the counter."""
         st = self.st
         assert st is not None
+        if not st.counting or not st.counter:
+            return {}  # no tables: a point says 0 counted, as the one-process trainer
         if st.bonus.tables is not None and st.bonus.fresh:
             return dict(st.bonus.tables)
-        if not st.counter:
-            return {}
         for raw in self.bus.get(keys.k_info("counter", st.counter), timeout=1.0):
             try:
                 return dict(json.loads(raw).get("runs", {}).get(self.run_id, {}))
