@@ -72,6 +72,14 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
     )
     rp.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="its router endpoint")
     rp.add_argument(
+        "--interleave",
+        choices=("lockstep", "async"),
+        default="lockstep",
+        help="through the cluster: lockstep (the thesis's loop, each run's rows those of "
+        "`macb train`) or async (actors collect episodes with weights an episode or two "
+        "old; faster, another interleaving: docs/fidelity.md)",
+    )
+    rp.add_argument(
         "--local",
         action="store_true",
         help="no API or cluster: train the figure's runs in this process as run groups "
@@ -140,6 +148,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
         if args.threads is not None:
             body["threads"] = args.threads
+        if not (args.local or args.report_only):  # groups always run the thesis's loop
+            body["interleave"] = args.interleave
         body["name"] = experiment_name(fig, body)
         ExperimentCreate.model_validate(body)  # refused here, before any process starts
     except (ValueError, OSError, ValidationError) as err:

@@ -4,14 +4,17 @@ Real services (router, counter, learner, evaluator, one actor) over loopback Zen
 The actor asks the learner for each step's action; the learner answers only once every
 earlier step is counted, in replay and learnt, with its own `act`. Every metric row's
 columns that the one-process trainer writes, timing aside, must then equal the
-trainer's exactly: success, returns, counts, bonus diagnostics, update counts.
+trainer's exactly (success, returns, counts, bonus diagnostics, update counts), and so
+must the learner's final state: every weight, target, Adam moment and step count.
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
+import torch
 
 from shared.config import make_config
 from shared.control import start_run
@@ -34,7 +37,13 @@ BASE = {
 }
 
 CASES = {
-    "simple-ddpg-constant": {"task": "simple", "algo": "ddpg", "explore": "constant"},
+    # dense: the evaluation returns follow every weight (sparse ones stay -10 this early)
+    "simple-ddpg-constant": {
+        "task": "simple",
+        "algo": "ddpg",
+        "explore": "constant",
+        "reward": "dense",
+    },
     "speaker_listener-cen-macb-thesis": {
         "task": "speaker_listener",
         "algo": "cen-maddpg",
@@ -66,20 +75,45 @@ def compare(cluster: list[dict], local: list[dict]) -> list[str]:
     return out
 
 
+def state_differences(a, b, where: str = "") -> list[str]:
+    """Every tensor or value of two learner state dicts that is not equal, bit for bit."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            return [f"{where}: keys {sorted(set(a) ^ set(b))}"]
+        return [d for k in a for d in state_differences(a[k], b[k], f"{where}/{k}")]
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple) and len(a) == len(b):
+        return [
+            d for i, (x, y) in enumerate(zip(a, b)) for d in state_differences(x, y, f"{where}/{i}")
+        ]
+    if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
+        return [] if a.dtype == b.dtype and torch.equal(a, b) else [where]
+    return [] if a == b else [f"{where}: {a!r} != {b!r}"]
+
+
+def learner_states(data: str, run: str, config, local: Path) -> tuple[dict, dict, list[dict]]:
+    """The cluster learner's final state, the trainer's, and the trainer's rows."""
+    rows = train(config, local, progress=False)
+    cluster = torch.load(Path(data) / "learner" / run / "checkpoint.pt", weights_only=True)
+    mine = torch.load(local / "checkpoint.pt", weights_only=True)
+    return cluster["learner"], mine["learner"], rows
+
+
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_a_lockstep_cluster_run_is_the_trainers_run(procs, bus, tmp_path, case):
     config = make_config({**BASE, **CASES[case]})
-    start_cluster(procs, tmp_path, 1)
+    data = start_cluster(procs, tmp_path, 1)
     wait_services(bus, 4)
     watch = start_run(bus, config, actors=1)
     assert watch.wait(timeout=300) == "completed", watch.states
     check_exact(watch, [watch.assign["actors"][0]], config)
     learner = watch.states[watch.assign["learner"]]
     assert learner["policy_lag"] == 0.0
+    cluster_state, local_state, local = learner_states(data, watch.run, config, tmp_path / "l")
     cluster = sorted(watch.rows, key=lambda r: r["episode"])
-    local = train(config, None, progress=False)
     diffs = compare(cluster, local)
     assert not diffs, "\n".join(diffs[:20])
+    diffs = state_differences(cluster_state, local_state)
+    assert not diffs, diffs[:20]
 
 
 def test_the_comparison_sees_one_changed_value():
@@ -89,3 +123,33 @@ def test_the_comparison_sees_one_changed_value():
     assert compare(rows, [{**rows[0], "wall_s": 2.0}]) == []  # timing aside
     assert compare(rows, [{**rows[0], "bonus_mean": 0.25000001}])
     assert compare([{"episode": 3, "wall_s": 1.0}], rows)  # a column missing
+
+
+def test_the_asynchronous_interleave_is_another_run(procs, bus, tmp_path):
+    """The comparison sees interleaving: the same config with `interleave: async` (one
+    actor collecting whole episodes with weights published at episode ends) does not
+    give the trainer's rows."""
+    config = make_config({**BASE, **CASES["simple-ddpg-constant"], "interleave": "async"})
+    data = start_cluster(procs, tmp_path, 1)
+    wait_services(bus, 4)
+    watch = start_run(bus, config, actors=1)
+    assert watch.wait(timeout=300) == "completed", watch.states
+    cluster_state, local_state, local = learner_states(data, watch.run, config, tmp_path / "l")
+    cluster = sorted(watch.rows, key=lambda r: r["episode"])
+    assert compare(cluster, local)
+    assert state_differences(cluster_state, local_state)
+
+
+def test_lockstep_with_several_actors_is_refused_before_it_starts():
+    from services.api.schemas import ExperimentCreate
+
+    body = {**BASE, **CASES["simple-ddpg-constant"], "actors": 2}
+    with pytest.raises(ValueError, match="actors: interleave lockstep"):
+        ExperimentCreate.model_validate(body)
+    ExperimentCreate.model_validate({**body, "interleave": "async"})
+    thesis = {"task": "simple", "algo": "ddpg", "profile": "thesis", "actors": 2}
+    with pytest.raises(ValueError, match="runs one actor"):  # the profile's default
+        ExperimentCreate.model_validate(thesis)
+    with pytest.raises(ValueError, match="runs one actor"):
+        config = make_config({**BASE, **CASES["simple-ddpg-constant"]})
+        start_run(None, config, actors=2)  # type: ignore[arg-type]
