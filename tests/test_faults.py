@@ -156,8 +156,8 @@ def _get(up: Up, path: str) -> dict | None:
         return None  # the API itself may be the one restarting
 
 
-def _post_run(up: Up, seed: int) -> str:
-    body = {**CONFIG, "seed": seed, "name": f"fault-{seed}"}
+def _post_run(up: Up, seed: int, **over) -> str:
+    body = {**CONFIG, "seed": seed, "name": f"fault-{seed}", **over}
     r = httpx.post(f"{up.url}/experiments", json=body, timeout=10)
     assert r.status_code in (200, 201), r.text
     return r.json()["runs"][0]["id"]
@@ -186,11 +186,11 @@ def _check_exact(up: Up, run_id: str) -> dict:
     return run
 
 
-def _fault_run(up: Up, fault: str, seed: int, hit, cut: bool = False) -> tuple[dict, float]:
-    """Post a run, apply `hit` at its second point (and, with `cut`, once the learner
-    has written a cut of it: a learner killed before its first cut resumes from its
-    log alone); (the completed run, recovery s)."""
-    run_id = _post_run(up, seed)
+def _fault_run(up: Up, fault: str, seed: int, hit, cut: bool = False, **over) -> tuple[dict, float]:
+    """Post a run (`over`: config keys over CONFIG), apply `hit` at its second point
+    (and, with `cut`, once the learner has written a cut of it: a learner killed before
+    its first cut resumes from its log alone); (the completed run, recovery s)."""
+    run_id = _post_run(up, seed, **over)
     wait_for(lambda: _points(up, run_id) >= 2, timeout=120, what="the run's second point")
     if cut:
         checkpoint = up.data / "learner" / run_id / "checkpoint.pt"
@@ -239,6 +239,28 @@ def test_sigkill_mid_run_then_the_run_completes_exactly(up, victim):
     if victim != "router":  # the router announces no token; the others say how often
         (mine,) = [w for w in workers if w["id"] == victim]
         assert mine["restarts"] == before + 1, mine
+
+
+LOCKSTEP_KILLED = ["learner", "counter", "actor0", "router"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("victim", LOCKSTEP_KILLED)
+def test_sigkill_mid_lockstep_run_then_the_run_completes_exactly(up, victim):
+    """`interleave: lockstep` (one actor asking the learner for every action): the
+    actor's open act request is sent again until a learner answers it, a restarted
+    learner answers from its cut and log, and the counts stay exact."""
+    before = up.restarts()[victim]
+    pid = up.pids()[victim]
+    seed = 50 + LOCKSTEP_KILLED.index(victim)
+    hit = lambda: _kill(pid, 9)  # noqa: E731
+    cut = victim == "learner"
+    run, _ = _fault_run(up, f"SIGKILL {victim} (lockstep)", seed, hit, cut, interleave="lockstep")
+    assert run["assign"]["actors"] == ["actor0"]
+    assert up.restarts()[victim] == before + 1, "the supervisor restarted it once"
+    learner = run["services"][run["assign"]["learner"]]
+    assert learner["policy_lag"] == 0.0
+    wait_for(up.ready, timeout=60, what="every service answering again")
 
 
 @pytest.mark.slow
