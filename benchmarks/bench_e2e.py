@@ -91,15 +91,20 @@ ABOUT = (  # what --help adds to the docstring's first paragraph
 FIXED_MODES = {
     "-1lane": "learner_lanes: 1\n",  # one thread in the update
     "-2threads": "learner_lanes: 1\nthreads: 2\n",  # torch's two intra-op threads
+    # The thesis's loop over the bus (central inference); the trainer runs that loop
+    # anyway, so trainer-lockstep is trainer-1lane again, in the same round.
+    "-lockstep": "learner_lanes: 1\ninterleave: lockstep\n",
 }
 VARIANTS = ("trainer", "trainer-blas1", "cluster") + tuple(
     f"{v}{m}" for m in FIXED_MODES for v in ("trainer", "cluster")
 )
 DEFAULT_VARIANTS = ("trainer-blas1", "cluster", "trainer-1lane", "cluster-1lane")
 # What each cluster variant is compared with (same config, same round).
-BASELINES = {"cluster": ("trainer-blas1", "trainer")} | {
-    f"cluster{m}": (f"trainer{m}",) for m in FIXED_MODES
-}
+BASELINES = (
+    {"cluster": ("trainer-blas1", "trainer")}
+    | {f"cluster{m}": (f"trainer{m}",) for m in FIXED_MODES}
+    | {"cluster-lockstep": ("trainer-lockstep", "trainer-1lane")}
+)
 
 
 # ------------------------------------------------------------------ steady state
@@ -497,7 +502,8 @@ def main(argv: list[str] | None = None) -> None:
         default=",".join(DEFAULT_VARIANTS),
         help=f"comma-separated subset of {','.join(VARIANTS)} (default: "
         f"{','.join(DEFAULT_VARIANTS)}; '-1lane': learner_lanes 1; '-2threads': "
-        "learner_lanes 1 with two torch threads; 'trainer': the environment's default "
+        "learner_lanes 1 with two torch threads; '-lockstep': learner_lanes 1 and "
+        "interleave lockstep; 'trainer': the environment's default "
         "BLAS/OpenMP thread variables, as a library user who calls shared.trainer.train "
         "gets; train() limits numpy's BLAS to one thread itself since session 3)",
     )

@@ -248,11 +248,21 @@ def _report_run_end(watch: Any, state: str, out: Path | None) -> int:
     return 0 if state == "completed" else 1
 
 
+def check_actors(cfg: TrainConfig, actors: int) -> None:
+    """A lockstep run has one actor: refused before anything starts, naming the key."""
+    if cfg.interleave == "lockstep" and actors != 1:
+        raise ConfigError(
+            f"actors: interleave lockstep (the thesis's loop; profile thesis's default) runs "
+            f"one actor, not {actors}; set interleave: async for several"
+        )
+
+
 def cmd_start(args: argparse.Namespace) -> int:
     from shared.bus import Bus, default_connect
 
     try:
         cfg = resolve_config(args)
+        check_actors(cfg, args.actors)
     except (ConfigError, OSError) as err:
         print(f"macb start: invalid config: {err}", file=sys.stderr)
         return 2
@@ -424,6 +434,7 @@ def _up_experiment(args: argparse.Namespace) -> tuple[TrainConfig | None, dict |
     if not args.run:
         return None, None
     cfg, note = one_run_config(args.run, config_overrides(args))
+    check_actors(cfg, args.actors)
     if note and args.no_api:
         print(f"note: {note}", file=sys.stderr)
     body = experiment_body(

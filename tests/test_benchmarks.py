@@ -179,3 +179,20 @@ def test_bench_slots_runs_one_two_and_three_at_once(tmp_path: Path) -> None:
             2 * 3 * 17_500 * 25 / run["total"] / 3600
         )
     assert "| 3 runs at once |" in proc.stdout and "figure 8's headline pair" in proc.stdout
+
+
+def test_lockstep_probe_times_both_designs_and_names_the_cpu() -> None:
+    argv = [sys.executable, str(ROOT / "benchmarks" / "lockstep_probe.py")]
+    argv += ["--rounds", "1", "--calls", "2"]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300, check=False, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("CPU: ")
+    rows = {
+        line.split("|")[1].strip(): line.split("|")[3].strip()
+        for line in proc.stdout.splitlines()
+        if line.startswith(("| central", "| weights"))
+    }
+    # One observation and one action against every actor weight: sizes follow the shapes.
+    assert int(rows["central inference"].replace(",", "")) < 1_000
+    assert int(rows["weights every step"].replace(",", "")) > 500_000
+    assert "weights every step / central inference:" in proc.stdout

@@ -289,3 +289,21 @@ def test_macb_train_runs_one_seed_of_a_shipped_config(tmp_path):
     assert "lists seeds [0, 1, 2]: this runs one run, seed 0" in proc.stderr
     config = json.loads((out / "config.json").read_text())
     assert config["seed"] == 0 and config["beta"] == 0.8 and config["episodes"] == 2
+
+
+@pytest.mark.parametrize("command", ["start", "up"])
+def test_a_lockstep_run_with_several_actors_is_refused_before_anything_starts(tmp_path, command):
+    """`profile: thesis` runs the thesis's loop in the cluster, which has one actor."""
+    config = tmp_path / "c.yaml"
+    config.write_text("task: simple\nalgo: ddpg\nprofile: thesis\n")
+    flag = ["--config", str(config)] if command == "start" else ["--run", str(config)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "cli", command, *flag, "--actors", "2"]
+        + ["--endpoint" if command == "up" else "--connect", "tcp/127.0.0.1:1"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "actors: interleave lockstep" in proc.stderr, proc.stderr
