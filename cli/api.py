@@ -7,7 +7,6 @@ They are clients of services.api (`macb up` or `macb serve api` must be running)
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -16,6 +15,7 @@ import yaml
 from pydantic import ValidationError
 
 from cli.config_flags import COMMA_LIST_FIELDS, add_config_flags, config_overrides, read_flag_value
+from cli.local import add_group_flags
 from cli.security import add_security_flags
 from shared.config import ConfigError, TrainConfig, format_errors, read_config_file
 
@@ -79,21 +79,7 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
         "those it gives alone), each in OUT/<arm>-s<seed>/ (OUT default runs/local); "
         "the same command again continues where it stopped",
     )
-    rn.add_argument(
-        "--group-size",
-        type=int,
-        metavar="N",
-        help="--local: at most N runs per group (default: the runs that can share one, "
-        "split into --jobs groups)",
-    )
-    rn.add_argument(
-        "--jobs",
-        type=int,
-        default=os.cpu_count() or 1,
-        metavar="N",
-        help="--local: groups at a time, each in a process of its own (default: one per "
-        "CPU; each group's update runs on the runs' `threads`, 1 by default)",
-    )
+    add_group_flags(rn)
     rn.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_flags(rn)
     rn.set_defaults(func=cmd_run)
@@ -389,12 +375,17 @@ def _run_local(args: argparse.Namespace, body: dict[str, Any]) -> int:
     """`macb run --local`: the experiment's runs as run groups in this process."""
     from pydantic import ValidationError
 
-    from cli.local import expand_body, local_experiment, local_points, run_groups
+    from cli.local import (
+        expand_body,
+        group_flag_error,
+        local_experiment,
+        local_points,
+        run_groups,
+    )
 
-    for flag, value in (("--group-size", args.group_size), ("--jobs", args.jobs)):
-        if value is not None and value < 1:
-            print(f"macb run: {flag} {value}: give N >= 1", file=sys.stderr)
-            return 2
+    if error := group_flag_error(args):
+        print(f"macb run: {error}", file=sys.stderr)
+        return 2
     try:
         name, seeds, runs = expand_body(body)
     except (ValidationError, ValueError) as err:

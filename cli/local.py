@@ -11,8 +11,10 @@ config's run is refused, never overwritten.
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
+import os
 import re
 import sys
 from dataclasses import dataclass
@@ -20,6 +22,35 @@ from pathlib import Path
 from typing import Any
 
 from shared.config import TrainConfig
+
+
+def add_group_flags(parser: argparse.ArgumentParser) -> None:
+    """`--group-size` and `--jobs`: how `--local` runs split into groups and processes."""
+    parser.add_argument(
+        "--group-size",
+        type=int,
+        metavar="N",
+        help="--local: at most N runs per group (default: the runs that can share one, "
+        "split into --jobs groups)",
+    )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=os.cpu_count() or 1,
+        metavar="N",
+        help="--local: groups at a time, each in a process of its own (default: one per "
+        "CPU; each group's update runs on the runs' `threads`, 1 by default)",
+    )
+
+
+def group_flag_error(args: argparse.Namespace, *flags: str) -> str | None:
+    """The first of `--group-size`, `--jobs` (and `flags`, e.g. "--threads") below 1."""
+    for flag in ("--group-size", "--jobs", *flags):
+        value = getattr(args, flag.lstrip("-").replace("-", "_"))
+        if value is not None and value < 1:
+            return f"{flag} {value}: give N >= 1"
+    return None
+
 
 log = logging.getLogger("macb.local")
 

@@ -21,6 +21,7 @@ from urllib.parse import urlparse
 
 from cli.config_flags import HelpFormatter
 from cli.figures import FIGURES, PROFILES, FigureDef, experiment_body, experiment_name, file_seeds
+from cli.local import add_group_flags, group_flag_error
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -87,21 +88,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "alone; the thesis's step-by-step loop), each in OUT/runs/<arm>-s<seed>/; the "
         "same command again continues where it stopped (docs/performance.md, 'Run groups')",
     )
-    rp.add_argument(
-        "--group-size",
-        type=int,
-        metavar="N",
-        help="--local: at most N runs per group (default: the runs that can share one, "
-        "split into --jobs groups)",
-    )
-    rp.add_argument(
-        "--jobs",
-        type=int,
-        default=os.cpu_count() or 1,
-        metavar="N",
-        help="--local: groups at a time, each in a process of its own (default: one per "
-        "CPU; each group's update runs on the runs' `threads`, 1 by default)",
-    )
+    add_group_flags(rp)
     rp.add_argument(
         "--threads",
         type=int,
@@ -136,13 +123,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         return _refuse(f"--episodes {args.episodes}: give a number of episodes >= 1")
     if args.slots < 1:
         return _refuse(f"--slots {args.slots}: give a number of runs at once >= 1")
-    for flag, value in (
-        ("--group-size", args.group_size),
-        ("--threads", args.threads),
-        ("--jobs", args.jobs),
-    ):
-        if value is not None and value < 1:
-            return _refuse(f"{flag} {value}: give N >= 1")
+    if error := group_flag_error(args, "--threads"):
+        return _refuse(error)
     try:
         seeds = args.seeds or file_seeds(fig)
         body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
@@ -245,7 +227,6 @@ def _refuse(msg: str) -> int:
 
 
 def _env_url() -> str | None:
-    import os
 
     return os.environ.get("MACB_API_URL")
 
