@@ -50,7 +50,6 @@ from shared.factories import (
     learner_spec,
     minibatches_per_update,
 )
-from shared.files import read_json
 from shared.learners.group import GroupMADDPG
 from shared.replay import ReplayBuffer, update_arrays
 from shared.rollout import VecCollector, derive_seed, evaluate_group, warmup_share
@@ -58,11 +57,15 @@ from shared.tasks import make_task_for, task_spec_for
 from shared.trainer import (
     DEFAULT_CUT_EVERY_S,
     MetricsWriter,
-    _read_rows,
     _say_if_constant_shift,
+    append_pending,
+    check_resumable,
+    cut_counters,
+    load_counters,
     metric_row,
     price_at_collection,
     price_batches,
+    refill,
     save_checkpoint,
 )
 from shared.vectask import vectorize
@@ -386,20 +389,7 @@ class GroupRun:
         m_eval = min(self.cfg.eval_episodes, 10)
         for r, m in enumerate(self.members):
             assert m.cuts is not None and m.replay is not None
-            if m.pending:
-                cols = list(zip(*m.pending))
-                arrays = {
-                    "obs": np.stack(cols[0]),
-                    "act": np.stack(cols[1]),
-                    "rew": np.asarray(cols[2], np.float32),
-                    "next_obs": np.stack(cols[3]),
-                    "done": np.asarray(cols[4], np.float32),
-                }
-                if m.collection:
-                    arrays["bonus"] = np.stack(cols[5])
-                m.replay.append(arrays, m.replay_rows, self.width_of(m))
-                m.replay_rows += len(m.pending)
-                m.pending = []
+            append_pending(m, self.width_of(m))
             rng = {
                 "collector": self.collector.state(r),
                 "sampler": dict(m.sample_rng.bit_generator.state),
@@ -414,14 +404,7 @@ class GroupRun:
                     "learner": self.learner.run_state_dict(r),
                     "tables": tables_state(m.explorer.tables),
                     "replay_rows": m.replay_rows,
-                    "counters": {
-                        "env_steps": m.env_steps,
-                        "collisions_cum": m.collisions_cum,
-                        "rows": len(m.rows),
-                        "shift_warned": m.shift_warned,
-                        "eval_s": m.eval_s,
-                        "wall_s": wall,
-                    },
+                    "counters": cut_counters(m, wall),
                     "rng": json.dumps(rng),
                     "torch_rng": torch.get_rng_state(),
                 },
@@ -435,13 +418,7 @@ class GroupRun:
         for m in self.members:
             assert m.out is not None and m.cuts is not None
             config = m.cfg.model_dump(mode="json")
-            written = read_json(m.out / "config.json")
-            if written is not None and (diff := config_difference(written, config)):
-                raise CutError(f"{m.out / 'config.json'}: another config ({diff})")
-            try:
-                provenance.read(m.out / provenance.FILE)
-            except provenance.ProvenanceError as err:
-                raise CutError(str(err)) from None
+            check_resumable(m.out, config)
             cuts.append(latest_cut(m.cuts, config))
         episode = min(c.episode for c in cuts)
         for i, (m, c) in enumerate(zip(self.members, cuts)):
@@ -460,24 +437,11 @@ class GroupRun:
         for r, (m, cut, rng) in enumerate(zip(self.members, cuts, rngs)):
             st = cut.state
             load_tables(m.explorer.tables, st["tables"], cut.path)
-            m.replay_rows = int(st["replay_rows"])
-            data = m.replay.read(m.replay_rows, self.width_of(m), cut.path)
-            keep = min(m.replay_rows, m.buffer.capacity)
-            first = m.replay_rows - keep
-            m.buffer.added = first
-            m.buffer.pos = first % m.buffer.capacity
-            m.buffer.add(
-                *(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")),
-                data["bonus"][first:] if m.collection else None,
-            )
+            refill(m, int(st["replay_rows"]), self.width_of(m), cut.path)
             m.sample_rng.bit_generator.state = rng["sampler"]
             for j, state in enumerate(rng["eval_envs"]):
                 self.eval_venv.set_rng_state(r * m_eval + j, state)
-            c = st["counters"]
-            m.env_steps, m.collisions_cum = int(c["env_steps"]), int(c["collisions_cum"])
-            m.shift_warned = bool(c["shift_warned"])
-            m.eval_s, m.wall_before = float(c["eval_s"]), float(c["wall_s"])
-            m.rows = _read_rows(m.out / "metrics.jsonl", int(c["rows"]), cut.path)
+            load_counters(m, st["counters"], m.out, cut.path)
         torch.set_rng_state(cuts[0].state["torch_rng"])
         self.resumed = True
         self.first_episode = episode + 1

@@ -352,21 +352,7 @@ class Run:
         """Replay rows since the last cut appended, then the cut itself (atomic)."""
         assert self.cuts is not None and self.replay is not None
         t0 = time.perf_counter()
-        replay_bytes = 0
-        if self.pending:
-            cols = list(zip(*self.pending))
-            arrays = {
-                "obs": np.stack(cols[0]),
-                "act": np.stack(cols[1]),
-                "rew": np.asarray(cols[2], np.float32),
-                "next_obs": np.stack(cols[3]),
-                "done": np.asarray(cols[4], np.float32),
-            }
-            if self.collection:
-                arrays["bonus"] = np.stack(cols[5])
-            replay_bytes = self.replay.append(arrays, self.replay_rows, self.width)
-            self.replay_rows += len(self.pending)
-            self.pending = []
+        replay_bytes = append_pending(self, self.width)
         rng = {
             "collector": self.collector.state(),
             "sampler": dict(self.sample_rng.bit_generator.state),
@@ -381,14 +367,7 @@ class Run:
                 "learner": self.learner.state_dict(),
                 "tables": tables_state(self.explorer.tables),
                 "replay_rows": self.replay_rows,
-                "counters": {
-                    "env_steps": self.env_steps,
-                    "collisions_cum": self.collisions_cum,
-                    "rows": len(self.rows),
-                    "shift_warned": self.shift_warned,
-                    "eval_s": self.eval_s,
-                    "wall_s": wall,
-                },
+                "counters": cut_counters(self, wall),
                 "rng": json.dumps(rng),
                 "torch_rng": torch.get_rng_state(),
             },
@@ -402,13 +381,7 @@ class Run:
         """Continue from the newest usable cut in `out`; the rows after it are dropped."""
         assert self.out is not None and self.cuts is not None and self.replay is not None
         config = self.cfg.model_dump(mode="json")
-        written = read_json(self.out / "config.json")
-        if written is not None and (diff := config_difference(written, config)):
-            raise CutError(f"{self.out / 'config.json'}: another config ({diff})")
-        try:  # refused before anything is loaded: the resume appends to it
-            provenance.read(self.out / provenance.FILE)
-        except provenance.ProvenanceError as err:
-            raise CutError(str(err)) from None
+        check_resumable(self.out, config)
         self.resumed = True
         cut = latest_cut(self.cuts, config)
         st = cut.state
@@ -417,27 +390,14 @@ class Run:
         except (ValueError, KeyError, RuntimeError) as err:
             raise CutError(f"{cut.path}: learner state does not fit: {err}") from None
         load_tables(self.explorer.tables, st["tables"], cut.path)
-        self.replay_rows = int(st["replay_rows"])
-        data = self.replay.read(self.replay_rows, self.width, cut.path)
-        keep = min(self.replay_rows, self.buffer.capacity)  # the ring's last rows
-        first = self.replay_rows - keep
-        self.buffer.added = first  # so add() puts row r at slot r % capacity
-        self.buffer.pos = first % self.buffer.capacity
-        self.buffer.add(
-            *(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")),
-            data["bonus"][first:] if self.collection else None,
-        )
+        refill(self, int(st["replay_rows"]), self.width, cut.path)
         rng = json.loads(st["rng"])
         self.collector.load_state(rng["collector"])
         self.sample_rng.bit_generator.state = rng["sampler"]
         for e, state in zip(self.eval_envs, rng["eval_envs"], strict=True):
             e.set_rng_state(state)
         torch.set_rng_state(st["torch_rng"])
-        c = st["counters"]
-        self.env_steps, self.collisions_cum = int(c["env_steps"]), int(c["collisions_cum"])
-        self.shift_warned = bool(c["shift_warned"])
-        self.eval_s, self.wall_before = float(c["eval_s"]), float(c["wall_s"])
-        self.rows = _read_rows(self.out / "metrics.jsonl", int(c["rows"]), cut.path)
+        load_counters(self, st["counters"], self.out, cut.path)
         self.first_episode = cut.episode + 1
         log.info(
             "resuming %s from %s: episode %d, %d transitions, %d updates",
@@ -447,6 +407,78 @@ class Run:
             self.env_steps,
             self.learner.updates,
         )
+
+
+# ------------------------------------------------------------------ one run's cut
+# A `Run` and a group's `Member` keep the same per-run fields (replay, pending,
+# replay_rows, collection, buffer, the counters); a group writes each run's cut in this
+# same format, so a run of a group resumes alone with `macb train --resume`.
+
+
+def append_pending(run, width: dict[str, int]) -> int:
+    """The transitions collected since the last cut, onto the run's replay log; bytes."""
+    if not run.pending:
+        return 0
+    cols = list(zip(*run.pending))
+    arrays = {
+        "obs": np.stack(cols[0]),
+        "act": np.stack(cols[1]),
+        "rew": np.asarray(cols[2], np.float32),
+        "next_obs": np.stack(cols[3]),
+        "done": np.asarray(cols[4], np.float32),
+    }
+    if run.collection:
+        arrays["bonus"] = np.stack(cols[5])
+    written = run.replay.append(arrays, run.replay_rows, width)
+    run.replay_rows += len(run.pending)
+    run.pending = []
+    return written
+
+
+def check_resumable(out: Path, config: dict) -> None:
+    """Refused before anything is loaded (the resume appends to the folder): a folder of
+    another config, or a provenance file that does not read."""
+    written = read_json(out / "config.json")
+    if written is not None and (diff := config_difference(written, config)):
+        raise CutError(f"{out / 'config.json'}: another config ({diff})")
+    try:
+        provenance.read(out / provenance.FILE)
+    except provenance.ProvenanceError as err:
+        raise CutError(str(err)) from None
+
+
+def refill(run, replay_rows: int, width: dict[str, int], where: Path) -> None:
+    """The replay buffer as it was at the cut: the log's last `capacity` rows, each at
+    the slot it had (row r at r % capacity), so sampling goes on as without the stop."""
+    run.replay_rows = replay_rows
+    data = run.replay.read(replay_rows, width, where)
+    buffer = run.buffer
+    first = replay_rows - min(replay_rows, buffer.capacity)
+    buffer.added = first
+    buffer.pos = first % buffer.capacity
+    buffer.add(
+        *(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")),
+        data["bonus"][first:] if run.collection else None,
+    )
+
+
+def cut_counters(run, wall: float) -> dict:
+    return {
+        "env_steps": run.env_steps,
+        "collisions_cum": run.collisions_cum,
+        "rows": len(run.rows),
+        "shift_warned": run.shift_warned,
+        "eval_s": run.eval_s,
+        "wall_s": wall,
+    }
+
+
+def load_counters(run, c: dict, out: Path, where: Path) -> None:
+    """`cut_counters` back, and the metric rows written up to the cut."""
+    run.env_steps, run.collisions_cum = int(c["env_steps"]), int(c["collisions_cum"])
+    run.shift_warned = bool(c["shift_warned"])
+    run.eval_s, run.wall_before = float(c["eval_s"]), float(c["wall_s"])
+    run.rows = _read_rows(out / "metrics.jsonl", int(c["rows"]), where)
 
 
 def _read_rows(path: Path, n: int, where: Path) -> list[dict]:

@@ -55,6 +55,9 @@ def test_reproduce_fig3_runs_resumes_and_then_reruns_nothing(tmp_path):
         *(sys.executable, "-m", "cli", "reproduce", "fig3", "--episodes", str(EPISODES)),
         *("--seeds", "0", "1", "--api", url, "--endpoint", endpoint),
         *("--data-dir", str(data), "--out", str(out), "--quiet", "--quiet-services"),
+        # The resume machinery is what is tested here, at async's speed (22 runs); the
+        # lockstep default is tests/test_lockstep.py's and the next test's.
+        *("--interleave", "async"),
     ]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     t0 = time.monotonic()
@@ -122,3 +125,27 @@ def test_reproduce_fig3_runs_resumes_and_then_reruns_nothing(tmp_path):
         f"fig3 x {EPISODES} episodes x 2 seeds ({len(after)} runs): {took:.0f} s interrupted "
         f"and resumed, {time.monotonic() - t0 - took:.0f} s to find nothing to run"
     )
+
+
+def test_reproduce_through_the_cluster_runs_the_thesis_loop_by_default(tmp_path):
+    """`macb reproduce` without --local: every run in `interleave: lockstep` (6 episodes:
+    past the 100-step warm-up, so there are updates; actions
+    from the current weights, computed by the learner), unless --interleave async."""
+    url = f"http://127.0.0.1:{free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    data, out = tmp_path / "data", tmp_path / "out"
+    argv = [
+        *(sys.executable, "-m", "cli", "reproduce", "fig3", "--episodes", "6"),
+        *("--seeds", "0", "--api", url, "--endpoint", endpoint),
+        *("--data-dir", str(data), "--out", str(out), "--quiet", "--quiet-services"),
+    ]
+    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    runs = _runs(data / "api.sqlite3")
+    assert len(runs) == len(FIGURES["fig3"].arms)
+    for run in runs.values():
+        assert run["status"] == "completed", run
+        assert run["config"]["interleave"] == "lockstep", run["config"]
+        learner = run["services"][run["assign"]["learner"]]
+        assert learner["policy_lag"] == 0.0 and learner["replay_ratio"] == 1.0, learner
+    assert cluster_processes(endpoint, tmp_path) == []
