@@ -11,6 +11,9 @@ must the learner's final state: every weight, target, Adam moment and step count
 from __future__ import annotations
 
 import math
+import os
+import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -19,6 +22,7 @@ import torch
 from shared.config import make_config
 from shared.control import start_run
 from shared.trainer import train
+from tests.conftest import wait_for
 from tests.test_services_run import check_exact, start_cluster, wait_services
 
 TIMING = {"steps_per_sec", "train_steps_per_sec", "wall_s"}
@@ -123,6 +127,30 @@ def test_the_comparison_sees_one_changed_value():
     assert compare(rows, [{**rows[0], "wall_s": 2.0}]) == []  # timing aside
     assert compare(rows, [{**rows[0], "bonus_mean": 0.25000001}])
     assert compare([{"episode": 3, "wall_s": 1.0}], rows)  # a column missing
+
+
+@pytest.mark.parametrize("paused", ["counter", "learner", "actor0"])
+def test_a_late_count_or_a_late_message_changes_nothing(procs, bus, tmp_path, paused):
+    """One service paused mid-run (SIGSTOP for 1.2 s, then SIGCONT): the counter's acks
+    and bonus replies come late, or the learner's answers (the actor sends its request
+    again meanwhile, and the learner answers the repeat with the same action), or the
+    actor's next step. Lockstep waits for each, so the run is still `macb train`'s bit
+    for bit; a learner that acted before a count arrived would not be."""
+    config = make_config({**BASE, **CASES["speaker_listener-cen-macb-thesis"], "episodes": 24})
+    data = start_cluster(procs, tmp_path, 1)
+    wait_services(bus, 4)
+    watch = start_run(bus, config, actors=1)
+    wait_for(lambda: len(watch.rows) >= 1, timeout=120, what="the first point")
+    pid = procs.procs[paused].pid
+    os.kill(pid, signal.SIGSTOP)
+    time.sleep(1.2)
+    os.kill(pid, signal.SIGCONT)
+    assert watch.wait(timeout=300) == "completed", watch.states
+    assert watch.rows[-1]["episode"] == 24 and len(watch.rows) == 8
+    cluster_state, local_state, local = learner_states(data, watch.run, config, tmp_path / "l")
+    diffs = compare(sorted(watch.rows, key=lambda r: r["episode"]), local)
+    assert not diffs, "\n".join(diffs[:20])
+    assert not state_differences(cluster_state, local_state)
 
 
 def test_the_asynchronous_interleave_is_another_run(procs, bus, tmp_path):
