@@ -263,6 +263,7 @@ class LearnerRun:
     cuts: int = 0
     cut_s: float = 0.0  # wall time spent writing cuts (the log's fsync included)
     cut_bytes: int = 0  # size of the last cut file
+    unpriced: list = field(default_factory=list)  # minibatches drawn, bonus query unanswered
     lockstep: bool = False  # interleave lockstep: actions are computed here, per step
     wanted: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)  # open requests
     answered: dict[str, tuple[int, bytes]] = field(default_factory=dict)  # last answers
@@ -547,12 +548,17 @@ class LearnerService(ServiceBase):
         spent = st.time
         t0 = time.perf_counter()
         draws = st.draws  # minibatches per update: 1, or one per agent
-        batches = [st.buffer.sample(cfg.batch_size, st.rng) for _ in range(todo * draws)]
+        if st.unpriced:  # drawn before the counter fell silent: priced now, not redrawn
+            batches, st.unpriced = st.unpriced, []
+        else:
+            batches = [st.buffer.sample(cfg.batch_size, st.rng) for _ in range(todo * draws)]
         spent["sample"] += time.perf_counter() - t0
         st.bonus.fresh = False
         bonuses = st.bonus.bonus_for(batches) if batches else []
-        if bonuses is None:  # counter silent (restarting?): draw again on the next tick
-            batches, bonuses = [], []
+        if bonuses is None:
+            # The counter is silent (paused, restarting): the same minibatches wait for
+            # its answer, so the sampler's stream stays the one per-update draws give.
+            st.unpriced, batches, bonuses = batches, [], []
         t0 = time.perf_counter()
         evaluating = st.evaluations.busy
         counts = st.bonus.counts if len(st.bonus.counts) == len(bonuses) else None
@@ -584,8 +590,8 @@ class LearnerService(ServiceBase):
             st.last_stats = now
             self.publish_metrics(self.run_id, self.stats(), source="learner")
         self.resend_unreported(now)
-        if now - st.last_ckpt > CHECKPOINT_EVERY_S:
-            self.checkpoint()
+        if now - st.last_ckpt > CHECKPOINT_EVERY_S and not st.unpriced:
+            self.checkpoint()  # (not with draws in hand: a cut holds the sampler after them)
         if st.lockstep and owed == 0:
             self.answer_act_requests()
         self.maybe_finish()
