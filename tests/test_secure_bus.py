@@ -100,6 +100,22 @@ def wait_final_counts(watch, config) -> None:
     )
 
 
+def test_secure_lockstep_run_is_exact_with_no_denial(secure, secrets, tmp_path):
+    """`interleave: lockstep` over TLS: the actor's act requests and the learner's
+    actions are keys the ACL grants (docs/deploy.md's table), so the run completes
+    exactly and the router denies nothing."""
+    start_services(secure, secrets, tmp_path, actors=1)
+    config = make_config({**SMALL, "episodes": 10, "interleave": "lockstep"})
+    with session(secrets, "cli", secure.endpoint) as cli:
+        wait_services(cli, 4)
+        watch = start_run(cli, config, actors=1)
+        assert watch.wait(timeout=240) == "completed", watch.states
+        check_exact(watch, watch.assign["actors"], config)
+        assert watch.states[watch.assign["learner"]]["policy_lag"] == 0.0
+        stats = router_stats(cli)
+    assert stats["denied"] == [], stats
+
+
 def test_secure_run_is_exact_and_an_actor_cannot_stop_it(secure, secrets, tmp_path):
     """A whole run over TLS with every service signed in: exact counts, ratio 1, and no
     denial at all (the ACL grants what a run needs). Meanwhile an actor's credentials
