@@ -226,12 +226,7 @@ class ActorService(ServiceBase):
         self.load_newest_weights()
         if st.version < 0 or st.rejoining:
             return False  # wait for the learner's weights (and, rejoining, its ack)
-        now = time.monotonic()
-        for payload in st.sender.due(now):
-            st.pub(payload)
-        if now - st.last_stats > 1.0:
-            st.last_stats = now
-            self.publish_metrics(self.run_id, self.stats())
+        self.resend_and_report(time.monotonic())
         if st.done < st.todo:
             if st.sender.can_send(self.config.episode_len):
                 self.run_episode()
@@ -247,11 +242,7 @@ class ActorService(ServiceBase):
         if st.rejoining:
             return False
         now = time.monotonic()
-        for payload in st.sender.due(now):
-            st.pub(payload)
-        if now - st.last_stats > 1.0:
-            st.last_stats = now
-            self.publish_metrics(self.run_id, self.stats())
+        self.resend_and_report(now)
         if st.done >= st.todo:
             return self.finish_if_settled()
         seq = st.sender.seq
@@ -271,6 +262,16 @@ class ActorService(ServiceBase):
             st.act_pub(encode("act_request", self.run_id, actor=self.id, seq=seq, obs=obs))
             st.asked = (seq, now if st.asked is None else st.asked[1], now)
         return False
+
+    def resend_and_report(self, now: float) -> None:
+        """Batches due for a resend go out again; stats once a second."""
+        st = self.st
+        assert st is not None
+        for payload in st.sender.due(now):
+            st.pub(payload)
+        if now - st.last_stats > 1.0:
+            st.last_stats = now
+            self.publish_metrics(self.run_id, self.stats())
 
     def finish_if_settled(self) -> bool:
         st = self.st
