@@ -22,7 +22,7 @@ from cli.api import experiment_body, run_via_api
 from cli.config_flags import add_config_flags, config_overrides, one_run_config, resolve_config
 from cli.security import add_security_flags
 from shared.cluster import Cluster, cluster_plan
-from shared.config import ConfigError, TrainConfig
+from shared.config import ConfigError, TrainConfig, actors_error
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -250,11 +250,8 @@ def _report_run_end(watch: Any, state: str, out: Path | None) -> int:
 
 def check_actors(cfg: TrainConfig, actors: int) -> None:
     """A lockstep run has one actor: refused before anything starts, naming the key."""
-    if cfg.interleave == "lockstep" and actors != 1:
-        raise ConfigError(
-            f"actors: interleave lockstep (the thesis's loop; profile thesis's default) runs "
-            f"one actor, not {actors}; set interleave: async for several"
-        )
+    if why := actors_error(cfg, actors):
+        raise ConfigError(why)
 
 
 def cmd_start(args: argparse.Namespace) -> int:

@@ -78,13 +78,7 @@ def _rows(folder: Path) -> list[dict[str, Any]]:
 
 
 def _same_config(folder: Path, cfg: TrainConfig) -> bool:
-    from shared.cuts import config_difference
-
-    try:
-        written = json.loads((folder / "config.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return config_difference(written, cfg.model_dump(mode="json")) is None
+    return (folder / "config.json").exists() and config_conflict(folder, cfg) is None
 
 
 def config_conflict(folder: Path, cfg: TrainConfig) -> str | None:

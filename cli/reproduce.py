@@ -227,7 +227,6 @@ def _refuse(msg: str) -> int:
 
 
 def _env_url() -> str | None:
-
     return os.environ.get("MACB_API_URL")
 
 

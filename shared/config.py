@@ -345,6 +345,18 @@ def profile_preset(profile: str, data: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def actors_error(config: TrainConfig, actors: int) -> str | None:
+    """Why a run of `config` cannot have `actors` actors, or None. Lockstep is the
+    thesis's loop, one environment: every entry point (API, CLI, `start_run`, the
+    learner) refuses more with this one message."""
+    if config.interleave == "lockstep" and actors != 1:
+        return (
+            f"actors: interleave lockstep (the thesis's loop; profile thesis's default) runs "
+            f"one actor, not {actors}; set interleave: async for several"
+        )
+    return None
+
+
 class ConfigError(ValueError):
     """A config refused before anything runs; the message names each field and reason."""
 

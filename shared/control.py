@@ -18,7 +18,7 @@ from typing import Any
 
 from shared import bus as keys
 from shared.bus import Bus
-from shared.config import TrainConfig
+from shared.config import TrainConfig, actors_error
 from shared.protocol import RunVerdict, run_verdict
 from shared.wire import WireError, decode, encode
 
@@ -171,10 +171,8 @@ def start_run(
     on_row: Callable[[dict[str, Any]], None] | None = None,
 ) -> RunWatch:
     """Assign free services (waiting up to `wait_for_services` s), start and watch a run."""
-    if config.interleave == "lockstep" and actors != 1:
-        raise ValueError(
-            f"interleave lockstep runs one actor, not {actors} (interleave: async for several)"
-        )
+    if why := actors_error(config, actors):
+        raise ValueError(why)
     run = run or new_run_id()
     deadline = time.monotonic() + wait_for_services
     while True:

@@ -28,7 +28,7 @@ from pydantic import (
     model_validator,
 )
 
-from shared.config import TrainConfig, format_errors, profile_preset
+from shared.config import TrainConfig, actors_error, format_errors, profile_preset
 
 from .naming import point_name, run_name
 
@@ -284,12 +284,8 @@ class _ExperimentFields(BaseModel):
             except ValidationError as err:
                 failures.append(self._where(cell) + format_errors(err))
                 continue
-            if config.interleave == "lockstep" and self.actors != 1:
-                failures.append(
-                    self._where(cell) + f"actors: interleave lockstep (the thesis's loop; "
-                    f"profile thesis's default) runs one actor, not {self.actors}; set "
-                    "interleave: async for several"
-                )
+            if why := actors_error(config, self.actors):
+                failures.append(self._where(cell) + why)
                 continue
             name = run_name(cell["arm"], cell["grid_point"], config.model_dump(mode="json"))
             if name in run_names:

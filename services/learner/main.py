@@ -54,7 +54,7 @@ import torch
 from services.common import ServiceBase
 from shared import bus as keys
 from shared import provenance
-from shared.config import TrainConfig
+from shared.config import TrainConfig, actors_error
 from shared.cuts import CutError, atomic_torch_save, config_difference
 from shared.exploration import BonusDiagnostics
 from shared.factories import build_learner, minibatches_per_update
@@ -366,12 +366,9 @@ class LearnerService(ServiceBase):
         )
         spec = task_spec_for(config)
         actors = list(assign["actors"])
+        if why := actors_error(config, len(actors)):
+            raise ValueError(why)  # the run fails, saying so
         lockstep = config.interleave == "lockstep"
-        if lockstep and len(actors) != 1:
-            raise ValueError(
-                f"interleave lockstep runs one actor (the thesis's one environment), "
-                f"the run was given {len(actors)}"
-            )
         folder = self.data_dir / "learner" / run
         folder.mkdir(parents=True, exist_ok=True)
         self.st = LearnerRun(
