@@ -94,6 +94,7 @@ class ServiceBase:
         self.grace_s = peer_grace_s()
         self.lost: dict[str, tuple[str, float]] = {}  # peer id -> (role, when it went)
         self.resumed: dict[str, Any] | None = None  # what on_resume restored, for info()
+        self._joined: dict[str, tuple[dict, dict[str, Any]]] = {}  # run -> (config, assign)
 
     # ------------------------------------------------------------ plumbing
     def listen(self, key_expr: str, tag: str, run: str | None = None) -> None:
@@ -197,7 +198,7 @@ class ServiceBase:
                 return  # another service's run: not an error
             if run in self.active and not self.start_replaces(run):
                 return  # repeated start: idempotent
-            if len(self.active) >= self.max_runs:
+            if len(self.active) >= self.max_runs and not self.joins_group(run, msg["assign"]):
                 self.log.warning("asked to start %s while serving %s: ignored", run, self.run_id)
                 return
             try:
@@ -228,6 +229,7 @@ class ServiceBase:
         in the service's file, so that a restarted process rejoins it."""
         self.active[run] = config
         self.assign = assign
+        self._joined[run] = (raw, assign)
         learner = assign.get("learner")
         if self.follows_learner and isinstance(learner, str):
             self.listen(keys.k_status(run, learner), "learner_status", run)
@@ -238,32 +240,49 @@ class ServiceBase:
             self.publish_status(run, "failed", reason=f"{type(err).__name__}: {err}")
             self.free(run)
             return
-        if self.rejoins:
-            path = self._run_file()
-            try:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                write_json(path, {"run": run, "config": raw, "assign": assign})
-            except OSError as err:  # the run goes on; only a restart cannot rejoin it
-                self.log.error("cannot write %s (%s): a restart will not rejoin %s", path, err, run)
+        if run in self.active:
+            self._save_runs()
 
     def _run_file(self) -> Path:
         return self.data_dir / "services" / f"{self.id}.json"
 
+    def _save_runs(self) -> None:
+        """Note the runs served (one, or a group's members in order) for a restart."""
+        if not self.rejoins:
+            return
+        path = self._run_file()
+        if not self.active:
+            path.unlink(missing_ok=True)
+            return
+        runs = [
+            {"run": run, "config": self._joined[run][0], "assign": self._joined[run][1]}
+            for run in self.active
+        ]
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_json(path, {"runs": runs})
+        except OSError as err:  # the run goes on; only a restart cannot rejoin it
+            self.log.error("cannot write %s (%s): a restart will not rejoin %s", path, err, runs)
+
     def _rejoin(self) -> None:
-        """After a restart: rejoin the run this service served when its process died."""
+        """After a restart: rejoin the run (or the group's runs) this service served
+        when its process died."""
         path = self._run_file()
         if not self.rejoins or not path.exists():
             return
         try:
             saved = json.loads(path.read_text())
-            run, raw, assign = saved["run"], saved["config"], saved["assign"]
-            config = make_config(raw)
+            entries = saved.get("runs", [saved])
+            runs = [(e["run"], make_config(e["config"]), e["assign"], e["config"]) for e in entries]
+            if not runs:
+                raise ValueError("no run in it")
         except (OSError, ValueError, KeyError, TypeError, ConfigError) as err:
             self.log.error("refusing %s (%s): renamed *.refused; not rejoining", path, err)
             path.replace(path.with_name(path.name + ".refused"))
             return
-        self.log.info("rejoining run %s after a restart (from %s)", run, path)
-        self._join(run, config, assign, raw, self.on_resume)
+        for run, config, assign, raw in runs:
+            self.log.info("rejoining run %s after a restart (from %s)", run, path)
+            self._join(run, config, assign, raw, self.on_resume)
 
     def _on_learner_status(self, key: str, payload: bytes) -> None:
         """The run's learner failed or was stopped: this service's part is over too."""
@@ -279,6 +298,17 @@ class ServiceBase:
         self.publish_status(run, "stopped", reason=reason)
         self.free(run)
 
+    def joins_group(self, run: str, assign: dict[str, Any]) -> bool:
+        """A start for another run of the group this service serves (a run group: one
+        learner, actor and evaluator for all its runs, `assign["group"]` their ids)."""
+        group = assign.get("group")
+        return (
+            isinstance(group, list)
+            and run in group
+            and bool(self.active)
+            and self.assign.get("group") == group
+        )
+
     def assigned(self, assign: dict[str, Any]) -> bool:
         value = assign.get(self.role, assign.get(f"{self.role}s"))  # "actors" is a list
         return self.id in value if isinstance(value, list) else value == self.id
@@ -290,10 +320,11 @@ class ServiceBase:
         if run in self.active:
             self.finished.append(run)
         self.active.pop(run, None)
-        if self.rejoins and not self.active:
-            self._run_file().unlink(missing_ok=True)
-        self.lost.clear()
-        self.resumed = None
+        self._joined.pop(run, None)
+        self._save_runs()
+        if not self.active:
+            self.lost.clear()
+            self.resumed = None
 
     # ------------------------------------------------------------ hooks
     def start_replaces(self, run: str) -> bool:
@@ -342,12 +373,12 @@ class ServiceBase:
         A service that follows its run's learner gives the run up as failed when the
         learner is gone: without it no credits, weights or evaluation points can come."""
         if role == "learner" and self.follows_learner and self.assign.get("learner") == peer:
-            run = self.run_id
-            self.log.error("run %s: learner %s is gone; giving the run up", run, peer)
-            self.on_stop(run, "learner lost")
-            why = f"learner {peer} is gone (not back within {self.grace_s:g} s)"
-            self.publish_status(run, "failed", reason=why)
-            self.free(run)
+            for run in list(self.active):  # the run, or every run of its group
+                self.log.error("run %s: learner %s is gone; giving the run up", run, peer)
+                self.on_stop(run, "learner lost")
+                why = f"learner {peer} is gone (not back within {self.grace_s:g} s)"
+                self.publish_status(run, "failed", reason=why)
+                self.free(run)
 
     def handle(self, tag: str, key: str, payload: bytes) -> None: ...
 

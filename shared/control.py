@@ -72,6 +72,40 @@ def assign_services(infos: list[dict[str, Any]], actors: int) -> dict[str, Any]:
     }
 
 
+def start_group(
+    bus: Bus,
+    configs: list[TrainConfig],
+    runs: list[str] | None = None,
+    wait_for_services: float = 30.0,
+) -> list[RunWatch]:
+    """Start `configs` as one run group (one learner, actor and evaluator serve them all,
+    `interleave: lockstep`); one watch per run, each run with its own id and rows."""
+    from shared.group_trainer import group_error  # (the trainer's rule for a group)
+
+    if why := group_error(configs, 1):
+        raise ValueError(why)
+    runs = runs or [new_run_id() + f"-{r}" for r in range(len(configs))]
+    if len(runs) != len(configs) or len(set(runs)) != len(runs):
+        raise ValueError(f"{len(configs)} runs need {len(configs)} distinct ids, got {runs}")
+    deadline = time.monotonic() + wait_for_services
+    while True:
+        try:
+            assign = {**assign_services(discover(bus), 1), "group": list(runs)}
+            break
+        except NoFreeServices:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
+    watches = []
+    for run in runs:
+        watch = RunWatch(run, assign)
+        watch.attach(bus)
+        watches.append(watch)
+    for run, config in zip(runs, configs):
+        send_start(bus, run, config, assign)
+    return watches
+
+
 def send_start(bus: Bus, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
     bus.put(
         keys.k_control("start"),

@@ -52,7 +52,7 @@ from shared.factories import (
 )
 from shared.learners.group import GroupMADDPG
 from shared.replay import ReplayBuffer, update_arrays
-from shared.rollout import VecCollector, derive_seed, evaluate_group, warmup_share
+from shared.rollout import derive_seed, evaluate_group, make_vec_collector
 from shared.tasks import make_task_for, task_spec_for
 from shared.trainer import (
     DEFAULT_CUT_EVERY_S,
@@ -124,6 +124,24 @@ def check_group(cfgs: Sequence[TrainConfig]) -> None:
                 f"runs 0 and {r} cannot share a group: they differ in {field} "
                 f"({getattr(cfgs[0], field)!r} != {getattr(cfg, field)!r})"
             )
+
+
+def group_error(cfgs: Sequence[TrainConfig], actors: int) -> str | None:
+    """Why these runs cannot be served as one group by the cluster's services, or None.
+    There a group runs the thesis's loop (`interleave: lockstep`) with one actor
+    stepping every run's world."""
+    try:
+        check_group(cfgs)
+    except ValueError as err:
+        return str(err)
+    for r, cfg in enumerate(cfgs):
+        if cfg.interleave != "lockstep":
+            return f"run {r}: interleave {cfg.interleave}: a group in the cluster runs lockstep"
+        if cfg.bonus_at == "collection":
+            return f"run {r}: bonus_at collection: the cluster prices bonuses when it samples"
+    if actors != 1:
+        return f"actors: a group in the cluster has one actor (it steps every world), not {actors}"
+    return None
 
 
 def form_groups(cfgs: Sequence[TrainConfig], max_runs: int | None = None) -> list[list[int]]:
@@ -224,13 +242,7 @@ class GroupRun:
             precision=c0.precision,
             device=c0.device,
         )
-        self.collector = VecCollector(
-            self.venv,
-            [cfg.noise_sigma for cfg in cfgs],
-            [derive_seed(cfg.seed, "actor", 0) for cfg in cfgs],
-            [cfg.time_limit_terminal for cfg in cfgs],
-            [warmup_share(cfg.learning_starts, 1) if cfg.warmup == "random" else 0 for cfg in cfgs],
-        )
+        self.collector = make_vec_collector(cfgs, self.venv)
         self.draws = minibatches_per_update(c0)
         self.first_episode = 1
         self.resumed = False

@@ -11,7 +11,7 @@ a new world), and `make_collector` builds an actor's collector from the run conf
 from __future__ import annotations
 
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -171,6 +171,19 @@ def make_collector(
     )
 
 
+def make_vec_collector(cfgs: Sequence[TrainConfig], venv: Any) -> VecCollector:
+    """A group's collector (world r is run r's): each run's noise, seed, terminal time
+    limit and warm-up as `make_collector` gives it alone, so the group trainer and a
+    group's actor service collect alike."""
+    return VecCollector(
+        venv,
+        [cfg.noise_sigma for cfg in cfgs],
+        [derive_seed(cfg.seed, "actor", 0) for cfg in cfgs],
+        [cfg.time_limit_terminal for cfg in cfgs],
+        [warmup_share(cfg.learning_starts, 1) if cfg.warmup == "random" else 0 for cfg in cfgs],
+    )
+
+
 @dataclass
 class EvalResult:
     success_rate: float  # share of episodes in which the task condition held at some step
@@ -268,12 +281,18 @@ class VecCollector:
         noise = rng.standard_normal(act.shape).astype(np.float32) * self.noise_scale[r]
         return np.clip(act + noise, self.low, self.high)
 
+    def next_obs(self) -> np.ndarray:
+        """Every run's joint observation the next step acts on, (R, joint_obs): the
+        resets due at an episode's end happen now rather than in `step` (as
+        `Collector.next_obs`, for a lockstep actor serving a group)."""
+        for r in np.nonzero(self.reset_due)[0]:
+            self.obs[r] = self.venv.reset(int(r))
+        self.reset_due[:] = False
+        return self.obs.copy()
+
     def step(self, policy: GroupPolicy) -> VecTransitions:
         venv = self.venv
-        for r in np.nonzero(self.reset_due)[0]:
-            self.obs[r] = venv.reset(int(r))
-        self.reset_due[:] = False
-        obs = self.obs.copy()
+        obs = self.next_obs()
         warm = [self.steps < w for w in self.warmup_steps]
         policy_act = None if all(warm) else policy(obs[:, None])[:, 0]
         act = np.empty((self.runs, len(self.low)), np.float32)

@@ -42,27 +42,29 @@ def test_messages_of_older_learners_without_the_list_are_taken_at_once():
 
 
 def _service(pending: list[dict]) -> types.SimpleNamespace:
-    st = types.SimpleNamespace(pending=collections.deque(pending), published={}, held_since=None)
-    return types.SimpleNamespace(st=st, run_id="r", log=logging.getLogger("test"))
+    st = types.SimpleNamespace(
+        run="r", pending=collections.deque(pending), published={}, held_since=None
+    )
+    return types.SimpleNamespace(st=st, log=logging.getLogger("test"))
 
 
 def test_next_point_holds_then_gives_up_after_the_order_wait(monkeypatch):
     clock = [1000.0]
     monkeypatch.setattr(ev.time, "monotonic", lambda: clock[0])
     svc = _service([_msg(140, [60])])
-    assert ev.EvaluatorService.next_point(svc) is None  # held: 60 is on its way
+    assert ev.EvaluatorService.next_point(svc, svc.st) is None  # held: 60 is on its way
     clock[0] += ev.ORDER_WAIT_S / 2
-    assert ev.EvaluatorService.next_point(svc) is None
+    assert ev.EvaluatorService.next_point(svc, svc.st) is None
     svc.st.pending.append(_msg(60, []))  # the resend arrives: it goes first, then 140
-    assert ev.EvaluatorService.next_point(svc)["eval_point"] == 60
+    assert ev.EvaluatorService.next_point(svc, svc.st)["eval_point"] == 60
     svc.st.published[60] = clock[0]
-    assert ev.EvaluatorService.next_point(svc)["eval_point"] == 140
+    assert ev.EvaluatorService.next_point(svc, svc.st)["eval_point"] == 140
     assert not svc.st.pending
 
     svc = _service([_msg(140, [60])])  # 60 never comes: 140 is not held for ever
-    assert ev.EvaluatorService.next_point(svc) is None
+    assert ev.EvaluatorService.next_point(svc, svc.st) is None
     clock[0] += ev.ORDER_WAIT_S + 0.1
-    assert ev.EvaluatorService.next_point(svc)["eval_point"] == 140
+    assert ev.EvaluatorService.next_point(svc, svc.st)["eval_point"] == 140
 
 
 def _weights(point: int, unreported: list[int]) -> bytes:
@@ -82,8 +84,8 @@ def _learner(unreported: dict[int, float], last_sent: int, reported_at: float):
     ev.unreported = {p: (t, _weights(p, [20] if p > 20 else [])) for p, t in unreported.items()}
     ev.last_sent, ev.reported_at = last_sent, reported_at
     sent: list[bytes] = []
-    st = types.SimpleNamespace(evaluations=ev, eval_pub=sent.append)
-    svc = types.SimpleNamespace(st=st, run_id="r", log=logging.getLogger("test"))
+    st = types.SimpleNamespace(run="r", evaluations=ev, eval_pub=sent.append)
+    svc = types.SimpleNamespace(st=st, log=logging.getLogger("test"))
     return lm, svc, sent
 
 
@@ -91,15 +93,15 @@ def test_the_learner_resends_a_point_the_evaluator_holds_later_ones_for_after_5_
     now = 1000.0
     # point 20 was lost; 40 went out after it, and the evaluator (holding 40) is silent
     lm, svc, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 6)
-    lm.LearnerService.resend_unreported(svc, now)
+    lm.LearnerService.resend_unreported(svc, svc.st, now)
     assert _points(sent) == [(20, [])]  # not 40: the newest point waits for the long rule
     # within 5 s of the evaluator's last report nothing is resent: it may just be busy
     lm, svc, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 3)
-    lm.LearnerService.resend_unreported(svc, now)
+    lm.LearnerService.resend_unreported(svc, svc.st, now)
     assert sent == []
     # the newest point alone is resent after 30 s of silence, as before
     lm, svc, sent = _learner({40: now - 31}, last_sent=40, reported_at=now - 31)
-    lm.LearnerService.resend_unreported(svc, now)
+    lm.LearnerService.resend_unreported(svc, svc.st, now)
     assert _points(sent) == [(40, [])]  # its list of when it first went out named 20,
     # whose row has come since: the resend no longer does
 
@@ -107,5 +109,5 @@ def test_the_learner_resends_a_point_the_evaluator_holds_later_ones_for_after_5_
 def test_a_resend_at_once_names_only_the_points_still_without_a_row():
     now = 1000.0
     lm, svc, sent = _learner({20: now - 1, 40: now - 1}, last_sent=40, reported_at=now - 1)
-    lm.LearnerService.resend_unreported(svc, now, at_once=True)
+    lm.LearnerService.resend_unreported(svc, svc.st, now, at_once=True)
     assert _points(sent) == [(20, []), (40, [20])]

@@ -185,3 +185,39 @@ def test_lockstep_with_several_actors_is_refused_before_it_starts():
     with pytest.raises(ValueError, match="runs one actor"):
         config = make_config({**BASE, **CASES["simple-ddpg-constant"]})
         start_run(None, config, actors=2)  # type: ignore[arg-type]
+
+
+GROUP = [  # one group: seeds and the exploration differ, task and networks are shared
+    {**BASE, **CASES["speaker_listener-cen-macb-thesis"], "seed": 3},
+    {**BASE, **CASES["speaker_listener-cen-macb-thesis"], "seed": 4, "beta": 0.4},
+    {**BASE, **CASES["speaker_listener-cen-macb-thesis"], "seed": 5, "explore": "constant"},
+]
+
+
+def test_a_lockstep_cluster_group_is_the_group_trainers_runs(procs, bus, tmp_path):
+    """A group of 3 runs served by one learner (GroupMADDPG), one actor (a VecTask of
+    their worlds, one act request per step) and one evaluator: each run's rows and final
+    learner state are those the one-process group gives it (and so `macb train`'s)."""
+    from shared.control import start_group
+    from shared.group_trainer import train_group
+
+    configs = [make_config(c) for c in GROUP]
+    data = start_cluster(procs, tmp_path, 1)
+    wait_services(bus, 4)
+    watches = start_group(bus, configs, runs=[f"g{r}" for r in range(3)])
+    for watch in watches:
+        assert watch.wait(timeout=300) == "completed", watch.states
+    outs = [tmp_path / f"local{r}" for r in range(3)]
+    local = train_group(configs, outs, progress=False)
+    for r, (watch, config) in enumerate(zip(watches, configs)):
+        check_exact(watch, [watch.assign["actors"][0]], config)
+        learner = watch.states[watch.assign["learner"]]
+        assert learner["policy_lag"] == 0.0
+        diffs = compare(sorted(watch.rows, key=lambda row: row["episode"]), local[r])
+        assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
+        cluster = torch.load(
+            Path(data) / "learner" / watch.run / "checkpoint.pt", weights_only=True
+        )
+        mine = torch.load(outs[r] / "checkpoint.pt", weights_only=True)
+        diffs = state_differences(cluster["learner"], mine["learner"])
+        assert not diffs, (r, diffs[:20])

@@ -18,6 +18,11 @@ weights once every earlier step is counted and learnt, adds its own noise, steps
 publishes that one transition. Actions come from the learner's own network, so they are
 the one-process trainer's to the bit (SEED RL's central inference).
 
+A run group in lockstep (`assign["group"]`: its runs in order) has one actor for all its
+runs: it steps their worlds as one VecTask (world r is run r's), asks for every run's
+action in one request on the first run's keys, adds each run's own noise and publishes
+each run's transition on that run's keys, numbered and resent as a run's are.
+
 An actor restarted mid-run rejoins it (`on_resume`): it waits for the learner's ack,
 which says how many of its transitions the learner holds, numbers on from there (what
 it had in flight when it died is collected anew) and runs the rest of its episodes.
@@ -40,8 +45,9 @@ from shared import bus as keys
 from shared.config import TrainConfig
 from shared.networks import JointPolicy
 from shared.protocol import Sender, episode_share
-from shared.rollout import Collector, make_collector
+from shared.rollout import Collector, VecCollector, make_collector, make_vec_collector
 from shared.tasks import TaskEnv, make_task_for
+from shared.vectask import vectorize
 from shared.wire import encode
 
 MAX_UNCOUNTED_BATCHES = 8  # episodes in flight that the counter has not acknowledged
@@ -78,6 +84,26 @@ class ActorRun:
     act_wait_s: float = 0.0  # lockstep: time from a request to its answer
 
 
+@dataclass
+class GroupActor:
+    """A lockstep group's worlds and, per run, its numbering and resends."""
+
+    runs: list[str]
+    collector: VecCollector
+    senders: dict[str, Sender]
+    pubs: dict[str, Callable[[bytes], None]]
+    act_pub: Callable[[bytes], None]
+    todo: int  # episodes (every run's)
+    episode_len: int
+    seq: int = 0  # steps taken (each run's transitions so far)
+    done: int = 0
+    asked: tuple[int, float, float] | None = None  # the open request: seq, first, last sent
+    action: tuple[int, np.ndarray] | None = None  # the learner's answer: (R, joint_act)
+    act_wait_s: float = 0.0
+    last_stats: float = 0.0
+    t0: float = field(default_factory=time.perf_counter)
+
+
 class ActorService(ServiceBase):
     role = "actor"
     follows_learner = True
@@ -95,6 +121,8 @@ class ActorService(ServiceBase):
         # before this actor has handled the start message.
         self.bus.subscribe(keys.k_weights("*", "*"), self._on_weights)
         self.st: ActorRun | None = None
+        self.ga: GroupActor | None = None  # a lockstep group's worlds, when serving one
+        self._members: dict[str, TrainConfig] = {}  # a group's runs whose start came
 
     def _on_weights(self, key: str, payload: bytes) -> None:
         run = keys.run_of(key)
@@ -107,6 +135,8 @@ class ActorService(ServiceBase):
 
     # ------------------------------------------------------------ lifecycle
     def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        if assign.get("group"):
+            raise ValueError("a run group cannot resume after an actor restart yet: start it again")
         self.on_start(run, config, assign)
         assert self.st is not None
         self.st.rejoining = True
@@ -138,6 +168,11 @@ class ActorService(ServiceBase):
         )
 
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        if assign.get("group"):
+            self._members[run] = config
+            if set(self._members) == set(assign["group"]):
+                self.open_group(assign)
+            return
         actors = list(assign["actors"])
         rank = actors.index(self.id)
         self.listen(keys.k_ack(run, "*"), "ack", run)
@@ -166,8 +201,43 @@ class ActorService(ServiceBase):
             self.listen(keys.k_action(run, self.id), "action", run)
         self.publish_status(run, "running", rank=rank, episodes=self.st.todo)
 
+    def open_group(self, assign: dict[str, Any]) -> None:
+        """Every run of the group has its start: their worlds as one VecTask."""
+        runs = list(assign["group"])
+        cfgs = [self._members.pop(run) for run in runs]
+        learner, counter = assign.get("learner"), assign.get("counter")
+        senders = {}
+        for run, cfg in zip(runs, cfgs):
+            counting = cfg.explore in ("dis-macb", "cen-macb")
+            senders[run] = Sender(
+                confirm=(learner, counter) if counting else (learner,),
+                credit_from=learner,
+                bounded=(counter,) if counting else (),
+                max_unconfirmed=MAX_UNCOUNTED_BATCHES,
+                resend_after_s=RESEND_AFTER_S,
+                last_progress=time.monotonic(),
+            )
+            self.listen(keys.k_ack(run, "*"), "ack", run)
+        venv = vectorize([make_task_for(cfg) for cfg in cfgs])
+        lead = runs[0]
+        self.ga = GroupActor(
+            runs=runs,
+            collector=make_vec_collector(cfgs, venv),
+            senders=senders,
+            pubs={run: self.bus.publisher(keys.k_transitions(run, self.id)) for run in runs},
+            act_pub=self.bus.publisher(keys.k_act(lead, self.id)),
+            todo=cfgs[0].episodes,
+            episode_len=cfgs[0].episode_len,
+        )
+        self.listen(keys.k_action(lead, self.id), "action", lead)
+        for run in runs:
+            self.publish_status(run, "running", rank=0, episodes=self.ga.todo, group=runs)
+
     def on_stop(self, run: str, reason: str) -> None:
         self.st = None
+        self._members.pop(run, None)
+        if self.ga is not None and run in self.ga.runs:
+            self.ga = None  # (each run of the group is stopped: the others follow)
 
     # ------------------------------------------------------------ inbound
     def handle(self, tag: str, key: str, payload: bytes) -> None:
@@ -177,6 +247,12 @@ class ActorService(ServiceBase):
         if tag != "ack":
             return
         msg = self.decode_for_run(key, payload, "ack")
+        if msg is not None and self.ga is not None and msg["run"] in self.ga.senders:
+            sender = self.ga.senders[msg["run"]]
+            sender.on_ack(
+                msg["service"], msg["acked"].get(self.id), time.monotonic(), window=msg["window"]
+            )
+            return
         if msg is None or self.st is None:
             return
         if self.st.rejoining:
@@ -207,6 +283,16 @@ class ActorService(ServiceBase):
 
     def on_action(self, key: str, payload: bytes) -> None:
         msg = self.decode_for_run(key, payload, "action")
+        ga = self.ga
+        if ga is not None:
+            if msg is None or ga.asked is None or msg["seq"] != ga.asked[0]:
+                return
+            act = msg["act"]
+            if act.shape != (len(ga.runs), len(ga.collector.low)) or not np.isfinite(act).all():
+                self.reject(key, f"action: shape {act.shape} or non-finite values")
+                return
+            ga.action = (msg["seq"], act.astype(np.float32, copy=False))
+            return
         st = self.st
         if msg is None or st is None or st.asked is None or msg["seq"] != st.asked[0]:
             return  # an answer to a request resent earlier, already taken
@@ -218,6 +304,8 @@ class ActorService(ServiceBase):
 
     # ------------------------------------------------------------ work
     def tick(self) -> bool:
+        if self.ga is not None:
+            return self.group_tick(self.ga)
         st = self.st
         if st is None:
             return False
@@ -263,6 +351,66 @@ class ActorService(ServiceBase):
             st.asked = (seq, now if st.asked is None else st.asked[1], now)
         return False
 
+    def group_tick(self, ga: GroupActor) -> bool:
+        """`lockstep_tick` for a group: one step of every run's world per answer."""
+        now = time.monotonic()
+        for run, sender in ga.senders.items():
+            for payload in sender.due(now):
+                ga.pubs[run](payload)
+        if now - ga.last_stats > 1.0:
+            ga.last_stats = now
+            for run in ga.runs:
+                self.publish_metrics(run, self.group_stats(ga, run))
+        if ga.done >= ga.todo:
+            if all(s.settled for s in ga.senders.values()):
+                for run in ga.runs:
+                    stats = self.group_stats(ga, run)
+                    self.publish_metrics(run, stats)
+                    self.publish_status(run, "completed", final_seq=ga.seq, **stats)
+                    self.free(run)
+                self.log.info("group %s: %d episodes published", ga.runs, ga.done)
+                self.ga = None
+            return False
+        if ga.action is not None and ga.asked is not None and ga.action[0] == ga.seq:
+            act = ga.action[1]
+            ga.act_wait_s += now - ga.asked[1]
+            ga.action = ga.asked = None
+            tr = ga.collector.step(lambda obs: act[:, None])
+            for r, run in enumerate(ga.runs):
+                payload = transitions_payload(
+                    run, self.id, ga.seq, tr.obs[r : r + 1], tr.act[r : r + 1],
+                    tr.rew[r : r + 1], tr.next_obs[r : r + 1], tr.done[r : r + 1],
+                    tr.collisions[r : r + 1], -1,
+                )  # fmt: skip
+                ga.senders[run].send(1, payload, now)
+                ga.pubs[run](payload)
+            ga.seq += 1
+            if ga.seq % ga.episode_len == 0:
+                ga.done += 1
+            if ga.done >= ga.todo:
+                return True
+        if ga.asked is None or now - ga.asked[2] > ACT_RESEND_S:
+            obs = ga.collector.next_obs()
+            lead = ga.runs[0]
+            ga.act_pub(encode("act_request", lead, actor=self.id, seq=ga.seq, obs=obs))
+            ga.asked = (ga.seq, now if ga.asked is None else ga.asked[1], now)
+        return False
+
+    def group_stats(self, ga: GroupActor, run: str) -> dict[str, Any]:
+        wall = time.perf_counter() - ga.t0
+        sender = ga.senders[run]
+        return {
+            "rank": 0,
+            "episodes": ga.done,
+            "published": sender.seq,
+            "policy_version": -1,
+            "resends": sender.resends,
+            "steps_per_sec": ga.seq / wall if wall > 0 else 0.0,
+            "rejects_total": sum(self.rejects.values()),
+            "act_wait_ms": 1e3 * ga.act_wait_s / ga.seq if ga.seq else 0.0,
+            "group": len(ga.runs),
+        }
+
     def resend_and_report(self, now: float) -> None:
         """Batches due for a resend go out again; stats once a second."""
         st = self.st
@@ -289,19 +437,13 @@ class ActorService(ServiceBase):
         """Publish transitions as one numbered batch (resent until acknowledged)."""
         st = self.st
         assert st is not None
-        payload = encode(
-            "transitions",
-            self.run_id,
-            actor=self.id,
-            seq=st.sender.seq,
-            obs=np.stack([t.obs for t in rows]),
-            act=np.stack([t.act for t in rows]),
-            rew=np.array([t.rew for t in rows], np.float32),
-            next_obs=np.stack([t.next_obs for t in rows]),
-            done=np.array([t.done for t in rows], np.float32),
-            collisions=np.array([t.collisions for t in rows], np.int32),
-            policy_version=st.version,
-        )
+        payload = transitions_payload(
+            self.run_id, self.id, st.sender.seq,
+            np.stack([t.obs for t in rows]), np.stack([t.act for t in rows]),
+            np.array([t.rew for t in rows]), np.stack([t.next_obs for t in rows]),
+            np.array([t.done for t in rows]), np.array([t.collisions for t in rows]),
+            st.version,
+        )  # fmt: skip
         st.sender.send(len(rows), payload, time.monotonic())
         st.pub(payload)
 
@@ -330,6 +472,25 @@ class ActorService(ServiceBase):
             # update, the count before it and the bus's round trips)
             "act_wait_ms": 1e3 * st.act_wait_s / st.steps if st.lockstep and st.steps else 0.0,
         }
+
+
+def transitions_payload(
+    run: str, actor: str, seq: int, obs, act, rew, next_obs, done, collisions, version: int
+) -> bytes:
+    """One numbered `transitions` batch (rows seq, seq+1, ...) as the wire carries it."""
+    return encode(
+        "transitions",
+        run,
+        actor=actor,
+        seq=seq,
+        obs=np.asarray(obs, np.float32),
+        act=np.asarray(act, np.float32),
+        rew=np.asarray(rew, np.float32),
+        next_obs=np.asarray(next_obs, np.float32),
+        done=np.asarray(done, np.float32),
+        collisions=np.asarray(collisions, np.int32),
+        policy_version=version,
+    )
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> ActorService:

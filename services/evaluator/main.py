@@ -85,8 +85,9 @@ class LearnerPolicy:
 
 @dataclass
 class EvaluatorRun:
-    """The evaluation environments and the points waiting, for the run served."""
+    """The evaluation environments and the points waiting, for a run served."""
 
+    run: str
     envs: list[TaskEnv]
     policy: JointPolicy | LearnerPolicy
     pending: collections.deque[dict[str, Any]] = field(default_factory=collections.deque)
@@ -109,13 +110,18 @@ class EvaluatorService(ServiceBase):
         # evaluator on a saturated machine falls behind and queues weights).
         if nice := int(os.environ.get("MACB_EVALUATOR_NICE", "0")):
             os.nice(nice)
-        self.st: EvaluatorRun | None = None
+        self.runs: dict[str, EvaluatorRun] = {}  # the run served, or a group's runs
         # run -> (state, rows published); read on Zenoh's thread, hence the lock.
         self.history: collections.OrderedDict[str, tuple[str, list[dict[str, Any]]]] = (
             collections.OrderedDict()
         )
         self._history_lock = threading.Lock()
         self.bus.queryable(keys.k_history("*", "eval"), self._history_reply)
+
+    @property
+    def st(self) -> EvaluatorRun | None:
+        """The (first) run served."""
+        return next(iter(self.runs.values()), None)
 
     def _history_reply(self, key: str, payload: bytes) -> bytes | None:
         run = keys.run_of(key)
@@ -145,7 +151,7 @@ class EvaluatorService(ServiceBase):
             policy = LearnerPolicy(config, envs[0].spec)
         else:
             policy = JointPolicy.for_task(envs[0].spec, config.hidden)
-        self.st = EvaluatorRun(envs, policy)
+        self.runs[run] = EvaluatorRun(run, envs, policy)
         with self._history_lock:  # a run queued again starts afresh: not the old rows
             self.history.pop(run, None)
         self._remember(run, "running")
@@ -153,12 +159,12 @@ class EvaluatorService(ServiceBase):
 
     def on_stop(self, run: str, reason: str) -> None:
         self._remember(run, "stopped")
-        self.st = None
+        self.runs.pop(run, None)
 
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag == "weights":
             msg = self.decode_for_run(key, payload, "weights")
-            st = self.st
+            st = self.runs.get(msg["run"]) if msg is not None else None
             if msg is None or st is None or msg["eval_point"] < 0:
                 return
             point = msg["eval_point"]
@@ -168,29 +174,26 @@ class EvaluatorService(ServiceBase):
                 # ... unless the row went out moments ago: then the learner's resend
                 # crossed it (it is resent again later if it was lost after all).
                 if time.monotonic() - st.published[point] > REPUBLISH_AFTER_S:
-                    self._publish_again(point)
+                    self._publish_again(st, point)
                 return
             st.pending.append(msg)  # new, or sent again because its weights were lost
 
-    def _publish_again(self, point: int) -> None:
+    def _publish_again(self, st: EvaluatorRun, point: int) -> None:
         """Publish the row of a point evaluated already (the learner did not see it)."""
-        run = self.run_id
         with self._history_lock:
-            rows = list(self.history.get(run or "", ("", []))[1])
+            rows = list(self.history.get(st.run, ("", []))[1])
         for row in rows:
             if row["episode"] == point:
-                self.publish_metrics(run, row, source="eval")
-                if self.st is not None:
-                    self.st.published[point] = time.monotonic()
+                self.publish_metrics(st.run, row, source="eval")
+                st.published[point] = time.monotonic()
                 return
 
-    def next_point(self) -> dict[str, Any] | None:
+    def next_point(self, st: EvaluatorRun) -> dict[str, Any] | None:
         """The earliest pending point, unless an earlier one it names as unreported is
         neither evaluated nor here yet (its resend is on the way: after an evaluator
         restart the learner's newest point can arrive before the resends of the ones
         missed); then None, for at most ORDER_WAIT_S, so rows go out in episode order."""
-        st = self.st
-        if st is None or not st.pending:
+        if not st.pending:
             return None
         msg, missing = earliest_point(st.pending, st.published)
         now = time.monotonic()
@@ -201,18 +204,23 @@ class EvaluatorService(ServiceBase):
                 return None
             self.log.warning(
                 "run %s: point %d evaluated without %s (not resent within %.0f s)",
-                self.run_id, msg["eval_point"], missing, ORDER_WAIT_S,
+                st.run, msg["eval_point"], missing, ORDER_WAIT_S,
             )  # fmt: skip
         st.held_since = None
         st.pending.remove(msg)
         return msg
 
     def tick(self) -> bool:
-        st = self.st
-        msg = self.next_point()
-        if st is None or msg is None:
-            return False
-        run, cfg = self.run_id, self.config
+        """One point of one run (a group's runs in turn); True while more wait."""
+        for st in list(self.runs.values()):
+            msg = self.next_point(st)
+            if msg is not None:
+                self.evaluate_point(st, msg)
+                return any(s.pending for s in self.runs.values())
+        return False
+
+    def evaluate_point(self, st: EvaluatorRun, msg: dict[str, Any]) -> None:
+        run, cfg = st.run, self.active[st.run]
         st.policy.load(msg["actors"])
         ev = evaluate(st.policy, st.envs, cfg.eval_episodes)
         info = msg["info"]
@@ -245,19 +253,20 @@ class EvaluatorService(ServiceBase):
         # The last point is not the end: points lost on the way (weights published
         # before this service had subscribed, a router restart) come again from the
         # learner, which completes only once it has every point's row.
-        return bool(st.pending)
 
     def on_learner_completed(self, run: str) -> None:
         """The learner has every point's row: this run's evaluation is over."""
-        st = self.st
-        if st is None or run != self.run_id:
+        st = self.runs.get(run)
+        if st is None:
             return
-        for _ in range(len(st.pending)):  # (none left: the learner waited for their rows)
-            self.tick()
+        # (none left: the learner waited for their rows)
+        for msg in sorted(st.pending, key=lambda m: m["eval_point"]):
+            self.evaluate_point(st, msg)
+        st.pending.clear()
         self._remember(run, "completed")
         self.publish_status(run, "completed", points=st.points)
         self.log.info("run %s: %d evaluation points", run, st.points)
-        self.st = None
+        del self.runs[run]
         self.free(run)
 
 

@@ -57,8 +57,10 @@ from shared import provenance
 from shared.config import TrainConfig, actors_error
 from shared.cuts import CutError, atomic_torch_save, config_difference
 from shared.exploration import BonusDiagnostics
-from shared.factories import build_learner, minibatches_per_update
+from shared.factories import agent_dims, build_learner, learner_spec, minibatches_per_update
+from shared.group_trainer import group_error
 from shared.learners import Learner
+from shared.learners.group import GroupMADDPG
 from shared.networks import weights_as_arrays
 from shared.protocol import AckTracker, ReceiveCursor, episode_share
 from shared.replay import ReplayBuffer, update_arrays
@@ -214,13 +216,49 @@ class Boundary(NamedTuple):
     collisions_cum: int
 
 
+class MemberLearner:
+    """Run r's view of its group's learner: what the service reads and writes per run
+    (the update and the acting are the group's, one call for every run)."""
+
+    def __init__(self, group: GroupMADDPG, r: int) -> None:
+        self.group, self.r = group, r
+
+    @property
+    def updates(self) -> int:
+        return self.group.updates
+
+    def actor_weights(self) -> list[dict[str, torch.Tensor]]:
+        return self.group.run_learner(self.r).actor_weights()
+
+    def state_dict(self) -> dict:
+        return self.group.run_state_dict(self.r)
+
+    def stats(self) -> dict[str, float]:
+        return self.group.stats()
+
+
+@dataclass
+class LockstepGroup:
+    """A run group served in lockstep: one learner for its runs (run r of `runs` is
+    member r), one actor stepping their worlds, one act request per step for all."""
+
+    runs: list[str]
+    learner: GroupMADDPG
+    actor: str
+    action_pub: Callable[[bytes], None]
+    wanted: tuple[int, np.ndarray] | None = None  # the open request: (seq, (R, obs))
+    answered: tuple[int, bytes] | None = None  # the last answer, for a repeated request
+    unpriced: list = field(default_factory=list)  # per run, minibatches awaiting prices
+
+
 @dataclass
 class LearnerRun:
-    """Everything the learner holds for the run it serves."""
+    """Everything the learner holds for a run it serves."""
 
+    run: str
     config: TrainConfig
     spec: TaskSpec
-    learner: Learner
+    learner: Learner | MemberLearner
     buffer: ReplayBuffer
     rng: np.random.Generator
     actors: list[str]
@@ -268,6 +306,7 @@ class LearnerRun:
     wanted: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)  # open requests
     answered: dict[str, tuple[int, bytes]] = field(default_factory=dict)  # last answers
     action_pubs: dict[str, Callable[[bytes], None]] = field(default_factory=dict)
+    member: int = -1  # the run's place in its group (-1: a run alone)
 
     @property
     def counting(self) -> bool:
@@ -279,26 +318,92 @@ class LearnerRun:
         return max(0, self.ingested - self.config.learning_starts)
 
 
+def now_due(st: LearnerRun) -> bool:
+    """A cut of the run is due."""
+    return time.monotonic() - st.last_ckpt > CHECKPOINT_EVERY_S
+
+
 class LearnerService(ServiceBase):
     role = "learner"
 
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         super().__init__(service_id, connect, data_dir)
-        self.st: LearnerRun | None = None
+        self.runs: dict[str, LearnerRun] = {}  # the run served, or a group's runs
+        self.group: LockstepGroup | None = None
+        self._members: dict[str, TrainConfig] = {}  # a group's runs whose start came
+
+    @property
+    def st(self) -> LearnerRun | None:
+        """The run served alone (None when free or serving a group)."""
+        return None if self.group is not None else next(iter(self.runs.values()), None)
 
     # ------------------------------------------------------------ run lifecycle
     def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        if assign.get("group"):
+            self._members[run] = config
+            if set(self._members) == set(assign["group"]):
+                self.open_group(assign)
+            return
+        st = self._fresh(run, config, assign)
+        self.publish_weights(st, eval_point=-1)  # version 0: every actor starts from these
+        self.publish_status(run, "running", actors=st.actors)
+        self.publish_provenance(st)
+
+    def _fresh(
+        self,
+        run: str,
+        config: TrainConfig,
+        assign: dict[str, Any],
+        member: MemberLearner | None = None,
+    ) -> LearnerRun:
         folder = self.data_dir / "learner" / run
         for old in ("transitions.wal", "checkpoint.pt", "checkpoint.prev.pt"):
             (folder / old).unlink(missing_ok=True)  # an earlier attempt of this run
-        st = self._open_run(run, config, assign)
+        st = self._open_run(run, config, assign, member)
         self._logged(st)
-        self.publish_weights(eval_point=-1)  # version 0: every actor starts from these
-        self.publish_status(run, "running", actors=st.actors)
-        self.publish_provenance(run, config)
+        return st
+
+    def open_group(self, assign: dict[str, Any]) -> None:
+        """Every run of a group has its start: one GroupMADDPG for them all (run r of
+        `assign["group"]` is member r), each run's own intake, replay, sampler, bonus
+        queries, boundaries, evaluation points and cuts."""
+        runs = list(assign["group"])
+        configs = [self._members.pop(run) for run in runs]
+        try:
+            if why := group_error(configs, len(assign["actors"])):
+                raise ValueError(why)
+            spec = task_spec_for(configs[0])
+            torch.set_num_threads(configs[0].threads)
+            learner = GroupMADDPG(
+                agent_dims(spec),
+                [learner_spec(c) for c in configs],
+                precision=configs[0].precision,
+                device=configs[0].device,
+            )
+            actor = assign["actors"][0]
+            lead = runs[0]
+            self.group = LockstepGroup(
+                runs, learner, actor, self.bus.publisher(keys.k_action(lead, actor))
+            )
+            self.listen(keys.k_act(lead, "*"), "act_request", lead)
+            for r, (run, config) in enumerate(zip(runs, configs)):
+                self._fresh(run, config, assign, MemberLearner(learner, r))
+        except Exception as err:
+            self.log.exception("group %s failed to start", runs)
+            self.fail_group(f"{type(err).__name__}: {err}", runs)
+            return
+        for run in runs:
+            st = self.runs[run]
+            self.publish_status(run, "running", actors=st.actors, group=runs)
+            self.publish_provenance(st)
+        self.log.info("group of %d runs started: %s", len(runs), runs)
 
     def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
         """Restarted mid-run: the newest good cut, then the log beyond it (module doc)."""
+        if assign.get("group"):
+            raise ValueError(
+                "a run group cannot resume after a learner restart yet: start it again"
+            )
         t0 = time.perf_counter()
         st = self._open_run(run, config, assign)
         records, _ = self._logged(st)
@@ -336,19 +441,26 @@ class LearnerService(ServiceBase):
             held,
             time.perf_counter() - t0,
         )
-        self.publish_weights(eval_point=-1)
+        self.publish_weights(st, eval_point=-1)
         self.publish_status(run, "running", actors=st.actors, resumed=self.resumed)
-        self.publish_provenance(run, config)
-        self.send_ack()  # the actors go on from what the log holds
+        self.publish_provenance(st)
+        self.send_ack(st)  # the actors go on from what the log holds
 
-    def publish_provenance(self, run: str, config: TrainConfig) -> None:
+    def publish_provenance(self, st: LearnerRun) -> None:
         """What this start of the run runs on (shared/provenance.py), once: the API keeps
         it as the run's `live.provenance`, and `macb up --out` writes it beside the rows."""
-        assert self.st is not None
-        start = provenance.entry(config.precision, self.st.learner.stats(), "learner")
-        self.publish_metrics(run, start, source="provenance")
+        start = provenance.entry(st.config.precision, st.learner.stats(), "learner")
+        if self.group is not None:
+            start["group"] = {"runs": len(self.group.runs)}
+        self.publish_metrics(st.run, start, source="provenance")
 
-    def _open_run(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> LearnerRun:
+    def _open_run(
+        self,
+        run: str,
+        config: TrainConfig,
+        assign: dict[str, Any],
+        member: MemberLearner | None = None,
+    ) -> LearnerRun:
         if config.bonus_at == "collection":  # the run fails, saying so (not a silent change)
             raise ValueError(
                 "bonus_at collection: the cluster prices bonuses when it samples; run this "
@@ -371,10 +483,11 @@ class LearnerService(ServiceBase):
         lockstep = config.interleave == "lockstep"
         folder = self.data_dir / "learner" / run
         folder.mkdir(parents=True, exist_ok=True)
-        self.st = LearnerRun(
+        st = self.runs[run] = LearnerRun(
+            run=run,
             config=config,
             spec=spec,
-            learner=build_learner(config, spec, contended=evaluations.busy),
+            learner=member or build_learner(config, spec, contended=evaluations.busy),
             buffer=ReplayBuffer(
                 min(config.buffer_size, config.episodes * config.episode_len),
                 spec.joint_obs_dim,
@@ -399,11 +512,12 @@ class LearnerService(ServiceBase):
             },
             incarnation=f"{self.id}:{os.getpid()}:{time.time_ns()}",
             lockstep=lockstep,
+            member=-1 if member is None else member.r,
         )
-        if lockstep:
+        if lockstep and member is None:  # (a group's requests come on its first run's keys)
             self.listen(keys.k_act(run, "*"), "act_request", run)
-            self.st.action_pubs = {a: self.bus.publisher(keys.k_action(run, a)) for a in actors}
-        return self.st
+            st.action_pubs = {a: self.bus.publisher(keys.k_action(run, a)) for a in actors}
+        return st
 
     def _logged(self, st: LearnerRun) -> tuple[list, WriteAheadLog]:
         """The run's log: what an earlier process of this learner took, and the log
@@ -414,16 +528,24 @@ class LearnerService(ServiceBase):
         return records, log
 
     def on_stop(self, run: str, reason: str) -> None:
-        self.checkpoint()
-        self.retire_log()
-        self.st = None
+        self._members.pop(run, None)
+        st = self.runs.get(run)
+        if st is not None:
+            self.checkpoint(st)
+            self.retire_log(st)
+            self.drop(st)
 
-    def retire_log(self) -> None:
+    def drop(self, st: LearnerRun) -> None:
+        """Forget a run's state (the group too, with its last run)."""
+        self.runs.pop(st.run, None)
+        if self.group is not None and not any(r in self.runs for r in self.group.runs):
+            self.group = None
+
+    def retire_log(self, st: LearnerRun) -> None:
         """The run is over (completed or stopped: a retry starts afresh): its log and
         the older cut are no longer needed (the log is 140 B per transition on
         speaker_listener, ~130 MB for a thesis-length run). checkpoint.pt stays."""
-        st = self.st
-        if st is None or st.folder is None:
+        if st.folder is None:
             return
         if st.log is not None:
             st.log.close()
@@ -432,43 +554,42 @@ class LearnerService(ServiceBase):
             (st.folder / name).unlink(missing_ok=True)
 
     def on_shutdown(self) -> None:
-        if self.st is not None:
-            self.checkpoint()
+        for st in self.runs.values():
+            self.checkpoint(st)
 
     # ------------------------------------------------------------ inbound
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         t0 = time.perf_counter()
-        try:
-            self._handle(tag, key, payload)
-        finally:
-            if self.st is not None:
-                self.st.time["inbound"] += time.perf_counter() - t0
-
-    def _handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag == "reject":  # found malformed on another thread (on_eval_row)
             self.reject(key, payload.decode(errors="replace"))
-        elif tag == "transitions":
-            msg = self.decode_for_run(key, payload, "transitions")
-            if msg is not None:
-                self.on_transitions(key, msg)
+            return
+        msg = self.decode_for_run(key, payload, tag)  # (tags are the message types)
+        st = self.runs.get(msg["run"]) if msg is not None else None
+        if msg is None or st is None:
+            return  # (a group's run before the group is complete has no state yet)
+        try:
+            self._handle(st, tag, key, msg)
+        finally:
+            st.time["inbound"] += time.perf_counter() - t0
+
+    def _handle(self, st: LearnerRun, tag: str, key: str, msg: dict[str, Any]) -> None:
+        if tag == "transitions":
+            self.on_transitions(st, key, msg)
         elif tag == "act_request":
-            msg = self.decode_for_run(key, payload, "act_request")
-            if msg is not None:
-                self.on_act_request(key, msg)
+            if self.group is not None:
+                self.on_group_request(key, msg)
+            else:
+                self.on_act_request(st, key, msg)
         elif tag == "ack":
-            msg = self.decode_for_run(key, payload, "ack")
-            if msg is not None and self.st is not None and msg["service"] == self.st.counter:
+            if msg["service"] == st.counter:
                 for actor, seq in msg["acked"].items():
-                    self.st.counted.ack(actor, seq)
-                self.release_counted()
-        elif tag == "status":
-            msg = self.decode_for_run(key, payload, "status")
-            st = self.st
-            if msg is not None and st is not None and msg["service"] in st.actors:
-                if msg["state"] == "completed":
-                    st.final[msg["service"]] = int(msg["detail"].get("final_seq", 0))
-                elif msg["state"] == "failed":
-                    self.fail(f"actor {msg['service']} failed: {msg['detail']}")
+                    st.counted.ack(actor, seq)
+                self.release_counted(st)
+        elif tag == "status" and msg["service"] in st.actors:
+            if msg["state"] == "completed":
+                st.final[msg["service"]] = int(msg["detail"].get("final_seq", 0))
+            elif msg["state"] == "failed":
+                self.fail(st, f"actor {msg['service']} failed: {msg['detail']}")
 
     def on_eval_row(self, evaluations: EvaluationsInFlight, key: str, payload: bytes) -> None:
         """The evaluator's metric row for a point (on Zenoh's thread): that evaluation
@@ -485,9 +606,7 @@ class LearnerService(ServiceBase):
             return
         evaluations.reported(point)
 
-    def on_transitions(self, key: str, msg: dict[str, Any]) -> None:
-        st = self.st
-        assert st is not None
+    def on_transitions(self, st: LearnerRun, key: str, msg: dict[str, Any]) -> None:
         actor = msg["actor"]
         if not st.received.knows(actor):
             self.reject(key, f"unknown actor: {actor}")
@@ -504,22 +623,18 @@ class LearnerService(ServiceBase):
             if st.log is not None:  # logged before the ack below says we have it
                 st.log.append(actor, msg["seq"], n, _log_columns(msg))
             st.held[actor].append(msg)
-            self.release_counted()
-        self.send_ack()
+            self.release_counted(st)
+        self.send_ack(st)
 
-    def release_counted(self) -> None:
+    def release_counted(self, st: LearnerRun) -> None:
         """Move batches the counter has counted (or all, with no counting) into replay."""
-        st = self.st
-        assert st is not None
         for actor, held in st.held.items():
             while held and (
                 not st.counting or st.counted.covers(actor, held[0]["seq"], len(held[0]["rew"]))
             ):
-                self.ingest(held.popleft())
+                self.ingest(st, held.popleft())
 
-    def ingest(self, msg: dict[str, Any]) -> None:
-        st = self.st
-        assert st is not None
+    def ingest(self, st: LearnerRun, msg: dict[str, Any]) -> None:
         n, seq, length = len(msg["rew"]), msg["seq"], st.config.episode_len
         st.buffer.add(msg["obs"], msg["act"], msg["rew"], msg["next_obs"], msg["done"])
         st.ingested += n
@@ -534,9 +649,12 @@ class LearnerService(ServiceBase):
 
     # ------------------------------------------------------------ work
     def tick(self) -> bool:
+        if self.group is not None:
+            return self.group_tick(self.group)
         st = self.st
-        if st is None:
-            return False
+        return False if st is None else self.run_tick(st)
+
+    def run_tick(self, st: LearnerRun) -> bool:
         cfg, learner = st.config, st.learner
         owed = st.owed_total - learner.updates
         todo = min(owed, UPDATES_PER_TICK)
@@ -572,32 +690,133 @@ class LearnerService(ServiceBase):
             owed -= 1
         t1 = time.perf_counter()
         spent["update"] += t1 - t0
-        self.pass_boundaries()
+        self.pass_boundaries(st)
         spent["publish"] += time.perf_counter() - t1
+        self.housekeep(st, owed)
+        if now_due(st) and not st.unpriced:
+            self.checkpoint(st)  # (not with draws in hand: a cut holds the sampler after them)
+        if st.lockstep and owed == 0:
+            self.answer_act_requests(st)
+        self.maybe_finish(st)
+        return owed > 0 and st.run in self.runs
+
+    def housekeep(self, st: LearnerRun, owed: int) -> None:
+        """Between updates: the window and acks, first weights, stats, lost points."""
         now = time.monotonic()
-        window_open = owed < MAX_BACKLOG_EPISODES * cfg.episode_len * len(st.actors)
+        window_open = owed < MAX_BACKLOG_EPISODES * st.config.episode_len * len(st.actors)
         if window_open != st.window_open or now - st.last_ack > 0.5:
             st.window_open = window_open
-            self.send_ack()
+            self.send_ack(st)
         if st.ingested == 0 and now - st.last_weights > FIRST_WEIGHTS_RESEND_S:
             # No transition yet: the first weights, which actors wait for, may have gone
             # out before the bus had a route to them.
-            self.publish_weights(eval_point=-1)
+            self.publish_weights(st, eval_point=-1)
         if now - st.last_stats > 1.0:
             st.last_stats = now
-            self.publish_metrics(self.run_id, self.stats(), source="learner")
-        self.resend_unreported(now)
-        if now - st.last_ckpt > CHECKPOINT_EVERY_S and not st.unpriced:
-            self.checkpoint()  # (not with draws in hand: a cut holds the sampler after them)
-        if st.lockstep and owed == 0:
-            self.answer_act_requests()
-        self.maybe_finish()
-        return owed > 0 and self.st is not None
+            self.publish_metrics(st.run, self.stats(st), source="learner")
+        self.resend_unreported(st, now)
+
+    # ------------------------------------------------------------ a lockstep group
+    def group_tick(self, g: LockstepGroup) -> bool:
+        """The group trainer's step (shared/group_trainer.py) over the bus: once every
+        run has taken (and counted) this step, each samples and prices its own
+        minibatches and one GroupMADDPG update updates them all; then the group's next
+        request is answered with one `act` for every run."""
+        members = [self.runs[r] for r in g.runs if r in self.runs]
+        if (
+            len(members) == len(g.runs)
+            and all(st.owed_total > g.learner.updates for st in members)
+            and not self.group_update(g, members)
+        ):
+            members = []  # the counter is silent: nothing more this tick
+        for st in members:
+            t1 = time.perf_counter()
+            self.pass_boundaries(st)
+            st.time["publish"] += time.perf_counter() - t1
+            self.housekeep(st, st.owed_total - g.learner.updates)
+        if members and now_due(members[0]) and not g.unpriced:
+            for st in members:  # together: a group resumes from one update
+                self.checkpoint(st)
+        self.answer_group(g)
+        for st in members:
+            self.maybe_finish(st)
+        return False
+
+    def group_update(self, g: LockstepGroup, members: list[LearnerRun]) -> bool:
+        """One update of every run of the group; False if a bonus query went
+        unanswered (the same minibatches wait for the counter, as a run's do)."""
+        t0 = time.perf_counter()
+        batch = members[0].config.batch_size
+        drawn = g.unpriced or [
+            [st.buffer.sample(batch, st.rng) for _ in range(st.draws)] for st in members
+        ]
+        t1 = time.perf_counter()
+        priced = []
+        for st, batches in zip(members, drawn):
+            st.bonus.fresh = False
+            bonuses = st.bonus.bonus_for(batches)
+            if bonuses is None:
+                g.unpriced = drawn
+                return False
+            priced.append((bonuses, list(st.bonus.counts)))
+        g.unpriced = []
+        t2 = time.perf_counter()
+        parts = [update_arrays(b, p[0]) for b, p in zip(drawn, priced)]
+        g.learner.update(*[np.stack(cols) for cols in zip(*parts)])
+        spent = time.perf_counter() - t2
+        for st, (bonuses, counts) in zip(members, priced):
+            st.time["sample"] += (t1 - t0) / len(members)
+            st.time["update"] += spent / len(members)
+            for j, bonus in enumerate(bonuses):
+                st.bonus_means.append(float(bonus.mean()))
+                st.diagnostics.record(bonus, counts[j] if len(counts) == len(bonuses) else [])
+        return True
+
+    def on_group_request(self, key: str, msg: dict[str, Any]) -> None:
+        g = self.group
+        assert g is not None
+        if msg["actor"] != g.actor or keys.run_of(key) != g.runs[0]:
+            self.reject(key, f"act_request from {msg['actor']}: not this group's actor")
+            return
+        obs = msg["obs"]
+        dim = self.runs[g.runs[0]].spec.joint_obs_dim
+        if obs.shape != (len(g.runs), dim) or not np.isfinite(obs).all():
+            raise WireError(f"act_request: obs {obs.shape}, the group has ({len(g.runs)}, {dim})")
+        if g.answered is not None and g.answered[0] == msg["seq"]:
+            g.action_pub(g.answered[1])  # the answer was lost: the same actions again
+            return
+        g.wanted = (msg["seq"], np.array(obs, np.float32))
+
+    def answer_group(self, g: LockstepGroup) -> None:
+        """Act for the group's request once every run has its earlier steps counted,
+        in replay and learnt: one `act` of the group's current weights for every run."""
+        if g.wanted is None:
+            return
+        seq, obs = g.wanted
+        for run in g.runs:
+            st = self.runs.get(run)
+            if st is None or seq != st.ingested_pos.get(g.actor, 0) or st.held[g.actor]:
+                return
+            if g.learner.updates < st.owed_total or st.boundaries:
+                return
+        act = g.learner.act(obs[:, None])[:, 0].astype(np.float32)
+        payload = encode("action", g.runs[0], seq=seq, act=act)
+        g.wanted, g.answered = None, (seq, payload)
+        g.action_pub(payload)
+
+    def fail_group(self, reason: str, runs: list[str]) -> None:
+        """Every run of a group fails with one (its runs step and update together)."""
+        for run in runs:
+            st = self.runs.get(run)
+            if st is not None:
+                self.drop(st)
+            if self.serves(run):
+                self.log.error("run %s failed: %s", run, reason)
+                self.publish_status(run, "failed", reason=reason)
+                self.free(run)
 
     # ------------------------------------------------------------ lockstep
-    def on_act_request(self, key: str, msg: dict[str, Any]) -> None:
-        st = self.st
-        assert st is not None
+    def on_act_request(self, st: LearnerRun, key: str, msg: dict[str, Any]) -> None:
         actor, obs = msg["actor"], msg["obs"]
         if not st.lockstep or actor not in st.action_pubs:
             self.reject(key, f"act_request from {actor}: not a lockstep actor of this run")
@@ -610,30 +829,27 @@ class LearnerService(ServiceBase):
             return
         st.wanted[actor] = (msg["seq"], np.array(obs, np.float32))
 
-    def answer_act_requests(self) -> None:
+    def answer_act_requests(self, st: LearnerRun) -> None:
         """Act for each request whose earlier steps are all counted, in replay and
         learnt: the thesis's `act` with the weights after the last step's update."""
-        st = self.st
-        assert st is not None
         for actor, (seq, obs) in list(st.wanted.items()):
             if seq != st.ingested_pos.get(actor, 0) or st.held[actor]:
                 continue  # a step before it is not in replay yet (or not counted)
             if st.learner.updates < st.owed_total or st.boundaries:
                 return  # its updates (and the weights of an episode's end) come first
             act = st.learner.act(obs[None])[0].astype(np.float32)
-            payload = encode("action", self.run_id, seq=seq, act=act)
+            payload = encode("action", st.run, seq=seq, act=act)
             del st.wanted[actor]
             st.answered[actor] = (seq, payload)
             st.action_pubs[actor](payload)
 
-    def pass_boundaries(self) -> None:
+    def pass_boundaries(self, st: LearnerRun) -> None:
         """Publish weights at each episode boundary whose updates are done."""
-        st = self.st
-        assert st is not None
         while st.boundaries and st.learner.updates >= st.boundaries[0].updates:
             b = st.boundaries.popleft()
             is_eval = b.episode % st.config.eval_every == 0 or b.episode == st.config.episodes
             self.publish_weights(
+                st,
                 eval_point=b.episode if is_eval else -1,
                 episode=b.episode,
                 env_steps=b.env_steps,
@@ -641,15 +857,20 @@ class LearnerService(ServiceBase):
             )
 
     def publish_weights(
-        self, eval_point: int, episode: int = 0, env_steps: int = 0, collisions: int = 0
+        self,
+        st: LearnerRun,
+        eval_point: int,
+        episode: int = 0,
+        env_steps: int = 0,
+        collisions: int = 0,
     ) -> None:
-        st = self.st
-        assert st is not None
         if episode:  # version 0 is the initial weights; each boundary makes a new one
             st.version += 1
+        if st.member >= 0 and eval_point < 0:
+            return  # a group's actor acts by request: only evaluation points need weights
         payload = encode(
             "weights",
-            self.run_id,
+            st.run,
             version=st.version,
             updates=st.learner.updates,
             env_steps=env_steps,
@@ -658,13 +879,13 @@ class LearnerService(ServiceBase):
             collisions_cum=collisions,
             actors=weights_as_arrays(st.learner.actor_weights()),
             info={
-                **self.stats(),
+                **self.stats(st),
                 "incarnation": st.incarnation,
                 # The points before this one that had no row when it went out: the
                 # evaluator evaluates those first, so a run's rows come in episode order
                 # even after an evaluator restart (the new point can beat the resends).
                 "unreported": sorted(p for p in st.evaluations.unreported if p < eval_point),
-                "counter": self.counter_stats() if eval_point >= 0 else {},
+                "counter": self.counter_stats(st) if eval_point >= 0 else {},
                 # What the bonus did on the rows sampled since the last point.
                 "bonus": st.diagnostics.take() if eval_point >= 0 else {},
             },
@@ -678,15 +899,13 @@ class LearnerService(ServiceBase):
             st.weights_pub(payload)
             st.last_weights = time.monotonic()
 
-    def resend_unreported(self, now: float, at_once: bool = False) -> None:
+    def resend_unreported(self, st: LearnerRun, now: float, at_once: bool = False) -> None:
         """Send again the evaluation points that were lost on the way: older than one the
         evaluator reported, older than one sent since once the evaluator has been silent
         for EVAL_BEHIND_RESEND_S (it holds the later ones for them), or the last ones
         once it has been silent for EVAL_RESEND_S (a merely slow evaluator reports in
         order, so it is rarely sent duplicates, which it drops); with `at_once` all of
         them (the evaluator just came back)."""
-        st = self.st
-        assert st is not None
         ev = st.evaluations
         quiet = now - ev.reported_at
         for point, (sent, payload) in sorted(ev.unreported.items()):
@@ -695,7 +914,7 @@ class LearnerService(ServiceBase):
             held = point < ev.last_sent and waited > EVAL_BEHIND_RESEND_S
             lost = overtaken or held or waited > EVAL_RESEND_S
             if at_once or lost:
-                self.log.info("run %s: evaluation point %d sent again", self.run_id, point)
+                self.log.info("run %s: evaluation point %d sent again", st.run, point)
                 payload = with_unreported(payload, sorted(p for p in ev.unreported if p < point))
                 st.eval_pub(payload)
                 ev.unreported[point] = (now, payload)
@@ -703,49 +922,41 @@ class LearnerService(ServiceBase):
     def on_peer_found(self, role: str, peer: str) -> None:
         """A service of the run came back: an actor gets weights and where to go on, the
         evaluator the points it has not reported."""
-        st = self.st
-        if st is None:
-            return
-        if role == "actor" and peer in st.actors:
-            self.publish_weights(eval_point=-1)
-            self.send_ack()
-        elif role == "evaluator" and peer == self.assign.get("evaluator"):
-            self.resend_unreported(time.monotonic(), at_once=True)
+        for st in list(self.runs.values()):
+            if role == "actor" and peer in st.actors:
+                self.publish_weights(st, eval_point=-1)
+                self.send_ack(st)
+            elif role == "evaluator" and peer == self.assign.get("evaluator"):
+                self.resend_unreported(st, time.monotonic(), at_once=True)
 
-    def counter_stats(self) -> dict[str, Any]:
+    def counter_stats(self, st: LearnerRun) -> dict[str, Any]:
         """The counter's stats for this run now (table size, count-1 %, counted): from the
         reply to this tick's bonus query when there was one, else by asking the counter."""
-        st = self.st
-        assert st is not None
         if not st.counting or not st.counter:
             return {}  # no tables: a point says 0 counted, as the one-process trainer
         if st.bonus.tables is not None and st.bonus.fresh:
             return dict(st.bonus.tables)
         for raw in self.bus.get(keys.k_info("counter", st.counter), timeout=1.0):
             try:
-                return dict(json.loads(raw).get("runs", {}).get(self.run_id, {}))
+                return dict(json.loads(raw).get("runs", {}).get(st.run, {}))
             except (ValueError, AttributeError, TypeError):
                 return {}
         return {}
 
-    def send_ack(self) -> None:
-        st = self.st
-        assert st is not None
+    def send_ack(self, st: LearnerRun) -> None:
         st.last_ack = time.monotonic()
         window = WINDOW_EPISODES * st.config.episode_len if st.window_open else 0
         st.ack_pub(
             encode(
                 "ack",
-                self.run_id,
+                st.run,
                 service=self.id,
                 acked=st.received.positions(),
                 window=window,
             )
         )
 
-    def stats(self) -> dict[str, Any]:
-        st = self.st
-        assert st is not None
+    def stats(self, st: LearnerRun) -> dict[str, Any]:
         updates = st.learner.updates
         owed_total = st.owed_total
         wall = time.perf_counter() - st.t0
@@ -783,9 +994,7 @@ class LearnerService(ServiceBase):
             **st.learner.stats(),
         }
 
-    def maybe_finish(self) -> None:
-        st = self.st
-        assert st is not None
+    def maybe_finish(self, st: LearnerRun) -> None:
         # Each actor owes its share of the episodes (whether or not its "completed" came:
         # a learner resumed after it may never see it).
         if any(st.received.expected(a) < st.shares[a] for a in st.actors):
@@ -796,42 +1005,45 @@ class LearnerService(ServiceBase):
             return
         if st.evaluations.unreported:  # every point's row is out (or sent again) first
             return
-        run = self.run_id
-        self.checkpoint()
-        self.retire_log()
-        stats = self.stats()
+        run = st.run
+        self.checkpoint(st)
+        self.retire_log(st)
+        stats = self.stats(st)
         self.publish_metrics(run, stats, source="learner")
         self.publish_status(run, "completed", **stats, resumed=self.resumed)
         self.log.info("run %s completed: %s", run, json.dumps(stats))
-        self.st = None
+        self.drop(st)
         self.free(run)
 
     def on_peer_lost(self, role: str, peer: str) -> None:
         """A peer of the run that died and did not come back within the grace period
         fails the run: an actor's transitions, or the evaluator's rows, cannot come."""
-        st = self.st
-        if role == "evaluator" and st is not None and peer == self.assign.get("evaluator"):
-            self.fail(f"evaluator {peer} died and did not come back within {self.grace_s:g} s")
-            return
-        if role == "actor" and st is not None and peer in st.actors and peer not in st.final:
-            self.fail(
-                f"actor {peer} died before it finished its episodes "
-                f"(not back within {self.grace_s:g} s)"
-            )
+        for st in list(self.runs.values()):
+            if role == "evaluator" and peer == self.assign.get("evaluator"):
+                why = f"evaluator {peer} died and did not come back within {self.grace_s:g} s"
+                self.fail(st, why)
+            elif role == "actor" and peer in st.actors and peer not in st.final:
+                self.fail(
+                    st,
+                    f"actor {peer} died before it finished its episodes "
+                    f"(not back within {self.grace_s:g} s)",
+                )
 
-    def fail(self, reason: str) -> None:
-        run = self.run_id
+    def fail(self, st: LearnerRun, reason: str) -> None:
+        if self.group is not None and st.run in self.group.runs:
+            self.fail_group(reason, list(self.group.runs))
+            return
+        run = st.run
         self.log.error("run %s failed: %s", run, reason)
         self.publish_status(run, "failed", reason=reason)
-        self.st = None
+        self.drop(st)
         self.free(run)
 
-    def checkpoint(self) -> None:
+    def checkpoint(self, st: LearnerRun) -> None:
         """A cut of the run (module doc): everything but the replay rows, which the log
         holds; atomic, the previous cut kept. Taken between ticks, so the buffer, the
         counters and the boundaries owed describe one moment."""
-        st = self.st
-        if st is None or st.folder is None:
+        if st.folder is None:
             return
         st.last_ckpt = time.monotonic()
         if st.log is not None:
@@ -860,7 +1072,7 @@ class LearnerService(ServiceBase):
         st.cut_bytes = path.stat().st_size
         self.log.debug(
             "run %s: cut at episode %d (%d bytes, %.1f ms)",
-            self.run_id,
+            st.run,
             st.episodes,
             st.cut_bytes,
             1e3 * spent,
