@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import io
 import json
 import os
@@ -40,11 +41,13 @@ class ApiCluster:
     endpoint: str
     url: str
     data: Path
+    api_env: dict[str, str] = dataclasses.field(default_factory=dict)
     api_name: str = "api"
 
     def start_api(self, name: str = "api") -> None:
         host_port = self.url.removeprefix("http://")
-        self.procs.start(name, "api", "--listen-http", host_port, "--data-dir", str(self.data))
+        args = ("api", "--listen-http", host_port, "--data-dir", str(self.data))
+        self.procs.start(name, *args, env=self.api_env)
         self.api_name = name
         self.wait_api()
 
@@ -62,8 +65,9 @@ class ApiCluster:
 
 
 @contextlib.contextmanager
-def api_cluster(tmp: Path):
-    """Router, counter, learner, evaluator, one actor and the API, all processes."""
+def api_cluster(tmp: Path, api_env: dict[str, str] | None = None):
+    """Router, counter, learner, evaluator, one actor and the API, all processes
+    (`api_env`: more variables for the API's process)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     # A dead service that does not come back fails its run after this grace (30 s by
     # default): shorter here, where the learner is killed for good.
@@ -75,7 +79,9 @@ def api_cluster(tmp: Path):
         for role in ("counter", "learner", "evaluator"):
             procs.start(role, role, "--id", role, "--data-dir", str(data))
         procs.start("actor0", "actor", "--id", "actor0", "--data-dir", str(data))
-        cluster = ApiCluster(procs, endpoint, f"http://127.0.0.1:{free_port()}", data)
+        cluster = ApiCluster(
+            procs, endpoint, f"http://127.0.0.1:{free_port()}", data, api_env or {}
+        )
         cluster.start_api()
         yield cluster
     finally:

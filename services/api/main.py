@@ -57,6 +57,12 @@ class Settings(BaseSettings):
     sse_poll_s: float = Field(0.25, gt=0)
     counter_grace_s: float = Field(120.0, gt=0)
     start_timeout_s: float = Field(60.0, gt=0)
+    group_size: int = Field(
+        1,
+        ge=1,
+        description="start up to N queued lockstep runs of one experiment that can share "
+        "a group as one run group (one learner, actor and evaluator for them all)",
+    )
     task_modules: list[str] = Field(
         ["mpe2", "pettingzoo", "examples"],
         description="packages a custom task (package.module:factory) may come from (the "
@@ -229,6 +235,7 @@ def make_app(settings: Settings | None = None) -> FastAPI:
             service_id=settings.service_id,
             http_url=settings.url,
             counter_grace_s=settings.counter_grace_s,
+            group_size=settings.group_size,
             start_timeout_s=settings.start_timeout_s,
         )
 

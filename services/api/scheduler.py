@@ -1,8 +1,12 @@
 """The API's scheduler: one thread with its own bus session.
 
 - Assigns queued runs, oldest first, to free services (`shared.control`), and starts
-  them. Services it has started runs on stay reserved until those runs end, so two
-  runs never land on one learner while the services' own info catches up.
+  them. With `group_size` > 1, queued runs of one experiment that can share a group
+  (lockstep, one actor, same task and networks: `shared.group_trainer.group_error`)
+  start together on one learner, actor and evaluator, up to `group_size` runs: a run
+  group, each run keeping its own id, rows and status. Services it has started runs on
+  stay reserved until those runs end, so two runs never land on one learner while the
+  services' own info catches up.
 - Subscribes to each running run's metrics and status keys; Zenoh's callbacks only
   enqueue, and this thread writes every evaluation row, the services' states and
   the latest stats into the store as they arrive. So a run keeps its history
@@ -45,8 +49,9 @@ from services.common import peer_grace_s as peer_grace
 from services.common import restarts
 from shared import bus as keys
 from shared.bus import Bus
-from shared.config import ConfigError, make_config
+from shared.config import ConfigError, TrainConfig, make_config
 from shared.control import NoFreeServices, assign_services, discover, send_start, send_stop
+from shared.group_trainer import group_error, group_key
 from shared.protocol import RunVerdict, run_verdict
 from shared.wire import WireError, decode
 
@@ -136,8 +141,10 @@ class Scheduler:
         reconcile_s: float = 3.0,
         history_timeout_s: float = 2.0,
         peer_grace_s: float | None = None,
+        group_size: int = 1,
     ) -> None:
         self.store = store
+        self.group_size = group_size
         self.connect = connect
         self.service_id = service_id
         self.http_url = http_url
@@ -452,7 +459,10 @@ class Scheduler:
                 info["run"] = info.get("run") or "(reserved)"
         waiting: dict[str, str] = {}
         refused: dict[int, str] = {}  # actors needed -> why not (for this pass)
+        grouped: set[str] = set()  # queued runs started in a group this pass
         for run in queued:
+            if run["id"] in grouped:
+                continue
             if run["actors"] in refused:
                 if run["reason"] != refused[run["actors"]]:
                     waiting[run["id"]] = refused[run["actors"]]
@@ -469,19 +479,53 @@ class Scheduler:
             except ConfigError as err:  # stored by an older API with other rules
                 self.store.finish(run["id"], "failed", f"invalid config: {err}")
                 continue
-            if not self.store.claim(run["id"], assign):
+            members = self._group_of(run, config, queued, grouped)
+            if len(members) > 1:
+                assign["group"] = [m["id"] for m, _ in members]
+            if not self.store.claim_all([m["id"] for m, _ in members], assign):
                 continue  # stopped meanwhile
-            run["assign"] = assign
-            run["services"], run["live"] = {}, {}  # a new attempt: no states of its own yet
-            self._watch(run, time.monotonic())
-            send_start(self.bus, run["id"], config, assign)
-            log.info("run %s started on %s", run["id"], assign)
+            for member, _ in members:
+                member["assign"] = assign
+                member["services"], member["live"] = {}, {}  # a new attempt: no states yet
+                self._watch(member, time.monotonic())
+            for member, member_config in members:
+                send_start(self.bus, member["id"], member_config, assign)
+            grouped.update(m["id"] for m, _ in members)
+            log.info("run %s started on %s", assign.get("group", run["id"]), assign)
             taken = {assign["learner"], assign["evaluator"], *assign["actors"]}
             for info in infos:
                 if info["id"] in taken and info["role"] != "counter":
                     info["run"] = run["id"]
             self._changed()
         self.store.set_waiting(waiting)
+
+    def _group_of(
+        self,
+        run: dict[str, Any],
+        config: TrainConfig,
+        queued: list[dict[str, Any]],
+        taken: set[str],
+    ) -> list[tuple[dict[str, Any], TrainConfig]]:
+        """`run` and the queued runs of its experiment that can share its group (in
+        queue order, at most `group_size`); just `run` when it cannot lead one."""
+        members = [(run, config)]
+        if self.group_size < 2 or group_error([config], run["actors"]) is not None:
+            return members
+        key = group_key(config)
+        for other in queued:
+            if len(members) >= self.group_size:
+                break
+            if other["id"] == run["id"] or other["id"] in taken:
+                continue
+            if other["experiment_id"] != run["experiment_id"] or other["actors"] != 1:
+                continue
+            try:
+                other_config = make_config(other["config"])
+            except ConfigError:
+                continue  # refused when its own turn comes
+            if group_key(other_config) == key and not group_error([other_config], 1):
+                members.append((other, other_config))
+        return members
 
     def _check_runs(self) -> None:
         now = time.monotonic()

@@ -81,6 +81,10 @@ CREATE TABLE IF NOT EXISTS metrics (
 """
 
 
+class _NotAll(Exception):
+    """A group's claim found a run no longer queued (the transaction is rolled back)."""
+
+
 class StoreError(RuntimeError):
     """The store file cannot be used (a newer schema, say)."""
 
@@ -269,13 +273,23 @@ class Store:
 
     def claim(self, run_id: str, assign: dict[str, Any]) -> bool:
         """queued -> running with these services; False if it is no longer queued."""
-        with self.tx() as c:
-            cur = c.execute(
-                "UPDATE runs SET status = 'running', started = ?, assign = ?, reason = NULL"
-                " WHERE id = ? AND status = 'queued'",
-                (time.time(), json.dumps(assign), run_id),
-            )
-            return cur.rowcount == 1
+        return self.claim_all([run_id], assign)
+
+    def claim_all(self, run_ids: list[str], assign: dict[str, Any]) -> bool:
+        """`claim` for the runs of a group: all of them, or none (one stopped meanwhile)."""
+        marks = ",".join("?" * len(run_ids))
+        try:
+            with self.tx() as c:
+                cur = c.execute(
+                    "UPDATE runs SET status = 'running', started = ?, assign = ?, reason = NULL"
+                    f" WHERE id IN ({marks}) AND status = 'queued'",
+                    (time.time(), json.dumps(assign), *run_ids),
+                )
+                if cur.rowcount != len(run_ids):
+                    raise _NotAll  # rolled back: none is claimed
+        except _NotAll:
+            return False
+        return True
 
     def set_waiting(self, reasons: dict[str, str]) -> None:
         """Say what queued runs wait for (run id -> reason), in one transaction."""

@@ -529,6 +529,19 @@ class LearnerService(ServiceBase):
 
     def on_stop(self, run: str, reason: str) -> None:
         self._members.pop(run, None)
+        g = self.group
+        if g is not None and run in g.runs:  # a group steps together: all of it stops
+            for other in g.runs:
+                if other != run and self.serves(other):
+                    self._close(other)
+                    self.publish_status(
+                        other, "stopped", reason=f"{reason} (run {run} of its group)"
+                    )
+                    self.free(other)
+        self._close(run)
+
+    def _close(self, run: str) -> None:
+        """A run ends here: its last cut, its log retired, its state forgotten."""
         st = self.runs.get(run)
         if st is not None:
             self.checkpoint(st)

@@ -1,0 +1,60 @@
+"""Run groups through the API: the scheduler starts an experiment's runs that can share
+a group (`MACB_API_GROUP_SIZE`) on one learner, actor and evaluator, and each run is the
+one-process group's run, bit for bit. Real processes: router, counter, learner,
+evaluator, one actor and the API, over loopback."""
+
+from __future__ import annotations
+
+import httpx
+
+from shared.config import make_config
+from shared.group_trainer import train_group
+from tests.conftest import wait_for
+from tests.test_api_e2e import api_cluster
+from tests.test_lockstep import BASE, CASES, compare
+
+BODY = {**BASE, **CASES["speaker_listener-cen-macb-thesis"]}
+
+
+def finished(url: str, exp_id: str) -> dict | bool:
+    exp = httpx.get(f"{url}/experiments/{exp_id}").json()
+    return exp if exp["status"] not in ("queued", "running") else False
+
+
+def test_the_api_runs_an_experiments_seeds_as_one_group_bit_for_bit(tmp_path):
+    with api_cluster(tmp_path, api_env={"MACB_API_GROUP_SIZE": "3"}) as cluster:
+        url = cluster.url
+        body = {k: v for k, v in BODY.items() if k != "seed"}
+        exp = httpx.post(f"{url}/experiments", json={**body, "seeds": [3, 4, 5]}).json()
+        ids = [r["id"] for r in exp["runs"]]
+        done = wait_for(lambda: finished(url, exp["id"]), timeout=300, what="the experiment")
+        assert done["status"] == "completed", done
+        runs = [httpx.get(f"{url}/runs/{i}").json() for i in ids]
+        for run in runs:  # one group: the same services, the group's runs in order
+            assert run["assign"]["group"] == ids and run["assign"]["actors"] == ["actor0"]
+        configs = [make_config(run["config"]) for run in runs]
+        local = train_group(configs, [tmp_path / f"l{r}" for r in range(3)], progress=False)
+        for r, run_id in enumerate(ids):
+            points = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
+            rows = [{k: v for k, v in p.items() if k != "seq"} for p in points]
+            diffs = compare(rows, local[r])
+            assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
+
+        # Stopping one run of a group stops the group (its runs step together); the
+        # services are then free, and the next experiment runs.
+        longer = {**body, "episodes": 400}
+        exp = httpx.post(f"{url}/experiments", json={**longer, "seeds": [1, 2]}).json()
+        ids = [r["id"] for r in exp["runs"]]
+        wait_for(
+            lambda: all(httpx.get(f"{url}/runs/{i}").json()["status"] == "running" for i in ids),
+            timeout=60,
+            what="the group running",
+        )
+        assert httpx.post(f"{url}/runs/{ids[0]}/stop").status_code in (200, 202)
+        done = wait_for(lambda: finished(url, exp["id"]), timeout=60, what="the group stopped")
+        other = httpx.get(f"{url}/runs/{ids[1]}").json()
+        assert other["status"] in ("stopped", "failed"), other
+        assert ids[0] in (other["reason"] or ""), other
+        exp = httpx.post(f"{url}/experiments", json={**body, "seeds": [7]}).json()
+        done = wait_for(lambda: finished(url, exp["id"]), timeout=120, what="the next run")
+        assert done["status"] == "completed", done
