@@ -113,6 +113,16 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         help="runs at once: N learners and evaluators, N x --actors actors, one counter "
         "(queued runs start on whichever are free)",
     )
+    up.add_argument(
+        "--group-size",
+        type=int,
+        default=1,
+        metavar="N",
+        help="the API starts up to N queued runs of one experiment as one run group when "
+        "they can share one (interleave lockstep, one actor, same task and networks): "
+        "one learner, actor and evaluator serve them all, each run the one-process "
+        "group's (default 1: every run on its own services)",
+    )
     up.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="router endpoint")
     up.add_argument("--data-dir", default="data", help="snapshots, checkpoints, logs")
     up.add_argument("--run", metavar="CONFIG", help="run this experiment, then stop")
@@ -318,9 +328,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     The config is checked before any process starts, and `local_cluster` stops every
     child whichever way this returns, so no process outlives `macb up`.
     """
-    if args.slots < 1:
-        print(f"macb up: --slots must be at least 1, not {args.slots}", file=sys.stderr)
-        return 2
+    for flag, value in (("--slots", args.slots), ("--group-size", args.group_size)):
+        if value < 1:
+            print(f"macb up: {flag} must be at least 1, not {value}", file=sys.stderr)
+            return 2
     try:
         cfg, body = _up_experiment(args)
     except (ConfigError, OSError) as err:
@@ -338,6 +349,7 @@ def cmd_up(args: argparse.Namespace) -> int:
             echo=not args.quiet_services,
             slots=args.slots,
             secrets=secrets,
+            group_size=args.group_size,
         ) as up:
             if cfg is None or up.stop.is_set():
                 return _serve_until_stopped(up.cluster, up.stop)
@@ -389,6 +401,7 @@ def local_cluster(
     echo: bool = True,
     slots: int = 1,
     secrets: str | None = None,
+    group_size: int = 1,
 ) -> Iterator[LocalCluster]:
     """Start the local cluster (`macb up`'s, and `macb reproduce`'s when no API answers)
     and wait for every service and the API; stop every process on the way out, however
@@ -398,7 +411,15 @@ def local_cluster(
 
     if slots < 1:
         raise ValueError(f"--slots must be at least 1, not {slots}")
-    plan = cluster_plan(actors, endpoint, str(data_dir), api=api_addr, slots=slots, secrets=secrets)
+    plan = cluster_plan(
+        actors,
+        endpoint,
+        str(data_dir),
+        api=api_addr,
+        slots=slots,
+        secrets=secrets,
+        group_size=group_size,
+    )
     if secrets:  # every service's files, before any process starts (SecurityError: exit 2)
         from shared.security import Security
 

@@ -24,14 +24,15 @@ from typing import Any
 from shared.config import TrainConfig
 
 
-def add_group_flags(parser: argparse.ArgumentParser) -> None:
-    """`--group-size` and `--jobs`: how `--local` runs split into groups and processes."""
+def add_group_flags(parser: argparse.ArgumentParser, cluster: str = "") -> None:
+    """`--group-size` and `--jobs`: how `--local` runs split into groups and processes
+    (`cluster`: what --group-size does without --local, if anything)."""
     parser.add_argument(
         "--group-size",
         type=int,
         metavar="N",
         help="--local: at most N runs per group (default: the runs that can share one, "
-        "split into --jobs groups)",
+        "split into --jobs groups)" + cluster,
     )
     parser.add_argument(
         "--jobs",

@@ -69,7 +69,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=1,
         metavar="N",
-        help="the local cluster runs N runs at once (see `macb up --slots`)",
+        help="the local cluster serves N runs, or run groups, at once (see `macb up --slots`)",
     )
     rp.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="its router endpoint")
     rp.add_argument(
@@ -88,7 +88,11 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "alone; the thesis's step-by-step loop), each in OUT/runs/<arm>-s<seed>/; the "
         "same command again continues where it stopped (docs/performance.md, 'Run groups')",
     )
-    add_group_flags(rp)
+    add_group_flags(
+        rp,
+        cluster="; through the local cluster this command starts: at most N runs per run "
+        "group (default: the figure's runs split over --slots; see `macb up --group-size`)",
+    )
     rp.add_argument(
         "--threads",
         type=int,
@@ -268,6 +272,7 @@ def _with_local_cluster(
             f"127.0.0.1:{where.port}",
             echo=not args.quiet_services,
             slots=args.slots,
+            group_size=args.group_size or cluster_group_size(body, args.slots),
         ) as up:
             if up.stop.is_set() or up.api is None:
                 return 1
@@ -278,6 +283,12 @@ def _with_local_cluster(
             return code
     except ClusterDidNotStart:
         return 1
+
+
+def cluster_group_size(body: dict[str, Any], slots: int) -> int:
+    """The figure's runs split evenly over the local cluster's slots: one group each."""
+    runs = len(body.get("arms") or [None]) * len(body.get("seeds") or [None])
+    return max(1, -(-runs // slots))
 
 
 class Session:

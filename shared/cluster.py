@@ -52,6 +52,7 @@ def cluster_plan(
     api: str | None = "127.0.0.1:8000",
     slots: int = 1,
     secrets: str | None = None,
+    group_size: int = 1,
 ) -> list[ServiceSpec]:
     """Router first; then counter, learner, evaluator, `actors` actors, and the API last.
 
@@ -64,6 +65,8 @@ def cluster_plan(
     by default; docker-compose listens on all interfaces and connects by host name).
     `api` is the API's HTTP address (None: no API). When the router listens on all
     interfaces (containers), so does the API, which then needs MACB_API_TOKEN.
+    `group_size` > 1: the API starts up to that many queued lockstep runs of one
+    experiment that can share a group as one run group (a slot serves a group).
     `secrets`: a folder `macb certs` wrote; each service then signs in as its own id
     (MACB_ZENOH_USER, the router as `router`) with its files there (docs/deploy.md).
     """
@@ -90,7 +93,8 @@ def cluster_plan(
         if listen and listen.split("/", 1)[-1].startswith("0.0.0.0:"):
             api = "0.0.0.0:" + api.rsplit(":", 1)[1]
         args = ("api", "--id", "api", "--listen-http", api, "--data-dir", data_dir)
-        plan.append(ServiceSpec("api", args, signed_in("api", env)))
+        api_env = (*env, ("MACB_API_GROUP_SIZE", str(group_size))) if group_size > 1 else env
+        plan.append(ServiceSpec("api", args, signed_in("api", api_env)))
     return plan
 
 

@@ -8,6 +8,7 @@ temporary data dir; the store file is read with `Store` between the commands.
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import signal
@@ -148,4 +149,26 @@ def test_reproduce_through_the_cluster_runs_the_thesis_loop_by_default(tmp_path)
         assert run["config"]["interleave"] == "lockstep", run["config"]
         learner = run["services"][run["assign"]["learner"]]
         assert learner["policy_lag"] == 0.0 and learner["replay_ratio"] == 1.0, learner
+        # one slot: the figure's runs are one run group
+        assert sorted(run["assign"]["group"]) == sorted(runs), run["assign"]
     assert cluster_processes(endpoint, tmp_path) == []
+    # ... and each is the run the one-process group gives (`--local`), bit for bit
+    local = tmp_path / "local"
+    argv = [
+        *(sys.executable, "-m", "cli", "reproduce", "fig3", "--episodes", "6"),
+        *("--seeds", "0", "--local", "--out", str(local), "--quiet"),
+    ]
+    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    timing = {"steps_per_sec", "train_steps_per_sec", "wall_s", "run", "run_id"}
+
+    def table(path) -> list[dict]:
+        rows = list(csv.DictReader(path.open()))
+        return sorted(
+            ({k: v for k, v in r.items() if k not in timing} for r in rows),
+            key=lambda r: (r["arm"], r["seed"], int(r["episode"])),
+        )
+
+    cluster_rows, local_rows = table(out / "fig3.csv"), table(local / "fig3.csv")
+    assert len(cluster_rows) == len(local_rows) == len(runs) * 6
+    assert cluster_rows == local_rows
