@@ -171,16 +171,21 @@ def make_collector(
     )
 
 
-def make_vec_collector(cfgs: Sequence[TrainConfig], venv: Any) -> VecCollector:
+def make_vec_collector(cfgs: Sequence[TrainConfig], venv: Any, steps_done: int = 0) -> VecCollector:
     """A group's collector (world r is run r's): each run's noise, seed, terminal time
-    limit and warm-up as `make_collector` gives it alone, so the group trainer and a
-    group's actor service collect alike."""
+    limit and warm-up as `make_collector` gives it alone (`steps_done` too: a group's
+    actor rejoining after a restart), so the group trainer and a group's actor service
+    collect alike."""
+    seeds = [derive_seed(cfg.seed, "actor", 0) for cfg in cfgs]
+    if steps_done:
+        seeds = [derive_seed(seed, "actor-resumed", steps_done) for seed in seeds]
+    warmups = [warmup_share(c.learning_starts, 1) if c.warmup == "random" else 0 for c in cfgs]
     return VecCollector(
         venv,
         [cfg.noise_sigma for cfg in cfgs],
-        [derive_seed(cfg.seed, "actor", 0) for cfg in cfgs],
+        seeds,
         [cfg.time_limit_terminal for cfg in cfgs],
-        [warmup_share(cfg.learning_starts, 1) if cfg.warmup == "random" else 0 for cfg in cfgs],
+        [max(0, w - steps_done) for w in warmups],
     )
 
 

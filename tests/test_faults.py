@@ -63,6 +63,7 @@ class Up:
         log = open(self.data / "up.log", "ab")  # noqa: SIM115 (the child owns it)
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "cli", "up", "--actors", "2", "--endpoint", self.endpoint]
+            + ["--group-size", "3"]
             + ["--api-port", str(self.port), "--data-dir", str(self.data), "--quiet-services"],
             cwd=ROOT,
             env=env,
@@ -168,6 +169,42 @@ def _points(up: Up, run: str) -> int:
     return row["points"] if row else -1
 
 
+def _group_fault(up: Up, fault: str, seeds: list[int], hit, cut: bool) -> list[dict]:
+    """`_fault_run` for a run group: an experiment of len(seeds) lockstep runs (one
+    group: `macb up --group-size 3`), `hit` at its first run's second point; every run
+    must complete exactly."""
+    body = {**CONFIG, "seeds": seeds, "interleave": "lockstep", "name": f"group-{seeds[0]}"}
+    r = httpx.post(f"{up.url}/experiments", json=body, timeout=10)
+    assert r.status_code in (200, 201), r.text
+    ids = [run["id"] for run in r.json()["runs"]]
+    wait_for(lambda: _points(up, ids[0]) >= 2, timeout=180, what="the group's second point")
+    if cut:
+        for run_id in ids:
+            checkpoint = up.data / "learner" / run_id / "checkpoint.pt"
+            wait_for(checkpoint.exists, timeout=60, what="the learner's first cut")
+    at_fault = _points(up, ids[0])
+    t0 = time.monotonic()
+    hit()
+    wait_for(lambda: _points(up, ids[0]) > at_fault, timeout=180, what=f"a point after {fault}")
+    recovery = time.monotonic() - t0
+
+    def ended() -> bool:
+        runs = [_get(up, f"/runs/{i}") or {} for i in ids]
+        return all(run.get("status") not in (None, "queued", "running") for run in runs)
+
+    wait_for(ended, timeout=300, what="the group's end")
+    runs = [_check_exact(up, run_id) for run_id in ids]
+    for run in runs:
+        assert run["assign"]["group"] == ids, run["assign"]
+    up.results[fault] = {  # type: ignore[attr-defined]
+        "recovery_s": round(recovery, 2),
+        "points_at_fault": at_fault,
+        "restarts": up.restarts(),
+        "reasons": [run["reason"] for run in runs],
+    }
+    return runs
+
+
 def _check_exact(up: Up, run_id: str) -> dict:
     run = _get(up, f"/runs/{run_id}")
     assert run is not None
@@ -260,6 +297,28 @@ def test_sigkill_mid_lockstep_run_then_the_run_completes_exactly(up, victim):
     assert up.restarts()[victim] == before + 1, "the supervisor restarted it once"
     learner = run["services"][run["assign"]["learner"]]
     assert learner["policy_lag"] == 0.0
+    wait_for(up.ready, timeout=60, what="every service answering again")
+
+
+GROUP_KILLED = ["learner", "counter", "evaluator", "actor0", "router"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("victim", GROUP_KILLED)
+def test_sigkill_mid_group_then_every_run_of_it_completes_exactly(up, victim):
+    """A group of 3 lockstep runs on one learner, actor and evaluator: a restarted
+    learner resumes the whole group from its runs' cuts and logs, a restarted actor
+    steps every world on from where the learner says, and every count stays exact."""
+    before = up.restarts()[victim]
+    pid = up.pids()[victim]
+    seeds = [70 + 3 * GROUP_KILLED.index(victim) + j for j in range(3)]
+    hit = lambda: _kill(pid, 9)  # noqa: E731
+    runs = _group_fault(up, f"SIGKILL {victim} (group of 3)", seeds, hit, victim == "learner")
+    assert up.restarts()[victim] == before + 1, "the supervisor restarted it once"
+    for run in runs:
+        assert run["services"][run["assign"]["learner"]]["policy_lag"] == 0.0
+        if victim == "learner":
+            assert "resumed from the cut at episode" in (run["reason"] or ""), run["reason"]
     wait_for(up.ready, timeout=60, what="every service answering again")
 
 

@@ -89,6 +89,7 @@ class GroupActor:
     """A lockstep group's worlds and, per run, its numbering and resends."""
 
     runs: list[str]
+    cfgs: list[TrainConfig]
     collector: VecCollector
     senders: dict[str, Sender]
     pubs: dict[str, Callable[[bytes], None]]
@@ -102,6 +103,8 @@ class GroupActor:
     act_wait_s: float = 0.0
     last_stats: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
+    # restarted: the learner's position of each run, until it has said all of them
+    rejoining: dict[str, int] | None = None
 
 
 class ActorService(ServiceBase):
@@ -136,7 +139,10 @@ class ActorService(ServiceBase):
     # ------------------------------------------------------------ lifecycle
     def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
         if assign.get("group"):
-            raise ValueError("a run group cannot resume after an actor restart yet: start it again")
+            self._members[run] = config
+            if set(self._members) == set(assign["group"]):
+                self.open_group(assign, rejoining=True)
+            return
         self.on_start(run, config, assign)
         assert self.st is not None
         self.st.rejoining = True
@@ -201,8 +207,9 @@ class ActorService(ServiceBase):
             self.listen(keys.k_action(run, self.id), "action", run)
         self.publish_status(run, "running", rank=rank, episodes=self.st.todo)
 
-    def open_group(self, assign: dict[str, Any]) -> None:
-        """Every run of the group has its start: their worlds as one VecTask."""
+    def open_group(self, assign: dict[str, Any], rejoining: bool = False) -> None:
+        """Every run of the group has its start: their worlds as one VecTask. After a
+        restart (`rejoining`) it first waits for the learner to say where each run is."""
         runs = list(assign["group"])
         cfgs = [self._members.pop(run) for run in runs]
         learner, counter = assign.get("learner"), assign.get("counter")
@@ -222,6 +229,7 @@ class ActorService(ServiceBase):
         lead = runs[0]
         self.ga = GroupActor(
             runs=runs,
+            cfgs=cfgs,
             collector=make_vec_collector(cfgs, venv),
             senders=senders,
             pubs={run: self.bus.publisher(keys.k_transitions(run, self.id)) for run in runs},
@@ -230,8 +238,31 @@ class ActorService(ServiceBase):
             episode_len=cfgs[0].episode_len,
         )
         self.listen(keys.k_action(lead, self.id), "action", lead)
+        if rejoining:
+            self.ga.rejoining = {}
+            return
         for run in runs:
             self.publish_status(run, "running", rank=0, episodes=self.ga.todo, group=runs)
+
+    def group_rejoin_at(self, ga: GroupActor, positions: dict[str, int]) -> None:
+        """The learner holds `positions` of each run's transitions: every world goes on
+        from the least (a run ahead by a step gets that step again, which the learner
+        and the counter take as a duplicate), with randomness of its own for the rest,
+        as a restarted single actor does."""
+        position = min(positions.values())
+        ga.collector = make_vec_collector(ga.cfgs, ga.collector.venv, steps_done=position)
+        for sender in ga.senders.values():
+            sender.seq = position
+            for svc in sender.acked:
+                sender.acked[svc] = position
+        ga.seq, ga.done = position, position // ga.episode_len
+        ga.rejoining = ga.asked = ga.action = None
+        self.resumed = {"runs": ga.runs, "from_transition": position, "episodes": ga.done}
+        self.log.info("group %s: rejoined at transition %d (%s)", ga.runs, position, positions)
+        for run in ga.runs:
+            self.publish_status(
+                run, "running", rank=0, episodes=ga.todo, group=ga.runs, rejoined_at=position
+            )
 
     def on_stop(self, run: str, reason: str) -> None:
         self.st = None
@@ -247,8 +278,17 @@ class ActorService(ServiceBase):
         if tag != "ack":
             return
         msg = self.decode_for_run(key, payload, "ack")
-        if msg is not None and self.ga is not None and msg["run"] in self.ga.senders:
-            sender = self.ga.senders[msg["run"]]
+        ga = self.ga
+        if msg is not None and ga is not None and msg["run"] in ga.senders:
+            if ga.rejoining is not None:
+                if msg["service"] != self.assign.get("learner"):
+                    return
+                position = msg["acked"].get(self.id, 0)
+                ga.rejoining[msg["run"]] = position if isinstance(position, int) else 0
+                if len(ga.rejoining) == len(ga.runs):
+                    self.group_rejoin_at(ga, ga.rejoining)
+                return
+            sender = ga.senders[msg["run"]]
             sender.on_ack(
                 msg["service"], msg["acked"].get(self.id), time.monotonic(), window=msg["window"]
             )
@@ -353,6 +393,8 @@ class ActorService(ServiceBase):
 
     def group_tick(self, ga: GroupActor) -> bool:
         """`lockstep_tick` for a group: one step of every run's world per answer."""
+        if ga.rejoining is not None:
+            return False
         now = time.monotonic()
         for run, sender in ga.senders.items():
             for payload in sender.due(now):

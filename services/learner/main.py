@@ -43,7 +43,7 @@ import collections
 import json
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -349,17 +349,35 @@ class LearnerService(ServiceBase):
         self.publish_status(run, "running", actors=st.actors)
         self.publish_provenance(st)
 
-    def _fresh(
-        self,
-        run: str,
-        config: TrainConfig,
-        assign: dict[str, Any],
-        member: MemberLearner | None = None,
-    ) -> LearnerRun:
+    def _group(
+        self, runs: list[str], configs: list[TrainConfig], assign: dict[str, Any]
+    ) -> list[LearnerRun]:
+        """A group's learner, request keys and each run's state (open_group, resume_group)."""
+        if why := group_error(configs, len(assign["actors"])):
+            raise ValueError(why)
+        spec = task_spec_for(configs[0])
+        torch.set_num_threads(configs[0].threads)
+        learner = GroupMADDPG(
+            agent_dims(spec),
+            [learner_spec(c) for c in configs],
+            precision=configs[0].precision,
+            device=configs[0].device,
+        )
+        actor, lead = assign["actors"][0], runs[0]
+        self.group = LockstepGroup(
+            runs, learner, actor, self.bus.publisher(keys.k_action(lead, actor))
+        )
+        self.listen(keys.k_act(lead, "*"), "act_request", lead)
+        return [
+            self._open_run(run, config, assign, MemberLearner(learner, r))
+            for r, (run, config) in enumerate(zip(runs, configs))
+        ]
+
+    def _fresh(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> LearnerRun:
         folder = self.data_dir / "learner" / run
         for old in ("transitions.wal", "checkpoint.pt", "checkpoint.prev.pt"):
             (folder / old).unlink(missing_ok=True)  # an earlier attempt of this run
-        st = self._open_run(run, config, assign, member)
+        st = self._open_run(run, config, assign)
         self._logged(st)
         return st
 
@@ -368,26 +386,13 @@ class LearnerService(ServiceBase):
         `assign["group"]` is member r), each run's own intake, replay, sampler, bonus
         queries, boundaries, evaluation points and cuts."""
         runs = list(assign["group"])
-        configs = [self._members.pop(run) for run in runs]
         try:
-            if why := group_error(configs, len(assign["actors"])):
-                raise ValueError(why)
-            spec = task_spec_for(configs[0])
-            torch.set_num_threads(configs[0].threads)
-            learner = GroupMADDPG(
-                agent_dims(spec),
-                [learner_spec(c) for c in configs],
-                precision=configs[0].precision,
-                device=configs[0].device,
-            )
-            actor = assign["actors"][0]
-            lead = runs[0]
-            self.group = LockstepGroup(
-                runs, learner, actor, self.bus.publisher(keys.k_action(lead, actor))
-            )
-            self.listen(keys.k_act(lead, "*"), "act_request", lead)
-            for r, (run, config) in enumerate(zip(runs, configs)):
-                self._fresh(run, config, assign, MemberLearner(learner, r))
+            configs = [self._members.pop(run) for run in runs]
+            for run in runs:  # an earlier attempt's files
+                for old in ("transitions.wal", "checkpoint.pt", "checkpoint.prev.pt"):
+                    (self.data_dir / "learner" / run / old).unlink(missing_ok=True)
+            for st in self._group(runs, configs, assign):
+                self._logged(st)
         except Exception as err:
             self.log.exception("group %s failed to start", runs)
             self.fail_group(f"{type(err).__name__}: {err}", runs)
@@ -401,18 +406,34 @@ class LearnerService(ServiceBase):
     def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
         """Restarted mid-run: the newest good cut, then the log beyond it (module doc)."""
         if assign.get("group"):
-            raise ValueError(
-                "a run group cannot resume after a learner restart yet: start it again"
-            )
+            self._members[run] = config
+            if set(self._members) == set(assign["group"]):
+                self.resume_group(assign)
+            return
         t0 = time.perf_counter()
         st = self._open_run(run, config, assign)
         records, _ = self._logged(st)
-        cut = self._load_cut(st)
+        cut = None
+        for _, state in self._cuts(st):  # the newest good one
+            st.learner.load_state_dict(state["learner"])
+            cut = self._apply_cut(st, state)
+            break
+        self._replay(st, records, cut)
+        self.resumed = self._resumed(st, cut, t0)
+        self.publish_weights(st, eval_point=-1)
+        self.publish_status(run, "running", actors=st.actors, resumed=self.resumed)
+        self.publish_provenance(st)
+        self.send_ack(st)  # the actors go on from what the log holds
+
+    def _replay(self, st: LearnerRun, records: list, cut: int | None) -> None:
+        """The log beyond the cut: batches in replay at the cut refill the buffer; those
+        taken but not yet counted wait for the counter's ack again."""
+        st.resumed_from = cut
         for rec in records:
             rows = _columns(rec.keys, rec.n)
             if not st.received.take(rec.actor, rec.seq, rec.n).took:
                 self.log.warning(
-                    "run %s: logged batch %s@%d out of order: skipped", run, rec.actor, rec.seq
+                    "run %s: logged batch %s@%d out of order: skipped", st.run, rec.actor, rec.seq
                 )
                 continue
             # Newer than any version an actor acted with: the lags stay >= 0.
@@ -421,30 +442,62 @@ class LearnerService(ServiceBase):
                 st.buffer.add(rows["obs"], rows["act"], rows["rew"], rows["next_obs"], rows["done"])
             else:  # taken, not yet counted at the cut: waits for the counter's ack again
                 st.held[rec.actor].append({"actor": rec.actor, "seq": rec.seq, **rows})
-        st.resumed_from = cut
+
+    def _resumed(self, st: LearnerRun, cut: int | None, t0: float) -> dict[str, Any]:
         held = sum(len(h) for h in st.held.values())
-        self.resumed = {
-            "run": run,
-            "from_episode": cut,
-            "updates": st.learner.updates,
-            "replay_rows": len(st.buffer),
-            "held_batches": held,
-            "seconds": round(time.perf_counter() - t0, 3),
-        }
         self.log.info(
             "run %s resumed from the cut at episode %s (%d updates, %d replay rows, "
             "%d logged batches beyond it) in %.2f s",
-            run,
+            st.run,
             cut,
             st.learner.updates,
             len(st.buffer),
             held,
             time.perf_counter() - t0,
         )
-        self.publish_weights(st, eval_point=-1)
-        self.publish_status(run, "running", actors=st.actors, resumed=self.resumed)
-        self.publish_provenance(st)
-        self.send_ack(st)  # the actors go on from what the log holds
+        return {
+            "run": st.run,
+            "from_episode": cut,
+            "updates": st.learner.updates,
+            "replay_rows": len(st.buffer),
+            "held_batches": held,
+            "seconds": round(time.perf_counter() - t0, 3),
+        }
+
+    def resume_group(self, assign: dict[str, Any]) -> None:
+        """Restarted mid-group: every run from its cut at the newest update all of them
+        have a cut of (a group's cuts are written together; a kill between two runs'
+        files leaves the one before for some), then each run's log beyond it."""
+        t0 = time.perf_counter()
+        runs = list(assign["group"])
+        try:
+            sts = self._group(runs, [self._members.pop(run) for run in runs], assign)
+            records = [self._logged(st)[0] for st in sts]
+            options = [
+                {int(state["counters"]["updates"]): state for _, state in self._cuts(st)}
+                for st in sts
+            ]
+            common = set.intersection(*(set(o) for o in options))
+            cuts: list[int | None] = [None] * len(sts)
+            if common:
+                states = [o[max(common)] for o in options]
+                assert self.group is not None
+                self.group.learner.load_run_state_dicts([s["learner"] for s in states])
+                cuts = [self._apply_cut(st, state) for st, state in zip(sts, states)]
+            elif any(options):
+                self.log.warning("group %s: no update all runs have a cut of: the logs", runs)
+            for st, recs, cut in zip(sts, records, cuts):
+                self._replay(st, recs, cut)
+        except Exception as err:
+            self.log.exception("group %s failed to resume", runs)
+            self.fail_group(f"{type(err).__name__}: {err}", runs)
+            return
+        resumed = [self._resumed(st, cut, t0) for st, cut in zip(sts, cuts)]
+        self.resumed = {**resumed[0], "group": runs}
+        for st, info in zip(sts, resumed):
+            self.publish_status(st.run, "running", actors=st.actors, group=runs, resumed=info)
+            self.publish_provenance(st)
+            self.send_ack(st)
 
     def publish_provenance(self, st: LearnerRun) -> None:
         """What this start of the run runs on (shared/provenance.py), once: the API keeps
@@ -808,10 +861,17 @@ class LearnerService(ServiceBase):
         seq, obs = g.wanted
         for run in g.runs:
             st = self.runs.get(run)
-            if st is None or seq != st.ingested_pos.get(g.actor, 0) or st.held[g.actor]:
+            if st is None:
                 return
+            taken = st.received.expected(g.actor)
+            if taken > seq:
+                # ahead by this step (an actor restarted between publishing one run's
+                # step and another's): it comes again as a duplicate after this answer
+                continue
+            if taken < seq or st.ingested_pos.get(g.actor, 0) != seq or st.held[g.actor]:
+                return  # a step before it is not in replay yet (or not counted)
             if g.learner.updates < st.owed_total or st.boundaries:
-                return
+                return  # its updates (and the weights of an episode's end) come first
         act = g.learner.act(obs[:, None])[:, 0].astype(np.float32)
         payload = encode("action", g.runs[0], seq=seq, act=act)
         g.wanted, g.answered = None, (seq, payload)
@@ -1091,11 +1151,11 @@ class LearnerService(ServiceBase):
             1e3 * spent,
         )
 
-    def _load_cut(self, st: LearnerRun) -> int | None:
-        """Load the newest good cut into `st`; its episode, or None (no cut: the log
-        alone, from the initial weights). An unreadable cut is renamed `*.refused`,
-        named in the log, and the previous one is used; a cut of another config or
-        format raises CutError naming the field, with nothing renamed or written."""
+    def _cuts(self, st: LearnerRun) -> Iterator[tuple[Path, dict[str, Any]]]:
+        """The run's good cuts, newest first (none: the log alone, from the initial
+        weights). An unreadable cut is renamed `*.refused`, named in the log, and the
+        previous one is used; a cut of another config or format raises CutError naming
+        the field, with nothing renamed or written."""
         assert st.folder is not None
         mine = st.config.model_dump(mode="json")
         for name in ("checkpoint.pt", "checkpoint.prev.pt"):
@@ -1104,7 +1164,7 @@ class LearnerService(ServiceBase):
                 continue
             try:
                 state = torch.load(path, weights_only=True)
-                counters = state["counters"]
+                int(state["counters"]["updates"])
             except Exception as err:
                 self.log.warning(
                     "refusing cut %s: unreadable (%s); trying the one before", path, err
@@ -1118,16 +1178,20 @@ class LearnerService(ServiceBase):
             diff = config_difference(json.loads(state["config"]), mine)
             if diff is not None:
                 raise CutError(f"{path}: written by another config ({diff})")
-            st.learner.load_state_dict(state["learner"])
-            st.ingested = int(counters["ingested"])
-            st.episodes = int(counters["episodes"])
-            st.version = int(counters["version"])
-            st.collisions_cum = int(counters["collisions_cum"])
-            st.ingested_pos = {str(a): int(p) for a, p in state["ingested_pos"].items()}
-            st.boundaries = collections.deque(Boundary(*map(int, b)) for b in state["boundaries"])
-            st.rng.bit_generator.state = json.loads(state["rng"])
-            return st.episodes
-        return None
+            yield path, state
+
+    def _apply_cut(self, st: LearnerRun, state: dict[str, Any]) -> int:
+        """A cut's counters, boundaries and sampler into `st` (its learner is loaded
+        apart: a group's runs load together); the cut's episode."""
+        counters = state["counters"]
+        st.ingested = int(counters["ingested"])
+        st.episodes = int(counters["episodes"])
+        st.version = int(counters["version"])
+        st.collisions_cum = int(counters["collisions_cum"])
+        st.ingested_pos = {str(a): int(p) for a, p in state["ingested_pos"].items()}
+        st.boundaries = collections.deque(Boundary(*map(int, b)) for b in state["boundaries"])
+        st.rng.bit_generator.state = json.loads(state["rng"])
+        return st.episodes
 
 
 def _log_columns(msg: dict[str, Any]) -> list[np.ndarray]:
