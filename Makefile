@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test test-slow test-compose lint bench clean
+.PHONY: setup run test test-slow test-compose soak lint bench clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH"; exit 1; }
@@ -30,13 +30,18 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python -m pytest -q -rs -m "not slow"
+	$(BIN)/python -m pytest -q -rs -m "not slow and not soak"
 
 # The long checks: learning (DDPG learns sparse simple; bf16 learns like fp32; the
 # cluster learns like the trainer), the fault matrix, `macb reproduce` end to end:
 # ~19 minutes. `.ci/run` runs them after `make test`.
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -rs -m slow
+
+# A run group at thesis settings under a random fault every 10-60 s for 20 minutes
+# (MACB_SOAK_MINUTES), then every count checked (tests/test_soak.py): ~25-35 minutes.
+soak: $(STAMP)
+	$(BIN)/python -m pytest -q -rs -s -m soak tests/test_soak.py
 
 # docker-compose.yml's cluster in containers (tests/test_compose.py): installs Debian's
 # docker.io, docker-compose and debootstrap when missing (as root; else it skips, saying

@@ -15,17 +15,24 @@ against
 `e2e` (whole processes, rotating rounds): figure 8's sparse pair (its sparse Cen-MACB
 and sparse Cen-MADDPG arms, 3 seeds each: 6 runs) for --episodes episodes with an
 evaluation after every episode (the thesis's protocol), as one run group in one
-process (`GroupRun`), against `macb up --slots 2` running two seeds of the Cen-MACB arm
-(what `macb reproduce --slots 2` runs at a time). Each side's rate is run-steps/s: the
-group's from its own timing, the cluster's total over its two runs (steady rates, as
-bench_slots.py takes them). The group's share of wall time in acting and stepping the
-worlds and in evaluation is reported; from the rates, figure 8's headline pair (2.1e6
-updates: 2 arms x 3 seeds x 17,500 episodes x 20 steps) in hours.
+process (`GroupRun`), against
+* `cluster`: `macb up --slots 2` running two seeds of the Cen-MACB arm asynchronously
+  (what `macb reproduce --slots 2 --interleave async` runs at a time);
+* `cluster-group`: the same six runs as one lockstep run group on the cluster's
+  services (router, counter, learner, evaluator, one actor as processes; `start_group`):
+  what `macb reproduce` runs through the cluster, each run the group's bit for bit. Its
+  rate is the runs' env steps at their last point over the learner's clock then.
+
+Each side's rate is run-steps/s: the group's from its own timing, the `cluster`'s total
+over its two runs (steady rates, as bench_slots.py takes them). The group's share of
+wall time in acting and stepping the worlds and in evaluation is reported; from the
+rates, figure 8's headline pair (2.1e6 updates: 2 arms x 3 seeds x 17,500 episodes x 20
+steps) in hours.
 
     .venv/bin/python benchmarks/bench_group.py update [--runs 6] [--rounds 7]
         [--precision fp32 bf16] [--threads 1]
     .venv/bin/python benchmarks/bench_group.py e2e [--episodes 60] [--rounds 3]
-        [--precision fp32] [--threads 2] [--no-cluster]
+        [--precision fp32] [--threads 2] [--cluster [cluster] [cluster-group]]
 """
 
 from __future__ import annotations
@@ -190,11 +197,9 @@ def bench_update(args: argparse.Namespace) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------- e2e
-def group_child(spec: str) -> None:
-    """In a process of its own: the group run of `spec` (JSON), its rate and shares."""
-    opts = json.loads(spec)
+def fig8_pair(opts: dict[str, Any]) -> list:
+    """Figure 8's sparse pair: its Cen-MACB and Cen-MADDPG arms, seeds 0-2 (6 runs)."""
     from shared.config import make_config, read_config_file
-    from shared.group_trainer import GroupRun
 
     cfgs = []
     for arm in ("sparse-cen-macb", "sparse"):
@@ -202,8 +207,18 @@ def group_child(spec: str) -> None:
         data.pop("seeds")
         for seed in (0, 1, 2):
             over = {"seed": seed, "episodes": opts["episodes"], "precision": opts["precision"],
-                    "threads": opts["threads"]}  # fmt: skip
+                    "threads": opts["threads"], "interleave": "lockstep",
+                    "eval_every": 1}  # fmt: skip
             cfgs.append(make_config({**data, **over}))
+    return cfgs
+
+
+def group_child(spec: str) -> None:
+    """In a process of its own: the group run of `spec` (JSON), its rate and shares."""
+    opts = json.loads(spec)
+    from shared.group_trainer import GroupRun
+
+    cfgs = fig8_pair(opts)
     jobs, job = opts.get("jobs", 1), opts.get("job", 0)
     cfgs = cfgs[job::jobs]  # this process's share of the six runs
     from threadpoolctl import threadpool_limits
@@ -233,13 +248,47 @@ def cluster_rate(args: argparse.Namespace, work: Path) -> float:
     return float(bench_slots.run_variant(2, ns, work)["total"])
 
 
+def cluster_group_rate(args: argparse.Namespace, work: Path) -> dict[str, float]:
+    """The six runs as one lockstep group on the cluster's services."""
+    from _harness import Services
+
+    from shared.bus import Bus
+    from shared.cluster import cluster_plan, free_port
+    from shared.control import discover, start_group
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    plan = cluster_plan(1, endpoint, str(work / "data"), api=None)
+    services = Services(plan, work / "logs")
+    services.start()
+    try:
+        with Bus([endpoint]) as bus:
+            deadline = time.monotonic() + 120
+            while len(discover(bus)) < 4:
+                if time.monotonic() > deadline:
+                    raise SystemExit(f"the cluster's services did not come up ({work / 'logs'})")
+                time.sleep(0.2)
+            cfgs = fig8_pair({"episodes": args.episodes, "precision": args.precision,
+                              "threads": args.threads})  # fmt: skip
+            t0 = time.monotonic()
+            watches = start_group(bus, cfgs)
+            for w in watches:
+                if w.wait(timeout=3600) != "completed":
+                    raise SystemExit(f"a run of the group ended {w.state()}: {w.states}")
+            wall = time.monotonic() - t0
+            last = [max(w.rows, key=lambda r: r["episode"]) for w in watches]
+    finally:
+        services.stop()
+    steps = sum(r["env_steps"] for r in last)
+    return {"run_steps_per_s": steps / max(r["wall_s"] for r in last), "command_wall_s": wall}
+
+
 def bench_e2e(args: argparse.Namespace) -> dict[str, Any]:
     spec = json.dumps(
         {"episodes": args.episodes, "precision": args.precision, "threads": args.threads}
     )
     if 6 % args.jobs:
         raise SystemExit("--jobs must divide the 6 runs (1, 2, 3 or 6)")
-    cases = ["group"] + ([] if args.no_cluster else ["cluster"])
+    cases = ["group"] + [c for c in ("cluster", "cluster-group") if c in args.cluster]
     got: dict[str, list] = {c: [] for c in cases}
     for r, case in rotating_rounds(args.rounds, cases):
         progress(f"e2e round {r + 1}/{args.rounds}: {case} (load {os.getloadavg()[0]:.2f}) ...")
@@ -275,9 +324,12 @@ def bench_e2e(args: argparse.Namespace) -> dict[str, Any]:
                     "precision": parts[0]["precision"],
                 }
             )
-        else:
+        elif case == "cluster":
             with tempfile.TemporaryDirectory(prefix="bench-group-") as tmp:
                 got["cluster"].append(cluster_rate(args, Path(tmp)))
+        else:
+            with tempfile.TemporaryDirectory(prefix="bench-group-") as tmp:
+                got["cluster-group"].append(cluster_group_rate(args, Path(tmp)))
     rates = [g["run_steps_per_s"] for g in got["group"]]
     shares = {
         k: statistics.median(g["timing"][k] / g["wall_s"] for g in got["group"])
@@ -295,6 +347,20 @@ def bench_e2e(args: argparse.Namespace) -> dict[str, Any]:
         ),
         "fig8_pair_hours_group": FIG8_PAIR_RUN_STEPS / statistics.median(rates) / 3600,
     }
+    if got.get("cluster-group"):
+        lock = [g["run_steps_per_s"] for g in got["cluster-group"]]
+        row["cluster_group_run_steps_per_s"] = statistics.median(lock)
+        row["cluster_group_over_group"] = ratio_median(lock, rates)
+        row["cluster_group_wall_s"] = statistics.median(
+            g["command_wall_s"] for g in got["cluster-group"]
+        )
+        row["group_wall_s"] = statistics.median(g["wall_s"] for g in got["group"])
+        print(
+            f"\nlockstep group on the cluster: {row['cluster_group_run_steps_per_s']:.0f} "
+            f"run-steps/s, {row['cluster_group_over_group']:.2f}x the one-process group's "
+            f"({row['group_run_steps_per_s']:.0f}); wall {row['cluster_group_wall_s']:.1f} s "
+            f"(start to the last run's end) vs the group's loop {row['group_wall_s']:.1f} s"
+        )
     if got.get("cluster"):
         row["cluster_run_steps_per_s"] = statistics.median(got["cluster"])
         row["group_over_cluster"] = ratio_median(rates, got["cluster"])
@@ -333,7 +399,11 @@ def main(argv: list[str] | None = None) -> None:
     e2e.add_argument("--rounds", type=int, default=3)
     e2e.add_argument("--threads", type=int, default=2)
     e2e.add_argument("--precision", default="fp32")
-    e2e.add_argument("--no-cluster", action="store_true", help="the group alone")
+    e2e.add_argument(
+        "--cluster", nargs="*", default=["cluster", "cluster-group"],
+        choices=["cluster", "cluster-group"],
+        help="the cluster variants beside the one-process group (none: the group alone)",
+    )  # fmt: skip
     e2e.add_argument(
         "--jobs", type=int, default=1,
         help="the six runs as this many groups, one process each (each with --threads)",

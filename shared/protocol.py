@@ -215,6 +215,43 @@ class Sender:
         return not self.unacked
 
 
+@dataclass
+class Rejoin:
+    """Where a restarted actor goes on with each of its runs: the least of what the
+    learner and (for a counting run) the counter acknowledge of it. Both matter: after
+    two faults at once one of them may lack a batch the dead actor had in flight, and
+    only a batch sent again (collected anew from there) fills it; the other drops it as
+    a duplicate. The counter acknowledges only runs it has counted something of, so it
+    is waited for at most `counter_wait_s`, then the learner's position is taken."""
+
+    learner: str
+    counter: str | None  # None: the run counts nothing
+    since: float
+    counter_wait_s: float = 3.0
+    learner_at: dict[str, int] = field(default_factory=dict)  # run -> position
+    counter_at: dict[str, int] = field(default_factory=dict)
+
+    def ack(self, run: str, service: str, position: Any) -> None:
+        if not isinstance(position, int) or isinstance(position, bool) or position < 0:
+            return
+        if service == self.learner:
+            self.learner_at[run] = position
+        elif service == self.counter:
+            self.counter_at[run] = position
+
+    def positions(self, runs: list[str], now: float) -> dict[str, int] | None:
+        """Each run's position once known (None: keep waiting)."""
+        if any(run not in self.learner_at for run in runs):
+            return None
+        waited = now - self.since >= self.counter_wait_s
+        if self.counter and not waited and any(run not in self.counter_at for run in runs):
+            return None
+        return {
+            run: min(self.learner_at[run], self.counter_at.get(run, self.learner_at[run]))
+            for run in runs
+        }
+
+
 # ----------------------------------------------------------------------- run status
 RUN_STATES = ("running", "finishing", "completed", "stopped", "failed")
 

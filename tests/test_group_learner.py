@@ -118,6 +118,26 @@ def test_state_round_trip_continues_alike():
         assert_same_state(copy.run_state_dict(r), group.run_state_dict(r), f"run {r}")
 
 
+@pytest.mark.parametrize("task,algo", [("simple", "ddpg"), ("speaker_listener", "cen-maddpg")])
+def test_a_runs_actor_weights_are_those_of_its_learner_alone(task, algo):
+    """What the evaluator loads for run r (read in place) equals run r's learner's own
+    actor_weights, after updates, for every run of the group."""
+    agents = agents_of(task)
+    specs = [LearnerSpec(algo=algo, hidden=(32, 32), seed=s) for s in (0, 1, 2)]
+    group = GroupMADDPG(agents, specs)
+    rng = np.random.default_rng(4)
+    for _ in range(2):
+        group.update(*(np.stack(c) for c in zip(*[batch(rng, agents, 8, False) for _ in specs])))
+    for r in range(3):
+        mine = group.run_actor_weights(r)
+        alone = group.run_learner(r).actor_weights()
+        assert len(mine) == len(alone) == len(agents)
+        for a, b in zip(mine, alone):
+            assert_same_state(a, b, f"run {r}")
+    assert not torch.equal(group.run_actor_weights(0)[0]["net.0.weight"],
+                           group.run_actor_weights(1)[0]["net.0.weight"])  # fmt: skip
+
+
 def test_refuses_runs_that_cannot_share_an_update():
     agents = agents_of("simple")
     with pytest.raises(ValueError, match="lr_actor"):

@@ -342,3 +342,23 @@ def test_a_batch_lost_in_a_router_restart_makes_a_gap_not_a_lost_count():
         deliver(seq)
     assert counted == list(range(2 * n)) and counter.gaps == 1
     assert counter.gaps <= sender.resends and sender.settled
+
+
+def test_a_rejoining_actor_goes_on_from_the_least_of_the_learners_and_the_counters():
+    from shared.protocol import Rejoin
+
+    r = Rejoin("learner", "counter", since=100.0)
+    r.ack("a", "learner", 41)
+    assert r.positions(["a"], now=100.5) is None  # the counter's is waited for
+    r.ack("a", "counter", 40)  # it lacks the step the dead actor had in flight
+    assert r.positions(["a"], now=100.5) == {"a": 40}
+    r.ack("a", "other", 7)  # another service's ack says nothing
+    r.ack("a", "counter", "x")  # nor a malformed one
+    assert r.positions(["a"], now=100.5) == {"a": 40}
+    assert r.positions(["a", "b"], now=100.5) is None  # a group: every run first
+    r.ack("b", "learner", 40)
+    assert r.positions(["a", "b"], now=102.0) is None
+    assert r.positions(["a", "b"], now=103.5) == {"a": 40, "b": 40}  # waited long enough
+    alone = Rejoin("learner", None, since=0.0)  # a run that counts nothing
+    alone.ack("a", "learner", 60)
+    assert alone.positions(["a"], now=0.0) == {"a": 60}

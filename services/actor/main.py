@@ -44,7 +44,7 @@ from services.common import ServiceBase
 from shared import bus as keys
 from shared.config import TrainConfig
 from shared.networks import JointPolicy
-from shared.protocol import Sender, episode_share
+from shared.protocol import Rejoin, Sender, episode_share
 from shared.rollout import Collector, VecCollector, make_collector, make_vec_collector
 from shared.tasks import TaskEnv, make_task_for
 from shared.vectask import vectorize
@@ -71,7 +71,7 @@ class ActorRun:
     pub: Callable[[bytes], None]
     version: int = -1  # weights version acting now; -1 until the learner's first weights
     incarnation: Any = None  # the learner process whose weights those are
-    rejoining: bool = False  # restarted: waiting for the learner to say where to go on
+    rejoin: Rejoin | None = None  # restarted: waiting to hear where to go on
     done: int = 0
     steps: int = 0
     last_stats: float = 0.0
@@ -104,7 +104,7 @@ class GroupActor:
     last_stats: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
     # restarted: the learner's position of each run, until it has said all of them
-    rejoining: dict[str, int] | None = None
+    rejoin: Rejoin | None = None
 
 
 class ActorService(ServiceBase):
@@ -145,10 +145,16 @@ class ActorService(ServiceBase):
             return
         self.on_start(run, config, assign)
         assert self.st is not None
-        self.st.rejoining = True
+        self.st.rejoin = self._rejoin_from(assign, [config])
+
+    def _rejoin_from(self, assign: dict[str, Any], cfgs: list[TrainConfig]) -> Rejoin:
+        counting = any(c.explore in ("dis-macb", "cen-macb") for c in cfgs)
+        counter = assign.get("counter") if counting else None
+        return Rejoin(assign.get("learner", ""), counter, since=time.monotonic())
 
     def _rejoin_at(self, position: int) -> None:
-        """The learner holds `position` of our transitions: go on from there."""
+        """The learner and the counter hold `position` of our transitions (the least
+        of theirs: `shared.protocol.Rejoin`): go on from there."""
         st, cfg = self.st, self.config
         assert st is not None and cfg is not None
         if not st.lockstep:  # whole episodes only (they always are)
@@ -160,7 +166,7 @@ class ActorService(ServiceBase):
         st.collector = make_collector(
             cfg, st.env, st.rank, len(self.assign["actors"]), steps_done=position
         )
-        st.rejoining = False
+        st.rejoin = None
         self.resumed = {"run": self.run_id, "from_transition": position, "episodes": st.done}
         self.log.info(
             "run %s: rejoined at transition %d (%d of %d episodes done)",
@@ -209,7 +215,7 @@ class ActorService(ServiceBase):
 
     def open_group(self, assign: dict[str, Any], rejoining: bool = False) -> None:
         """Every run of the group has its start: their worlds as one VecTask. After a
-        restart (`rejoining`) it first waits for the learner to say where each run is."""
+        restart (`rejoining`) it first waits to hear where each run is."""
         runs = list(assign["group"])
         cfgs = [self._members.pop(run) for run in runs]
         learner, counter = assign.get("learner"), assign.get("counter")
@@ -239,16 +245,17 @@ class ActorService(ServiceBase):
         )
         self.listen(keys.k_action(lead, self.id), "action", lead)
         if rejoining:
-            self.ga.rejoining = {}
+            self.ga.rejoin = self._rejoin_from(assign, cfgs)
             return
         for run in runs:
             self.publish_status(run, "running", rank=0, episodes=self.ga.todo, group=runs)
 
     def group_rejoin_at(self, ga: GroupActor, positions: dict[str, int]) -> None:
-        """The learner holds `positions` of each run's transitions: every world goes on
-        from the least (a run ahead by a step gets that step again, which the learner
-        and the counter take as a duplicate), with randomness of its own for the rest,
-        as a restarted single actor does."""
+        """The learner and the counter hold `positions` of each run's transitions (the
+        least of theirs: `shared.protocol.Rejoin`): every world goes on from the least
+        (a run ahead by a step gets that step again, which the learner and the counter
+        take as a duplicate), with randomness of its own for the rest, as a restarted
+        single actor does."""
         position = min(positions.values())
         ga.collector = make_vec_collector(ga.cfgs, ga.collector.venv, steps_done=position)
         for sender in ga.senders.values():
@@ -256,7 +263,7 @@ class ActorService(ServiceBase):
             for svc in sender.acked:
                 sender.acked[svc] = position
         ga.seq, ga.done = position, position // ga.episode_len
-        ga.rejoining = ga.asked = ga.action = None
+        ga.rejoin = ga.asked = ga.action = None
         self.resumed = {"runs": ga.runs, "from_transition": position, "episodes": ga.done}
         self.log.info("group %s: rejoined at transition %d (%s)", ga.runs, position, positions)
         for run in ga.runs:
@@ -280,13 +287,9 @@ class ActorService(ServiceBase):
         msg = self.decode_for_run(key, payload, "ack")
         ga = self.ga
         if msg is not None and ga is not None and msg["run"] in ga.senders:
-            if ga.rejoining is not None:
-                if msg["service"] != self.assign.get("learner"):
-                    return
-                position = msg["acked"].get(self.id, 0)
-                ga.rejoining[msg["run"]] = position if isinstance(position, int) else 0
-                if len(ga.rejoining) == len(ga.runs):
-                    self.group_rejoin_at(ga, ga.rejoining)
+            if ga.rejoin is not None:
+                ga.rejoin.ack(msg["run"], msg["service"], msg["acked"].get(self.id))
+                self.rejoin_if_known()
                 return
             sender = ga.senders[msg["run"]]
             sender.on_ack(
@@ -295,14 +298,24 @@ class ActorService(ServiceBase):
             return
         if msg is None or self.st is None:
             return
-        if self.st.rejoining:
-            if msg["service"] != self.assign.get("learner"):
-                return
-            position = msg["acked"].get(self.id, 0)
-            self._rejoin_at(position if isinstance(position, int) else 0)
+        if self.st.rejoin is not None:
+            self.st.rejoin.ack(msg["run"], msg["service"], msg["acked"].get(self.id))
+            self.rejoin_if_known()
         self.st.sender.on_ack(
             msg["service"], msg["acked"].get(self.id), time.monotonic(), window=msg["window"]
         )
+
+    def rejoin_if_known(self) -> None:
+        """Rejoining: go on once the positions are known (or the counter's wait is over)."""
+        now = time.monotonic()
+        if self.ga is not None and self.ga.rejoin is not None:
+            positions = self.ga.rejoin.positions(self.ga.runs, now)
+            if positions is not None:
+                self.group_rejoin_at(self.ga, positions)
+        elif self.st is not None and self.st.rejoin is not None and self.run_id:
+            positions = self.st.rejoin.positions([self.run_id], now)
+            if positions is not None:
+                self._rejoin_at(positions[self.run_id])
 
     def load_newest_weights(self) -> None:
         st = self.st
@@ -352,8 +365,11 @@ class ActorService(ServiceBase):
         if st.lockstep:
             return self.lockstep_tick()
         self.load_newest_weights()
-        if st.version < 0 or st.rejoining:
-            return False  # wait for the learner's weights (and, rejoining, its ack)
+        if st.rejoin is not None:
+            self.rejoin_if_known()
+            return False  # rejoining: wait for the acks that say where to go on
+        if st.version < 0:
+            return False  # wait for the learner's weights
         self.resend_and_report(time.monotonic())
         if st.done < st.todo:
             if st.sender.can_send(self.config.episode_len):
@@ -367,7 +383,8 @@ class ActorService(ServiceBase):
         once (the learner answers it after learning this one)."""
         st = self.st
         assert st is not None and st.act_pub is not None
-        if st.rejoining:
+        if st.rejoin is not None:
+            self.rejoin_if_known()
             return False
         now = time.monotonic()
         self.resend_and_report(now)
@@ -393,7 +410,8 @@ class ActorService(ServiceBase):
 
     def group_tick(self, ga: GroupActor) -> bool:
         """`lockstep_tick` for a group: one step of every run's world per answer."""
-        if ga.rejoining is not None:
+        if ga.rejoin is not None:
+            self.rejoin_if_known()
             return False
         now = time.monotonic()
         for run, sender in ga.senders.items():

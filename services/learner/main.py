@@ -120,21 +120,34 @@ class BonusClient:
     def bonus_for(self, batches: list) -> list[np.ndarray] | None:
         """The (B, N) bonus of each sampled batch, priced in one query; None if the
         counter did not answer."""
+        return self.answer(self.ask(batches))
+
+    def ask(self, batches: list) -> BonusQuery:
+        """Send the query for `batches` (a group's runs ask at once, then take the
+        answers: their round trips overlap)."""
         sizes = [len(b.rew) for b in batches]
         self.counts = [np.zeros((0, B), np.int64) for B in sizes]  # no tables to count
         if self.mode == "none":
-            return [np.zeros((B, self.n), np.float32) for B in sizes]
+            return BonusQuery(sizes, [np.zeros((B, self.n), np.float32) for B in sizes])
         if self.mode == "constant":
-            return [np.full((B, self.n), self.beta, np.float32) for B in sizes]
-        rows = sum(sizes)
-        t0 = time.perf_counter()
+            return BonusQuery(sizes, [np.full((B, self.n), self.beta, np.float32) for B in sizes])
         obs = np.concatenate([b.obs for b in batches])
         act = np.concatenate([b.act for b in batches])
         payload = encode("bonus_query", self.run, obs=obs, act=act)
+        t0 = time.perf_counter()
+        replies = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
+        return BonusQuery(sizes, None, replies, t0)
+
+    def answer(self, query: BonusQuery) -> list[np.ndarray] | None:
+        """The bonuses a query asked for (waiting for its reply); None if the counter
+        did not answer."""
+        if query.priced is not None:
+            return query.priced
+        sizes, rows = query.sizes, sum(query.sizes)
         try:
-            replies = self.svc.bus.get(keys.k_bonus(self.run), payload, timeout=2.0)
+            replies = [r.ok.payload.to_bytes() for r in query.replies if r.ok]
         finally:
-            self.wait_s += time.perf_counter() - t0
+            self.wait_s += time.perf_counter() - query.t0
         for raw in replies:
             try:
                 msg = decode(raw, "bonus_reply")
@@ -142,7 +155,7 @@ class BonusClient:
                 self.svc.reject(keys.k_bonus(self.run), str(err))
                 continue
             if msg["bonus"].shape == (rows, self.n):
-                self.latencies.append(time.perf_counter() - t0)
+                self.latencies.append(time.perf_counter() - query.t0)
                 self.queries += 1
                 self.rows += rows
                 self.tables = _table_stats(msg.get("tables"))
@@ -154,6 +167,17 @@ class BonusClient:
                 return np.split(bonus, cuts)
         self.failures += 1
         return None
+
+
+@dataclass
+class BonusQuery:
+    """A bonus query sent: its batches' sizes, and the bonuses when priced here (none,
+    constant) or the counter's pending replies."""
+
+    sizes: list[int]
+    priced: list[np.ndarray] | None
+    replies: Any = None
+    t0: float = 0.0
 
 
 def with_unreported(payload: bytes, unreported: list[int]) -> bytes:
@@ -228,7 +252,7 @@ class MemberLearner:
         return self.group.updates
 
     def actor_weights(self) -> list[dict[str, torch.Tensor]]:
-        return self.group.run_learner(self.r).actor_weights()
+        return self.group.run_actor_weights(self.r)
 
     def state_dict(self) -> dict:
         return self.group.run_state_dict(self.r)
@@ -817,10 +841,12 @@ class LearnerService(ServiceBase):
             [st.buffer.sample(batch, st.rng) for _ in range(st.draws)] for st in members
         ]
         t1 = time.perf_counter()
-        priced = []
-        for st, batches in zip(members, drawn):
+        for st in members:
             st.bonus.fresh = False
-            bonuses = st.bonus.bonus_for(batches)
+        queries = [st.bonus.ask(batches) for st, batches in zip(members, drawn)]
+        priced = []
+        for st, query in zip(members, queries):
+            bonuses = st.bonus.answer(query)
             if bonuses is None:
                 g.unpriced = drawn
                 return False

@@ -245,6 +245,17 @@ class GroupMADDPG(BatchedMADDPG):
         one.updates = self.updates
         return one
 
+    def run_actor_weights(self, run: int) -> list[dict[str, torch.Tensor]]:
+        """Run `run`'s actors as its learner alone gives them (`actor_weights`), read in
+        place: what goes to the evaluator at every point, without copying the rest."""
+        out = []
+        for i, agent in enumerate(self.agents):
+            e, d = run * self.n + i, agent.act_dim
+            sd = {"scale": self.scale[e, 0, :d].clone(), "center": self.center[e, 0, :d].clone()}
+            sd.update(self.actor.export(self.actor.params, e))
+            out.append(sd)
+        return out
+
     def run_state_dict(self, run: int) -> dict:
         """Run `run`'s checkpoint in the reference's format (what `macb train` writes)."""
         return self.run_learner(run).state_dict()
