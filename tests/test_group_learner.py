@@ -136,6 +136,12 @@ def test_a_runs_actor_weights_are_those_of_its_learner_alone(task, algo):
             assert_same_state(a, b, f"run {r}")
     assert not torch.equal(group.run_actor_weights(0)[0]["net.0.weight"],
                            group.run_actor_weights(1)[0]["net.0.weight"])  # fmt: skip
+    # ... and loaded into another group's run, they act as there (an evaluator's group)
+    other = GroupMADDPG(agents, [LearnerSpec(algo=algo, hidden=(32, 32), seed=9)] * 3)
+    for r in range(3):
+        other.load_run_actor_weights(r, group.run_actor_weights(r))
+    obs = rng.standard_normal((3, 5, sum(a.obs_dim for a in agents))).astype(np.float32)
+    assert np.array_equal(other.act(obs), group.act(obs))
 
 
 def test_refuses_runs_that_cannot_share_an_update():

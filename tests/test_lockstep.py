@@ -221,3 +221,27 @@ def test_a_lockstep_cluster_group_is_the_group_trainers_runs(procs, bus, tmp_pat
         mine = torch.load(outs[r] / "checkpoint.pt", weights_only=True)
         diffs = state_differences(cluster["learner"], mine["learner"])
         assert not diffs, (r, diffs[:20])
+
+
+@pytest.mark.parametrize("paused", ["counter", "learner", "actor0", "evaluator"])
+def test_a_late_count_or_message_changes_no_run_of_a_group(procs, bus, tmp_path, paused):
+    """As for a run alone: one service of a group paused 3 s mid-run (its acks, answers,
+    steps or rows come late) and every run is still the one-process group's."""
+    from shared.control import start_group
+    from shared.group_trainer import train_group
+
+    configs = [make_config({**c, "episodes": 24}) for c in GROUP]
+    start_cluster(procs, tmp_path, 1)
+    wait_services(bus, 4)
+    watches = start_group(bus, configs, runs=[f"p{r}" for r in range(3)])
+    wait_for(lambda: len(watches[0].rows) >= 1, timeout=120, what="the first point")
+    pid = procs.procs[paused].pid
+    os.kill(pid, signal.SIGSTOP)
+    time.sleep(3.0)
+    os.kill(pid, signal.SIGCONT)
+    for watch in watches:
+        assert watch.wait(timeout=300) == "completed", watch.states
+    local = train_group(configs, [tmp_path / f"l{r}" for r in range(3)], progress=False)
+    for r, watch in enumerate(watches):
+        diffs = compare(sorted(watch.rows, key=lambda row: row["episode"]), local[r])
+        assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])

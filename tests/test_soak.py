@@ -44,6 +44,7 @@ def soak_body(episodes: int) -> dict:
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(int(MINUTES * 60 + 3 * 3600))
 def test_a_group_at_thesis_settings_survives_random_faults(tmp_path):
     rng = random.Random(int(os.environ.get("MACB_SOAK_SEED", "0")))
     up = Up(tmp_path)
@@ -53,7 +54,8 @@ def test_a_group_at_thesis_settings_survives_random_faults(tmp_path):
         up.start()
         from shared.config import make_config
 
-        length = make_config(soak_body(1)).episode_len
+        base = {k: v for k, v in soak_body(1).items() if k not in ("seeds", "name")}
+        length = make_config(base).episode_len
         # sized to outlast the faults at ~25 group steps/s (the run goes on after them)
         episodes = int(MINUTES * 60 * 30 / length) // EVAL_EVERY * EVAL_EVERY + EVAL_EVERY
         r = httpx.post(f"{up.url}/experiments", json=soak_body(episodes), timeout=10)
@@ -79,11 +81,13 @@ def test_a_group_at_thesis_settings_survives_random_faults(tmp_path):
                 paused = 0.0
             else:
                 paused = rng.uniform(1, 15)
-                for v in victims:
-                    _kill(pids[v], signal.SIGSTOP)
-                time.sleep(paused)
-                for v in victims:
-                    _kill(pids[v], signal.SIGCONT)
+                try:
+                    for v in victims:
+                        _kill(pids[v], signal.SIGSTOP)
+                    time.sleep(paused)
+                finally:
+                    for v in victims:
+                        _kill(pids[v], signal.SIGCONT)
             fault = {"t": round(t0 - (t_end - MINUTES * 60), 1), "kind": kind,
                      "victims": victims, "paused_s": round(paused, 1)}  # fmt: skip
             try:

@@ -14,6 +14,12 @@ restarted mid-run rejoins the run and evaluates what the learner sends again. Ro
 out in episode order: each point names the earlier ones the learner had no row of when
 it was sent, and a point waits (at most ORDER_WAIT_S) until those are evaluated.
 
+A run group's points (docs/architecture.md, "Run groups in the cluster") are evaluated
+as one batched rollout once every run of the group has its point (`evaluate_group`:
+one act call for every run's worlds per step; run r's result is what `evaluate` gives
+it alone). A point only some runs have (an evaluator restarted between rows) waits at
+most GROUP_WAIT_S, then goes alone.
+
 It also keeps every row it published for its recent runs (the last `HISTORY_RUNS`)
 and answers `macb/run/{run}/history/eval` with them, so a watcher that was away (the
 API restarting, say) fills its gaps instead of losing the points published meanwhile.
@@ -38,8 +44,9 @@ from shared import bus as keys
 from shared.config import TrainConfig
 from shared.factories import build_learner
 from shared.networks import JointPolicy
-from shared.rollout import derive_seed, evaluate
+from shared.rollout import EvalResult, derive_seed, evaluate, evaluate_group
 from shared.tasks import TaskEnv, TaskSpec, make_task_for
+from shared.vectask import vectorize
 from shared.wire import encode
 
 HISTORY_RUNS = 64  # runs whose rows are kept for history queries
@@ -47,6 +54,8 @@ REPUBLISH_AFTER_S = 5.0  # a row is published again for a resend only this long 
 # A point is held back at most this long for an earlier one the learner has not had a
 # row of (the learner resends a lost point after 30 s of silence: EVAL_RESEND_S).
 ORDER_WAIT_S = 40.0
+# A group's point waits this long for the same point of the group's other runs.
+GROUP_WAIT_S = 5.0
 
 
 def earliest_point(
@@ -83,6 +92,42 @@ class LearnerPolicy:
         return self.learner.act(obs)
 
 
+class GroupPolicy:
+    """A group's actors in one GroupMADDPG (acting only): each run's weights loaded as
+    its points come, one `act` for every run's worlds (the learner's own function, so
+    each run's actions are those of `LearnerPolicy` alone, to the bit)."""
+
+    def __init__(self, configs: list[TrainConfig], spec: TaskSpec) -> None:
+        from shared.factories import agent_dims, learner_spec
+        from shared.learners.group import GroupMADDPG
+
+        self.learner = GroupMADDPG(
+            agent_dims(spec),
+            [learner_spec(c) for c in configs],
+            precision=configs[0].precision,
+            device=configs[0].device,
+        )
+
+    def load(self, run: int, weights: list[dict[str, Any]]) -> None:
+        self.learner.load_run_actor_weights(
+            run, [{k: torch.as_tensor(np.array(v)) for k, v in sd.items()} for sd in weights]
+        )
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self.learner.act(obs)
+
+
+@dataclass
+class GroupEval:
+    """A run group's evaluation: its runs in order, their worlds as one VecTask (run r's
+    are r*m .. r*m+m-1: its own evaluation envs) and one policy for all."""
+
+    runs: list[str]
+    venv: Any
+    policy: GroupPolicy
+    waiting_since: float | None = None
+
+
 @dataclass
 class EvaluatorRun:
     """The evaluation environments and the points waiting, for a run served."""
@@ -111,6 +156,7 @@ class EvaluatorService(ServiceBase):
         if nice := int(os.environ.get("MACB_EVALUATOR_NICE", "0")):
             os.nice(nice)
         self.runs: dict[str, EvaluatorRun] = {}  # the run served, or a group's runs
+        self.group: GroupEval | None = None
         # run -> (state, rows published); read on Zenoh's thread, hence the lock.
         self.history: collections.OrderedDict[str, tuple[str, list[dict[str, Any]]]] = (
             collections.OrderedDict()
@@ -156,10 +202,18 @@ class EvaluatorService(ServiceBase):
             self.history.pop(run, None)
         self._remember(run, "running")
         self.publish_status(run, "running")
+        group = assign.get("group")
+        if group and set(group) <= set(self.runs) and config.interleave == "lockstep":
+            sts = [self.runs[r] for r in group]
+            envs = [env for st in sts for env in st.envs]
+            policy = GroupPolicy([self.active[r] for r in group], envs[0].spec)
+            self.group = GroupEval(list(group), vectorize(envs), policy)
 
     def on_stop(self, run: str, reason: str) -> None:
         self._remember(run, "stopped")
         self.runs.pop(run, None)
+        if self.group is not None and run in self.group.runs:
+            self.group = None  # (its other runs are stopped too, or go on alone)
 
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag == "weights":
@@ -211,7 +265,12 @@ class EvaluatorService(ServiceBase):
         return msg
 
     def tick(self) -> bool:
-        """One point of one run (a group's runs in turn); True while more wait."""
+        """One point of one run, or a group's point of all its runs; True while more
+        wait."""
+        if self.group is not None and self.group_tick(self.group):
+            return any(s.pending for s in self.runs.values())
+        if self.group is not None:
+            return False
         for st in list(self.runs.values()):
             msg = self.next_point(st)
             if msg is not None:
@@ -219,10 +278,47 @@ class EvaluatorService(ServiceBase):
                 return any(s.pending for s in self.runs.values())
         return False
 
+    def group_tick(self, g: GroupEval) -> bool:
+        """The group's earliest point, evaluated for every run at once when every run
+        has it (and nothing earlier to wait for); after GROUP_WAIT_S without that, a
+        run's point alone. True if a point was evaluated."""
+        sts = [self.runs[r] for r in g.runs if r in self.runs]
+        heads = [(st, *earliest_point(st.pending, st.published)) for st in sts if st.pending]
+        if not heads:
+            g.waiting_since = None
+            return False
+        point = min(msg["eval_point"] for _, msg, _ in heads)
+        ready = [(st, msg) for st, msg, missing in heads if msg["eval_point"] == point]
+        if len(sts) == len(g.runs) and len(ready) == len(sts) and not any(m for *_, m in heads):
+            g.waiting_since = None
+            for r, (st, msg) in enumerate(ready):
+                st.pending.remove(msg)
+                g.policy.load(r, msg["actors"])
+            cfg = self.active[g.runs[0]]
+            results = evaluate_group(g.policy, g.venv, len(g.runs), cfg.eval_episodes)
+            for (st, msg), ev in zip(ready, results):
+                self.publish_row(st, msg, ev)
+            return True
+        now = time.monotonic()
+        if g.waiting_since is None:
+            g.waiting_since = now
+        if now - g.waiting_since < GROUP_WAIT_S:
+            return False
+        for st in sts:  # the point goes alone (same worlds, same streams)
+            msg = self.next_point(st)
+            if msg is not None:
+                g.waiting_since = None
+                self.evaluate_point(st, msg)
+                return True
+        return False
+
     def evaluate_point(self, st: EvaluatorRun, msg: dict[str, Any]) -> None:
-        run, cfg = st.run, self.active[st.run]
+        cfg = self.active[st.run]
         st.policy.load(msg["actors"])
-        ev = evaluate(st.policy, st.envs, cfg.eval_episodes)
+        self.publish_row(st, msg, evaluate(st.policy, st.envs, cfg.eval_episodes))
+
+    def publish_row(self, st: EvaluatorRun, msg: dict[str, Any], ev: EvalResult) -> None:
+        run = st.run
         info = msg["info"]
         counts = info.get("counter") or {}  # the counter's stats at this boundary
         bonus = info.get("bonus") or {}  # what the bonus did since the last point

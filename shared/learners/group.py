@@ -21,6 +21,7 @@ tau and the subnormal flushing (`group_key`); seeds and `same_init` may differ.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -255,6 +256,13 @@ class GroupMADDPG(BatchedMADDPG):
             sd.update(self.actor.export(self.actor.params, e))
             out.append(sd)
         return out
+
+    def load_run_actor_weights(self, run: int, weights: Sequence[dict[str, Any]]) -> None:
+        """Run `run`'s actors from per-agent state dicts (`actor_weights`' format): an
+        evaluator acting for a group's points at once."""
+        for i, sd in enumerate(weights):
+            self.actor.load(self.actor.params, run * self.n + i, sd)
+        self.weights_changed()
 
     def run_state_dict(self, run: int) -> dict:
         """Run `run`'s checkpoint in the reference's format (what `macb train` writes)."""
