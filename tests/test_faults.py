@@ -100,6 +100,18 @@ class Up:
             self.proc.send_signal(signal.SIGTERM)
             self.proc.wait(timeout=60)
 
+    def end(self) -> None:
+        """Stop `macb up`, then fail if any process the cluster ever had outlived it."""
+        self.stop()
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+        if (self.data / "cluster.json").exists():
+            self.pids()
+        for pid in self.seen:
+            if _alive(pid):
+                _kill(pid, signal.SIGKILL)
+                pytest.fail(f"process {pid} outlived macb up")
+
     def kill_all(self) -> None:
         """SIGKILL `macb up` and every service: nothing is told, nothing flushes."""
         pids = self.pids()
@@ -136,15 +148,7 @@ def up(tmp_path_factory):
         cluster.start()
         yield cluster
     finally:
-        cluster.stop()
-        if cluster.proc is not None and cluster.proc.poll() is None:
-            cluster.proc.kill()
-        if (data / "cluster.json").exists():
-            cluster.pids()
-        for pid in cluster.seen:
-            if _alive(pid):
-                _kill(pid, signal.SIGKILL)
-                pytest.fail(f"process {pid} outlived macb up")
+        cluster.end()
         (data / "fault-matrix.json").write_text(json.dumps(results, indent=2))
         print(json.dumps(results, indent=2))
 
@@ -205,21 +209,25 @@ def _group_fault(up: Up, fault: str, seeds: list[int], hit, cut: bool) -> list[d
     return runs
 
 
-def _check_exact(up: Up, run_id: str) -> dict:
+def _check_exact(up: Up, run_id: str, episodes: int = EPISODES, every: int = EVAL_EVERY) -> dict:
+    """The completed run's counts are exact and each of its points is stored once."""
+    from shared.config import make_config
+
     run = _get(up, f"/runs/{run_id}")
     assert run is not None
     assert run["status"] == "completed", (run["status"], run["reason"], up.log())
+    cfg = make_config(run["config"])
     assign, services = run["assign"], run["services"]
     learner, counter = services[assign["learner"]], services[assign["counter"]]
-    collected = EPISODES * EPISODE_LEN
+    collected = episodes * cfg.episode_len
     assert learner["ingested"] == collected, learner
-    assert learner["updates"] == collected - LEARNING_STARTS, learner
+    assert learner["updates"] == collected - cfg.learning_starts, learner
     assert learner["replay_ratio"] == 1.0, learner
     assert counter["counted_transitions"] == collected, counter
-    page = _get(up, f"/runs/{run_id}/metrics?limit=1000")
+    page = _get(up, f"/runs/{run_id}/metrics?limit=100000")
     assert page is not None
-    episodes = [p["episode"] for p in page["points"]]
-    assert episodes == list(range(EVAL_EVERY, EPISODES + 1, EVAL_EVERY)), episodes
+    points = [p["episode"] for p in page["points"]]
+    assert points == list(range(every, episodes + 1, every)), points
     return run
 
 

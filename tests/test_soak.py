@@ -27,7 +27,7 @@ import httpx
 import pytest
 
 from tests.conftest import ROOT, wait_for
-from tests.test_faults import Up, _alive, _get, _kill, _points
+from tests.test_faults import Up, _check_exact, _get, _kill, _points
 
 MINUTES = float(os.environ.get("MACB_SOAK_MINUTES", "20"))
 EVAL_EVERY = 50
@@ -109,15 +109,7 @@ def test_a_group_at_thesis_settings_survives_random_faults(tmp_path):
         print(json.dumps(result, indent=1))
         assert any(len(f["victims"]) == 2 for f in faults) or MINUTES < 5
     finally:
-        up.stop()
-        if up.proc is not None and up.proc.poll() is None:
-            up.proc.kill()
-        if (tmp_path / "cluster.json").exists():
-            up.pids()
-        for pid in up.seen:
-            if _alive(pid):
-                _kill(pid, signal.SIGKILL)
-                pytest.fail(f"process {pid} outlived macb up")
+        up.end()
 
 
 def _done(up: Up, ids: list[str]) -> bool:
@@ -126,24 +118,11 @@ def _done(up: Up, ids: list[str]) -> bool:
 
 
 def _check(up: Up, run_id: str, episodes: int) -> dict:
-    from shared.config import make_config
-
-    run = _get(up, f"/runs/{run_id}")
-    assert run is not None and run["status"] == "completed", (run, up.log())
-    cfg = make_config(run["config"])
+    run = _check_exact(up, run_id, episodes, EVAL_EVERY)
     services = run["services"]
     learner, counter = services[run["assign"]["learner"]], services[run["assign"]["counter"]]
-    collected = episodes * cfg.episode_len
-    assert learner["ingested"] == collected, learner
-    assert learner["updates"] == collected - cfg.learning_starts, learner
-    assert learner["replay_ratio"] == 1.0, learner
-    assert counter["counted_transitions"] == collected, counter
-    page = _get(up, f"/runs/{run_id}/metrics?limit=100000")
-    assert page is not None
-    points = [p["episode"] for p in page["points"]]
-    assert points == list(range(EVAL_EVERY, episodes + 1, EVAL_EVERY)), points
     return {"id": run_id, "counted": counter["counted_transitions"],
             "ingested": learner["ingested"], "updates": learner["updates"],
-            "replay_ratio": learner["replay_ratio"], "points": len(points),
+            "replay_ratio": learner["replay_ratio"], "points": episodes // EVAL_EVERY,
             "gaps": counter.get("gaps"), "duplicates": counter.get("duplicates"),
             "reason": run["reason"]}  # fmt: skip

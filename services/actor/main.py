@@ -189,22 +189,13 @@ class ActorService(ServiceBase):
         rank = actors.index(self.id)
         self.listen(keys.k_ack(run, "*"), "ack", run)
         env = make_task_for(config)
-        learner, counter = assign.get("learner"), assign.get("counter")
-        counting = config.explore in ("dis-macb", "cen-macb")
         self.st = ActorRun(
             rank=rank,
             env=env,
             collector=make_collector(config, env, rank, len(actors)),
             policy=JointPolicy.for_task(env.spec, config.hidden),
             todo=episode_share(config.episodes, len(actors), rank),
-            sender=Sender(
-                confirm=(learner, counter) if counting else (learner,),
-                credit_from=learner,
-                bounded=(counter,) if counting else (),
-                max_unconfirmed=MAX_UNCOUNTED_BATCHES,
-                resend_after_s=RESEND_AFTER_S,
-                last_progress=time.monotonic(),
-            ),
+            sender=run_sender(config, assign),
             pub=self.bus.publisher(keys.k_transitions(run, self.id)),
         )
         if config.interleave == "lockstep":
@@ -218,18 +209,8 @@ class ActorService(ServiceBase):
         restart (`rejoining`) it first waits to hear where each run is."""
         runs = list(assign["group"])
         cfgs = [self._members.pop(run) for run in runs]
-        learner, counter = assign.get("learner"), assign.get("counter")
-        senders = {}
-        for run, cfg in zip(runs, cfgs):
-            counting = cfg.explore in ("dis-macb", "cen-macb")
-            senders[run] = Sender(
-                confirm=(learner, counter) if counting else (learner,),
-                credit_from=learner,
-                bounded=(counter,) if counting else (),
-                max_unconfirmed=MAX_UNCOUNTED_BATCHES,
-                resend_after_s=RESEND_AFTER_S,
-                last_progress=time.monotonic(),
-            )
+        senders = {run: run_sender(cfg, assign) for run, cfg in zip(runs, cfgs)}
+        for run in runs:
             self.listen(keys.k_ack(run, "*"), "ack", run)
         venv = vectorize([make_task_for(cfg) for cfg in cfgs])
         lead = runs[0]
@@ -532,6 +513,21 @@ class ActorService(ServiceBase):
             # update, the count before it and the bus's round trips)
             "act_wait_ms": 1e3 * st.act_wait_s / st.steps if st.lockstep and st.steps else 0.0,
         }
+
+
+def run_sender(config: TrainConfig, assign: dict[str, Any]) -> Sender:
+    """A run's numbering, resends and credit: confirmed by its learner and, when it
+    counts, its counter (which also bounds what may be in flight uncounted)."""
+    learner, counter = assign.get("learner"), assign.get("counter")
+    counting = config.explore in ("dis-macb", "cen-macb")
+    return Sender(
+        confirm=(learner, counter) if counting else (learner,),
+        credit_from=learner,
+        bounded=(counter,) if counting else (),
+        max_unconfirmed=MAX_UNCOUNTED_BATCHES,
+        resend_after_s=RESEND_AFTER_S,
+        last_progress=time.monotonic(),
+    )
 
 
 def transitions_payload(
