@@ -1190,7 +1190,7 @@ class LearnerService(ServiceBase):
                 continue
             try:
                 state = torch.load(path, weights_only=True)
-                int(state["counters"]["updates"])
+                state["counters"]
             except Exception as err:
                 self.log.warning(
                     "refusing cut %s: unreadable (%s); trying the one before", path, err
