@@ -272,7 +272,12 @@ class Bus:
 
     def get(self, selector: str, payload: bytes | None = None, timeout: float = 2.0) -> list[bytes]:
         """Blocking query: every ok reply's payload."""
-        return [r.ok.payload.to_bytes() for r in self.get_async(selector, payload, timeout) if r.ok]
+        return self.collect(self.get_async(selector, payload, timeout))
+
+    @staticmethod
+    def collect(replies: Any) -> list[bytes]:
+        """Every ok reply's payload of a query `get_async` started (waiting for them)."""
+        return [r.ok.payload.to_bytes() for r in replies if r.ok]
 
     def get_async(self, selector: str, payload: bytes | None = None, timeout: float = 2.0):
         """Start a query; iterate the returned handler later for the replies (`.ok`)."""

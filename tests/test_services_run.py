@@ -278,12 +278,16 @@ class _FakeBus:
     def __init__(self, answers: list) -> None:
         self.answers, self.asked = list(answers), []
 
-    def get(self, key: str, payload: bytes, timeout: float) -> list[bytes]:
+    def get_async(self, key: str, payload: bytes, timeout: float) -> list[bytes]:
         self.asked.append(payload)
         bonus = self.answers.pop(0)
         if bonus is None:
             return []
         return [encode("bonus_reply", "r1", counts=np.ones_like(bonus), bonus=bonus)]
+
+    @staticmethod
+    def collect(replies: list[bytes]) -> list[bytes]:
+        return replies
 
 
 def test_bonus_client_prices_a_ticks_batches_in_one_query_and_splits_the_answer():

@@ -145,7 +145,7 @@ class BonusClient:
             return query.priced
         sizes, rows = query.sizes, sum(query.sizes)
         try:
-            replies = [r.ok.payload.to_bytes() for r in query.replies if r.ok]
+            replies = self.svc.bus.collect(query.replies)
         finally:
             self.wait_s += time.perf_counter() - query.t0
         for raw in replies:
