@@ -203,6 +203,8 @@ class EvaluatorService(ServiceBase):
         self._remember(run, "running")
         self.publish_status(run, "running")
         group = assign.get("group")
+        if not group:
+            self.group = None  # (whatever group ended before this run)
         if group and set(group) <= set(self.runs) and config.interleave == "lockstep":
             sts = [self.runs[r] for r in group]
             envs = [env for st in sts for env in st.envs]
@@ -364,6 +366,8 @@ class EvaluatorService(ServiceBase):
         self.log.info("run %s: %d evaluation points", run, st.points)
         del self.runs[run]
         self.free(run)
+        if self.group is not None and not any(r in self.runs for r in self.group.runs):
+            self.group = None  # the group is over: the next run is evaluated alone
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> EvaluatorService:
