@@ -397,10 +397,14 @@ class LearnerService(ServiceBase):
             for r, (run, config) in enumerate(zip(runs, configs))
         ]
 
-    def _fresh(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> LearnerRun:
+    def _wipe(self, run: str) -> None:
+        """An earlier attempt's log and cuts of `run`: a start begins afresh."""
         folder = self.data_dir / "learner" / run
         for old in ("transitions.wal", "checkpoint.pt", "checkpoint.prev.pt"):
-            (folder / old).unlink(missing_ok=True)  # an earlier attempt of this run
+            (folder / old).unlink(missing_ok=True)
+
+    def _fresh(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> LearnerRun:
+        self._wipe(run)
         st = self._open_run(run, config, assign)
         self._logged(st)
         return st
@@ -412,9 +416,8 @@ class LearnerService(ServiceBase):
         runs = list(assign["group"])
         try:
             configs = [self._members.pop(run) for run in runs]
-            for run in runs:  # an earlier attempt's files
-                for old in ("transitions.wal", "checkpoint.pt", "checkpoint.prev.pt"):
-                    (self.data_dir / "learner" / run / old).unlink(missing_ok=True)
+            for run in runs:
+                self._wipe(run)
             for st in self._group(runs, configs, assign):
                 self._logged(st)
         except Exception as err:
@@ -1129,6 +1132,8 @@ class LearnerService(ServiceBase):
                 )
 
     def fail(self, st: LearnerRun, reason: str) -> None:
+        if st.run not in self.runs:
+            return  # failed already (with its group)
         if self.group is not None and st.run in self.group.runs:
             self.fail_group(reason, list(self.group.runs))
             return
