@@ -11,11 +11,18 @@ import sys
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 
-from shared.cluster import free_port, wait_port  # noqa: F401 (tests import them from here)
-
-ROOT = Path(__file__).resolve().parent.parent
+from tests.harness import (  # noqa: F401 (tests import ROOT, wait_for and the ports from here)
+    ROOT,
+    Cluster,
+    free_port,
+    macb,
+    start_api,
+    wait_for,
+    wait_port,
+)
 
 
 def _load_offline():
@@ -32,6 +39,7 @@ def _load_offline():
 offline = _load_offline()
 
 
+# Until every test is on tests/harness.py's Cluster.
 class Procs:
     """Starts `macb serve ...` processes with their own logs; ends every one by PID."""
 
@@ -87,14 +95,8 @@ class Procs:
                 p.wait()
 
 
-def _certs(out: Path, *args: str) -> Path:
-    r = subprocess.run(
-        [sys.executable, "-m", "cli", "certs", str(out), *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+def _certs(out, *args: str):
+    r = macb("certs", str(out), *args, timeout=60)
     assert r.returncode == 0, r.stderr
     return out
 
@@ -117,27 +119,31 @@ def other_ca(tmp_path_factory) -> Path:
     return _certs(tmp_path_factory.mktemp("other-ca"), "--actors", "1")
 
 
-@pytest.fixture
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
-
-
-@pytest.fixture
-def router(endpoint, tmp_path):
-    """A real router process on its own loopback port."""
-    procs = Procs(tmp_path, endpoint)
-    procs.start("router", "router", "--listen", endpoint)
-    wait_port(endpoint)
-    yield endpoint
-    procs.stop_all()
-
-
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item, call):
     """Keep each phase's report on the test item, so fixtures can see a failure."""
     outcome = yield
     report = outcome.get_result()
     setattr(item, f"rep_{report.when}", report)
+
+
+@pytest.fixture
+def cluster(tmp_path, request):
+    """A router on a loopback port of its own; the test starts the services it needs
+    (`cluster.services(...)`). Every process is ended by PID after the test, and when
+    the test failed the end of each one's log is in its report."""
+    with Cluster(tmp_path) as c:
+        c.router()
+        yield c
+        failed = getattr(request.node, "rep_call", None)
+        if failed is not None and failed.failed:  # the services' own account
+            c.report()
+
+
+@pytest.fixture
+def router(cluster) -> str:
+    """A real router process on its own loopback port: its endpoint."""
+    return cluster.endpoint
 
 
 @pytest.fixture
@@ -162,11 +168,15 @@ def bus(router):
     b.close()
 
 
-def wait_for(predicate, timeout: float = 30.0, interval: float = 0.05, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise TimeoutError(f"timed out waiting for {what}")
+@pytest.fixture
+def api(router, tmp_path):
+    """The API in this process on a real router and a store of its own."""
+    server = start_api(tmp_path, router)
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def client(api):
+    with httpx.Client(base_url=api.url, timeout=20) as c:
+        yield c

@@ -32,7 +32,7 @@ from shared import bus as keys
 from shared.bus import Bus
 from shared.wire import WireError, decode, encode
 from tests.conftest import ROOT, Procs, free_port, wait_for, wait_port
-from tests.test_api import TINY
+from tests.harness import TINY
 
 
 @dataclass

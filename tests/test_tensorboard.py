@@ -17,7 +17,7 @@ from services.api.main import ApiServer, Settings
 from services.api.store import Store
 from shared.tensorboard import scalars
 from tests.conftest import ROOT
-from tests.test_api import TINY
+from tests.harness import TINY
 
 TRAIN = ["--task", "simple", "--algo", "ddpg", "--explore", "dis-macb", "--k", "32"]
 TRAIN += ["--hidden", "32,32", "--batch-size", "16", "--eval-episodes", "2"]
