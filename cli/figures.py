@@ -20,7 +20,6 @@ from typing import Any
 from shared.config import TrainConfig, read_config_file
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
-THESIS = "/work/shared/thesis/count-based-exploration-for-multi-agent-learning.txt"
 PROFILES = ("mpe2", "thesis")
 MACB = ("dis-macb", "cen-macb")
 # Keys only counting reads: a control (no counting) matches its MACB arm on all others.

@@ -5,7 +5,7 @@ Cen-MACB: one table over the joint s || x (s = o_1..o_N, x = a_1..a_N); every ag
 gets the same bonus. "state" keys drop the actions; hash "none" keys the vector
 rounded to 2 decimals. "constant" is a control arm: the same shift beta on every
 reward with no counting at all, separating the effect of counting from the effect of
-shifting the reward (see DESIGN-NOTES section 3).
+shifting the reward (docs/reproduce.md, "Arms and controls").
 
 Everything works on joint batches laid out as the replay buffer stores them:
 obs (B, sum obs_dims) and act (B, sum act_dims), agents in task order.

@@ -399,12 +399,12 @@ class TaskEnv:
     agents' actions as mpe2's `_set_action` does and runs mpe2's world step and
     observations, which is what PettingZoo's parallel `step` ends up doing after passing
     each action through the AEC cycle and four wrappers (order enforcing, bounds
-    clipping, the parallel conversion). Those layers cost ~75% of a step (0.4 of 0.55 ms
-    on speaker_listener), and the evaluator runs ten episodes per training episode.
-    `step_joint` takes and gives joint vectors (what collection and evaluation hold), so
-    no per-agent split and join either: an evaluation point of speaker_listener (200
-    steps, 20 policy calls) 19.4 -> 12.4 ms with the same policy. tests/test_tasks.py
-    checks that the paths give the same observations, rewards and ends, bit for bit.
+    clipping, the parallel conversion). Those layers cost most of a step, and the
+    evaluator runs ten episodes per training episode. `step_joint` takes and gives joint
+    vectors (what collection and evaluation hold), so no per-agent split and join either
+    (docs/performance.md, "Evaluation and collection", has the cost of each path).
+    tests/test_tasks.py checks that the paths give the same observations, rewards and
+    ends, bit for bit.
     `direct=False` steps through the public API; `reset` always does.
 
     The keyword options are the task-level choices of `profile: thesis` (shared/config.py

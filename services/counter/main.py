@@ -528,8 +528,8 @@ class CounterService(ServiceBase):
         burst. Whenever the query's thread gives up the GIL (a matrix product, a forced
         switch), the busy service thread would take it and keep it for a whole switch
         interval, and on a loaded machine each such handoff also waits for the OS to
-        wake the query's thread (measured: stepping aside about halves the handler's p99
-        under a flood).
+        wake the query's thread: stepping aside shortens the handler's tail under a flood
+        (docs/performance.md, "Counter service").
         """
         if not self._no_queries.is_set():
             self._no_queries.wait(QUERY_YIELD_MAX_S)

@@ -66,11 +66,10 @@ def denormals_flushed(on: bool) -> Iterator[None]:
 
     Why: Adam's first moment of a weight whose gradient stays 0 (a dead ReLU unit) decays
     by beta1 per step into the subnormal range and stays there (0.9 x the smallest
-    subnormal rounds back to it), and every multiply on a subnormal costs a microcode
-    assist on Intel CPUs: after 300 speaker_listener episodes 57% of the actors' and 28%
-    of the critics' first moments were subnormal and an update took 1.44x (fp32) to 1.67x
-    (bf16) as long as flushed (docs/performance.md, "Subnormal Adam moments"). What it
-    changes: values below 1.2e-38 become 0 (docs/fidelity.md L9)."""
+    subnormal rounds back to it), and on some CPUs every multiply on a subnormal costs a
+    microcode assist, in every Adam step of those weights (docs/performance.md,
+    "Subnormal Adam moments", has how many and what it costs). What it changes: values
+    below 1.2e-38 become 0 (docs/fidelity.md L9)."""
     if not on or getattr(_flushing, "on", False):  # off, or an outer one holds it
         yield
         return

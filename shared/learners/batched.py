@@ -464,10 +464,10 @@ class BatchedMADDPG:
         self, optim: torch.optim.Adam, params: list[torch.Tensor], grads: Sequence[torch.Tensor]
     ) -> None:
         """One Adam step of one network, as `optim.step()` with `grads` would take it, without
-        Optimizer.step's per-call bookkeeping (hooks, grouping, state checks), which costs
-        about 0.1 ms a call, a tenth of a whole update on small networks: torch's fused
-        kernel, or in bf16 fused.py's (the same bits, and the weights' bf16 copies written
-        in the same pass). Settings outside the plain Adam the learner uses (amsgrad,
+        Optimizer.step's per-call bookkeeping (hooks, grouping, state checks), which is a
+        noticeable share of a whole update on small networks: torch's fused kernel, or in
+        bf16 fused.py's (the same bits, and the weights' bf16 copies written in the same
+        pass). Settings outside the plain Adam the learner uses (amsgrad,
         weight decay) go through `optim.step()` itself."""
         group = optim.param_groups[0]
         if group["amsgrad"] or group["weight_decay"] or group["maximize"]:
