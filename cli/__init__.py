@@ -2,9 +2,9 @@
 
 Thread settings are chosen here, when the package is first imported and so before numpy
 or torch load: every process of the platform shares 2 cores with the others, and BLAS
-threads fighting torch's threads cost up to 40% (benchmarks/bench_e2e.py: the one-process
-trainer ran 69 steps/s with numpy's default BLAS threads, 78 with one). `--threads` still
-sets torch's own.
+threads fighting torch's threads slow every process (benchmarks/bench_e2e.py's `trainer`
+variant, numpy's default BLAS threads, against `trainer-blas1`). `--threads` still sets
+torch's own.
 """
 
 import os

@@ -65,7 +65,7 @@ def learner_end_reason(msg: dict[str, Any]) -> str:
 
 class ServiceBase:
     role = "service"
-    # queue.SimpleQueue puts and gets ~20x cheaper (C, no Python-level locks): worth it
+    # queue.SimpleQueue puts and gets much cheaper (C, no Python-level locks): worth it
     # where Zenoh's thread enqueues thousands of messages a second (the counter).
     inbox_type: type = queue.Queue
 

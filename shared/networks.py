@@ -55,9 +55,9 @@ class JointPolicy:
 
     It computes in numpy from copies of the actors' weights, refreshed by `load`: at the
     batch sizes of acting (1 for an actor, 10 for the evaluator's lockstep episodes) a
-    torch module call is mostly per-op overhead, and numpy's forward takes about half
-    the time (0.13 vs 0.2 ms per evaluator call on speaker_listener), which the other
-    services' spare CPU is worth on 2 cores. The modules stay for loading weights
+    torch module call is mostly per-op overhead, and numpy's forward takes less time,
+    which the other services' spare CPU is worth on 2 cores (docs/performance.md,
+    "Evaluation and collection"). The modules stay for loading weights
     (`load_state_dict` checks names and shapes); outputs equal theirs up to float32
     rounding (tests/test_networks.py).
     """

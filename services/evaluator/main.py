@@ -150,9 +150,9 @@ class EvaluatorService(ServiceBase):
         super().__init__(service_id, connect, data_dir)
         torch.set_num_threads(1)
         # MACB_EVALUATOR_NICE (default 0): a lower CPU priority for the evaluator, so its
-        # bursts disturb the learner's two threads less (docs/performance.md: +7% median
-        # in 4 paired runs, no evaluation lag seen; off by default because a starved
-        # evaluator on a saturated machine falls behind and queues weights).
+        # bursts disturb the learner's two threads less (no clear gain in paired runs; off
+        # by default because a starved evaluator on a saturated machine falls behind and
+        # queues weights).
         if nice := int(os.environ.get("MACB_EVALUATOR_NICE", "0")):
             os.nice(nice)
         self.runs: dict[str, EvaluatorRun] = {}  # the run served, or a group's runs

@@ -1,11 +1,11 @@
 """The bf16 learner's master-weight work (Adam, the soft update, the weights' bf16 copies)
 in one pass over the weights each, from a small C kernel (master.c) compiled on first use.
 
-Why: in a bf16 update the matrix products are ~3x cheaper than in fp32, and what is left
-is mostly memory traffic over the ~0.5 M fp32 master weights: torch's fused Adam (reads
-weight, gradient and both moments, writes three), `_foreach_lerp_` for the targets, five
-`_foreach_copy_` casts to bf16 copies and the gradients' bf16 -> fp32 conversions, each a
-pass of its own. torch has no op doing them together. The kernel's Adam reads bf16
+Why: in a bf16 update the matrix products are several times cheaper than in fp32, and what
+is left is mostly memory traffic over the ~0.5 M fp32 master weights: torch's fused Adam
+(reads weight, gradient and both moments, writes three), `_foreach_lerp_` for the targets,
+five `_foreach_copy_` casts to bf16 copies and the gradients' bf16 -> fp32 conversions,
+each a pass of its own. torch has no op doing them together. The kernel's Adam reads bf16
 gradients as they come out of the products and writes the weight's bf16 copy in the same
 pass, its soft update writes the target's copy, so no cast pass is left (the copies stay
 valid from one update to the next; `BatchedMADDPG` re-casts them after any other write to
@@ -20,11 +20,11 @@ renamed). Where no compiler works (a slim container image), `kernel()` returns N
 why once in the log, and the learner runs the unfused torch path: same numbers, slower.
 `-march=native` is right because the file is built where it runs. Threads: OpenMP, as many
 as torch's intra-op setting (which the learner's tuner switches), on a large tensor. The
-kernel is linked against libgomp.so.1, the soname of the runtime torch's wheel carries
-and has loaded already, so the loader binds it to torch's: one OpenMP runtime and one pool
-of threads in the process (a pthread of the kernel's own ran the update 7-17% slower on
-two threads: torch's OpenMP worker spins on the other core between its ops). ctypes
-releases the GIL while the kernel runs.
+kernel is linked against libgomp.so.1, the soname of the runtime torch's wheel carries and
+has loaded already, so the loader binds it to torch's: one OpenMP runtime and one pool of
+threads in the process (a pthread of the kernel's own ran the update slower on two
+threads: torch's OpenMP worker spins on the other core between its ops). ctypes releases
+the GIL while the kernel runs.
 """
 
 from __future__ import annotations

@@ -2,13 +2,13 @@
 pick, from measured times, how many threads an update should use.
 
 Lanes are an alternative to torch's own intra-op threads: on the project's 2-core
-machines, shared with actors, the counter and other users, an OpenMP team that spins
-at every barrier falls apart as soon as another process takes a core (2x-30x slower
-than one thread, bench_learner.py). Each lane is an ordinary thread running whole
-torch operations with one intra-op thread; torch releases the GIL inside every
-operation, so two lanes use two cores when they are free, and when they are not they
-are time-sliced with one blocking join per `map`, never a spin. They still take the
-GIL back between operations, which makes them slower than torch's threads on an idle
+machines, shared with actors, the counter and other users, an OpenMP team that spins at
+every barrier falls apart as soon as another process takes a core (slower than one
+thread, often by far: bench_learner.py's "one core busy" line). Each lane is an ordinary
+thread running whole torch operations with one intra-op thread; torch releases the GIL
+inside every operation, so two lanes use two cores when they are free, and when they are
+not they are time-sliced with one blocking join per `map`, never a spin. They still take
+the GIL back between operations, which makes them slower than torch's threads on an idle
 machine; `LaneTuner` therefore measures which of one thread, two lanes and two torch
 threads is fastest now and keeps measuring.
 
@@ -66,11 +66,12 @@ class LaneTuner(Generic[O]):
     counts) from measured update times, and keeps checking, because the machine's load
     changes under it.
 
-    Why: on an idle 2-core machine two threads (lanes, or torch's own) are up to ~1.4x
-    faster than one; when other processes keep the cores busy they are slower: lanes
-    ~1.2x, torch's spinning OpenMP threads 2x to 30x (bench_learner.py's "one core
-    busy" line). No fixed choice is right on a shared machine, and the update's result
-    differs between them only in the order of floating-point additions.
+    Why: on an idle 2-core machine two threads (lanes, or torch's own) are faster than
+    one; when other processes keep the cores busy they are slower, torch's spinning
+    OpenMP threads by far (bench_learner.py's "one core busy" line; docs/performance.md,
+    "Learner design and its measurements"). No fixed choice is right on a shared
+    machine, and the update's result differs between them only in the order of
+    floating-point additions.
 
     Updates run in blocks of `block` with one choice; a block's median update time
     updates that choice's moving average (a probe's block replaces it). Each choice
@@ -86,7 +87,7 @@ class LaneTuner(Generic[O]):
     Medians, not means: other processes stall an update now and then whatever the
     choice (an evaluator's burst preempts a thread mid-update), and one such stall must
     not decide a probe; a choice that is slower under the load shows it in most of its
-    updates, which the median sees (docs/performance.md, "Session 3").
+    updates, which the median sees (tests/test_lanes.py reproduces such stalls).
     """
 
     def __init__(

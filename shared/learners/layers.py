@@ -17,7 +17,7 @@ from typing import Any
 import torch
 
 
-# The three products of a stacked linear layer. MKL on one core is 3-10x slower for
+# The three products of a stacked linear layer. MKL on one core is several times slower for
 # products with a narrow side (a last layer's 1-3 outputs, a first layer's 4-24 inputs)
 # in some layouts, e.g. the ones `bmm`'s autograd picks; these pick the fast one. bf16
 # products run in oneDNN, whose kernels are fastest in the plain layouts, so the layout
@@ -55,8 +55,8 @@ def linear_grad_weight(
     return out if dtype is None else out.to(dtype)
 
 
-# ReLU and its backward. torch's bf16 kernels for both take 2-4x their fp32 time, more
-# than a whole first-layer product; bf16's int16 view does the same work in integer
+# ReLU and its backward. torch's bf16 kernels for both take several times their fp32 time,
+# more than a whole first-layer product; bf16's int16 view does the same work in integer
 # kernels. bf16 is sign and magnitude: a value is below +0 exactly when its bits as an
 # int16 are, so clamping those at 0 is ReLU for every value but a NaN with the sign bit
 # set (which becomes 0 instead of staying NaN).

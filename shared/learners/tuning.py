@@ -1,15 +1,15 @@
 """How many threads the batched update uses, chosen from measured update times.
 
-No fixed choice is right on a machine shared with other processes: two threads beat
-one when the second core is free and lose, badly for torch's spinning OpenMP threads,
-when it is not (docs/performance.md, section 4). `TunedMADDPG` wraps a `BatchedMADDPG`
-and lets a `LaneTuner` pick, block by block of updates, one of `AUTO_MODES`, so the
-learner itself stays one way of computing the update and the caller only says, through
-`contended`, when it knows other work runs beside the update (the cluster's learner:
-while the evaluator evaluates weights it sent). Those updates get a tuner of their own,
-so their stalls do not spoil the choice for the rest. The modes differ only in the
-order of floating-point additions: reruns are equal up to rounding, not bit for bit.
-A bf16 learner is tuned the same way: its modes only take other times.
+No fixed choice is right on a machine shared with other processes: two threads beat one
+when the second core is free and lose, badly for torch's spinning OpenMP threads, when
+it is not (docs/performance.md, "Learner design and its measurements"). `TunedMADDPG`
+wraps a `BatchedMADDPG` and lets a `LaneTuner` pick, block by block of updates, one of
+`AUTO_MODES`, so the learner itself stays one way of computing the update and the caller
+only says, through `contended`, when it knows other work runs beside the update (the
+cluster's learner: while the evaluator evaluates weights it sent). Those updates get a
+tuner of their own, so their stalls do not spoil the choice for the rest. The modes
+differ only in the order of floating-point additions: reruns are equal up to rounding,
+not bit for bit. A bf16 learner is tuned the same way: its modes only take other times.
 """
 
 from __future__ import annotations
