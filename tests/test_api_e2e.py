@@ -13,10 +13,7 @@ import csv
 import dataclasses
 import io
 import json
-import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -31,8 +28,8 @@ from services.api.client import parse_sse
 from shared import bus as keys
 from shared.bus import Bus
 from shared.wire import WireError, decode, encode
-from tests.conftest import ROOT, Procs, free_port, wait_for, wait_port
-from tests.harness import TINY
+from tests.conftest import Procs, free_port, wait_for, wait_port
+from tests.harness import TINY, macb
 
 
 @dataclass
@@ -353,17 +350,6 @@ def test_a_stopped_run_retried_runs_afresh_under_its_id(cluster):
     wait_for(counted, timeout=10, what="the counter's final stats: counted afresh")
     again = httpx.post(f"{url}/experiments/{exp['id']}/retry").json()
     assert again["changed"] is False and again["retried"] == []
-
-
-def macb(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "cli", *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
 
 
 def test_cli_run_ls_plot_and_stop_through_the_api(cluster, tmp_path):

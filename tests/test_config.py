@@ -1,12 +1,11 @@
 """Invalid configs are refused with the field and the reason, before anything runs."""
 
 import json
-import subprocess
-import sys
 
 import pytest
 
 from shared.config import ConfigError, TrainConfig, load_config, make_config
+from tests.harness import macb
 
 
 def test_defaults_are_the_thesis_settings():
@@ -62,24 +61,7 @@ def test_config_file_and_overrides(tmp_path):
 
 def test_cli_refuses_a_bad_config_before_running(tmp_path):
     out = tmp_path / "run"
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "cli",
-            "train",
-            "--task",
-            "simple",
-            "--algo",
-            "cen-maddpg",
-            "--beta",
-            "-1",
-            "--out",
-            str(out),
-        ],
-        capture_output=True,
-        text=True,
-    )
+    r = macb("train", "--task", "simple", "--algo", "cen-maddpg", "--beta", "-1", "--out", str(out))
     assert r.returncode == 2
     assert "beta: Input should be greater than or equal to 0" in r.stderr
     assert not out.exists(), "nothing may run or be written"

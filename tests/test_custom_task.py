@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 
 import httpx
 import numpy as np
@@ -20,7 +19,8 @@ from shared.config import ConfigError, make_config
 from shared.rollout import Collector, evaluate
 from shared.tasks import make_task_for, task_spec_for
 from shared.trainer import train
-from tests.conftest import ROOT, wait_for
+from tests.conftest import wait_for
+from tests.harness import macb
 from tests.test_api_e2e import api_cluster
 from tests.test_tensorboard import assert_same, expected, read_back
 
@@ -205,10 +205,7 @@ def test_macb_train_runs_a_custom_task_and_resumes_it(tmp_path):
     out = tmp_path / "run"
 
     def macb_train(*more: str) -> subprocess.CompletedProcess:
-        cmd = [sys.executable, "-m", "cli", "train", *more, "--quiet", "--cut-every", "0"]
-        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr[-3000:]
-        return proc
+        return macb("train", *more, "--quiet", "--cut-every", "0", check=True)
 
     proc = macb_train(*args, "--out", str(out))
     assert "done: 8 episodes" in proc.stdout
@@ -287,14 +284,7 @@ def test_the_cluster_and_its_api_run_a_custom_task(tmp_path):
         assert points[-1]["replay_ratio"] == pytest.approx(1.0)
         # `macb export` writes the cluster run's points as TensorBoard scalars
         tb = tmp_path / "tb"
-        proc = subprocess.run(
-            [sys.executable, "-m", "cli", "export", run["id"], "--api", url]
-            + ["--tensorboard", str(tb)],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        proc = macb("export", run["id"], "--api", url, "--tensorboard", str(tb), timeout=120)
         assert proc.returncode == 0, proc.stderr
         (folder,) = [p for p in tb.glob("*/*") if p.is_dir()]
         assert folder.name == "cen-maddpg_+_cen-macb-seed0"

@@ -5,9 +5,6 @@ the same code with another device."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 import torch
@@ -16,7 +13,7 @@ from shared.config import ConfigError, make_config
 from shared.learners import BatchedMADDPG, LearnerSpec
 from shared.learners.group import GroupMADDPG
 from shared.learners.precision import DeviceError, resolve_device
-from tests.conftest import ROOT
+from tests.harness import macb
 from tests.test_group_learner import agents_of, assert_same_state, batch
 
 
@@ -36,11 +33,8 @@ def test_a_missing_device_is_refused_with_the_reason():
         resolve_device("cuda")
     with pytest.raises(DeviceError):
         BatchedMADDPG(agents_of("simple"), LearnerSpec(algo="ddpg"), device="cuda")
-    got = subprocess.run(
-        [sys.executable, "-m", "cli", "train", "--task", "simple", "--algo", "ddpg",
-         "--device", "cuda", "--episodes", "1", "--out", "/nonexistent/never"],
-        cwd=ROOT, capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
+    got = macb("train", "--task", "simple", "--algo", "ddpg", "--device", "cuda",
+               "--episodes", "1", "--out", "/nonexistent/never", timeout=120)  # fmt: skip
     assert got.returncode == 2 and "device cuda: not available here" in got.stderr
 
 

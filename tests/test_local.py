@@ -10,25 +10,16 @@ import csv
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import ROOT
+from tests.harness import macb, spawn
 
 TIMING = ("steps_per_sec", "train_steps_per_sec", "wall_s")
 SMALL = ["--hidden", "16,16", "--learning-starts", "20", "--batch-size", "8",
          "--learner-lanes", "1"]  # fmt: skip
-
-
-def macb(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "cli", *args],
-        cwd=ROOT, capture_output=True, text=True, timeout=timeout, check=False,
-    )  # fmt: skip
 
 
 def rows(folder: Path) -> list[dict]:
@@ -74,10 +65,7 @@ def test_a_killed_local_run_continues_to_the_same_rows(tmp_path):
     assert (tmp_path / "straight" / "plot.png").exists()
 
     out = tmp_path / "killed"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cli", *args, "--out", str(out)],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-    )  # fmt: skip
+    proc = spawn(*args, "--out", str(out))
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:  # past the first cut (every run cuts its 1st point)

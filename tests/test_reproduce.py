@@ -10,10 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import signal
-import subprocess
-import sys
 import time
 
 import httpx
@@ -22,8 +19,7 @@ from PIL import Image
 
 from cli.figures import FIGURES
 from services.api.store import Store
-from tests.conftest import ROOT, free_port, wait_for
-from tests.test_up import cluster_processes
+from tests.harness import cluster_processes, free_port, macb, spawn, wait_for
 
 EPISODES = 200  # x 11 arms x 2 seeds: about the episodes of the 7-arm figure at 300
 
@@ -53,35 +49,33 @@ def test_reproduce_fig3_runs_resumes_and_then_reruns_nothing(tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     data, out = tmp_path / "data", tmp_path / "out"
     argv = [
-        *(sys.executable, "-m", "cli", "reproduce", "fig3", "--episodes", str(EPISODES)),
+        *("reproduce", "fig3", "--episodes", str(EPISODES)),
         *("--seeds", "0", "1", "--api", url, "--endpoint", endpoint),
         *("--data-dir", str(data), "--out", str(out), "--quiet", "--quiet-services"),
         # The resume machinery is what is tested here, at async's speed (22 runs); the
         # lockstep default is tests/test_lockstep.py's and the next test's.
         *("--interleave", "async"),
     ]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     t0 = time.monotonic()
 
     # 1. Interrupted after two runs: it stops the experiment and the cluster.
-    first = subprocess.Popen(
-        argv, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-    )
+    first = spawn(*argv, log=tmp_path / "first.log")
     try:
         wait_for(lambda: _completed(url) >= 2, timeout=900, interval=1.0, what="two runs")
     finally:
         first.send_signal(signal.SIGINT)
-        said, _ = first.communicate(timeout=120)
+        first.wait(timeout=120)
+    said = (tmp_path / "first.log").read_text()
     assert first.returncode == 1, said
     assert "no API answers" in said and "run the same command again to resume it" in said
     before = _runs(data / "api.sqlite3")
     assert len(before) == len(fig.arms) * 2
     done = {r: x for r, x in before.items() if x["status"] == "completed"}
     assert len(done) >= 2 and {x["status"] for x in before.values()} == {"completed", "stopped"}
-    assert cluster_processes(endpoint, tmp_path) == []
+    assert cluster_processes(endpoint, data) == []
 
     # 2. The same command: the stopped runs run again (their points go), the rest stay.
-    second = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1500)
+    second = macb(*argv, timeout=1500)
     assert second.returncode == 0, second.stderr
     assert f"resuming experiment {next(iter(before.values()))['experiment_id']}" in second.stderr
     retried = len(before) - len(done)
@@ -96,7 +90,7 @@ def test_reproduce_fig3_runs_resumes_and_then_reruns_nothing(tmp_path):
             assert x["attempts"] == 1
         else:
             assert x["attempts"] == 2
-    assert cluster_processes(endpoint, tmp_path) == []
+    assert cluster_processes(endpoint, data) == []
 
     # The figure: every arm, the control included, in the legend and in the report.
     with Image.open(out / "fig3.png") as png:
@@ -116,12 +110,12 @@ def test_reproduce_fig3_runs_resumes_and_then_reruns_nothing(tmp_path):
     took = time.monotonic() - t0
 
     # 3. Once more: nothing runs again, nothing is added.
-    third = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    third = macb(*argv)
     assert third.returncode == 0, third.stderr
     assert f"{len(after)} completed" in third.stderr and "queued" not in third.stderr
     again = _runs(data / "api.sqlite3")
     assert again == after, "the same runs, points, attempts and times"
-    assert cluster_processes(endpoint, tmp_path) == []
+    assert cluster_processes(endpoint, data) == []
     print(
         f"fig3 x {EPISODES} episodes x 2 seeds ({len(after)} runs): {took:.0f} s interrupted "
         f"and resumed, {time.monotonic() - t0 - took:.0f} s to find nothing to run"
@@ -136,11 +130,11 @@ def test_reproduce_through_the_cluster_runs_the_thesis_loop_by_default(tmp_path)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     data, out = tmp_path / "data", tmp_path / "out"
     argv = [
-        *(sys.executable, "-m", "cli", "reproduce", "fig3", "--episodes", "6"),
+        *("reproduce", "fig3", "--episodes", "6"),
         *("--seeds", "0", "--api", url, "--endpoint", endpoint),
         *("--data-dir", str(data), "--out", str(out), "--quiet", "--quiet-services"),
     ]
-    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    done = macb(*argv, timeout=600)
     assert done.returncode == 0, done.stderr
     runs = _runs(data / "api.sqlite3")
     assert len(runs) == len(FIGURES["fig3"].arms)
@@ -151,14 +145,14 @@ def test_reproduce_through_the_cluster_runs_the_thesis_loop_by_default(tmp_path)
         assert learner["policy_lag"] == 0.0 and learner["replay_ratio"] == 1.0, learner
         # one slot: the figure's runs are one run group
         assert sorted(run["assign"]["group"]) == sorted(runs), run["assign"]
-    assert cluster_processes(endpoint, tmp_path) == []
+    assert cluster_processes(endpoint, data) == []
     # ... and each is the run the one-process group gives (`--local`), bit for bit
     local = tmp_path / "local"
     argv = [
-        *(sys.executable, "-m", "cli", "reproduce", "fig3", "--episodes", "6"),
+        *("reproduce", "fig3", "--episodes", "6"),
         *("--seeds", "0", "--local", "--out", str(local), "--quiet"),
     ]
-    done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    done = macb(*argv, timeout=600)
     assert done.returncode == 0, done.stderr
     timing = {"steps_per_sec", "train_steps_per_sec", "wall_s", "run", "run_id"}
 

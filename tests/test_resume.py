@@ -6,8 +6,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -18,8 +16,8 @@ from cli.main import main
 from shared.config import make_config
 from shared.cuts import CUT_FORMAT, cut_files
 from shared.trainer import load_checkpoint, train
+from tests.harness import spawn
 
-ROOT = Path(__file__).resolve().parent.parent
 TIMING = ("steps_per_sec", "train_steps_per_sec", "wall_s")
 BASE = {
     "task": "speaker_listener",
@@ -92,14 +90,13 @@ def test_a_killed_macb_train_resumes_to_the_same_rows(tmp_path, straight):
     cfg = {**BASE, "episodes": 40}
     rows, _ = straight(episodes=40)
     out = tmp_path / "run"
-    argv = [sys.executable, "-m", "cli", "train", "--out", str(out), "--quiet"]
-    argv += ["--cut-every", "0"]
+    argv = ["train", "--out", str(out), "--quiet", "--cut-every", "0"]
     for k, v in cfg.items():
         argv += [
             f"--{k.replace('_', '-')}",
             ",".join(map(str, v)) if isinstance(v, list) else str(v),
         ]
-    proc = subprocess.Popen(argv, cwd=ROOT, start_new_session=True)
+    proc = spawn(*argv)
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:

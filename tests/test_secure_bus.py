@@ -10,10 +10,8 @@ router listening off loopback without TLS and auth, a bad file half-starting a s
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -25,21 +23,11 @@ from shared.config import make_config
 from shared.control import send_stop, start_run
 from shared.security import Security
 from shared.wire import encode
-from tests.conftest import ROOT, Procs, free_port, wait_for, wait_port
+from tests.conftest import Procs, free_port, wait_for, wait_port
+from tests.harness import macb
 from tests.test_services_run import SMALL, check_exact, wait_services
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
-
-
-def macb(*args: str, env: dict[str, str] | None = None, timeout: float = 60):
-    return subprocess.run(
-        [sys.executable, "-m", "cli", *args],
-        cwd=ROOT,
-        env={**os.environ, **(env or {})},
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
 
 
 def as_user(secrets: Path, user: str, endpoint: str | None = None) -> dict[str, str]:

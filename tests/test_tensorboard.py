@@ -5,19 +5,15 @@ one folder per run named by experiment, arm and seed."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import httpx
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from services.api.main import ApiServer, Settings
 from services.api.store import Store
 from shared.tensorboard import scalars
-from tests.conftest import ROOT
-from tests.harness import TINY
+from tests.harness import TINY, macb, start_api
 
 TRAIN = ["--task", "simple", "--algo", "ddpg", "--explore", "dis-macb", "--k", "32"]
 TRAIN += ["--hidden", "32,32", "--batch-size", "16", "--eval-episodes", "2"]
@@ -48,21 +44,13 @@ def assert_same(got: dict, want: dict) -> None:
         assert [v for _, v in got[tag]] == pytest.approx([v for _, v in points], rel=1e-6), tag
 
 
-def macb(*args: str) -> subprocess.CompletedProcess:
-    proc = subprocess.run(
-        [sys.executable, "-m", "cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=300
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return proc
-
-
 def jsonl(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()]
 
 
 def test_macb_train_writes_every_metric_and_a_resume_does_not_repeat_steps(tmp_path):
     out, tb = tmp_path / "ddpg-run", tmp_path / "tb"
-    proc = macb("train", *TRAIN, "--out", str(out), "--tensorboard", str(tb))
+    proc = macb("train", *TRAIN, "--out", str(out), "--tensorboard", str(tb), check=True)
     assert f"TensorBoard events in {tb / 'ddpg-run'}/" in proc.stdout
     rows = jsonl(out / "metrics.jsonl")
     got = read_back(tb / "ddpg-run")
@@ -72,7 +60,17 @@ def test_macb_train_writes_every_metric_and_a_resume_does_not_repeat_steps(tmp_p
     # Killed after its cut at episode 6 (its newest cut removed): the resumed life writes
     # episode 8 again, and TensorBoard shows each step once, the new values.
     sorted((out / "cuts").glob("cut-*.pt"))[-1].unlink()
-    macb("train", "--resume", str(out), "--tensorboard", str(tb), "--quiet", "--cut-every", "0")
+    macb(
+        "train",
+        "--resume",
+        str(out),
+        "--tensorboard",
+        str(tb),
+        "--quiet",
+        "--cut-every",
+        "0",
+        check=True,
+    )
     resumed = jsonl(out / "metrics.jsonl")
     after = read_back(tb / "ddpg-run")
     assert [s for s, _ in after["success_rate"]] == [2, 4, 6, 8]
@@ -82,9 +80,7 @@ def test_macb_train_writes_every_metric_and_a_resume_does_not_repeat_steps(tmp_p
 def test_macb_export_writes_a_folder_per_run_named_by_experiment_arm_and_seed(tmp_path):
     """An experiment of two arms x two seeds in a real API and store (its points written
     as the scheduler writes them); exported from the API and from the store file."""
-    server = ApiServer(
-        Settings(port=0, data_dir=tmp_path / "api", connect=["tcp/127.0.0.1:1"])  # no bus
-    ).start()
+    server = start_api(tmp_path, None)  # no bus
     try:
         arms = [{"name": "Cen-MACB", "explore": "cen-macb"}, {"name": "a/b c", "explore": "none"}]
         body = {**TINY, "seeds": [0, 1], "arms": arms, "name": "tb check"}
@@ -101,9 +97,17 @@ def test_macb_export_writes_a_folder_per_run_named_by_experiment_arm_and_seed(tm
             points[run["id"]] = rows
         store.close()
         via_api = tmp_path / "from-api"
-        macb("export", exp["id"], "--api", server.url, "--tensorboard", str(via_api))
+        macb("export", exp["id"], "--api", server.url, "--tensorboard", str(via_api), check=True)
         one = tmp_path / "one-run"
-        macb("export", exp["runs"][3]["id"], "--api", server.url, "--tensorboard", str(one))
+        macb(
+            "export",
+            exp["runs"][3]["id"],
+            "--api",
+            server.url,
+            "--tensorboard",
+            str(one),
+            check=True,
+        )
     finally:
         server.stop()
     via_db = tmp_path / "from-db"
@@ -117,6 +121,7 @@ def test_macb_export_writes_a_folder_per_run_named_by_experiment_arm_and_seed(tm
         str(via_db),
         "--csv",
         str(tmp_path / "csv"),
+        check=True,
     )
     assert "TensorBoard: 4 run(s), 12 points" in proc.stdout
     top = f"tb_check-{exp['id']}"
@@ -131,51 +136,18 @@ def test_macb_export_writes_a_folder_per_run_named_by_experiment_arm_and_seed(tm
     run3 = exp["runs"][3]
     assert [p.name for p in (one / top).iterdir()] == [f"a_b_c-seed{run3['seed']}"]
     # exporting again replaces a run's events: still one value per step
-    macb("export", exp["id"], "--db", db, "--tensorboard", str(via_db))
+    macb("export", exp["id"], "--db", db, "--tensorboard", str(via_db), check=True)
     again = read_back(via_db / top / "Cen-MACB-seed0")
     assert [s for s, _ in again["success_rate"]] == [4, 8, 12]
     assert (tmp_path / "csv" / "metrics.csv").read_text().count("\n") == 1 + 12
 
 
 def test_macb_export_refuses_what_it_cannot_find(tmp_path):
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "cli",
-            "export",
-            "nope",
-            "--db",
-            str(tmp_path / "none.sqlite3"),
-            "--tensorboard",
-            str(tmp_path),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    tb = ("--tensorboard", str(tmp_path))
+    proc = macb("export", "nope", "--db", str(tmp_path / "none.sqlite3"), *tb, timeout=60)
     assert proc.returncode == 2 and "no store file" in proc.stderr
     Store(tmp_path / "s.sqlite3").close()
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "cli",
-            "export",
-            "nope",
-            "--db",
-            str(tmp_path / "s.sqlite3"),
-            "--tensorboard",
-            str(tmp_path),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = macb("export", "nope", "--db", str(tmp_path / "s.sqlite3"), *tb, timeout=60)
     assert proc.returncode == 1 and "no run or experiment 'nope'" in proc.stderr
-    proc = subprocess.run(
-        [sys.executable, "-m", "cli", "export", "x"], cwd=ROOT, capture_output=True, text=True
-    )
+    proc = macb("export", "x")
     assert proc.returncode == 2 and "--tensorboard DIR and/or --csv DIR" in proc.stderr
