@@ -23,6 +23,7 @@ from cli.config_flags import add_config_flags, config_overrides, one_run_config,
 from cli.security import add_security_flags
 from shared.cluster import Cluster, cluster_plan
 from shared.config import ConfigError, TrainConfig, actors_error
+from shared.files import data_dir_help, default_data_dir
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -54,7 +55,11 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
         metavar="ENDPOINT",
         help="router only: listen on (beyond 127.0.0.0/8 only with TLS and a users file)",
     )
-    s.add_argument("--data-dir", default="data", help="where snapshots and checkpoints go")
+    s.add_argument(
+        "--data-dir",
+        help=data_dir_help("where snapshots, checkpoints and the api's store go")
+        + "; for the api, MACB_API_DATA_DIR sets it too",
+    )
     s.add_argument(
         "--listen-http",
         metavar="HOST:PORT",
@@ -124,7 +129,7 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         "group's (default 1: every run on its own services)",
     )
     up.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="router endpoint")
-    up.add_argument("--data-dir", default="data", help="snapshots, checkpoints, logs")
+    up.add_argument("--data-dir", help=data_dir_help("snapshots, checkpoints, logs, the store"))
     up.add_argument("--run", metavar="CONFIG", help="run this experiment, then stop")
     up.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="with --run: seeds")
     up.add_argument("--api-port", type=int, default=8000, help="the API's port on 127.0.0.1")
@@ -169,7 +174,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     module = importlib.import_module(f"services.{args.role}.main")
     service_id = args.id or f"{args.role}-{socket.gethostname()}-{os.getpid()}"
     connect = args.connect or default_connect()
-    service = module.make_service(service_id, connect, Path(args.data_dir))
+    service = module.make_service(service_id, connect, Path(args.data_dir or default_data_dir()))
     service.install_signal_handlers()
     service.serve_forever()
     return 0
@@ -179,7 +184,9 @@ def serve_api(args: argparse.Namespace) -> int:
     """`macb serve api`: the HTTP API (uvicorn) with its scheduler and store."""
     from services.api.main import Settings, serve
 
-    overrides: dict[str, Any] = {"data_dir": Path(args.data_dir)}
+    overrides: dict[str, Any] = {}
+    if args.data_dir:  # else MACB_API_DATA_DIR, else the per-user default
+        overrides["data_dir"] = Path(args.data_dir)
     if args.listen_http:
         host, _, port = args.listen_http.rpartition(":")
         if not host or not port.isdigit():
@@ -337,7 +344,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     except (ConfigError, OSError) as err:
         print(f"macb up: invalid config: {err}", file=sys.stderr)
         return 2
-    data_dir = Path(args.data_dir)
+    data_dir = Path(args.data_dir or default_data_dir())
     api_addr = None if args.no_api else f"127.0.0.1:{args.api_port}"
     endpoint, secrets = _secure_endpoint(args.endpoint)
     try:

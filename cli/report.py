@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from cli.figures import FigureDef, arm_configs, control_of, is_macb, split_base
+from shared.config import TrainConfig
 
 SMOOTH_SHARE = 0.02
 PLATEAU_SHARE = 0.10
@@ -293,6 +294,15 @@ def _fmt_point(point: dict[str, Any]) -> str:
     return ", ".join(f"{k}={json.dumps(v)}" for k, v in point.items()) or "(the base)"
 
 
+def _count1(a: Analysis, name: str, config: dict[str, Any]) -> float | None:
+    """The arm's count-1 % at the figure's length; None without a point, or when the arm
+    counts nothing (explore none or constant: no table, the 0 its rows carry is no
+    measurement)."""
+    if not is_macb({"explore": TrainConfig.model_fields["explore"].default, **config}):
+        return None
+    return a.arm(name).value_at(a.fig.episodes, "count1_pct")[0]
+
+
 def _milestone(arm: ArmCurve, episode: int, metric: str) -> str:
     v, at = arm.value_at(episode, metric)
     if v is None or arm.length < episode:
@@ -336,7 +346,8 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
     """FIGURE.md: what ran, the definitions, each arm beside what the thesis reports for
     it, a verdict per claim, and each MACB arm against its control."""
     fig, exp = a.fig, a.experiment
-    base, sets = split_base(arm_configs(fig))
+    configs = arm_configs(fig)
+    base, sets = split_base(configs)
     runs = exp.get("runs") or []
     if runs and "config" in runs[0]:  # what ran: --episodes cuts the files' length
         base["episodes"] = runs[0]["config"]["episodes"]
@@ -393,7 +404,7 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         thesis = arm_def.thesis or "not in the thesis (control)"
         if fig.kind == "table":
             v, _ = arm.value_at(fig.episodes)
-            c1, _ = arm.value_at(fig.episodes, "count1_pct")
+            c1 = _count1(a, arm_def.name, configs[arm_def.name])
             measured = "-" if v is None else f"{v:.0%}, " + ("-" if c1 is None else f"{c1:.0f}%")
             if v is not None and arm.length < fig.episodes:
                 measured += f" (at {arm.length:,})"
@@ -502,10 +513,11 @@ def _draw_table(a: Analysis, profile: str) -> tuple[Any, list[str]]:
     fig = Figure(figsize=(7.6, 4.8), dpi=120)
     ax = fig.subplots()
     texts = {}
+    configs = arm_configs(a.fig)
     for d in a.fig.arms:
         arm = a.arm(d.name)
         v, _ = arm.value_at(a.fig.episodes)
-        c1, _ = arm.value_at(a.fig.episodes, "count1_pct")
+        c1 = _count1(a, d.name, configs[d.name])
         i, j = rows.index(d.row), cols.index(d.col)
         if v is not None:
             grid[i, j] = v

@@ -22,6 +22,7 @@ from urllib.parse import urlparse
 from cli.config_flags import HelpFormatter
 from cli.figures import FIGURES, PROFILES, FigureDef, experiment_body, experiment_name, file_seeds
 from cli.local import add_group_flags, group_flag_error
+from shared.files import data_dir_help, default_data_dir
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -63,7 +64,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         help="API base URL (default: MACB_API_URL or http://127.0.0.1:8000); when none "
         "answers there, a local cluster is started with its API on that port",
     )
-    rp.add_argument("--data-dir", default="data", help="the local cluster's data dir")
+    rp.add_argument("--data-dir", help=data_dir_help("the local cluster's data dir"))
     rp.add_argument(
         "--slots",
         type=int,
@@ -263,7 +264,7 @@ def _with_local_cluster(
         )
         return 1
     print(f"no API answers at {url}: starting the local cluster", file=sys.stderr)
-    data_dir = Path(args.data_dir)
+    data_dir = Path(args.data_dir or default_data_dir())
     try:
         with local_cluster(
             1,

@@ -384,7 +384,7 @@ class GroupRun:
             wall = m.wall_before + time.perf_counter() - self.start
             row = metric_row(episode, ev, m, self.learner.updates, wall)
             m.rows.append(row)
-            m.shift_warned = _say_if_constant_shift(m.rows, m.shift_warned)
+            m.shift_warned = _say_if_constant_shift(m.rows, m.shift_warned, m.explorer.counting)
             rows.append(row)
         return rows
 

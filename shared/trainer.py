@@ -103,13 +103,22 @@ def load_checkpoint(path: Path) -> dict:
     return torch.load(path, weights_only=True)
 
 
-def _say_if_constant_shift(rows: list[dict], warned: bool) -> bool:
-    """Log, once each time it starts, that the bonus has been a constant reward shift
-    (every sampled key new, or the constant arm): then counting did nothing yet that a
-    constant bonus would not do. Returns whether it holds now."""
+def _say_if_constant_shift(rows: list[dict], warned: bool, counting: bool = True) -> bool:
+    """Log, once each time it starts, that the bonus has been a constant reward shift:
+    for a counting arm (every sampled key new) a warning, counting did nothing yet that a
+    constant bonus would not do; for the constant arm, which counts nothing, a note that
+    this is its design. Returns whether it holds now."""
     shift = constant_shift(rows)
     if shift and not warned:
         r = rows[-1]
+        if not counting:
+            log.info(
+                "episode %d: the bonus is a constant shift by design (%.4g on every "
+                "reward): the constant arm counts nothing",
+                r["episode"],
+                r["bonus_mean"],
+            )
+            return shift
         log.warning(
             "episode %d: the bonus is a constant shift (%.4g on every sampled row, "
             "sampled count-1 %.1f%%): counting has not changed any reward yet",
@@ -344,7 +353,9 @@ class Run:
         wall = self.wall_before + time.perf_counter() - self.start
         row = metric_row(episode, ev, self, self.learner.updates, wall)
         self.rows.append(row)
-        self.shift_warned = _say_if_constant_shift(self.rows, self.shift_warned)
+        self.shift_warned = _say_if_constant_shift(
+            self.rows, self.shift_warned, self.explorer.counting
+        )
         return row
 
     # ------------------------------------------------------------------ cuts

@@ -9,18 +9,21 @@ a flag must come back as that default.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
 import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 from types import ModuleType
 
 import pytest
 
 from shared.config import ConfigError, TrainConfig, make_config
 from tests.conftest import ROOT
+from tests.harness import free_port, wait_for
 
 CONFIG_COMMANDS = ("train", "start", "run", "up")
 POSITIONALS = {"run": ["c.yaml"]}  # what a command needs before its flags parse
@@ -307,3 +310,89 @@ def test_a_lockstep_run_with_several_actors_is_refused_before_anything_starts(tm
     )
     assert proc.returncode == 2, proc.stderr
     assert "actors: interleave lockstep" in proc.stderr, proc.stderr
+
+
+# ---------------------------------------------------------------- the data dir
+RULE = "(default: $XDG_STATE_HOME/macb, else ~/.local/state/macb; here "
+
+
+def test_the_default_data_dir_is_the_users_state_dir_and_help_says_so(
+    subparsers, monkeypatch, tmp_path
+):
+    """Not `data` in whatever folder the command runs in (a checkout got an untracked
+    data/): $XDG_STATE_HOME/macb, else ~/.local/state/macb (a relative
+    XDG_STATE_HOME is ignored, as the XDG spec says)."""
+    files = _import("shared.files")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    assert files.default_data_dir() == tmp_path / "state" / "macb"
+    monkeypatch.setenv("XDG_STATE_HOME", "state")
+    assert files.default_data_dir() == tmp_path / "home" / ".local" / "state" / "macb"
+    monkeypatch.delenv("XDG_STATE_HOME")
+    assert files.default_data_dir() == tmp_path / "home" / ".local" / "state" / "macb"
+    for command, positional in [("serve", ["api"]), ("up", []), ("reproduce", ["fig3"])]:
+        parser = subparsers[command]
+        assert parser.parse_args(positional).data_dir is None, command
+        assert RULE in " ".join(parser.format_help().split()), command
+
+
+@pytest.mark.parametrize("given", [None, "elsewhere"])
+def test_up_and_reproduce_start_their_cluster_in_that_data_dir(
+    subparsers, monkeypatch, tmp_path, given
+):
+    cluster = _import("cli.cluster")
+    state = tmp_path / "state"
+    monkeypatch.setenv("XDG_STATE_HOME", str(state))
+    started = []
+
+    @contextlib.contextmanager
+    def no_cluster(actors, endpoint, data_dir, *args, **kw):
+        started.append(Path(data_dir))
+        raise cluster.ClusterDidNotStart("not in this test")
+        yield
+
+    monkeypatch.setattr(cluster, "local_cluster", no_cluster)
+    flag = ["--data-dir", str(tmp_path / given)] if given else []
+    up = subparsers["up"].parse_args(flag)
+    assert up.func(up) == 1
+    api = ["--api", f"http://127.0.0.1:{free_port()}", "--out", str(tmp_path / "out")]
+    reproduce = subparsers["reproduce"].parse_args(["fig3", *api, *flag])
+    assert reproduce.func(reproduce) == 1
+    assert started == [tmp_path / given if given else state / "macb"] * 2
+
+
+@pytest.mark.parametrize("env", [{}, {"MACB_API_DATA_DIR": "from-env"}])
+def test_serve_api_run_in_a_checkout_leaves_it_clean(tmp_path, env):
+    """`macb serve api` without --data-dir: its store in the per-user dir, or where
+    MACB_API_DATA_DIR says; nothing in the folder it runs in."""
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    env = {k: str(tmp_path / v) for k, v in env.items()}
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cli", "serve", "api", "--listen-http", f"127.0.0.1:{port}"]
+        + ["--connect", "tcp/127.0.0.1:1"],
+        cwd=checkout,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "XDG_STATE_HOME": str(tmp_path), **env},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        wait_for(lambda: _health(port), timeout=60, what="the API answering")
+    finally:
+        proc.terminate()
+        out, _ = proc.communicate(timeout=30)
+    store = Path(env.get("MACB_API_DATA_DIR", tmp_path / "macb")) / "api.sqlite3"
+    assert store.exists(), out
+    assert f"store {store}" in out
+    assert list(checkout.iterdir()) == []
+
+
+def _health(port: int) -> bool:
+    import httpx
+
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200
+    except httpx.HTTPError:
+        return False

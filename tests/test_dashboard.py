@@ -147,7 +147,10 @@ def test_dashboard_draws_the_stored_learning_curves(finished_experiment, tmp_pat
 
 
 def test_dashboard_overlays_an_experiments_arms_with_their_names_in_the_legend(tmp_path):
-    arms = [{"name": "Cen-MACB", "explore": "cen-macb"}, {"name": "control", "explore": "constant"}]
+    arms = [
+        {"name": "Cen-MACB", "explore": "cen-macb"},
+        {"name": "Dis-MACB", "explore": "dis-macb"},
+    ]
     server = ApiServer(
         Settings(port=0, data_dir=tmp_path / "api", connect=["tcp/127.0.0.1:1"])  # no bus
     ).start()
@@ -156,11 +159,11 @@ def test_dashboard_overlays_an_experiments_arms_with_their_names_in_the_legend(t
         exp = httpx.post(f"{server.url}/experiments", json=body).json()
         store = Store(server.settings.db_path)
         values = {("Cen-MACB", 0): (0.2, 0.6), ("Cen-MACB", 1): (0.4, 1.0)}
-        values |= {("control", 0): (0.0, 0.1), ("control", 1): (0.1, 0.2)}
+        values |= {("Dis-MACB", 0): (0.0, 0.1), ("Dis-MACB", 1): (0.1, 0.2)}
         for run in exp["runs"]:
             rows = [
                 {"episode": e, "env_steps": 20 * e, "success_rate": v, "count1_pct": 5.0 * e}
-                | {"count1_pct": 5.0 * e + (30 if run["arm"] == "control" else 0)}
+                | {"count1_pct": 5.0 * e + (30 if run["arm"] == "Dis-MACB" else 0)}
                 | {"steps_per_sec": 100.0 + 10 * run["seed"]}
                 for e, v in zip((4, 8), values[(run["arm"], run["seed"])], strict=True)
             ]
@@ -174,13 +177,13 @@ def test_dashboard_overlays_an_experiments_arms_with_their_names_in_the_legend(t
     assert dom.find("body")[0]["data-ready"] == "1"
     (card,) = dom.find("section", data_experiment=exp["id"])
     legend = dom.find("span", class_="legend-item")
-    assert [x["data-arm"] for x in legend] == ["Cen-MACB", "control"]
-    assert [x["#text"] for x in legend] == ["Cen-MACB (2 seeds)", "control (2 seeds)"]
+    assert [x["data-arm"] for x in legend] == ["Cen-MACB", "Dis-MACB"]
+    assert [x["#text"] for x in legend] == ["Cen-MACB (2 seeds)", "Dis-MACB (2 seeds)"]
     for metric in CHARTS:
         curves = dom.find(
             "path", class_="curve-mean", data_experiment=exp["id"], data_metric=metric
         )
-        assert [c["data-label"] for c in curves] == ["Cen-MACB", "control"], metric
+        assert [c["data-label"] for c in curves] == ["Cen-MACB", "Dis-MACB"], metric
         assert len({c["stroke"] for c in curves}) == 2, "each arm its own colour"
         assert all(c["data-seeds"] == "2,2" for c in curves)
     success = {
@@ -188,14 +191,14 @@ def test_dashboard_overlays_an_experiments_arms_with_their_names_in_the_legend(t
         for c in dom.find("path", class_="curve-mean", data_metric="success_rate")
     }
     assert success["Cen-MACB"] == pytest.approx([0.3, 0.8])
-    assert success["control"] == pytest.approx([0.05, 0.15])
+    assert success["Dis-MACB"] == pytest.approx([0.05, 0.15])
     count1 = {
         c["data-label"]: [float(v) for v in c["data-values"].split(",")]
         for c in dom.find("path", class_="curve-mean", data_metric="count1_pct")
     }
-    assert count1 == {"Cen-MACB": [20.0, 40.0], "control": [50.0, 70.0]}
+    assert count1 == {"Cen-MACB": [20.0, 40.0], "Dis-MACB": [50.0, 70.0]}
     bands = dom.find("polygon", class_="curve-band")
-    assert sorted(b["data-label"] for b in bands) == sorted(["Cen-MACB", "control"] * len(CHARTS))
+    assert sorted(b["data-label"] for b in bands) == sorted(["Cen-MACB", "Dis-MACB"] * len(CHARTS))
     cells = {r["id"]: dom.find("tr", data_run=r["id"]) for r in exp["runs"]}
     assert all(len(v) == 1 for v in cells.values())
     assert [c["#text"] for c in dom.find("td", class_="arm")] == [r["arm"] for r in exp["runs"]]
@@ -239,6 +242,69 @@ def test_dashboard_draws_the_bonus_and_says_when_it_is_a_constant_shift(tmp_path
     assert drawn[("bonus_mean", "counting")] == pytest.approx([0.5] * 3)
     assert drawn[("bonus_mean", "shifted")] == pytest.approx([0.8] * 3)
     assert drawn[("sampled_count1_pct", "counting")] == pytest.approx([55.0] * 3)
+
+
+def test_count1_charts_run_0_to_100_and_leave_out_the_arms_that_count_nothing(tmp_path):
+    """A percentage axis runs 0-100 however far a band reaches (seeds at 100, 100 and 40
+    give mean + std 108: the axis went to 200). The control (explore: constant) and the
+    no-bonus arm count nothing, so they have no count-1 curve (their rows' 0s are no
+    measurement); the control's note says what it is, not that counting waits."""
+    arms = [
+        {"name": "counting", "explore": "cen-macb"},
+        {"name": "control", "explore": "constant"},
+        {"name": "no bonus", "explore": "none"},
+    ]
+    server = ApiServer(
+        Settings(port=0, data_dir=tmp_path / "api", connect=["tcp/127.0.0.1:1"])  # no bus
+    ).start()
+    try:
+        body = {**TINY, "seeds": [0, 1, 2], "arms": arms, "name": "count-1 check"}
+        exp = httpx.post(f"{server.url}/experiments", json=body).json()
+        store = Store(server.settings.db_path)
+        for run in exp["runs"]:
+            counting = run["arm"] == "counting"
+            bonus = {"counting": 0.4, "control": 0.8, "no bonus": 0.0}[run["arm"]]
+            rows = [
+                {"episode": e, "env_steps": 20 * e, "success_rate": 0.5, "steps_per_sec": 100.0}
+                | {"count1_pct": (100.0, 100.0, 40.0)[run["seed"]] if counting else 0.0}
+                | {"sampled_count1_pct": 60.0 if counting else 0.0}
+                | {"bonus_mean": bonus, "bonus_std": 0.1 if counting else 0.0}
+                for e in (4, 8, 12)
+            ]
+            store.add_points(run["id"], rows)
+        store.close()
+        with Browser(tmp_path / "chromium") as page:
+            page.goto(f"{server.url}/")
+            page.wait("document.body.dataset.ready === '1'")
+            card = f'section[data-experiment="{exp["id"]}"]'
+            ticks = page.js(
+                f'[...document.querySelectorAll(\'{card} svg[data-metric="count1_pct"] '
+                'g.axes text[text-anchor="end"]\')].map(t => t.textContent)'
+            )
+            drawn = page.js(
+                f"[...document.querySelectorAll('{card} path.curve-mean')]"
+                ".map(p => [p.dataset.metric, p.dataset.label, p.getAttribute('stroke')])"
+            )
+            notes = page.js(
+                "[...document.querySelectorAll('.shift-note')]"
+                ".map(n => [n.dataset.arm, n.textContent])"
+            )
+            page.screenshot(tmp_path / "count1.png")
+    finally:
+        server.stop()
+    assert ticks == ["0", "25", "50", "75", "100"]
+    labels: dict[str, list[str]] = {}
+    for metric, label, _ in drawn:
+        labels.setdefault(metric, []).append(label)
+    assert labels["success_rate"] == ["counting", "control", "no bonus"]
+    assert labels["bonus_mean"] == ["counting", "control", "no bonus"]
+    assert labels["count1_pct"] == labels["sampled_count1_pct"] == ["counting"]
+    colour = {(m, a): c for m, a, c in drawn}
+    assert colour[("count1_pct", "counting")] == colour[("success_rate", "counting")]
+    ((arm, text),) = notes
+    assert arm == "control" and "constant shift by design" in text
+    assert "counts nothing (no count-1 curves)" in text
+    assert "counting has not changed" not in text
 
 
 def test_the_form_creates_an_experiment_that_runs_and_the_buttons_stop_it(tmp_path):

@@ -24,12 +24,16 @@ from urllib.parse import parse_qs
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from shared.bus import default_connect
+from shared.files import DATA_DIR_RULE, default_data_dir
 
 from .routes import experiments, presets, runs, workers
 from .scheduler import Scheduler
@@ -47,7 +51,10 @@ class Settings(BaseSettings):
 
     host: str = Field("127.0.0.1", description="address to listen on (loopback by default)")
     port: int = Field(8000, ge=0, le=65535)
-    data_dir: Path = Field(Path("data"), description="the store goes here unless `db` is set")
+    data_dir: Path = Field(
+        default_factory=default_data_dir,
+        description=f"the store goes here unless `db` is set (default: {DATA_DIR_RULE})",
+    )
     db: Path | None = Field(None, description="SQLite file (default: DATA_DIR/api.sqlite3)")
     token: SecretStr | None = Field(None, description="bearer token required on every call")
     connect: list[str] | None = Field(None, description="router endpoints (MACB_ZENOH_CONNECT)")
@@ -224,6 +231,27 @@ def _validation_error(request: Request, exc: RequestValidationError) -> JSONResp
     return JSONResponse({"detail": jsonable_encoder(errors)}, status_code=status)
 
 
+METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
+def allowed_methods(app: FastAPI, scope: dict[str, Any]) -> list[str]:
+    """The methods some route of the app answers on this request's path."""
+    return [
+        method
+        for method in METHODS
+        if any(r.matches({**scope, "method": method})[0] is Match.FULL for r in app.router.routes)
+    ]
+
+
+async def _http_error(request: Request, exc: StarletteHTTPException):
+    """A 405's `Allow` lists every method of the path, not only those of the route that
+    matched first (GET and POST /experiments are two routes: Starlette named one)."""
+    if exc.status_code == 405 and (allowed := allowed_methods(request.app, request.scope)):
+        headers = {**(exc.headers or {}), "Allow": ", ".join(allowed)}
+        exc = StarletteHTTPException(405, exc.detail, headers)
+    return await http_exception_handler(request, exc)
+
+
 def make_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     store = Store(settings.db_path)
@@ -262,6 +290,7 @@ def make_app(settings: Settings | None = None) -> FastAPI:
     app.state.store = store
     app.state.scheduler = scheduler
     app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
     app.include_router(experiments.router)
     app.include_router(runs.router)
     app.include_router(workers.router)

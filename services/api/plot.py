@@ -15,6 +15,7 @@ if TYPE_CHECKING:
 LABELS = {
     "success_rate": "success rate",
     "count1_pct": "count-1 % (keys seen once)",
+    "sampled_count1_pct": "sampled rows with n = 1 (%)",
     "steps_per_sec": "env steps / s",
     "eval_return": "evaluation return",
     "collisions_cum": "cumulative collisions",
@@ -28,7 +29,8 @@ def legend_text(curve: dict[str, Any]) -> str:
 
 
 def draw_curves(curves: dict[str, Any], metric: str) -> Figure:
-    """The figure (Agg, not shown): one mean line and band per arm with points stored."""
+    """The figure (Agg, not shown): one mean line and band per arm with points stored
+    (an arm that counts nothing has none of the count metrics: `views.curves_of`)."""
     from matplotlib.figure import Figure
 
     groups = curves["metrics"].get(metric, [])
@@ -43,6 +45,8 @@ def draw_curves(curves: dict[str, Any], metric: str) -> Figure:
     ax.set_ylabel(LABELS.get(metric, metric))
     if metric == "success_rate":
         ax.set_ylim(-0.02, 1.02)
+    elif metric.endswith("_pct"):  # a percentage: 0-100, however wide a band is
+        ax.set_ylim(-2, 102)
     ax.grid(alpha=0.3)
     subtitle = "(mean over seeds, band: ± one standard deviation)"
     ax.set_title(f"{curves['name']}\n{subtitle}", fontsize=10)

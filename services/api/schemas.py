@@ -136,8 +136,13 @@ Arm = create_model(
 )
 
 
+# `seed` and a list of `seeds` exclude each other (`_check` refuses the pair): the
+# schema says so too, so that a client generated from it does not send both.
+SEED_OR_SEEDS = {"not": {"required": ["seed", "seeds"], "properties": {"seeds": {"type": "array"}}}}
+
+
 class _ExperimentFields(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra=SEED_OR_SEEDS)
 
     name: str | None = Field(
         None, min_length=1, max_length=200, pattern=NAME_PATTERN, description="a label"
@@ -146,7 +151,8 @@ class _ExperimentFields(BaseModel):
         None,
         min_length=1,
         max_length=64,
-        description="one run per seed (and arm and grid point); default: [seed]",
+        description="one run per seed (and arm and grid point); default: [seed]. Not "
+        "with `seed`: give one or the other",
     )
     grid: Grid | None = Field(  # type: ignore[valid-type]
         None, description='e.g. {"explore": ["none", "cen-macb"], "beta": [0.2, 0.8]}'
@@ -423,6 +429,12 @@ class Curve(BaseModel):
     name: str = Field(description="the arm's name (what its runs carry as `arm`)")
     label: str = Field(description="the legend text: the same as `name`")
     point: dict[str, Any] = Field(description="the keys its runs set over the base config")
+    explore: str | None = Field(
+        None,
+        description="its runs' `explore`; none and constant count nothing, so their curves "
+        "of the count metrics (count1_pct, sampled_count1_pct, table_size, "
+        "counted_transitions) are empty",
+    )
     runs: list[str]
     seeds: list[int] = Field(description="the seed of each run, in the order of `runs`")
     episode: list[int]

@@ -93,6 +93,12 @@ def load_run(store: Store, run_id: str) -> dict[str, Any] | None:
 
 
 # ---------------------------------------------------------------- curves
+# The metrics of the count tables. An arm that counts nothing (explore none or constant)
+# has no table, so its rows carry 0 for these: no curve of them is drawn for it.
+COUNT_METRICS = ("count1_pct", "sampled_count1_pct", "table_size", "counted_transitions")
+COUNTS_NOTHING = ("none", "constant")
+
+
 def _finite(x: Any) -> float | None:
     if isinstance(x, bool) or not isinstance(x, int | float):
         return None
@@ -120,13 +126,21 @@ def curves_of(
     points: dict[str, list[dict[str, Any]]],
     metrics: list[str],
 ) -> dict[str, Any]:
-    """`curves` of given runs (each with id, arm, point, seed) and their points: also
-    what `macb run --local` plots from its runs' folders."""
+    """`curves` of given runs (each with id, arm, point, seed, and its config if known)
+    and their points: also what `macb run --local` plots from its runs' folders. An arm
+    that counts nothing has empty curves of the `COUNT_METRICS`."""
     groups: dict[str, dict[str, Any]] = {}
     for r in runs:
         g = groups.setdefault(
             r["arm"],
-            {"name": r["arm"], "label": r["arm"], "point": r["point"], "runs": [], "seeds": []},
+            {
+                "name": r["arm"],
+                "label": r["arm"],
+                "point": r["point"],
+                "explore": (r.get("config") or {}).get("explore"),
+                "runs": [],
+                "seeds": [],
+            },
         )
         g["runs"].append(r["id"])
         g["seeds"].append(r["seed"])
@@ -135,7 +149,8 @@ def curves_of(
         out[metric] = []
         for g in groups.values():
             by_episode: dict[int, list[float]] = defaultdict(list)
-            for run_id in g["runs"]:
+            counted = metric not in COUNT_METRICS or g["explore"] not in COUNTS_NOTHING
+            for run_id in g["runs"] if counted else []:
                 for p in points[run_id]:
                     v = _finite(p.get(metric))
                     if v is not None and isinstance(p.get("episode"), int):
