@@ -3,12 +3,8 @@
 from __future__ import annotations
 
 import importlib.util
-import os
 import shutil
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -37,62 +33,6 @@ def _load_offline():
 
 
 offline = _load_offline()
-
-
-# Until every test is on tests/harness.py's Cluster.
-class Procs:
-    """Starts `macb serve ...` processes with their own logs; ends every one by PID."""
-
-    def __init__(self, log_dir: Path, endpoint: str, env: dict[str, str] | None = None) -> None:
-        self.log_dir = log_dir
-        self.endpoint = endpoint
-        self.env = dict(env or {})  # on top of ours, for every process started
-        self.procs: dict[str, subprocess.Popen] = {}
-
-    def start(self, name: str, *args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
-        """`env`: more variables for this process (a secure cluster's user and files)."""
-        env = {
-            **os.environ,
-            "MACB_ZENOH_CONNECT": self.endpoint,
-            "PYTHONUNBUFFERED": "1",
-            "OMP_NUM_THREADS": "1",
-            "OPENBLAS_NUM_THREADS": "1",
-            "MKL_NUM_THREADS": "1",
-            **self.env,
-            **(env or {}),
-        }
-        log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 (the child owns it)
-        p = subprocess.Popen(
-            [sys.executable, "-m", "cli", "serve", *args],
-            cwd=ROOT,
-            env=env,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-        self.procs[name] = p
-        return p
-
-    def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
-        p = self.procs[name]
-        if p.poll() is None:
-            os.kill(p.pid, sig)
-            p.wait(timeout=20)
-
-    def log(self, name: str) -> str:
-        return (self.log_dir / f"{name}.log").read_text(errors="replace")
-
-    def stop_all(self) -> None:
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 10
-        for p in self.procs.values():
-            try:
-                p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
 
 
 def _certs(out, *args: str):
@@ -144,19 +84,6 @@ def cluster(tmp_path, request):
 def router(cluster) -> str:
     """A real router process on its own loopback port: its endpoint."""
     return cluster.endpoint
-
-
-@pytest.fixture
-def procs(router, tmp_path, request):
-    p = Procs(tmp_path, router)
-    yield p
-    p.stop_all()
-    failed = getattr(request.node, "rep_call", None)
-    if failed is not None and failed.failed:  # the services' own account, in the report
-        for name in p.procs:
-            lines = p.log(name).splitlines()
-            print(f"----- {name}.log (last 40 of {len(lines)} lines) -----")
-            print("\n".join(lines[-40:]))
 
 
 @pytest.fixture

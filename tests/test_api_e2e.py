@@ -8,83 +8,21 @@ One learner means one run at a time, so a second run waits in the queue.
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import dataclasses
 import io
 import json
-import signal
 import threading
 import time
-from dataclasses import dataclass
-from pathlib import Path
 
 import httpx
 import msgpack
 import pytest
-import yaml
 
 from services.api.client import parse_sse
 from shared import bus as keys
 from shared.bus import Bus
 from shared.wire import WireError, decode, encode
-from tests.conftest import Procs, free_port, wait_for, wait_port
-from tests.harness import TINY, macb
-
-
-@dataclass
-class ApiCluster:
-    procs: Procs
-    endpoint: str
-    url: str
-    data: Path
-    api_env: dict[str, str] = dataclasses.field(default_factory=dict)
-    api_name: str = "api"
-
-    def start_api(self, name: str = "api") -> None:
-        host_port = self.url.removeprefix("http://")
-        args = ("api", "--listen-http", host_port, "--data-dir", str(self.data))
-        self.procs.start(name, *args, env=self.api_env)
-        self.api_name = name
-        self.wait_api()
-
-    def wait_api(self, services: int = 5) -> None:
-        def ready():
-            try:
-                if not httpx.get(f"{self.url}/health", timeout=2).json()["bus"]:
-                    return False
-                workers = httpx.get(f"{self.url}/workers", timeout=5).json()["workers"]
-                return len([w for w in workers if w["answers"]]) >= services
-            except httpx.HTTPError:
-                return False
-
-        wait_for(ready, timeout=90, interval=0.2, what="API and services up")
-
-
-@contextlib.contextmanager
-def api_cluster(tmp: Path, api_env: dict[str, str] | None = None):
-    """Router, counter, learner, evaluator, one actor and the API, all processes
-    (`api_env`: more variables for the API's process)."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    # A dead service that does not come back fails its run after this grace (30 s by
-    # default): shorter here, where the learner is killed for good.
-    procs = Procs(tmp, endpoint, env={"MACB_PEER_GRACE_S": "8"})
-    try:
-        procs.start("router", "router", "--listen", endpoint)
-        wait_port(endpoint)
-        data = tmp / "data"
-        for role in ("counter", "learner", "evaluator"):
-            procs.start(role, role, "--id", role, "--data-dir", str(data))
-        procs.start("actor0", "actor", "--id", "actor0", "--data-dir", str(data))
-        cluster = ApiCluster(
-            procs, endpoint, f"http://127.0.0.1:{free_port()}", data, api_env or {}
-        )
-        cluster.start_api()
-        yield cluster
-    finally:
-        procs.stop_all()
-    for name, p in procs.procs.items():
-        assert p.poll() is not None, f"{name} left running"
+from tests.harness import TINY, api_cluster, macb, wait_for, write_config
 
 
 @pytest.fixture(scope="module")
@@ -227,7 +165,7 @@ def test_restarting_the_api_mid_run_loses_no_metric_and_the_run_goes_on(cluster)
             timeout=60,
             what="two points stored",
         )
-        cluster.procs.kill(cluster.api_name, signal.SIGKILL)  # no goodbye, mid-write maybe
+        cluster.kill(cluster.api_name)  # SIGKILL: no goodbye, mid-write maybe
         at_kill = len(bus_rows.rows[run_id])
         wait_for(
             lambda: len(bus_rows.rows[run_id]) >= at_kill + 3,
@@ -235,7 +173,7 @@ def test_restarting_the_api_mid_run_loses_no_metric_and_the_run_goes_on(cluster)
             what="points published while the API is down",
         )
         while_down = len(bus_rows.rows[run_id]) - at_kill
-        cluster.start_api("api-restarted")
+        cluster.api("api-restarted")
         after_restart = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
         assert httpx.get(f"{url}/runs/{run_id}").json()["status"] == "running", (
             "the run should outlast the API's downtime; make it longer"
@@ -276,7 +214,7 @@ def test_a_run_whose_learner_dies_fails_with_the_reason_and_the_others_go_on(clu
         what="the first run training",
     )
     assert httpx.get(f"{url}/runs/{survivor}").json()["status"] == "queued"
-    cluster.procs.kill("learner", signal.SIGKILL)
+    cluster.kill("learner")  # SIGKILL
     run = wait_for(
         lambda: (r := httpx.get(f"{url}/runs/{doomed}").json())["status"] != "running" and r,
         timeout=30,
@@ -290,7 +228,7 @@ def test_a_run_whose_learner_dies_fails_with_the_reason_and_the_others_go_on(clu
         lambda: httpx.get(f"{url}/runs/{survivor}").json()["reason"], timeout=10, what="reason"
     )
     assert "learner" in waiting
-    cluster.procs.start("learner2", "learner", "--id", "learner", "--data-dir", str(cluster.data))
+    cluster.service("learner", name="learner2")
     done = wait_for(
         lambda: (
             (r := httpx.get(f"{url}/runs/{survivor}").json())["status"] not in ("queued", "running")
@@ -354,8 +292,7 @@ def test_a_stopped_run_retried_runs_afresh_under_its_id(cluster):
 
 def test_cli_run_ls_plot_and_stop_through_the_api(cluster, tmp_path):
     url = cluster.url
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(yaml.safe_dump(TINY))
+    cfg = write_config(tmp_path / "tiny.yaml", TINY)
     out = tmp_path / "out"
     done = macb("run", str(cfg), "--seeds", "3", "4", "--api", url, "--out", str(out), "--quiet")
     assert done.returncode == 0, done.stderr

@@ -23,25 +23,18 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
-from services.api.main import ApiServer, Settings
-from tests.conftest import Procs, free_port, wait_port
+from tests.harness import Cluster, start_api
 
 
 @pytest.fixture(scope="module")
 def fuzz_api(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("api-fuzz")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    procs = Procs(tmp, endpoint)
-    procs.start("router", "router", "--listen", endpoint)
-    try:
-        wait_port(endpoint)
-        server = ApiServer(Settings(port=0, data_dir=tmp / "api", connect=[endpoint])).start()
+    with Cluster(tmp) as cluster:
+        server = start_api(tmp, cluster.router())
         # Some stored state for the fuzzer to hit: an experiment with a queued run.
         httpx.post(f"{server.url}/experiments", json={"episodes": 12, "seeds": [0, 1]})
         yield server
         server.stop()
-    finally:
-        procs.stop_all()
 
 
 CONSTRAINED = {  # operations with a body or parameters the schema restricts

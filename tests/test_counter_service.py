@@ -71,10 +71,11 @@ def model(config: dict, streams: list[Stream]):
 
 
 class Counter:
-    """The counter process, seen from outside: launch, info, runs, batches, queries, acks."""
+    """The counter process, seen from outside: launch, info, runs, batches, queries, acks
+    (the process itself is one of `cluster`'s)."""
 
-    def __init__(self, bus, procs, data_dir, monkeypatch) -> None:
-        self.bus, self.procs, self.data_dir, self.mp = bus, procs, data_dir, monkeypatch
+    def __init__(self, bus, cluster) -> None:
+        self.bus, self.cluster, self.data_dir = bus, cluster, cluster.data
         self.launches = 0
         self.name = ""
         self._lock = threading.Lock()
@@ -95,18 +96,18 @@ class Counter:
     def launch(self, snapshot_s: float = 5.0) -> None:
         self.launches += 1
         self.name = f"counter-{self.launches}"
-        self.mp.setenv("MACB_COUNTER_SNAPSHOT_S", str(snapshot_s))
-        self.procs.start(self.name, "counter", "--id", "c0", "--data-dir", str(self.data_dir))
+        snapshots = {"MACB_COUNTER_SNAPSHOT_S": str(snapshot_s)}
+        self.cluster.service("counter", "c0", name=self.name, env=snapshots)
         wait_for(lambda: (i := self.info()) and i["ready"], 30, what=f"{self.name} ready")
 
     def kill(self, sig: int = signal.SIGKILL) -> None:
-        self.procs.kill(self.name, sig)
+        self.cluster.kill(self.name, sig)
 
     def alive(self) -> bool:
-        return self.procs.procs[self.name].poll() is None
+        return self.cluster.procs[self.name].poll() is None
 
     def log(self) -> str:
-        return self.procs.log(self.name)
+        return self.cluster.log(self.name)
 
     def info(self) -> dict | None:
         replies = self.bus.get(k_info("counter", "c0"), timeout=1.0)
@@ -138,8 +139,8 @@ class Counter:
 
 
 @pytest.fixture
-def counter(bus, procs, tmp_path, monkeypatch):
-    return Counter(bus, procs, tmp_path / "data", monkeypatch)
+def counter(bus, cluster):
+    return Counter(bus, cluster)
 
 
 def test_exactly_once_per_actor_with_duplicates_gaps_and_overlap(counter):

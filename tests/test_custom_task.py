@@ -19,9 +19,7 @@ from shared.config import ConfigError, make_config
 from shared.rollout import Collector, evaluate
 from shared.tasks import make_task_for, task_spec_for
 from shared.trainer import train
-from tests.conftest import wait_for
-from tests.harness import macb
-from tests.test_api_e2e import api_cluster
+from tests.harness import NETS, api_cluster, macb, wait_for
 from tests.test_tensorboard import assert_same, expected, read_back
 
 TINY = "tests.custom_envs:tiny"
@@ -31,7 +29,7 @@ REFERENCE = {
     "success_key": "at_goal",
     "episode_len": 10,
 }
-SMALL = {"k": 32, "hidden": [32, 32], "batch_size": 16, "eval_episodes": 2}
+SMALL = {**NETS, "k": 32}
 
 
 def refused(**data) -> str:

@@ -19,7 +19,7 @@ import pytest
 from shared.config import make_config
 from shared.control import start_run
 from shared.trainer import train
-from tests.test_services_run import start_cluster, wait_services
+from tests.harness import wait_services
 
 CONFIG = {
     "task": "simple",
@@ -34,9 +34,9 @@ CONFIG = {
 
 
 @pytest.mark.slow
-def test_distributed_run_reaches_comparable_success(procs, bus, tmp_path):
+def test_distributed_run_reaches_comparable_success(cluster, bus):
     config = make_config(CONFIG)
-    start_cluster(procs, tmp_path, 1)
+    cluster.services(1)
     wait_services(bus, 4)
     watch = start_run(bus, config, actors=1)
     assert watch.wait(timeout=900) == "completed", watch.states

@@ -12,254 +12,95 @@ folder and printed (docs/reliability.md has a measured table).
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import httpx
 import pytest
 
-from shared.cluster import free_port
-from tests.conftest import ROOT, wait_for
+from tests.harness import (
+    TINY,
+    Cluster,
+    assert_exact,
+    wait_final_counts,
+    wait_for,
+    wait_services,
+)
 
-EPISODES, EVAL_EVERY, EPISODE_LEN, LEARNING_STARTS = 200, 20, 20, 100
-CONFIG = {
-    "task": "speaker_listener",
-    "algo": "cen-maddpg",
-    "explore": "cen-macb",
-    "k": 64,
-    "episodes": EPISODES,
-    "eval_every": EVAL_EVERY,
-    "eval_episodes": 2,
-    "hidden": [32, 32],
-    "batch_size": 16,
-    "learning_starts": LEARNING_STARTS,
-}
+# TINY's run, long enough for a fault to land mid-run: 200 episodes, a point every 20.
+CONFIG = {**TINY, "episodes": 200, "eval_every": 20, "learning_starts": 100}
+# `macb up` as the matrix (and the soak) runs it; its learner cuts each second, so a
+# resume starts from one.
+UP = ("--actors", "2", "--group-size", "3", "--quiet-services")
+UP_ENV = {"MACB_LEARNER_CUT_S": "1", "MACB_PEER_GRACE_S": "30"}
 SERVICES = 6  # counter, learner, evaluator, actor0, actor1 and the API answer /workers
-
-
-class Up:
-    """`macb up` as a user runs it, in its own session, ended by PID."""
-
-    def __init__(self, data: Path) -> None:
-        self.data = data
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.proc: subprocess.Popen | None = None
-        self.seen: set[int] = set()  # every PID the cluster ever had
-
-    def start(self) -> None:
-        env = {
-            **os.environ,
-            "MACB_LEARNER_CUT_S": "1",  # cuts often, so a resume starts from one
-            "MACB_PEER_GRACE_S": "30",
-        }
-        log = open(self.data / "up.log", "ab")  # noqa: SIM115 (the child owns it)
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "cli", "up", "--actors", "2", "--endpoint", self.endpoint]
-            + ["--group-size", "3"]
-            + ["--api-port", str(self.port), "--data-dir", str(self.data), "--quiet-services"],
-            cwd=ROOT,
-            env=env,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-        wait_for(self.ready, timeout=120, interval=0.3, what="macb up: API and services")
-
-    def ready(self) -> bool:
-        assert self.proc is not None
-        assert self.proc.poll() is None, self.log()
-        try:
-            workers = httpx.get(f"{self.url}/workers", timeout=5).json()["workers"]
-        except (httpx.HTTPError, ValueError, KeyError):
-            return False
-        return len([w for w in workers if w["answers"]]) >= SERVICES
-
-    def pids(self) -> dict[str, int]:
-        state = json.loads((self.data / "cluster.json").read_text())
-        pids = {name: s["pid"] for name, s in state.items()}
-        self.seen.update(pids.values())
-        return pids
-
-    def restarts(self) -> dict[str, int]:
-        state = json.loads((self.data / "cluster.json").read_text())
-        return {name: s["restarts"] for name, s in state.items()}
-
-    def log(self) -> str:
-        return (self.data / "up.log").read_text(errors="replace")[-4000:]
-
-    def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            self.proc.wait(timeout=60)
-
-    def end(self) -> None:
-        """Stop `macb up`, then fail if any process the cluster ever had outlived it."""
-        self.stop()
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.kill()
-        if (self.data / "cluster.json").exists():
-            self.pids()
-        for pid in self.seen:
-            if _alive(pid):
-                _kill(pid, signal.SIGKILL)
-                pytest.fail(f"process {pid} outlived macb up")
-
-    def kill_all(self) -> None:
-        """SIGKILL `macb up` and every service: nothing is told, nothing flushes."""
-        pids = self.pids()
-        assert self.proc is not None
-        os.kill(self.proc.pid, signal.SIGKILL)
-        self.proc.wait()
-        for pid in pids.values():
-            _kill(pid, signal.SIGKILL)
-
-
-def _kill(pid: int, sig: int) -> None:
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(pid, sig)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:  # a zombie of ours is not running
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except OSError:
-        return False
 
 
 @pytest.fixture(scope="module")
 def up(tmp_path_factory):
-    data = tmp_path_factory.mktemp("faults")
-    cluster = Up(data)
+    """One `macb up` for the whole matrix."""
+    tmp = tmp_path_factory.mktemp("faults")
     results: dict[str, dict] = {}
-    cluster.results = results  # type: ignore[attr-defined]
-    try:
-        cluster.start()
-        yield cluster
-    finally:
-        cluster.end()
-        (data / "fault-matrix.json").write_text(json.dumps(results, indent=2))
-        print(json.dumps(results, indent=2))
+    with Cluster(tmp, env=UP_ENV) as cluster:
+        cluster.results = results  # type: ignore[attr-defined]
+        try:
+            cluster.up(*UP, answering=SERVICES)
+            yield cluster
+        finally:
+            (tmp / "fault-matrix.json").write_text(json.dumps(results, indent=2))
+            print(json.dumps(results, indent=2))
 
 
-def _get(up: Up, path: str) -> dict | None:
-    try:
-        r = httpx.get(f"{up.url}{path}", timeout=5)
-        return r.json() if r.status_code == 200 else None
-    except (httpx.HTTPError, ValueError):
-        return None  # the API itself may be the one restarting
-
-
-def _post_run(up: Up, seed: int, **over) -> str:
-    body = {**CONFIG, "seed": seed, "name": f"fault-{seed}", **over}
+def _post(up: Cluster, body: dict) -> list[str]:
+    """An experiment posted over REST: its runs' ids."""
     r = httpx.post(f"{up.url}/experiments", json=body, timeout=10)
     assert r.status_code in (200, 201), r.text
-    return r.json()["runs"][0]["id"]
+    return [run["id"] for run in r.json()["runs"]]
 
 
-def _points(up: Up, run: str) -> int:
-    row = _get(up, f"/runs/{run}")
-    return row["points"] if row else -1
-
-
-def _group_fault(up: Up, fault: str, seeds: list[int], hit, cut: bool) -> list[dict]:
-    """`_fault_run` for a run group: an experiment of len(seeds) lockstep runs (one
-    group: `macb up --group-size 3`), `hit` at its first run's second point; every run
-    must complete exactly."""
-    body = {**CONFIG, "seeds": seeds, "interleave": "lockstep", "name": f"group-{seeds[0]}"}
-    r = httpx.post(f"{up.url}/experiments", json=body, timeout=10)
-    assert r.status_code in (200, 201), r.text
-    ids = [run["id"] for run in r.json()["runs"]]
-    wait_for(lambda: _points(up, ids[0]) >= 2, timeout=180, what="the group's second point")
+def _fault(up: Cluster, fault: str, ids: list[str], hit, cut: bool) -> list[dict]:
+    """Apply `hit` at the first run's second point (and, with `cut`, once the learner
+    has written a cut of each run: a learner killed before its first cut resumes from
+    its log alone); every run must then complete exactly. The time from the fault to
+    the next point stored goes into the matrix's results."""
+    wait_for(lambda: up.points(ids[0]) >= 2, timeout=180, what="the second point")
     if cut:
         for run_id in ids:
             checkpoint = up.data / "learner" / run_id / "checkpoint.pt"
             wait_for(checkpoint.exists, timeout=60, what="the learner's first cut")
-    at_fault = _points(up, ids[0])
+    at_fault = up.points(ids[0])
     t0 = time.monotonic()
     hit()
-    wait_for(lambda: _points(up, ids[0]) > at_fault, timeout=180, what=f"a point after {fault}")
+    wait_for(lambda: up.points(ids[0]) > at_fault, timeout=180, what=f"a point after {fault}")
     recovery = time.monotonic() - t0
-
-    def ended() -> bool:
-        runs = [_get(up, f"/runs/{i}") or {} for i in ids]
-        return all(run.get("status") not in (None, "queued", "running") for run in runs)
-
-    wait_for(ended, timeout=300, what="the group's end")
-    runs = [_check_exact(up, run_id) for run_id in ids]
-    for run in runs:
-        assert run["assign"]["group"] == ids, run["assign"]
+    wait_for(lambda: up.ended(*ids), timeout=300, what="the end")
+    runs = [assert_exact(up.finished(run_id), faults="restarted").record for run_id in ids]
+    reasons = [run["reason"] for run in runs]
     up.results[fault] = {  # type: ignore[attr-defined]
         "recovery_s": round(recovery, 2),
         "points_at_fault": at_fault,
         "restarts": up.restarts(),
-        "reasons": [run["reason"] for run in runs],
+        **({"reason": reasons[0]} if len(runs) == 1 else {"reasons": reasons}),
     }
     return runs
 
 
-def _check_exact(up: Up, run_id: str, episodes: int = EPISODES, every: int = EVAL_EVERY) -> dict:
-    """The completed run's counts are exact and each of its points is stored once."""
-    from shared.config import make_config
-
-    run = _get(up, f"/runs/{run_id}")
-    assert run is not None
-    assert run["status"] == "completed", (run["status"], run["reason"], up.log())
-    cfg = make_config(run["config"])
-    assign, services = run["assign"], run["services"]
-    learner, counter = services[assign["learner"]], services[assign["counter"]]
-    collected = episodes * cfg.episode_len
-    assert learner["ingested"] == collected, learner
-    assert learner["updates"] == collected - cfg.learning_starts, learner
-    assert learner["replay_ratio"] == 1.0, learner
-    assert counter["counted_transitions"] == collected, counter
-    page = _get(up, f"/runs/{run_id}/metrics?limit=100000")
-    assert page is not None
-    points = [p["episode"] for p in page["points"]]
-    assert points == list(range(every, episodes + 1, every)), points
-    return run
+def _fault_run(up: Cluster, fault: str, seed: int, hit, cut: bool = False, **over) -> dict:
+    """`_fault` on a run alone (`over`: config keys over CONFIG): the completed run."""
+    ids = _post(up, {**CONFIG, "seed": seed, "name": f"fault-{seed}", **over})
+    return _fault(up, fault, ids, hit, cut)[0]
 
 
-def _fault_run(up: Up, fault: str, seed: int, hit, cut: bool = False, **over) -> tuple[dict, float]:
-    """Post a run (`over`: config keys over CONFIG), apply `hit` at its second point
-    (and, with `cut`, once the learner has written a cut of it: a learner killed before
-    its first cut resumes from its log alone); (the completed run, recovery s)."""
-    run_id = _post_run(up, seed, **over)
-    wait_for(lambda: _points(up, run_id) >= 2, timeout=120, what="the run's second point")
-    if cut:
-        checkpoint = up.data / "learner" / run_id / "checkpoint.pt"
-        wait_for(checkpoint.exists, timeout=60, what="the learner's first cut")
-    at_fault = _points(up, run_id)
-    t0 = time.monotonic()
-    hit()
-    wait_for(lambda: _points(up, run_id) > at_fault, timeout=180, what=f"a point after {fault}")
-    recovery = time.monotonic() - t0
-    wait_for(
-        lambda: (
-            (_get(up, f"/runs/{run_id}") or {}).get("status") not in (None, "queued", "running")
-        ),
-        timeout=240,
-        what="the run's end",
-    )
-    run = _check_exact(up, run_id)
-    up.results[fault] = {  # type: ignore[attr-defined]
-        "recovery_s": round(recovery, 2),
-        "points_at_fault": at_fault,
-        "restarts": up.restarts(),
-        "reason": run["reason"],
-    }
-    return run, recovery
+def _group_fault(up: Cluster, fault: str, seeds: list[int], hit, cut: bool) -> list[dict]:
+    """`_fault` on an experiment of len(seeds) lockstep runs, one group (`macb up
+    --group-size 3`)."""
+    body = {**CONFIG, "seeds": seeds, "interleave": "lockstep", "name": f"group-{seeds[0]}"}
+    ids = _post(up, body)
+    runs = _fault(up, fault, ids, hit, cut)
+    for run in runs:
+        assert run["assign"]["group"] == ids, run["assign"]
+    return runs
 
 
 KILLED = ["learner", "counter", "evaluator", "actor0", "router", "api"]
@@ -271,8 +112,8 @@ def test_sigkill_mid_run_then_the_run_completes_exactly(up, victim):
     before = up.restarts()[victim]
     pid = up.pids()[victim]
     seed = 10 + KILLED.index(victim)
-    hit = lambda: _kill(pid, 9)  # noqa: E731
-    run, _ = _fault_run(up, f"SIGKILL {victim}", seed, hit, cut=victim == "learner")
+    hit = lambda: up.kill(victim)  # noqa: E731 (SIGKILL)
+    run = _fault_run(up, f"SIGKILL {victim}", seed, hit, cut=victim == "learner")
     assert up.restarts()[victim] == before + 1, "the supervisor restarted it once"
     assert up.pids()[victim] != pid
     if victim == "learner":
@@ -296,11 +137,10 @@ def test_sigkill_mid_lockstep_run_then_the_run_completes_exactly(up, victim):
     actor's open act request is sent again until a learner answers it, a restarted
     learner answers from its cut and log, and the counts stay exact."""
     before = up.restarts()[victim]
-    pid = up.pids()[victim]
     seed = 50 + LOCKSTEP_KILLED.index(victim)
-    hit = lambda: _kill(pid, 9)  # noqa: E731
+    hit = lambda: up.kill(victim)  # noqa: E731 (SIGKILL)
     cut = victim == "learner"
-    run, _ = _fault_run(up, f"SIGKILL {victim} (lockstep)", seed, hit, cut, interleave="lockstep")
+    run = _fault_run(up, f"SIGKILL {victim} (lockstep)", seed, hit, cut, interleave="lockstep")
     assert run["assign"]["actors"] == ["actor0"]
     assert up.restarts()[victim] == before + 1, "the supervisor restarted it once"
     learner = run["services"][run["assign"]["learner"]]
@@ -318,9 +158,8 @@ def test_sigkill_mid_group_then_every_run_of_it_completes_exactly(up, victim):
     learner resumes the whole group from its runs' cuts and logs, a restarted actor
     steps every world on from where the learner says, and every count stays exact."""
     before = up.restarts()[victim]
-    pid = up.pids()[victim]
     seeds = [70 + 3 * GROUP_KILLED.index(victim) + j for j in range(3)]
-    hit = lambda: _kill(pid, 9)  # noqa: E731
+    hit = lambda: up.kill(victim)  # noqa: E731 (SIGKILL)
     runs = _group_fault(up, f"SIGKILL {victim} (group of 3)", seeds, hit, victim == "learner")
     assert up.restarts()[victim] == before + 1, "the supervisor restarted it once"
     for run in runs:
@@ -335,9 +174,7 @@ def test_sigstop_of_the_learner_past_its_lease_then_sigcont(up):
     pid = up.pids()["learner"]
 
     def pause():
-        os.kill(pid, signal.SIGSTOP)
-        time.sleep(13)  # zenoh's lease is 10 s: its token goes, the others wait
-        os.kill(pid, signal.SIGCONT)
+        up.pause("learner", seconds=13)  # zenoh's lease is 10 s: its token goes, the others wait
 
     _fault_run(up, "SIGSTOP learner 13 s", 30, pause)
     assert up.pids()["learner"] == pid, "a paused learner is not restarted"
@@ -350,7 +187,7 @@ def test_everything_killed_then_macb_up_again_resumes_the_run(up):
 
     def everything():
         up.kill_all()
-        up.start()
+        up.up(*UP, answering=SERVICES)
 
     _fault_run(up, "SIGKILL all, macb up again", 40, everything)
 
@@ -359,9 +196,10 @@ def test_everything_killed_then_macb_up_again_resumes_the_run(up):
 def test_a_service_that_keeps_dying_is_restarted_with_backoff_then_given_up(tmp_path):
     """`macb up`'s supervisor: restarts after 0.5, 1, 2, 4 s; the fifth death within a
     minute gives the service up (named), and cluster.json says how often it restarted."""
-    from shared.cluster import Cluster, ServiceSpec
+    from shared.cluster import Cluster as Supervisor
+    from shared.cluster import ServiceSpec
 
-    cluster = Cluster([ServiceSpec("doomed", ("no-such-role",))], tmp_path / "logs", echo=False)
+    cluster = Supervisor([ServiceSpec("doomed", ("no-such-role",))], tmp_path / "logs", echo=False)
     t0 = time.monotonic()
     cluster.start()
     try:
@@ -378,7 +216,7 @@ def test_a_service_that_keeps_dying_is_restarted_with_backoff_then_given_up(tmp_
 
 
 # ------------------------------------------------------------------ the learner's cuts
-def _learner_rejoins(procs, tmp_path, cut: dict) -> tuple[dict, Path]:
+def _learner_rejoins(cluster, cut: dict) -> tuple[dict, Path]:
     """A learner restarted on a data dir whose cut is `cut`: its status for the run."""
     import torch
 
@@ -387,7 +225,7 @@ def _learner_rejoins(procs, tmp_path, cut: dict) -> tuple[dict, Path]:
     from shared.wire import decode
 
     config = make_config({**CONFIG, "seed": 1}).model_dump(mode="json")
-    run, data = "cut-check", tmp_path / "data"
+    run, data = "cut-check", cluster.data
     (data / "services").mkdir(parents=True)
     assign = {"learner": "learner", "counter": "counter", "evaluator": "ev", "actors": ["a0"]}
     (data / "services" / "learner.json").write_text(
@@ -398,9 +236,9 @@ def _learner_rejoins(procs, tmp_path, cut: dict) -> tuple[dict, Path]:
     torch.save(cut, folder / "checkpoint.pt")
     before = (folder / "checkpoint.pt").read_bytes()
     statuses: list[dict] = []
-    with Bus([procs.endpoint]) as bus:
+    with Bus([cluster.endpoint]) as bus:
         bus.subscribe(k_status(run, "learner"), lambda k, p: statuses.append(decode(p, "status")))
-        procs.start("learner", "learner", "--id", "learner", "--data-dir", str(data))
+        cluster.service("learner")
         wait_for(lambda: statuses, timeout=60, what="the learner's status")
     assert (folder / "checkpoint.pt").read_bytes() == before, "the cut was overwritten"
     assert sorted(p.name for p in folder.iterdir()) == ["checkpoint.pt", "transitions.wal"]
@@ -415,32 +253,31 @@ def _learner_rejoins(procs, tmp_path, cut: dict) -> tuple[dict, Path]:
         ({"format": 2}, "cut format 2, this version reads 1"),
     ],
 )
-def test_a_cut_of_another_config_or_format_is_refused_naming_it(procs, tmp_path, change, named):
+def test_a_cut_of_another_config_or_format_is_refused_naming_it(cluster, change, named):
     from shared.config import make_config
 
     fields = {k: v for k, v in change.items() if k != "format"}
     other = make_config({**CONFIG, "seed": 1, **fields}).model_dump(mode="json")
     cut = {"format": change.get("format", 1), "config": json.dumps(other), "counters": {}}
-    status, path = _learner_rejoins(procs, tmp_path, cut)
+    status, path = _learner_rejoins(cluster, cut)
     assert status["state"] == "failed", status
     reason = status["detail"]["reason"]
     assert named in reason and str(path) in reason, reason
 
 
 @pytest.mark.slow
-def test_a_learner_killed_with_its_newest_cut_torn_resumes_from_the_one_before(procs, tmp_path):
+def test_a_learner_killed_with_its_newest_cut_torn_resumes_from_the_one_before(cluster):
     """Kill the learner, tear its newest cut in half, start it again by hand: it refuses
     that cut (naming it, renamed *.refused), resumes from the previous one plus its log,
     and the run completes exactly."""
     from shared.bus import Bus
     from shared.config import make_config
     from shared.control import start_run
-    from tests.test_services_run import check_exact, start_cluster, wait_services
 
-    procs.env["MACB_LEARNER_CUT_S"] = "0.5"
-    data = start_cluster(procs, tmp_path, 1)
+    cluster.env["MACB_LEARNER_CUT_S"] = "0.5"
+    cluster.services(1)
     config = make_config({**CONFIG, "seed": 2})
-    with Bus([procs.endpoint]) as bus:
+    with Bus([cluster.endpoint]) as bus:
         wait_services(bus, 4)
         watch = start_run(bus, config, actors=1)
         wait_for(
@@ -448,19 +285,15 @@ def test_a_learner_killed_with_its_newest_cut_torn_resumes_from_the_one_before(p
             timeout=120,
             what="cuts written and points stored",
         )
-        procs.kill("learner")
-        folder = Path(data) / "learner" / watch.run
+        cluster.kill("learner")
+        folder = cluster.data / "learner" / watch.run
         newest = folder / "checkpoint.pt"
         newest.write_bytes(newest.read_bytes()[: newest.stat().st_size // 2])
-        procs.start("learner2", "learner", "--id", "learner", "--data-dir", data)
+        cluster.service("learner", name="learner2")
         assert watch.wait(timeout=240) == "completed", watch.states
-        wait_for(
-            lambda: watch.latest["counter"]["counted_transitions"] == EPISODES * EPISODE_LEN,
-            timeout=10,
-            what="the counter's final stats",
-        )
-        check_exact(watch, watch.assign["actors"], config)
-    log = procs.log("learner2")
+        wait_final_counts(watch, config)
+        assert_exact(watch, config)
+    log = cluster.log("learner2")
     assert f"refusing cut {newest}" in log, log
     assert (folder / "checkpoint.pt.refused").exists()
     resumed = watch.states["learner"]["resumed"]

@@ -9,8 +9,7 @@ import httpx
 
 from shared.config import make_config
 from shared.group_trainer import train_group
-from tests.conftest import wait_for
-from tests.test_api_e2e import api_cluster
+from tests.harness import api_cluster, wait_for
 from tests.test_lockstep import BASE, CASES, compare
 
 BODY = {**BASE, **CASES["speaker_listener-cen-macb-thesis"]}

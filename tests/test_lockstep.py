@@ -11,9 +11,6 @@ must the learner's final state: every weight, target, Adam moment and step count
 from __future__ import annotations
 
 import math
-import os
-import signal
-import time
 from pathlib import Path
 
 import pytest
@@ -22,8 +19,7 @@ import torch
 from shared.config import make_config
 from shared.control import start_run
 from shared.trainer import train
-from tests.conftest import wait_for
-from tests.test_services_run import check_exact, start_cluster, wait_services
+from tests.harness import assert_exact, wait_for, wait_services
 
 TIMING = {"steps_per_sec", "train_steps_per_sec", "wall_s"}
 
@@ -94,27 +90,27 @@ def state_differences(a, b, where: str = "") -> list[str]:
     return [] if a == b else [f"{where}: {a!r} != {b!r}"]
 
 
-def learner_states(data: str, run: str, config, local: Path) -> tuple[dict, dict, list[dict]]:
+def learner_states(data: Path, run: str, config, local: Path) -> tuple[dict, dict, list[dict]]:
     """The cluster learner's final state, the trainer's, and the trainer's rows."""
     rows = train(config, local, progress=False)
-    cluster = torch.load(Path(data) / "learner" / run / "checkpoint.pt", weights_only=True)
+    cluster = torch.load(data / "learner" / run / "checkpoint.pt", weights_only=True)
     mine = torch.load(local / "checkpoint.pt", weights_only=True)
     return cluster["learner"], mine["learner"], rows
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
-def test_a_lockstep_cluster_run_is_the_trainers_run(procs, bus, tmp_path, case):
+def test_a_lockstep_cluster_run_is_the_trainers_run(cluster, bus, tmp_path, case):
     config = make_config({**BASE, **CASES[case]})
-    data = start_cluster(procs, tmp_path, 1)
+    cluster.services(1)
     wait_services(bus, 4)
     watch = start_run(bus, config, actors=1)
     assert watch.wait(timeout=300) == "completed", watch.states
-    check_exact(watch, [watch.assign["actors"][0]], config)
-    learner = watch.states[watch.assign["learner"]]
+    learner = assert_exact(watch, config).learner
     assert learner["policy_lag"] == 0.0
-    cluster_state, local_state, local = learner_states(data, watch.run, config, tmp_path / "l")
-    cluster = sorted(watch.rows, key=lambda r: r["episode"])
-    diffs = compare(cluster, local)
+    states = learner_states(cluster.data, watch.run, config, tmp_path / "l")
+    cluster_state, local_state, local = states
+    rows = sorted(watch.rows, key=lambda r: r["episode"])
+    diffs = compare(rows, local)
     assert not diffs, "\n".join(diffs[:20])
     diffs = state_differences(cluster_state, local_state)
     assert not diffs, diffs[:20]
@@ -132,7 +128,7 @@ def test_the_comparison_sees_one_changed_value():
 @pytest.mark.parametrize(
     ("paused", "seconds"), [("counter", 1.2), ("counter", 3.0), ("learner", 1.2), ("actor0", 1.2)]
 )
-def test_a_late_count_or_a_late_message_changes_nothing(procs, bus, tmp_path, paused, seconds):
+def test_a_late_count_or_a_late_message_changes_nothing(cluster, bus, tmp_path, paused, seconds):
     """One service paused mid-run (SIGSTOP, then SIGCONT): the counter's acks come late
     (3 s: the actor sends the step again meanwhile, which the counter then ignores), or
     the learner's answers (the actor sends its request again meanwhile, and the learner
@@ -140,35 +136,34 @@ def test_a_late_count_or_a_late_message_changes_nothing(procs, bus, tmp_path, pa
     for each, so the run is still `macb train`'s bit for bit; a learner that acted
     before a count arrived would not be."""
     config = make_config({**BASE, **CASES["speaker_listener-cen-macb-thesis"], "episodes": 24})
-    data = start_cluster(procs, tmp_path, 1)
+    cluster.services(1)
     wait_services(bus, 4)
     watch = start_run(bus, config, actors=1)
     wait_for(lambda: len(watch.rows) >= 1, timeout=120, what="the first point")
-    pid = procs.procs[paused].pid
-    os.kill(pid, signal.SIGSTOP)
-    time.sleep(seconds)
-    os.kill(pid, signal.SIGCONT)
+    cluster.pause(paused, seconds=seconds)
     assert watch.wait(timeout=300) == "completed", watch.states
     assert watch.rows[-1]["episode"] == 24 and len(watch.rows) == 8
-    cluster_state, local_state, local = learner_states(data, watch.run, config, tmp_path / "l")
+    states = learner_states(cluster.data, watch.run, config, tmp_path / "l")
+    cluster_state, local_state, local = states
     diffs = compare(sorted(watch.rows, key=lambda r: r["episode"]), local)
     learner = watch.states[watch.assign["learner"]]
     assert not diffs, "\n".join([f"bonus failures {learner['bonus_failures']}"] + diffs[:20])
     assert not state_differences(cluster_state, local_state)
 
 
-def test_the_asynchronous_interleave_is_another_run(procs, bus, tmp_path):
+def test_the_asynchronous_interleave_is_another_run(cluster, bus, tmp_path):
     """The comparison sees interleaving: the same config with `interleave: async` (one
     actor collecting whole episodes with weights published at episode ends) does not
     give the trainer's rows."""
     config = make_config({**BASE, **CASES["simple-ddpg-constant"], "interleave": "async"})
-    data = start_cluster(procs, tmp_path, 1)
+    cluster.services(1)
     wait_services(bus, 4)
     watch = start_run(bus, config, actors=1)
     assert watch.wait(timeout=300) == "completed", watch.states
-    cluster_state, local_state, local = learner_states(data, watch.run, config, tmp_path / "l")
-    cluster = sorted(watch.rows, key=lambda r: r["episode"])
-    assert compare(cluster, local)
+    states = learner_states(cluster.data, watch.run, config, tmp_path / "l")
+    cluster_state, local_state, local = states
+    rows = sorted(watch.rows, key=lambda r: r["episode"])
+    assert compare(rows, local)
     assert state_differences(cluster_state, local_state)
 
 
@@ -194,7 +189,7 @@ GROUP = [  # one group: seeds and the exploration differ, task and networks are 
 ]
 
 
-def test_a_lockstep_cluster_group_is_the_group_trainers_runs(procs, bus, tmp_path):
+def test_a_lockstep_cluster_group_is_the_group_trainers_runs(cluster, bus, tmp_path):
     """A group of 3 runs served by one learner (GroupMADDPG), one actor (a VecTask of
     their worlds, one act request per step) and one evaluator: each run's rows and final
     learner state are those the one-process group gives it (and so `macb train`'s)."""
@@ -202,7 +197,7 @@ def test_a_lockstep_cluster_group_is_the_group_trainers_runs(procs, bus, tmp_pat
     from shared.group_trainer import train_group
 
     configs = [make_config(c) for c in GROUP]
-    data = start_cluster(procs, tmp_path, 1)
+    cluster.services(1)
     wait_services(bus, 4)
     watches = start_group(bus, configs, runs=[f"g{r}" for r in range(3)])
     for watch in watches:
@@ -210,35 +205,31 @@ def test_a_lockstep_cluster_group_is_the_group_trainers_runs(procs, bus, tmp_pat
     outs = [tmp_path / f"local{r}" for r in range(3)]
     local = train_group(configs, outs, progress=False)
     for r, (watch, config) in enumerate(zip(watches, configs)):
-        check_exact(watch, [watch.assign["actors"][0]], config)
-        learner = watch.states[watch.assign["learner"]]
+        learner = assert_exact(watch, config).learner
         assert learner["policy_lag"] == 0.0
         diffs = compare(sorted(watch.rows, key=lambda row: row["episode"]), local[r])
         assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
-        cluster = torch.load(
-            Path(data) / "learner" / watch.run / "checkpoint.pt", weights_only=True
+        theirs = torch.load(
+            cluster.data / "learner" / watch.run / "checkpoint.pt", weights_only=True
         )
         mine = torch.load(outs[r] / "checkpoint.pt", weights_only=True)
-        diffs = state_differences(cluster["learner"], mine["learner"])
+        diffs = state_differences(theirs["learner"], mine["learner"])
         assert not diffs, (r, diffs[:20])
 
 
 @pytest.mark.parametrize("paused", ["counter", "learner", "actor0", "evaluator"])
-def test_a_late_count_or_message_changes_no_run_of_a_group(procs, bus, tmp_path, paused):
+def test_a_late_count_or_message_changes_no_run_of_a_group(cluster, bus, tmp_path, paused):
     """As for a run alone: one service of a group paused 3 s mid-run (its acks, answers,
     steps or rows come late) and every run is still the one-process group's."""
     from shared.control import start_group
     from shared.group_trainer import train_group
 
     configs = [make_config({**c, "episodes": 24}) for c in GROUP]
-    start_cluster(procs, tmp_path, 1)
+    cluster.services(1)
     wait_services(bus, 4)
     watches = start_group(bus, configs, runs=[f"p{r}" for r in range(3)])
     wait_for(lambda: len(watches[0].rows) >= 1, timeout=120, what="the first point")
-    pid = procs.procs[paused].pid
-    os.kill(pid, signal.SIGSTOP)
-    time.sleep(3.0)
-    os.kill(pid, signal.SIGCONT)
+    cluster.pause(paused, seconds=3.0)
     for watch in watches:
         assert watch.wait(timeout=300) == "completed", watch.states
     local = train_group(configs, [tmp_path / f"l{r}" for r in range(3)], progress=False)

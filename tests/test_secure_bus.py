@@ -9,7 +9,6 @@ router listening off loopback without TLS and auth, a bad file half-starting a s
 
 from __future__ import annotations
 
-import json
 import shutil
 import subprocess
 import time
@@ -23,93 +22,55 @@ from shared.config import make_config
 from shared.control import send_stop, start_run
 from shared.security import Security
 from shared.wire import encode
-from tests.conftest import Procs, free_port, wait_for, wait_port
-from tests.harness import macb
-from tests.test_services_run import SMALL, check_exact, wait_services
+from tests.harness import (
+    SMALL,
+    TINY,
+    Cluster,
+    as_user,
+    assert_exact,
+    free_port,
+    macb,
+    router_stats,
+    session,
+    wait_final_counts,
+    wait_for,
+    wait_services,
+    write_config,
+)
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
-
-
-def as_user(secrets: Path, user: str, endpoint: str | None = None) -> dict[str, str]:
-    env = {"MACB_ZENOH_SECRETS": str(secrets), "MACB_ZENOH_USER": user}
-    if endpoint:
-        env["MACB_ZENOH_CONNECT"] = endpoint
-    return env
-
-
-def session(secrets: Path, user: str, endpoint: str, **override) -> Bus:
-    sec = Security.from_env({**as_user(secrets, user), **override})
-    return Bus([endpoint], security=sec)
-
-
-def router_stats(bus: Bus, router: str = "router") -> dict:
-    """The router's answer on macb/router/ID (it declares it just after it listens)."""
-    replies = wait_for(
-        lambda: bus.get(keys.k_router(router), timeout=2.0), timeout=10, what=f"{router} stats"
-    )
-    return json.loads(replies[0])
 
 
 @pytest.fixture
 def secure(secrets, tmp_path):
     """A TLS router with user/password and the ACL on its own loopback port."""
-    endpoint = f"tls/127.0.0.1:{free_port()}"
-    procs = Procs(tmp_path, endpoint)
-    procs.start("router", "router", "--listen", endpoint, env=as_user(secrets, "router"))
-    wait_port(endpoint)
-    yield procs
-    procs.stop_all()
+    with Cluster(tmp_path, secrets=secrets) as cluster:
+        cluster.router()
+        yield cluster
 
 
-def start_services(procs: Procs, secrets: Path, tmp_path: Path, actors: int = 1, **where):
-    data = str(tmp_path / "data")
-    for role in ("counter", "learner", "evaluator", *(f"actor{r}" for r in range(actors))):
-        sid, kind = role, role.rstrip("0123456789")
-        procs.start(
-            sid,
-            kind,
-            "--id",
-            sid,
-            "--data-dir",
-            data,
-            env=as_user(secrets, sid, where.get(sid)),
-        )
-
-
-def wait_final_counts(watch, config) -> None:
-    """The counter publishes its stats each second: wait for the final ones."""
-    wait_for(
-        lambda: (
-            (watch.latest.get("counter") or {}).get("counted_transitions")
-            == config.episodes * config.episode_len
-        ),
-        timeout=10,
-        what="final counter stats",
-    )
-
-
-def test_secure_lockstep_run_is_exact_with_no_denial(secure, secrets, tmp_path):
+def test_secure_lockstep_run_is_exact_with_no_denial(secure, secrets):
     """`interleave: lockstep` over TLS: the actor's act requests and the learner's
     actions are keys the ACL grants (docs/deploy.md's table), so the run completes
     exactly and the router denies nothing."""
-    start_services(secure, secrets, tmp_path, actors=1)
+    secure.services(actors=1)
     config = make_config({**SMALL, "episodes": 10, "interleave": "lockstep"})
     with session(secrets, "cli", secure.endpoint) as cli:
         wait_services(cli, 4)
         watch = start_run(cli, config, actors=1)
         assert watch.wait(timeout=240) == "completed", watch.states
-        check_exact(watch, watch.assign["actors"], config)
-        assert watch.states[watch.assign["learner"]]["policy_lag"] == 0.0
+        learner = assert_exact(watch, config).learner
+        assert learner["policy_lag"] == 0.0
         stats = router_stats(cli)
     assert stats["denied"] == [], stats
 
 
-def test_secure_run_is_exact_and_an_actor_cannot_stop_it(secure, secrets, tmp_path):
+def test_secure_run_is_exact_and_an_actor_cannot_stop_it(secure, secrets):
     """A whole run over TLS with every service signed in: exact counts, ratio 1, and no
     denial at all (the ACL grants what a run needs). Meanwhile an actor's credentials
     try to stop the run and to publish another actor's transitions: both denied, logged
     and counted by the router, and the run completes."""
-    start_services(secure, secrets, tmp_path, actors=1)
+    secure.services(actors=1)
     config = make_config({**SMALL, "episodes": 30})
     with session(secrets, "cli", secure.endpoint) as cli:
         wait_services(cli, 4)
@@ -123,7 +84,7 @@ def test_secure_run_is_exact_and_an_actor_cannot_stop_it(secure, secrets, tmp_pa
             time.sleep(0.5)
         assert watch.wait(timeout=240) == "completed", watch.states
         wait_final_counts(watch, config)
-        check_exact(watch, watch.assign["actors"], config)
+        assert_exact(watch, config)
         stats = router_stats(cli)
     denied = {(d["user"], d["what"], d["key"]): d["count"] for d in stats["denied"]}
     assert denied == {
@@ -196,13 +157,9 @@ def test_a_client_that_cannot_prove_itself_is_refused(secure, secrets, other_ca,
 
 
 def test_mtls_refuses_a_certificate_from_another_ca(secrets, other_ca, tmp_path):
-    endpoint = f"tls/127.0.0.1:{free_port()}"
-    procs = Procs(tmp_path, endpoint)
-    try:
-        env = {**as_user(secrets, "router"), "MACB_ZENOH_MTLS": "1"}
-        procs.start("router", "router", "--listen", endpoint, env=env)
-        wait_port(endpoint)
-        mtls = {"MACB_ZENOH_MTLS": "1"}
+    mtls = {"MACB_ZENOH_MTLS": "1"}
+    with Cluster(tmp_path, secrets=secrets, env=mtls) as cluster:
+        endpoint = cluster.router()
         foreign = {
             **mtls,
             "MACB_ZENOH_TLS_CERT": str(other_ca / "cli.pem"),
@@ -212,8 +169,6 @@ def test_mtls_refuses_a_certificate_from_another_ca(secrets, other_ca, tmp_path)
             session(secrets, "cli", endpoint, **foreign).close()
         with session(secrets, "cli", endpoint, **mtls) as ok:
             assert router_stats(ok)["acl"] is True
-    finally:
-        procs.stop_all()
 
 
 def test_router_off_loopback_refuses_to_start_without_tls_and_auth(secrets, tmp_path):
@@ -254,22 +209,20 @@ def test_a_missing_or_unreadable_file_is_refused_at_start_naming_it(secrets, tmp
 def test_macb_up_with_secrets_runs_the_secure_bus_end_to_end(secrets, tmp_path):
     """`macb up --secrets DIR --run`: TLS on loopback, every service (and the API, and
     `macb up` itself as cli) signed in as its own user, the ACL on, nothing denied."""
-    from tests.test_up import TINY, cluster_processes, up
-
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(TINY)
+    cfg = write_config(tmp_path / "tiny.yaml", TINY)
     out_dir = tmp_path / "out"
     run = ("--run", str(cfg), "--out", str(out_dir))
-    proc, endpoint = up(tmp_path, "--secrets", str(secrets), *run)
-    out, _ = proc.communicate(timeout=240)
-    assert proc.returncode == 0, out
-    assert "completed" in out
-    rows = (out_dir / "metrics.csv").read_text().splitlines()
-    assert len(rows) == 1 + 3
-    log = (tmp_path / "data" / "logs" / "router.log").read_text()
-    assert f"listening on tls/{endpoint.split('/', 1)[1]}" in log, log
-    assert "TLS, user/password, ACL for" in log and "ACL denied" not in log, log
-    assert cluster_processes(endpoint, tmp_path) == []
+    with Cluster(tmp_path) as cluster:  # a tcp/ endpoint: --secrets makes it TLS
+        cluster.up("--quiet", "--secrets", str(secrets), *run)
+        code, out = cluster.wait(timeout=240)
+        assert code == 0, out
+        assert "completed" in out
+        rows = (out_dir / "metrics.csv").read_text().splitlines()
+        assert len(rows) == 1 + 3
+        log = (tmp_path / "data" / "logs" / "router.log").read_text()
+        assert f"listening on tls/{cluster.endpoint.split('/', 1)[1]}" in log, log
+        assert "TLS, user/password, ACL for" in log and "ACL denied" not in log, log
+        assert cluster.leftovers() == []
 
 
 def test_macb_up_refuses_a_secrets_folder_without_a_services_files(secrets, tmp_path):

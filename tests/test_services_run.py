@@ -15,98 +15,12 @@ from shared.config import make_config
 from shared.control import discover, start_run
 from shared.replay import Batch
 from shared.wire import decode, encode
-from tests.conftest import wait_for
-
-SMALL = {
-    "task": "speaker_listener",
-    "algo": "cen-maddpg",
-    "explore": "cen-macb",
-    "k": 64,
-    "episodes": 30,
-    "eval_every": 5,
-    "eval_episodes": 3,
-    "hidden": [64, 64],
-    "batch_size": 32,
-}
-
-
-def start_cluster(procs, tmp_path, actors=1):
-    data = str(tmp_path / "data")
-    for role in ("counter", "learner", "evaluator"):
-        procs.start(role, role, "--id", role, "--data-dir", data)
-    for r in range(actors):
-        procs.start(f"actor{r}", "actor", "--id", f"actor{r}", "--data-dir", data)
-    return data
-
-
-def wait_services(bus, n, timeout=60):
-    return wait_for(lambda: len(discover(bus)) >= n, timeout=timeout, what=f"{n} services")
+from tests.harness import SMALL, assert_exact, wait_final_counts, wait_for, wait_services
 
 
 def info(bus, role, sid):
     replies = bus.get(keys.k_info(role, sid), timeout=2.0)
     return json.loads(replies[0]) if replies else None
-
-
-def check_exact(watch, actors, config, faults: bool = False):
-    """Counted == published, no duplicates or gaps, updates == collected - warm-up.
-
-    `faults` (a router was killed mid-run): a batch lost in transit makes the batch
-    after it a gap (refused, not counted) until the actor resends both, so gaps may
-    occur there, each answered by a resend (tests/test_protocol.py,
-    `test_a_batch_lost_in_a_router_restart_makes_a_gap_not_a_lost_count`); the
-    counts stay exact either way."""
-    assert watch.state() == "completed", (watch.state(), watch.states)
-    published = sum(watch.states[a]["final_seq"] for a in actors)
-    assert published == config.episodes * config.episode_len
-    # The counter's final report (a completed run has it), not its last periodic stats,
-    # which may come after it.
-    counter = watch.states[watch.assign["counter"]]
-    assert counter["counted_transitions"] == published
-    # Duplicates are ignored (that is the guarantee); each one must be a batch an actor
-    # resent, after a second with no ack moving (a learner stalled on a loaded machine
-    # makes that happen), never a second delivery of one publication.
-    resent_rows = sum(watch.states[a].get("resends", 0) for a in actors) * config.episode_len
-    assert counter["duplicates"] <= resent_rows, json.dumps([counter, watch.states])
-    resends = sum(watch.states[a].get("resends", 0) for a in actors)
-    allowed = resends if faults else 0
-    assert counter["gaps"] <= allowed, json.dumps([counter, watch.states])
-    learner = watch.states[watch.assign["learner"]]
-    assert learner["ingested"] == published
-    expected_updates = published - config.learning_starts
-    assert abs(learner["updates"] - expected_updates) <= 0.01 * expected_updates
-    assert learner["replay_ratio"] == pytest.approx(1.0, abs=0.01)
-    points = [r["episode"] for r in watch.rows]
-    assert sorted(points) == list(range(config.eval_every, config.episodes + 1, config.eval_every))
-    for r in watch.rows:
-        assert 0.0 <= r["success_rate"] <= 1.0
-        assert r["env_steps"] == r["episode"] * config.episode_len
-        if config.explore in ("dis-macb", "cen-macb") and r["env_steps"] > config.learning_starts:
-            # the counter's tables as of the tick that trained up to this point: it has
-            # counted at least every transition trained on
-            assert r["counted_transitions"] >= r["env_steps"], r
-            assert r["table_size"] > 0 and 0.0 < r["count1_pct"] <= 100.0, r
-        if r["env_steps"] > config.learning_starts + config.eval_every * config.episode_len:
-            # what the bonus did on the rows sampled since the last point (every row of
-            # such a point had updates since the point before)
-            beta = config.beta if config.explore != "none" else 0.0
-            assert 0.0 <= r["bonus_std"] <= beta and 0.0 <= r["sampled_count1_pct"] <= 100, r
-            assert (0.0 < r["bonus_mean"] <= beta + 1e-6) or beta == 0.0, r
-    if config.explore in ("dis-macb", "cen-macb") and config.interleave == "async":
-        # bonuses priced per tick (all of its minibatches in one query), not per update
-        # (lockstep: a tick is one step's one update)
-        assert learner["bonus_rows_per_query"] >= 5 * config.batch_size, learner
-        assert learner["bonus_queries"] * 5 <= learner["updates"], learner
-        assert learner["bonus_failures"] == 0, learner
-        assert 0.0 < learner["bonus_wait_ms_per_update"] < 1e3, learner
-    # The learner saw the evaluator's rows (what ends its contended updates), so not
-    # every update was marked contended (how many are depends on timing: with these
-    # small networks an evaluation may end before the next update starts), and it
-    # accounted for its time by phase.
-    assert 0 < learner["eval_rows_seen"] <= len(points), learner
-    assert 0 <= learner["contended_updates"] < learner["updates"], learner
-    assert learner["ms_per_update_update"] > 0.0, learner
-    return counter, learner
 
 
 @pytest.mark.parametrize(
@@ -120,21 +34,16 @@ def check_exact(watch, actors, config, faults: bool = False):
     ],
     ids=["1", "2", "1-per-agent"],
 )
-def test_short_speaker_listener_cen_macb_run_is_exact(procs, bus, tmp_path, actors, options):
-    start_cluster(procs, tmp_path, actors)
+def test_short_speaker_listener_cen_macb_run_is_exact(cluster, bus, actors, options):
+    cluster.services(actors)
     wait_services(bus, 3 + actors)
     config = make_config({**SMALL, **options})
     watch = start_run(bus, config, actors=actors)
     assert watch.wait(timeout=240) == "completed", watch.states
     counter_stats = wait_for(lambda: watch.latest.get("counter"), what="counter stats")
     assert counter_stats
-    # The counter publishes stats each second: wait for the final ones.
-    wait_for(
-        lambda: watch.latest["counter"]["counted_transitions"] == config.episodes * 20,
-        timeout=5,
-        what="final counter stats",
-    )
-    counter, learner = check_exact(watch, watch.assign["actors"], config)
+    wait_final_counts(watch, config, timeout=5)
+    learner = assert_exact(watch, config).learner
     # Every update priced its minibatches: one per agent with `minibatch: per-agent`.
     draws = config.n_agents if config.minibatch == "per-agent" else 1
     rows = round(learner["bonus_rows_per_query"] * learner["bonus_queries"])
@@ -150,13 +59,13 @@ def test_short_speaker_listener_cen_macb_run_is_exact(procs, bus, tmp_path, acto
     ("task", "actors"),
     [("speaker_listener", 2), ("spread", 1), ("simple", 1)],
 )
-def test_short_thesis_profile_run_is_exact(procs, bus, tmp_path, task, actors):
+def test_short_thesis_profile_run_is_exact(cluster, bus, task, actors):
     """`profile: thesis` in the cluster, on each task: the actors' padded speaker
     observations (22-wide joint, row T4) or comm-free spread ones (row T3) fit the
     learner's and counter's tables since all size from the same config; successes reset
     the world inside the window, each actor warms up at random for its share, the
     learner draws a minibatch per agent, and every count stays exact."""
-    start_cluster(procs, tmp_path, actors)
+    cluster.services(actors)
     wait_services(bus, 3 + actors)
     algo = {"simple": "ddpg", "spread": "cen-maddpg"}.get(task, SMALL["algo"])
     # Several actors: the asynchronous interleave (lockstep, the profile's default, is
@@ -168,17 +77,13 @@ def test_short_thesis_profile_run_is_exact(procs, bus, tmp_path, task, actors):
     assert config.success_terminal and config.warmup == "random"
     watch = start_run(bus, config, actors=actors)
     assert watch.wait(timeout=240) == "completed", watch.states
-    wait_for(
-        lambda: watch.latest.get("counter", {}).get("counted_transitions") == 600,
-        timeout=10,
-        what="final counter stats",
-    )
-    check_exact(watch, watch.assign["actors"], config)
+    wait_final_counts(watch, config)
+    assert_exact(watch, config)
     wait_for(lambda: all(not i.get("run") for i in discover(bus)), timeout=10, what="free")
 
 
-def test_counter_killed_mid_run_loses_no_count(procs, bus, tmp_path):
-    data = start_cluster(procs, tmp_path, 1)
+def test_counter_killed_mid_run_loses_no_count(cluster, bus):
+    cluster.services(1)
     wait_services(bus, 4)
     # Long enough that the kill lands mid-run: the counter's stats come once a second, and
     # with these small networks 60 episodes could be counted before the first look.
@@ -190,10 +95,10 @@ def test_counter_killed_mid_run_loses_no_count(procs, bus, tmp_path):
         timeout=120,
         what="counting under way",
     )
-    procs.kill("counter")  # SIGKILL by PID
+    cluster.kill("counter")  # SIGKILL by PID
     assert watch.latest["counter"]["counted_transitions"] < episodes * 20, "killed too late"
     time.sleep(1.5)
-    procs.start("counter2", "counter", "--id", "counter", "--data-dir", data)
+    cluster.service("counter", name="counter2")
     assert watch.wait(timeout=300) == "completed", watch.states
     wait_for(
         lambda: watch.latest["counter"]["counted_transitions"] == episodes * 20,
@@ -203,11 +108,11 @@ def test_counter_killed_mid_run_loses_no_count(procs, bus, tmp_path):
     assert watch.latest["counter"]["gaps"] >= 0
     published = watch.states["actor0"]["final_seq"]
     assert watch.latest["counter"]["counted_transitions"] == published == episodes * 20
-    assert "restored run" in procs.log("counter2")
+    assert "restored run" in cluster.log("counter2")
 
 
-def test_garbage_on_every_key_is_dropped_counted_and_changes_nothing(procs, bus, tmp_path):
-    start_cluster(procs, tmp_path, 1)
+def test_garbage_on_every_key_is_dropped_counted_and_changes_nothing(cluster, bus):
+    cluster.services(1)
     wait_services(bus, 4)
     config = make_config(SMALL)
     watch = start_run(bus, config, actors=1)
@@ -239,28 +144,24 @@ def test_garbage_on_every_key_is_dropped_counted_and_changes_nothing(procs, bus,
         assert bus.get(keys.k_bonus(run), payload, timeout=1.0) == []
     bus.put(keys.k_transitions("no-such-run", "actor0"), other_run)
     assert watch.wait(timeout=240) == "completed", watch.states
-    wait_for(
-        lambda: watch.latest["counter"]["counted_transitions"] == 600,
-        timeout=5,
-        what="final counter stats",
-    )
-    check_exact(watch, ["actor0"], config)
+    wait_final_counts(watch, config, timeout=5)
+    assert_exact(watch, config)
     for role in ("counter", "learner", "evaluator", "actor"):
         sid = "actor0" if role == "actor" else role
         i = info(bus, role, sid)
         assert i is not None, f"{role} is not answering"
         assert i["rejects_total"] >= 3, (role, i["rejects"])
-    for name, p in procs.procs.items():
+    for name, p in cluster.procs.items():
         assert p.poll() is None, f"{name} died"
 
 
 @pytest.mark.parametrize("victim", ["learner", "actor0"])
-def test_a_dead_learner_or_actor_fails_the_run_and_frees_the_others(procs, bus, tmp_path, victim):
-    start_cluster(procs, tmp_path, 1)
+def test_a_dead_learner_or_actor_fails_the_run_and_frees_the_others(cluster, bus, victim):
+    cluster.services(1)
     wait_services(bus, 4)
     watch = start_run(bus, make_config({**SMALL, "episodes": 200}), actors=1)
     wait_for(lambda: watch.latest.get("learner", {}).get("updates", 0) > 50, what="training")
-    procs.kill(victim)
+    cluster.kill(victim)
     assert watch.wait(timeout=60) == "failed", watch.states
     assert victim.rstrip("0") in watch.failure() or "learner" in watch.failure()
     survivors = {"learner", "actor0", "evaluator"} - {victim}

@@ -3,7 +3,7 @@ faults for --minutes, every count exact at the end. Long: run it with `make soak
 (pytest -m soak -s; MACB_SOAK_MINUTES, default 20); neither `make test` nor
 `make test-slow` runs it.
 
-One real `macb up --group-size 3` (tests/test_faults.py's `Up`) runs an experiment of
+One real `macb up --group-size 3` (tests/test_faults.py's) runs an experiment of
 three lockstep runs (figure 8's sparse Cen-MACB arm: speaker_listener, Cen-MADDPG +
 Cen-MACB k 512, beta 0.8, 400-300 networks, batch 100; seeds 0-2; `profile: thesis`).
 Every 10-60 s (uniform) one fault lands: SIGKILL of a service (the supervisor restarts
@@ -20,14 +20,13 @@ from __future__ import annotations
 import json
 import os
 import random
-import signal
 import time
 
 import httpx
 import pytest
 
-from tests.conftest import ROOT, wait_for
-from tests.test_faults import Up, _check_exact, _get, _kill, _points
+from tests.harness import ROOT, Cluster, assert_exact, wait_for
+from tests.test_faults import SERVICES, UP, UP_ENV
 
 MINUTES = float(os.environ.get("MACB_SOAK_MINUTES", "20"))
 EVAL_EVERY = 50
@@ -47,11 +46,9 @@ def soak_body(episodes: int) -> dict:
 @pytest.mark.timeout(int(MINUTES * 60 + 3 * 3600))
 def test_a_group_at_thesis_settings_survives_random_faults(tmp_path):
     rng = random.Random(int(os.environ.get("MACB_SOAK_SEED", "0")))
-    up = Up(tmp_path)
-    up.results = {}  # type: ignore[attr-defined]
     faults: list[dict] = []
-    try:
-        up.start()
+    with Cluster(tmp_path, env=UP_ENV) as up:
+        up.up(*UP, answering=SERVICES)
         from shared.config import make_config
 
         base = {k: v for k, v in soak_body(1).items() if k not in ("seeds", "name")}
@@ -62,36 +59,29 @@ def test_a_group_at_thesis_settings_survives_random_faults(tmp_path):
         assert r.status_code in (200, 201), r.text
         exp = r.json()
         ids = [run["id"] for run in exp["runs"]]
-        wait_for(lambda: _points(up, ids[0]) >= 1, timeout=600, what="the group's first point")
+        wait_for(lambda: up.points(ids[0]) >= 1, timeout=600, what="the group's first point")
         t_end = time.monotonic() + MINUTES * 60
         doubles = sorted(rng.sample(range(3, 12), 2))  # which faults hit two services
         n = 0
         while time.monotonic() < t_end:
             time.sleep(rng.uniform(10, 60))
-            if time.monotonic() >= t_end or _done(up, ids):
+            if time.monotonic() >= t_end or up.ended(*ids):
                 break
             victims = rng.sample(VICTIMS, 2 if n in doubles else 1)
             kind = rng.choice(["SIGKILL", "SIGSTOP"])
-            pids = up.pids()
-            at = max(_points(up, i) for i in ids)
+            at = max(up.points(i) for i in ids)
             t0 = time.monotonic()
             if kind == "SIGKILL":
                 for v in victims:
-                    _kill(pids[v], signal.SIGKILL)
+                    up.kill(v)
                 paused = 0.0
             else:
                 paused = rng.uniform(1, 15)
-                try:
-                    for v in victims:
-                        _kill(pids[v], signal.SIGSTOP)
-                    time.sleep(paused)
-                finally:
-                    for v in victims:
-                        _kill(pids[v], signal.SIGCONT)
+                up.pause(*victims, seconds=paused)
             fault = {"t": round(t0 - (t_end - MINUTES * 60), 1), "kind": kind,
                      "victims": victims, "paused_s": round(paused, 1)}  # fmt: skip
             try:
-                wait_for(lambda at=at: max(_points(up, i) for i in ids) > at, timeout=300,
+                wait_for(lambda at=at: max(up.points(i) for i in ids) > at, timeout=300,
                          what=f"a point after {kind} {victims}")  # fmt: skip
                 fault["recovery_s"] = round(time.monotonic() - t0, 1)
             except AssertionError:
@@ -101,24 +91,17 @@ def test_a_group_at_thesis_settings_survives_random_faults(tmp_path):
             faults.append(fault)
             print(json.dumps(fault), flush=True)
             n += 1
-        wait_for(lambda: _done(up, ids), timeout=3 * 3600, interval=5, what="the group's end")
+        wait_for(lambda: up.ended(*ids), timeout=3 * 3600, interval=5, what="the group's end")
         runs = [_check(up, run_id, episodes) for run_id in ids]
         result = {"minutes": MINUTES, "episodes": episodes, "faults": faults,
                   "runs": runs, "restarts": up.restarts()}  # fmt: skip
         (tmp_path / "soak.json").write_text(json.dumps(result, indent=1))
         print(json.dumps(result, indent=1))
         assert any(len(f["victims"]) == 2 for f in faults) or MINUTES < 5
-    finally:
-        up.end()
 
 
-def _done(up: Up, ids: list[str]) -> bool:
-    runs = [_get(up, f"/runs/{i}") or {} for i in ids]
-    return all(run.get("status") not in (None, "queued", "running") for run in runs)
-
-
-def _check(up: Up, run_id: str, episodes: int) -> dict:
-    run = _check_exact(up, run_id, episodes, EVAL_EVERY)
+def _check(up: Cluster, run_id: str, episodes: int) -> dict:
+    run = assert_exact(up.finished(run_id), faults="restarted").record
     services = run["services"]
     learner, counter = services[run["assign"]["learner"]], services[run["assign"]["counter"]]
     return {"id": run_id, "counted": counter["counted_transitions"],
