@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import re
 import subprocess
-from pathlib import Path
 
 import pytest
 import torch
@@ -17,18 +16,9 @@ from shared.config import make_config
 from shared.cuts import CutError
 from shared.learners import precision
 from shared.trainer import train
+from tests.harness import ROOT, TINY
 
-ROOT = Path(__file__).resolve().parent.parent
-SMALL = {
-    "task": "speaker_listener",
-    "episodes": 6,
-    "eval_every": 2,
-    "hidden": [32, 32],
-    "batch_size": 16,
-    "eval_episodes": 2,
-    "k": 32,
-    "learner_lanes": 1,
-}
+SMALL = {**TINY, "episodes": 6, "eval_every": 2, "k": 32, "learner_lanes": 1}
 ZEN3 = "processor\t: 0\nmodel name\t: AMD EPYC 7B13\nflags\t\t: fpu sse avx2 fma\n"
 ZEN4 = "processor\t: 0\nmodel name\t: AMD EPYC 9B14\nflags\t\t: avx2 avx512f avx512_bf16\n"
 
