@@ -144,18 +144,15 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def signal_pid(pid: int, sig: int) -> None:
+def _signal(pid: int, sig: int) -> None:
     with contextlib.suppress(ProcessLookupError):
         os.kill(pid, sig)
 
 
 # ---------------------------------------------------------------- the secure bus
-def as_user(secrets: Path, user: str, endpoint: str | None = None) -> dict[str, str]:
-    """The variables that sign a process in as `user` (and connect it to `endpoint`)."""
-    env = {"MACB_ZENOH_SECRETS": str(secrets), "MACB_ZENOH_USER": user}
-    if endpoint:
-        env["MACB_ZENOH_CONNECT"] = endpoint
-    return env
+def as_user(secrets: Path, user: str) -> dict[str, str]:
+    """The variables that sign a process in as `user`."""
+    return {"MACB_ZENOH_SECRETS": str(secrets), "MACB_ZENOH_USER": user}
 
 
 def session(secrets: Path, user: str, endpoint: str, **override):
@@ -300,7 +297,7 @@ class Cluster:
     def kill(self, name: str, sig: int = signal.SIGKILL, timeout: float = 20) -> None:
         """Signal one process (SIGKILL unless told); one of ours is waited for."""
         if name not in self.procs:
-            signal_pid(self.pids()[name], sig)
+            _signal(self.pids()[name], sig)
         elif self.procs[name].poll() is None:
             os.kill(self.procs[name].pid, sig)
             self.procs[name].wait(timeout=timeout)
@@ -310,11 +307,11 @@ class Cluster:
         pids = [self.pid(name) for name in names]
         try:
             for pid in pids:
-                signal_pid(pid, signal.SIGSTOP)
+                _signal(pid, signal.SIGSTOP)
             time.sleep(seconds)
         finally:
             for pid in pids:
-                signal_pid(pid, signal.SIGCONT)
+                _signal(pid, signal.SIGCONT)
 
     def kill_all(self) -> None:
         """SIGKILL `macb up` and every service: nothing is told, nothing flushes."""
@@ -322,7 +319,7 @@ class Cluster:
         self.procs["up"].kill()
         self.procs["up"].wait()
         for pid in pids.values():
-            signal_pid(pid, signal.SIGKILL)
+            _signal(pid, signal.SIGKILL)
 
     def log(self, name: str) -> str:
         return (self.tmp / f"{name}.log").read_text(errors="replace")
@@ -407,7 +404,7 @@ class Cluster:
         ours = {p.pid for p in self.procs.values()}  # waited for: their PIDs are free
         left = [pid for pid in self.seen - ours if _alive(pid) and self._mine(pid)]
         for pid in left:
-            signal_pid(pid, signal.SIGKILL)
+            _signal(pid, signal.SIGKILL)
         if left:
             pytest.fail(f"process(es) {left} outlived the cluster")
 
