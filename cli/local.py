@@ -148,7 +148,7 @@ def run_groups(
     by_state: dict[str, list[int]] = {}
     for i in todo:
         by_state.setdefault(states[i], []).append(i)
-    from shared.group_trainer import form_groups
+    from shared.groups import form_groups
 
     groups = []
     for state, idx in by_state.items():

@@ -80,7 +80,7 @@ def start_group(
 ) -> list[RunWatch]:
     """Start `configs` as one run group (one learner, actor and evaluator serve them all,
     `interleave: lockstep`); one watch per run, each run with its own id and rows."""
-    from shared.group_trainer import group_error  # (the trainer's rule for a group)
+    from shared.groups import group_error
 
     if why := group_error(configs, 1):
         raise ValueError(why)

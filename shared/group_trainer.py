@@ -14,8 +14,8 @@ folder, cuts and provenance. Run r's rows are those `macb train` gives it alone 
 cut is a `macb train` cut: a group resumes from them, and so could the run alone.
 
 Runs may be grouped when their update and their task's steps can be shared:
-`group_key` is the config without the fields a run may choose for itself
-(`PER_RUN_FIELDS`).
+`shared.groups` says which runs may (`group_key`: the config without the fields a run
+may choose for itself, `PER_RUN_FIELDS`).
 """
 
 from __future__ import annotations
@@ -35,7 +35,6 @@ from shared.config import TrainConfig
 from shared.cuts import (
     CutError,
     ReplayLog,
-    config_difference,
     latest_cut,
     load_tables,
     read_cut,
@@ -50,6 +49,7 @@ from shared.factories import (
     learner_spec,
     minibatches_per_update,
 )
+from shared.groups import check_group
 from shared.learners.group import GroupMADDPG
 from shared.replay import ReplayBuffer, update_arrays
 from shared.rollout import derive_seed, evaluate_group, make_vec_collector
@@ -71,90 +71,6 @@ from shared.trainer import (
 from shared.vectask import vectorize
 
 log = logging.getLogger("macb.group")
-
-#: Config fields that may differ between the runs of a group; every other field is
-#: shared (task and its options, algorithm and network, update settings, episodes,
-#: evaluation, precision and threads).
-PER_RUN_FIELDS = frozenset(
-    {
-        "seed",
-        "explore",
-        "beta",
-        "k",
-        "hash",
-        "bonus_at",
-        "key",
-        "hash_round",
-        "reward",
-        "noise_sigma",
-        "time_limit_terminal",
-        "warmup",
-        "same_init",
-        "buffer_size",
-        "profile",
-        "learner_lanes",
-        "learner_impl",
-    }
-)
-
-
-def group_key(cfg: TrainConfig) -> str:
-    """What runs of one group must share, as one comparable string."""
-    shared = {k: v for k, v in cfg.model_dump(mode="json").items() if k not in PER_RUN_FIELDS}
-    return json.dumps(shared, sort_keys=True)
-
-
-def check_group(cfgs: Sequence[TrainConfig]) -> None:
-    """Refuse runs that cannot share a group, naming the first field that differs, and
-    runs asking for the reference learner (a group updates with the batched one)."""
-    if not cfgs:
-        raise ValueError("a group needs at least one run")
-    for r, cfg in enumerate(cfgs):
-        if cfg.learner_impl == "reference":
-            raise ValueError(
-                f"run {r}: learner_impl reference: a run group updates with the batched "
-                "learner; run it alone with macb train"
-            )
-    first = json.loads(group_key(cfgs[0]))
-    for r, cfg in enumerate(cfgs[1:], 1):
-        diff = config_difference(first, json.loads(group_key(cfg)))
-        if diff is not None:
-            field = diff.split(":")[0]
-            raise ValueError(
-                f"runs 0 and {r} cannot share a group: they differ in {field} "
-                f"({getattr(cfgs[0], field)!r} != {getattr(cfg, field)!r})"
-            )
-
-
-def group_error(cfgs: Sequence[TrainConfig], actors: int) -> str | None:
-    """Why these runs cannot be served as one group by the cluster's services, or None.
-    There a group runs the thesis's loop (`interleave: lockstep`) with one actor
-    stepping every run's world."""
-    try:
-        check_group(cfgs)
-    except ValueError as err:
-        return str(err)
-    for r, cfg in enumerate(cfgs):
-        if cfg.interleave != "lockstep":
-            return f"run {r}: interleave {cfg.interleave}: a group in the cluster runs lockstep"
-        if cfg.bonus_at == "collection":
-            return f"run {r}: bonus_at collection: the cluster prices bonuses when it samples"
-    if actors != 1:
-        return f"actors: a group in the cluster has one actor (it steps every world), not {actors}"
-    return None
-
-
-def form_groups(cfgs: Sequence[TrainConfig], max_runs: int | None = None) -> list[list[int]]:
-    """Indices of `cfgs` in groups of runs that can share one (in order of first
-    appearance), each at most `max_runs` long."""
-    by_key: dict[str, list[int]] = {}
-    for i, cfg in enumerate(cfgs):
-        by_key.setdefault(group_key(cfg), []).append(i)
-    groups = []
-    for members in by_key.values():
-        step = max_runs or len(members)
-        groups += [members[i : i + step] for i in range(0, len(members), step)]
-    return groups
 
 
 class Member:

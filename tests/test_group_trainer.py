@@ -14,7 +14,8 @@ import json
 import pytest
 
 from shared.config import make_config
-from shared.group_trainer import check_group, form_groups, train_group
+from shared.group_trainer import train_group
+from shared.groups import check_group, form_groups
 from shared.trainer import train
 
 TIMING = ("steps_per_sec", "train_steps_per_sec", "wall_s")

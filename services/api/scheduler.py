@@ -51,7 +51,7 @@ from shared import bus as keys
 from shared.bus import Bus
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.control import NoFreeServices, assign_services, discover, send_start, send_stop
-from shared.group_trainer import group_error, group_key
+from shared.groups import group_error, group_key
 from shared.protocol import RunVerdict, run_verdict
 from shared.wire import WireError, decode
 

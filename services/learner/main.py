@@ -58,7 +58,7 @@ from shared.config import TrainConfig, actors_error
 from shared.cuts import CutError, atomic_torch_save, config_difference
 from shared.exploration import BonusDiagnostics
 from shared.factories import agent_dims, build_learner, learner_spec, minibatches_per_update
-from shared.group_trainer import group_error
+from shared.groups import group_error
 from shared.learners import Learner
 from shared.learners.group import GroupMADDPG
 from shared.networks import weights_as_arrays
