@@ -1,10 +1,10 @@
 """What the benchmarks share beyond timing and processes: the CLI, clusters, runs, results.
 
 The benchmarks measure the platform's own code paths, so they start services the way
-`macb up` does (shared/cluster.py's `cluster_plan` and `Cluster`), follow runs with
-shared/control.py's `RunWatch` and ask the bus by shared/bus.py's key functions rather
+`macb up` does (cli/supervisor.py's `cluster_plan` and `Cluster`), follow runs with
+shared/net/control.py's `RunWatch` and ask the bus by shared/net/bus.py's key functions rather
 than keeping copies of them that drift. The command line and the exploration factory
-are named here once, so a move of either (`python -m cli`, `shared.factories`) is one
+are named here once, so a move of either (`python -m cli`, `shared.run.factories`) is one
 edit for every benchmark. Importing this loads numpy (the bus codec) but not torch or
 the environments: the counter benchmark's publisher processes import it and start fast.
 """
@@ -23,9 +23,9 @@ from typing import Any
 
 from _procs import ROOT, Procs
 
-from shared.bus import Bus
-from shared.cluster import Cluster, ServiceSpec
-from shared.control import RunWatch
+from cli.supervisor import Cluster, ServiceSpec
+from shared.net.bus import Bus
+from shared.net.control import RunWatch
 
 RESULTS = ROOT / "benchmarks" / "results"
 # The thesis's speaker_listener arm (figure 8's sparse Cen-MACB; appendix A's networks
@@ -48,7 +48,7 @@ def macb_argv(*args: str, profile: Path | None = None) -> list[str]:
 
 
 class Services:
-    """A cluster_plan's services, started as `macb up` starts them (shared.cluster.Cluster:
+    """A cluster_plan's services, started as `macb up` starts them (cli.supervisor.Cluster:
     router first, then the rest), except those named in `profile`, which run under
     cProfile in a process of their own once the others are up. The router cannot be
     profiled: the cluster waits until it listens."""
@@ -116,8 +116,8 @@ class TimedWatch(RunWatch):
 def exploration(config: dict[str, Any]):
     """(config, task spec, count exploration) of a run config, as a run builds them."""
     from shared.config import make_config
-    from shared.factories import build_exploration
-    from shared.tasks import task_spec_for
+    from shared.envs.tasks import task_spec_for
+    from shared.run.factories import build_exploration
 
     cfg = make_config(config)
     spec = task_spec_for(cfg)

@@ -4,7 +4,7 @@ Benchmarks time real processes on a machine shared with other people's, so they 
 neither leave one behind nor touch one that is not theirs: every child starts in a
 process group of its own and is ended by its PID (SIGTERM, then SIGKILL to its group),
 never by name. CPU seconds come from /proc, which is where the cores went. Only the
-standard library and shared/cluster.py (stdlib only too), so a script can import this
+standard library and cli/supervisor.py (stdlib only too), so a script can import this
 before it sets its thread variables and loads numpy.
 """
 
@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # the project's packages, also without `pip install -e`
     sys.path.insert(0, str(ROOT))
 
-from shared.cluster import THREAD_ENV  # noqa: E402
+from cli.supervisor import THREAD_ENV  # noqa: E402
 
 # The variables that set BLAS/OpenMP threads, as `macb up` gives every service.
 THREAD_VARS = tuple(THREAD_ENV)

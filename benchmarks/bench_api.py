@@ -34,8 +34,8 @@ import httpx
 from _harness import RESULTS, macb_argv
 from _procs import end, start
 
+from cli.supervisor import free_port
 from services.api.store import Store
-from shared.cluster import free_port
 
 CONFIG = {"task": "speaker_listener", "episodes": 100_000, "eval_every": 10}
 

@@ -10,9 +10,9 @@ evaluator, actor, API as processes, as a user runs it), in rounds whose order ro
 * `fp32`: this tree, `precision: fp32` (the default);
 * `bf16`: this tree, `precision: bf16`;
 * `bf16-unfused`: the same with `MACB_FUSED=0`: the learner's master-weight work in
-  torch's ops instead of the fused kernel (shared/learners/fused.py);
+  torch's ops instead of the fused kernel (shared/core/learners/fused.py);
 * `fp32-1t`, `bf16-1t`: `fp32`, `bf16` with `learner_lanes: 1`, the update on one
-  thread always instead of the tuner's pick (shared/learners/tuning.py), which leaves
+  thread always instead of the tuner's pick (shared/core/learners/tuning.py), which leaves
   the other core to the evaluator, actor, counter and router.
 
 A run's throughput is its steady rate from its own metric rows: env steps between the
@@ -47,7 +47,7 @@ from _harness import (
 from _procs import ROOT
 from _stats import fmt, median, ratio_median, rotating_rounds
 
-from shared.cluster import free_port
+from cli.supervisor import free_port
 
 VARIANTS = ("base", "fp32", "bf16", "bf16-unfused", "fp32-1t", "bf16-1t")
 

@@ -44,7 +44,7 @@ import os
 
 from _procs import pin_threads
 
-# The services run with one BLAS thread (shared/cluster.py THREAD_ENV); the in-process
+# The services run with one BLAS thread (cli/supervisor.py THREAD_ENV); the in-process
 # ceiling must too. Set before numpy is imported.
 pin_threads()
 
@@ -66,16 +66,16 @@ from _harness import Services, add_out, bench_parser, command, exploration, prog
 from _procs import Procs, cpu_seconds
 from _stats import fmt, median, rotated, top_tottime
 
-from shared.bus import Bus, k_ack, k_bonus, k_control, k_info, k_transitions
-from shared.cluster import THREAD_ENV, cluster_plan, free_port
-from shared.wire import check_dims, decode, encode
+from cli.supervisor import THREAD_ENV, cluster_plan, free_port
+from shared.net.bus import Bus, k_ack, k_bonus, k_control, k_info, k_transitions
+from shared.net.wire import check_dims, decode, encode
 
 # Publisher and echo processes import only the above (numpy, zenoh, msgpack, pydantic):
 # no torch, no environments, so they start fast and cost the counter's CPU as little as
 # possible.
 
 CONFIG = {"task": "speaker_listener", "algo": "cen-maddpg", "explore": "cen-macb", "beta": 0.8}
-COUNTER = "counter"  # the counter's service id in shared.cluster.cluster_plan
+COUNTER = "counter"  # the counter's service id in cli.supervisor.cluster_plan
 ABOUT = (  # what --help adds to the docstring's first paragraph
     " Router + counter processes; publisher processes flood numbered `transitions` "
     "batches (20 and 64 rows); 100-row bonus queries timed at the client."
@@ -449,7 +449,7 @@ class CounterHarness:
 # ------------------------------------------------------------------ in-process ceiling
 def in_process(k: int, rows: int, seconds: float, work: Path) -> dict:
     """The counter's per-batch work in this process: core, and with decode + ack encode."""
-    from shared.wal import WriteAheadLog
+    from shared.persist.wal import WriteAheadLog
 
     _, spec, _ = run_exploration(k)
     rng = np.random.default_rng(7)

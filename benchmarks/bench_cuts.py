@@ -1,6 +1,6 @@
 """What cuts cost a one-process run: bytes and seconds per cut, and the share of wall time.
 
-A cut (shared/cuts.py) appends the replay rows collected since the last one and writes
+A cut (shared/persist/cuts.py) appends the replay rows collected since the last one and writes
 the learner, count tables and RNG states atomically with fsync; `macb train` writes one
 at the first evaluation point after every 60 s (`--cut-every`). This runs the trainer at
 thesis settings on speaker_listener (Cen-MADDPG + Cen-MACB, k 512, 400-300, batch 100)
@@ -38,8 +38,8 @@ from _harness import (
 )
 from _stats import fmt, ratio_median
 
+from cli.trainer import DEFAULT_CUT_EVERY_S, Run
 from shared.config import make_config
-from shared.trainer import DEFAULT_CUT_EVERY_S, Run
 
 THESIS = {**THESIS_ARM, "learner_lanes": 1}
 

@@ -34,7 +34,7 @@ from _harness import (
 from _stats import measure, ratio_median
 from bench_learner import SPEAKER_LISTENER, random_batch
 
-from shared.learners import BatchedMADDPG, LearnerSpec
+from shared.core.learners import BatchedMADDPG, LearnerSpec
 
 TINY = torch.finfo(torch.float32).tiny
 

@@ -4,10 +4,10 @@ The workload is the thesis's speaker_listener arm: Cen-MADDPG + Cen-MACB, k=512,
 beta=0.8, batch 100, hidden 400-300, one update per environment step, 10 noise-free
 evaluation episodes per evaluation point. Each variant is a fresh process tree:
 
-* `trainer`: `shared.trainer.train` (what `macb train` runs) in a child process whose
+* `trainer`: `cli.trainer.train` (what `macb train` runs) in a child process whose
   environment has no OMP/OPENBLAS/MKL_NUM_THREADS, as from a plain shell;
 * `trainer-blas1`: the same with those set to 1, which is what `macb up` gives each
-  service (shared/cluster.py THREAD_ENV): the like-for-like baseline for the cluster;
+  service (cli/supervisor.py THREAD_ENV): the like-for-like baseline for the cluster;
 * `cluster`: `macb up --run CONFIG --actors 1 --quiet --quiet-services` on a free
   loopback port (router, counter, learner, evaluator, one actor as processes), watched
   from this process over the bus (learner stats every second, status, metric rows).
@@ -63,10 +63,10 @@ from _harness import (
 from _procs import ROOT, THREAD_VARS, CpuSampler, end, kill_ours, start, thread_env
 from _stats import fmt, median, rotating_rounds, top_tottime
 
-from shared.bus import Bus
-from shared.cluster import THREAD_ENV, cluster_plan, free_port, wait_port
+from cli.supervisor import THREAD_ENV, cluster_plan, free_port, wait_port
 from shared.config import load_config
-from shared.control import discover, start_run
+from shared.net.bus import Bus
+from shared.net.control import discover, start_run
 
 CONFIG_YAML = """\
 # bench_e2e: thesis figure 8 arm sparse-cen-macb with the appendix A settings.
@@ -140,8 +140,8 @@ def trainer_child(args: argparse.Namespace) -> None:
     """Run the one-process trainer; record the time of every episode end."""
     import resource
 
-    import shared.rollout as rollout_mod
-    import shared.trainer as trainer_mod  # torch: only in this child, never the parent
+    import cli.trainer as trainer_mod  # torch: only in this child, never the parent
+    import shared.run.rollout as rollout_mod
 
     cfg = load_config(args.config, {"episodes": args.episodes, "eval_every": args.eval_every})
     marks: list[tuple[float, float]] = []  # (wall, CPU seconds of all threads)
@@ -154,7 +154,7 @@ def trainer_child(args: argparse.Namespace) -> None:
             return tr
 
     # measurement only: one append per episode (the trainer builds its collector with
-    # shared.rollout.make_collector, which looks the class up there)
+    # shared.run.rollout.make_collector, which looks the class up there)
     rollout_mod.Collector = TimedCollector
     t0 = time.perf_counter()
     rows = trainer_mod.train(cfg, Path(args.result).parent / "trainer-out", progress=False)
@@ -392,7 +392,7 @@ def profile_trainer(
 
 def profile_cluster(config: Path, episodes: int, eval_every: int, work: Path) -> dict:
     """The cluster's services as `macb up` starts them (no API), with the learner under
-    cProfile; the run is started on the bus (shared.control.start_run)."""
+    cProfile; the run is started on the bus (shared.net.control.start_run)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     plan = cluster_plan(1, endpoint, str(work / "data"), api=None)
     prof = work / "learner.prof"
@@ -504,7 +504,7 @@ def main(argv: list[str] | None = None) -> None:
         f"{','.join(DEFAULT_VARIANTS)}; '-1lane': learner_lanes 1; '-2threads': "
         "learner_lanes 1 with two torch threads; '-lockstep': learner_lanes 1 and "
         "interleave lockstep; 'trainer': the environment's default "
-        "BLAS/OpenMP thread variables, as a library user who calls shared.trainer.train "
+        "BLAS/OpenMP thread variables, as a library user who calls cli.trainer.train "
         "gets; train() limits numpy's BLAS to one thread itself since session 3)",
     )
     parser.add_argument(

@@ -67,10 +67,10 @@ def cpu_model() -> str:
 def group_and_alone(runs: int, precision: str):
     import numpy as np
 
-    from shared.factories import agent_dims
-    from shared.learners import BatchedMADDPG, LearnerSpec
-    from shared.learners.group import GroupMADDPG
-    from shared.tasks import task_spec
+    from shared.core.learners import BatchedMADDPG, LearnerSpec
+    from shared.core.learners.group import GroupMADDPG
+    from shared.envs.tasks import task_spec
+    from shared.run.factories import agent_dims
 
     dims = agent_dims(task_spec("speaker_listener"))
     specs = [LearnerSpec(algo="cen-maddpg", hidden=(400, 300), seed=s) for s in range(runs)]
@@ -95,7 +95,7 @@ def group_floor(group) -> tuple[Any, Any]:
     """(the group update's products, one pass over its state) as two callables."""
     import torch
 
-    from shared.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
+    from shared.core.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
 
     dt, rows = group.dtype, 100
     entries = group.runs * group.n
@@ -149,7 +149,7 @@ def group_floor(group) -> tuple[Any, Any]:
 def bench_update(args: argparse.Namespace) -> dict[str, Any]:
     import torch
 
-    from shared.learners.precision import native_bf16
+    from shared.core.learners.precision import native_bf16
 
     torch.set_num_threads(args.threads)
     rows = []
@@ -216,7 +216,7 @@ def fig8_pair(opts: dict[str, Any]) -> list:
 def group_child(spec: str) -> None:
     """In a process of its own: the group run of `spec` (JSON), its rate and shares."""
     opts = json.loads(spec)
-    from shared.group_trainer import GroupRun
+    from cli.group_trainer import GroupRun
 
     cfgs = fig8_pair(opts)
     jobs, job = opts.get("jobs", 1), opts.get("job", 0)
@@ -252,9 +252,9 @@ def cluster_group_rate(args: argparse.Namespace, work: Path) -> dict[str, float]
     """The six runs as one lockstep group on the cluster's services."""
     from _harness import Services
 
-    from shared.bus import Bus
-    from shared.cluster import cluster_plan, free_port
-    from shared.control import discover, start_group
+    from cli.supervisor import cluster_plan, free_port
+    from shared.net.bus import Bus
+    from shared.net.control import discover, start_group
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     plan = cluster_plan(1, endpoint, str(work / "data"), api=None)

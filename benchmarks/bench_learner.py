@@ -3,8 +3,8 @@
 For each task the same random minibatch (batch 100, hidden 400-300, the thesis settings)
 is fed to
 
-* `ref`: shared.learners.MADDPG, the per-agent reference update;
-* `batched`: shared.learners.BatchedMADDPG, a copy of the same learner;
+* `ref`: shared.core.learners.MADDPG, the per-agent reference update;
+* `batched`: shared.core.learners.BatchedMADDPG, a copy of the same learner;
 * `floor`: only the matrix products one batched update performs (forward and backward
   of every stacked layer, with the same shapes and layouts, through the same
   `linear_*` functions), on preallocated tensors: no elementwise ops, no autograd, no
@@ -22,7 +22,7 @@ when the second core is not free.
 A second table (`precision: bf16`) times, per task, the fp32 batched update, the same
 update with bf16 matrix products (`bf16`), both floors (`floor_bf16`: the floor's
 products in bf16, with oneDNN's bf16 layouts), bf16 without the fused master-weight
-kernel (`bf16_unfused`: torch's Adam, lerp and casts; shared/learners/fused.py) and bf16
+kernel (`bf16_unfused`: torch's Adam, lerp and casts; shared/core/learners/fused.py) and bf16
 on two lanes, in the same rounds; plus a 2-thread speaker_listener row (where the
 learner runs torch's ops, so fused and unfused are the same code). `--precision fp32`
 or `bf16` runs one table only.
@@ -55,10 +55,10 @@ from _stats import fmt, measure, ratio_median
 
 # The benchmarks' one import site of the learners (bench_scaling and floor_probe.py use
 # them through the helpers below).
-from shared.learners import MADDPG, AgentDims, BatchedMADDPG, Lanes, LearnerSpec, TunedMADDPG
-from shared.learners.fused import kernel as fused_kernel
-from shared.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
-from shared.learners.precision import native_bf16
+from shared.core.learners import MADDPG, AgentDims, BatchedMADDPG, Lanes, LearnerSpec, TunedMADDPG
+from shared.core.learners.fused import kernel as fused_kernel
+from shared.core.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
+from shared.core.learners.precision import native_bf16
 
 BATCH = 100
 HIDDEN = (400, 300)
@@ -70,7 +70,7 @@ def spread(n: int) -> list[AgentDims]:
 
 
 SPEAKER_LISTENER = [AgentDims(3, (0.0,) * 3, (1.0,) * 3), AgentDims(11, *MOVE)]
-# (task, N, algo, agent dims); the dims are what shared.tasks.task_spec reports for mpe2.
+# (task, N, algo, agent dims); the dims are what shared.envs.tasks.task_spec reports for mpe2.
 CASES = [
     ("simple", 1, "ddpg", [AgentDims(4, *MOVE)]),
     ("spread", 2, "dis-maddpg", spread(2)),
@@ -84,14 +84,14 @@ CASES = [
 def check_dims() -> None:
     """The hard-coded dims above must be the project's (skipped if mpe2 is missing)."""
     try:
-        from shared.tasks import task_spec
+        from shared.envs.tasks import task_spec
     except ImportError:
         return
     for task, n, _, agents in CASES:
         got = [(a.obs_dim, tuple(a.act_low), tuple(a.act_high)) for a in task_spec(task, n).agents]
         want = [(a.obs_dim, a.act_low, a.act_high) for a in agents]
         if got != want:
-            raise SystemExit(f"{task} N={n}: dims {want} differ from shared.tasks {got}")
+            raise SystemExit(f"{task} N={n}: dims {want} differ from shared.envs.tasks {got}")
 
 
 def random_batch(m: MADDPG, seed: int = 0) -> tuple[np.ndarray, ...]:

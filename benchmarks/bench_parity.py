@@ -9,7 +9,7 @@ learner lane: bit-reproducible on a machine, so a result can be re-run exactly):
   arm): the sparse arms show no success in a short run, the dense return does move.
 
 A run's curve is summed up by its area per point (the mean over its evaluation points)
-of the success rate and of the evaluation return; shared/parity.py compares the paired
+of the success rate and of the evaluation return; benchmarks/parity.py compares the paired
 per-seed differences by two one-sided t-tests (TOST, alpha 0.05): `equivalent` when the
 90% interval of the mean difference lies inside the margin: 0.1 of success rate, and
 10% of fp32's mean return area for the return. `--null` adds a third run per seed,
@@ -42,8 +42,7 @@ from _harness import (
     write_result,
 )
 from _procs import ROOT
-
-from shared.parity import curve_auc, paired_equivalence
+from parity import curve_auc, paired_equivalence
 
 CASES: dict[str, dict[str, Any]] = {
     "simple": {

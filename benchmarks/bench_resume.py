@@ -1,6 +1,6 @@
 """Learner resume in the supervised cluster: how long a SIGKILLed learner keeps a run waiting.
 
-Each round starts the cluster as `macb up` does (shared/cluster.py's plan and `Cluster`,
+Each round starts the cluster as `macb up` does (cli/supervisor.py's plan and `Cluster`,
 whose `supervise` restarts a dead service), runs speaker_listener at thesis settings
 (Cen-MADDPG + Cen-MACB, k 512, beta 0.8, 400-300, batch 100), SIGKILLs the learner
 once `--kill-at` episodes are in, and times, from the restart: the resumed learner's
@@ -34,11 +34,11 @@ from _harness import (  # noqa: E402
 )
 from _stats import fmt, median  # noqa: E402
 
-from shared.bus import Bus, k_weights  # noqa: E402
-from shared.cluster import Cluster, cluster_plan, free_port, wait_port  # noqa: E402
+from cli.supervisor import Cluster, cluster_plan, free_port, wait_port  # noqa: E402
 from shared.config import make_config  # noqa: E402
-from shared.control import discover, start_run  # noqa: E402
-from shared.wire import decode  # noqa: E402
+from shared.net.bus import Bus, k_weights  # noqa: E402
+from shared.net.control import discover, start_run  # noqa: E402
+from shared.net.wire import decode  # noqa: E402
 
 THESIS = {
     **THESIS_ARM,

@@ -5,8 +5,8 @@ learner's two threads, so their cost per training episode bounds the cluster. Th
 times, per task (thesis settings: hidden 400-300, 20-step episodes):
 
 * an evaluation point: `eval_episodes` (10) noise-free episodes in lockstep,
-  `shared.rollout.evaluate`, as the evaluator runs it;
-* an actor's training episode: 20 noisy steps of `shared.rollout.Collector`, as the
+  `shared.run.rollout.evaluate`, as the evaluator runs it;
+* an actor's training episode: 20 noisy steps of `shared.run.rollout.Collector`, as the
   actor runs it;
 
 each in three ways, alternated in rounds in a rotating order:
@@ -51,9 +51,9 @@ from _harness import add_out, bench_parser, progress
 from _stats import measure as measure_rounds
 from _stats import ratio_median
 
-from shared.networks import JointPolicy
-from shared.rollout import Collector, evaluate
-from shared.tasks import TASKS, JointStep, TaskEnv, make_task
+from shared.core.networks import JointPolicy
+from shared.envs.tasks import TASKS, JointStep, TaskEnv, make_task
+from shared.run.rollout import Collector, evaluate
 
 HIDDEN = (400, 300)
 EPISODE_LEN = 20

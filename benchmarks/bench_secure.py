@@ -27,7 +27,7 @@ from _harness import add_out, begin_run, bench_parser, command, macb_argv, progr
 from _stats import fmt, median, ratio_median, rotating_rounds
 from bench_e2e import CONFIG_YAML, run_cluster
 
-from shared.security import ENV
+from shared.net.security import ENV
 
 RESULT = "secure.json"
 VARIANTS = ("plain", "secure")
@@ -59,10 +59,10 @@ def query_latency(secrets: Path | None, queries: int, rows: int, work: Path) -> 
     import numpy as np
     from _procs import end, start, thread_env
 
-    from shared.bus import Bus, k_bonus
-    from shared.cluster import free_port, wait_port
-    from shared.security import Security
-    from shared.wire import encode
+    from cli.supervisor import free_port, wait_port
+    from shared.net.bus import Bus, k_bonus
+    from shared.net.security import Security
+    from shared.net.wire import encode
 
     proto = "tls" if secrets else "tcp"
     endpoint = f"{proto}/127.0.0.1:{free_port()}"

@@ -45,7 +45,7 @@ from _procs import ROOT
 from _stats import fmt, median, ratio_median, rotating_rounds
 from bench_cluster_bf16 import steady_rate
 
-from shared.cluster import free_port
+from cli.supervisor import free_port
 
 FIG8_PAIR_ENV_STEPS = 2 * 3 * 17_500 * 25  # 2 arms x 3 seeds x 1.75e4 episodes x 25 steps
 

@@ -3,7 +3,7 @@
 `precision: bf16` pays only where the matrix products run on bf16 dot-product
 instructions; this checks a machine before trusting the learner's bf16 numbers:
 
-* the CPU flags the detection reads (shared.learners.precision: avx512_bf16, amx_bf16);
+* the CPU flags the detection reads (shared.core.learners.precision: avx512_bf16, amx_bf16);
 * which oneDNN kernel runs each of the learner's bf16 product shapes (a child process
   with ONEDNN_VERBOSE=1; `avx512_core_bf16` or `amx` in the name is native);
 * per shape, fp32 against bf16 time of the same product through layers.py's
@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 from _stats import measure, ratio_median
 
-from shared.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
-from shared.learners.precision import NATIVE_BF16_FLAGS, cpu_flags, native_bf16
+from shared.core.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
+from shared.core.learners.precision import NATIVE_BF16_FLAGS, cpu_flags, native_bf16
 
 # (name, N agents, rows, fan_in, fan_out): speaker_listener's layers at hidden 400-300.
 SHAPES = [

@@ -29,10 +29,10 @@ import numpy as np
 import torch
 
 from shared.config import make_config
-from shared.factories import build_learner
-from shared.networks import JointPolicy, weights_as_arrays
-from shared.tasks import task_spec_for
-from shared.wire import decode, encode
+from shared.core.networks import JointPolicy, weights_as_arrays
+from shared.envs.tasks import task_spec_for
+from shared.net.wire import decode, encode
+from shared.run.factories import build_learner
 
 
 def cpu_model() -> str:

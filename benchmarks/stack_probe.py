@@ -2,7 +2,7 @@
 
 Stacked runs (seeds or arms of one task and network shape as further entries of the
 learner's stacks) were not built when this was written; they are now run groups
-(shared/learners/group.py; benchmarks/bench_group.py measures them). This measures what
+(shared/core/learners/group.py; benchmarks/bench_group.py measures them). This measures what
 they could buy with the batched learner alone:
 a BatchedMADDPG of R x speaker_listener's two agents under Dis-MADDPG (every network
 reads its own agent's columns, so R runs' networks are R independent copies of one
@@ -33,7 +33,7 @@ import torch
 from _stats import measure, ratio_median, rotating_rounds
 from bench_learner import SPEAKER_LISTENER, BatchedMADDPG, batched, learner_pair
 
-from shared.learners.precision import native_bf16
+from shared.core.learners.precision import native_bf16
 
 
 def precisions() -> tuple[str, ...]:

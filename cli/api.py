@@ -235,7 +235,7 @@ def write_results(
     import json
     import shutil
 
-    from shared import provenance
+    from shared.persist import provenance
 
     out.mkdir(parents=True, exist_ok=True)
     written = []
@@ -311,10 +311,18 @@ def run_via_api(
 def cmd_stop(args: argparse.Namespace) -> int:
     if not args.bus:
         return _api_stop(args)
-    # Imported here: cli.cluster imports this module (`up` runs experiments through it).
-    from cli.cluster import stop_on_bus
-
     return stop_on_bus(args)
+
+
+def stop_on_bus(args: argparse.Namespace) -> int:
+    """`macb stop --bus RUN`: for runs started with `macb start`, which the API never saw."""
+    from shared.net.bus import Bus, default_connect
+    from shared.net.control import send_stop
+
+    with Bus(args.connect or default_connect()) as bus:
+        send_stop(bus, args.id)
+    print(f"sent stop for run {args.id} on the bus")
+    return 0
 
 
 def _api_stop(args: argparse.Namespace) -> int:

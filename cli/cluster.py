@@ -2,7 +2,7 @@
 and `stop --bus` (the `stop` command itself lives with the API commands in cli.api).
 
 `serve` is the one place a service is started from a command line: `macb up`
-(shared/cluster.py) and docker-compose.yml both run `macb serve ROLE ...`.
+(cli/supervisor.py) and docker-compose.yml both run `macb serve ROLE ...`.
 """
 
 from __future__ import annotations
@@ -21,13 +21,13 @@ from typing import TYPE_CHECKING, Any
 from cli.api import experiment_body, run_via_api
 from cli.config_flags import add_config_flags, config_overrides, one_run_config, resolve_config
 from cli.security import add_security_flags
-from shared.cluster import Cluster, cluster_plan
+from cli.supervisor import Cluster, cluster_plan
 from shared.config import ConfigError, TrainConfig, actors_error
-from shared.files import data_dir_help, default_data_dir
+from shared.persist.files import data_dir_help, default_data_dir
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
-    from shared.bus import Bus
+    from shared.net.bus import Bus
 
 SERVICES = ("router", "counter", "learner", "actor", "evaluator", "api")
 
@@ -148,8 +148,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import os
     import socket
 
-    from shared.bus import DEFAULT_ENDPOINT, default_connect
-    from shared.security import Security, SecurityError
+    from shared.net.bus import DEFAULT_ENDPOINT, default_connect
+    from shared.net.security import Security, SecurityError
 
     try:  # every file and setting checked before any session opens: nothing half-starts
         sec = Security.from_env()
@@ -207,8 +207,8 @@ def _metrics_writer(cfg: TrainConfig, out: Path | None) -> Any:
     """out/config.json now and a MetricsWriter for the rows to come (None: no out)."""
     import json
 
+    from cli.trainer import MetricsWriter
     from shared.metrics import ALL_FIELDS
-    from shared.trainer import MetricsWriter
 
     if out is None:
         return None
@@ -221,7 +221,7 @@ def follow_run(bus: Bus, cfg: TrainConfig, actors: int, out: Path | None, quiet:
     """Start a run on the cluster, follow it to the end, write its metrics; exit code."""
     from tqdm import tqdm
 
-    from shared.control import NoFreeServices, send_stop, start_run
+    from shared.net.control import NoFreeServices, send_stop, start_run
 
     writer = _metrics_writer(cfg, out)
     bar = tqdm(total=cfg.episodes, unit="ep", disable=quiet, desc=f"{cfg.task} {cfg.algo}")
@@ -272,7 +272,7 @@ def check_actors(cfg: TrainConfig, actors: int) -> None:
 
 
 def cmd_start(args: argparse.Namespace) -> int:
-    from shared.bus import Bus, default_connect
+    from shared.net.bus import Bus, default_connect
 
     try:
         cfg = resolve_config(args)
@@ -284,20 +284,9 @@ def cmd_start(args: argparse.Namespace) -> int:
         return follow_run(bus, cfg, args.actors, Path(args.out) if args.out else None, args.quiet)
 
 
-def stop_on_bus(args: argparse.Namespace) -> int:
-    """`macb stop --bus RUN`: for runs started with `macb start`, which the API never saw."""
-    from shared.bus import Bus, default_connect
-    from shared.control import send_stop
-
-    with Bus(args.connect or default_connect()) as bus:
-        send_stop(bus, args.id)
-    print(f"sent stop for run {args.id} on the bus")
-    return 0
-
-
 def cmd_ps(args: argparse.Namespace) -> int:
-    from shared.bus import Bus, default_connect
-    from shared.control import discover
+    from shared.net.bus import Bus, default_connect
+    from shared.net.control import discover
 
     with Bus(args.connect or default_connect()) as bus:
         infos = discover(bus)
@@ -319,7 +308,7 @@ def _router_stats(bus: Bus) -> list[dict[str, Any]]:
     """Each reachable router's answer on macb/router/*: its ACL's denial counts."""
     import json
 
-    from shared.bus import k_router
+    from shared.net.bus import k_router
 
     out = []
     for raw in bus.get(k_router("*"), timeout=1.0):
@@ -414,7 +403,7 @@ def local_cluster(
     and wait for every service and the API; stop every process on the way out, however
     that is. SIGTERM and Ctrl-C only set `stop` from here on. Raises ClusterDidNotStart.
     With a signal during start-up it yields at once, `stop` set (and `api` maybe None)."""
-    from shared.bus import Bus
+    from shared.net.bus import Bus
 
     if slots < 1:
         raise ValueError(f"--slots must be at least 1, not {slots}")
@@ -428,7 +417,7 @@ def local_cluster(
         group_size=group_size,
     )
     if secrets:  # every service's files, before any process starts (SecurityError: exit 2)
-        from shared.security import Security
+        from shared.net.security import Security
 
         for spec in plan:
             sec = Security.from_env({**os.environ, **dict(spec.env)})
@@ -489,7 +478,7 @@ def _start_cluster(cluster: Cluster, data_dir: Path) -> None:
 def _services_came_up(bus: Bus, cluster: Cluster, stop: threading.Event) -> bool:
     """Wait up to 60 s for every service but the router (which does not announce itself)
     to answer; False if that fails or one dies. A signal ends the wait early with True."""
-    from shared.control import discover
+    from shared.net.control import discover
 
     deadline = time.monotonic() + 60
     while len(discover(bus)) < len(cluster.plan) - 1 and not stop.is_set():

@@ -39,7 +39,7 @@ def add_export_parser(sub: argparse._SubParsersAction) -> None:
 def tensorboard_folder(root: Path, experiment: dict[str, Any], run: dict[str, Any]) -> Path:
     """DIR/<experiment name>-<id>/<arm>-seed<seed>: a run's folder, readable in TensorBoard's
     run list and unique (an experiment's arms and its seeds are)."""
-    from shared.tensorboard import run_folder_name
+    from cli.tensorboard import run_folder_name
 
     return (
         root
@@ -90,7 +90,7 @@ def _from_api(api: Any, ident: str) -> tuple[dict[str, Any], list[dict[str, Any]
 
 
 def write_tensorboard(root: Path, exp: dict[str, Any], runs: list[dict[str, Any]]) -> list[Path]:
-    from shared.tensorboard import TensorBoardRun
+    from cli.tensorboard import TensorBoardRun
 
     folders = []
     for run in runs:
@@ -108,7 +108,7 @@ def write_csv(root: Path, exp: dict[str, Any], runs: list[dict[str, Any]]) -> No
     import csv
 
     from services.api.store import CSV_FIELDS
-    from shared import provenance
+    from shared.persist import provenance
 
     def table(path: Path, rows: list[dict[str, Any]], first: list[str]) -> None:
         seen = {k for r in rows for k in r}

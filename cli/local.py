@@ -1,4 +1,4 @@
-"""Many runs in this process as run groups (shared/group_trainer.py), without the bus:
+"""Many runs in this process as run groups (cli/group_trainer.py), without the bus:
 what `macb train --seeds`, `macb run --local` and `macb reproduce --local` share.
 
 Each run writes to its own folder under OUT (metrics.csv/jsonl, config.json,
@@ -85,7 +85,7 @@ def _same_config(folder: Path, cfg: TrainConfig) -> bool:
 def config_conflict(folder: Path, cfg: TrainConfig) -> str | None:
     """Why `folder` holds another config's run ('field: a in the folder, b here'), or
     None (no config written there yet, or the same)."""
-    from shared.cuts import config_difference
+    from shared.persist.cuts import config_difference
 
     path = folder / "config.json"
     if not path.exists():
@@ -195,10 +195,10 @@ def _train_group_job(
     position: int | None = None,
 ) -> str | None:
     """One group, in this process or a pool's: None, or why it could not resume."""
+    from cli.group_trainer import train_group
     from shared.config import make_config
-    from shared.cuts import CutError
-    from shared.group_trainer import train_group
-    from shared.learners.precision import DeviceError
+    from shared.core.learners.precision import DeviceError
+    from shared.persist.cuts import CutError
 
     try:
         train_group(
@@ -224,7 +224,7 @@ def _train_group_job(
 def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Path) -> dict:
     """The runs under `out` as the API would describe their experiment (what the
     report reads): each run's status, config and latest provenance."""
-    from shared import provenance
+    from shared.persist import provenance
 
     described = []
     for r in runs:

@@ -12,7 +12,7 @@ import sys
 from collections.abc import Callable
 
 from cli import api, cluster, export, reproduce, security, train
-from shared.security import SecurityError
+from shared.net.security import SecurityError
 
 # In the order `macb --help` lists them.
 COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (

@@ -314,7 +314,7 @@ def what_ran(runs: list[dict[str, Any]]) -> str:
     """The report's line on what the runs ran on, from each run's provenance (the
     learner's report, `live.provenance`): the precision as run, which may not be the one
     asked (bf16 on a CPU without it runs fp32), the CPUs and the code."""
-    # provenance.reported(r), read here without it: shared.provenance loads torch.
+    # provenance.reported(r), read here without it: shared.persist.provenance loads torch.
     starts = [(r.get("live") or {}).get("provenance") for r in runs]
     known = [s for s in starts if isinstance(s, dict)]
     if not known:

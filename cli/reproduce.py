@@ -22,7 +22,7 @@ from urllib.parse import urlparse
 from cli.config_flags import HelpFormatter
 from cli.figures import FIGURES, PROFILES, FigureDef, experiment_body, experiment_name, file_seeds
 from cli.local import add_group_flags, group_flag_error
-from shared.files import data_dir_help, default_data_dir
+from shared.persist.files import data_dir_help, default_data_dir
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient

@@ -1,7 +1,7 @@
 """The bus's security on the command line: the flags every bus command takes, and
 `macb certs`, which makes a CA, certificates and credentials for a small cluster.
 
-The flags only set the `MACB_ZENOH_*` variables (`shared.security.ENV`) for this
+The flags only set the `MACB_ZENOH_*` variables (`shared.net.security.ENV`) for this
 process and the processes it starts, so a flag and its variable mean the same thing
 everywhere (services, the API, `macb start/ps/stop --bus`, `macb up`'s children).
 `macb certs` runs `openssl` (no Python crypto dependency); docs/deploy.md shows the
@@ -19,7 +19,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from shared.security import ENV, SecurityError, read_users_file, role_of
+from shared.net.security import ENV, SecurityError, read_users_file, role_of
 
 FLAGS = (
     ("--secrets", "secrets", "DIR", "folder `macb certs` wrote (ca.pem, USER.pem/.key/.password)"),

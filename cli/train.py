@@ -74,7 +74,7 @@ class _TensorBoardRows:
 
     def __call__(self, row: dict) -> None:
         if self.run is None:
-            from shared.tensorboard import TensorBoardRun
+            from cli.tensorboard import TensorBoardRun
 
             purge = row["episode"] if self.resume else None
             self.run = TensorBoardRun(self.folder, fresh=not self.resume, purge_from=purge)
@@ -87,9 +87,9 @@ class _TensorBoardRows:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """A bad config is refused (exit 2) before training starts or anything is written."""
-    from shared.cuts import CutError
-    from shared.learners.precision import DeviceError
-    from shared.trainer import train
+    from cli.trainer import train
+    from shared.core.learners.precision import DeviceError
+    from shared.persist.cuts import CutError
 
     if args.resume:
         given = sorted(config_overrides(args))

@@ -2,7 +2,7 @@
 
 A service is a loop on its own thread that drains an inbox filled by Zenoh
 callbacks (callbacks only enqueue). Inbound payloads are decoded and validated by
-`shared.wire`; a malformed message, a wrong schema version or a message for a run
+`shared.net.wire`; a malformed message, a wrong schema version or a message for a run
 the service does not serve is dropped, counted in `rejects` and logged (rate
 limited), and the loop goes on. `after_drain` runs whenever the inbox is found empty
 after a burst of messages, for work a service does once per burst.
@@ -35,11 +35,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from shared import bus as keys
-from shared.bus import Bus
 from shared.config import ConfigError, TrainConfig, make_config
-from shared.files import write_json
-from shared.wire import WireError, decode, encode
+from shared.net import bus as keys
+from shared.net.bus import Bus
+from shared.net.wire import WireError, decode, encode
+from shared.persist.files import write_json
 
 DEFAULT_PEER_GRACE_S = 30.0
 

@@ -226,9 +226,9 @@ class TrainConfig(BaseModel):
 
     def _check_custom_task(self) -> None:
         """Refuse what a custom task cannot take; import its factory, build one env and
-        check its spaces (shared/custom_task.py names the agent and the space)."""
-        from shared.custom_task import TaskError
-        from shared.tasks import task_spec_for
+        check its spaces (shared/envs/custom_task.py names the agent and the space)."""
+        from shared.envs.custom_task import TaskError
+        from shared.envs.tasks import task_spec_for
 
         for name in WORLD_OPTIONS:
             if getattr(self, name) != type(self).model_fields[name].default:
@@ -288,7 +288,7 @@ class TrainConfig(BaseModel):
     @property
     def n_agents(self) -> int:
         if ":" in self.task:  # the env's agents (its spec is cached once checked)
-            from shared.tasks import task_spec_for
+            from shared.envs.tasks import task_spec_for
 
             return task_spec_for(self).n_agents
         return {"simple": 1, "speaker_listener": 2}.get(self.task, self.agents)

@@ -88,7 +88,7 @@ def router(cluster) -> str:
 
 @pytest.fixture
 def bus(router):
-    from shared.bus import Bus
+    from shared.net.bus import Bus
 
     b = Bus([router])
     yield b

@@ -29,7 +29,7 @@ from typing import Any
 
 import pytest
 
-from shared.cluster import THREAD_ENV, free_port, wait_port
+from cli.supervisor import THREAD_ENV, free_port, wait_port
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -157,8 +157,8 @@ def as_user(secrets: Path, user: str) -> dict[str, str]:
 
 def session(secrets: Path, user: str, endpoint: str, **override):
     """A bus session of this test's, signed in as `user`."""
-    from shared.bus import Bus
-    from shared.security import Security
+    from shared.net.bus import Bus
+    from shared.net.security import Security
 
     sec = Security.from_env({**as_user(secrets, user), **override})
     return Bus([endpoint], security=sec)
@@ -166,7 +166,7 @@ def session(secrets: Path, user: str, endpoint: str, **override):
 
 def router_stats(bus, router: str = "router") -> dict:
     """The router's answer on macb/router/ID (it declares it just after it listens)."""
-    from shared import bus as keys
+    from shared.net import bus as keys
 
     replies = wait_for(
         lambda: bus.get(keys.k_router(router), timeout=2.0), timeout=10, what=f"{router} stats"
@@ -432,7 +432,7 @@ def api_cluster(tmp: Path, api_env: dict[str, str] | None = None):
 
 def wait_services(bus, n: int, timeout: float = 60) -> list[dict]:
     """At least `n` services answer on the bus."""
-    from shared.control import discover
+    from shared.net.control import discover
 
     return wait_for(lambda: len(discover(bus)) >= n, timeout=timeout, what=f"{n} services")
 
@@ -453,7 +453,7 @@ class Finished:
 
     @classmethod
     def of_watch(cls, watch, config) -> Finished:
-        """A run watched on the bus (shared.control.RunWatch)."""
+        """A run watched on the bus (shared.net.control.RunWatch)."""
         rows = sorted(watch.rows, key=lambda r: r["episode"])
         state = watch.state()
         return cls(config, state, watch.assign, watch.states, rows, said=(state, watch.states))

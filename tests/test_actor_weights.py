@@ -8,7 +8,7 @@ from __future__ import annotations
 import threading
 
 from services.actor.main import NEWEST_RUNS_KEPT, ActorService
-from shared import bus as keys
+from shared.net import bus as keys
 
 
 def bare_actor() -> ActorService:

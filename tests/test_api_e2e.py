@@ -19,9 +19,9 @@ import msgpack
 import pytest
 
 from services.api.client import parse_sse
-from shared import bus as keys
-from shared.bus import Bus
-from shared.wire import WireError, decode, encode
+from shared.net import bus as keys
+from shared.net.bus import Bus
+from shared.net.wire import WireError, decode, encode
 from tests.harness import TINY, api_cluster, macb, wait_for, write_config
 
 

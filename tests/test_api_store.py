@@ -16,8 +16,8 @@ from tests.harness import TINY, post, row, start_api
 
 
 def test_csv_columns_are_the_trainers_then_the_services():
+    from cli.trainer import METRIC_FIELDS
     from shared.metrics import SERVICE_FIELDS
-    from shared.trainer import METRIC_FIELDS
 
     assert CSV_FIELDS == METRIC_FIELDS + SERVICE_FIELDS
 

@@ -11,8 +11,8 @@ from tests.harness import TINY, post, start_api, wait_for
 
 
 def test_workers_lists_live_services_from_their_liveliness_tokens(client, router):
-    from shared import bus as keys
-    from shared.bus import Bus
+    from shared.net import bus as keys
+    from shared.net.bus import Bus
 
     fake = Bus([router])
     try:

@@ -15,11 +15,11 @@ import pytest
 
 from cli import report
 from cli.figures import FIGURES
+from cli.trainer import train
 from services.api.main import ApiServer, Settings
 from services.api.plot import draw_curves, figure_legend
 from services.api.store import Store
 from shared.config import make_config
-from shared.trainer import train
 from tests.harness import NETS, TINY
 from tests.test_figures import synthetic
 

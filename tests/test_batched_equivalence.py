@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from shared.learners import (
+from shared.core.learners import (
     AUTO_MODES,
     MADDPG,
     AgentDims,
@@ -15,7 +15,7 @@ from shared.learners import (
     LearnerSpec,
     TunedMADDPG,
 )
-from shared.networks import Actor, JointPolicy, weights_as_arrays
+from shared.core.networks import Actor, JointPolicy, weights_as_arrays
 
 MOVE = ((-1.0, -1.0), (1.0, 1.0))
 SPEAKER = AgentDims(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))

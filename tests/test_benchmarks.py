@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from shared.learners.precision import native_bf16
+from shared.core.learners.precision import native_bf16
 
 ROOT = Path(__file__).resolve().parents[1]
 

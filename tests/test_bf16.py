@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-import shared.learners.layers as layers
+import shared.core.learners.layers as layers
 from shared.config import make_config
-from shared.factories import build_learner
-from shared.learners import (
+from shared.core.learners import (
     AUTO_MODES,
     MADDPG,
     AgentDims,
@@ -22,9 +21,10 @@ from shared.learners import (
     TunedMADDPG,
     precision,
 )
-from shared.learners.layers import relu_, relu_backward
-from shared.learners.precision import native_bf16 as detect_native_bf16  # before patching
-from shared.tasks import task_spec
+from shared.core.learners.layers import relu_, relu_backward
+from shared.core.learners.precision import native_bf16 as detect_native_bf16  # before patching
+from shared.envs.tasks import task_spec
+from shared.run.factories import build_learner
 
 MOVE = ((-1.0, -1.0), (1.0, 1.0))
 SPEAKER_LISTENER = [AgentDims(3, (0.0,) * 3, (1.0,) * 3), AgentDims(11, *MOVE)]

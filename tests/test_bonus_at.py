@@ -11,13 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cli.trainer import Run, train
 from shared.config import ConfigError, make_config
-from shared.counting import count_bonus
-from shared.exploration import CountExploration, ExploreSpec
-from shared.factories import build_exploration
-from shared.simhash import RawKey
-from shared.tasks import task_spec_for
-from shared.trainer import Run, train
+from shared.core.counting import count_bonus
+from shared.core.exploration import CountExploration, ExploreSpec
+from shared.core.simhash import RawKey
+from shared.envs.tasks import task_spec_for
+from shared.run.factories import build_exploration
 
 BASE = {"task": "simple", "algo": "ddpg", "hidden": [16, 16], "learning_starts": 30,
         "batch_size": 8, "learner_lanes": 1, "episodes": 4, "eval_every": 2}  # fmt: skip

@@ -322,7 +322,7 @@ def test_the_default_data_dir_is_the_users_state_dir_and_help_says_so(
     """Not `data` in whatever folder the command runs in (a checkout got an untracked
     data/): $XDG_STATE_HOME/macb, else ~/.local/state/macb (a relative
     XDG_STATE_HOME is ignored, as the XDG spec says)."""
-    files = _import("shared.files")
+    files = _import("shared.persist.files")
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
     assert files.default_data_dir() == tmp_path / "state" / "macb"

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import yaml
 
-from shared.cluster import cluster_plan
+from cli.supervisor import cluster_plan
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -19,12 +19,12 @@ import msgpack
 import numpy as np
 import pytest
 
-from shared.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
 from shared.config import make_config
-from shared.factories import build_exploration
-from shared.tasks import task_spec_for
-from shared.wal import WriteAheadLog, read_wal
-from shared.wire import decode, encode
+from shared.envs.tasks import task_spec_for
+from shared.net.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
+from shared.net.wire import decode, encode
+from shared.persist.wal import WriteAheadLog, read_wal
+from shared.run.factories import build_exploration
 from tests.conftest import wait_for
 
 OBS, ACT = 14, 5  # speaker_listener: joint obs 3 + 11, joint act 3 + 2

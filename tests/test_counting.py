@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from shared.counting import CountTable, count_bonus
-from shared.simhash import RoundKey, SimHash
+from shared.core.counting import CountTable, count_bonus
+from shared.core.simhash import RoundKey, SimHash
 
 
 def test_simhash_is_deterministic_per_seed():

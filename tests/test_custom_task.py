@@ -15,10 +15,10 @@ import httpx
 import numpy as np
 import pytest
 
+from cli.trainer import train
 from shared.config import ConfigError, make_config
-from shared.rollout import Collector, evaluate
-from shared.tasks import make_task_for, task_spec_for
-from shared.trainer import train
+from shared.envs.tasks import make_task_for, task_spec_for
+from shared.run.rollout import Collector, evaluate
 from tests.harness import NETS, api_cluster, macb, wait_for
 from tests.test_tensorboard import assert_same, expected, read_back
 

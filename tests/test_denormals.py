@@ -1,6 +1,6 @@
 """`flush_denormals`: the learner's updates read and make subnormal floats as zero, in its
 own thread, its lanes and torch's OpenMP threads, and nowhere else; off keeps IEEE
-subnormals. (Why it exists: shared/learners/base.py, `denormals_flushed`.)"""
+subnormals. (Why it exists: shared/core/learners/base.py, `denormals_flushed`.)"""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ import pytest
 import torch
 
 from shared.config import make_config
-from shared.factories import build_learner
-from shared.learners import MADDPG, AgentDims, BatchedMADDPG, LearnerSpec, fused
-from shared.learners.base import denormals_flushed
-from shared.tasks import task_spec
+from shared.core.learners import MADDPG, AgentDims, BatchedMADDPG, LearnerSpec, fused
+from shared.core.learners.base import denormals_flushed
+from shared.envs.tasks import task_spec
+from shared.run.factories import build_learner
 
 SUB = 1e-42  # a subnormal float32
 MOVE = ((-1.0, -1.0), (1.0, 1.0))
@@ -105,7 +105,7 @@ def test_torchs_openmp_threads_flush_in_an_update_and_not_after():
     code = textwrap.dedent(
         f"""
         import torch
-        from shared.learners.base import denormals_flushed
+        from shared.core.learners.base import denormals_flushed
         torch.set_num_threads(2)
         x = torch.full((1 << 22,), {SUB})
         (x * 1.0).sum()  # the pool exists now, in IEEE mode

@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from shared.config import ConfigError, make_config
-from shared.learners import BatchedMADDPG, LearnerSpec
-from shared.learners.group import GroupMADDPG
-from shared.learners.precision import DeviceError, resolve_device
+from shared.core.learners import BatchedMADDPG, LearnerSpec
+from shared.core.learners.group import GroupMADDPG
+from shared.core.learners.precision import DeviceError, resolve_device
 from tests.harness import macb
 from tests.test_group_learner import agents_of, assert_same_state, batch
 

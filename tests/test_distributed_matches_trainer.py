@@ -16,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cli.trainer import train
 from shared.config import make_config
-from shared.control import start_run
-from shared.trainer import train
+from shared.net.control import start_run
 from tests.harness import wait_services
 
 CONFIG = {

@@ -11,7 +11,7 @@ import logging
 import types
 
 from services.evaluator import main as ev
-from shared.wire import decode, encode
+from shared.net.wire import decode, encode
 
 
 def _msg(point: int, unreported: list[int]) -> dict:

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from shared.exploration import BonusDiagnostics, CountExploration, ExploreSpec, constant_shift
+from shared.core.exploration import BonusDiagnostics, CountExploration, ExploreSpec, constant_shift
 
 # speaker_listener layout: speaker obs 3 / act 3, listener obs 11 / act 2
 OBS, ACT = (3, 11), (3, 2)

@@ -196,8 +196,8 @@ def test_everything_killed_then_macb_up_again_resumes_the_run(up):
 def test_a_service_that_keeps_dying_is_restarted_with_backoff_then_given_up(tmp_path):
     """`macb up`'s supervisor: restarts after 0.5, 1, 2, 4 s; the fifth death within a
     minute gives the service up (named), and cluster.json says how often it restarted."""
-    from shared.cluster import Cluster as Supervisor
-    from shared.cluster import ServiceSpec
+    from cli.supervisor import Cluster as Supervisor
+    from cli.supervisor import ServiceSpec
 
     cluster = Supervisor([ServiceSpec("doomed", ("no-such-role",))], tmp_path / "logs", echo=False)
     t0 = time.monotonic()
@@ -220,9 +220,9 @@ def _learner_rejoins(cluster, cut: dict) -> tuple[dict, Path]:
     """A learner restarted on a data dir whose cut is `cut`: its status for the run."""
     import torch
 
-    from shared.bus import Bus, k_status
     from shared.config import make_config
-    from shared.wire import decode
+    from shared.net.bus import Bus, k_status
+    from shared.net.wire import decode
 
     config = make_config({**CONFIG, "seed": 1}).model_dump(mode="json")
     run, data = "cut-check", cluster.data
@@ -270,9 +270,9 @@ def test_a_learner_killed_with_its_newest_cut_torn_resumes_from_the_one_before(c
     """Kill the learner, tear its newest cut in half, start it again by hand: it refuses
     that cut (naming it, renamed *.refused), resumes from the previous one plus its log,
     and the run completes exactly."""
-    from shared.bus import Bus
     from shared.config import make_config
-    from shared.control import start_run
+    from shared.net.bus import Bus
+    from shared.net.control import start_run
 
     cluster.env["MACB_LEARNER_CUT_S"] = "0.5"
     cluster.services(1)
@@ -301,12 +301,12 @@ def test_a_learner_killed_with_its_newest_cut_torn_resumes_from_the_one_before(c
 
 
 def test_a_logged_batch_reads_back_as_it_was_taken(tmp_path):
-    """The learner's log (shared/wal.py records, one byte column per field): a batch
+    """The learner's log (shared/persist/wal.py records, one byte column per field): a batch
     comes back bit for bit, and a torn last record is cut off on open."""
     import numpy as np
 
     from services.learner.main import _columns, _log_columns
-    from shared.wal import WriteAheadLog
+    from shared.persist.wal import WriteAheadLog
 
     rng = np.random.default_rng(0)
     n = 20

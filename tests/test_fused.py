@@ -1,4 +1,4 @@
-"""The bf16 learner's fused master-weight kernel (shared/learners/fused.py, master.c):
+"""The bf16 learner's fused master-weight kernel (shared/core/learners/fused.py, master.c):
 its Adam and soft update equal torch's bit for bit, a whole fused update equals the
 unfused one bit for bit, weights written between updates are cast anew, and where the
 kernel cannot be built the learner says so and runs torch's ops."""
@@ -12,7 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from shared.learners import AgentDims, BatchedMADDPG, LearnerSpec, TunedMADDPG, fused, precision
+from shared.core.learners import (
+    AgentDims,
+    BatchedMADDPG,
+    LearnerSpec,
+    TunedMADDPG,
+    fused,
+    precision,
+)
 
 MOVE = ((-1.0, -1.0), (1.0, 1.0))
 CASES = {

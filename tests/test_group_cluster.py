@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import httpx
 
+from cli.group_trainer import train_group
 from shared.config import make_config
-from shared.group_trainer import train_group
 from tests.harness import api_cluster, wait_for
 from tests.test_lockstep import BASE, CASES, compare
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from shared.learners import AgentDims, BatchedMADDPG, LearnerSpec
-from shared.learners.group import GroupMADDPG
-from shared.learners.precision import native_bf16
-from shared.tasks import task_spec
+from shared.core.learners import AgentDims, BatchedMADDPG, LearnerSpec
+from shared.core.learners.group import GroupMADDPG
+from shared.core.learners.precision import native_bf16
+from shared.envs.tasks import task_spec
 
 
 def agents_of(task: str) -> list[AgentDims]:

@@ -1,10 +1,10 @@
-"""shared.learners.lanes: blocks cover the rows exactly once; map returns results in order."""
+"""shared.core.learners.lanes: blocks cover the rows exactly once; map returns results in order."""
 
 import threading
 
 import pytest
 
-from shared.learners.lanes import Lanes, LaneTuner
+from shared.core.learners.lanes import Lanes, LaneTuner
 
 
 @pytest.mark.parametrize(("n", "rows"), [(1, 100), (2, 100), (2, 7), (3, 7), (4, 2), (2, 1)])

@@ -8,6 +8,7 @@ on the command that starts them. Read with `ast`, so imports inside functions co
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
 import pytest
@@ -99,3 +100,138 @@ import shared.config
         "shared",
         "shared.config",
     ]
+
+
+# Inside shared/, each layer imports only the layers below it (a layer may import
+# itself). The math knows no environment, the environments no config, the wire no
+# learner: each can be read, tested and replaced with what is under it.
+SHARED_LAYERS: dict[str, tuple[str, ...]] = {
+    "shared.core": (),  # math and learners: numpy and torch only
+    "shared.envs": ("shared.core",),  # tasks and their worlds
+    "shared.config": ("shared.core", "shared.envs"),  # the experiment schema
+    "shared.metrics": (),  # a metric row's fields
+    "shared.groups": ("shared.config",),  # which runs may share a group
+    "shared.persist": ("shared.core", "shared.config"),  # files that outlive a process
+    "shared.run": ("shared.core", "shared.envs", "shared.config"),  # a run's parts
+    "shared.net": ("shared.config", "shared.groups"),  # wire, bus, security, protocol
+}
+# What shared.core may import from outside the standard library.
+CORE_THIRD_PARTY = {"numpy", "torch"}
+
+
+def _unit(module: str) -> str | None:
+    """The layer of a module of shared/: shared.core.learners.batched -> shared.core."""
+    parts = module.split(".")
+    return ".".join(parts[:2]) if parts[0] == "shared" and len(parts) > 1 else None
+
+
+def _modules(package: str) -> dict[str, Path]:
+    found = {}
+    for path in sorted((ROOT / package).rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        found[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return found
+
+
+def _runtime_imports(path: Path, module: str) -> list[tuple[int, str]]:
+    """imported_modules without those under `if TYPE_CHECKING:` (never executed)."""
+    tree = ast.parse(path.read_text())
+    skip: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            skip |= {n.lineno for stmt in node.body for n in ast.walk(stmt) if hasattr(n, "lineno")}
+    is_package = path.name == "__init__.py"
+    name = f"{module}.__init__" if is_package else module
+    return [(line, m) for line, m in imported_modules(path.read_text(), name) if line not in skip]
+
+
+def _resolve(name: str, modules: dict[str, Path], names: list[str]) -> list[str]:
+    """The modules an import statement loads: `from a.b import c` is a.b.c when c is a
+    module, else a.b."""
+    out = [f"{name}.{n}" for n in names if f"{name}.{n}" in modules]
+    return out or ([name] if name in modules else [])
+
+
+def import_graph() -> dict[str, set[str]]:
+    modules = {m: p for pkg in ("shared", "services", "cli") for m, p in _modules(pkg).items()}
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for module, path in modules.items():
+        tree = ast.parse(path.read_text())
+        lines = dict(_runtime_imports(path, module))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.lineno in lines:
+                graph[module] |= set(
+                    _resolve(lines[node.lineno], modules, [a.name for a in node.names])
+                )
+            elif isinstance(node, ast.Import) and node.lineno in lines:
+                graph[module] |= {a.name for a in node.names if a.name in modules}
+        graph[module].discard(module)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every strongly connected group of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                found.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_module_imports_itself_through_others():
+    assert cycles(import_graph()) == []
+
+
+def test_the_cycle_check_finds_a_cycle():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert cycles(graph) == [["a", "b", "c"]]
+
+
+def layer_violations() -> list[str]:
+    bad = []
+    for module, path in _modules("shared").items():
+        unit = _unit(module)
+        if unit is None:
+            continue
+        assert unit in SHARED_LAYERS, f"{path.relative_to(ROOT)}: in no layer of SHARED_LAYERS"
+        allowed = {unit, *SHARED_LAYERS[unit]}
+        for line, name in _runtime_imports(path, module):
+            top = name.split(".")[0]
+            target = _unit(name)
+            if top == "shared" and target is not None and target not in allowed:
+                bad.append(f"{path.relative_to(ROOT)}:{line} imports {name}")
+            outside = top not in ("shared", "__future__", *CORE_THIRD_PARTY)
+            outside = outside and top not in sys.stdlib_module_names
+            if unit == "shared.core" and outside:
+                bad.append(f"{path.relative_to(ROOT)}:{line} imports {name}")
+    return bad
+
+
+def test_each_layer_of_shared_imports_only_the_layers_below_it():
+    assert layer_violations() == []

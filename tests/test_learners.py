@@ -6,8 +6,7 @@ import pytest
 import torch
 
 from shared.config import make_config
-from shared.factories import build_learner
-from shared.learners import (
+from shared.core.learners import (
     AUTO_MODES,
     MADDPG,
     AgentDims,
@@ -16,7 +15,8 @@ from shared.learners import (
     LearnerSpec,
     TunedMADDPG,
 )
-from shared.tasks import task_spec_for
+from shared.envs.tasks import task_spec_for
+from shared.run.factories import build_learner
 
 SPEAKER = AgentDims(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
 LISTENER = AgentDims(11, (-1.0, -1.0), (1.0, 1.0))

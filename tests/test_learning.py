@@ -8,8 +8,8 @@ run stops as soon as an evaluation reaches 80%.
 
 import pytest
 
+from cli.trainer import train
 from shared.config import make_config
-from shared.trainer import train
 
 BUDGET = 2000  # episodes
 

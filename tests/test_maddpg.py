@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from shared.learners import MADDPG, AgentDims, LearnerSpec
+from shared.core.learners import MADDPG, AgentDims, LearnerSpec
 
 SPEAKER = AgentDims(3, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
 LISTENER = AgentDims(11, (-1.0, -1.0), (1.0, 1.0))

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from shared.networks import JointPolicy, actor_weights
-from shared.tasks import task_spec
+from shared.core.networks import JointPolicy, actor_weights
+from shared.envs.tasks import task_spec
 
 
 def _policy(task: str = "speaker_listener", agents: int = 2) -> JointPolicy:

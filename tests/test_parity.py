@@ -1,6 +1,6 @@
 """bf16's learning parity: the criterion (pure logic) and the benchmark's quick run (slow).
 
-The criterion is shared/parity.py's paired TOST; these tests pin what it says for
+The criterion is benchmarks/parity.py's paired TOST; these tests pin what it says for
 cases whose answer is known, and that its p-values are scipy's own paired t-tests."""
 
 from __future__ import annotations
@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from shared.learners.precision import native_bf16
-from shared.parity import curve_auc, paired_equivalence
+from shared.core.learners.precision import native_bf16
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # the criterion lives beside its benchmark
+from parity import curve_auc, paired_equivalence  # noqa: E402
 
 
 def test_curve_auc_is_the_mean_over_points_and_refuses_no_rows():

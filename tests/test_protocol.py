@@ -1,4 +1,4 @@
-"""The exactly-once rule and the run-status rule, in process (shared/protocol.py).
+"""The exactly-once rule and the run-status rule, in process (shared/net/protocol.py).
 
 Like Tianshou's buffer tests, these assert invariants over many deliveries rather than
 single outcomes: whatever the channel does (duplicates, loss, reordering, restarts of
@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from shared.protocol import (
+from shared.net.protocol import (
     AckTracker,
     Decision,
     ReceiveCursor,
@@ -345,7 +345,7 @@ def test_a_batch_lost_in_a_router_restart_makes_a_gap_not_a_lost_count():
 
 
 def test_a_rejoining_actor_goes_on_from_the_least_of_the_learners_and_the_counters():
-    from shared.protocol import Rejoin
+    from shared.net.protocol import Rejoin
 
     r = Rejoin("learner", "counter", since=100.0)
     r.ack("a", "learner", 41)

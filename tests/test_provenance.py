@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from cli.main import main
-from shared import provenance
+from cli.trainer import train
 from shared.config import make_config
-from shared.cuts import CutError
-from shared.learners import precision
-from shared.trainer import train
+from shared.core.learners import precision
+from shared.persist import provenance
+from shared.persist.cuts import CutError
 from tests.harness import ROOT, TINY
 
 SMALL = {**TINY, "episodes": 6, "eval_every": 2, "k": 32, "learner_lanes": 1}

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from shared.replay import ReplayBuffer
+from shared.core.replay import ReplayBuffer
 
 
 @pytest.mark.parametrize("n", [0, 5, 10, 23])

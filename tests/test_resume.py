@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from cli.main import main
+from cli.trainer import load_checkpoint, train
 from shared.config import make_config
-from shared.cuts import CUT_FORMAT, cut_files
-from shared.trainer import load_checkpoint, train
+from shared.persist.cuts import CUT_FORMAT, cut_files
 from tests.harness import spawn
 
 TIMING = ("steps_per_sec", "train_steps_per_sec", "wall_s")
@@ -188,7 +188,7 @@ def test_a_cut_written_before_a_config_key_existed_still_resumes(tmp_path):
     """A key the saved config lacks counts as its default: a run from before the key
     (here `device` and `bonus_at`) resumes; one that differs from the default is still
     refused, naming it."""
-    from shared.cuts import config_difference
+    from shared.persist.cuts import config_difference
 
     cfg = make_config({"task": "simple", "algo": "ddpg"}).model_dump(mode="json")
     old = {k: v for k, v in cfg.items() if k not in ("device", "bonus_at")}

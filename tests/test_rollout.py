@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from shared.config import make_config
-from shared.rollout import Collector, evaluate, make_collector, warmup_share
-from shared.tasks import make_task, make_task_for
+from shared.envs.tasks import make_task, make_task_for
+from shared.run.rollout import Collector, evaluate, make_collector, warmup_share
 
 
 def place(entity, x: float, y: float) -> None:

@@ -16,12 +16,12 @@ from pathlib import Path
 
 import pytest
 
-from shared import bus as keys
-from shared.bus import Bus
 from shared.config import make_config
-from shared.control import send_stop, start_run
-from shared.security import Security
-from shared.wire import encode
+from shared.net import bus as keys
+from shared.net.bus import Bus
+from shared.net.control import send_stop, start_run
+from shared.net.security import Security
+from shared.net.wire import encode
 from tests.harness import (
     SMALL,
     TINY,

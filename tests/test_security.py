@@ -1,4 +1,4 @@
-"""shared/security.py without a network: the permission table as the ACL enforces it, the
+"""shared/net/security.py without a network: the permission table as the ACL enforces it, the
 settings and their checks, where a router may listen, and reading denials from zenoh's
 log (on lines a zenoh 1.10.2 router really wrote)."""
 
@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from shared import bus as keys
-from shared.bus import session_config
-from shared.security import (
+from shared.net import bus as keys
+from shared.net.bus import session_config
+from shared.net.security import (
     ROLES,
     AclLog,
     Denial,

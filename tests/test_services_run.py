@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from services.learner.main import BonusClient, EvaluationsInFlight
-from shared import bus as keys
 from shared.config import make_config
-from shared.control import discover, start_run
-from shared.replay import Batch
-from shared.wire import decode, encode
+from shared.core.replay import Batch
+from shared.net import bus as keys
+from shared.net.control import discover, start_run
+from shared.net.wire import decode, encode
 from tests.harness import SMALL, assert_exact, wait_final_counts, wait_for, wait_services
 
 

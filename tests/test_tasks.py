@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from mpe2 import simple_speaker_listener_v4, simple_spread_v3, simple_v3
 
-from shared.tasks import (
+from shared.envs.tasks import (
     INTEGRATORS,
     REWARDS,
     TASKS,

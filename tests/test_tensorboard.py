@@ -11,8 +11,8 @@ import httpx
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from cli.tensorboard import scalars
 from services.api.store import Store
-from shared.tensorboard import scalars
 from tests.harness import TINY, macb, start_api
 
 TRAIN = ["--task", "simple", "--algo", "ddpg", "--explore", "dis-macb", "--k", "32"]

@@ -15,7 +15,7 @@ import httpx
 import pytest
 
 from shared.config import make_config
-from shared.control import discover, start_run
+from shared.net.control import discover, start_run
 from tests.harness import (
     SMALL,
     Cluster,

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
+from cli.trainer import METRIC_FIELDS, load_checkpoint, train
 from shared.config import make_config
-from shared.factories import build_exploration
-from shared.rollout import Collector, evaluate
-from shared.tasks import make_task
-from shared.trainer import METRIC_FIELDS, load_checkpoint, train
+from shared.envs.tasks import make_task
+from shared.run.factories import build_exploration
+from shared.run.rollout import Collector, evaluate
 
 SMALL = {"hidden": (32, 32), "batch_size": 16, "eval_episodes": 3}
 
@@ -220,7 +220,7 @@ def test_bf16_run_trains_reruns_exactly_and_checkpoints_fp32(tmp_path, monkeypat
     """`precision: bf16` in `macb train`: a run completes as an fp32 run does, reruns of
     one seed are equal (fixed lanes), its weights differ from the fp32 run's, and its
     checkpoint holds fp32 weights the reference learner loads."""
-    from shared.learners import MADDPG, AgentDims, LearnerSpec, precision
+    from shared.core.learners import MADDPG, AgentDims, LearnerSpec, precision
 
     monkeypatch.setattr(precision, "native_bf16", lambda: True)  # bf16 on any CPU
     base = dict(task="speaker_listener", algo="cen-maddpg", k=64, episodes=8, eval_every=4)

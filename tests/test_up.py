@@ -7,8 +7,8 @@ import json
 import signal
 import time
 
-from shared import provenance
-from shared.learners.precision import native_bf16
+from shared.core.learners.precision import native_bf16
+from shared.persist import provenance
 from tests.harness import TINY, Cluster, wait_port, wait_services, write_config
 
 
@@ -86,6 +86,6 @@ def test_sigterm_stops_every_service_and_the_router(tmp_path):
 
 def _client(endpoint):
     wait_port(endpoint, timeout=30)
-    from shared.bus import Bus
+    from shared.net.bus import Bus
 
     return Bus([endpoint])

@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shared.tasks import make_task
-from shared.vectask import ListTask, VecTask, vectorize
+from shared.envs.tasks import make_task
+from shared.envs.vectask import ListTask, VecTask, vectorize
 
 CASES = [
     ("simple", {}),

@@ -7,7 +7,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from shared.wire import WireError, check_dims, decode, encode
+from shared.net.wire import WireError, check_dims, decode, encode
 
 
 def _transitions(n: int = 3, obs_dim: int = 4, act_dim: int = 2, **over) -> dict:

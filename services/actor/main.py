@@ -9,7 +9,7 @@ loads it between episodes, so it never works through a backlog of stale weights.
 Every batch stays in a resend queue until the learner (and, when counting, the
 counter) have acknowledged it, and is resent after a second without progress; the
 learner's window of credits and a bound on batches the counter has not acknowledged
-hold the actor back when either falls behind or is down (`shared.protocol.Sender`).
+hold the actor back when either falls behind or is down (`shared.net.protocol.Sender`).
 
 With `interleave: lockstep` (the thesis's loop over the bus) the actor steps once per
 action the learner sends: it asks for the action at its next observation (`act_request`,
@@ -41,14 +41,14 @@ import numpy as np
 import torch
 
 from services.common import ServiceBase
-from shared import bus as keys
 from shared.config import TrainConfig
-from shared.networks import JointPolicy
-from shared.protocol import Rejoin, Sender, episode_share
-from shared.rollout import Collector, VecCollector, make_collector, make_vec_collector
-from shared.tasks import TaskEnv, make_task_for
-from shared.vectask import vectorize
-from shared.wire import encode
+from shared.core.networks import JointPolicy
+from shared.envs.tasks import TaskEnv, make_task_for
+from shared.envs.vectask import vectorize
+from shared.net import bus as keys
+from shared.net.protocol import Rejoin, Sender, episode_share
+from shared.net.wire import encode
+from shared.run.rollout import Collector, VecCollector, make_collector, make_vec_collector
 
 MAX_UNCOUNTED_BATCHES = 8  # episodes in flight that the counter has not acknowledged
 RESEND_AFTER_S = 1.0
@@ -154,7 +154,7 @@ class ActorService(ServiceBase):
 
     def _rejoin_at(self, position: int) -> None:
         """The learner and the counter hold `position` of our transitions (the least
-        of theirs: `shared.protocol.Rejoin`): go on from there."""
+        of theirs: `shared.net.protocol.Rejoin`): go on from there."""
         st, cfg = self.st, self.config
         assert st is not None and cfg is not None
         if not st.lockstep:  # whole episodes only (they always are)
@@ -233,7 +233,7 @@ class ActorService(ServiceBase):
 
     def group_rejoin_at(self, ga: GroupActor, positions: dict[str, int]) -> None:
         """The learner and the counter hold `positions` of each run's transitions (the
-        least of theirs: `shared.protocol.Rejoin`): every world goes on from the least
+        least of theirs: `shared.net.protocol.Rejoin`): every world goes on from the least
         (a run ahead by a step gets that step again, which the learner and the counter
         take as a duplicate), with randomness of its own for the rest, as a restarted
         single actor does."""

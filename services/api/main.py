@@ -32,8 +32,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from shared.bus import default_connect
-from shared.files import DATA_DIR_RULE, default_data_dir
+from shared.net.bus import default_connect
+from shared.persist.files import DATA_DIR_RULE, default_data_dir
 
 from .routes import experiments, presets, runs, workers
 from .scheduler import Scheduler

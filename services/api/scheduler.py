@@ -1,8 +1,8 @@
 """The API's scheduler: one thread with its own bus session.
 
-- Assigns queued runs, oldest first, to free services (`shared.control`), and starts
+- Assigns queued runs, oldest first, to free services (`shared.net.control`), and starts
   them. With `group_size` > 1, queued runs of one experiment that can share a group
-  (lockstep, one actor, same task and networks: `shared.group_trainer.group_error`)
+  (lockstep, one actor, same task and networks: `cli.group_trainer.group_error`)
   start together on one learner, actor and evaluator, up to `group_size` runs: a run
   group, each run keeping its own id, rows and status. Services it has started runs on
   stay reserved until those runs end, so two runs never land on one learner while the
@@ -47,13 +47,13 @@ from typing import Any
 
 from services.common import peer_grace_s as peer_grace
 from services.common import restarts
-from shared import bus as keys
-from shared.bus import Bus
 from shared.config import ConfigError, TrainConfig, make_config
-from shared.control import NoFreeServices, assign_services, discover, send_start, send_stop
 from shared.groups import group_error, group_key
-from shared.protocol import RunVerdict, run_verdict
-from shared.wire import WireError, decode
+from shared.net import bus as keys
+from shared.net.bus import Bus
+from shared.net.control import NoFreeServices, assign_services, discover, send_start, send_stop
+from shared.net.protocol import RunVerdict, run_verdict
+from shared.net.wire import WireError, decode
 
 from .store import Store
 

@@ -2,7 +2,7 @@
 
 It owns the tables because counts must change only on collection, once per transition,
 whoever else sees the transitions: every run's batches are taken by the receive rule of
-`shared.protocol.ReceiveCursor` (duplicates ignored, an overlap's new tail taken, gaps
+`shared.net.protocol.ReceiveCursor` (duplicates ignored, an overlap's new tail taken, gaps
 dropped for the actor to resend), hashed in bursts, written to a write-ahead log and
 only then counted and acknowledged, so an acknowledged count survives a SIGKILL.
 Bonus queries are answered on Zenoh's thread under the lock ingestion takes, so a
@@ -32,16 +32,16 @@ from typing import Any
 import numpy as np
 
 from services.common import ServiceBase, learner_end_reason
-from shared.bus import k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.config import TrainConfig, make_config
-from shared.counting import CountTable
-from shared.exploration import CountExploration
-from shared.factories import build_exploration
-from shared.files import read_json, write_json
-from shared.protocol import ReceiveCursor, Verdict
-from shared.tasks import task_spec_for
-from shared.wal import WalRecord, WriteAheadLog
-from shared.wire import WireError, check_dims, encode
+from shared.core.counting import CountTable
+from shared.core.exploration import CountExploration
+from shared.envs.tasks import task_spec_for
+from shared.net.bus import k_ack, k_bonus, k_status, k_transitions, run_of
+from shared.net.protocol import ReceiveCursor, Verdict
+from shared.net.wire import WireError, check_dims, encode
+from shared.persist.files import read_json, write_json
+from shared.persist.wal import WalRecord, WriteAheadLog
+from shared.run.factories import build_exploration
 
 DEFAULT_SNAPSHOT_S = 5.0
 # A timed snapshot rewrites the whole table (0.5 s for 1M keys at k=512) and exists to
@@ -75,7 +75,7 @@ class RunState:
     act_dim: int
     path: Path
     wal: WriteAheadLog
-    # Next expected number per actor, and the duplicate rows / gaps seen (shared.protocol).
+    # Next expected number per actor, and the duplicate rows / gaps seen (shared.net.protocol).
     cursor: ReceiveCursor = field(default_factory=ReceiveCursor)
     counted: int = 0
     run_rejects: int = 0

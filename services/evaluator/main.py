@@ -40,14 +40,14 @@ import numpy as np
 import torch
 
 from services.common import ServiceBase
-from shared import bus as keys
 from shared.config import TrainConfig
-from shared.factories import build_learner
-from shared.networks import JointPolicy
-from shared.rollout import EvalResult, derive_seed, evaluate, evaluate_group
-from shared.tasks import TaskEnv, TaskSpec, make_task_for
-from shared.vectask import vectorize
-from shared.wire import encode
+from shared.core.networks import JointPolicy
+from shared.envs.tasks import TaskEnv, TaskSpec, make_task_for
+from shared.envs.vectask import vectorize
+from shared.net import bus as keys
+from shared.net.wire import encode
+from shared.run.factories import build_learner
+from shared.run.rollout import EvalResult, derive_seed, evaluate, evaluate_group
 
 HISTORY_RUNS = 64  # runs whose rows are kept for history queries
 REPUBLISH_AFTER_S = 5.0  # a row is published again for a resend only this long after
@@ -98,8 +98,8 @@ class GroupPolicy:
     each run's actions are those of `LearnerPolicy` alone, to the bit)."""
 
     def __init__(self, configs: list[TrainConfig], spec: TaskSpec) -> None:
-        from shared.factories import agent_dims, learner_spec
-        from shared.learners.group import GroupMADDPG
+        from shared.core.learners.group import GroupMADDPG
+        from shared.run.factories import agent_dims, learner_spec
 
         self.learner = GroupMADDPG(
             agent_dims(spec),

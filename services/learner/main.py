@@ -1,7 +1,7 @@
 """The learner service: replay, updates at the thesis's replay ratio, weights, checkpoints.
 
 A batch joins the replay buffer once the counter has acknowledged it (so every sampled
-transition has been counted, n >= 1) and only once (`shared.protocol.ReceiveCursor`).
+transition has been counted, n >= 1) and only once (`shared.net.protocol.ReceiveCursor`).
 Exactly one update per ingested transition beyond `learning_starts`; actors get a
 window of credits that closes while the learner is behind, so they wait rather than
 let the ratio drift.
@@ -52,22 +52,22 @@ import numpy as np
 import torch
 
 from services.common import ServiceBase
-from shared import bus as keys
-from shared import provenance
 from shared.config import TrainConfig, actors_error
-from shared.cuts import CutError, atomic_torch_save, config_difference
-from shared.exploration import BonusDiagnostics
-from shared.factories import agent_dims, build_learner, learner_spec, minibatches_per_update
+from shared.core.exploration import BonusDiagnostics
+from shared.core.learners import Learner
+from shared.core.learners.group import GroupMADDPG
+from shared.core.networks import weights_as_arrays
+from shared.core.replay import ReplayBuffer, update_arrays
+from shared.envs.tasks import TaskSpec, task_spec_for
 from shared.groups import group_error
-from shared.learners import Learner
-from shared.learners.group import GroupMADDPG
-from shared.networks import weights_as_arrays
-from shared.protocol import AckTracker, ReceiveCursor, episode_share
-from shared.replay import ReplayBuffer, update_arrays
-from shared.rollout import derive_seed
-from shared.tasks import TaskSpec, task_spec_for
-from shared.wal import WriteAheadLog
-from shared.wire import WireError, check_dims, decode, encode
+from shared.net import bus as keys
+from shared.net.protocol import AckTracker, ReceiveCursor, episode_share
+from shared.net.wire import WireError, check_dims, decode, encode
+from shared.persist import provenance
+from shared.persist.cuts import CutError, atomic_torch_save, config_difference
+from shared.persist.wal import WriteAheadLog
+from shared.run.factories import agent_dims, build_learner, learner_spec, minibatches_per_update
+from shared.run.rollout import derive_seed
 
 WINDOW_EPISODES = 2  # credits per actor, in episodes
 MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
@@ -527,7 +527,7 @@ class LearnerService(ServiceBase):
             self.send_ack(st)
 
     def publish_provenance(self, st: LearnerRun) -> None:
-        """What this start of the run runs on (shared/provenance.py), once: the API keeps
+        """What this start of the run runs on (shared/persist/provenance.py), once: the API keeps
         it as the run's `live.provenance`, and `macb up --out` writes it beside the rows."""
         start = provenance.entry(st.config.precision, st.learner.stats(), "learner")
         if self.group is not None:
@@ -811,7 +811,7 @@ class LearnerService(ServiceBase):
 
     # ------------------------------------------------------------ a lockstep group
     def group_tick(self, g: LockstepGroup) -> bool:
-        """The group trainer's step (shared/group_trainer.py) over the bus: once every
+        """The group trainer's step (cli/group_trainer.py) over the bus: once every
         run has taken (and counted) this step, each samples and prices its own
         minibatches and one GroupMADDPG update updates them all; then the group's next
         request is answered with one `act` for every run."""

@@ -2,8 +2,8 @@
 
 On loopback with no settings it is the plain router of one machine. Listening anywhere
 else it refuses to start unless TLS and user/password authentication are configured
-(`shared.security.check_router_listen`); with a users file it enforces the per-role
-ACL built from `shared.security.ROLES`. The ACL's denials are logged here (the first of
+(`shared.net.security.check_router_listen`); with a users file it enforces the per-role
+ACL built from `shared.net.security.ROLES`. The ACL's denials are logged here (the first of
 each kind at once, then a summary at most every 10 s) and counted; the counts answer
 queries on `macb/router/{id}` (`macb ps` shows them). The run goes on: a denied
 message is dropped, nothing else happens to its sender.
@@ -18,8 +18,8 @@ import signal
 import threading
 import time
 
-from shared.bus import Bus, capture_zenoh_log, k_router
-from shared.security import (
+from shared.net.bus import Bus, capture_zenoh_log, k_router
+from shared.net.security import (
     ACL_LOG_TARGET,
     AclLog,
     Denial,

@@ -9,10 +9,10 @@
 * precision.py: fp32 or bf16 matrix products for the batched learner, and whether the
   CPU runs bf16 natively.
 
-shared/factories.py builds the one a config asks for.
+shared/run/factories.py builds the one a config asks for.
 """
 
-from shared.learners.base import (
+from shared.core.learners.base import (
     ALGOS,
     AgentDims,
     Learner,
@@ -20,11 +20,11 @@ from shared.learners.base import (
     agent_slice,
     check_agents,
 )
-from shared.learners.batched import BatchedMADDPG
-from shared.learners.lanes import Lanes, LaneTuner
-from shared.learners.precision import PRECISIONS
-from shared.learners.reference import MADDPG
-from shared.learners.tuning import AUTO_MODES, TunedMADDPG
+from shared.core.learners.batched import BatchedMADDPG
+from shared.core.learners.lanes import Lanes, LaneTuner
+from shared.core.learners.precision import PRECISIONS
+from shared.core.learners.reference import MADDPG
+from shared.core.learners.tuning import AUTO_MODES, TunedMADDPG
 
 __all__ = [
     "ALGOS",

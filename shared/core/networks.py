@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from shared.joint import offsets
+from shared.core.joint import offsets
 
 
 def mlp(in_dim: int, out_dim: int, hidden: Sequence[int]) -> nn.Sequential:
@@ -75,7 +75,7 @@ class JointPolicy:
 
     @classmethod
     def for_task(cls, spec: Any, hidden: Sequence[int]) -> JointPolicy:
-        """The policy for a task's agents (`shared.tasks.TaskSpec`: its obs_dims and each
+        """The policy for a task's agents (`shared.envs.tasks.TaskSpec`: its obs_dims and each
         agent's action box), as actor and evaluator processes build it."""
         agents = spec.agents
         return cls(spec.obs_dims, [a.act_low for a in agents], [a.act_high for a in agents], hidden)

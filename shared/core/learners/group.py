@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from shared.learners.base import AgentDims, LearnerSpec
-from shared.learners.batched import BatchedMADDPG
-from shared.learners.layers import Stack, mlp_forward
+from shared.core.learners.base import AgentDims, LearnerSpec
+from shared.core.learners.batched import BatchedMADDPG
+from shared.core.learners.layers import Stack, mlp_forward
 
 #: LearnerSpec fields every run of a group must share.
 #: Elements of a whole number of vectors for every elementwise kernel (fp32 and bf16).

@@ -16,16 +16,16 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from shared.learners.layers import Stack
+from shared.core.learners.layers import Stack
 
 if TYPE_CHECKING:  # annotations only
-    from shared.learners.batched import BatchedMADDPG
+    from shared.core.learners.batched import BatchedMADDPG
 
 
 def actor_state(
     learner: BatchedMADDPG, tensors: Sequence[torch.Tensor], i: int
 ) -> dict[str, torch.Tensor]:
-    """Agent i's actor in shared.networks.Actor's state_dict layout (fresh tensors), from
+    """Agent i's actor in shared.core.networks.Actor's state_dict layout (fresh tensors), from
     the learner's actor params or targets."""
     d = learner.agents[i].act_dim
     sd = {"scale": learner.scale[i, 0, :d].clone(), "center": learner.center[i, 0, :d].clone()}

@@ -11,7 +11,7 @@
    bf16 copy. The bf16 copies round to nearest even as torch's float -> bfloat16
    conversion does (a NaN becomes the quiet NaN 0x7fc0).
 
-   tests/test_fused.py checks both against torch bit for bit; shared/learners/fused.py
+   tests/test_fused.py checks both against torch bit for bit; shared/core/learners/fused.py
    compiles this file and says why it is there. */
 #include <math.h>
 #include <stdint.h>

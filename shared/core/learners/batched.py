@@ -42,16 +42,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from shared.joint import offsets
-from shared.learners import checkpoint
-from shared.learners import fused as fused_kernel
-from shared.learners.base import AgentDims, LearnerSpec, check_agents, denormals_flushed
-from shared.learners.lanes import Lanes
-from shared.learners.layers import Stack, mlp_backward, mlp_forward
-from shared.learners.precision import DTYPES, resolve, resolve_device
+from shared.core.joint import offsets
+from shared.core.learners import checkpoint
+from shared.core.learners import fused as fused_kernel
+from shared.core.learners.base import AgentDims, LearnerSpec, check_agents, denormals_flushed
+from shared.core.learners.lanes import Lanes
+from shared.core.learners.layers import Stack, mlp_backward, mlp_forward
+from shared.core.learners.precision import DTYPES, resolve, resolve_device
 
 if TYPE_CHECKING:  # annotations only
-    from shared.learners.reference import MADDPG
+    from shared.core.learners.reference import MADDPG
 
 
 class BatchedMADDPG:
@@ -657,7 +657,7 @@ class BatchedMADDPG:
         return m
 
     def actor_weights(self) -> list[dict[str, torch.Tensor]]:
-        """Per agent, a state dict for shared.networks.Actor (fresh tensors, safe to ship)."""
+        """Per agent, a state dict for shared.core.networks.Actor (fresh tensors, safe to ship)."""
         return [checkpoint.actor_state(self, self.actor.params, i) for i in range(self.n)]
 
     def load_actor_weights(self, weights: Sequence[dict[str, Any]]) -> None:

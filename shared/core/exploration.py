@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.counting import CountTable, count_bonus
-from shared.joint import offsets
-from shared.simhash import RawKey, RoundKey, SimHash
+from shared.core.counting import CountTable, count_bonus
+from shared.core.joint import offsets
+from shared.core.simhash import RawKey, RoundKey, SimHash
 
 EXPLORE_MODES = ("none", "dis-macb", "cen-macb", "constant")
 

@@ -22,15 +22,15 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.joint import offsets
-from shared.learners.base import (
+from shared.core.joint import offsets
+from shared.core.learners.base import (
     AgentDims,
     LearnerSpec,
     agent_slice,
     check_agents,
     denormals_flushed,
 )
-from shared.networks import Actor, Critic
+from shared.core.networks import Actor, Critic
 
 
 class MADDPG:

@@ -1,7 +1,7 @@
 """E worlds of one built-in task stepped as arrays: what a run group collects and
 evaluates with.
 
-Every world is a `TaskEnv` (shared/tasks.py) for what happens rarely and draws from its
+Every world is a `TaskEnv` (shared/envs/tasks.py) for what happens rarely and draws from its
 RNG: `reset` and `reset_world` go to that world's own mpe2 env, so world i draws its
 worlds from its own stream exactly as a lone `TaskEnv` with the same seed does, and
 `rng_state` is that env's. What happens every step (mpe2's physics, the observations,
@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from shared.tasks import SPARSE_OFFSET, TaskEnv, is_custom
+from shared.envs.tasks import SPARSE_OFFSET, TaskEnv, is_custom
 
 
 class VecStep(NamedTuple):

@@ -3,7 +3,7 @@
 The one-process trainer and the cluster's learner service hold a learner only through
 `Learner`, so the reference (`MADDPG`), the batched learner (`BatchedMADDPG`) and the
 thread-tuning wrapper (`TunedMADDPG`) are interchangeable there and are chosen by the
-config alone (shared/factories.py). Everything else a learner has (networks, stacks,
+config alone (shared/run/factories.py). Everything else a learner has (networks, stacks,
 per-agent steps) is for tests and benchmarks, which know which one they built.
 """
 
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import torch
 
-from shared.learners.fused import kernel
+from shared.core.learners.fused import kernel
 
 if TYPE_CHECKING:  # annotations only
     import numpy as np
@@ -103,7 +103,7 @@ def check_agents(agents: Sequence[AgentDims], spec: LearnerSpec) -> None:
 
 
 def agent_slice(joint: torch.Tensor, offsets: Sequence[int], i: int) -> torch.Tensor:
-    """Agent i's block of joint vectors (..., joint) laid out by `shared.joint.offsets`."""
+    """Agent i's block of joint vectors (..., joint) laid out by `shared.core.joint.offsets`."""
     return joint[..., offsets[i] : offsets[i + 1]]
 
 
@@ -141,7 +141,7 @@ class Learner(Protocol):
         ...
 
     def actor_weights(self) -> list[dict[str, torch.Tensor]]:
-        """Per agent, a state dict for shared.networks.Actor (what actors and the
+        """Per agent, a state dict for shared.core.networks.Actor (what actors and the
         evaluator load)."""
         ...
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from shared.config import TrainConfig
-from shared.exploration import CountExploration, ExploreSpec
-from shared.learners import (
+from shared.core.exploration import CountExploration, ExploreSpec
+from shared.core.learners import (
     AUTO_MODES,
     MADDPG,
     AgentDims,
@@ -20,8 +20,8 @@ from shared.learners import (
     LearnerSpec,
     TunedMADDPG,
 )
-from shared.rollout import derive_seed
-from shared.tasks import TaskSpec
+from shared.envs.tasks import TaskSpec
+from shared.run.rollout import derive_seed
 
 
 def agent_dims(spec: TaskSpec) -> list[AgentDims]:

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from shared.tasks import TaskEnv
+from shared.envs.tasks import TaskEnv
 
 if TYPE_CHECKING:
     from shared.config import TrainConfig
@@ -353,7 +353,7 @@ def evaluate_group(policy: GroupPolicy, venv: Any, runs: int, episodes: int) -> 
     """`evaluate` for R runs at once: `venv` holds m worlds per run (run r's are worlds
     r*m .. r*m+m-1, each its lone evaluation env), stepped together; one policy call per
     step serves every run's episodes. Run r's result is what `evaluate` gives it."""
-    from shared.vectask import vectorize
+    from shared.envs.vectask import vectorize
 
     m = venv.e // runs
     successes: list[list[bool]] = [[] for _ in range(runs)]

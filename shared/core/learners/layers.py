@@ -81,7 +81,7 @@ def relu_backward(grad: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 
 def mlp_forward(params: Sequence[torch.Tensor], x: torch.Tensor) -> list[torch.Tensor]:
-    """N MLPs at once (shared.networks.mlp: ReLU between layers, none after the last).
+    """N MLPs at once (shared.core.networks.mlp: ReLU between layers, none after the last).
 
     params = [W0, b0, W1, b1, ...]; x is (N, B, in), or (B, in) when all N networks read
     the same input (Cen critics). Returns every layer's input and the output, [x, h1, ...,

@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from shared.learners.batched import BatchedMADDPG
-from shared.learners.lanes import LaneTuner
+from shared.core.learners.batched import BatchedMADDPG
+from shared.core.learners.lanes import LaneTuner
 
 # What the tuner chooses among, as (lanes, torch intra-op threads).
 AUTO_MODES = ((1, 1), (2, 1), (1, 2))

@@ -1,8 +1,8 @@
 """Run groups: R runs of one task and network shape trained as one, in one process.
 
-The thesis's loop (shared/trainer.py) for every run of the group at once: each step,
+The thesis's loop (cli/trainer.py) for every run of the group at once: each step,
 one policy call acts for every run (with the current weights), the R worlds step as
-arrays (shared/vectask.py), each run stores and counts its own transition (collection
+arrays (shared/envs/vectask.py), each run stores and counts its own transition (collection
 is the only place counts change), samples its own minibatch, prices its bonus from its
 own counts, and one `GroupMADDPG.update` updates every run. After every `eval_every`
 episodes one batched rollout runs every run's noise-free evaluation episodes.
@@ -30,31 +30,7 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
-from shared import provenance
-from shared.config import TrainConfig
-from shared.cuts import (
-    CutError,
-    ReplayLog,
-    latest_cut,
-    load_tables,
-    read_cut,
-    tables_state,
-    write_cut,
-)
-from shared.cuts import clear as clear_cuts
-from shared.exploration import BonusDiagnostics
-from shared.factories import (
-    agent_dims,
-    build_exploration,
-    learner_spec,
-    minibatches_per_update,
-)
-from shared.groups import check_group
-from shared.learners.group import GroupMADDPG
-from shared.replay import ReplayBuffer, update_arrays
-from shared.rollout import derive_seed, evaluate_group, make_vec_collector
-from shared.tasks import make_task_for, task_spec_for
-from shared.trainer import (
+from cli.trainer import (
     DEFAULT_CUT_EVERY_S,
     MetricsWriter,
     _say_if_constant_shift,
@@ -68,7 +44,31 @@ from shared.trainer import (
     refill,
     save_checkpoint,
 )
-from shared.vectask import vectorize
+from shared.config import TrainConfig
+from shared.core.exploration import BonusDiagnostics
+from shared.core.learners.group import GroupMADDPG
+from shared.core.replay import ReplayBuffer, update_arrays
+from shared.envs.tasks import make_task_for, task_spec_for
+from shared.envs.vectask import vectorize
+from shared.groups import check_group
+from shared.persist import provenance
+from shared.persist.cuts import (
+    CutError,
+    ReplayLog,
+    latest_cut,
+    load_tables,
+    read_cut,
+    tables_state,
+    write_cut,
+)
+from shared.persist.cuts import clear as clear_cuts
+from shared.run.factories import (
+    agent_dims,
+    build_exploration,
+    learner_spec,
+    minibatches_per_update,
+)
+from shared.run.rollout import derive_seed, evaluate_group, make_vec_collector
 
 log = logging.getLogger("macb.group")
 

@@ -20,9 +20,14 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
-from shared import provenance
 from shared.config import TrainConfig
-from shared.cuts import (
+from shared.core.exploration import BonusDiagnostics, CountExploration, constant_shift
+from shared.core.learners import Learner
+from shared.core.replay import ReplayBuffer, update_arrays
+from shared.envs.tasks import make_task_for
+from shared.metrics import TRAIN_FIELDS
+from shared.persist import provenance
+from shared.persist.cuts import (
     CutError,
     ReplayLog,
     config_difference,
@@ -31,17 +36,12 @@ from shared.cuts import (
     tables_state,
     write_cut,
 )
-from shared.cuts import (
+from shared.persist.cuts import (
     clear as clear_cuts,
 )
-from shared.exploration import BonusDiagnostics, CountExploration, constant_shift
-from shared.factories import build_exploration, build_learner, minibatches_per_update
-from shared.files import read_json
-from shared.learners import Learner
-from shared.metrics import TRAIN_FIELDS
-from shared.replay import ReplayBuffer, update_arrays
-from shared.rollout import derive_seed, evaluate, make_collector
-from shared.tasks import make_task_for
+from shared.persist.files import read_json
+from shared.run.factories import build_exploration, build_learner, minibatches_per_update
+from shared.run.rollout import derive_seed, evaluate, make_collector
 
 log = logging.getLogger("macb.trainer")
 
@@ -194,7 +194,7 @@ def train(
     """Run one experiment; returns the metric rows (also written under `out`).
 
     `stop_when(row)` returning True ends the run early after that evaluation. With
-    `out`, a cut (shared/cuts.py) is written at an evaluation point whenever
+    `out`, a cut (shared/persist/cuts.py) is written at an evaluation point whenever
     `cut_every_s` seconds have passed since the last one, and at the end; `resume`
     continues from the newest usable cut in `out` (its config.json must equal `cfg`),
     keeping the rows written up to it, so the rows come out as without the stop.

@@ -16,11 +16,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from shared import bus as keys
-from shared.bus import Bus
 from shared.config import TrainConfig, actors_error
-from shared.protocol import RunVerdict, run_verdict
-from shared.wire import WireError, decode, encode
+from shared.net import bus as keys
+from shared.net.bus import Bus
+from shared.net.protocol import RunVerdict, run_verdict
+from shared.net.wire import WireError, decode, encode
 
 # How long a finished run waits for the counter's last report (sent after its snapshot).
 COUNTER_GRACE_S = 5.0

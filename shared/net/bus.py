@@ -4,7 +4,7 @@ This is the only module that imports zenoh. Services connect as clients to one
 router (a Python session in router mode: no separate binary). Multicast scouting is
 off: endpoints are explicit, loopback by default, and set per host for multi-host
 clusters (`MACB_ZENOH_CONNECT=tls/10.0.0.5:7447`). Security (TLS, user/password, the
-router's ACL) is built by `shared.security` from `MACB_ZENOH_*` variables; with none
+router's ACL) is built by `shared.net.security` from `MACB_ZENOH_*` variables; with none
 set, sessions are plain TCP without credentials, as on one machine.
 
 Callbacks run on Zenoh's threads; the wrappers here hand raw bytes to the caller's
@@ -23,7 +23,7 @@ from typing import Any
 
 import zenoh
 
-from shared.security import Security, check_endpoints_match
+from shared.net.security import Security, check_endpoints_match
 
 log = logging.getLogger("macb.bus")
 

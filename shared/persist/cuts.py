@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from shared.counting import CountTable
+from shared.core.counting import CountTable
 
 log = logging.getLogger("macb.cuts")
 

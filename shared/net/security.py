@@ -4,7 +4,7 @@ Zenoh does the work (TLS links, `transport/auth/usrpwd`, `access_control` on the
 this module decides what to ask of it, from one place: `ROLES`, the table of what each
 role may do on the key space. The router's ACL, docs/deploy.md's permission table and
 the tests all read that table, so they cannot disagree. Nothing here imports zenoh or
-touches the network: `shared/bus.py` turns `zenoh_config` into a session, and the
+touches the network: `shared/net/bus.py` turns `zenoh_config` into a session, and the
 router (services/router/main.py) adds `acl_config`.
 
 Settings come from `MACB_ZENOH_*` variables (the `macb` flags set the same variables),

@@ -14,7 +14,7 @@ mpe2 gives the worlds, physics and observations; this module adds what the thesi
   velocity and position updates.
 
 A task named `package.module:factory` is any PettingZoo ParallelEnv with Box spaces,
-adapted by shared/custom_task.py behind the same interface (`make_task_for`,
+adapted by shared/envs/custom_task.py behind the same interface (`make_task_for`,
 `task_spec_for` dispatch), so no caller has a special case.
 
 See docs/tasks.md for the layouts and the hashed vector sizes.
@@ -25,14 +25,14 @@ from __future__ import annotations
 import functools
 import types
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import Any, NamedTuple, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from mpe2 import simple_speaker_listener_v4, simple_spread_v3, simple_v3
 from mpe2._mpe_utils.core import Agent, Entity, World
 
-from shared.joint import offsets
+from shared.core.joint import offsets
+from shared.envs.spec import AgentSpec, JointStep, StepResult, TaskSpec
 
 TASKS = ("simple", "spread", "speaker_listener")
 REWARDS = ("sparse", "sparse_offset", "dense")
@@ -47,92 +47,6 @@ SPREAD_ENTITY_SIZE = 0.125
 MOVE_DIM = 2
 
 _FIXED_AGENTS = {"simple": 1, "speaker_listener": 2}
-
-
-@dataclass(frozen=True)
-class AgentSpec:
-    """One agent's interface in the thesis layout, so learners never see mpe2's 5-vectors."""
-
-    name: str
-    obs_dim: int
-    act_low: tuple[float, ...]
-    act_high: tuple[float, ...]
-    obs_layout: str
-    act_layout: str
-
-    @property
-    def act_dim(self) -> int:
-        """Action width in the thesis layout (2 for movement, 3 for the speaker's message)."""
-        return len(self.act_low)
-
-    @property
-    def move_dim(self) -> int:
-        """Leading movement dims (those with a negative lower bound); the rest is a message."""
-        return sum(1 for low in self.act_low if low < 0.0)
-
-
-@dataclass(frozen=True)
-class TaskSpec:
-    """Shapes of one task, enough to size networks, buffers and SimHash projections."""
-
-    name: str
-    agents: tuple[AgentSpec, ...]
-    episode_len: int
-
-    @property
-    def n_agents(self) -> int:
-        return len(self.agents)
-
-    @property
-    def obs_dims(self) -> tuple[int, ...]:
-        return tuple(a.obs_dim for a in self.agents)
-
-    @property
-    def act_dims(self) -> tuple[int, ...]:
-        return tuple(a.act_dim for a in self.agents)
-
-    @property
-    def joint_obs_dim(self) -> int:
-        """Size of s = o_1 || ... || o_N (the centralized critic and Cen-MACB input)."""
-        return sum(self.obs_dims)
-
-    @property
-    def joint_act_dim(self) -> int:
-        """Size of x = a_1 || ... || a_N."""
-        return sum(self.act_dims)
-
-
-class JointStep(NamedTuple):
-    """One joint step: the joint observation s' = o'_1 || ... || o'_N and the metrics.
-
-    `terminated` is True only with `success_terminal`, at a step where success holds
-    (or, in a custom task, where its env terminated): `obs` is then the terminal
-    observation, and unless the time limit also ends the episode the caller continues
-    it from `reset_world()`. `restart` (custom tasks only) says the env ended its own
-    episode before `episode_len` without a terminal state: not terminal, but the caller
-    continues from `reset_world()` all the same.
-    """
-
-    obs: np.ndarray
-    reward: float
-    success: bool
-    collisions: int
-    truncated: bool
-    terminated: bool = False
-    restart: bool = False
-
-
-@dataclass
-class StepResult:
-    """What one joint step gives the actor: observations, the team reward and the metrics."""
-
-    obs: list[np.ndarray]
-    reward: float
-    success: bool
-    collisions: int
-    truncated: bool
-    terminated: bool = False
-    restart: bool = False
 
 
 def _check_task(task: str, agents: int, episode_len: int) -> int:
@@ -683,10 +597,10 @@ def make_task(
 
     `options` are TaskEnv's keyword options (success_terminal, cover, landmark_size,
     pad_obs, comm_obs, integrator). A `package.module:factory` task is built by
-    shared/custom_task.py instead, from its `task_kwargs`, `success_key` and
+    shared/envs/custom_task.py instead, from its `task_kwargs`, `success_key` and
     `success_terminal` options (the env's own reward: `reward` is not used)."""
     if is_custom(task):
-        from shared.custom_task import CustomTaskEnv
+        from shared.envs.custom_task import CustomTaskEnv
 
         return CustomTaskEnv(  # type: ignore[return-value]
             task,
@@ -738,7 +652,7 @@ class TaskConfig(Protocol):
 
 
 def is_custom(task: str) -> bool:
-    """Whether `task` names a `package.module:factory` (shared/custom_task.py) rather
+    """Whether `task` names a `package.module:factory` (shared/envs/custom_task.py) rather
     than one of TASKS."""
     return ":" in task
 
@@ -774,7 +688,7 @@ def task_spec_for(cfg: TaskConfig) -> TaskSpec:
     projections from it): equal to `make_task_for(cfg).spec`. A custom task's is built
     and checked once per process (one env, reset and stepped once)."""
     if is_custom(cfg.task):
-        from shared.custom_task import custom_task_spec
+        from shared.envs.custom_task import custom_task_spec
 
         return custom_task_spec(cfg.task, cfg.task_kwargs, cfg.episode_len, cfg.success_key)
     return task_spec(

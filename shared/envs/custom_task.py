@@ -1,6 +1,6 @@
 """Your own task: any PettingZoo ParallelEnv named `package.module:factory`.
 
-The built-in tasks (shared/tasks.py) know mpe2's worlds; this adapter knows only the
+The built-in tasks (shared/envs/tasks.py) know mpe2's worlds; this adapter knows only the
 PettingZoo parallel API, so a run config may name any factory that returns a
 ParallelEnv with Box observation and action spaces. It gives the trainer, the actors,
 the evaluator, the learner and the counter what a built-in task gives them (a
@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from shared.joint import offsets
-from shared.tasks import AgentSpec, JointStep, StepResult, TaskSpec
+from shared.core.joint import offsets
+from shared.envs.spec import AgentSpec, JointStep, StepResult, TaskSpec
 
 #: `package.module:factory` (the factory may be a dotted attribute path too).
 SPEC_RE = re.compile(r"^[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*(\.[A-Za-z_]\w*)*$")
@@ -187,7 +187,7 @@ def custom_task_spec(
 
 
 class CustomTaskEnv:
-    """A PettingZoo ParallelEnv behind the interface of `shared.tasks.TaskEnv`."""
+    """A PettingZoo ParallelEnv behind the interface of `shared.envs.tasks.TaskEnv`."""
 
     def __init__(
         self,

@@ -1,7 +1,7 @@
 """What a run actually ran on: code, machine, libraries and the learner's arithmetic.
 
 A run's config says what was asked for; this says what happened. The two can differ:
-`precision: bf16` runs fp32 on a CPU without native bf16 (shared/learners/precision.py),
+`precision: bf16` runs fp32 on a CPU without native bf16 (shared/core/learners/precision.py),
 and the same config gives different speeds and roundings on different CPUs (docs/
 performance.md measured four). A result is only as trustworthy as the record of where
 it came from, so every start of a run (the first, and each resume, possibly elsewhere)
@@ -21,8 +21,8 @@ from typing import Any
 
 import torch
 
-from shared.files import write_json
-from shared.learners.precision import NATIVE_BF16_FLAGS, cpu_flags
+from shared.core.learners.precision import NATIVE_BF16_FLAGS, cpu_flags
+from shared.persist.files import write_json
 
 FILE = "provenance.json"
 # Distributions whose versions change a run's numbers or its environments.
