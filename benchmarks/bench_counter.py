@@ -68,6 +68,7 @@ from _stats import fmt, median, rotated, top_tottime
 
 from cli.supervisor import THREAD_ENV, cluster_plan, free_port
 from shared.net.bus import Bus, k_ack, k_bonus, k_control, k_info, k_transitions
+from shared.net.messages import Ack, BonusQuery, BonusReply, Start, Stop, Transitions
 from shared.net.wire import check_dims, decode, encode
 
 # Publisher and echo processes import only the above (numpy, zenoh, msgpack, pydantic):
@@ -91,17 +92,18 @@ TARGET_P99_MS = 5.0
 def transitions_payload(run: str, actor: str, seq: int, obs: np.ndarray, act: np.ndarray) -> bytes:
     n = len(obs)
     return encode(
-        "transitions",
-        run,
-        actor=actor,
-        seq=seq,
-        obs=obs,
-        act=act,
-        rew=np.zeros(n, np.float32),
-        next_obs=obs,
-        done=np.zeros(n, np.float32),
-        collisions=np.zeros(n, np.int32),
-        policy_version=0,
+        Transitions(
+            run,
+            actor=actor,
+            seq=seq,
+            obs=obs,
+            act=act,
+            rew=np.zeros(n, np.float32),
+            next_obs=obs,
+            done=np.zeros(n, np.float32),
+            collisions=np.zeros(n, np.int32),
+            policy_version=0,
+        )
     )
 
 
@@ -120,10 +122,11 @@ def echo_main(a: argparse.Namespace) -> None:
     the round trip through the same router with no work, the floor for query latency."""
     bus = Bus([a.endpoint])
     reply = encode(
-        "bonus_reply",
-        "echo",
-        counts=np.zeros((1, QUERY_ROWS), np.int64),
-        bonus=np.zeros((QUERY_ROWS, 2), np.float32),
+        BonusReply(
+            "echo",
+            counts=np.zeros((1, QUERY_ROWS), np.int64),
+            bonus=np.zeros((QUERY_ROWS, 2), np.float32),
+        )
     )
     bus.queryable(ECHO_KEY, lambda key, payload: reply)
     Path(a.result + ".ready").write_text("ok")
@@ -142,7 +145,7 @@ def publisher_main(a: argparse.Namespace) -> None:
     state = {"acked": 0}
 
     def on_ack(key: str, payload: bytes) -> None:
-        seq = decode(payload, "ack")["acked"].get(a.actor)
+        seq = decode(payload, Ack).acked.get(a.actor)
         if isinstance(seq, int):
             with cond:
                 if seq > state["acked"]:
@@ -272,7 +275,7 @@ class CounterHarness:
         run = f"bench-{self.runs}"
         assign = {"counter": COUNTER, "learner": "L", "actors": actors, "evaluator": "e"}
         config = {**CONFIG, "k": self.k}
-        self.bus.put(k_control("start"), encode("start", run, config=config, assign=assign))
+        self.bus.put(k_control("start"), encode(Start(run, config=config, assign=assign)))
         deadline = time.monotonic() + 20
         while not self.run_stats(run):
             if time.monotonic() > deadline:
@@ -291,7 +294,7 @@ class CounterHarness:
         return run
 
     def stop_run(self, run: str) -> None:
-        self.bus.put(k_control("stop"), encode("stop", run, reason="benchmark phase over"))
+        self.bus.put(k_control("stop"), encode(Stop(run, reason="benchmark phase over")))
         deadline = time.monotonic() + 60
         while run in (self.info() or {}).get("runs", {}) and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -307,11 +310,11 @@ class CounterHarness:
             echo = i % 2 == 1
             i += 1
             t0 = time.perf_counter()
-            payload = encode("bonus_query", run, obs=self.q_obs[idx], act=self.q_act[idx])
+            payload = encode(BonusQuery(run, obs=self.q_obs[idx], act=self.q_act[idx]))
             replies = self.bus.get(ECHO_KEY if echo else key, payload, timeout=2.0)
             if replies:
-                msg = decode(replies[0], "bonus_reply")
-                if msg["bonus"].shape == (QUERY_ROWS, 2):
+                msg = decode(replies[0], BonusReply)
+                if msg.bonus.shape == (QUERY_ROWS, 2):
                     out["echo" if echo else "counter"].append(time.perf_counter() - t0)
             else:
                 out["failures"] += 1
@@ -468,15 +471,15 @@ def in_process(k: int, rows: int, seconds: float, work: Path) -> dict:
             if variant == "core":
                 o, a = obs[i], act[i]
             else:
-                msg = decode(payloads[i], "transitions")
+                msg = decode(payloads[i], Transitions)
                 check_dims(msg, spec.joint_obs_dim, spec.joint_act_dim)
-                o, a = msg["obs"], msg["act"]
+                o, a = msg.obs, msg.act
             keys = explorer.keys(o, a)
             wal.append("a0", done * rows, rows, keys)
             for table, kk in zip(explorer.tables, keys):
                 table.increment(kk)
             if variant == "with_codec":
-                encode("ack", "r", service=COUNTER, acked={"a0": done * rows}, window=0)
+                encode(Ack("r", service=COUNTER, acked={"a0": done * rows}, window=0))
             done += 1
         elapsed = time.perf_counter() - t0
         wal.close()

@@ -38,6 +38,7 @@ from cli.supervisor import Cluster, cluster_plan, free_port, wait_port  # noqa: 
 from shared.config import make_config  # noqa: E402
 from shared.net.bus import Bus, k_weights  # noqa: E402
 from shared.net.control import discover, start_run  # noqa: E402
+from shared.net.messages import Weights  # noqa: E402
 from shared.net.wire import decode  # noqa: E402
 
 THESIS = {
@@ -64,8 +65,8 @@ def one_round(work: Path, episodes: int, kill_at: int, cut_s: float, seed: int) 
             updates_seen: list[tuple[float, int]] = []  # (arrival, updates) of weights
 
             def on_weights(key: str, payload: bytes) -> None:
-                msg = decode(payload, "weights")
-                updates_seen.append((time.monotonic(), msg["updates"]))
+                msg = decode(payload, Weights)
+                updates_seen.append((time.monotonic(), msg.updates))
 
             bus.subscribe(k_weights("*", "*"), on_weights)
             watch = start_run(bus, config, actors=1)

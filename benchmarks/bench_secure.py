@@ -61,6 +61,7 @@ def query_latency(secrets: Path | None, queries: int, rows: int, work: Path) -> 
 
     from cli.supervisor import free_port, wait_port
     from shared.net.bus import Bus, k_bonus
+    from shared.net.messages import BonusQuery, BonusReply
     from shared.net.security import Security
     from shared.net.wire import encode
 
@@ -82,16 +83,18 @@ def query_latency(secrets: Path | None, queries: int, rows: int, work: Path) -> 
 
         rng = np.random.default_rng(0)
         query = encode(
-            "bonus_query",
-            "r",
-            obs=rng.random((rows, 14), dtype=np.float32),
-            act=rng.random((rows, 8), dtype=np.float32),
+            BonusQuery(
+                "r",
+                obs=rng.random((rows, 14), dtype=np.float32),
+                act=rng.random((rows, 8), dtype=np.float32),
+            )
         )
         reply = encode(
-            "bonus_reply",
-            "r",
-            counts=np.ones((1, rows), dtype=np.int64),
-            bonus=np.ones((rows, 2), dtype=np.float32),
+            BonusReply(
+                "r",
+                counts=np.ones((1, rows), dtype=np.int64),
+                bonus=np.ones((rows, 2), dtype=np.float32),
+            )
         )
         with Bus([endpoint], security=sec("counter")) as counter:
             counter.queryable(k_bonus("*"), lambda key, payload: reply)

@@ -31,6 +31,7 @@ import torch
 from shared.config import make_config
 from shared.core.networks import JointPolicy, weights_as_arrays
 from shared.envs.tasks import task_spec_for
+from shared.net.messages import Action, ActRequest, Weights
 from shared.net.wire import decode, encode
 from shared.run.factories import build_learner
 
@@ -64,27 +65,29 @@ def main(argv: list[str] | None = None) -> None:
 
     def weights_every_step() -> int:
         payload = encode(
-            "weights",
-            "run",
-            version=1,
-            updates=1,
-            env_steps=1,
-            episodes=1,
-            eval_point=-1,
-            collisions_cum=0,
-            actors=weights_as_arrays(learner.actor_weights()),
-            info={},
+            Weights(
+                "run",
+                version=1,
+                updates=1,
+                env_steps=1,
+                episodes=1,
+                eval_point=-1,
+                collisions_cum=0,
+                actors=weights_as_arrays(learner.actor_weights()),
+                stats={},
+                incarnation="probe",
+            )
         )
-        msg = decode(payload, "weights")
-        policy.load([{k: np.array(v) for k, v in sd.items()} for sd in msg["actors"]])
+        msg = decode(payload, Weights)
+        policy.load([{k: np.array(v) for k, v in sd.items()} for sd in msg.actors])
         return len(payload)
 
     def central_inference() -> int:
-        ask = encode("act_request", "run", actor="actor0", seq=1, obs=obs[0])
-        got = decode(ask, "act_request")["obs"]
+        ask = encode(ActRequest("run", actor="actor0", seq=1, obs=obs[0]))
+        got = decode(ask, ActRequest).obs
         act = learner.act(np.array(got)[None])[0].astype(np.float32)
-        answer = encode("action", "run", seq=1, act=act)
-        decode(answer, "action")
+        answer = encode(Action("run", seq=1, act=act))
+        decode(answer, Action)
         return len(ask) + len(answer)
 
     cases = {"central inference": central_inference, "weights every step": weights_every_step}

@@ -33,13 +33,16 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
+from shared.net.messages import MESSAGES, Message, Metrics, Start, Status, Stop
 from shared.net.wire import WireError, decode, encode
 from shared.persist.files import write_json
+
+M = TypeVar("M", bound=Message)
 
 DEFAULT_PEER_GRACE_S = 30.0
 
@@ -57,10 +60,10 @@ def restarts() -> int:
         return 0
 
 
-def learner_end_reason(msg: dict[str, Any]) -> str:
+def learner_end_reason(msg: Status) -> str:
     """Why a run ended, from its learner's decoded `status` message, for the status
     other services publish when they follow it (watchers show the first failure)."""
-    return f"learner {msg['state']}: {msg['detail'].get('reason', '')}".strip()
+    return f"learner {msg.state}: {msg.detail.get('reason', '')}".strip()
 
 
 class ServiceBase:
@@ -124,7 +127,7 @@ class ServiceBase:
                 sum(self.rejects.values()),
             )
 
-    def decode_for_run(self, key: str, payload: bytes, expect: str) -> dict[str, Any] | None:
+    def decode_for_run(self, key: str, payload: bytes, expect: type[M]) -> M | None:
         """Decode a per-run message; None (and a counted reject) unless it is for our run."""
         try:
             msg = decode(payload, expect)
@@ -132,7 +135,7 @@ class ServiceBase:
             self.reject(key, str(err))
             return None
         run = keys.run_of(key)
-        if run is None or msg["run"] != run:
+        if run is None or msg.run != run:
             self.reject(key, "run mismatch: key and message name different runs")
             return None
         if not self.serves(run):
@@ -178,43 +181,43 @@ class ServiceBase:
     def publish_status(self, run: str, state: str, **detail: Any) -> None:
         self.bus.put(
             keys.k_status(run, self.id),
-            encode("status", run, service=self.id, state=state, detail=detail),
+            encode(Status(run, service=self.id, state=state, detail=detail)),
         )
 
     def publish_metrics(self, run: str, data: dict[str, Any], source: str | None = None) -> None:
         source = source or f"{self.role}/{self.id}"
-        self.bus.put(keys.k_metrics(run, source), encode("metrics", run, source=source, data=data))
+        self.bus.put(keys.k_metrics(run, source), encode(Metrics(run, source=source, data=data)))
 
     # ------------------------------------------------------------ control
     def _on_control(self, tag: str, key: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, tag)
+            msg = decode(payload, MESSAGES[tag])
         except WireError as err:
             self.reject(key, str(err))
             return
-        run = msg["run"]
-        if tag == "start":
-            if not self.assigned(msg["assign"]):
+        run = msg.run
+        if isinstance(msg, Start):
+            if not self.assigned(msg.assign):
                 return  # another service's run: not an error
             if run in self.active and not self.start_replaces(run):
                 return  # repeated start: idempotent
-            if len(self.active) >= self.max_runs and not self.joins_group(run, msg["assign"]):
+            if len(self.active) >= self.max_runs and not self.joins_group(run, msg.assign):
                 self.log.warning("asked to start %s while serving %s: ignored", run, self.run_id)
                 return
             try:
-                config = make_config(msg["config"])
+                config = make_config(msg.config)
             except ConfigError as err:
                 self.reject(key, f"bad config: {err}")
                 self.publish_status(run, "failed", reason=f"invalid config: {err}")
                 return
             self.log.info("starting run %s", run)
-            self._join(run, config, dict(msg["assign"]), msg["config"], self.on_start)
-        elif tag == "stop":
+            self._join(run, config, dict(msg.assign), msg.config, self.on_start)
+        elif isinstance(msg, Stop):
             if not self.serves(run):
                 return  # a run served by other services: not ours to stop
-            self.log.info("stopping run %s: %s", run, msg["reason"])
-            self.on_stop(run, msg["reason"])
-            self.publish_status(run, "stopped", reason=msg["reason"])
+            self.log.info("stopping run %s: %s", run, msg.reason)
+            self.on_stop(run, msg.reason)
+            self.publish_status(run, "stopped", reason=msg.reason)
             self.free(run)
 
     def _join(
@@ -286,13 +289,13 @@ class ServiceBase:
 
     def _on_learner_status(self, key: str, payload: bytes) -> None:
         """The run's learner failed or was stopped: this service's part is over too."""
-        msg = self.decode_for_run(key, payload, "status")
-        if msg is not None and msg["state"] == "completed":
-            self.on_learner_completed(msg["run"])
+        msg = self.decode_for_run(key, payload, Status)
+        if msg is not None and msg.state == "completed":
+            self.on_learner_completed(msg.run)
             return
-        if msg is None or msg["state"] not in ("failed", "stopped"):
+        if msg is None or msg.state not in ("failed", "stopped"):
             return
-        run = msg["run"]
+        run = msg.run
         reason = learner_end_reason(msg)
         self.on_stop(run, reason)
         self.publish_status(run, "stopped", reason=reason)

@@ -21,6 +21,7 @@ import pytest
 from services.api.client import parse_sse
 from shared.net import bus as keys
 from shared.net.bus import Bus
+from shared.net.messages import Metrics
 from shared.net.wire import WireError, decode, encode
 from tests.harness import TINY, api_cluster, macb, wait_for, write_config
 
@@ -42,11 +43,11 @@ class BusRows:
 
     def _on(self, key: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, "metrics")
+            msg = decode(payload, Metrics)
         except WireError:
             return
         with self.lock:
-            self.rows.setdefault(msg["run"], []).append(msg["data"])
+            self.rows.setdefault(msg.run, []).append(msg.data)
 
     def close(self) -> None:
         self.bus.close()
@@ -104,7 +105,7 @@ def test_two_seeds_queue_run_and_every_point_reaches_events_json_and_csv(cluster
             for payload in (b"\x00garbage\xff", b"", msgpack.packb({"v": 99, "run": "x"})):
                 noise.put(keys.k_metrics(run_ids[0], "eval"), payload)
                 noise.put(keys.k_status(run_ids[0], "learner"), payload)
-            other_run = encode("metrics", "other-run", source="eval", data={"episode": 4})
+            other_run = encode(Metrics("other-run", source="eval", data={"episode": 4}))
             noise.put(keys.k_metrics(run_ids[0], "eval"), other_run)
         for t in followers:
             t.join(180)

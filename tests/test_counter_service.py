@@ -22,7 +22,8 @@ import pytest
 from shared.config import make_config
 from shared.envs.tasks import task_spec_for
 from shared.net.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
-from shared.net.wire import decode, encode
+from shared.net.messages import Ack, BonusQuery, BonusReply, Start, Status, Stop, Transitions
+from shared.net.wire import SCHEMA_VERSION, decode, encode
 from shared.persist.wal import WriteAheadLog, read_wal
 from shared.run.factories import build_exploration
 from tests.conftest import wait_for
@@ -47,17 +48,18 @@ class Stream:
 def transitions(run: str, actor: str, seq: int, obs: np.ndarray, act: np.ndarray) -> bytes:
     n = len(obs)
     return encode(
-        "transitions",
-        run,
-        actor=actor,
-        seq=seq,
-        obs=obs,
-        act=act,
-        rew=np.zeros(n, np.float32),
-        next_obs=obs,
-        done=np.zeros(n, np.float32),
-        collisions=np.zeros(n, np.int32),
-        policy_version=0,
+        Transitions(
+            run,
+            actor=actor,
+            seq=seq,
+            obs=obs,
+            act=act,
+            rew=np.zeros(n, np.float32),
+            next_obs=obs,
+            done=np.zeros(n, np.float32),
+            collisions=np.zeros(n, np.int32),
+            policy_version=0,
+        )
     )
 
 
@@ -84,10 +86,10 @@ class Counter:
         bus.subscribe(k_ack("*", "c0"), self._on_ack)
 
     def _on_ack(self, key: str, payload: bytes) -> None:
-        msg = decode(payload, "ack")
+        msg = decode(payload, Ack)
         with self._lock:
-            self.acks[msg["run"]] = dict(msg["acked"])
-            self.ack_history[msg["run"]].append(dict(msg["acked"]))
+            self.acks[msg.run] = dict(msg.acked)
+            self.ack_history[msg.run].append(dict(msg.acked))
 
     def acked(self, run: str) -> dict[str, int]:
         with self._lock:
@@ -120,7 +122,7 @@ class Counter:
 
     def start_run(self, run: str, **over) -> dict:
         config = {**BASE, **over}
-        self.bus.put(k_control("start"), encode("start", run, config=config, assign=ASSIGN))
+        self.bus.put(k_control("start"), encode(Start(run, config=config, assign=ASSIGN)))
         wait_for(lambda: run in (self.info() or {}).get("runs", {}), 20, what=f"run {run}")
         return config
 
@@ -132,10 +134,10 @@ class Counter:
     def wait_acked(self, run: str, want: dict[str, int], timeout: float = 20) -> None:
         wait_for(lambda: self.acked(run) == want, timeout, what=f"acks {want}")
 
-    def query(self, run: str, obs: np.ndarray, act: np.ndarray) -> dict | None:
-        replies = self.bus.get(k_bonus(run), encode("bonus_query", run, obs=obs, act=act), 2.0)
+    def query(self, run: str, obs: np.ndarray, act: np.ndarray) -> BonusReply | None:
+        replies = self.bus.get(k_bonus(run), encode(BonusQuery(run, obs=obs, act=act)), 2.0)
         assert len(replies) <= 1
-        return decode(replies[0], "bonus_reply") if replies else None
+        return decode(replies[0], BonusReply) if replies else None
 
 
 @pytest.fixture
@@ -179,12 +181,12 @@ def test_exactly_once_per_actor_with_duplicates_gaps_and_overlap(counter):
     act = np.concatenate([a0.act, a1.act])
     reply = counter.query(run, obs, act)
     assert reply is not None
-    counts = reply["counts"]
+    counts = reply.counts
     assert counts.shape == (1, 30) and counts.dtype == np.int64
     assert np.array_equal(counts, np.stack(truth.counts(obs, act)))
     assert counts.min() >= 1
     beta = make_config(config).beta
-    np.testing.assert_allclose(reply["bonus"][:, 0], beta / np.sqrt(counts[0]), rtol=1e-6)
+    np.testing.assert_allclose(reply.bonus[:, 0], beta / np.sqrt(counts[0]), rtol=1e-6)
     assert truth.tables[0].total == 30
 
 
@@ -209,7 +211,7 @@ def test_bonus_reply_shapes_for_cen_dis_and_control_arms(counter):
         truth = model(configs[run], [stream])
         beta = make_config(configs[run]).beta
         reply = counter.query(run, obs, act)
-        counts, bonus = reply["counts"], reply["bonus"]
+        counts, bonus = reply.counts, reply.bonus
         want = np.stack(truth.counts(obs, act))
         assert counts.shape == (len(truth.tables), b) and bonus.shape == (b, 2)
         assert bonus.dtype == np.float32
@@ -224,10 +226,10 @@ def test_bonus_reply_shapes_for_cen_dis_and_control_arms(counter):
         assert counter.stats(run)["uncounted_rows_queried"] == 3
 
     none = counter.query("r-none", obs, act)
-    assert none["counts"].shape == (0, b) and np.array_equal(none["bonus"], np.zeros((b, 2)))
+    assert none.counts.shape == (0, b) and np.array_equal(none.bonus, np.zeros((b, 2)))
     const = counter.query("r-const", obs, act)
-    assert const["counts"].shape == (0, b)
-    np.testing.assert_allclose(const["bonus"], np.full((b, 2), 0.3, np.float32))
+    assert const.counts.shape == (0, b)
+    np.testing.assert_allclose(const.bonus, np.full((b, 2), 0.3, np.float32))
     assert counter.stats("r-none")["counted_transitions"] == 10  # numbered even if not hashed
 
     # Latency of learner-sized queries (100 rows), as the stats report it.
@@ -293,7 +295,7 @@ def test_sigkill_and_restart_lose_nothing_acknowledged(counter):
     obs = np.concatenate([st.obs for st in streams.values()])
     act = np.concatenate([st.act for st in streams.values()])
     reply = counter.query(run, obs, act)
-    assert np.array_equal(reply["counts"], np.stack(truth.counts(obs, act)))
+    assert np.array_equal(reply.counts, np.stack(truth.counts(obs, act)))
     assert s["table_size"] == len(truth.tables[0])
 
 
@@ -309,9 +311,9 @@ def test_garbage_is_dropped_counted_and_harmless(counter):
     ok = transitions(run, "a0", 10, good.obs[10:15], good.act[10:15])
 
     counter.bus.put(key, b"\x00\xffnot msgpack at all")
-    v2 = msgpack.unpackb(ok, raw=False)
-    v2["v"] = 2
-    counter.bus.put(key, msgpack.packb(v2, use_bin_type=True))
+    future = msgpack.unpackb(ok, raw=False)
+    future["v"] = SCHEMA_VERSION + 1
+    counter.bus.put(key, msgpack.packb(future, use_bin_type=True))
     counter.bus.put(
         k_transitions("nope", "a0"), transitions("nope", "a0", 10, good.obs[:5], good.act[:5])
     )
@@ -333,7 +335,7 @@ def test_garbage_is_dropped_counted_and_harmless(counter):
     info = counter.info()
     for reason in ("undecodable payload", "unknown run", "actor mismatch", "run mismatch"):
         assert info["rejects"].get(reason, 0) >= 1, (reason, info["rejects"])
-    assert any(r.startswith("schema version 2") for r in info["rejects"])
+    assert any(r.startswith(f"schema version {SCHEMA_VERSION + 1}") for r in info["rejects"])
     assert counter.alive()
     s = info["runs"][run]
     assert s["counted_transitions"] == 10 and s["acked"] == {"a0": 10}
@@ -350,21 +352,21 @@ def test_stop_snapshots_and_frees_the_run_and_shutdown_saves_the_rest(counter):
     counter.start_run(stopped)
     counter.start_run(kept)
     stream = Stream(9, 10)
-    statuses: list[dict] = []
-    counter.bus.subscribe(k_status(stopped, "c0"), lambda k, p: statuses.append(decode(p)))
+    statuses: list[Status] = []
+    counter.bus.subscribe(k_status(stopped, "c0"), lambda k, p: statuses.append(decode(p, Status)))
     for run in (stopped, kept):
         counter.send(run, "a0", stream, 0, 10)
     for run in (stopped, kept):
         counter.wait_acked(run, {"a0": 10})
 
-    counter.bus.put(k_control("stop"), encode("stop", stopped, reason="test over"))
+    counter.bus.put(k_control("stop"), encode(Stop(stopped, reason="test over")))
     wait_for(lambda: stopped not in counter.info()["runs"], 10, what="run freed")
     path = counter.data_dir / "counter" / stopped
     assert (path / "stopped").exists()
     with np.load(path / "snapshot.npz", allow_pickle=False) as z:
         meta = json.loads(bytes(z["meta"]).decode())
         assert meta["expected"] == {"a0": 10} and int(z["counts0"].sum()) == 10
-    wait_for(lambda: any(m["state"] == "stopped" for m in statuses), 5, what="stopped status")
+    wait_for(lambda: any(m.state == "stopped" for m in statuses), 5, what="stopped status")
     assert counter.query(stopped, stream.obs, stream.act) is None  # no longer served
     assert kept in counter.info()["runs"]
 
@@ -385,7 +387,7 @@ def test_stop_snapshots_and_frees_the_run_and_shutdown_saves_the_rest(counter):
     # A start for the restored run is a new attempt of it (queued again after the first
     # ended while this counter was down): fresh tables and expected numbers, the old
     # state archived, and the new attempt's transitions, numbered from 0, all counted.
-    counter.bus.put(k_control("start"), encode("start", kept, config=BASE, assign=ASSIGN))
+    counter.bus.put(k_control("start"), encode(Start(kept, config=BASE, assign=ASSIGN)))
     # (between archiving the old state and opening the new one the run is briefly absent)
     wait_for(
         lambda: (
@@ -399,7 +401,7 @@ def test_stop_snapshots_and_frees_the_run_and_shutdown_saves_the_rest(counter):
     counter.send(kept, "a0", stream, 0, 10)
     wait_for(lambda: counter.stats(kept)["counted_transitions"] == 10, 10, what="counted anew")
     # A run started by this process takes a repeated start as a no-op.
-    counter.bus.put(k_control("start"), encode("start", kept, config=BASE, assign=ASSIGN))
+    counter.bus.put(k_control("start"), encode(Start(kept, config=BASE, assign=ASSIGN)))
     time.sleep(0.5)
     assert counter.stats(kept)["counted_transitions"] == 10
 

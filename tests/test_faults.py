@@ -222,6 +222,7 @@ def _learner_rejoins(cluster, cut: dict) -> tuple[dict, Path]:
 
     from shared.config import make_config
     from shared.net.bus import Bus, k_status
+    from shared.net.messages import Status
     from shared.net.wire import decode
 
     config = make_config({**CONFIG, "seed": 1}).model_dump(mode="json")
@@ -235,9 +236,9 @@ def _learner_rejoins(cluster, cut: dict) -> tuple[dict, Path]:
     folder.mkdir(parents=True)
     torch.save(cut, folder / "checkpoint.pt")
     before = (folder / "checkpoint.pt").read_bytes()
-    statuses: list[dict] = []
+    statuses: list[Status] = []
     with Bus([cluster.endpoint]) as bus:
-        bus.subscribe(k_status(run, "learner"), lambda k, p: statuses.append(decode(p, "status")))
+        bus.subscribe(k_status(run, "learner"), lambda k, p: statuses.append(decode(p, Status)))
         cluster.service("learner")
         wait_for(lambda: statuses, timeout=60, what="the learner's status")
     assert (folder / "checkpoint.pt").read_bytes() == before, "the cut was overwritten"
@@ -260,8 +261,8 @@ def test_a_cut_of_another_config_or_format_is_refused_naming_it(cluster, change,
     other = make_config({**CONFIG, "seed": 1, **fields}).model_dump(mode="json")
     cut = {"format": change.get("format", 1), "config": json.dumps(other), "counters": {}}
     status, path = _learner_rejoins(cluster, cut)
-    assert status["state"] == "failed", status
-    reason = status["detail"]["reason"]
+    assert status.state == "failed", status
+    reason = status.detail["reason"]
     assert named in reason and str(path) in reason, reason
 
 

@@ -20,6 +20,7 @@ from shared.config import make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.control import send_stop, start_run
+from shared.net.messages import Stop
 from shared.net.security import Security
 from shared.net.wire import encode
 from tests.harness import (
@@ -78,9 +79,7 @@ def test_secure_run_is_exact_and_an_actor_cannot_stop_it(secure, secrets):
         with session(secrets, "actor0", secure.endpoint) as rogue:
             wait_for(lambda: watch.rows, timeout=60, what="a first point")
             send_stop(rogue, watch.run, "forged")
-            rogue.put(
-                keys.k_transitions(watch.run, "actor1"), encode("stop", watch.run, reason="x")
-            )
+            rogue.put(keys.k_transitions(watch.run, "actor1"), encode(Stop(watch.run, reason="x")))
             time.sleep(0.5)
         assert watch.wait(timeout=240) == "completed", watch.states
         wait_final_counts(watch, config)

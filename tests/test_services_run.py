@@ -14,6 +14,7 @@ from shared.config import make_config
 from shared.core.replay import Batch
 from shared.net import bus as keys
 from shared.net.control import discover, start_run
+from shared.net.messages import BonusQuery, BonusReply, Transitions
 from shared.net.wire import decode, encode
 from tests.harness import SMALL, assert_exact, wait_final_counts, wait_for, wait_services
 
@@ -120,17 +121,18 @@ def test_garbage_on_every_key_is_dropped_counted_and_changes_nothing(cluster, bu
     wait_for(lambda: watch.latest.get("learner"), timeout=60, what="learner running")
     wrong_version = msgpack.packb({"v": 99, "type": "transitions", "run": run})
     other_run = encode(
-        "transitions",
-        "no-such-run",
-        actor="actor0",
-        seq=0,
-        obs=np.zeros((20, 14), np.float32),
-        act=np.zeros((20, 5), np.float32),
-        rew=np.zeros(20, np.float32),
-        next_obs=np.zeros((20, 14), np.float32),
-        done=np.zeros(20, np.float32),
-        collisions=np.zeros(20, np.int32),
-        policy_version=0,
+        Transitions(
+            "no-such-run",
+            actor="actor0",
+            seq=0,
+            obs=np.zeros((20, 14), np.float32),
+            act=np.zeros((20, 5), np.float32),
+            rew=np.zeros(20, np.float32),
+            next_obs=np.zeros((20, 14), np.float32),
+            done=np.zeros(20, np.float32),
+            collisions=np.zeros(20, np.int32),
+            policy_version=0,
+        )
     )
     bad = [b"\x00garbage\xff", wrong_version, b""]
     for payload in bad:
@@ -184,7 +186,7 @@ class _FakeBus:
         bonus = self.answers.pop(0)
         if bonus is None:
             return []
-        return [encode("bonus_reply", "r1", counts=np.ones_like(bonus), bonus=bonus)]
+        return [encode(BonusReply("r1", counts=np.ones_like(bonus), bonus=bonus))]
 
     @staticmethod
     def collect(replies: list[bytes]) -> list[bytes]:
@@ -209,7 +211,7 @@ def test_bonus_client_prices_a_ticks_batches_in_one_query_and_splits_the_answer(
     client = BonusClient(svc, "r1", "cen-macb", 0.8, 2)
     got = client.bonus_for(batches)
     assert len(svc.bus.asked) == 1  # one query for the whole tick
-    sent = decode(svc.bus.asked[0], "bonus_query")["obs"]
+    sent = decode(svc.bus.asked[0], BonusQuery).obs
     assert np.array_equal(sent, np.concatenate([b.obs for b in batches]))
     assert [g.shape for g in got] == [(4, 2)] * 6
     assert [float(g[0, 0]) for g in got] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]  # in order

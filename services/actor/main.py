@@ -46,6 +46,7 @@ from shared.core.networks import JointPolicy
 from shared.envs.tasks import TaskEnv, make_task_for
 from shared.envs.vectask import vectorize
 from shared.net import bus as keys
+from shared.net.messages import Ack, Action, ActRequest, Transitions, Weights
 from shared.net.protocol import Rejoin, Sender, episode_share
 from shared.net.wire import encode
 from shared.run.rollout import Collector, VecCollector, make_collector, make_vec_collector
@@ -265,25 +266,23 @@ class ActorService(ServiceBase):
             return
         if tag != "ack":
             return
-        msg = self.decode_for_run(key, payload, "ack")
+        msg = self.decode_for_run(key, payload, Ack)
         ga = self.ga
-        if msg is not None and ga is not None and msg["run"] in ga.senders:
+        if msg is not None and ga is not None and msg.run in ga.senders:
             if ga.rejoin is not None:
-                ga.rejoin.ack(msg["run"], msg["service"], msg["acked"].get(self.id))
+                ga.rejoin.ack(msg.run, msg.service, msg.acked.get(self.id))
                 self.rejoin_if_known()
                 return
-            sender = ga.senders[msg["run"]]
-            sender.on_ack(
-                msg["service"], msg["acked"].get(self.id), time.monotonic(), window=msg["window"]
-            )
+            sender = ga.senders[msg.run]
+            sender.on_ack(msg.service, msg.acked.get(self.id), time.monotonic(), window=msg.window)
             return
         if msg is None or self.st is None:
             return
         if self.st.rejoin is not None:
-            self.st.rejoin.ack(msg["run"], msg["service"], msg["acked"].get(self.id))
+            self.st.rejoin.ack(msg.run, msg.service, msg.acked.get(self.id))
             self.rejoin_if_known()
         self.st.sender.on_ack(
-            msg["service"], msg["acked"].get(self.id), time.monotonic(), window=msg["window"]
+            msg.service, msg.acked.get(self.id), time.monotonic(), window=msg.window
         )
 
     def rejoin_if_known(self) -> None:
@@ -304,37 +303,37 @@ class ActorService(ServiceBase):
         if newest is None:
             return
         key, payload = newest
-        msg = self.decode_for_run(key, payload, "weights")
+        msg = self.decode_for_run(key, payload, Weights)
         if msg is None:
             return
         # A restarted learner numbers its versions on from its last cut: its weights are
         # newer than any of the process before, whatever their number.
-        incarnation = msg["info"].get("incarnation")
-        if msg["version"] > st.version or incarnation != st.incarnation:
-            st.policy.load(msg["actors"])
-            st.version = msg["version"]
+        incarnation = msg.incarnation
+        if msg.version > st.version or incarnation != st.incarnation:
+            st.policy.load(msg.actors)
+            st.version = msg.version
             st.incarnation = incarnation
 
     def on_action(self, key: str, payload: bytes) -> None:
-        msg = self.decode_for_run(key, payload, "action")
+        msg = self.decode_for_run(key, payload, Action)
         ga = self.ga
         if ga is not None:
-            if msg is None or ga.asked is None or msg["seq"] != ga.asked[0]:
+            if msg is None or ga.asked is None or msg.seq != ga.asked[0]:
                 return
-            act = msg["act"]
+            act = msg.act
             if act.shape != (len(ga.runs), len(ga.collector.low)) or not np.isfinite(act).all():
                 self.reject(key, f"action: shape {act.shape} or non-finite values")
                 return
-            ga.action = (msg["seq"], act.astype(np.float32, copy=False))
+            ga.action = (msg.seq, act.astype(np.float32, copy=False))
             return
         st = self.st
-        if msg is None or st is None or st.asked is None or msg["seq"] != st.asked[0]:
+        if msg is None or st is None or st.asked is None or msg.seq != st.asked[0]:
             return  # an answer to a request resent earlier, already taken
-        act = msg["act"]
+        act = msg.act
         if act.shape != st.collector.low.shape or not np.isfinite(act).all():
             self.reject(key, f"action: shape {act.shape} or non-finite values")
             return
-        st.action = (msg["seq"], act.astype(np.float32, copy=False))
+        st.action = (msg.seq, act.astype(np.float32, copy=False))
 
     # ------------------------------------------------------------ work
     def tick(self) -> bool:
@@ -385,7 +384,7 @@ class ActorService(ServiceBase):
             seq = st.sender.seq
         if st.asked is None or now - st.asked[2] > ACT_RESEND_S:
             obs = st.collector.next_obs()
-            st.act_pub(encode("act_request", self.run_id, actor=self.id, seq=seq, obs=obs))
+            st.act_pub(encode(ActRequest(self.run_id, actor=self.id, seq=seq, obs=obs)))
             st.asked = (seq, now if st.asked is None else st.asked[1], now)
         return False
 
@@ -433,7 +432,7 @@ class ActorService(ServiceBase):
         if ga.asked is None or now - ga.asked[2] > ACT_RESEND_S:
             obs = ga.collector.next_obs()
             lead = ga.runs[0]
-            ga.act_pub(encode("act_request", lead, actor=self.id, seq=ga.seq, obs=obs))
+            ga.act_pub(encode(ActRequest(lead, actor=self.id, seq=ga.seq, obs=obs)))
             ga.asked = (ga.seq, now if ga.asked is None else ga.asked[1], now)
         return False
 
@@ -535,17 +534,18 @@ def transitions_payload(
 ) -> bytes:
     """One numbered `transitions` batch (rows seq, seq+1, ...) as the wire carries it."""
     return encode(
-        "transitions",
-        run,
-        actor=actor,
-        seq=seq,
-        obs=np.asarray(obs, np.float32),
-        act=np.asarray(act, np.float32),
-        rew=np.asarray(rew, np.float32),
-        next_obs=np.asarray(next_obs, np.float32),
-        done=np.asarray(done, np.float32),
-        collisions=np.asarray(collisions, np.int32),
-        policy_version=version,
+        Transitions(
+            run,
+            actor=actor,
+            seq=seq,
+            obs=np.asarray(obs, np.float32),
+            act=np.asarray(act, np.float32),
+            rew=np.asarray(rew, np.float32),
+            next_obs=np.asarray(next_obs, np.float32),
+            done=np.asarray(done, np.float32),
+            collisions=np.asarray(collisions, np.int32),
+            policy_version=version,
+        )
     )
 
 

@@ -52,6 +52,7 @@ from shared.groups import group_error, group_key
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.control import NoFreeServices, assign_services, discover, send_start, send_stop
+from shared.net.messages import History, Metrics, Status
 from shared.net.protocol import RunVerdict, run_verdict
 from shared.net.wire import WireError, decode
 
@@ -294,19 +295,19 @@ class Scheduler:
         if w is None:
             return
         try:
-            msg = decode(payload, "metrics")
+            msg = decode(payload, Metrics)
         except WireError:
             return
-        if msg["run"] != run:
+        if msg.run != run:
             return
-        data = flat_row(msg["data"])
-        if msg["source"] == "eval":
+        data = flat_row(msg.data)
+        if msg.source == "eval":
             if isinstance(data.get("episode"), int):
                 rows.setdefault(run, []).append(data)
                 w.live["eval"] = data
                 w.live_dirty = True
         else:
-            w.live[msg["source"]] = data
+            w.live[msg.source] = data
             w.live_dirty = True
 
     def _on_status(self, key: str, payload: bytes) -> None:
@@ -315,22 +316,22 @@ class Scheduler:
         if w is None:
             return
         try:
-            msg = decode(payload, "status")
+            msg = decode(payload, Status)
         except WireError:
             return
-        if msg["run"] != run or self._superseded(w):
+        if msg.run != run or self._superseded(w):
             return
-        w.states[msg["service"]] = {**flat_row(msg["detail"]), "state": msg["state"]}
-        resumed = msg["detail"].get("resumed")
-        if msg["service"] == w.assign["learner"] and isinstance(resumed, dict):
+        w.states[msg.service] = {**flat_row(msg.detail), "state": msg.state}
+        resumed = msg.detail.get("resumed")
+        if msg.service == w.assign["learner"] and isinstance(resumed, dict):
             cut = resumed.get("from_episode")
             where = f"the cut at episode {cut}" if cut is not None else "its log (no cut yet)"
-            note = f"learner {msg['service']} restarted and resumed from {where}"
+            note = f"learner {msg.service} restarted and resumed from {where}"
             if note not in w.notes:
                 w.notes.append(note)
                 log.info("run %s: %s", w.run, note)
                 self.store.set_reason(w.run, "; ".join(w.notes))
-        if msg["service"] == w.assign["evaluator"] and msg["state"] == "completed":
+        if msg.service == w.assign["evaluator"] and msg.state == "completed":
             w.evaluator_done = time.monotonic()
         self.store.set_services(w.run, w.states)
         self._changed()
@@ -681,14 +682,14 @@ class Scheduler:
         rows: list[dict[str, Any]] = []
         for raw in bus.get(keys.k_history(w.run, "eval"), timeout=self.history_timeout_s):
             try:
-                msg = decode(raw, "history")
+                msg = decode(raw, History)
             except WireError:
                 continue
-            if msg["run"] != w.run:
+            if msg.run != w.run:
                 continue
             rows = [
                 flat_row(r)
-                for r in msg["rows"]
+                for r in msg.rows
                 if isinstance(r, dict) and isinstance(r.get("episode"), int)
             ]
             break

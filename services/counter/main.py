@@ -37,6 +37,7 @@ from shared.core.counting import CountTable
 from shared.core.exploration import CountExploration
 from shared.envs.tasks import task_spec_for
 from shared.net.bus import k_ack, k_bonus, k_status, k_transitions, run_of
+from shared.net.messages import Ack, BonusQuery, BonusReply, Status, Transitions
 from shared.net.protocol import ReceiveCursor, Verdict
 from shared.net.wire import WireError, check_dims, encode
 from shared.persist.files import read_json, write_json
@@ -386,15 +387,15 @@ class CounterService(ServiceBase):
             return
         if tag != "transitions":
             return
-        msg = self.decode_for_run(key, payload, "transitions")
+        msg = self.decode_for_run(key, payload, Transitions)
         if msg is None:
             return
-        run = msg["run"]
+        run = msg.run
         st = self._runs.get(run)
         if st is None:
             self.reject(key, f"unknown run: {run}")
             return
-        actor = msg["actor"]
+        actor = msg.actor
         if key.rsplit("/", 1)[-1] != actor:
             with self._lock:
                 st.run_rejects += 1
@@ -409,8 +410,8 @@ class CounterService(ServiceBase):
             return
         if not self._burst:
             self._burst_t = time.monotonic()
-        self._burst.append((run, st, actor, msg["seq"], msg["obs"], msg["act"]))
-        self._burst_rows += len(msg["obs"])
+        self._burst.append((run, st, actor, msg.seq, msg.obs, msg.act))
+        self._burst_rows += len(msg.obs)
         if self._burst_rows >= BURST_MAX_ROWS:
             self._take_burst()
 
@@ -423,15 +424,15 @@ class CounterService(ServiceBase):
         st = self._runs.get(run) if run else None
         if st is None or st.learner is None or key.rsplit("/", 1)[-1] != st.learner:
             return  # other services' status: not ours to act on
-        msg = self.decode_for_run(key, payload, "status")
-        if msg is None or msg["state"] not in ("completed", "failed"):
+        msg = self.decode_for_run(key, payload, Status)
+        if msg is None or msg.state not in ("completed", "failed"):
             return
         self.publish_metrics(run, self._run_stats(st), source="counter")
-        self.on_stop(run, f"learner {msg['state']}")
+        self.on_stop(run, f"learner {msg.state}")
         detail = self._run_stats(st)
-        if msg["state"] == "failed":
+        if msg.state == "failed":
             detail["reason"] = learner_end_reason(msg)
-        self.publish_status(run, msg["state"], **detail)
+        self.publish_status(run, msg.state, **detail)
         self.free(run)
 
     def _take_burst(self) -> None:
@@ -504,7 +505,7 @@ class CounterService(ServiceBase):
     def _ack(self, run: str, st: RunState) -> None:
         with self._lock:
             acked = st.cursor.positions()
-        ack = encode("ack", run, service=self.id, acked=acked, window=0)
+        ack = encode(Ack(run, service=self.id, acked=acked, window=0))
         self.bus.put(k_ack(run, self.id), ack)
 
     # ------------------------------------------------------------ bonus queries
@@ -536,16 +537,16 @@ class CounterService(ServiceBase):
 
     def _answer_bonus(self, key: str, payload: bytes) -> bytes | None:
         t0 = time.perf_counter()
-        msg = self.decode_for_run(key, payload, "bonus_query")
+        msg = self.decode_for_run(key, payload, BonusQuery)
         if msg is None:
             return None
-        run = msg["run"]
+        run = msg.run
         with self._lock:
             st = self._runs.get(run)
         if st is None:
             self.reject(key, f"unknown run: {run}")
             return None
-        obs, act = msg["obs"], msg["act"]
+        obs, act = msg.obs, msg.act
         if obs.ndim != 2 or act.ndim != 2 or len(obs) != len(act):
             with self._lock:
                 st.run_rejects += 1
@@ -574,7 +575,7 @@ class CounterService(ServiceBase):
         with self._lock:
             tables = st.explorer.stats()  # O(1): kept up to date as keys are counted
         reply = encode(
-            "bonus_reply", run, counts=counts_arr, bonus=bonus.astype(np.float32), tables=tables
+            BonusReply(run, counts=counts_arr, bonus=bonus.astype(np.float32), tables=tables)
         )
         elapsed = time.perf_counter() - t0
         with self._lock:

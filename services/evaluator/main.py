@@ -45,6 +45,7 @@ from shared.core.networks import JointPolicy
 from shared.envs.tasks import TaskEnv, TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
 from shared.net import bus as keys
+from shared.net.messages import History, Weights
 from shared.net.wire import encode
 from shared.run.factories import build_learner
 from shared.run.rollout import EvalResult, derive_seed, evaluate, evaluate_group
@@ -59,17 +60,15 @@ GROUP_WAIT_S = 5.0
 
 
 def earliest_point(
-    pending: Iterable[dict[str, Any]], published: Container[int]
-) -> tuple[dict[str, Any], list[int]]:
+    pending: Iterable[Weights], published: Container[int]
+) -> tuple[Weights, list[int]]:
     """The pending weights message of the earliest point, and the earlier points it
     names as unreported that are neither evaluated here nor pending (to wait for)."""
     pending = list(pending)
-    msg = min(pending, key=lambda m: m["eval_point"])
-    here = {m["eval_point"] for m in pending}
+    msg = min(pending, key=lambda m: m.eval_point)
+    here = {m.eval_point for m in pending}
     missing = [
-        q
-        for q in msg["info"].get("unreported", [])
-        if q < msg["eval_point"] and q not in published and q not in here
+        q for q in msg.unreported if q < msg.eval_point and q not in published and q not in here
     ]
     return msg, missing
 
@@ -135,7 +134,7 @@ class EvaluatorRun:
     run: str
     envs: list[TaskEnv]
     policy: JointPolicy | LearnerPolicy
-    pending: collections.deque[dict[str, Any]] = field(default_factory=collections.deque)
+    pending: collections.deque[Weights] = field(default_factory=collections.deque)
     points: int = 0
     published: dict[int, float] = field(default_factory=dict)  # point -> when its row went
     held_since: float | None = None  # the next point waits for an earlier one since then
@@ -176,7 +175,7 @@ class EvaluatorService(ServiceBase):
             if entry is None:
                 return None  # not ours: another evaluator may answer
             state, rows = entry[0], list(entry[1])
-        return encode("history", run, source="eval", rows=rows, state=state)
+        return encode(History(run, source="eval", rows=rows, state=state))
 
     def _remember(self, run: str, state: str, row: dict[str, Any] | None = None) -> None:
         with self._history_lock:
@@ -219,12 +218,12 @@ class EvaluatorService(ServiceBase):
 
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag == "weights":
-            msg = self.decode_for_run(key, payload, "weights")
-            st = self.runs.get(msg["run"]) if msg is not None else None
-            if msg is None or st is None or msg["eval_point"] < 0:
+            msg = self.decode_for_run(key, payload, Weights)
+            st = self.runs.get(msg.run) if msg is not None else None
+            if msg is None or st is None or msg.eval_point < 0:
                 return
-            point = msg["eval_point"]
-            if any(p["eval_point"] == point for p in st.pending):
+            point = msg.eval_point
+            if any(p.eval_point == point for p in st.pending):
                 return  # sent again while we are behind: it is evaluated once
             if point in st.published:  # sent again: its row was lost on the way
                 # ... unless the row went out moments ago: then the learner's resend
@@ -260,7 +259,7 @@ class EvaluatorService(ServiceBase):
                 return None
             self.log.warning(
                 "run %s: point %d evaluated without %s (not resent within %.0f s)",
-                st.run, msg["eval_point"], missing, ORDER_WAIT_S,
+                st.run, msg.eval_point, missing, ORDER_WAIT_S,
             )  # fmt: skip
         st.held_since = None
         st.pending.remove(msg)
@@ -289,13 +288,13 @@ class EvaluatorService(ServiceBase):
         if not heads:
             g.waiting_since = None
             return False
-        point = min(msg["eval_point"] for _, msg, _ in heads)
-        ready = [(st, msg) for st, msg, missing in heads if msg["eval_point"] == point]
+        point = min(msg.eval_point for _, msg, _ in heads)
+        ready = [(st, msg) for st, msg, missing in heads if msg.eval_point == point]
         if len(sts) == len(g.runs) and len(ready) == len(sts) and not any(m for *_, m in heads):
             g.waiting_since = None
             for r, (st, msg) in enumerate(ready):
                 st.pending.remove(msg)
-                g.policy.load(r, msg["actors"])
+                g.policy.load(r, msg.actors)
             cfg = self.active[g.runs[0]]
             results = evaluate_group(g.policy, g.venv, len(g.runs), cfg.eval_episodes)
             for (st, msg), ev in zip(ready, results):
@@ -314,22 +313,22 @@ class EvaluatorService(ServiceBase):
                 return True
         return False
 
-    def evaluate_point(self, st: EvaluatorRun, msg: dict[str, Any]) -> None:
+    def evaluate_point(self, st: EvaluatorRun, msg: Weights) -> None:
         cfg = self.active[st.run]
-        st.policy.load(msg["actors"])
+        st.policy.load(msg.actors)
         self.publish_row(st, msg, evaluate(st.policy, st.envs, cfg.eval_episodes))
 
-    def publish_row(self, st: EvaluatorRun, msg: dict[str, Any], ev: EvalResult) -> None:
+    def publish_row(self, st: EvaluatorRun, msg: Weights, ev: EvalResult) -> None:
         run = st.run
-        info = msg["info"]
+        info = msg.stats
         counts = info.get("counter") or {}  # the counter's stats at this boundary
         bonus = info.get("bonus") or {}  # what the bonus did since the last point
         row = {
-            "episode": msg["eval_point"],
-            "env_steps": msg["env_steps"],
+            "episode": msg.eval_point,
+            "env_steps": msg.env_steps,
             "success_rate": ev.success_rate,
             "eval_return": ev.eval_return,
-            "collisions_cum": msg["collisions_cum"],
+            "collisions_cum": msg.collisions_cum,
             "count1_pct": counts.get("count1_pct", 0.0),
             "table_size": counts.get("table_size", 0),
             "counted_transitions": counts.get("counted_transitions", 0),
@@ -338,15 +337,15 @@ class EvaluatorService(ServiceBase):
             "sampled_count1_pct": bonus.get("sampled_count1_pct", 0.0),
             "steps_per_sec": info.get("steps_per_sec", 0.0),
             "train_steps_per_sec": info.get("steps_per_sec", 0.0),
-            "updates": msg["updates"],
+            "updates": msg.updates,
             "wall_s": info.get("wall_s", 0.0),
             "replay_ratio": info.get("replay_ratio", 0.0),
             "policy_lag": info.get("policy_lag", 0.0),
-            "policy_version": msg["version"],
+            "policy_version": msg.version,
         }
         self._remember(run, "running", row)
         self.publish_metrics(run, row, source="eval")
-        st.published[msg["eval_point"]] = time.monotonic()
+        st.published[msg.eval_point] = time.monotonic()
         st.points += 1
         # The last point is not the end: points lost on the way (weights published
         # before this service had subscribed, a router restart) come again from the
@@ -358,7 +357,7 @@ class EvaluatorService(ServiceBase):
         if st is None:
             return
         # (none left: the learner waited for their rows)
-        for msg in sorted(st.pending, key=lambda m: m["eval_point"]):
+        for msg in sorted(st.pending, key=lambda m: m.eval_point):
             self.evaluate_point(st, msg)
         st.pending.clear()
         self._remember(run, "completed")

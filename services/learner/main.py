@@ -40,6 +40,7 @@ those batches are done again.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 import os
 import time
@@ -61,6 +62,19 @@ from shared.core.replay import ReplayBuffer, update_arrays
 from shared.envs.tasks import TaskSpec, task_spec_for
 from shared.groups import group_error
 from shared.net import bus as keys
+from shared.net.messages import (
+    MESSAGES,
+    Ack,
+    Action,
+    ActRequest,
+    BonusQuery,
+    BonusReply,
+    Message,
+    Metrics,
+    Status,
+    Transitions,
+    Weights,
+)
 from shared.net.protocol import AckTracker, ReceiveCursor, episode_share
 from shared.net.wire import WireError, check_dims, decode, encode
 from shared.persist import provenance
@@ -122,23 +136,23 @@ class BonusClient:
         counter did not answer."""
         return self.answer(self.ask(batches))
 
-    def ask(self, batches: list) -> BonusQuery:
+    def ask(self, batches: list) -> PendingBonus:
         """Send the query for `batches` (a group's runs ask at once, then take the
         answers: their round trips overlap)."""
         sizes = [len(b.rew) for b in batches]
         self.counts = [np.zeros((0, B), np.int64) for B in sizes]  # no tables to count
         if self.mode == "none":
-            return BonusQuery(sizes, [np.zeros((B, self.n), np.float32) for B in sizes])
+            return PendingBonus(sizes, [np.zeros((B, self.n), np.float32) for B in sizes])
         if self.mode == "constant":
-            return BonusQuery(sizes, [np.full((B, self.n), self.beta, np.float32) for B in sizes])
+            return PendingBonus(sizes, [np.full((B, self.n), self.beta, np.float32) for B in sizes])
         obs = np.concatenate([b.obs for b in batches])
         act = np.concatenate([b.act for b in batches])
-        payload = encode("bonus_query", self.run, obs=obs, act=act)
+        payload = encode(BonusQuery(self.run, obs=obs, act=act))
         t0 = time.perf_counter()
         replies = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
-        return BonusQuery(sizes, None, replies, t0)
+        return PendingBonus(sizes, None, replies, t0)
 
-    def answer(self, query: BonusQuery) -> list[np.ndarray] | None:
+    def answer(self, query: PendingBonus) -> list[np.ndarray] | None:
         """The bonuses a query asked for (waiting for its reply); None if the counter
         did not answer."""
         if query.priced is not None:
@@ -150,27 +164,27 @@ class BonusClient:
             self.wait_s += time.perf_counter() - query.t0
         for raw in replies:
             try:
-                msg = decode(raw, "bonus_reply")
+                msg = decode(raw, BonusReply)
             except WireError as err:
                 self.svc.reject(keys.k_bonus(self.run), str(err))
                 continue
-            if msg["bonus"].shape == (rows, self.n):
+            if msg.bonus.shape == (rows, self.n):
                 self.latencies.append(time.perf_counter() - query.t0)
                 self.queries += 1
                 self.rows += rows
-                self.tables = _table_stats(msg.get("tables"))
+                self.tables = _table_stats(msg.tables)
                 self.fresh = True
-                bonus = msg["bonus"].astype(np.float32)
+                bonus = msg.bonus.astype(np.float32)
                 cuts = np.cumsum(sizes)[:-1]
-                if msg["counts"].ndim == 2 and msg["counts"].shape[1] == rows:
-                    self.counts = np.split(msg["counts"], cuts, axis=1)
+                if msg.counts.ndim == 2 and msg.counts.shape[1] == rows:
+                    self.counts = np.split(msg.counts, cuts, axis=1)
                 return np.split(bonus, cuts)
         self.failures += 1
         return None
 
 
 @dataclass
-class BonusQuery:
+class PendingBonus:
     """A bonus query sent: its batches' sizes, and the bonuses when priced here (none,
     constant) or the counter's pending replies."""
 
@@ -184,10 +198,7 @@ def with_unreported(payload: bytes, unreported: list[int]) -> bytes:
     """A kept weights message with its list of earlier unreported points brought up to
     date for a resend: the list of when it first went out may name points whose rows
     have come since (an evaluator restarted in between would wait for them)."""
-    msg = decode(payload, "weights")
-    msg["info"]["unreported"] = unreported
-    fields = {k: v for k, v in msg.items() if k not in ("v", "type", "run")}
-    return encode("weights", msg["run"], **fields)
+    return encode(dataclasses.replace(decode(payload, Weights), unreported=unreported))
 
 
 class EvaluationsInFlight:
@@ -294,7 +305,7 @@ class LearnerRun:
     ack_pub: Callable[[bytes], None]
     received: ReceiveCursor  # what has been taken from each actor (whole episodes only)
     counted: AckTracker  # how far the counter has acknowledged each actor
-    held: dict[str, collections.deque[dict[str, Any]]]  # received, not yet counted
+    held: dict[str, collections.deque[Transitions]]  # received, not yet counted
     final: dict[str, int] = field(default_factory=dict)  # actor -> transitions it published
     ingested: int = 0
     episodes: int = 0
@@ -468,7 +479,7 @@ class LearnerService(ServiceBase):
             if rec.seq < st.ingested_pos.get(rec.actor, 0):  # in replay at the cut
                 st.buffer.add(rows["obs"], rows["act"], rows["rew"], rows["next_obs"], rows["done"])
             else:  # taken, not yet counted at the cut: waits for the counter's ack again
-                st.held[rec.actor].append({"actor": rec.actor, "seq": rec.seq, **rows})
+                st.held[rec.actor].append(Transitions(st.run, rec.actor, rec.seq, **rows))
 
     def _resumed(self, st: LearnerRun, cut: int | None, t0: float) -> dict[str, Any]:
         held = sum(len(h) for h in st.held.values())
@@ -656,8 +667,8 @@ class LearnerService(ServiceBase):
         if tag == "reject":  # found malformed on another thread (on_eval_row)
             self.reject(key, payload.decode(errors="replace"))
             return
-        msg = self.decode_for_run(key, payload, tag)  # (tags are the message types)
-        st = self.runs.get(msg["run"]) if msg is not None else None
+        msg = self.decode_for_run(key, payload, MESSAGES[tag])  # (tags are the types)
+        st = self.runs.get(msg.run) if msg is not None else None
         if msg is None or st is None:
             return  # (a group's run before the group is complete has no state yet)
         try:
@@ -665,23 +676,23 @@ class LearnerService(ServiceBase):
         finally:
             st.time["inbound"] += time.perf_counter() - t0
 
-    def _handle(self, st: LearnerRun, tag: str, key: str, msg: dict[str, Any]) -> None:
-        if tag == "transitions":
+    def _handle(self, st: LearnerRun, tag: str, key: str, msg: Message) -> None:
+        if isinstance(msg, Transitions):
             self.on_transitions(st, key, msg)
-        elif tag == "act_request":
+        elif isinstance(msg, ActRequest):
             if self.group is not None:
                 self.on_group_request(key, msg)
             else:
                 self.on_act_request(st, key, msg)
-        elif tag == "ack":
-            if msg["service"] == st.counter:
-                for actor, seq in msg["acked"].items():
+        elif isinstance(msg, Ack):
+            if msg.service == st.counter:
+                for actor, seq in msg.acked.items():
                     st.counted.ack(actor, seq)
                 self.release_counted(st)
-        elif tag == "status" and msg["service"] in st.actors:
-            if msg["state"] == "completed":
-                st.final[msg["service"]] = int(msg["detail"].get("final_seq", 0))
-            elif msg["state"] == "failed":
+        elif isinstance(msg, Status) and msg.service in st.actors:
+            if msg.state == "completed":
+                st.final[msg.service] = int(msg.detail.get("final_seq", 0))
+            elif msg.state == "failed":
                 self.fail(st, f"actor {msg['service']} failed: {msg['detail']}")
 
     def on_eval_row(self, evaluations: EvaluationsInFlight, key: str, payload: bytes) -> None:
@@ -690,8 +701,8 @@ class LearnerService(ServiceBase):
         malformed row is counted and logged on the service's thread (via the inbox),
         which owns the reject counts that stats() reads."""
         try:
-            msg = decode(payload, "metrics")
-            point = msg["data"]["episode"]
+            msg = decode(payload, Metrics)
+            point = msg.data["episode"]
             if not isinstance(point, int) or isinstance(point, bool):
                 raise WireError(f"metrics: eval row episode is not an int: {point!r}")
         except (WireError, KeyError) as err:
@@ -699,22 +710,22 @@ class LearnerService(ServiceBase):
             return
         evaluations.reported(point)
 
-    def on_transitions(self, st: LearnerRun, key: str, msg: dict[str, Any]) -> None:
-        actor = msg["actor"]
+    def on_transitions(self, st: LearnerRun, key: str, msg: Transitions) -> None:
+        actor = msg.actor
         if not st.received.knows(actor):
             self.reject(key, f"unknown actor: {actor}")
             return
         check_dims(msg, st.spec.joint_obs_dim, st.spec.joint_act_dim)
-        n = len(msg["rew"])
+        n = len(msg)
         if n != (1 if st.lockstep else st.config.episode_len):
             length = st.config.episode_len
             what = "one step (lockstep)" if st.lockstep else f"one episode ({length})"
             raise WireError(f"transitions: a batch is {what}, got {n}")
         # A duplicate (a resend) or a gap is not taken; either way the ack tells the
         # actor again where we are, and it resends from there.
-        if st.received.take(actor, msg["seq"], n).took:
+        if st.received.take(actor, msg.seq, n).took:
             if st.log is not None:  # logged before the ack below says we have it
-                st.log.append(actor, msg["seq"], n, _log_columns(msg))
+                st.log.append(actor, msg.seq, n, _log_columns(msg))
             st.held[actor].append(msg)
             self.release_counted(st)
         self.send_ack(st)
@@ -722,19 +733,17 @@ class LearnerService(ServiceBase):
     def release_counted(self, st: LearnerRun) -> None:
         """Move batches the counter has counted (or all, with no counting) into replay."""
         for actor, held in st.held.items():
-            while held and (
-                not st.counting or st.counted.covers(actor, held[0]["seq"], len(held[0]["rew"]))
-            ):
+            while held and (not st.counting or st.counted.covers(actor, held[0].seq, len(held[0]))):
                 self.ingest(st, held.popleft())
 
-    def ingest(self, st: LearnerRun, msg: dict[str, Any]) -> None:
-        n, seq, length = len(msg["rew"]), msg["seq"], st.config.episode_len
-        st.buffer.add(msg["obs"], msg["act"], msg["rew"], msg["next_obs"], msg["done"])
+    def ingest(self, st: LearnerRun, msg: Transitions) -> None:
+        n, seq, length = len(msg), msg.seq, st.config.episode_len
+        st.buffer.add(msg.obs, msg.act, msg.rew, msg.next_obs, msg.done)
         st.ingested += n
-        st.ingested_pos[msg["actor"]] = seq + n
-        st.collisions_cum += int(msg["collisions"].sum())
+        st.ingested_pos[msg.actor] = seq + n
+        st.collisions_cum += int(msg.collisions.sum())
         # Lockstep: every action came from the weights of that moment (no lag).
-        st.lags.append(0 if st.lockstep else st.version - msg["policy_version"])
+        st.lags.append(0 if st.lockstep else st.version - msg.policy_version)
         if (seq + n) // length > seq // length:  # the batch ends one of the actor's episodes
             st.episodes += 1
             boundary = Boundary(st.episodes, st.owed_total, st.ingested, st.collisions_cum)
@@ -867,20 +876,20 @@ class LearnerService(ServiceBase):
                 st.diagnostics.record(bonus, counts[j] if len(counts) == len(bonuses) else [])
         return True
 
-    def on_group_request(self, key: str, msg: dict[str, Any]) -> None:
+    def on_group_request(self, key: str, msg: ActRequest) -> None:
         g = self.group
         assert g is not None
-        if msg["actor"] != g.actor or keys.run_of(key) != g.runs[0]:
+        if msg.actor != g.actor or keys.run_of(key) != g.runs[0]:
             self.reject(key, f"act_request from {msg['actor']}: not this group's actor")
             return
-        obs = msg["obs"]
+        obs = msg.obs
         dim = self.runs[g.runs[0]].spec.joint_obs_dim
         if obs.shape != (len(g.runs), dim) or not np.isfinite(obs).all():
             raise WireError(f"act_request: obs {obs.shape}, the group has ({len(g.runs)}, {dim})")
-        if g.answered is not None and g.answered[0] == msg["seq"]:
+        if g.answered is not None and g.answered[0] == msg.seq:
             g.action_pub(g.answered[1])  # the answer was lost: the same actions again
             return
-        g.wanted = (msg["seq"], np.array(obs, np.float32))
+        g.wanted = (msg.seq, np.array(obs, np.float32))
 
     def answer_group(self, g: LockstepGroup) -> None:
         """Act for the group's request once every run has its earlier steps counted,
@@ -902,7 +911,7 @@ class LearnerService(ServiceBase):
             if g.learner.updates < st.owed_total or st.boundaries:
                 return  # its updates (and the weights of an episode's end) come first
         act = g.learner.act(obs[:, None])[:, 0].astype(np.float32)
-        payload = encode("action", g.runs[0], seq=seq, act=act)
+        payload = encode(Action(g.runs[0], seq=seq, act=act))
         g.wanted, g.answered = None, (seq, payload)
         g.action_pub(payload)
 
@@ -918,18 +927,18 @@ class LearnerService(ServiceBase):
                 self.free(run)
 
     # ------------------------------------------------------------ lockstep
-    def on_act_request(self, st: LearnerRun, key: str, msg: dict[str, Any]) -> None:
-        actor, obs = msg["actor"], msg["obs"]
+    def on_act_request(self, st: LearnerRun, key: str, msg: ActRequest) -> None:
+        actor, obs = msg.actor, msg.obs
         if not st.lockstep or actor not in st.action_pubs:
             self.reject(key, f"act_request from {actor}: not a lockstep actor of this run")
             return
         if obs.shape != (st.spec.joint_obs_dim,) or not np.isfinite(obs).all():
             raise WireError(f"act_request: obs {obs.shape}, run has ({st.spec.joint_obs_dim},)")
         last = st.answered.get(actor)
-        if last is not None and last[0] == msg["seq"]:
+        if last is not None and last[0] == msg.seq:
             st.action_pubs[actor](last[1])  # the answer was lost: the same action again
             return
-        st.wanted[actor] = (msg["seq"], np.array(obs, np.float32))
+        st.wanted[actor] = (msg.seq, np.array(obs, np.float32))
 
     def answer_act_requests(self, st: LearnerRun) -> None:
         """Act for each request whose earlier steps are all counted, in replay and
@@ -940,7 +949,7 @@ class LearnerService(ServiceBase):
             if st.learner.updates < st.owed_total or st.boundaries:
                 return  # its updates (and the weights of an episode's end) come first
             act = st.learner.act(obs[None])[0].astype(np.float32)
-            payload = encode("action", st.run, seq=seq, act=act)
+            payload = encode(Action(st.run, seq=seq, act=act))
             del st.wanted[actor]
             st.answered[actor] = (seq, payload)
             st.action_pubs[actor](payload)
@@ -971,26 +980,27 @@ class LearnerService(ServiceBase):
         if st.member >= 0 and eval_point < 0:
             return  # a group's actor acts by request: only evaluation points need weights
         payload = encode(
-            "weights",
-            st.run,
-            version=st.version,
-            updates=st.learner.updates,
-            env_steps=env_steps,
-            episodes=episode,
-            eval_point=eval_point,
-            collisions_cum=collisions,
-            actors=weights_as_arrays(st.learner.actor_weights()),
-            info={
-                **self.stats(st),
-                "incarnation": st.incarnation,
+            Weights(
+                st.run,
+                version=st.version,
+                updates=st.learner.updates,
+                env_steps=env_steps,
+                episodes=episode,
+                eval_point=eval_point,
+                collisions_cum=collisions,
+                actors=weights_as_arrays(st.learner.actor_weights()),
+                stats={
+                    **self.stats(st),
+                    "counter": self.counter_stats(st) if eval_point >= 0 else {},
+                    # What the bonus did on the rows sampled since the last point.
+                    "bonus": st.diagnostics.take() if eval_point >= 0 else {},
+                },
+                incarnation=st.incarnation,
                 # The points before this one that had no row when it went out: the
                 # evaluator evaluates those first, so a run's rows come in episode order
                 # even after an evaluator restart (the new point can beat the resends).
-                "unreported": sorted(p for p in st.evaluations.unreported if p < eval_point),
-                "counter": self.counter_stats(st) if eval_point >= 0 else {},
-                # What the bonus did on the rows sampled since the last point.
-                "bonus": st.diagnostics.take() if eval_point >= 0 else {},
-            },
+                unreported=sorted(p for p in st.evaluations.unreported if p < eval_point),
+            )
         )
         if eval_point >= 0:
             # Noted before it goes out: the evaluator's report may come back at once.
@@ -1049,13 +1059,7 @@ class LearnerService(ServiceBase):
         st.last_ack = time.monotonic()
         window = WINDOW_EPISODES * st.config.episode_len if st.window_open else 0
         st.ack_pub(
-            encode(
-                "ack",
-                st.run,
-                service=self.id,
-                acked=st.received.positions(),
-                window=window,
-            )
+            encode(Ack(st.run, service=self.id, acked=st.received.positions(), window=window))
         )
 
     def stats(self, st: LearnerRun) -> dict[str, Any]:
@@ -1225,15 +1229,15 @@ class LearnerService(ServiceBase):
         return st.episodes
 
 
-def _log_columns(msg: dict[str, Any]) -> list[np.ndarray]:
+def _log_columns(msg: Transitions) -> list[np.ndarray]:
     """A transitions batch as the log's byte columns (LOG_COLUMNS)."""
-    n = len(msg["rew"])
+    n = len(msg)
     out = []
     for name, dtype in LOG_COLUMNS:
         if name == "policy_version":
-            col = np.full(n, msg["policy_version"], dtype)
+            col = np.full(n, msg.policy_version, dtype)
         else:
-            col = np.ascontiguousarray(msg[name], dtype=dtype)
+            col = np.ascontiguousarray(getattr(msg, name), dtype=dtype)
         out.append(col.reshape(n, -1).view(np.uint8))
     return out
 

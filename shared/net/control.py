@@ -19,6 +19,7 @@ from typing import Any
 from shared.config import TrainConfig, actors_error
 from shared.net import bus as keys
 from shared.net.bus import Bus
+from shared.net.messages import Metrics, Start, Status, Stop
 from shared.net.protocol import RunVerdict, run_verdict
 from shared.net.wire import WireError, decode, encode
 
@@ -109,12 +110,12 @@ def start_group(
 def send_start(bus: Bus, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
     bus.put(
         keys.k_control("start"),
-        encode("start", run, config=config.model_dump(mode="json"), assign=assign),
+        encode(Start(run, config=config.model_dump(mode="json"), assign=assign)),
     )
 
 
 def send_stop(bus: Bus, run: str, reason: str = "stopped by user") -> None:
-    bus.put(keys.k_control("stop"), encode("stop", run, reason=reason))
+    bus.put(keys.k_control("stop"), encode(Stop(run, reason=reason)))
 
 
 @dataclass
@@ -137,28 +138,28 @@ class RunWatch:
 
     def _on_metrics(self, key: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, "metrics")
+            msg = decode(payload, Metrics)
         except WireError:
             return
         with self.changed:
-            self.latest[msg["source"]] = msg["data"]
+            self.latest[msg.source] = msg.data
             # Rows come at least once: an evaluation point the learner sent again (it
             # restarted, or saw no row) is published again. One row per episode is kept.
-            episode = msg["data"].get("episode")
-            if msg["source"] == "eval" and episode not in self._episodes:
+            episode = msg.data.get("episode")
+            if msg.source == "eval" and episode not in self._episodes:
                 self._episodes.add(episode)
-                self.rows.append(msg["data"])
+                self.rows.append(msg.data)
                 if self.on_row:
-                    self.on_row(msg["data"])
+                    self.on_row(msg.data)
             self.changed.notify_all()
 
     def _on_status(self, key: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, "status")
+            msg = decode(payload, Status)
         except WireError:
             return
         with self.changed:
-            self.states[msg["service"]] = {"state": msg["state"], **msg["detail"]}
+            self.states[msg.service] = {"state": msg.state, **msg.detail}
             self.changed.notify_all()
 
     def verdict(self) -> RunVerdict:

@@ -1,7 +1,8 @@
 """The message codec: msgpack maps with a schema version, validated on the way in.
 
-This is the only module that imports msgpack. Every message is a map with
-`v` (schema version), `type` and `run`; numpy arrays travel as maps
+This is the only module that imports msgpack. Every message is one of
+shared/net/messages.py's dataclasses, sent as a map with `v` (schema version), `type`,
+`run` and its fields; numpy arrays travel as maps
 {"nd": dtype, "shape": [...], "data": bytes} restricted to plain numeric dtypes
 (never objects, never pickle). `decode` checks the version, the type, the presence
 and type of every field, and array dtypes and shapes where the schema fixes them;
@@ -10,58 +11,37 @@ anything else raises `WireError`, which services count, log and drop.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from typing import Any
+from typing import Any, TypeVar, overload
 
 import msgpack
 import numpy as np
 
-SCHEMA_VERSION = 1
+from shared.net.messages import MESSAGES, BonusQuery, Message, Transitions
+
+# 2: messages are shared/net/messages.py's dataclasses; the weights' incarnation and
+# unreported points are fields of their own (version 1 carried them in its stats map).
+SCHEMA_VERSION = 2
 _DTYPES = {"<f4", "<f8", "<i8", "<i4", "|u1", "|b1"}
 _NP_DTYPES = {d: np.dtype(d) for d in _DTYPES}
 
-# type -> {field: python type(s)}; "nd" marks an ndarray field.
+M = TypeVar("M", bound=Message)
+
+
+def _kind(annotation: str) -> Any:
+    """The check of a field of type `annotation`: a Python type, or "nd" for an array."""
+    if annotation == "np.ndarray":
+        return "nd"
+    base = annotation.split("[")[0]
+    return {"str": str, "int": int, "dict": dict, "list": list}[base]
+
+
+# type -> {field: python type, or "nd" for an ndarray}: what decode checks, from the
+# dataclasses themselves.
 SCHEMAS: dict[str, dict[str, Any]] = {
-    # actor -> counter, learner: a batch of numbered training transitions
-    "transitions": {
-        "actor": str,  # service id of the actor
-        "seq": int,  # number of the first transition in the batch (0-based, per actor)
-        "obs": "nd",  # (n, joint_obs) float32
-        "act": "nd",  # (n, joint_act) float32
-        "rew": "nd",  # (n,) float32, extrinsic
-        "next_obs": "nd",
-        "done": "nd",  # (n,) float32
-        "collisions": "nd",  # (n,) int32
-        "policy_version": int,  # weights version that chose these actions
-    },
-    # counter/learner -> actors: next expected seq per actor; window = credits (learner)
-    "ack": {"service": str, "acked": dict, "window": int},
-    # learner -> actors, evaluator: actor weights (latest only matters)
-    "weights": {
-        "version": int,
-        "updates": int,
-        "env_steps": int,
-        "episodes": int,
-        "eval_point": int,  # episode number to evaluate at, or -1
-        "collisions_cum": int,
-        "actors": list,  # per agent: {param name: ndarray}
-        "info": dict,  # learner stats at this point (replay_ratio, policy_lag, wall_s, ...)
-    },
-    # interleave lockstep (central inference): actor -> learner, the observation its
-    # step `seq` acts on; the learner answers once every step before it is learnt
-    "act_request": {"actor": str, "seq": int, "obs": "nd"},  # obs (joint_obs,) float32
-    # learner -> that actor: the policy's action for step `seq` (noise is the actor's)
-    "action": {"seq": int, "act": "nd"},  # (joint_act,) float32
-    "bonus_query": {"obs": "nd", "act": "nd"},
-    "bonus_reply": {"counts": "nd", "bonus": "nd"},
-    # any service -> watchers: a metric point or stats
-    "metrics": {"source": str, "data": dict},
-    # evaluator -> API (reply to a history get): every row published for the run so far
-    "history": {"source": str, "rows": list, "state": str},
-    # run control
-    "start": {"config": dict, "assign": dict},
-    "stop": {"reason": str},
-    "status": {"service": str, "state": str, "detail": dict},
+    type_: {f.name: _kind(str(f.type)) for f in dataclasses.fields(cls) if f.name != "run"}
+    for type_, cls in MESSAGES.items()
 }
 
 
@@ -98,19 +78,19 @@ def _unpack_hook(obj: dict) -> Any:
     return obj
 
 
-def encode(type_: str, run: str, **fields: Any) -> bytes:
-    """Build and serialize a message; the same schema `decode` enforces."""
-    if type_ not in SCHEMAS:
-        raise ValueError(f"unknown message type {type_!r}")
-    missing = set(SCHEMAS[type_]) - set(fields)
-    if missing:
-        raise ValueError(f"{type_} message lacks {sorted(missing)}")
-    msg = {"v": SCHEMA_VERSION, "type": type_, "run": run, **fields}
-    return msgpack.packb(msg, default=_pack_default, use_bin_type=True)
+def encode(msg: Message) -> bytes:
+    """Serialize a message; `decode` checks it against the same schema."""
+    body = {"v": SCHEMA_VERSION, "type": msg.TYPE, "run": msg.run, **msg.fields()}
+    return msgpack.packb(body, default=_pack_default, use_bin_type=True)
 
 
-def decode(payload: bytes, expect: str | None = None) -> dict[str, Any]:
-    """Parse and validate; raises WireError for anything a service must not act on."""
+@overload
+def decode(payload: bytes, expect: type[M]) -> M: ...
+@overload
+def decode(payload: bytes, expect: None = None) -> Message: ...
+def decode(payload: bytes, expect: type[Message] | None = None) -> Message:
+    """Parse and validate into its message class (`expect`'s, or any); raises WireError
+    for anything a service must not act on."""
     try:
         msg = msgpack.unpackb(
             payload, object_hook=_unpack_hook, raw=False, strict_map_key=False, max_bin_len=64 << 20
@@ -124,7 +104,7 @@ def decode(payload: bytes, expect: str | None = None) -> dict[str, Any]:
     if msg.get("v") != SCHEMA_VERSION:
         raise WireError(f"schema version {msg.get('v')!r}, expected {SCHEMA_VERSION}")
     type_ = msg.get("type")
-    if type_ not in SCHEMAS or (expect is not None and type_ != expect):
+    if type_ not in SCHEMAS or (expect is not None and type_ != expect.TYPE):
         raise WireError(f"unexpected message type {type_!r}")
     if not isinstance(msg.get("run"), str):
         raise WireError("message lacks a run id")
@@ -139,7 +119,7 @@ def decode(payload: bytes, expect: str | None = None) -> dict[str, Any]:
             raise WireError(f"{type_}: field {field!r} is not {kind.__name__}")
     if type_ == "transitions":
         _check_transitions(msg)
-    return msg
+    return MESSAGES[type_](run=msg["run"], **{f: msg[f] for f in SCHEMAS[type_]})
 
 
 def _check_transitions(msg: dict) -> None:
@@ -156,12 +136,12 @@ def _check_transitions(msg: dict) -> None:
         raise WireError("transitions: obs and next_obs differ in shape")
 
 
-def check_dims(msg: dict, obs_dim: int, act_dim: int) -> None:
+def check_dims(msg: Transitions | BonusQuery, obs_dim: int, act_dim: int) -> None:
     """The run's layout: a batch for another task's dimensions is refused."""
-    obs, act = msg["obs"], msg["act"]
+    obs, act = msg.obs, msg.act
     if obs.shape[1] != obs_dim or act.shape[1] != act_dim:
         raise WireError(
-            f"{msg['type']}: dims ({obs.shape[1]}, {act.shape[1]}), run has ({obs_dim}, {act_dim})"
+            f"{msg.TYPE}: dims ({obs.shape[1]}, {act.shape[1]}), run has ({obs_dim}, {act_dim})"
         )
     if not (np.isfinite(obs).all() and np.isfinite(act).all()):
-        raise WireError(f"{msg['type']}: non-finite values")
+        raise WireError(f"{msg.TYPE}: non-finite values")

@@ -1,0 +1,187 @@
+"""The messages on the bus, one frozen dataclass each.
+
+A transition's path reads as types: the actor sends `Transitions` (or, in lockstep, an
+`ActRequest` the learner answers with an `Action`); the counter and the learner each
+answer with an `Ack`; the learner asks the counter `BonusQuery` -> `BonusReply` at
+sample time and publishes `Weights`, which the actors act with and the evaluator
+evaluates at `Weights.eval_point`. `Start`, `Stop` and `Status` run the runs; `Metrics`
+and `History` carry their rows.
+
+shared/net/wire.py derives its schema (field names and types, checked on every decode)
+from these classes, so a field added here is on the wire and checked there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Message:
+    """Every message names its run."""
+
+    TYPE: ClassVar[str] = ""
+    run: str
+
+    def fields(self) -> dict[str, Any]:
+        """The message's fields but its run, as the wire carries them."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "run"}
+
+
+@dataclass(frozen=True)
+class Transitions(Message):
+    """actor -> counter, learner: numbered training transitions."""
+
+    TYPE: ClassVar[str] = "transitions"
+    actor: str  # service id of the actor
+    seq: int  # number of the first transition in the batch (0-based, per actor)
+    obs: np.ndarray  # (n, joint_obs) float32
+    act: np.ndarray  # (n, joint_act) float32
+    rew: np.ndarray  # (n,) float32, extrinsic
+    next_obs: np.ndarray  # (n, joint_obs) float32
+    done: np.ndarray  # (n,) float32
+    collisions: np.ndarray  # (n,) int32
+    policy_version: int  # the weights' version that chose these actions
+
+    def __len__(self) -> int:
+        return len(self.rew)
+
+
+@dataclass(frozen=True)
+class Ack(Message):
+    """counter, learner -> actors: the next sequence number expected from each actor;
+    `window`: the learner's credits (how far an actor may run ahead), 0 from the counter."""
+
+    TYPE: ClassVar[str] = "ack"
+    service: str
+    acked: dict[str, int]
+    window: int
+
+
+@dataclass(frozen=True)
+class Weights(Message):
+    """learner -> actors, evaluator: the actors' weights after `updates` updates (only the
+    latest matters to an actor; the evaluator evaluates every `eval_point`)."""
+
+    TYPE: ClassVar[str] = "weights"
+    version: int
+    updates: int
+    env_steps: int
+    episodes: int
+    eval_point: int  # the episode to evaluate at, or -1
+    collisions_cum: int
+    actors: list[dict[str, np.ndarray]]  # per agent: {parameter name: array}
+    stats: dict[str, Any]  # the learner's stats at this point, for the evaluator's row
+    incarnation: str  # the learner process that made them: a restart's weights are new
+    # earlier evaluation points with no row yet, so the evaluator waits for them first
+    unreported: list[int] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class ActRequest(Message):
+    """actor -> learner (lockstep): the observations step `seq` acts on; answered once
+    every earlier step is counted, in replay and learnt. (joint_obs,) for a run, (R,
+    joint_obs) for a run group's R worlds."""
+
+    TYPE: ClassVar[str] = "act_request"
+    actor: str
+    seq: int
+    obs: np.ndarray
+
+
+@dataclass(frozen=True)
+class Action(Message):
+    """learner -> that actor: the policy's action(s) for step `seq` (noise is the actor's)."""
+
+    TYPE: ClassVar[str] = "action"
+    seq: int
+    act: np.ndarray
+
+
+@dataclass(frozen=True)
+class BonusQuery(Message):
+    """learner -> counter: the rows of a sampled minibatch to price."""
+
+    TYPE: ClassVar[str] = "bonus_query"
+    obs: np.ndarray
+    act: np.ndarray
+
+
+@dataclass(frozen=True)
+class BonusReply(Message):
+    """counter -> learner: each row's count and bonus, from the counts at that moment,
+    and the counter's table stats then (what the learner's next point reports)."""
+
+    TYPE: ClassVar[str] = "bonus_reply"
+    counts: np.ndarray
+    bonus: np.ndarray
+    tables: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Metrics(Message):
+    """any service -> watchers: a metric point or stats."""
+
+    TYPE: ClassVar[str] = "metrics"
+    source: str
+    data: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class History(Message):
+    """evaluator -> the API (a reply to a history get): every row of the run so far."""
+
+    TYPE: ClassVar[str] = "history"
+    source: str
+    rows: list[dict[str, Any]]
+    state: str
+
+
+@dataclass(frozen=True)
+class Start(Message):
+    """control -> services: start (or join) a run; `assign` names the services that
+    serve it."""
+
+    TYPE: ClassVar[str] = "start"
+    config: dict[str, Any]
+    assign: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Stop(Message):
+    """control -> services: stop a run."""
+
+    TYPE: ClassVar[str] = "stop"
+    reason: str
+
+
+@dataclass(frozen=True)
+class Status(Message):
+    """a service -> watchers: its state in a run (running, completed, failed, ...)."""
+
+    TYPE: ClassVar[str] = "status"
+    service: str
+    state: str
+    detail: dict[str, Any]
+
+
+MESSAGES: dict[str, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (
+        Transitions,
+        Ack,
+        Weights,
+        ActRequest,
+        Action,
+        BonusQuery,
+        BonusReply,
+        Metrics,
+        History,
+        Start,
+        Stop,
+        Status,
+    )
+}
