@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from cli.figures import FigureDef, arm_configs, control_of, is_macb, split_base
+from cli.results import claims_record
 from shared.config import TrainConfig
 
 SMOOTH_SHARE = 0.02
@@ -585,10 +586,17 @@ def write_report(
     out: Path,
     command: str | None = None,
 ) -> list[Path]:
-    """FIGURE.png, FIGURE.md and FIGURE.csv in out/."""
+    """FIGURE.png, FIGURE.md, FIGURE.csv and FIGURE-claims.json (for `macb results`) in out/."""
     out.mkdir(parents=True, exist_ok=True)
     name = a.fig.name
     png = write_png(a, profile, out / f"{name}.png")
     md = out / f"{name}.md"
     md.write_text(markdown(a, profile, png.name, command))
-    return [png, md, write_csv(a.experiment, points, out / f"{name}.csv")]
+    lengths = [arm.length for arm in a.arms.values() if arm.runs]
+    record = claims_record(
+        name, profile, claim_verdicts(a), min(lengths, default=0), a.fig.episodes,
+        list(a.experiment.get("seeds") or []),
+    )  # fmt: skip
+    claims = out / f"{name}-claims.json"
+    claims.write_text(json.dumps(record, indent=1) + "\n")
+    return [png, md, write_csv(a.experiment, points, out / f"{name}.csv"), claims]

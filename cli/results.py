@@ -1,0 +1,150 @@
+"""`macb results`: docs/results/README.md's table of every thesis claim, from the pages.
+
+Each figure's page (`macb reproduce FIGURE`, written by cli/report.py) keeps its
+verdicts in `FIGURE-claims.json`. This command reads every page under a results folder
+and writes one row per claim of cli/figures.py (every claim of the thesis's sections
+6.1-6.4): what the thesis reports, what each profile measured and how long its runs
+were, and the verdicts; a claim with no page says `not run`. The README's prose stays
+as written: only the part between the two markers is generated, so the table can never
+disagree with the pages (`--check` fails when it does).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from cli.figures import FIGURES, PROFILES
+
+BEGIN = "<!-- results:begin (macb results writes this part) -->"
+END = "<!-- results:end -->"
+CLAIMS_FORMAT = 1
+
+
+def claims_record(figure: str, profile: str, verdicts: list, reached: int, full: int,
+                  seeds: list[int]) -> dict[str, Any]:  # fmt: skip
+    """What a page says about its claims, for `macb results`."""
+    return {
+        "format": CLAIMS_FORMAT,
+        "figure": figure,
+        "profile": profile,
+        "episodes_reached": reached,
+        "episodes_full": full,
+        "seeds": seeds,
+        "claims": [
+            {"text": c.text, "measured": text, "verdict": verdict} for c, text, verdict in verdicts
+        ],
+    }
+
+
+def read_pages(root: Path) -> dict[tuple[str, str], tuple[Path, dict[str, Any]]]:
+    """(figure, profile) -> (its page's claims file, the record) for every page under root.
+    A claims file that cannot be read is refused, naming it."""
+    pages: dict[tuple[str, str], tuple[Path, dict[str, Any]]] = {}
+    for path in sorted(root.glob("*/*-claims.json")):
+        try:
+            record = json.loads(path.read_text())
+            key = (record["figure"], record["profile"])
+            if record.get("format") != CLAIMS_FORMAT or key[0] not in FIGURES:
+                raise ValueError(f"format {record.get('format')!r}, figure {key[0]!r}")
+            if key[1] not in PROFILES or not isinstance(record["claims"], list):
+                raise ValueError(f"profile {key[1]!r}")
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise SystemExit(f"macb results: {path}: not a claims file ({err})") from None
+        if key in pages:
+            raise SystemExit(f"macb results: {path} and {pages[key][0]} both hold {key}")
+        pages[key] = (path, record)
+    return pages
+
+
+def _ours(page: tuple[Path, dict[str, Any]] | None, claim: str, root: Path) -> tuple[str, str]:
+    """(the measured cell, the verdict) of one claim on one page."""
+    if page is None:
+        return "not run", "not run"
+    path, record = page
+    found = next((c for c in record["claims"] if c["text"] == claim), None)
+    if found is None:
+        return f"not on [the page]({path.parent.relative_to(root)}/)", "not run"
+    return found["measured"], found["verdict"]
+
+
+def _length(record: dict[str, Any]) -> str:
+    reached, full = record["episodes_reached"], record["episodes_full"]
+    seeds = len(record["seeds"])
+    length = "full length" if reached >= full else f"{reached:,} of {full:,} episodes"
+    return f"{length}, {seeds} seed{'s' * (seeds != 1)}"
+
+
+def table(root: Path) -> str:
+    """The generated part of the README: the pages, then one row per claim."""
+    pages = read_pages(root)
+    lines = ["| page | figure | profile | length |", "|---|---|---|---|"]
+    for (figure, profile), (path, record) in sorted(pages.items()):
+        link = f"[{path.parent.name}]({path.parent.name}/{figure}.md)"
+        lines.append(f"| {link} | {figure} | {profile} | {_length(record)} |")
+    if not pages:
+        lines.append("| (none yet) | | | |")
+    lines += [
+        "",
+        "| figure | the thesis says | where | the thesis | ours, profile thesis "
+        "| ours, profile mpe2 | verdict (thesis; mpe2) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for fig in FIGURES.values():
+        for claim in fig.claims:
+            cells = [_ours(pages.get((fig.name, p)), claim.text, root) for p in PROFILES]
+            by_profile = dict(zip(PROFILES, cells, strict=True))
+            verdict = "; ".join(by_profile[p][1] for p in ("thesis", "mpe2"))
+            lines.append(
+                f"| {fig.name} | {claim.text} | {claim.where} | {claim.thesis} "
+                f"| {by_profile['thesis'][0]} | {by_profile['mpe2'][0]} | {verdict} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def render(readme: str, generated: str) -> str:
+    """The README with its generated part replaced (the markers must be there)."""
+    if BEGIN not in readme or END not in readme:
+        raise SystemExit(f"macb results: the README lacks its markers {BEGIN!r} ... {END!r}")
+    head, rest = readme.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    return f"{head}{BEGIN}\n{generated}{END}{tail}"
+
+
+def cmd_results(args: argparse.Namespace) -> int:
+    root = Path(args.dir)
+    readme = root / "README.md"
+    if not readme.is_file():
+        print(f"macb results: no {readme}", file=sys.stderr)
+        return 2
+    old = readme.read_text()
+    new = render(old, table(root))
+    if args.check:
+        if new != old:
+            print(f"macb results: {readme} is not what its pages say; run `macb results "
+                  f"--dir {root}`", file=sys.stderr)  # fmt: skip
+            return 1
+        print(f"{readme}: up to date with its {len(read_pages(root))} page(s)")
+        return 0
+    readme.write_text(new)
+    print(f"wrote {readme} from {len(read_pages(root))} page(s)")
+    return 0
+
+
+def add_results_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "results",
+        help="rebuild docs/results/README.md's table of the thesis's claims from the pages",
+        description="Read every figure page under DIR (the FIGURE-claims.json that `macb "
+        "reproduce` writes beside FIGURE.md) and write the table of every claim of the "
+        "thesis, the thesis's number beside each profile's measured one and its verdict, "
+        "into DIR/README.md between its markers.",
+    )
+    p.add_argument("--dir", default="docs/results", help="the results folder")
+    p.add_argument(
+        "--check", action="store_true", help="write nothing; exit 1 if the README is stale"
+    )
+    p.set_defaults(func=cmd_results)

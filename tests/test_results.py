@@ -1,0 +1,84 @@
+"""`macb results`: docs/results/README.md's claims table is what the figure pages say."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cli.figures import FIGURES
+from cli.results import BEGIN, END, render, table
+
+ROOT = Path(__file__).resolve().parents[1]
+FIG3 = FIGURES["fig3"]
+
+
+def _page(root: Path, name: str, profile: str, reached: int, verdict: str) -> Path:
+    folder = root / name
+    folder.mkdir(parents=True)
+    claims = [{"text": c.text, "measured": f"measured {i}", "verdict": verdict}
+              for i, c in enumerate(FIG3.claims)]  # fmt: skip
+    record = {"format": 1, "figure": "fig3", "profile": profile, "episodes_reached": reached,
+              "episodes_full": 5000, "seeds": [0, 1, 2], "claims": claims}  # fmt: skip
+    path = folder / "fig3-claims.json"
+    path.write_text(json.dumps(record))
+    return path
+
+
+def _results(tmp_path: Path) -> Path:
+    root = tmp_path / "results"
+    root.mkdir()
+    (root / "README.md").write_text(f"# Results\n\nprose\n\n{BEGIN}\nold\n{END}\n\nafter\n")
+    return root
+
+
+def macb(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "cli", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120, check=False)  # fmt: skip
+
+
+def test_each_claim_shows_each_profiles_page_and_claims_without_one_say_not_run(tmp_path):
+    root = _results(tmp_path)
+    _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced")
+    _page(root, "fig3-thesis", "thesis", 1200, "not run to that length")
+    text = table(root)
+    assert "| [fig3-mpe2](fig3-mpe2/fig3.md) | fig3 | mpe2 | full length, 3 seeds |" in text
+    assert "| fig3 | thesis | 1,200 of 5,000 episodes, 3 seeds |" in text
+    rows = [line for line in text.splitlines() if line.startswith("| fig3 | ")]
+    assert len(rows) == len(FIG3.claims)
+    for i, row in enumerate(rows):
+        assert f"| measured {i} | measured {i} | not run to that length; reproduced |" in row
+    others = [line for line in text.splitlines() if line.startswith("| fig8 | ")]
+    assert len(others) == len(FIGURES["fig8"].claims)
+    assert all(row.endswith("| not run | not run | not run; not run |") for row in others)
+
+
+def test_the_readme_keeps_its_prose_and_check_says_when_it_is_stale(tmp_path):
+    root = _results(tmp_path)
+    _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced")
+    stale = macb("results", "--dir", str(root), "--check")
+    assert stale.returncode == 1 and "is not what its pages say" in stale.stderr
+    wrote = macb("results", "--dir", str(root))
+    assert wrote.returncode == 0, wrote.stderr
+    readme = (root / "README.md").read_text()
+    assert readme.startswith("# Results\n\nprose\n\n") and readme.endswith(f"{END}\n\nafter\n")
+    assert "old" not in readme and readme == render(readme, table(root))
+    assert macb("results", "--dir", str(root), "--check").returncode == 0
+
+
+@pytest.mark.parametrize("content", ["{not json", '{"format": 1, "figure": "fig99"}'])
+def test_a_bad_claims_file_is_refused_naming_it(tmp_path, content):
+    root = _results(tmp_path)
+    path = _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced")
+    path.write_text(content)
+    got = macb("results", "--dir", str(root))
+    assert got.returncode != 0 and str(path) in got.stderr and "not a claims file" in got.stderr
+    assert "old" in (root / "README.md").read_text()  # nothing written
+
+
+def test_the_repositorys_results_readme_is_what_its_pages_say():
+    got = macb("results", "--check")
+    assert got.returncode == 0, got.stderr
