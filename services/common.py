@@ -39,17 +39,11 @@ from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.messages import MESSAGES, Message, Metrics, Start, Status, Stop
+from shared.net.monitor import PeerGrace, peer_grace_s
 from shared.net.wire import WireError, decode, encode
 from shared.persist.files import write_json
 
 M = TypeVar("M", bound=Message)
-
-DEFAULT_PEER_GRACE_S = 30.0
-
-
-def peer_grace_s() -> float:
-    """How long a lost peer may take to come back before its runs are given up."""
-    return float(os.environ.get("MACB_PEER_GRACE_S", DEFAULT_PEER_GRACE_S))
 
 
 def restarts() -> int:
@@ -95,7 +89,7 @@ class ServiceBase:
         )
         self.assign: dict[str, Any] = {}  # the services of the run served now
         self.grace_s = peer_grace_s()
-        self.lost: dict[str, tuple[str, float]] = {}  # peer id -> (role, when it went)
+        self.lost = PeerGrace(self.grace_s)  # peers whose liveliness token went away
         self.resumed: dict[str, Any] | None = None  # what on_resume restored, for info()
         self._joined: dict[str, tuple[dict, dict[str, Any]]] = {}  # run -> (config, assign)
 
@@ -326,7 +320,7 @@ class ServiceBase:
         self._joined.pop(run, None)
         self._save_runs()
         if not self.active:
-            self.lost.clear()
+            self.lost.down.clear()
             self.resumed = None
 
     # ------------------------------------------------------------ hooks
@@ -355,19 +349,18 @@ class ServiceBase:
             return
         role, peer = parts[2], parts[3]
         if alive:
-            if self.lost.pop(peer, None) is not None:
+            if self.lost.back(peer):
                 self.log.info("%s %s is back", role, peer)
             self.on_peer_found(role, peer)
-        elif peer not in self.lost:
-            self.lost[peer] = (role, time.monotonic())
+        else:
+            self.lost.lost(role, peer, time.monotonic())
 
     def _check_lost(self) -> None:
         """Give up on peers that stayed away past the grace period."""
-        now = time.monotonic()
-        for peer, (role, since) in list(self.lost.items()):
-            if now - since >= self.grace_s and self.active:
-                del self.lost[peer]
-                self.on_peer_lost(role, peer)
+        if not self.active:
+            return
+        for role, peer in self.lost.expired(time.monotonic()):
+            self.on_peer_lost(role, peer)
 
     def on_peer_lost(self, role: str, peer: str) -> None:
         """A service's liveliness token vanished (it exited or was killed) and did not

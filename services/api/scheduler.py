@@ -45,7 +45,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from services.common import peer_grace_s as peer_grace
 from services.common import restarts
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.groups import group_error, group_key
@@ -53,14 +52,13 @@ from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.control import NoFreeServices, assign_services, discover, send_start, send_stop
 from shared.net.messages import History, Metrics, Status
-from shared.net.protocol import RunVerdict, run_verdict
+from shared.net.monitor import Graces, RunMonitor
+from shared.net.monitor import peer_grace_s as peer_grace
 from shared.net.wire import WireError, decode
 
 from .store import Store
 
 log = logging.getLogger("macb.api.scheduler")
-
-ROLES_THAT_MUST_LIVE = ("learner", "evaluator", "actor")
 
 
 def flat_row(data: dict[str, Any]) -> dict[str, Any]:
@@ -85,19 +83,6 @@ def flat_row(data: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def finishing_note(verdict: RunVerdict) -> str:
-    """Why a run completed with something missing, once its grace ran out."""
-    notes = []
-    if verdict.missing:
-        notes.append(
-            f"{verdict.missing} of {verdict.points_expected} metric points were "
-            "published while the API was not listening"
-        )
-    if verdict.counter_pending:
-        notes.append("the counter's final report did not come (its count is not recorded)")
-    return "; ".join(notes)
-
-
 @dataclass
 class Watch:
     """What the scheduler holds for one running run."""
@@ -105,27 +90,26 @@ class Watch:
     run: str
     assign: dict[str, Any]
     episodes: int
-    started: float  # monotonic
+    monitor: RunMonitor  # the rule that ends it, fed with its events
     subs: list[Any] = field(default_factory=list)
-    states: dict[str, dict[str, Any]] = field(default_factory=dict)
     live: dict[str, Any] = field(default_factory=dict)
     live_dirty: bool = False
     live_written: float = 0.0
-    points: int = 0
     last_episode: int = 0
-    evaluator_done: float | None = None  # monotonic time the evaluator said completed
-    counter_down: float | None = None
     unserved_since: float | None = None
     ended: float | None = None  # monotonic time it reached a final status
-    history_asked: bool = False  # the evaluator's history was asked for at the end
-    down: dict[str, tuple[str, float]] = field(default_factory=dict)  # id -> (role, since)
     notes: list[str] = field(default_factory=list)  # resumes: kept as the run's reason
 
+    @property
+    def states(self) -> dict[str, dict[str, Any]]:
+        return self.monitor.states
+
+    @property
+    def points(self) -> int:
+        return self.monitor.points
+
     def services(self) -> list[tuple[str, str]]:
-        """(role, id) of every service serving the run."""
-        a = self.assign
-        out = [("counter", a["counter"]), ("learner", a["learner"]), ("evaluator", a["evaluator"])]
-        return out + [("actor", x) for x in a.get("actors", [])]
+        return self.monitor.services()
 
 
 class Scheduler:
@@ -285,7 +269,7 @@ class Scheduler:
             return 0
         added = self.store.add_points(run, rows)
         if w is not None and added:
-            w.points += added
+            w.monitor.points_seen(added)
             w.last_episode = max([w.last_episode] + [int(r["episode"]) for r in rows])
         return added
 
@@ -321,7 +305,7 @@ class Scheduler:
             return
         if msg.run != run or self._superseded(w):
             return
-        w.states[msg.service] = {**flat_row(msg.detail), "state": msg.state}
+        w.monitor.status(msg.service, msg.state, flat_row(msg.detail), time.monotonic())
         resumed = msg.detail.get("resumed")
         if msg.service == w.assign["learner"] and isinstance(resumed, dict):
             cut = resumed.get("from_episode")
@@ -331,8 +315,6 @@ class Scheduler:
                 w.notes.append(note)
                 log.info("run %s: %s", w.run, note)
                 self.store.set_reason(w.run, "; ".join(w.notes))
-        if msg.service == w.assign["evaluator"] and msg.state == "completed":
-            w.evaluator_done = time.monotonic()
         self.store.set_services(w.run, w.states)
         self._changed()
 
@@ -344,51 +326,47 @@ class Scheduler:
         if up:
             self.alive.add((role, sid))
             self._wake.set()
-            for w in self.watches.values():
-                if w.down.pop(sid, None) is not None and w.ended is None:
-                    log.info("run %s: %s %s is back", w.run, role, sid)
-                    if not w.down and w.counter_down is None:
-                        self.store.set_reason(w.run, "; ".join(w.notes) or None)
-                        self._changed()
-            return
-        self.alive.discard((role, sid))
+        else:
+            self.alive.discard((role, sid))
+        now = time.monotonic()
         for w in list(self.watches.values()):
-            if w.ended is not None or (role, sid) not in w.services():
+            if w.ended is not None:
                 continue
-            if w.states.get(sid, {}).get("state") == "completed":
-                continue  # its part is done (an actor that finished, say)
-            if role == "counter":
-                w.counter_down = time.monotonic()
-                self.store.set_reason(w.run, f"counter {sid} is down; waiting for it to return")
-                self._changed()
-                continue
-            if role in ROLES_THAT_MUST_LIVE and sid not in w.down:
-                w.down[sid] = (role, time.monotonic())
-                self.store.set_reason(
-                    w.run, f"{role} {sid} is down; waiting up to {self.peer_grace_s:g} s for it"
-                )
-                self._changed()
+            before = w.monitor.waiting()
+            w.monitor.peer(role, sid, up, now)
+            self._show_waiting(w, before)
 
-    # ------------------------------------------------------------ run control
+    def _show_waiting(self, w: Watch, before: str | None) -> None:
+        """The run's reason says what it waits for (a service to come back), else its notes."""
+        waiting = w.monitor.waiting()
+        if waiting != before:
+            if before is not None and waiting is None:
+                log.info("run %s: back (%s no longer)", w.run, before)
+            self.store.set_reason(w.run, waiting or "; ".join(w.notes) or None)
+            self._changed()
+
     def _watch(self, run: dict[str, Any], started: float) -> Watch:
         bus = self.bus
         assert bus is not None
         old = self.watches.get(run["id"])
         if old is not None:  # the ended attempt of a run queued again
             self._unwatch(old)
+        stats = self.store.point_stats([run["id"]])[run["id"]]
+        graces = Graces(
+            peer_s=self.peer_grace_s,
+            counter_s=self.counter_grace_s,
+            completion_s=self.completion_grace_s,
+            start_s=self.start_timeout_s,
+        )
+        monitor = RunMonitor(run["assign"], started, graces, run.get("services"), stats[0])
         w = Watch(
             run=run["id"],
             assign=run["assign"],
             episodes=int(run["config"].get("episodes", 0)),
-            started=started,
-            states=dict(run.get("services") or {}),
+            monitor=monitor,
             live=dict(run.get("live") or {}),
+            last_episode=stats[2],
         )
-        stats = self.store.point_stats([w.run])[w.run]
-        w.points, w.last_episode = stats[0], stats[2]
-        for st in w.states.values():
-            if st.get("state") == "completed" and st.get("points") is not None:
-                w.evaluator_done = time.monotonic()
         put = self.events.put
         w.subs.append(
             bus.subscribe(keys.k_metrics(w.run, "**"), lambda k, p: put(("metrics", k, p)))
@@ -553,44 +531,19 @@ class Scheduler:
         if row is None or row["status"] != "running":
             w.ended = w.ended or now  # stopped over HTTP
             return
-        verdict = run_verdict(w.states, w.assign, w.points)
-        if verdict.state == "failed":
-            self._fail(w, verdict.reason or "failed")
-            return
-        if verdict.state == "stopped":
-            self._end(w, "stopped", verdict.reason, stop=True)
-            return
-        if verdict.state == "finishing" and verdict.missing and not w.history_asked:
-            w.history_asked = True  # points lost on the way: ask for them once
+        before = w.monitor.waiting()
+        decision = w.monitor.decide(now)
+        if decision.ask_history:
             self._fill_gaps(w)
-            verdict = run_verdict(w.states, w.assign, w.points)
-        if verdict.state == "completed":
-            self._end(w, "completed", None, stop=False)
-            return
-        if verdict.state == "finishing":
-            if w.evaluator_done is not None and now - w.evaluator_done > self.completion_grace_s:
-                self._end(w, "completed", finishing_note(verdict), stop=False)
-            return
-        for sid, (role, since) in list(w.down.items()):
-            if (role, sid) in self.alive:
-                del w.down[sid]
-            elif now - since > self.peer_grace_s:
-                self._fail(
-                    w,
-                    f"{role} {sid} died (its liveliness token went away) and did not come "
-                    f"back within {self.peer_grace_s:g} s",
-                )
-                return
-        if w.counter_down is not None:
-            if (("counter", w.assign["counter"])) in self.alive:
-                w.counter_down = None
-                self.store.set_reason(w.run, None)
-                self._changed()
-            elif now - w.counter_down > self.counter_grace_s:
-                self._fail(w, f"counter {w.assign['counter']} did not come back")
-                return
-        if not w.states and now - w.started > self.start_timeout_s:
-            self._fail(w, f"no service took the run within {self.start_timeout_s:.0f} s")
+            decision = w.monitor.decide(now)
+        if decision.state == "failed":
+            self._fail(w, decision.reason or "failed")
+        elif decision.state == "stopped":
+            self._end(w, "stopped", decision.reason, stop=True)
+        elif decision.state == "completed":
+            self._end(w, "completed", decision.reason, stop=False)
+        else:
+            self._show_waiting(w, before)
 
     def _reconcile(self, now: float) -> None:
         """Runs whose services no longer serve them, with no end seen: resolve them."""
@@ -598,7 +551,7 @@ class Scheduler:
         infos = {i["id"]: i for i in discover(self.bus, timeout=1.0)}
         self._stop_stale(infos)
         for w in list(self.watches.values()):
-            if w.ended is not None or now - w.started < self.start_timeout_s / 4:
+            if w.ended is not None or now - w.monitor.started < self.start_timeout_s / 4:
                 continue
             # Not the counter: it serves many runs and resumes those it had from disk
             # when it restarts, including one whose learner is gone for good.
@@ -610,11 +563,8 @@ class Scheduler:
                 and (infos[sid].get("run") == w.run or w.run in (infos[sid].get("runs") or []))
             ]
             learner = w.assign["learner"]
-            learner_alive = ("learner", learner) in self.alive
-            if not learner_alive and learner not in infos and learner not in w.down:
-                state = w.states.get(learner, {}).get("state")
-                if state != "completed":  # gone unseen: the same grace as a lost token
-                    w.down[learner] = ("learner", now)
+            if ("learner", learner) not in self.alive and learner not in infos:
+                w.monitor.peer("learner", learner, False, now)  # gone unseen: the same grace
             if serving:
                 w.unserved_since = None
                 continue

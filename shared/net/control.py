@@ -19,12 +19,10 @@ from typing import Any
 from shared.config import TrainConfig, actors_error
 from shared.net import bus as keys
 from shared.net.bus import Bus
-from shared.net.messages import Metrics, Start, Status, Stop
-from shared.net.protocol import RunVerdict, run_verdict
+from shared.net.messages import History, Metrics, Start, Status, Stop
+from shared.net.monitor import Decision, Graces, RunMonitor, peer_grace_s
+from shared.net.protocol import RunVerdict
 from shared.net.wire import WireError, decode, encode
-
-# How long a finished run waits for the counter's last report (sent after its snapshot).
-COUNTER_GRACE_S = 5.0
 
 
 class NoFreeServices(RuntimeError):
@@ -120,21 +118,33 @@ def send_stop(bus: Bus, run: str, reason: str = "stopped by user") -> None:
 
 @dataclass
 class RunWatch:
-    """Collects a run's metric rows and service states from the bus as they arrive."""
+    """Collects a run's metric rows and service states from the bus as they arrive, and
+    ends the run by the API's own rule (`shared.net.monitor.RunMonitor`): its services'
+    reports, its services' liveliness, and the graces for what does not come."""
 
     run: str
     assign: dict[str, Any]
     rows: list[dict[str, Any]] = field(default_factory=list)
-    states: dict[str, dict[str, Any]] = field(default_factory=dict)
     latest: dict[str, dict[str, Any]] = field(default_factory=dict)  # source -> last data
     changed: threading.Condition = field(default_factory=threading.Condition)
     on_row: Callable[[dict[str, Any]], None] | None = None
+    graces: Graces = field(default_factory=lambda: Graces(peer_s=peer_grace_s()))
     _episodes: set[Any] = field(default_factory=set)  # of the rows kept
-    _finishing_since: float | None = None
+    _bus: Bus | None = None
+    _final: Decision | None = None  # once a run is over, it stays so
+
+    def __post_init__(self) -> None:
+        self.monitor = RunMonitor(self.assign, time.monotonic(), self.graces)
+
+    @property
+    def states(self) -> dict[str, dict[str, Any]]:
+        return self.monitor.states
 
     def attach(self, bus: Bus) -> None:
+        self._bus = bus
         bus.subscribe(keys.k_metrics(self.run, "**"), self._on_metrics)
         bus.subscribe(keys.k_status(self.run, "*"), self._on_status)
+        bus.watch_liveliness(keys.k_live("*", "*"), self._on_live)
 
     def _on_metrics(self, key: str, payload: bytes) -> None:
         try:
@@ -143,15 +153,21 @@ class RunWatch:
             return
         with self.changed:
             self.latest[msg.source] = msg.data
-            # Rows come at least once: an evaluation point the learner sent again (it
-            # restarted, or saw no row) is published again. One row per episode is kept.
-            episode = msg.data.get("episode")
-            if msg.source == "eval" and episode not in self._episodes:
-                self._episodes.add(episode)
-                self.rows.append(msg.data)
-                if self.on_row:
-                    self.on_row(msg.data)
+            if msg.source == "eval":
+                self._add_row(msg.data)
             self.changed.notify_all()
+
+    def _add_row(self, row: dict[str, Any]) -> None:
+        # Rows come at least once: an evaluation point the learner sent again (it
+        # restarted, or saw no row) is published again. One row per episode is kept.
+        episode = row.get("episode")
+        if episode in self._episodes:
+            return
+        self._episodes.add(episode)
+        self.rows.append(row)
+        self.monitor.points_seen()
+        if self.on_row:
+            self.on_row(row)
 
     def _on_status(self, key: str, payload: bytes) -> None:
         try:
@@ -159,42 +175,70 @@ class RunWatch:
         except WireError:
             return
         with self.changed:
-            self.states[msg.service] = {"state": msg.state, **msg.detail}
+            self.monitor.status(msg.service, msg.state, msg.detail, time.monotonic())
             self.changed.notify_all()
 
+    def _on_live(self, key: str, up: bool) -> None:
+        parts = key.split("/")
+        if len(parts) == 4:
+            with self.changed:
+                self.monitor.peer(parts[2], parts[3], up, time.monotonic())
+                self.changed.notify_all()
+
+    def _fill_gaps(self) -> None:
+        """Ask the evaluator for every row it published (some were lost on the way)."""
+        if self._bus is None:
+            return
+        for raw in self._bus.get(keys.k_history(self.run, "eval"), timeout=2.0):
+            try:
+                msg = decode(raw, History)
+            except WireError:
+                continue
+            with self.changed:
+                for row in msg.rows:
+                    if msg.run == self.run and isinstance(row, dict) and "episode" in row:
+                        self._add_row(row)
+            return
+
     def verdict(self) -> RunVerdict:
-        """The run's status by the one rule the API's scheduler also uses."""
-        return run_verdict(self.states, self.assign, len(self.rows))
+        """The run's status by its services' reports alone."""
+        return self.monitor.verdict()
+
+    def decision(self) -> Decision:
+        """What the run is now, by the one rule the API's scheduler also uses."""
+        with self.changed:
+            if self._final is not None:
+                return self._final
+            decision = self.monitor.decide(time.monotonic())
+        if decision.ask_history:
+            self._fill_gaps()  # (a query: not under the lock the bus's callbacks take)
+            with self.changed:
+                decision = self.monitor.decide(time.monotonic())
+        with self.changed:
+            if decision.state != "running" and self._final is None:
+                self._final = decision
+            return self._final or decision
 
     def state(self) -> str:
         """running, completed (learner and evaluator done, every point seen, the
-        counter's final report in), stopped or failed. Until the evaluator's last rows
-        arrive the run is still running; a counter that does not report its end within
-        `COUNTER_GRACE_S` (it was down when the learner finished) does not hold it."""
-        v = self.verdict()
-        if v.state != "finishing":
-            self._finishing_since = None
-            return v.state
-        now = time.monotonic()
-        if self._finishing_since is None:
-            self._finishing_since = now
-        if not v.missing and now - self._finishing_since > COUNTER_GRACE_S:
-            return "completed"
-        return "running"
+        counter's final report in, or what is missing given up on after its grace),
+        stopped or failed (a service's report, a service gone past its grace, or no
+        service taking the run)."""
+        return self.decision().state
 
     def failure(self) -> str | None:
-        v = self.verdict()
-        return v.reason if v.state == "failed" else None
+        d = self.decision()
+        return d.reason if d.state == "failed" else None
 
     def wait(self, timeout: float | None = None) -> str:
         deadline = None if timeout is None else time.monotonic() + timeout
-        with self.changed:
-            while self.state() == "running":
-                left = None if deadline is None else deadline - time.monotonic()
-                if left is not None and left <= 0:
-                    break
+        while (state := self.state()) == "running":
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                break
+            with self.changed:
                 self.changed.wait(timeout=0.5 if left is None else min(0.5, left))
-        return self.state()
+        return state
 
 
 def start_run(
