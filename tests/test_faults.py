@@ -306,7 +306,8 @@ def test_a_logged_batch_reads_back_as_it_was_taken(tmp_path):
     comes back bit for bit, and a torn last record is cut off on open."""
     import numpy as np
 
-    from services.learner.main import _columns, _log_columns
+    from services.learner.intake import columns, log_columns
+    from shared.net.messages import Transitions
     from shared.persist.wal import WriteAheadLog
 
     rng = np.random.default_rng(0)
@@ -321,15 +322,16 @@ def test_a_logged_batch_reads_back_as_it_was_taken(tmp_path):
         "policy_version": 17,
     }
     log, _ = WriteAheadLog.open(tmp_path / "t.wal")
-    log.append("actor0", 40, n, _log_columns(batch))
-    log.append("actor1", 0, n, _log_columns({**batch, "policy_version": 18}))
+    log.append("actor0", 40, n, log_columns(Transitions("r", "actor0", 40, **batch)))
+    other = Transitions("r", "actor1", 0, **{**batch, "policy_version": 18})
+    log.append("actor1", 0, n, log_columns(other))
     log.close()
     with open(tmp_path / "t.wal", "ab") as f:
         f.write(b"\x10\x00\x00\x00torn")  # a record cut short by a kill
     log, records = WriteAheadLog.open(tmp_path / "t.wal")
     log.close()
     assert [(r.actor, r.seq, r.n) for r in records] == [("actor0", 40, n), ("actor1", 0, n)]
-    back = _columns(records[0].keys, n)
+    back = columns(records[0].keys, n)
     for name in ("obs", "act", "rew", "next_obs", "done", "collisions"):
         assert back[name].dtype == batch[name].dtype and np.array_equal(back[name], batch[name])
-    assert back["policy_version"] == 17 and _columns(records[1].keys, n)["policy_version"] == 18
+    assert back["policy_version"] == 17 and columns(records[1].keys, n)["policy_version"] == 18

@@ -9,7 +9,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from services.learner.main import BonusClient, EvaluationsInFlight
+from services.learner.bonus import BonusClient
+from services.learner.evaluations import EvaluationsInFlight
 from shared.config import make_config
 from shared.core.replay import Batch
 from shared.net import bus as keys

@@ -40,26 +40,26 @@ those batches are done again.
 from __future__ import annotations
 
 import collections
-import dataclasses
 import json
 import os
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import torch
 
 from services.common import ServiceBase
+from services.learner import checkpoint as ckpt
+from services.learner import intake
+from services.learner.bonus import BonusClient
+from services.learner.evaluations import EvaluationsInFlight
+from services.learner.state import LearnerRun, LockstepGroup, MemberLearner
 from shared.config import TrainConfig, actors_error
-from shared.core.exploration import BonusDiagnostics
-from shared.core.learners import Learner
 from shared.core.learners.group import GroupMADDPG
 from shared.core.networks import weights_as_arrays
 from shared.core.replay import ReplayBuffer, update_arrays
-from shared.envs.tasks import TaskSpec, task_spec_for
+from shared.envs.tasks import task_spec_for
 from shared.groups import group_error
 from shared.net import bus as keys
 from shared.net.messages import (
@@ -67,8 +67,6 @@ from shared.net.messages import (
     Ack,
     Action,
     ActRequest,
-    BonusQuery,
-    BonusReply,
     Message,
     Metrics,
     Status,
@@ -76,9 +74,8 @@ from shared.net.messages import (
     Weights,
 )
 from shared.net.protocol import AckTracker, ReceiveCursor, episode_share
-from shared.net.wire import WireError, check_dims, decode, encode
+from shared.net.wire import WireError, decode, encode
 from shared.persist import provenance
-from shared.persist.cuts import CutError, atomic_torch_save, config_difference
 from shared.persist.wal import WriteAheadLog
 from shared.run.factories import agent_dims, build_learner, learner_spec, minibatches_per_update
 from shared.run.rollout import derive_seed
@@ -86,276 +83,9 @@ from shared.run.rollout import derive_seed
 WINDOW_EPISODES = 2  # credits per actor, in episodes
 MAX_BACKLOG_EPISODES = 2  # updates owed (per actor) before the window closes
 UPDATES_PER_TICK = 20  # bound on work between inbox checks; one bonus query each
-# A cut every this many seconds (MACB_LEARNER_CUT_S overrides): what a restart redoes.
-CHECKPOINT_EVERY_S = float(os.environ.get("MACB_LEARNER_CUT_S", "30"))
-CUT_FORMAT = 1
-# An evaluation point is sent again when the evaluator reported a later one (this one's
-# weights or row were lost), or when nothing was reported for this long (the last one's).
-EVAL_RESEND_S = 30.0
-# A point with later points sent after it is resent after this much of the evaluator's
-# silence: the evaluator holds later points until it has the earlier ones (rows in
-# episode order), so no later report would come to show that this one was lost.
-EVAL_BEHIND_RESEND_S = 5.0
 # Until the first transition comes, the initial weights go out again this often.
 FIRST_WEIGHTS_RESEND_S = 1.0
 # The columns of a logged batch, each stored as (n, bytes per row) uint8.
-LOG_COLUMNS = (
-    ("obs", np.float32),
-    ("act", np.float32),
-    ("rew", np.float32),
-    ("next_obs", np.float32),
-    ("done", np.float32),
-    ("collisions", np.int32),
-    ("policy_version", np.int32),
-)
-# Phases of the learner's wall time that stats() reports per update; the bonus wait is
-# BonusClient.wait_s, and what none of them covers (waiting for messages, acks, stats,
-# and the wait for the first `learning_starts` transitions) is reported as "other".
-TIME_PHASES = ("sample", "update", "publish", "inbound")
-
-
-class BonusClient:
-    """Bonus queries to the counter for sampled batches (local for none/constant)."""
-
-    def __init__(self, svc: LearnerService, run: str, mode: str, beta: float, n: int) -> None:
-        self.svc, self.run, self.mode, self.beta, self.n = svc, run, mode, beta, n
-        self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
-        self.wait_s = 0.0  # all time spent in queries (the learner waits for each)
-        self.failures = 0
-        self.queries = 0
-        self.rows = 0
-        # The counter's table stats as of the last answered query (its reply carries
-        # them): what an evaluation point reports, without a query of its own.
-        self.tables: dict[str, float] | None = None
-        self.fresh = False  # tables came with this tick's query
-        # Each batch's (tables, B) counts from the last answered query, for diagnostics.
-        self.counts: list[np.ndarray] = []
-
-    def bonus_for(self, batches: list) -> list[np.ndarray] | None:
-        """The (B, N) bonus of each sampled batch, priced in one query; None if the
-        counter did not answer."""
-        return self.answer(self.ask(batches))
-
-    def ask(self, batches: list) -> PendingBonus:
-        """Send the query for `batches` (a group's runs ask at once, then take the
-        answers: their round trips overlap)."""
-        sizes = [len(b.rew) for b in batches]
-        self.counts = [np.zeros((0, B), np.int64) for B in sizes]  # no tables to count
-        if self.mode == "none":
-            return PendingBonus(sizes, [np.zeros((B, self.n), np.float32) for B in sizes])
-        if self.mode == "constant":
-            return PendingBonus(sizes, [np.full((B, self.n), self.beta, np.float32) for B in sizes])
-        obs = np.concatenate([b.obs for b in batches])
-        act = np.concatenate([b.act for b in batches])
-        payload = encode(BonusQuery(self.run, obs=obs, act=act))
-        t0 = time.perf_counter()
-        replies = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
-        return PendingBonus(sizes, None, replies, t0)
-
-    def answer(self, query: PendingBonus) -> list[np.ndarray] | None:
-        """The bonuses a query asked for (waiting for its reply); None if the counter
-        did not answer."""
-        if query.priced is not None:
-            return query.priced
-        sizes, rows = query.sizes, sum(query.sizes)
-        try:
-            replies = self.svc.bus.collect(query.replies)
-        finally:
-            self.wait_s += time.perf_counter() - query.t0
-        for raw in replies:
-            try:
-                msg = decode(raw, BonusReply)
-            except WireError as err:
-                self.svc.reject(keys.k_bonus(self.run), str(err))
-                continue
-            if msg.bonus.shape == (rows, self.n):
-                self.latencies.append(time.perf_counter() - query.t0)
-                self.queries += 1
-                self.rows += rows
-                self.tables = _table_stats(msg.tables)
-                self.fresh = True
-                bonus = msg.bonus.astype(np.float32)
-                cuts = np.cumsum(sizes)[:-1]
-                if msg.counts.ndim == 2 and msg.counts.shape[1] == rows:
-                    self.counts = np.split(msg.counts, cuts, axis=1)
-                return np.split(bonus, cuts)
-        self.failures += 1
-        return None
-
-
-@dataclass
-class PendingBonus:
-    """A bonus query sent: its batches' sizes, and the bonuses when priced here (none,
-    constant) or the counter's pending replies."""
-
-    sizes: list[int]
-    priced: list[np.ndarray] | None
-    replies: Any = None
-    t0: float = 0.0
-
-
-def with_unreported(payload: bytes, unreported: list[int]) -> bytes:
-    """A kept weights message with its list of earlier unreported points brought up to
-    date for a resend: the list of when it first went out may name points whose rows
-    have come since (an evaluator restarted in between would wait for them)."""
-    return encode(dataclasses.replace(decode(payload, Weights), unreported=unreported))
-
-
-class EvaluationsInFlight:
-    """Evaluation points sent to the evaluator that it has not reported yet.
-
-    `sent` is called on the learner's thread, `reported` on Zenoh's (from the
-    evaluator's metric rows); each writes its own fields. A point unreported after
-    `max_s` no longer counts (a slow or absent evaluator must not mark every update)."""
-
-    def __init__(self, max_s: float = 1.0) -> None:
-        self.max_s = max_s
-        self.last_sent = -1
-        self.sent_at = 0.0
-        self.last_reported = -1
-        self.reported_rows = 0
-        # Points sent and not reported yet: point -> (when sent, the weights message).
-        self.unreported: dict[int, tuple[float, bytes]] = {}
-        self.reported_at = time.monotonic()
-
-    def sent(self, point: int) -> None:
-        self.last_sent, self.sent_at = point, time.monotonic()
-
-    def reported(self, point: int) -> None:
-        self.last_reported = max(self.last_reported, point)
-        self.reported_rows += 1
-        self.unreported.pop(point, None)
-        self.reported_at = time.monotonic()
-
-    def busy(self) -> bool:
-        """The evaluator is (most likely) evaluating a point we sent."""
-        return self.last_reported < self.last_sent and time.monotonic() - self.sent_at < self.max_s
-
-
-def _table_stats(raw: Any) -> dict[str, float] | None:
-    """The reply's optional `tables` map, if well formed (numbers under known names)."""
-    names = ("table_size", "count1_pct", "counted_transitions")
-    if not isinstance(raw, dict) or not all(
-        isinstance(raw.get(k), int | float) and not isinstance(raw.get(k), bool) for k in names
-    ):
-        return None
-    return {k: raw[k] for k in names}
-
-
-class Boundary(NamedTuple):
-    """An ingested episode's end: weights go out once `updates` updates are done."""
-
-    episode: int
-    updates: int
-    env_steps: int
-    collisions_cum: int
-
-
-class MemberLearner:
-    """Run r's view of its group's learner: what the service reads and writes per run
-    (the update and the acting are the group's, one call for every run)."""
-
-    def __init__(self, group: GroupMADDPG, r: int) -> None:
-        self.group, self.r = group, r
-
-    @property
-    def updates(self) -> int:
-        return self.group.updates
-
-    def actor_weights(self) -> list[dict[str, torch.Tensor]]:
-        return self.group.run_actor_weights(self.r)
-
-    def state_dict(self) -> dict:
-        return self.group.run_state_dict(self.r)
-
-    def stats(self) -> dict[str, float]:
-        return self.group.stats()
-
-
-@dataclass
-class LockstepGroup:
-    """A run group served in lockstep: one learner for its runs (run r of `runs` is
-    member r), one actor stepping their worlds, one act request per step for all."""
-
-    runs: list[str]
-    learner: GroupMADDPG
-    actor: str
-    action_pub: Callable[[bytes], None]
-    wanted: tuple[int, np.ndarray] | None = None  # the open request: (seq, (R, obs))
-    answered: tuple[int, bytes] | None = None  # the last answer, for a repeated request
-    unpriced: list = field(default_factory=list)  # per run, minibatches awaiting prices
-
-
-@dataclass
-class LearnerRun:
-    """Everything the learner holds for a run it serves."""
-
-    run: str
-    config: TrainConfig
-    spec: TaskSpec
-    learner: Learner | MemberLearner
-    buffer: ReplayBuffer
-    rng: np.random.Generator
-    actors: list[str]
-    counter: str | None
-    bonus: BonusClient
-    evaluations: EvaluationsInFlight
-    weights_pub: Callable[[bytes], None]
-    eval_pub: Callable[[bytes], None]
-    ack_pub: Callable[[bytes], None]
-    received: ReceiveCursor  # what has been taken from each actor (whole episodes only)
-    counted: AckTracker  # how far the counter has acknowledged each actor
-    held: dict[str, collections.deque[Transitions]]  # received, not yet counted
-    final: dict[str, int] = field(default_factory=dict)  # actor -> transitions it published
-    ingested: int = 0
-    episodes: int = 0
-    collisions_cum: int = 0
-    boundaries: collections.deque[Boundary] = field(default_factory=collections.deque)
-    version: int = 0
-    lags: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=200))
-    window_open: bool = True
-    last_ack: float = 0.0
-    last_weights: float = 0.0  # when weights last went to the actors
-    last_stats: float = 0.0
-    last_ckpt: float = field(default_factory=time.monotonic)
-    t0: float = field(default_factory=time.perf_counter)
-    bonus_means: collections.deque[float] = field(
-        default_factory=lambda: collections.deque(maxlen=100)
-    )
-    # Wall time by phase (s): where the learner's time per update goes.
-    time: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_PHASES, 0.0))
-    contended_updates: int = 0
-    diagnostics: BonusDiagnostics = field(default_factory=BonusDiagnostics)
-    draws: int = 1  # minibatches per update (`minibatch: per-agent`: one per agent)
-    log: WriteAheadLog | None = None  # every batch taken, before it is acknowledged
-    folder: Path | None = None  # DATA_DIR/learner/RUN
-    ingested_pos: dict[str, int] = field(default_factory=dict)  # per actor, in replay
-    shares: dict[str, int] = field(default_factory=dict)  # transitions each actor owes
-    incarnation: str = ""  # this process's weights are newer than any before a restart
-    resumed_from: int | None = None  # the cut's episode, when resumed
-    cuts: int = 0
-    cut_s: float = 0.0  # wall time spent writing cuts (the log's fsync included)
-    cut_bytes: int = 0  # size of the last cut file
-    unpriced: list = field(default_factory=list)  # minibatches drawn, bonus query unanswered
-    lockstep: bool = False  # interleave lockstep: actions are computed here, per step
-    wanted: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)  # open requests
-    answered: dict[str, tuple[int, bytes]] = field(default_factory=dict)  # last answers
-    action_pubs: dict[str, Callable[[bytes], None]] = field(default_factory=dict)
-    member: int = -1  # the run's place in its group (-1: a run alone)
-
-    @property
-    def counting(self) -> bool:
-        return self.config.explore in ("dis-macb", "cen-macb")
-
-    @property
-    def owed_total(self) -> int:
-        """Updates the replay ratio asks for so far: one per transition after the warm-up."""
-        return max(0, self.ingested - self.config.learning_starts)
-
-
-def now_due(st: LearnerRun) -> bool:
-    """A cut of the run is due."""
-    return time.monotonic() - st.last_ckpt > CHECKPOINT_EVERY_S
 
 
 class LearnerService(ServiceBase):
@@ -408,14 +138,8 @@ class LearnerService(ServiceBase):
             for r, (run, config) in enumerate(zip(runs, configs))
         ]
 
-    def _wipe(self, run: str) -> None:
-        """An earlier attempt's log and cuts of `run`: a start begins afresh."""
-        folder = self.data_dir / "learner" / run
-        for old in ("transitions.wal", "checkpoint.pt", "checkpoint.prev.pt"):
-            (folder / old).unlink(missing_ok=True)
-
     def _fresh(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> LearnerRun:
-        self._wipe(run)
+        ckpt.wipe(self.data_dir / "learner" / run)
         st = self._open_run(run, config, assign)
         self._logged(st)
         return st
@@ -428,7 +152,7 @@ class LearnerService(ServiceBase):
         try:
             configs = [self._members.pop(run) for run in runs]
             for run in runs:
-                self._wipe(run)
+                ckpt.wipe(self.data_dir / "learner" / run)
             for st in self._group(runs, configs, assign):
                 self._logged(st)
         except Exception as err:
@@ -452,9 +176,9 @@ class LearnerService(ServiceBase):
         st = self._open_run(run, config, assign)
         records, _ = self._logged(st)
         cut = None
-        for _, state in self._cuts(st):  # the newest good one
+        for _, state in ckpt.good(st, self.log.warning):  # the newest good one
             st.learner.load_state_dict(state["learner"])
-            cut = self._apply_cut(st, state)
+            cut = ckpt.apply(st, state)
             break
         self._replay(st, records, cut)
         self.resumed = self._resumed(st, cut, t0)
@@ -464,22 +188,8 @@ class LearnerService(ServiceBase):
         self.send_ack(st)  # the actors go on from what the log holds
 
     def _replay(self, st: LearnerRun, records: list, cut: int | None) -> None:
-        """The log beyond the cut: batches in replay at the cut refill the buffer; those
-        taken but not yet counted wait for the counter's ack again."""
-        st.resumed_from = cut
-        for rec in records:
-            rows = _columns(rec.keys, rec.n)
-            if not st.received.take(rec.actor, rec.seq, rec.n).took:
-                self.log.warning(
-                    "run %s: logged batch %s@%d out of order: skipped", st.run, rec.actor, rec.seq
-                )
-                continue
-            # Newer than any version an actor acted with: the lags stay >= 0.
-            st.version = max(st.version, int(rows["policy_version"]))
-            if rec.seq < st.ingested_pos.get(rec.actor, 0):  # in replay at the cut
-                st.buffer.add(rows["obs"], rows["act"], rows["rew"], rows["next_obs"], rows["done"])
-            else:  # taken, not yet counted at the cut: waits for the counter's ack again
-                st.held[rec.actor].append(Transitions(st.run, rec.actor, rec.seq, **rows))
+        for batch in intake.replay(st, records, cut):
+            self.log.warning("run %s: logged batch %s out of order: skipped", st.run, batch)
 
     def _resumed(self, st: LearnerRun, cut: int | None, t0: float) -> dict[str, Any]:
         held = sum(len(h) for h in st.held.values())
@@ -512,7 +222,10 @@ class LearnerService(ServiceBase):
             sts = self._group(runs, [self._members.pop(run) for run in runs], assign)
             records = [self._logged(st)[0] for st in sts]
             options = [
-                {int(state["counters"]["updates"]): state for _, state in self._cuts(st)}
+                {
+                    int(state["counters"]["updates"]): state
+                    for _, state in ckpt.good(st, self.log.warning)
+                }
                 for st in sts
             ]
             common = set.intersection(*(set(o) for o in options))
@@ -521,7 +234,7 @@ class LearnerService(ServiceBase):
                 states = [o[max(common)] for o in options]
                 assert self.group is not None
                 self.group.learner.load_run_state_dicts([s["learner"] for s in states])
-                cuts = [self._apply_cut(st, state) for st, state in zip(sts, states)]
+                cuts = [ckpt.apply(st, state) for st, state in zip(sts, states)]
             elif any(options):
                 self.log.warning("group %s: no update all runs have a cut of: the logs", runs)
             for st, recs, cut in zip(sts, records, cuts):
@@ -646,16 +359,7 @@ class LearnerService(ServiceBase):
             self.group = None
 
     def retire_log(self, st: LearnerRun) -> None:
-        """The run is over (completed or stopped: a retry starts afresh): its log and
-        the older cut are no longer needed (the log is 140 B per transition on
-        speaker_listener, ~130 MB for a thesis-length run). checkpoint.pt stays."""
-        if st.folder is None:
-            return
-        if st.log is not None:
-            st.log.close()
-            st.log = None
-        for name in ("transitions.wal", "checkpoint.prev.pt"):
-            (st.folder / name).unlink(missing_ok=True)
+        ckpt.retire(st)
 
     def on_shutdown(self) -> None:
         for st in self.runs.values():
@@ -688,12 +392,12 @@ class LearnerService(ServiceBase):
             if msg.service == st.counter:
                 for actor, seq in msg.acked.items():
                     st.counted.ack(actor, seq)
-                self.release_counted(st)
+                intake.release_counted(st)
         elif isinstance(msg, Status) and msg.service in st.actors:
             if msg.state == "completed":
                 st.final[msg.service] = int(msg.detail.get("final_seq", 0))
             elif msg.state == "failed":
-                self.fail(st, f"actor {msg['service']} failed: {msg['detail']}")
+                self.fail(st, f"actor {msg.service} failed: {msg.detail}")
 
     def on_eval_row(self, evaluations: EvaluationsInFlight, key: str, payload: bytes) -> None:
         """The evaluator's metric row for a point (on Zenoh's thread): that evaluation
@@ -711,45 +415,14 @@ class LearnerService(ServiceBase):
         evaluations.reported(point)
 
     def on_transitions(self, st: LearnerRun, key: str, msg: Transitions) -> None:
-        actor = msg.actor
-        if not st.received.knows(actor):
-            self.reject(key, f"unknown actor: {actor}")
+        if not st.received.knows(msg.actor):
+            self.reject(key, f"unknown actor: {msg.actor}")
             return
-        check_dims(msg, st.spec.joint_obs_dim, st.spec.joint_act_dim)
-        n = len(msg)
-        if n != (1 if st.lockstep else st.config.episode_len):
-            length = st.config.episode_len
-            what = "one step (lockstep)" if st.lockstep else f"one episode ({length})"
-            raise WireError(f"transitions: a batch is {what}, got {n}")
         # A duplicate (a resend) or a gap is not taken; either way the ack tells the
         # actor again where we are, and it resends from there.
-        if st.received.take(actor, msg.seq, n).took:
-            if st.log is not None:  # logged before the ack below says we have it
-                st.log.append(actor, msg.seq, n, _log_columns(msg))
-            st.held[actor].append(msg)
-            self.release_counted(st)
+        intake.take(st, msg)
         self.send_ack(st)
 
-    def release_counted(self, st: LearnerRun) -> None:
-        """Move batches the counter has counted (or all, with no counting) into replay."""
-        for actor, held in st.held.items():
-            while held and (not st.counting or st.counted.covers(actor, held[0].seq, len(held[0]))):
-                self.ingest(st, held.popleft())
-
-    def ingest(self, st: LearnerRun, msg: Transitions) -> None:
-        n, seq, length = len(msg), msg.seq, st.config.episode_len
-        st.buffer.add(msg.obs, msg.act, msg.rew, msg.next_obs, msg.done)
-        st.ingested += n
-        st.ingested_pos[msg.actor] = seq + n
-        st.collisions_cum += int(msg.collisions.sum())
-        # Lockstep: every action came from the weights of that moment (no lag).
-        st.lags.append(0 if st.lockstep else st.version - msg.policy_version)
-        if (seq + n) // length > seq // length:  # the batch ends one of the actor's episodes
-            st.episodes += 1
-            boundary = Boundary(st.episodes, st.owed_total, st.ingested, st.collisions_cum)
-            st.boundaries.append(boundary)
-
-    # ------------------------------------------------------------ work
     def tick(self) -> bool:
         if self.group is not None:
             return self.group_tick(self.group)
@@ -795,7 +468,7 @@ class LearnerService(ServiceBase):
         self.pass_boundaries(st)
         spent["publish"] += time.perf_counter() - t1
         self.housekeep(st, owed)
-        if now_due(st) and not st.unpriced:
+        if ckpt.due(st) and not st.unpriced:
             self.checkpoint(st)  # (not with draws in hand: a cut holds the sampler after them)
         if st.lockstep and owed == 0:
             self.answer_act_requests(st)
@@ -836,7 +509,7 @@ class LearnerService(ServiceBase):
             self.pass_boundaries(st)
             st.time["publish"] += time.perf_counter() - t1
             self.housekeep(st, st.owed_total - g.learner.updates)
-        if members and now_due(members[0]) and not g.unpriced:
+        if members and ckpt.due(members[0]) and not g.unpriced:
             for st in members:  # together: a group resumes from one update
                 self.checkpoint(st)
         self.answer_group(g)
@@ -880,7 +553,7 @@ class LearnerService(ServiceBase):
         g = self.group
         assert g is not None
         if msg.actor != g.actor or keys.run_of(key) != g.runs[0]:
-            self.reject(key, f"act_request from {msg['actor']}: not this group's actor")
+            self.reject(key, f"act_request from {msg.actor}: not this group's actor")
             return
         obs = msg.obs
         dim = self.runs[g.runs[0]].spec.joint_obs_dim
@@ -1012,24 +685,11 @@ class LearnerService(ServiceBase):
             st.last_weights = time.monotonic()
 
     def resend_unreported(self, st: LearnerRun, now: float, at_once: bool = False) -> None:
-        """Send again the evaluation points that were lost on the way: older than one the
-        evaluator reported, older than one sent since once the evaluator has been silent
-        for EVAL_BEHIND_RESEND_S (it holds the later ones for them), or the last ones
-        once it has been silent for EVAL_RESEND_S (a merely slow evaluator reports in
-        order, so it is rarely sent duplicates, which it drops); with `at_once` all of
-        them (the evaluator just came back)."""
-        ev = st.evaluations
-        quiet = now - ev.reported_at
-        for point, (sent, payload) in sorted(ev.unreported.items()):
-            overtaken = point < ev.last_reported and now - sent > 2.0  # (give a resend time)
-            waited = min(quiet, now - sent)  # silence since this point and since a row
-            held = point < ev.last_sent and waited > EVAL_BEHIND_RESEND_S
-            lost = overtaken or held or waited > EVAL_RESEND_S
-            if at_once or lost:
-                self.log.info("run %s: evaluation point %d sent again", st.run, point)
-                payload = with_unreported(payload, sorted(p for p in ev.unreported if p < point))
-                st.eval_pub(payload)
-                ev.unreported[point] = (now, payload)
+        """Send again the evaluation points that were lost on the way
+        (`EvaluationsInFlight.due`); with `at_once` all of them."""
+        for point, payload in st.evaluations.due(now, at_once):
+            self.log.info("run %s: evaluation point %d sent again", st.run, point)
+            st.eval_pub(payload)
 
     def on_peer_found(self, role: str, peer: str) -> None:
         """A service of the run came back: an actor gets weights and where to go on, the
@@ -1148,36 +808,10 @@ class LearnerService(ServiceBase):
         self.free(run)
 
     def checkpoint(self, st: LearnerRun) -> None:
-        """A cut of the run (module doc): everything but the replay rows, which the log
-        holds; atomic, the previous cut kept. Taken between ticks, so the buffer, the
-        counters and the boundaries owed describe one moment."""
+        """A cut of the run (services/learner/checkpoint.py)."""
         if st.folder is None:
             return
-        st.last_ckpt = time.monotonic()
-        if st.log is not None:
-            st.log.sync()  # the rows the cut names are on disk before the cut is
-        state = {
-            "format": CUT_FORMAT,
-            "config": json.dumps(st.config.model_dump(mode="json")),
-            "learner": st.learner.state_dict(),
-            "counters": {
-                "ingested": st.ingested,
-                "episodes": st.episodes,
-                "updates": st.learner.updates,
-                "expected": st.received.positions(),
-                "version": st.version,
-                "collisions_cum": st.collisions_cum,
-            },
-            "ingested_pos": dict(st.ingested_pos),
-            "boundaries": [list(b) for b in st.boundaries],
-            "rng": json.dumps(st.rng.bit_generator.state),
-        }
-        path = st.folder / "checkpoint.pt"
-        atomic_torch_save(state, path, previous=st.folder / "checkpoint.prev.pt")
-        spent = time.monotonic() - st.last_ckpt
-        st.cuts += 1
-        st.cut_s += spent
-        st.cut_bytes = path.stat().st_size
+        spent = ckpt.write(st)
         self.log.debug(
             "run %s: cut at episode %d (%d bytes, %.1f ms)",
             st.run,
@@ -1185,74 +819,6 @@ class LearnerService(ServiceBase):
             st.cut_bytes,
             1e3 * spent,
         )
-
-    def _cuts(self, st: LearnerRun) -> Iterator[tuple[Path, dict[str, Any]]]:
-        """The run's good cuts, newest first (none: the log alone, from the initial
-        weights). An unreadable cut is renamed `*.refused`, named in the log, and the
-        previous one is used; a cut of another config or format raises CutError naming
-        the field, with nothing renamed or written."""
-        assert st.folder is not None
-        mine = st.config.model_dump(mode="json")
-        for name in ("checkpoint.pt", "checkpoint.prev.pt"):
-            path = st.folder / name
-            if not path.exists():
-                continue
-            try:
-                state = torch.load(path, weights_only=True)
-                state["counters"]
-            except Exception as err:
-                self.log.warning(
-                    "refusing cut %s: unreadable (%s); trying the one before", path, err
-                )
-                path.replace(path.with_name(path.name + ".refused"))
-                continue
-            if state.get("format") != CUT_FORMAT:
-                raise CutError(
-                    f"{path}: cut format {state.get('format')}, this version reads {CUT_FORMAT}"
-                )
-            diff = config_difference(json.loads(state["config"]), mine)
-            if diff is not None:
-                raise CutError(f"{path}: written by another config ({diff})")
-            yield path, state
-
-    def _apply_cut(self, st: LearnerRun, state: dict[str, Any]) -> int:
-        """A cut's counters, boundaries and sampler into `st` (its learner is loaded
-        apart: a group's runs load together); the cut's episode."""
-        counters = state["counters"]
-        st.ingested = int(counters["ingested"])
-        st.episodes = int(counters["episodes"])
-        st.version = int(counters["version"])
-        st.collisions_cum = int(counters["collisions_cum"])
-        st.ingested_pos = {str(a): int(p) for a, p in state["ingested_pos"].items()}
-        st.boundaries = collections.deque(Boundary(*map(int, b)) for b in state["boundaries"])
-        st.rng.bit_generator.state = json.loads(state["rng"])
-        return st.episodes
-
-
-def _log_columns(msg: Transitions) -> list[np.ndarray]:
-    """A transitions batch as the log's byte columns (LOG_COLUMNS)."""
-    n = len(msg)
-    out = []
-    for name, dtype in LOG_COLUMNS:
-        if name == "policy_version":
-            col = np.full(n, msg.policy_version, dtype)
-        else:
-            col = np.ascontiguousarray(getattr(msg, name), dtype=dtype)
-        out.append(col.reshape(n, -1).view(np.uint8))
-    return out
-
-
-def _columns(cols: list[np.ndarray], n: int) -> dict[str, Any]:
-    """The log's byte columns back as a batch (the inverse of _log_columns)."""
-    if len(cols) != len(LOG_COLUMNS):
-        raise ValueError(f"a logged batch has {len(cols)} columns, expected {len(LOG_COLUMNS)}")
-    out: dict[str, Any] = {}
-    for (name, dtype), col in zip(LOG_COLUMNS, cols):
-        values = np.ascontiguousarray(col).view(dtype).reshape(n, -1)
-        if name in ("rew", "done", "collisions"):
-            values = values[:, 0]
-        out[name] = int(values[0, 0]) if name == "policy_version" else values
-    return out
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> LearnerService:

@@ -1,0 +1,110 @@
+"""The learner's bonus queries: a tick's minibatches priced by the counter in one round
+trip (sample time: the counts then), or locally for the arms that count nothing.
+
+A run group's runs `ask` at once and then take their `answer`s, so their round trips
+overlap. A query the counter does not answer is kept (`PendingBonus`) and priced again,
+never redrawn: the sampler's stream stays the one per-update sampling gives.
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from shared.net import bus as keys
+from shared.net.messages import BonusQuery, BonusReply
+from shared.net.wire import WireError, decode, encode
+
+
+class BonusClient:
+    """Bonus queries to the counter for sampled batches (local for none/constant)."""
+
+    def __init__(self, svc: Any, run: str, mode: str, beta: float, n: int) -> None:
+        self.svc, self.run, self.mode, self.beta, self.n = svc, run, mode, beta, n
+        self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
+        self.wait_s = 0.0  # all time spent in queries (the learner waits for each)
+        self.failures = 0
+        self.queries = 0
+        self.rows = 0
+        # The counter's table stats as of the last answered query (its reply carries
+        # them): what an evaluation point reports, without a query of its own.
+        self.tables: dict[str, float] | None = None
+        self.fresh = False  # tables came with this tick's query
+        # Each batch's (tables, B) counts from the last answered query, for diagnostics.
+        self.counts: list[np.ndarray] = []
+
+    def bonus_for(self, batches: list) -> list[np.ndarray] | None:
+        """The (B, N) bonus of each sampled batch, priced in one query; None if the
+        counter did not answer."""
+        return self.answer(self.ask(batches))
+
+    def ask(self, batches: list) -> PendingBonus:
+        """Send the query for `batches` (a group's runs ask at once, then take the
+        answers: their round trips overlap)."""
+        sizes = [len(b.rew) for b in batches]
+        self.counts = [np.zeros((0, B), np.int64) for B in sizes]  # no tables to count
+        if self.mode == "none":
+            return PendingBonus(sizes, [np.zeros((B, self.n), np.float32) for B in sizes])
+        if self.mode == "constant":
+            return PendingBonus(sizes, [np.full((B, self.n), self.beta, np.float32) for B in sizes])
+        obs = np.concatenate([b.obs for b in batches])
+        act = np.concatenate([b.act for b in batches])
+        payload = encode(BonusQuery(self.run, obs=obs, act=act))
+        t0 = time.perf_counter()
+        replies = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
+        return PendingBonus(sizes, None, replies, t0)
+
+    def answer(self, query: PendingBonus) -> list[np.ndarray] | None:
+        """The bonuses a query asked for (waiting for its reply); None if the counter
+        did not answer."""
+        if query.priced is not None:
+            return query.priced
+        sizes, rows = query.sizes, sum(query.sizes)
+        try:
+            replies = self.svc.bus.collect(query.replies)
+        finally:
+            self.wait_s += time.perf_counter() - query.t0
+        for raw in replies:
+            try:
+                msg = decode(raw, BonusReply)
+            except WireError as err:
+                self.svc.reject(keys.k_bonus(self.run), str(err))
+                continue
+            if msg.bonus.shape == (rows, self.n):
+                self.latencies.append(time.perf_counter() - query.t0)
+                self.queries += 1
+                self.rows += rows
+                self.tables = _table_stats(msg.tables)
+                self.fresh = True
+                bonus = msg.bonus.astype(np.float32)
+                cuts = np.cumsum(sizes)[:-1]
+                if msg.counts.ndim == 2 and msg.counts.shape[1] == rows:
+                    self.counts = np.split(msg.counts, cuts, axis=1)
+                return np.split(bonus, cuts)
+        self.failures += 1
+        return None
+
+
+@dataclass
+class PendingBonus:
+    """A bonus query sent: its batches' sizes, and the bonuses when priced here (none,
+    constant) or the counter's pending replies."""
+
+    sizes: list[int]
+    priced: list[np.ndarray] | None
+    replies: Any = None
+    t0: float = 0.0
+
+
+def _table_stats(raw: Any) -> dict[str, float] | None:
+    """The reply's optional `tables` map, if well formed (numbers under known names)."""
+    names = ("table_size", "count1_pct", "counted_transitions")
+    if not isinstance(raw, dict) or not all(
+        isinstance(raw.get(k), int | float) and not isinstance(raw.get(k), bool) for k in names
+    ):
+        return None
+    return {k: raw[k] for k in names}

@@ -1,0 +1,128 @@
+"""A learner run's checkpoint (a "cut"): written atomically every CHECKPOINT_EVERY_S,
+found again after a restart, applied to a fresh `LearnerRun`.
+
+A cut holds everything but the replay rows, which the write-ahead log holds: networks,
+optimizers, targets, the update and episode counters, the sampler's RNG, which logged
+batches the buffer holds and the episode boundaries still owed. Pure file work over a
+`LearnerRun` (no bus), so a resume is tested in process.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from services.learner.state import Boundary, LearnerRun
+from shared.persist.cuts import CutError, atomic_torch_save, config_difference
+
+# A cut every this many seconds (MACB_LEARNER_CUT_S overrides): what a restart redoes.
+CHECKPOINT_EVERY_S = float(os.environ.get("MACB_LEARNER_CUT_S", "30"))
+CUT_FORMAT = 1
+LOG = "transitions.wal"
+CUT, PREVIOUS = "checkpoint.pt", "checkpoint.prev.pt"
+
+
+def due(st: LearnerRun) -> bool:
+    """A cut of the run is due."""
+    return time.monotonic() - st.last_ckpt > CHECKPOINT_EVERY_S
+
+
+def write(st: LearnerRun) -> float:
+    """A cut of the run: atomic, the previous cut kept. Taken between ticks, so the
+    buffer, the counters and the boundaries owed describe one moment. Returns the
+    seconds it took."""
+    assert st.folder is not None
+    st.last_ckpt = time.monotonic()
+    if st.log is not None:
+        st.log.sync()  # the rows the cut names are on disk before the cut is
+    state = {
+        "format": CUT_FORMAT,
+        "config": json.dumps(st.config.model_dump(mode="json")),
+        "learner": st.learner.state_dict(),
+        "counters": {
+            "ingested": st.ingested,
+            "episodes": st.episodes,
+            "updates": st.learner.updates,
+            "expected": st.received.positions(),
+            "version": st.version,
+            "collisions_cum": st.collisions_cum,
+        },
+        "ingested_pos": dict(st.ingested_pos),
+        "boundaries": [list(b) for b in st.boundaries],
+        "rng": json.dumps(st.rng.bit_generator.state),
+    }
+    path = st.folder / CUT
+    atomic_torch_save(state, path, previous=st.folder / PREVIOUS)
+    spent = time.monotonic() - st.last_ckpt
+    st.cuts += 1
+    st.cut_s += spent
+    st.cut_bytes = path.stat().st_size
+    return spent
+
+
+def good(st: LearnerRun, warn: Callable[[str], None]) -> Iterator[tuple[Path, dict[str, Any]]]:
+    """The run's good cuts, newest first (none: the log alone, from the initial
+    weights). An unreadable cut is renamed `*.refused`, said with `warn`, and the
+    previous one is used; a cut of another config or format raises CutError naming
+    the field, with nothing renamed or written."""
+    assert st.folder is not None
+    mine = st.config.model_dump(mode="json")
+    for name in (CUT, PREVIOUS):
+        path = st.folder / name
+        if not path.exists():
+            continue
+        try:
+            state = torch.load(path, weights_only=True)
+            state["counters"]
+        except Exception as err:
+            warn(f"refusing cut {path}: unreadable ({err}); trying the one before")
+            path.replace(path.with_name(path.name + ".refused"))
+            continue
+        if state.get("format") != CUT_FORMAT:
+            raise CutError(
+                f"{path}: cut format {state.get('format')}, this version reads {CUT_FORMAT}"
+            )
+        diff = config_difference(json.loads(state["config"]), mine)
+        if diff is not None:
+            raise CutError(f"{path}: written by another config ({diff})")
+        yield path, state
+
+
+def apply(st: LearnerRun, state: dict[str, Any]) -> int:
+    """A cut's counters, boundaries and sampler into `st` (its learner is loaded
+    apart: a group's runs load together); the cut's episode."""
+    counters = state["counters"]
+    st.ingested = int(counters["ingested"])
+    st.episodes = int(counters["episodes"])
+    st.version = int(counters["version"])
+    st.collisions_cum = int(counters["collisions_cum"])
+    st.ingested_pos = {str(a): int(p) for a, p in state["ingested_pos"].items()}
+    st.boundaries = collections.deque(Boundary(*map(int, b)) for b in state["boundaries"])
+    st.rng.bit_generator.state = json.loads(state["rng"])
+    return st.episodes
+
+
+def wipe(folder: Path) -> None:
+    """An earlier attempt's log and cuts: a start begins afresh."""
+    for old in (LOG, CUT, PREVIOUS):
+        (folder / old).unlink(missing_ok=True)
+
+
+def retire(st: LearnerRun) -> None:
+    """The run is over (completed or stopped: a retry starts afresh): its log and the
+    older cut are no longer needed (the log grows with every transition). The last
+    cut stays."""
+    if st.folder is None:
+        return
+    if st.log is not None:
+        st.log.close()
+        st.log = None
+    for name in (LOG, PREVIOUS):
+        (st.folder / name).unlink(missing_ok=True)

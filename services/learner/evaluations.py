@@ -1,0 +1,85 @@
+"""Evaluation points in flight between the learner and the evaluator, and when one is
+sent again.
+
+The learner sends an evaluation point (weights marked `eval_point`) and keeps it until
+the evaluator's metric row for it comes back. A point is sent again when it was
+evidently lost: a later point was reported (its weights or its row were lost), later
+points were sent and the evaluator has been silent (it holds later points until it has
+the earlier ones, so no later report would come), or nothing at all came for long
+(the last point's). `due` decides that from the clock alone, so it is tested in
+process; the service publishes what it returns.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+from shared.net.messages import Weights
+from shared.net.wire import decode, encode
+
+# An evaluation point is sent again when the evaluator reported a later one (this one's
+# weights or row were lost), or when nothing was reported for this long (the last one's).
+EVAL_RESEND_S = 30.0
+# A point with later points sent after it is resent after this much of the evaluator's
+# silence: the evaluator holds later points until it has the earlier ones (rows in
+# episode order), so no later report would come to show that this one was lost.
+EVAL_BEHIND_RESEND_S = 5.0
+
+
+def with_unreported(payload: bytes, unreported: list[int]) -> bytes:
+    """A kept weights message with its list of earlier unreported points brought up to
+    date for a resend: the list of when it first went out may name points whose rows
+    have come since (an evaluator restarted in between would wait for them)."""
+    return encode(dataclasses.replace(decode(payload, Weights), unreported=unreported))
+
+
+class EvaluationsInFlight:
+    """Evaluation points sent to the evaluator that it has not reported yet.
+
+    `sent` is called on the learner's thread, `reported` on Zenoh's (from the
+    evaluator's metric rows); each writes its own fields. A point unreported after
+    `max_s` no longer counts (a slow or absent evaluator must not mark every update)."""
+
+    def __init__(self, max_s: float = 1.0) -> None:
+        self.max_s = max_s
+        self.last_sent = -1
+        self.sent_at = 0.0
+        self.last_reported = -1
+        self.reported_rows = 0
+        # Points sent and not reported yet: point -> (when sent, the weights message).
+        self.unreported: dict[int, tuple[float, bytes]] = {}
+        self.reported_at = time.monotonic()
+
+    def sent(self, point: int) -> None:
+        self.last_sent, self.sent_at = point, time.monotonic()
+
+    def reported(self, point: int) -> None:
+        self.last_reported = max(self.last_reported, point)
+        self.reported_rows += 1
+        self.unreported.pop(point, None)
+        self.reported_at = time.monotonic()
+
+    def busy(self) -> bool:
+        """The evaluator is (most likely) evaluating a point we sent."""
+        return self.last_reported < self.last_sent and time.monotonic() - self.sent_at < self.max_s
+
+    def due(self, now: float, at_once: bool = False) -> list[tuple[int, bytes]]:
+        """The points to send again now, each with its list of earlier unreported points
+        brought up to date (noted as sent now): those older than one the evaluator
+        reported, those older than one sent since once the evaluator has been silent
+        for EVAL_BEHIND_RESEND_S, or the last ones once it has been silent for
+        EVAL_RESEND_S (a merely slow evaluator reports in order, so it is rarely sent
+        duplicates, which it drops); with `at_once` all of them (it just came back)."""
+        quiet = now - self.reported_at
+        out = []
+        for point, (sent, payload) in sorted(self.unreported.items()):
+            overtaken = point < self.last_reported and now - sent > 2.0  # (give a resend time)
+            waited = min(quiet, now - sent)  # silence since this point and since a row
+            held = point < self.last_sent and waited > EVAL_BEHIND_RESEND_S
+            if at_once or overtaken or held or waited > EVAL_RESEND_S:
+                earlier = sorted(p for p in self.unreported if p < point)
+                payload = with_unreported(payload, earlier)
+                self.unreported[point] = (now, payload)
+                out.append((point, payload))
+        return out

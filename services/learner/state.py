@@ -1,0 +1,143 @@
+"""What the learner service holds for a run it serves (`LearnerRun`), and for a run
+group served in lockstep (`LockstepGroup`, each run reading its share of the one
+`GroupMADDPG` through a `MemberLearner`)."""
+
+from __future__ import annotations
+
+import collections
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from services.learner.bonus import BonusClient
+from services.learner.evaluations import EvaluationsInFlight
+from shared.config import TrainConfig
+from shared.core.exploration import BonusDiagnostics
+from shared.core.learners import Learner
+from shared.core.learners.group import GroupMADDPG
+from shared.core.replay import ReplayBuffer
+from shared.envs.tasks import TaskSpec
+from shared.net.messages import Transitions
+from shared.net.protocol import AckTracker, ReceiveCursor
+from shared.persist.wal import WriteAheadLog
+
+# Phases of the learner's wall time that stats() reports per update; the bonus wait is
+# BonusClient.wait_s, and what none of them covers (waiting for messages, acks, stats,
+# and the wait for the first `learning_starts` transitions) is reported as "other".
+TIME_PHASES = ("sample", "update", "publish", "inbound")
+
+
+class Boundary(NamedTuple):
+    """An ingested episode's end: weights go out once `updates` updates are done."""
+
+    episode: int
+    updates: int
+    env_steps: int
+    collisions_cum: int
+
+
+class MemberLearner:
+    """Run r's view of its group's learner: what the service reads and writes per run
+    (the update and the acting are the group's, one call for every run)."""
+
+    def __init__(self, group: GroupMADDPG, r: int) -> None:
+        self.group, self.r = group, r
+
+    @property
+    def updates(self) -> int:
+        return self.group.updates
+
+    def actor_weights(self) -> list[dict[str, torch.Tensor]]:
+        return self.group.run_actor_weights(self.r)
+
+    def state_dict(self) -> dict:
+        return self.group.run_state_dict(self.r)
+
+    def stats(self) -> dict[str, float]:
+        return self.group.stats()
+
+
+@dataclass
+class LockstepGroup:
+    """A run group served in lockstep: one learner for its runs (run r of `runs` is
+    member r), one actor stepping their worlds, one act request per step for all."""
+
+    runs: list[str]
+    learner: GroupMADDPG
+    actor: str
+    action_pub: Callable[[bytes], None]
+    wanted: tuple[int, np.ndarray] | None = None  # the open request: (seq, (R, obs))
+    answered: tuple[int, bytes] | None = None  # the last answer, for a repeated request
+    unpriced: list = field(default_factory=list)  # per run, minibatches awaiting prices
+
+
+@dataclass
+class LearnerRun:
+    """Everything the learner holds for a run it serves."""
+
+    run: str
+    config: TrainConfig
+    spec: TaskSpec
+    learner: Learner | MemberLearner
+    buffer: ReplayBuffer
+    rng: np.random.Generator
+    actors: list[str]
+    counter: str | None
+    bonus: BonusClient
+    evaluations: EvaluationsInFlight
+    weights_pub: Callable[[bytes], None]
+    eval_pub: Callable[[bytes], None]
+    ack_pub: Callable[[bytes], None]
+    received: ReceiveCursor  # what has been taken from each actor (whole episodes only)
+    counted: AckTracker  # how far the counter has acknowledged each actor
+    held: dict[str, collections.deque[Transitions]]  # received, not yet counted
+    final: dict[str, int] = field(default_factory=dict)  # actor -> transitions it published
+    ingested: int = 0
+    episodes: int = 0
+    collisions_cum: int = 0
+    boundaries: collections.deque[Boundary] = field(default_factory=collections.deque)
+    version: int = 0
+    lags: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=200))
+    window_open: bool = True
+    last_ack: float = 0.0
+    last_weights: float = 0.0  # when weights last went to the actors
+    last_stats: float = 0.0
+    last_ckpt: float = field(default_factory=time.monotonic)
+    t0: float = field(default_factory=time.perf_counter)
+    bonus_means: collections.deque[float] = field(
+        default_factory=lambda: collections.deque(maxlen=100)
+    )
+    # Wall time by phase (s): where the learner's time per update goes.
+    time: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_PHASES, 0.0))
+    contended_updates: int = 0
+    diagnostics: BonusDiagnostics = field(default_factory=BonusDiagnostics)
+    draws: int = 1  # minibatches per update (`minibatch: per-agent`: one per agent)
+    log: WriteAheadLog | None = None  # every batch taken, before it is acknowledged
+    folder: Path | None = None  # DATA_DIR/learner/RUN
+    ingested_pos: dict[str, int] = field(default_factory=dict)  # per actor, in replay
+    shares: dict[str, int] = field(default_factory=dict)  # transitions each actor owes
+    incarnation: str = ""  # this process's weights are newer than any before a restart
+    resumed_from: int | None = None  # the cut's episode, when resumed
+    cuts: int = 0
+    cut_s: float = 0.0  # wall time spent writing cuts (the log's fsync included)
+    cut_bytes: int = 0  # size of the last cut file
+    unpriced: list = field(default_factory=list)  # minibatches drawn, bonus query unanswered
+    lockstep: bool = False  # interleave lockstep: actions are computed here, per step
+    wanted: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)  # open requests
+    answered: dict[str, tuple[int, bytes]] = field(default_factory=dict)  # last answers
+    action_pubs: dict[str, Callable[[bytes], None]] = field(default_factory=dict)
+    member: int = -1  # the run's place in its group (-1: a run alone)
+
+    @property
+    def counting(self) -> bool:
+        return self.config.explore in ("dis-macb", "cen-macb")
+
+    @property
+    def owed_total(self) -> int:
+        """Updates the replay ratio asks for so far: one per transition after the warm-up."""
+        return max(0, self.ingested - self.config.learning_starts)
