@@ -16,7 +16,6 @@ they are is in docs/performance.md, "Counter service".
 
 from __future__ import annotations
 
-import json
 import os
 import queue
 import re
@@ -24,24 +23,21 @@ import shutil
 import sys
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from services.common import ServiceBase, learner_end_reason
+from services.counter import burst, snapshot
+from services.counter.state import RunState
 from shared.config import TrainConfig, make_config
-from shared.core.counting import CountTable
-from shared.core.exploration import CountExploration
 from shared.envs.tasks import task_spec_for
 from shared.net.bus import k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.net.messages import Ack, BonusQuery, BonusReply, Status, Transitions
-from shared.net.protocol import ReceiveCursor, Verdict
 from shared.net.wire import WireError, check_dims, encode
 from shared.persist.files import read_json, write_json
-from shared.persist.wal import WalRecord, WriteAheadLog
+from shared.persist.wal import WriteAheadLog
 from shared.run.factories import build_exploration
 
 DEFAULT_SNAPSHOT_S = 5.0
@@ -61,35 +57,7 @@ BURST_MAX_WAIT_S = 0.002
 DEFAULT_SWITCH_INTERVAL_S = 0.0005
 # The longest the service thread steps aside for one bonus query being answered.
 QUERY_YIELD_MAX_S = 0.005
-LATENCY_WINDOW = 1000
-SNAPSHOT_FORMAT = 1
 _RUN_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,127}")
-
-
-@dataclass
-class RunState:
-    """One run's tables, expected numbers, log and stats."""
-
-    config: TrainConfig
-    explorer: CountExploration
-    obs_dim: int
-    act_dim: int
-    path: Path
-    wal: WriteAheadLog
-    # Next expected number per actor, and the duplicate rows / gaps seen (shared.net.protocol).
-    cursor: ReceiveCursor = field(default_factory=ReceiveCursor)
-    counted: int = 0
-    run_rejects: int = 0
-    queries: int = 0
-    uncounted_rows_queried: int = 0
-    snapshots: int = 0
-    dirty: bool = False
-    latencies: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
-    rate: float = 0.0
-    rate_t: float = field(default_factory=time.monotonic)
-    rate_counted: int = 0
-    closed: bool = False
-    learner: str | None = None  # the run ends for the counter when its learner completes
 
 
 class CounterService(ServiceBase):
@@ -192,7 +160,7 @@ class CounterService(ServiceBase):
         if st is None:
             return
         self._take_burst()  # what arrived before the stop is in the final snapshot
-        self._snapshot(run, st)
+        snapshot.write(run, st)
         write_json(st.path / "stopped", {"reason": reason, "time": time.time()})
         self.log.info(
             "stopped run %s (%s): %d counted, %d keys",
@@ -216,7 +184,7 @@ class CounterService(ServiceBase):
         self._take_burst()
         for run, st in list(self._runs.items()):
             try:
-                self._snapshot(run, st)
+                snapshot.write(run, st)
             except Exception:
                 self.log.exception("snapshot of run %s failed at shutdown", run)
             st.wal.close()
@@ -237,8 +205,8 @@ class CounterService(ServiceBase):
         )
         try:
             if (path / "snapshot.npz").exists():
-                self._load_snapshot(st)
-            replayed = self._replay(run, st, records)
+                snapshot.load(st)
+            replayed = snapshot.replay(run, st, records, self.log)
         except Exception:
             wal.close()
             raise
@@ -248,7 +216,7 @@ class CounterService(ServiceBase):
         with self._lock:
             self._runs[run] = st
         if replayed:
-            self._snapshot(run, st)  # fold the log into a snapshot right away
+            snapshot.write(run, st)  # fold the log into a snapshot right away
         return st, replayed
 
     def _restore_all(self) -> None:
@@ -286,98 +254,6 @@ class CounterService(ServiceBase):
         return dest
 
     # ------------------------------------------------------------ snapshots
-    def _snapshot(self, run: str, st: RunState) -> None:
-        """Tables + expected + stats into snapshot.npz (atomic replace), then empty the log.
-
-        Runs on the service thread, the only writer of the tables, so reading them
-        needs no lock (queries only read too).
-        """
-        arrays: dict[str, np.ndarray] = {}
-        for t, table in enumerate(st.explorer.tables):
-            keys, counts = table.to_arrays()
-            arrays[f"keys{t}"] = keys
-            arrays[f"counts{t}"] = counts
-        meta = {
-            "format": SNAPSHOT_FORMAT,
-            "run": run,
-            "time": time.time(),
-            "expected": st.cursor.positions(),
-            "totals": [t.total for t in st.explorer.tables],
-            "key_bytes": [t.key_bytes for t in st.explorer.tables],
-            "stats": {
-                "counted": st.counted,
-                "duplicates": st.cursor.duplicate_rows,
-                "gaps": st.cursor.gaps,
-                "run_rejects": st.run_rejects,
-                "queries": st.queries,
-                "uncounted_rows_queried": st.uncounted_rows_queried,
-                "snapshots": st.snapshots + 1,
-            },
-        }
-        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-        final = st.path / "snapshot.npz"
-        tmp = st.path / "snapshot.npz.tmp"
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, final)
-        st.wal.truncate()
-        st.snapshots += 1
-        st.dirty = False
-
-    def _load_snapshot(self, st: RunState) -> None:
-        with np.load(st.path / "snapshot.npz", allow_pickle=False) as z:
-            meta = json.loads(bytes(z["meta"]).decode())
-            tables = st.explorer.tables
-            if len(meta["totals"]) != len(tables):
-                have = len(meta["totals"])
-                raise ValueError(f"snapshot has {have} tables, run has {len(tables)}")
-            for t, table in enumerate(tables):
-                keys, counts = z[f"keys{t}"], z[f"counts{t}"]
-                if keys.ndim != 2 or keys.shape[1] != table.key_bytes:
-                    raise ValueError(f"snapshot table {t} has keys {keys.shape}")
-                tables[t] = CountTable.from_arrays(keys, counts, meta["totals"][t])
-        stats = meta["stats"]
-        st.cursor = ReceiveCursor({str(a): int(s) for a, s in meta["expected"].items()})
-        st.cursor.duplicate_rows = int(stats["duplicates"])
-        st.cursor.gaps = int(stats["gaps"])
-        st.counted = int(stats["counted"])
-        st.run_rejects = int(stats.get("run_rejects", 0))
-        st.queries = int(stats.get("queries", 0))
-        st.uncounted_rows_queried = int(stats.get("uncounted_rows_queried", 0))
-        st.snapshots = int(stats.get("snapshots", 0))
-
-    def _replay(self, run: str, st: RunState, records: list[WalRecord]) -> int:
-        """Apply logged batches the snapshot does not hold yet (dedup by seq)."""
-        replayed = 0
-        # A scratch cursor: replay must not add to the run's duplicate/gap tallies.
-        cursor = ReceiveCursor(st.cursor.positions())
-        for rec in records:
-            exp = cursor.expected(rec.actor)
-            d = cursor.peek(rec.actor, rec.seq, rec.n)
-            if d.verdict is Verdict.DUPLICATE:
-                continue  # already in the snapshot (killed between snapshot and truncate)
-            if d.verdict is Verdict.GAP:
-                self.log.error(
-                    "run %s: WAL record %s@%d is past expected %d: skipped",
-                    run,
-                    rec.actor,
-                    rec.seq,
-                    exp,
-                )
-                continue
-            if len(rec.keys) != len(st.explorer.tables):
-                have, want = len(rec.keys), len(st.explorer.tables)
-                raise ValueError(f"WAL record has {have} tables, run has {want}")
-            cursor.take(rec.actor, rec.seq, rec.n)
-            for table, keys in zip(st.explorer.tables, rec.keys):
-                table.increment(keys[d.skip :])
-            st.counted += d.taken
-            replayed += 1
-        tallies = st.cursor.duplicate_rows, st.cursor.gaps
-        st.cursor = cursor
-        st.cursor.duplicate_rows, st.cursor.gaps = tallies
-        return replayed
-
     # ------------------------------------------------------------ ingestion
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         self._yield_to_queries()
@@ -452,44 +328,20 @@ class CounterService(ServiceBase):
             if not st.closed:  # a run stopped meanwhile has written its last snapshot
                 self._ingest(run, st, batches)
 
-    def _ingest(
-        self, run: str, st: RunState, batches: list[tuple[str, int, np.ndarray, np.ndarray]]
-    ) -> None:
-        """Apply the exactly-once rule batch by batch, in arrival order; then log, count
-        and acknowledge what was taken. The burst is decided on a staging copy of the
-        run's cursor, which replaces it only once the taken rows are logged. What one
-        actor has taken in a burst is one contiguous range (each taken batch starts
-        where the last ended): one record."""
-        staged = st.cursor.copy()
-        taken: dict[str, tuple[int, list[np.ndarray], list[np.ndarray]]] = {}
-        for actor, seq, obs, act in batches:
-            start = staged.expected(actor)
-            d = staged.take(actor, seq, len(obs))
-            if not d.took:
-                continue
-            if d.skip:
-                obs, act = obs[d.skip :], act[d.skip :]
-            if actor not in taken:
-                taken[actor] = (start, [], [])
-            taken[actor][1].append(obs)
-            taken[actor][2].append(act)
-        if not taken:
+    def _ingest(self, run: str, st: RunState, batches: list[burst.Batch]) -> None:
+        """Take a burst by the exactly-once rule (`burst.plan`); then hash, log, count
+        and acknowledge what was taken, the staged cursor swapped in only once the
+        rows are logged."""
+        plan = burst.plan(st.cursor, batches)
+        if plan.obs is None or plan.act is None:
             with self._lock:
-                st.cursor = staged  # only the duplicate/gap tallies changed
+                st.cursor = plan.staged  # only the duplicate/gap tallies changed
         else:
-            segments = [
-                (actor, start, staged.expected(actor) - start)
-                for actor, (start, _, _) in taken.items()
-            ]
-            obs_all = [o for _, obs_parts, _ in taken.values() for o in obs_parts]
-            act_all = [a for _, _, act_parts in taken.values() for a in act_parts]
-            obs = obs_all[0] if len(obs_all) == 1 else np.concatenate(obs_all)
-            act = act_all[0] if len(act_all) == 1 else np.concatenate(act_all)
             self._yield_to_queries()
-            keys = st.explorer.keys(obs, act)  # hashing needs no lock (hashers are read-only)
+            keys = st.explorer.keys(plan.obs, plan.act)  # no lock: hashers are read-only
             self._yield_to_queries()
             records, pos = [], 0
-            for actor, start, rows in segments:
+            for actor, start, rows in plan.segments:
                 records.append((actor, start, rows, [k[pos : pos + rows] for k in keys]))
                 pos += rows
             st.wal.append_many(records)  # logged before counted and acked
@@ -497,7 +349,7 @@ class CounterService(ServiceBase):
             with self._lock:
                 for table, k in zip(st.explorer.tables, keys):
                     table.increment(k)
-                st.cursor = staged
+                st.cursor = plan.staged
                 st.counted += pos
             st.dirty = True
         self._ack(run, st)
@@ -602,9 +454,9 @@ class CounterService(ServiceBase):
         if now >= self._next_snapshot:
             self._take_burst()  # not kept waiting for their acks while the snapshot runs
             for run, st in list(self._runs.items()):
-                if st.dirty and st.wal.bytes >= SNAPSHOT_LOG_RATIO * _snapshot_bytes(st):
+                if st.dirty and st.wal.bytes >= SNAPSHOT_LOG_RATIO * snapshot.size(st):
                     try:
-                        self._snapshot(run, st)
+                        snapshot.write(run, st)
                     except OSError:
                         self.log.exception("snapshot of run %s failed (the log keeps it)", run)
             spent = time.monotonic() - now
@@ -657,11 +509,6 @@ class CounterService(ServiceBase):
         out["ready"] = self._ready
         out["snapshot_s"] = self.snapshot_s
         return out
-
-
-def _snapshot_bytes(st: RunState) -> int:
-    """About what a snapshot of the run writes: keys plus an int64 count per key."""
-    return sum(len(t) * (t.key_bytes + 8) for t in st.explorer.tables)
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> CounterService:
