@@ -54,7 +54,13 @@ from services.learner import checkpoint as ckpt
 from services.learner import intake
 from services.learner.bonus import BonusClient
 from services.learner.evaluations import EvaluationsInFlight
-from services.learner.state import LearnerRun, LockstepGroup, MemberLearner
+from services.learner.state import (
+    LearnerRun,
+    LockstepGroup,
+    MemberLearner,
+    run_stats,
+    update_group,
+)
 from shared.config import TrainConfig, actors_error
 from shared.core.learners.group import GroupMADDPG
 from shared.core.networks import weights_as_arrays
@@ -501,7 +507,7 @@ class LearnerService(ServiceBase):
         if (
             len(members) == len(g.runs)
             and all(st.owed_total > g.learner.updates for st in members)
-            and not self.group_update(g, members)
+            and not update_group(g, members)
         ):
             members = []  # the counter is silent: nothing more this tick
         for st in members:
@@ -516,38 +522,6 @@ class LearnerService(ServiceBase):
         for st in members:
             self.maybe_finish(st)
         return False
-
-    def group_update(self, g: LockstepGroup, members: list[LearnerRun]) -> bool:
-        """One update of every run of the group; False if a bonus query went
-        unanswered (the same minibatches wait for the counter, as a run's do)."""
-        t0 = time.perf_counter()
-        batch = members[0].config.batch_size
-        drawn = g.unpriced or [
-            [st.buffer.sample(batch, st.rng) for _ in range(st.draws)] for st in members
-        ]
-        t1 = time.perf_counter()
-        for st in members:
-            st.bonus.fresh = False
-        queries = [st.bonus.ask(batches) for st, batches in zip(members, drawn)]
-        priced = []
-        for st, query in zip(members, queries):
-            bonuses = st.bonus.answer(query)
-            if bonuses is None:
-                g.unpriced = drawn
-                return False
-            priced.append((bonuses, list(st.bonus.counts)))
-        g.unpriced = []
-        t2 = time.perf_counter()
-        parts = [update_arrays(b, p[0]) for b, p in zip(drawn, priced)]
-        g.learner.update(*[np.stack(cols) for cols in zip(*parts)])
-        spent = time.perf_counter() - t2
-        for st, (bonuses, counts) in zip(members, priced):
-            st.time["sample"] += (t1 - t0) / len(members)
-            st.time["update"] += spent / len(members)
-            for j, bonus in enumerate(bonuses):
-                st.bonus_means.append(float(bonus.mean()))
-                st.diagnostics.record(bonus, counts[j] if len(counts) == len(bonuses) else [])
-        return True
 
     def on_group_request(self, key: str, msg: ActRequest) -> None:
         g = self.group
@@ -723,53 +697,10 @@ class LearnerService(ServiceBase):
         )
 
     def stats(self, st: LearnerRun) -> dict[str, Any]:
-        updates = st.learner.updates
-        owed_total = st.owed_total
-        wall = time.perf_counter() - st.t0
-        lat = sorted(st.bonus.latencies)
-        per_update = 1e3 / updates if updates else 0.0
-        phases = {**st.time, "bonus_wait": st.bonus.wait_s}
-        spent = {f"ms_per_update_{k}": v * per_update for k, v in phases.items()}
-        spent["ms_per_update_other"] = (wall - sum(phases.values())) * per_update
-        return {
-            "updates": updates,
-            "ingested": st.ingested,
-            "episodes_ingested": st.episodes,
-            "replay_ratio": updates / owed_total if owed_total else 0.0,
-            "policy_lag": float(np.mean(st.lags)) if st.lags else 0.0,
-            "policy_version": st.version,
-            "wall_s": wall,
-            "steps_per_sec": st.ingested / wall if wall > 0 else 0.0,
-            "updates_per_sec": updates / wall if wall > 0 else 0.0,
-            "backlog": owed_total - updates,
-            "window_open": st.window_open,
-            "bonus_p50_ms": 1e3 * lat[len(lat) // 2] if lat else 0.0,
-            "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
-            "bonus_wait_ms_per_update": spent["ms_per_update_bonus_wait"],
-            "bonus_queries": st.bonus.queries,
-            "bonus_rows_per_query": st.bonus.rows / max(1, st.bonus.queries),
-            "bonus_failures": st.bonus.failures,
-            "bonus_mean": float(np.mean(st.bonus_means)) if st.bonus_means else 0.0,
-            "rejects_total": sum(self.rejects.values()),
-            "contended_updates": st.contended_updates,
-            "eval_rows_seen": st.evaluations.reported_rows,
-            "cuts": st.cuts,
-            "cut_ms_mean": 1e3 * st.cut_s / st.cuts if st.cuts else 0.0,
-            "cut_bytes": st.cut_bytes,
-            **spent,
-            **st.learner.stats(),
-        }
+        return run_stats(st, sum(self.rejects.values()))
 
     def maybe_finish(self, st: LearnerRun) -> None:
-        # Each actor owes its share of the episodes (whether or not its "completed" came:
-        # a learner resumed after it may never see it).
-        if any(st.received.expected(a) < st.shares[a] for a in st.actors):
-            return
-        if any(st.held[a] for a in st.actors) or st.boundaries:
-            return
-        if st.learner.updates < st.owed_total:
-            return
-        if st.evaluations.unreported:  # every point's row is out (or sent again) first
+        if not st.done:
             return
         run = st.run
         self.checkpoint(st)

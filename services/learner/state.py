@@ -9,7 +9,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -20,7 +20,7 @@ from shared.config import TrainConfig
 from shared.core.exploration import BonusDiagnostics
 from shared.core.learners import Learner
 from shared.core.learners.group import GroupMADDPG
-from shared.core.replay import ReplayBuffer
+from shared.core.replay import ReplayBuffer, update_arrays
 from shared.envs.tasks import TaskSpec
 from shared.net.messages import Transitions
 from shared.net.protocol import AckTracker, ReceiveCursor
@@ -141,3 +141,90 @@ class LearnerRun:
     def owed_total(self) -> int:
         """Updates the replay ratio asks for so far: one per transition after the warm-up."""
         return max(0, self.ingested - self.config.learning_starts)
+
+    @property
+    def done(self) -> bool:
+        """Every actor's share of the episodes is in replay and learnt, every weight and
+        evaluation point out: the run can complete. (Whether or not an actor's
+        "completed" came: a learner resumed after it may never see it.)"""
+        return (
+            all(self.received.expected(a) >= self.shares[a] for a in self.actors)
+            and not any(self.held[a] for a in self.actors)
+            and not self.boundaries
+            and self.learner.updates >= self.owed_total
+            and not self.evaluations.unreported  # every point's row is out (or sent again)
+        )
+
+
+def run_stats(st: LearnerRun, rejects_total: int) -> dict[str, Any]:
+    """The run's learner stats: progress, replay ratio and lag, where the time per update
+    goes, the bonus queries, the cuts, and the learner's own."""
+    updates = st.learner.updates
+    owed_total = st.owed_total
+    wall = time.perf_counter() - st.t0
+    lat = sorted(st.bonus.latencies)
+    per_update = 1e3 / updates if updates else 0.0
+    phases = {**st.time, "bonus_wait": st.bonus.wait_s}
+    spent = {f"ms_per_update_{k}": v * per_update for k, v in phases.items()}
+    spent["ms_per_update_other"] = (wall - sum(phases.values())) * per_update
+    return {
+        "updates": updates,
+        "ingested": st.ingested,
+        "episodes_ingested": st.episodes,
+        "replay_ratio": updates / owed_total if owed_total else 0.0,
+        "policy_lag": float(np.mean(st.lags)) if st.lags else 0.0,
+        "policy_version": st.version,
+        "wall_s": wall,
+        "steps_per_sec": st.ingested / wall if wall > 0 else 0.0,
+        "updates_per_sec": updates / wall if wall > 0 else 0.0,
+        "backlog": owed_total - updates,
+        "window_open": st.window_open,
+        "bonus_p50_ms": 1e3 * lat[len(lat) // 2] if lat else 0.0,
+        "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
+        "bonus_wait_ms_per_update": spent["ms_per_update_bonus_wait"],
+        "bonus_queries": st.bonus.queries,
+        "bonus_rows_per_query": st.bonus.rows / max(1, st.bonus.queries),
+        "bonus_failures": st.bonus.failures,
+        "bonus_mean": float(np.mean(st.bonus_means)) if st.bonus_means else 0.0,
+        "rejects_total": rejects_total,
+        "contended_updates": st.contended_updates,
+        "eval_rows_seen": st.evaluations.reported_rows,
+        "cuts": st.cuts,
+        "cut_ms_mean": 1e3 * st.cut_s / st.cuts if st.cuts else 0.0,
+        "cut_bytes": st.cut_bytes,
+        **spent,
+        **st.learner.stats(),
+    }
+
+
+def update_group(g: LockstepGroup, members: list[LearnerRun]) -> bool:
+    """One update of every run of the group; False if a bonus query went
+    unanswered (the same minibatches wait for the counter, as a run's do)."""
+    t0 = time.perf_counter()
+    batch = members[0].config.batch_size
+    drawn = g.unpriced or [
+        [st.buffer.sample(batch, st.rng) for _ in range(st.draws)] for st in members
+    ]
+    t1 = time.perf_counter()
+    for st in members:
+        st.bonus.fresh = False
+    queries = [st.bonus.ask(batches) for st, batches in zip(members, drawn)]
+    priced = []
+    for st, query in zip(members, queries):
+        bonuses = st.bonus.answer(query)
+        if bonuses is None:
+            g.unpriced = drawn
+            return False
+        priced.append((bonuses, list(st.bonus.counts)))
+    g.unpriced = []
+    t2 = time.perf_counter()
+    parts = [update_arrays(b, p[0]) for b, p in zip(drawn, priced)]
+    g.learner.update(*[np.stack(cols) for cols in zip(*parts)])
+    spent = time.perf_counter() - t2
+    for st, (bonuses, counts) in zip(members, priced):
+        st.time["sample"] += (t1 - t0) / len(members)
+        st.time["update"] += spent / len(members)
+        for j, bonus in enumerate(bonuses):
+            st.bonus_means.append(float(bonus.mean()))
+            st.diagnostics.record(bonus, counts[j] if len(counts) == len(bonuses) else [])
+    return True

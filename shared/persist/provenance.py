@@ -27,7 +27,7 @@ from shared.persist.files import write_json
 FILE = "provenance.json"
 # Distributions whose versions change a run's numbers or its environments.
 PACKAGES = ("macb", "torch", "numpy", "mpe2", "pettingzoo", "gymnasium", "eclipse-zenoh")
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # shared/persist/ -> the checkout
 
 
 class ProvenanceError(ValueError):
