@@ -321,7 +321,14 @@ def test_the_png_is_written_with_every_arm_in_its_legend(tmp_path, name):
     exp, points = synthetic(fig, {a.name: (1000, 0.8) for a in fig.arms}, 3000, step=30)
     a = report.analyse(fig, exp, points)
     paths = report.write_report(a, points, "mpe2", tmp_path)
-    assert [p.name for p in paths] == [f"{name}.png", f"{name}.md", f"{name}.csv"]
+    assert [p.name for p in paths] == [
+        f"{name}.png", f"{name}.md", f"{name}.csv", f"{name}-claims.json"
+    ]  # fmt: skip
+    claims = json.loads((tmp_path / f"{name}-claims.json").read_text())
+    assert (claims["figure"], claims["profile"], claims["episodes_reached"]) == (name, "mpe2", 3000)
+    assert [(c["text"], c["measured"], c["verdict"]) for c in claims["claims"]] == [
+        (claim.text, text, verdict) for claim, text, verdict in report.claim_verdicts(a)
+    ]
     with Image.open(tmp_path / f"{name}.png") as png:
         assert png.size[0] > 600
         legend = json.loads(png.text["Legend"])
