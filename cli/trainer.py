@@ -30,6 +30,7 @@ from shared.persist import provenance
 from shared.persist.cuts import (
     CutError,
     ReplayLog,
+    atomic_torch_save,
     config_difference,
     latest_cut,
     load_tables,
@@ -94,9 +95,7 @@ def save_checkpoint(
         "counters": counters,
         "tables": tables,
     }
-    tmp = path.with_suffix(".tmp")
-    torch.save(state, tmp)
-    tmp.replace(path)
+    atomic_torch_save(state, path)
 
 
 def load_checkpoint(path: Path) -> dict:

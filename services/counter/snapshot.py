@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 
 import numpy as np
@@ -14,6 +13,7 @@ import numpy as np
 from services.counter.state import RunState
 from shared.core.counting import CountTable
 from shared.net.protocol import ReceiveCursor, Verdict
+from shared.persist.files import atomic_write
 from shared.persist.wal import WalRecord
 
 SNAPSHOT_FORMAT = 1
@@ -48,11 +48,7 @@ def write(run: str, st: RunState) -> None:
         },
     }
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    final = st.path / "snapshot.npz"
-    tmp = st.path / "snapshot.npz.tmp"
-    with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(tmp, final)
+    atomic_write(st.path / "snapshot.npz", lambda f: np.savez(f, **arrays))
     st.wal.truncate()
     st.snapshots += 1
     st.dirty = False

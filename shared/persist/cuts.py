@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from shared.core.counting import CountTable
+from shared.persist.files import atomic_write
 
 log = logging.getLogger("macb.cuts")
 
@@ -44,30 +45,13 @@ class CutError(ValueError):
     """A cut that cannot be used: the message names the file and what is wrong."""
 
 
-def fsync_dir(path: Path) -> None:
-    """A rename inside `path` survives the machine once its directory is fsynced."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def atomic_torch_save(obj: Any, path: Path, previous: Path | None = None) -> None:
     """Write `obj` to `path` so that a crash leaves the old file or the new one, whole.
 
     With `previous`, the old file is kept there, moved aside only once the new one is
     written and fsynced: a kill at any point leaves a good file at `path` or, between
     the two renames, at `previous`."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save(obj, f)
-        f.flush()
-        os.fsync(f.fileno())
-    if previous is not None and path.exists():
-        os.replace(path, previous)
-    os.replace(tmp, path)
-    fsync_dir(path.parent)
+    atomic_write(path, lambda f: torch.save(obj, f), previous)
 
 
 def tables_state(tables: Sequence[CountTable]) -> list[dict[str, Any]]:

@@ -5,15 +5,43 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
+
+
+def fsync_dir(path: Path) -> None:
+    """A rename inside `path` survives the machine once its directory is fsynced."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write(
+    path: Path, write: Callable[[BinaryIO], Any], previous: Path | None = None
+) -> None:
+    """The one way a file others rely on is replaced: `write` fills a temporary file,
+    which is fsynced and renamed over `path`, so a crash leaves the old file or the new
+    one, whole. With `previous`, the old file is kept there, moved aside only once the
+    new one is on disk: a kill at any point leaves a good file at `path` or, between the
+    two renames, at `previous`."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    if previous is not None and path.exists():
+        os.replace(path, previous)
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
 
 
 def write_json(path: Path, data: Any) -> None:
-    """Replace `path` with `data` as JSON: a crash leaves the old file or the new one."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
-    os.replace(tmp, path)
+    """Replace `path` with `data` as JSON (`atomic_write`)."""
+    body = json.dumps(data, indent=1, sort_keys=True).encode()
+    atomic_write(path, lambda f: f.write(body))
 
 
 def read_json(path: Path) -> Any:
