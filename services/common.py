@@ -320,7 +320,7 @@ class ServiceBase:
         self._joined.pop(run, None)
         self._save_runs()
         if not self.active:
-            self.lost.down.clear()
+            self.lost.clear()
             self.resumed = None
 
     # ------------------------------------------------------------ hooks

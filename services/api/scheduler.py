@@ -2,7 +2,7 @@
 
 - Assigns queued runs, oldest first, to free services (`shared.net.control`), and starts
   them. With `group_size` > 1, queued runs of one experiment that can share a group
-  (lockstep, one actor, same task and networks: `cli.group_trainer.group_error`)
+  (lockstep, one actor, same task and networks: `shared.groups.group_error`)
   start together on one learner, actor and evaluator, up to `group_size` runs: a run
   group, each run keeping its own id, rows and status. Services it has started runs on
   stay reserved until those runs end, so two runs never land on one learner while the
@@ -50,8 +50,15 @@ from shared.config import ConfigError, TrainConfig, make_config
 from shared.groups import group_error, group_key
 from shared.net import bus as keys
 from shared.net.bus import Bus
-from shared.net.control import NoFreeServices, assign_services, discover, send_start, send_stop
-from shared.net.messages import History, Metrics, Status
+from shared.net.control import (
+    NoFreeServices,
+    assign_services,
+    discover,
+    history_rows,
+    send_start,
+    send_stop,
+)
+from shared.net.messages import Metrics, Status
 from shared.net.monitor import Graces, RunMonitor
 from shared.net.monitor import peer_grace_s as peer_grace
 from shared.net.wire import WireError, decode
@@ -629,20 +636,7 @@ class Scheduler:
         bus = self.bus
         if bus is None:
             return 0
-        rows: list[dict[str, Any]] = []
-        for raw in bus.get(keys.k_history(w.run, "eval"), timeout=self.history_timeout_s):
-            try:
-                msg = decode(raw, History)
-            except WireError:
-                continue
-            if msg.run != w.run:
-                continue
-            rows = [
-                flat_row(r)
-                for r in msg.rows
-                if isinstance(r, dict) and isinstance(r.get("episode"), int)
-            ]
-            break
+        rows = [flat_row(r) for r in history_rows(bus, w.run, self.history_timeout_s)]
         if not rows:
             return 0
         added = self._store_points(w.run, rows)

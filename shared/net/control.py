@@ -105,6 +105,21 @@ def start_group(
     return watches
 
 
+def history_rows(bus: Bus, run: str, timeout: float = 2.0) -> list[dict[str, Any]]:
+    """Every evaluation row the run's evaluator has published (its history queryable),
+    in order; [] when no evaluator answers. Rows without an integer episode are left out."""
+    for raw in bus.get(keys.k_history(run, "eval"), timeout=timeout):
+        try:
+            msg = decode(raw, History)
+        except WireError:
+            continue
+        if msg.run == run:
+            return [
+                r for r in msg.rows if isinstance(r, dict) and isinstance(r.get("episode"), int)
+            ]
+    return []
+
+
 def send_start(bus: Bus, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
     bus.put(
         keys.k_control("start"),
@@ -189,16 +204,10 @@ class RunWatch:
         """Ask the evaluator for every row it published (some were lost on the way)."""
         if self._bus is None:
             return
-        for raw in self._bus.get(keys.k_history(self.run, "eval"), timeout=2.0):
-            try:
-                msg = decode(raw, History)
-            except WireError:
-                continue
-            with self.changed:
-                for row in msg.rows:
-                    if msg.run == self.run and isinstance(row, dict) and "episode" in row:
-                        self._add_row(row)
-            return
+        rows = history_rows(self._bus, self.run)
+        with self.changed:
+            for row in rows:
+                self._add_row(row)
 
     def verdict(self) -> RunVerdict:
         """The run's status by its services' reports alone."""

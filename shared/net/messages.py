@@ -13,7 +13,7 @@ from these classes, so a field added here is on the wire and checked there.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -25,10 +25,6 @@ class Message:
 
     TYPE: ClassVar[str] = ""
     run: str
-
-    def fields(self) -> dict[str, Any]:
-        """The message's fields but its run, as the wire carries them."""
-        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "run"}
 
 
 @dataclass(frozen=True)

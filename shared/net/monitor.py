@@ -55,6 +55,9 @@ class PeerGrace:
             del self.down[p]
         return gone
 
+    def clear(self) -> None:
+        self.down.clear()
+
     def __contains__(self, peer: object) -> bool:
         return peer in self.down
 

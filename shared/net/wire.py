@@ -80,7 +80,8 @@ def _unpack_hook(obj: dict) -> Any:
 
 def encode(msg: Message) -> bytes:
     """Serialize a message; `decode` checks it against the same schema."""
-    body = {"v": SCHEMA_VERSION, "type": msg.TYPE, "run": msg.run, **msg.fields()}
+    fields = {name: getattr(msg, name) for name in SCHEMAS[msg.TYPE]}
+    body = {"v": SCHEMA_VERSION, "type": msg.TYPE, "run": msg.run, **fields}
     return msgpack.packb(body, default=_pack_default, use_bin_type=True)
 
 
