@@ -371,7 +371,8 @@ class FigureDef:
     note: str = ""
     # Under `profile: thesis`, what every counting arm (Dis-/Cen-MACB) sets over its
     # file: the method the thesis's code most likely ran for this figure, where it
-    # differs from the text's (docs/fidelity.md, "which loop produced which result").
+    # differs from the text's (docs/fidelity.md, "The thesis repo's loops, and which one
+    # produced which result").
     thesis_method: tuple[tuple[str, Any], ...] = ()
 
     def arm(self, name: str) -> ArmDef:

@@ -27,14 +27,14 @@ weights only when every earlier step has been counted, taken into replay and lea
 weights and evaluation points are then those of `macb train` with the same config.
 
 Resume (docs/reliability.md, "The cluster"): every batch taken is appended to the
-run's log `DATA_DIR/learner/RUN/transitions.wal` before it is acknowledged, and every
-CUT_EVERY_S a cut (`checkpoint.pt`: networks, optimizers, targets, update and episode
-counters, the sampler's RNG, which logged batches the buffer holds, the episode
-boundaries still owed) is written atomically. A learner restarted with the same id and
-data dir loads the newest good cut, refills the buffer from the log and holds the
-logged batches beyond the cut until the counter's ack covers them, as on first
-arrival: nothing the counter counted is missing from replay, and the updates owed for
-those batches are done again.
+run's log `DATA_DIR/learner/RUN/transitions.wal` before it is acknowledged (intake.py),
+and every CHECKPOINT_EVERY_S a cut (`checkpoint.pt`: networks, optimizers, targets,
+update and episode counters, the sampler's RNG, which logged batches the buffer holds,
+the episode boundaries still owed) is written atomically (checkpoint.py). A learner
+restarted with the same id and data dir loads the newest good cut, refills the buffer
+from the log and holds the logged batches beyond the cut until the counter's ack
+covers them, as on first arrival: nothing the counter counted is missing from
+replay, and the updates owed for those batches are done again.
 """
 
 from __future__ import annotations

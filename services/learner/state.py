@@ -1,6 +1,7 @@
-"""What the learner service holds for a run it serves (`LearnerRun`), and for a run
-group served in lockstep (`LockstepGroup`, each run reading its share of the one
-`GroupMADDPG` through a `MemberLearner`)."""
+"""What the learner service holds for a run it serves (`LearnerRun`: its `done` rule and
+`run_stats`), and for a run group served in lockstep (`LockstepGroup`, each run reading
+its share of the one `GroupMADDPG` through a `MemberLearner`; `update_group`: one
+update of every run)."""
 
 from __future__ import annotations
 
