@@ -351,8 +351,8 @@ LEARNER_PARTS = {
     "learner.update": ("learners/tuning.py", "update"),
     "bonus query round trip (BonusClient.bonus_for)": ("learner/main.py", "bonus_for"),
     "replay sample": ("replay.py", "sample"),
-    "weights out (publish_weights)": ("learner/main.py", "publish_weights"),
-    "  of which counter stats query": ("learner/main.py", "counter_stats"),
+    "weights out (Outbound.weights)": ("learner/outbound.py", "weights"),
+    "  of which counter stats query": ("learner/outbound.py", "counter_stats"),
     "inbound messages (handle)": ("learner/main.py", "handle"),
     "waiting for messages (inbox get)": ("queue.py", "get"),
 }

@@ -90,36 +90,37 @@ def _points(sent: list[bytes]) -> list[tuple[int, list[int]]]:
 
 
 def _learner(unreported: dict[int, float], last_sent: int, reported_at: float):
-    from services.learner import main as lm
+    from services.learner.evaluations import EvaluationsInFlight
+    from services.learner.outbound import Outbound
 
-    ev = lm.EvaluationsInFlight()
+    ev = EvaluationsInFlight()
     ev.unreported = {p: (t, _weights(p, [20] if p > 20 else [])) for p, t in unreported.items()}
     ev.last_sent, ev.reported_at = last_sent, reported_at
     sent: list[bytes] = []
     st = types.SimpleNamespace(run="r", evaluations=ev, eval_pub=sent.append)
-    svc = types.SimpleNamespace(st=st, log=logging.getLogger("test"))
-    return lm, svc, sent
+    out = Outbound("l", print, lambda: 0, lambda counter: [], logging.getLogger("test"))
+    return out, st, sent
 
 
 def test_the_learner_resends_a_point_the_evaluator_holds_later_ones_for_after_5_s():
     now = 1000.0
     # point 20 was lost; 40 went out after it, and the evaluator (holding 40) is silent
-    lm, svc, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 6)
-    lm.LearnerService.resend_unreported(svc, svc.st, now)
+    out, st, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 6)
+    out.resend(st, now)
     assert _points(sent) == [(20, [])]  # not 40: the newest point waits for the long rule
     # within 5 s of the evaluator's last report nothing is resent: it may just be busy
-    lm, svc, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 3)
-    lm.LearnerService.resend_unreported(svc, svc.st, now)
+    out, st, sent = _learner({20: now - 6, 40: now - 6}, last_sent=40, reported_at=now - 3)
+    out.resend(st, now)
     assert sent == []
     # the newest point alone is resent after 30 s of silence, as before
-    lm, svc, sent = _learner({40: now - 31}, last_sent=40, reported_at=now - 31)
-    lm.LearnerService.resend_unreported(svc, svc.st, now)
+    out, st, sent = _learner({40: now - 31}, last_sent=40, reported_at=now - 31)
+    out.resend(st, now)
     assert _points(sent) == [(40, [])]  # its list of when it first went out named 20,
     # whose row has come since: the resend no longer does
 
 
 def test_a_resend_at_once_names_only_the_points_still_without_a_row():
     now = 1000.0
-    lm, svc, sent = _learner({20: now - 1, 40: now - 1}, last_sent=40, reported_at=now - 1)
-    lm.LearnerService.resend_unreported(svc, svc.st, now, at_once=True)
+    out, st, sent = _learner({20: now - 1, 40: now - 1}, last_sent=40, reported_at=now - 1)
+    out.resend(st, now, at_once=True)
     assert _points(sent) == [(20, []), (40, [20])]

@@ -21,6 +21,7 @@ import torch
 
 from services.learner.state import Boundary, LearnerRun
 from shared.persist.cuts import CutError, atomic_torch_save, config_difference
+from shared.persist.wal import WriteAheadLog
 
 # A cut every this many seconds (MACB_LEARNER_CUT_S overrides): what a restart redoes.
 CHECKPOINT_EVERY_S = float(os.environ.get("MACB_LEARNER_CUT_S", "30"))
@@ -126,3 +127,61 @@ def retire(st: LearnerRun) -> None:
         st.log = None
     for name in (LOG, PREVIOUS):
         (st.folder / name).unlink(missing_ok=True)
+
+
+def open_log(st: LearnerRun) -> list:
+    """The run's log opened for appending (`st.log`), and what an earlier process of
+    this learner took (a torn last record is cut off: it was never acked)."""
+    assert st.folder is not None
+    st.log, records = WriteAheadLog.open(st.folder / LOG)
+    return records
+
+
+def restore_all(
+    learner: Any, sts: list[LearnerRun], warn: Callable[[str], None]
+) -> list[int | None]:
+    """`restore` for a run alone (`learner` None: each run's own), `restore_group` for
+    a group's runs (`learner`: the group's)."""
+    if learner is None:
+        return [restore(st, warn) for st in sts]
+    return restore_group(learner, sts, warn)
+
+
+def restore(st: LearnerRun, warn: Callable[[str], None]) -> int | None:
+    """The newest good cut into `st`, its learner included; the cut's episode (None:
+    no cut, the log alone from the initial weights)."""
+    for _, state in good(st, warn):
+        st.learner.load_state_dict(state["learner"])
+        return apply(st, state)
+    return None
+
+
+def restore_group(
+    learner: Any, sts: list[LearnerRun], warn: Callable[[str], None]
+) -> list[int | None]:
+    """Every run of a group from its cut at the newest update all of them have a cut
+    of (a group's cuts are written together; a kill between two runs' files leaves the
+    one before for some); each run's cut episode, all None if there is no such update."""
+    options = [
+        {int(state["counters"]["updates"]): state for _, state in good(st, warn)} for st in sts
+    ]
+    common = set.intersection(*(set(o) for o in options))
+    if not common:
+        if any(options):
+            warn(f"group {[st.run for st in sts]}: no update all runs have a cut of: the logs")
+        return [None] * len(sts)
+    states = [o[max(common)] for o in options]
+    learner.load_run_state_dicts([s["learner"] for s in states])
+    return [apply(st, state) for st, state in zip(sts, states)]
+
+
+def resumed(st: LearnerRun, cut: int | None, seconds: float) -> dict[str, Any]:
+    """What a resume restored (the service's info and its "running" status say it)."""
+    return {
+        "run": st.run,
+        "from_episode": cut,
+        "updates": st.learner.updates,
+        "replay_rows": len(st.buffer),
+        "held_batches": sum(len(h) for h in st.held.values()),
+        "seconds": round(seconds, 3),
+    }

@@ -15,8 +15,8 @@ from __future__ import annotations
 import dataclasses
 import time
 
-from shared.net.messages import Weights
-from shared.net.wire import decode, encode
+from shared.net.messages import Metrics, Weights
+from shared.net.wire import WireError, decode, encode
 
 # An evaluation point is sent again when the evaluator reported a later one (this one's
 # weights or row were lost), or when nothing was reported for this long (the last one's).
@@ -32,6 +32,16 @@ def with_unreported(payload: bytes, unreported: list[int]) -> bytes:
     date for a resend: the list of when it first went out may name points whose rows
     have come since (an evaluator restarted in between would wait for them)."""
     return encode(dataclasses.replace(decode(payload, Weights), unreported=unreported))
+
+
+def reported_point(payload: bytes) -> int:
+    """The point an evaluator's metrics row reports (only the point is read: the API is
+    the rows' consumer of record); WireError if the row is malformed."""
+    msg = decode(payload, Metrics)
+    point = msg.data.get("episode") if isinstance(msg.data, dict) else None
+    if not isinstance(point, int) or isinstance(point, bool):
+        raise WireError(f"metrics: eval row episode is not an int: {point!r}")
+    return point
 
 
 class EvaluationsInFlight:

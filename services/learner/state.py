@@ -1,7 +1,7 @@
 """What the learner service holds for a run it serves (`LearnerRun`: its `done` rule and
 `run_stats`), and for a run group served in lockstep (`LockstepGroup`, each run reading
-its share of the one `GroupMADDPG` through a `MemberLearner`; `update_group`: one
-update of every run)."""
+its share of the one `GroupMADDPG` through a `MemberLearner`); `new_run` builds a
+run's state from its config and assignment."""
 
 from __future__ import annotations
 
@@ -17,15 +17,17 @@ import torch
 
 from services.learner.bonus import BonusClient
 from services.learner.evaluations import EvaluationsInFlight
-from shared.config import TrainConfig
+from shared.config import TrainConfig, actors_error
 from shared.core.exploration import BonusDiagnostics
 from shared.core.learners import Learner
 from shared.core.learners.group import GroupMADDPG
-from shared.core.replay import ReplayBuffer, update_arrays
+from shared.core.replay import ReplayBuffer
 from shared.envs.tasks import TaskSpec
 from shared.net.messages import Transitions
-from shared.net.protocol import AckTracker, ReceiveCursor
+from shared.net.protocol import AckTracker, ReceiveCursor, episode_share
 from shared.persist.wal import WriteAheadLog
+from shared.run.factories import minibatches_per_update
+from shared.run.rollout import derive_seed
 
 # Phases of the learner's wall time that stats() reports per update; the bonus wait is
 # BonusClient.wait_s, and what none of them covers (waiting for messages, acks, stats,
@@ -198,34 +200,62 @@ def run_stats(st: LearnerRun, rejects_total: int) -> dict[str, Any]:
     }
 
 
-def update_group(g: LockstepGroup, members: list[LearnerRun]) -> bool:
-    """One update of every run of the group; False if a bonus query went
-    unanswered (the same minibatches wait for the counter, as a run's do)."""
-    t0 = time.perf_counter()
-    batch = members[0].config.batch_size
-    drawn = g.unpriced or [
-        [st.buffer.sample(batch, st.rng) for _ in range(st.draws)] for st in members
-    ]
-    t1 = time.perf_counter()
-    for st in members:
-        st.bonus.fresh = False
-    queries = [st.bonus.ask(batches) for st, batches in zip(members, drawn)]
-    priced = []
-    for st, query in zip(members, queries):
-        bonuses = st.bonus.answer(query)
-        if bonuses is None:
-            g.unpriced = drawn
-            return False
-        priced.append((bonuses, list(st.bonus.counts)))
-    g.unpriced = []
-    t2 = time.perf_counter()
-    parts = [update_arrays(b, p[0]) for b, p in zip(drawn, priced)]
-    g.learner.update(*[np.stack(cols) for cols in zip(*parts)])
-    spent = time.perf_counter() - t2
-    for st, (bonuses, counts) in zip(members, priced):
-        st.time["sample"] += (t1 - t0) / len(members)
-        st.time["update"] += spent / len(members)
-        for j, bonus in enumerate(bonuses):
-            st.bonus_means.append(float(bonus.mean()))
-            st.diagnostics.record(bonus, counts[j] if len(counts) == len(bonuses) else [])
-    return True
+def open_error(config: TrainConfig, actors: int) -> str | None:
+    """Why the cluster's learner cannot serve this run with this many actors, if so."""
+    if config.bonus_at == "collection":
+        return (
+            "bonus_at collection: the cluster prices bonuses when it samples; run this "
+            "config with macb train or as a run group (macb run/reproduce --local)"
+        )
+    return actors_error(config, actors)
+
+
+def new_run(
+    run: str,
+    config: TrainConfig,
+    spec: TaskSpec,
+    actors: list[str],
+    *,
+    learner: Learner | MemberLearner,
+    bonus: BonusClient,
+    evaluations: EvaluationsInFlight,
+    pubs: dict[str, Callable[[bytes], None]],
+    counter: str | None = None,
+    folder: Path | None = None,
+    incarnation: str = "",
+    member: int = -1,
+) -> LearnerRun:
+    """A run's state as it starts: an empty replay buffer (no larger than the run),
+    the sampler seeded from the run's seed, nothing received, each actor's share of
+    the episodes. `pubs` are the run's publishers: weights, eval, ack."""
+    return LearnerRun(
+        run=run,
+        config=config,
+        spec=spec,
+        learner=learner,
+        buffer=ReplayBuffer(
+            min(config.buffer_size, config.episodes * config.episode_len),
+            spec.joint_obs_dim,
+            spec.joint_act_dim,
+        ),
+        rng=np.random.default_rng(derive_seed(config.seed, "sampler")),
+        actors=actors,
+        counter=counter,
+        bonus=bonus,
+        evaluations=evaluations,
+        weights_pub=pubs["weights"],
+        eval_pub=pubs["eval"],
+        ack_pub=pubs["ack"],
+        received=ReceiveCursor(actors=actors, partial=False),
+        counted=AckTracker(actors),
+        held={a: collections.deque() for a in actors},
+        draws=minibatches_per_update(config),
+        folder=folder,
+        shares={
+            a: episode_share(config.episodes, len(actors), r) * config.episode_len
+            for r, a in enumerate(actors)
+        },
+        incarnation=incarnation,
+        lockstep=config.interleave == "lockstep",
+        member=member,
+    )

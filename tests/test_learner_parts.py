@@ -1,0 +1,174 @@
+"""The learner service's parts in process, no bus: the update loop at the replay ratio
+(updates.py), when a lockstep request is answered (lockstep.py), what goes out at an
+episode's end and between updates (outbound.py), and a group's resume from the newest
+update all its runs have a cut of (checkpoint.py)."""
+
+from __future__ import annotations
+
+import logging
+import types
+
+import numpy as np
+import pytest
+
+from services.learner import checkpoint as ckpt
+from services.learner import intake, lockstep, updates
+from services.learner.bonus import BonusClient
+from services.learner.evaluations import EvaluationsInFlight, reported_point
+from services.learner.outbound import MAX_BACKLOG_EPISODES, Outbound
+from services.learner.state import new_run
+from shared.config import make_config
+from shared.envs.tasks import task_spec_for
+from shared.net.messages import Ack, Action, ActRequest, Metrics, Weights
+from shared.net.wire import WireError, decode, encode
+from shared.run.factories import build_learner
+from tests.test_learner_intake import batch
+
+LEN = 5
+ACTORS = ["a0", "a1"]
+
+
+class Sent(list):
+    """A publisher that records what it was given, decoded as `cls`."""
+
+    def __init__(self, cls: type) -> None:
+        super().__init__()
+        self.cls = cls
+
+    def __call__(self, payload: bytes) -> None:
+        self.append(decode(payload, self.cls))
+
+
+class SilentCounter:
+    """A bus whose counter never answers a bonus query (paused, restarting)."""
+
+    def get_async(self, key, payload, timeout):  # noqa: ANN001, ARG002
+        return None
+
+    def collect(self, replies):  # noqa: ANN001, ARG002
+        return []
+
+    def reject(self, key, why):  # noqa: ANN001, ARG002
+        pass
+
+
+def run(tmp_path, explore="constant", interleave="async", svc=None, **extra):  # noqa: ANN001
+    cfg = make_config({"task": "speaker_listener", "explore": explore, "episodes": 8,
+                       "episode_len": LEN, "hidden": [16, 16], "learning_starts": 3,
+                       "learner_lanes": 1, "eval_every": 2, "interleave": interleave,
+                       **extra})  # fmt: skip
+    spec = task_spec_for(cfg)
+    folder = tmp_path / "learner" / "r"
+    folder.mkdir(parents=True, exist_ok=True)
+    bonus = BonusClient(types.SimpleNamespace(bus=svc, reject=print), "r", cfg.explore,
+                        cfg.beta, spec.n_agents)  # fmt: skip
+    pubs = {"weights": Sent(Weights), "eval": Sent(Weights), "ack": Sent(Ack)}
+    return new_run("r", cfg, spec, ACTORS, learner=build_learner(cfg, spec), bonus=bonus,
+                   evaluations=EvaluationsInFlight(), pubs=pubs, counter="c",
+                   folder=folder)  # fmt: skip
+
+
+def outbound(metrics=None) -> Outbound:  # noqa: ANN001
+    return Outbound("l", metrics or (lambda *a, **k: None), lambda: 0, lambda c: [],
+                    logging.getLogger("test"))  # fmt: skip
+
+
+def fill(st, actor="a0", episodes=1):  # noqa: ANN001
+    for e in range(episodes):
+        assert intake.take(st, batch(st, actor, e * LEN))  # an arm that counts nothing
+
+
+def test_a_tick_does_the_updates_owed_up_to_the_episodes_end_and_no_more(tmp_path):
+    st = run(tmp_path)
+    fill(st, episodes=2)  # 10 transitions, 3 of warm-up: 7 updates owed
+    assert st.owed_total == 7 and [b.updates for b in st.boundaries] == [2, 7]
+    assert updates.updates_due(st) == 2  # the first episode's end comes first
+    assert updates.update_run(st, updates.updates_due(st)) == 2 and st.learner.updates == 2
+    assert updates.updates_due(st) == 0  # its weights go out before more updates
+    outbound().boundaries(st)
+    assert updates.update_run(st, updates.updates_due(st)) == 5 and st.learner.updates == 7
+    assert updates.updates_due(st) == 0
+
+
+def test_minibatches_a_silent_counter_left_unpriced_are_priced_later_not_redrawn(tmp_path):
+    st = run(tmp_path, explore="dis-macb", svc=SilentCounter())
+    fill(st)
+    st.counted.ack("a0", LEN)
+    intake.release_counted(st)
+    state = dict(st.rng.bit_generator.state)
+    assert updates.update_run(st, 2) == 0 and st.learner.updates == 0
+    drawn = st.unpriced
+    assert len(drawn) == 2 and st.rng.bit_generator.state != state
+    after = dict(st.rng.bit_generator.state)
+    assert updates.update_run(st, 2) == 0  # still silent: the same two, nothing drawn
+    assert st.unpriced is drawn and st.rng.bit_generator.state == after
+    st.bonus.mode = "constant"  # the counter answers (priced here, for the test)
+    assert updates.update_run(st, 2) == 2 and not st.unpriced
+    assert st.rng.bit_generator.state == after  # priced, not redrawn
+
+
+def test_weights_go_out_at_each_episode_end_and_every_eval_every_to_the_evaluator(tmp_path):
+    st, out = run(tmp_path), outbound()
+    fill(st, episodes=2)
+    updates.update_run(st, 7)
+    out.boundaries(st)
+    assert [(w.episodes, w.eval_point) for w in st.weights_pub] == [(1, -1)]
+    assert [(w.episodes, w.eval_point, w.version) for w in st.eval_pub] == [(2, 2, 2)]
+    assert set(st.evaluations.unreported) == {2}  # kept until the evaluator's row comes
+    assert st.eval_pub[0].stats["updates"] == 7
+
+
+def test_the_credit_window_closes_while_the_learner_is_behind_and_reopens(tmp_path):
+    st, rows = run(tmp_path), []
+    out = outbound(lambda run, data, source: rows.append(source))
+    behind = MAX_BACKLOG_EPISODES * LEN * len(ACTORS)
+    out.housekeep(st, behind)
+    assert st.ack_pub[-1].window == 0 and not st.window_open
+    out.housekeep(st, behind - 1)
+    assert st.ack_pub[-1].window > 0 and st.window_open
+    assert len(st.weights_pub) == 1  # nothing taken yet: the first weights again
+    assert rows == ["learner"]
+
+
+def test_a_lockstep_request_is_answered_only_once_its_steps_are_in_replay_and_learnt(tmp_path):
+    st = run(tmp_path, interleave="lockstep")
+    obs = np.zeros(st.spec.joint_obs_dim, np.float32)
+    assert lockstep.take_request(st, ActRequest("r", "a0", seq=1, obs=obs)) is None
+    assert lockstep.answers(st) == []  # step 0 is not in replay
+    st.ingested_pos["a0"], st.ingested = 1, 4  # step 0 of a0 in; one update owed (warm-up 3)
+    b = batch(st, "a0", 0)
+    st.buffer.add(b.obs, b.act, b.rew, b.next_obs, b.done)  # (rows to sample from)
+    assert lockstep.answers(st) == []  # its update is not done
+    updates.update_run(st, 1)
+    [(actor, payload)] = lockstep.answers(st)
+    assert actor == "a0" and decode(payload, Action).seq == 1
+    again = lockstep.take_request(st, ActRequest("r", "a0", seq=1, obs=obs))
+    assert again == payload  # the answer was lost: the same one again
+    with pytest.raises(WireError, match="obs"):
+        lockstep.take_request(st, ActRequest("r", "a0", seq=2, obs=obs[:3]))
+
+
+def test_a_group_resumes_from_the_newest_update_every_run_has_a_cut_of(tmp_path):
+    sts = [run(tmp_path / str(r)) for r in range(2)]
+    written = {0: [], 1: []}
+    for u in (2, 4):
+        for r, st in enumerate(sts):
+            if u == 4 and r == 1:
+                continue  # killed between the two runs' files
+            st.learner.updates = u
+            st.episodes = u
+            ckpt.write(st)
+            written[r].append(u)
+    loaded = []
+    group = types.SimpleNamespace(load_run_state_dicts=loaded.extend)
+    fresh = [run(tmp_path / str(r)) for r in range(2)]
+    assert ckpt.restore_group(group, fresh, print) == [2, 2]
+    assert len(loaded) == 2 and [st.episodes for st in fresh] == [2, 2]
+
+
+def test_an_evaluators_row_names_its_point_or_is_refused():
+    assert reported_point(encode(Metrics("r", source="eval", data={"episode": 40}))) == 40
+    with pytest.raises(WireError, match="episode"):
+        reported_point(encode(Metrics("r", source="eval", data={"episode": True})))
+    with pytest.raises(WireError):
+        reported_point(encode(Metrics("r", source="eval", data={})))
