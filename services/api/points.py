@@ -1,0 +1,92 @@
+"""A run's metric points: the `metrics` table, written by the scheduler, read by HTTP.
+
+A point is stored as the JSON of the evaluator's row with its `seq` (its number in the
+run, from 1, in arrival order) put in front; reads concatenate the stored JSON as it
+is, so serving many points decodes nothing. A point repeated for the same evaluation
+episode is ignored, so storing is idempotent (rows come at least once). seq has no
+holes, so a run's count is its last seq: two index look-ups per run.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+from .db import Database
+
+
+class Points:
+    """The metric points of every run, over the store's `Database`."""
+
+    def __init__(self, db: Database) -> None:
+        self.db = db
+
+    def add(self, run_id: str, rows: list[dict[str, Any]]) -> int:
+        """Append metric rows (one per evaluation episode); the number newly stored."""
+        if not rows:
+            return 0
+        added = 0
+        now = time.time()
+        with self.db.tx() as c:
+            seq = c.execute(
+                "SELECT COALESCE(MAX(seq), 0) FROM metrics WHERE run_id = ?", (run_id,)
+            ).fetchone()[0]
+            for row in rows:
+                episode = int(row["episode"])
+                data = json.dumps({"seq": seq + 1, **{k: v for k, v in row.items() if k != "seq"}})
+                cur = c.execute(
+                    "INSERT OR IGNORE INTO metrics (run_id, seq, episode, received, data)"
+                    " VALUES (?, ?, ?, ?, ?)",
+                    (run_id, seq + 1, episode, now, data),
+                )
+                if cur.rowcount == 1:
+                    seq += 1
+                    added += 1
+        return added
+
+    def page_json(self, run_id: str, since: int = 0, limit: int = 10_000) -> tuple[str, int, int]:
+        """Points after `since` as a JSON array text; (text, count, last seq)."""
+        rows = (
+            self.db.conn()
+            .execute(
+                "SELECT seq, data FROM metrics WHERE run_id = ? AND seq > ? ORDER BY seq LIMIT ?",
+                (run_id, since, limit),
+            )
+            .fetchall()
+        )
+        last = rows[-1][0] if rows else since
+        return "[" + ",".join(r[1] for r in rows) + "]", len(rows), last
+
+    def rows(self, run_id: str, since: int = 0, limit: int = 1_000_000) -> list[dict[str, Any]]:
+        """Points after `since`, decoded, in seq order."""
+        rows = self.db.conn().execute(
+            "SELECT data FROM metrics WHERE run_id = ? AND seq > ? ORDER BY seq LIMIT ?",
+            (run_id, since, limit),
+        )
+        return [json.loads(r[0]) for r in rows]
+
+    def stats(self, run_ids: list[str]) -> dict[str, tuple[int, int, int]]:
+        """run -> (number of points, last seq, last episode); (0, 0, 0) for none."""
+        if not run_ids:
+            return {}
+        marks = ",".join("?" * len(run_ids))
+        rows = self.db.conn().execute(
+            "SELECT r.id,"
+            " (SELECT MAX(seq) FROM metrics m WHERE m.run_id = r.id),"
+            " (SELECT MAX(episode) FROM metrics m WHERE m.run_id = r.id)"
+            f" FROM runs r WHERE r.id IN ({marks})",
+            run_ids,
+        )
+        out = {r: (0, 0, 0) for r in run_ids}
+        for run_id, last_seq, last_episode in rows:
+            out[run_id] = (last_seq or 0, last_seq or 0, last_episode or 0)
+        return out
+
+    def has_more(self, run_id: str, since: int) -> bool:
+        row = (
+            self.db.conn()
+            .execute("SELECT 1 FROM metrics WHERE run_id = ? AND seq > ? LIMIT 1", (run_id, since))
+            .fetchone()
+        )
+        return row is not None
