@@ -1,0 +1,175 @@
+"""Which evaluation point is evaluated next, and the row it gives.
+
+A point may come twice (the learner resends what it has no row of), out of order (a
+restarted evaluator gets the newest point before the resends of those it missed), or
+for only some runs of a group. The rules deciding what to take, hold, publish again or
+evaluate together are here on the clock they are given, so they are tested without a
+bus; the service evaluates and publishes.
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+from collections.abc import Container, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+from services.evaluator.policies import GroupPolicy, LearnerPolicy
+from shared.config import TrainConfig
+from shared.core.networks import JointPolicy
+from shared.envs.tasks import TaskEnv, make_task_for
+from shared.envs.vectask import vectorize
+from shared.net.messages import Weights
+from shared.run.rollout import EvalResult, derive_seed
+
+REPUBLISH_AFTER_S = 5.0  # a row is published again for a resend only this long after
+# A point is held back at most this long for an earlier one the learner has not had a
+# row of (the learner resends a lost point after 30 s of silence: EVAL_RESEND_S).
+ORDER_WAIT_S = 40.0
+# A group's point waits this long for the same point of the group's other runs.
+GROUP_WAIT_S = 5.0
+
+
+def earliest_point(
+    pending: Iterable[Weights], published: Container[int]
+) -> tuple[Weights, list[int]]:
+    """The pending weights message of the earliest point, and the earlier points it
+    names as unreported that are neither evaluated here nor pending (to wait for)."""
+    pending = list(pending)
+    msg = min(pending, key=lambda m: m.eval_point)
+    here = {m.eval_point for m in pending}
+    missing = [
+        q for q in msg.unreported if q < msg.eval_point and q not in published and q not in here
+    ]
+    return msg, missing
+
+
+@dataclass
+class EvaluatorRun:
+    """The evaluation environments and the points waiting, for a run served."""
+
+    run: str
+    envs: list[TaskEnv]
+    policy: JointPolicy | LearnerPolicy
+    pending: collections.deque[Weights] = field(default_factory=collections.deque)
+    points: int = 0
+    published: dict[int, float] = field(default_factory=dict)  # point -> when its row went
+    held_since: float | None = None  # the next point waits for an earlier one since then
+    t0: float = field(default_factory=time.perf_counter)
+
+    @classmethod
+    def open(cls, run: str, config: TrainConfig) -> EvaluatorRun:
+        """Its own evaluation worlds (seeded from the run's seed) and the policy it acts
+        with: the learner's own in lockstep, JointPolicy's forward otherwise."""
+        envs = [make_task_for(config) for _ in range(min(config.eval_episodes, 10))]
+        for j, env in enumerate(envs):
+            env.reset(seed=derive_seed(config.seed, "eval", j))
+        policy: JointPolicy | LearnerPolicy
+        if config.interleave == "lockstep":
+            policy = LearnerPolicy(config, envs[0].spec)
+        else:
+            policy = JointPolicy.for_task(envs[0].spec, config.hidden)
+        return cls(run, envs, policy)
+
+    def receive(self, msg: Weights, now: float) -> bool:
+        """A point's weights arrive: kept to evaluate unless already pending or evaluated
+        (a resend). True if its row is to be published again: evaluated, and the row went
+        out more than REPUBLISH_AFTER_S ago (a resend within that crossed the row, and
+        comes again later if the row was lost after all)."""
+        point = msg.eval_point
+        if any(p.eval_point == point for p in self.pending):
+            return False  # sent again while we are behind: it is evaluated once
+        if point in self.published:  # sent again: its row was lost on the way
+            return now - self.published[point] > REPUBLISH_AFTER_S
+        self.pending.append(msg)  # new, or sent again because its weights were lost
+        return False
+
+    def row_out(self, point: int, now: float) -> None:
+        self.published[point] = now
+        self.points += 1
+
+
+def take_next(st: EvaluatorRun, now: float) -> tuple[Weights | None, list[int]]:
+    """The earliest pending point, taken, unless an earlier one it names as unreported
+    is neither evaluated nor here yet (its resend is on the way: after an evaluator
+    restart the learner's newest point can arrive before the resends of the ones
+    missed); then None, for at most ORDER_WAIT_S, so rows go out in episode order.
+    Also returns the points given up waiting for (taken without them)."""
+    if not st.pending:
+        return None, []
+    msg, missing = earliest_point(st.pending, st.published)
+    if missing:
+        if st.held_since is None:
+            st.held_since = now
+        if now - st.held_since < ORDER_WAIT_S:
+            return None, []
+    st.held_since = None
+    st.pending.remove(msg)
+    return msg, missing
+
+
+@dataclass
+class GroupEval:
+    """A run group's evaluation: its runs in order, their worlds as one VecTask (run r's
+    are r*m .. r*m+m-1: its own evaluation envs) and one policy for all."""
+
+    runs: list[str]
+    venv: Any
+    policy: GroupPolicy
+    waiting_since: float | None = None
+
+    @classmethod
+    def open(cls, sts: list[EvaluatorRun], configs: list[TrainConfig]) -> GroupEval:
+        """Every run of the group has its start (`sts` in the group's order)."""
+        envs = [env for st in sts for env in st.envs]
+        return cls([st.run for st in sts], vectorize(envs), GroupPolicy(configs, envs[0].spec))
+
+    def take_together(self, sts: list[EvaluatorRun]) -> list[tuple[EvaluatorRun, Weights]]:
+        """The group's earliest point, taken from every run, when every run of the group
+        has it and none waits for an earlier one; else nothing is taken ([])."""
+        heads = [(st, *earliest_point(st.pending, st.published)) for st in sts if st.pending]
+        if not heads:
+            return []
+        point = min(msg.eval_point for _, msg, _ in heads)
+        ready = [(st, msg) for st, msg, missing in heads if msg.eval_point == point]
+        if len(sts) < len(self.runs) or len(ready) < len(sts) or any(m for *_, m in heads):
+            return []
+        for st, msg in ready:
+            st.pending.remove(msg)
+        return ready
+
+    def waited_out(self, now: float) -> bool:
+        """A point not every run has yet has waited GROUP_WAIT_S (the clock starts now
+        if it was not running): it goes alone."""
+        if self.waiting_since is None:
+            self.waiting_since = now
+        return now - self.waiting_since >= GROUP_WAIT_S
+
+
+def eval_row(msg: Weights, ev: EvalResult) -> dict[str, Any]:
+    """A point's metric row: the trainer's fields, the evaluation's and the learner's
+    statistics at that point (the counter's and the bonus's ride in its weights)."""
+    info = msg.stats
+    counts = info.get("counter") or {}  # the counter's stats at this boundary
+    bonus = info.get("bonus") or {}  # what the bonus did since the last point
+    return {
+        "episode": msg.eval_point,
+        "env_steps": msg.env_steps,
+        "success_rate": ev.success_rate,
+        "eval_return": ev.eval_return,
+        "collisions_cum": msg.collisions_cum,
+        "count1_pct": counts.get("count1_pct", 0.0),
+        "table_size": counts.get("table_size", 0),
+        "counted_transitions": counts.get("counted_transitions", 0),
+        "bonus_mean": bonus.get("bonus_mean", 0.0),
+        "bonus_std": bonus.get("bonus_std", 0.0),
+        "sampled_count1_pct": bonus.get("sampled_count1_pct", 0.0),
+        "steps_per_sec": info.get("steps_per_sec", 0.0),
+        "train_steps_per_sec": info.get("steps_per_sec", 0.0),
+        "updates": msg.updates,
+        "wall_s": info.get("wall_s", 0.0),
+        "replay_ratio": info.get("replay_ratio", 0.0),
+        "policy_lag": info.get("policy_lag", 0.0),
+        "policy_version": msg.version,
+    }
