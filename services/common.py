@@ -37,8 +37,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
-from services.inbox import DRAINED, Inbox, Rejects
-from services.peers import PeerWatch, live_peer
+from services.inbox import DRAINED, Inbox, Item, Rejects
+from services.peers import PeerWatch
 from services.runs import ServedRuns, is_assigned
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
@@ -81,9 +81,7 @@ class ServiceBase:
         self.id = service_id
         self.log = logging.getLogger(f"macb.{self.role}.{service_id}")
         self.data_dir = Path(data_dir)
-        self.inbox: (
-            queue.Queue[tuple[str, str, bytes]] | queue.SimpleQueue[tuple[str, str, bytes]]
-        ) = self.inbox_type()
+        self.inbox: queue.Queue[Item] | queue.SimpleQueue[Item] = self.inbox_type()
         self.reject_tally = Rejects()
         self.rejects = self.reject_tally.by_reason  # read by the services' stats
         self.stop_event = threading.Event()
@@ -140,15 +138,10 @@ class ServiceBase:
         except WireError as err:
             self.reject(key, str(err))
             return None
-        run = keys.run_of(key)
-        if run is None or msg.run != run:
-            self.reject(key, "run mismatch: key and message name different runs")
-            return None
-        if not self.serves(run):
-            if run not in self.finished:  # late traffic of a finished run is expected
-                self.reject(key, f"unknown run: {run}")
-            return None
-        return msg
+        why = self.served.refusal(keys.run_of(key), msg.run)
+        if why:
+            self.reject(key, why)
+        return msg if why is None else None
 
     def serves(self, run: str) -> bool:
         return run in self.active
@@ -300,14 +293,11 @@ class ServiceBase:
         """A service's liveliness token appeared (it started, or came back)."""
 
     def _peer_event(self, key: str, alive: bool) -> None:
-        found = live_peer(key)
-        if found is None or not self.active:
-            return
-        role, peer = found
-        if self.peers.seen(role, peer, alive, time.monotonic()):
-            self.log.info("%s %s is back", role, peer)
-        if alive:
-            self.on_peer_found(role, peer)
+        seen = self.peers.seen(key, alive, time.monotonic()) if self.active else None
+        if seen is not None and seen.back:
+            self.log.info("%s %s is back", seen.role, seen.peer)
+        if seen is not None and alive:
+            self.on_peer_found(seen.role, seen.peer)
 
     def on_peer_lost(self, role: str, peer: str) -> None:
         """A service's liveliness token vanished (it exited or was killed) and did not

@@ -8,6 +8,8 @@ pause, not the run.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 from shared.net.monitor import PeerGrace
 
 CHECK_S = 0.25  # how often peers away are looked at while any is
@@ -19,6 +21,12 @@ def live_peer(key: str) -> tuple[str, str] | None:
     return (parts[2], parts[3]) if len(parts) == 4 else None
 
 
+class Seen(NamedTuple):
+    role: str
+    peer: str
+    back: bool  # its token came back after it had gone away
+
+
 class PeerWatch:
     """The peers away now (with when they went) and when they were last looked at."""
 
@@ -26,12 +34,17 @@ class PeerWatch:
         self.grace = PeerGrace(grace_s)
         self._checked = 0.0
 
-    def seen(self, role: str, peer: str, alive: bool, now: float) -> bool:
-        """A peer's token appeared (`alive`) or went away; True if it came back."""
+    def seen(self, key: str, alive: bool, now: float) -> Seen | None:
+        """A liveliness token appeared (`alive`) or went away; None for a key that is
+        not a service's."""
+        found = live_peer(key)
+        if found is None:
+            return None
+        role, peer = found
         if alive:
-            return self.grace.back(peer)
+            return Seen(role, peer, self.grace.back(peer))
         self.grace.lost(role, peer, now)
-        return False
+        return Seen(role, peer, False)
 
     def given_up(self, now: float) -> list[tuple[str, str]]:
         """(role, peer) of the peers away past the grace (forgotten from then on);

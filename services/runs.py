@@ -63,6 +63,15 @@ class ServedRuns:
             and self.assign.get("group") == group
         )
 
+    def refusal(self, key_run: str | None, msg_run: str) -> str | None:
+        """Why a per-run message is dropped (its key's run and its own): None if it is
+        for a run served now, "" if silently (late traffic of a run let go is expected)."""
+        if key_run is None or msg_run != key_run:
+            return "run mismatch: key and message name different runs"
+        if key_run not in self.active:
+            return "" if key_run in self.finished else f"unknown run: {key_run}"
+        return None
+
     def join(self, run: str, config: TrainConfig, assign: dict[str, Any], raw: dict) -> None:
         self.active[run] = config
         self.assign = assign
