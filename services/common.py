@@ -18,11 +18,14 @@ up`'s supervisor, a container's restart policy, or by hand) it rejoins that run
 away is given `MACB_PEER_GRACE_S` (30 s) to come back before the run is given up, so
 a restarted service, or a restarted router (every token vanishes with it), costs a
 pause, not the run.
+
+The parts without the bus: `services/runs.py` (the runs served, which starts are
+taken, the runs file), `services/peers.py` (peers away and their grace),
+`services/inbox.py` (bursts, rejects). `ServiceBase` wires them to the bus and hooks.
 """
 
 from __future__ import annotations
 
-import collections
 import json
 import logging
 import os
@@ -30,18 +33,19 @@ import queue
 import signal
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
+from services.inbox import DRAINED, Inbox, Item, Rejects
+from services.peers import PeerWatch
+from services.runs import ServedRuns, is_assigned
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.messages import MESSAGES, Message, Metrics, Start, Status, Stop
-from shared.net.monitor import PeerGrace, peer_grace_s
+from shared.net.monitor import peer_grace_s
 from shared.net.wire import WireError, decode, encode
-from shared.persist.files import write_json
 
 M = TypeVar("M", bound=Message)
 
@@ -65,20 +69,29 @@ class ServiceBase:
     # queue.SimpleQueue puts and gets much cheaper (C, no Python-level locks): worth it
     # where Zenoh's thread enqueues thousands of messages a second (the counter).
     inbox_type: type = queue.Queue
+    max_runs = 1  # the counter serves many runs at once; the other services one
+    # Rejoin the run served when the process died (the counter restores its own runs).
+    rejoins = True
+    # Actors and the evaluator work for one learner: its failure or loss ends their run.
+    # The learner is that learner; the counter serves many runs and outlives learners.
+    follows_learner = False
+    tick_s = 0.05  # idle wait for messages when tick has nothing to do
 
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         self.id = service_id
         self.log = logging.getLogger(f"macb.{self.role}.{service_id}")
         self.data_dir = Path(data_dir)
-        self.inbox: (
-            queue.Queue[tuple[str, str, bytes]] | queue.SimpleQueue[tuple[str, str, bytes]]
-        ) = self.inbox_type()
-        self.rejects: Counter[str] = Counter()
-        self._last_reject_log = 0.0
+        self.inbox: queue.Queue[Item] | queue.SimpleQueue[Item] = self.inbox_type()
+        self.reject_tally = Rejects()
+        self.rejects = self.reject_tally.by_reason  # read by the services' stats
         self.stop_event = threading.Event()
-        self.active: dict[str, TrainConfig] = {}  # runs served now, with their configs
+        runs_file = self.data_dir / "services" / f"{self.id}.json" if self.rejoins else None
+        self.served = ServedRuns(self.max_runs, runs_file, self.log)
+        self.active = self.served.active  # runs served now, with their configs
+        self.finished = self.served.finished  # runs let go lately: late traffic expected
+        self.peers = PeerWatch(peer_grace_s())  # peers whose liveliness token went away
+        self.resumed: dict[str, Any] | None = None  # what on_resume restored, for info()
         self._run_subs: dict[str, list] = {}  # run -> its subscriptions
-        self.finished: collections.deque[str] = collections.deque(maxlen=64)
         self.bus = Bus(connect or keys.default_connect())
         self.listen(keys.k_control("start"), "start")
         self.listen(keys.k_control("stop"), "stop")
@@ -87,11 +100,15 @@ class ServiceBase:
         self.bus.watch_liveliness(
             keys.k_live("*", "*"), lambda key, alive: put(("live", key, b"1" if alive else b"0"))
         )
-        self.assign: dict[str, Any] = {}  # the services of the run served now
-        self.grace_s = peer_grace_s()
-        self.lost = PeerGrace(self.grace_s)  # peers whose liveliness token went away
-        self.resumed: dict[str, Any] | None = None  # what on_resume restored, for info()
-        self._joined: dict[str, tuple[dict, dict[str, Any]]] = {}  # run -> (config, assign)
+
+    @property
+    def assign(self) -> dict[str, Any]:
+        """The services of the run served now (of the last run taken)."""
+        return self.served.assign
+
+    @property
+    def grace_s(self) -> float:
+        return self.peers.grace.grace_s
 
     # ------------------------------------------------------------ plumbing
     def listen(self, key_expr: str, tag: str, run: str | None = None) -> None:
@@ -110,16 +127,9 @@ class ServiceBase:
 
     def reject(self, key: str, reason: str) -> None:
         """Drop a message: count it by reason and log it (at most once a second)."""
-        self.rejects[reason.split(":")[0]] += 1
-        now = time.monotonic()
-        if now - self._last_reject_log > 1.0:
-            self._last_reject_log = now
-            self.log.warning(
-                "dropped message on %s: %s (%d dropped so far)",
-                key,
-                reason,
-                sum(self.rejects.values()),
-            )
+        total = self.reject_tally.add(reason, time.monotonic())
+        if total is not None:
+            self.log.warning("dropped message on %s: %s (%d dropped so far)", key, reason, total)
 
     def decode_for_run(self, key: str, payload: bytes, expect: type[M]) -> M | None:
         """Decode a per-run message; None (and a counted reject) unless it is for our run."""
@@ -128,22 +138,10 @@ class ServiceBase:
         except WireError as err:
             self.reject(key, str(err))
             return None
-        run = keys.run_of(key)
-        if run is None or msg.run != run:
-            self.reject(key, "run mismatch: key and message name different runs")
-            return None
-        if not self.serves(run):
-            if run not in self.finished:  # late traffic of a finished run is expected
-                self.reject(key, f"unknown run: {run}")
-            return None
-        return msg
-
-    max_runs = 1  # the counter serves many runs at once; the other services one
-    # Rejoin the run served when the process died (the counter restores its own runs).
-    rejoins = True
-    # Actors and the evaluator work for one learner: its failure or loss ends their run.
-    # The learner is that learner; the counter serves many runs and outlives learners.
-    follows_learner = False
+        why = self.served.refusal(keys.run_of(key), msg.run)
+        if why:
+            self.reject(key, why)
+        return msg if why is None else None
 
     def serves(self, run: str) -> bool:
         return run in self.active
@@ -158,13 +156,14 @@ class ServiceBase:
         return self.active.get(self.run_id) if self.run_id else None
 
     def info(self) -> dict[str, Any]:
+        rejects, total = self.reject_tally.counts()
         return {
             "id": self.id,
             "role": self.role,
             "run": self.run_id,
             "runs": list(self.active),
-            "rejects": dict(self.rejects),
-            "rejects_total": sum(self.rejects.values()),
+            "rejects": rejects,
+            "rejects_total": total,
             "restarts": restarts(),
             "resumed": self.resumed,
         }
@@ -190,29 +189,27 @@ class ServiceBase:
             self.reject(key, str(err))
             return
         run = msg.run
-        if isinstance(msg, Start):
-            if not self.assigned(msg.assign):
-                return  # another service's run: not an error
-            if run in self.active and not self.start_replaces(run):
-                return  # repeated start: idempotent
-            if len(self.active) >= self.max_runs and not self.joins_group(run, msg.assign):
-                self.log.warning("asked to start %s while serving %s: ignored", run, self.run_id)
-                return
-            try:
-                config = make_config(msg.config)
-            except ConfigError as err:
-                self.reject(key, f"bad config: {err}")
-                self.publish_status(run, "failed", reason=f"invalid config: {err}")
-                return
-            self.log.info("starting run %s", run)
-            self._join(run, config, dict(msg.assign), msg.config, self.on_start)
-        elif isinstance(msg, Stop):
-            if not self.serves(run):
-                return  # a run served by other services: not ours to stop
-            self.log.info("stopping run %s: %s", run, msg.reason)
-            self.on_stop(run, msg.reason)
-            self.publish_status(run, "stopped", reason=msg.reason)
-            self.free(run)
+        if isinstance(msg, Stop):
+            if self.serves(run):  # else a run served by other services: not ours to stop
+                self.log.info("stopping run %s: %s", run, msg.reason)
+                self._end(run, "stopped", msg.reason)
+            return
+        assert isinstance(msg, Start)
+        if not self.assigned(msg.assign):
+            return  # another service's run: not an error
+        if run in self.active and not self.start_replaces(run):
+            return  # repeated start: idempotent
+        if self.served.full() and not self.joins_group(run, msg.assign):
+            self.log.warning("asked to start %s while serving %s: ignored", run, self.run_id)
+            return
+        try:
+            config = make_config(msg.config)
+        except ConfigError as err:
+            self.reject(key, f"bad config: {err}")
+            self.publish_status(run, "failed", reason=f"invalid config: {err}")
+            return
+        self.log.info("starting run %s", run)
+        self._join(run, config, dict(msg.assign), msg.config, self.on_start)
 
     def _join(
         self,
@@ -224,9 +221,7 @@ class ServiceBase:
     ) -> None:
         """Take the run (`hook` is on_start, or on_resume after a restart) and note it
         in the service's file, so that a restarted process rejoins it."""
-        self.active[run] = config
-        self.assign = assign
-        self._joined[run] = (raw, assign)
+        self.served.join(run, config, assign, raw)
         learner = assign.get("learner")
         if self.follows_learner and isinstance(learner, str):
             self.listen(keys.k_status(run, learner), "learner_status", run)
@@ -238,89 +233,43 @@ class ServiceBase:
             self.free(run)
             return
         if run in self.active:
-            self._save_runs()
-
-    def _run_file(self) -> Path:
-        return self.data_dir / "services" / f"{self.id}.json"
-
-    def _save_runs(self) -> None:
-        """Note the runs served (one, or a group's members in order) for a restart."""
-        if not self.rejoins:
-            return
-        path = self._run_file()
-        if not self.active:
-            path.unlink(missing_ok=True)
-            return
-        runs = [
-            {"run": run, "config": self._joined[run][0], "assign": self._joined[run][1]}
-            for run in self.active
-        ]
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            write_json(path, {"runs": runs})
-        except OSError as err:  # the run goes on; only a restart cannot rejoin it
-            self.log.error("cannot write %s (%s): a restart will not rejoin %s", path, err, runs)
+            self.served.save()
 
     def _rejoin(self) -> None:
-        """After a restart: rejoin the run (or the group's runs) this service served
-        when its process died."""
-        path = self._run_file()
-        if not self.rejoins or not path.exists():
-            return
-        try:
-            saved = json.loads(path.read_text())
-            entries = saved.get("runs", [saved])
-            runs = [(e["run"], make_config(e["config"]), e["assign"], e["config"]) for e in entries]
-            if not runs:
-                raise ValueError("no run in it")
-        except (OSError, ValueError, KeyError, TypeError, ConfigError) as err:
-            self.log.error("refusing %s (%s): renamed *.refused; not rejoining", path, err)
-            path.replace(path.with_name(path.name + ".refused"))
-            return
-        for run, config, assign, raw in runs:
-            self.log.info("rejoining run %s after a restart (from %s)", run, path)
-            self._join(run, config, assign, raw, self.on_resume)
+        """After a restart: rejoin the run (or the group's runs) served when the process died."""
+        for s in self.served.saved():
+            self.log.info("rejoining run %s after a restart (from %s)", s.run, self.served.path)
+            self._join(s.run, s.config, s.assign, s.raw, self.on_resume)
 
     def _on_learner_status(self, key: str, payload: bytes) -> None:
         """The run's learner failed or was stopped: this service's part is over too."""
         msg = self.decode_for_run(key, payload, Status)
         if msg is not None and msg.state == "completed":
             self.on_learner_completed(msg.run)
-            return
-        if msg is None or msg.state not in ("failed", "stopped"):
-            return
-        run = msg.run
-        reason = learner_end_reason(msg)
+        elif msg is not None and msg.state in ("failed", "stopped"):
+            self._end(msg.run, "stopped", learner_end_reason(msg))
+
+    def _end(self, run: str, state: str, reason: str) -> None:
+        """Give a run up: the service's hook, its status for the watchers, then free."""
         self.on_stop(run, reason)
-        self.publish_status(run, "stopped", reason=reason)
+        self.publish_status(run, state, reason=reason)
         self.free(run)
 
     def joins_group(self, run: str, assign: dict[str, Any]) -> bool:
-        """A start for another run of the group this service serves (a run group: one
-        learner, actor and evaluator for all its runs, `assign["group"]` their ids)."""
-        group = assign.get("group")
-        return (
-            isinstance(group, list)
-            and run in group
-            and bool(self.active)
-            and self.assign.get("group") == group
-        )
+        """A start for another run of the group this service serves."""
+        return self.served.joins_group(run, assign)
 
     def assigned(self, assign: dict[str, Any]) -> bool:
-        value = assign.get(self.role, assign.get(f"{self.role}s"))  # "actors" is a list
-        return self.id in value if isinstance(value, list) else value == self.id
+        return is_assigned(self.role, self.id, assign)
 
     def free(self, run: str) -> None:
         """Forget a run: the service is free for the next one."""
         for handle in self._run_subs.pop(run, []):
             self.bus.undeclare(handle)
-        if run in self.active:
-            self.finished.append(run)
-        self.active.pop(run, None)
-        self._joined.pop(run, None)
-        self._save_runs()
+        self.served.leave(run)
+        self.served.save()
         if not self.active:
-            self.lost.clear()
+            self.peers.clear()
             self.resumed = None
 
     # ------------------------------------------------------------ hooks
@@ -344,23 +293,11 @@ class ServiceBase:
         """A service's liveliness token appeared (it started, or came back)."""
 
     def _peer_event(self, key: str, alive: bool) -> None:
-        parts = key.split("/", 3)
-        if len(parts) != 4 or not self.active:
-            return
-        role, peer = parts[2], parts[3]
-        if alive:
-            if self.lost.back(peer):
-                self.log.info("%s %s is back", role, peer)
-            self.on_peer_found(role, peer)
-        else:
-            self.lost.lost(role, peer, time.monotonic())
-
-    def _check_lost(self) -> None:
-        """Give up on peers that stayed away past the grace period."""
-        if not self.active:
-            return
-        for role, peer in self.lost.expired(time.monotonic()):
-            self.on_peer_lost(role, peer)
+        seen = self.peers.seen(key, alive, time.monotonic()) if self.active else None
+        if seen is not None and seen.back:
+            self.log.info("%s %s is back", seen.role, seen.peer)
+        if seen is not None and alive:
+            self.on_peer_found(seen.role, seen.peer)
 
     def on_peer_lost(self, role: str, peer: str) -> None:
         """A service's liveliness token vanished (it exited or was killed) and did not
@@ -371,10 +308,8 @@ class ServiceBase:
         if role == "learner" and self.follows_learner and self.assign.get("learner") == peer:
             for run in list(self.active):  # the run, or every run of its group
                 self.log.error("run %s: learner %s is gone; giving the run up", run, peer)
-                self.on_stop(run, "learner lost")
                 why = f"learner {peer} is gone (not back within {self.grace_s:g} s)"
-                self.publish_status(run, "failed", reason=why)
-                self.free(run)
+                self._end(run, "failed", why)
 
     def handle(self, tag: str, key: str, payload: bytes) -> None: ...
 
@@ -383,55 +318,43 @@ class ServiceBase:
         return False
 
     def after_drain(self) -> None:
-        """The inbox is empty after one or more messages were handled.
-
-        For work that is cheaper done once for a burst of messages than once per
-        message (the counter logs, counts and acknowledges a burst of batches at once).
-        """
-
-    tick_s = 0.05  # idle wait for messages when tick has nothing to do
+        """The inbox is empty after one or more messages were handled: for work cheaper
+        done once a burst than once a message (the counter counts a burst at once)."""
 
     # ------------------------------------------------------------ loop
     def serve_forever(self) -> None:
-        busy = False
-        burst = False  # messages handled since the inbox was last seen empty
-        last_check = 0.0
+        inbox, busy = Inbox(self.inbox), False
         try:
             self._rejoin()
             # Announced only now, every subscription of the service (and of a run it
             # rejoined) in place: what peers send when they see it arrives.
             self.bus.token(keys.k_live(self.role, self.id))
             while not self.stop_event.is_set():
-                if self.lost and time.monotonic() - last_check > 0.25:
-                    last_check = time.monotonic()
-                    self._check_lost()
-                try:
-                    if busy or burst:
-                        tag, key, payload = self.inbox.get_nowait()
-                    else:
-                        tag, key, payload = self.inbox.get(timeout=self.tick_s)
-                except queue.Empty:
-                    if burst:
-                        burst = False
-                        self.after_drain()
-                        continue  # tick ran after the last message; wait as before
-                    busy = bool(self.tick())
-                    continue
-                burst = True
-                try:
-                    if tag in ("start", "stop"):
-                        self._on_control(tag, key, payload)
-                    elif tag == "learner_status":
-                        self._on_learner_status(key, payload)
-                    elif tag == "live":
-                        self._peer_event(key, payload == b"1")
-                    else:
-                        self.handle(tag, key, payload)
-                except WireError as err:
-                    self.reject(key, str(err))
+                if self.active:
+                    for role, peer in self.peers.given_up(time.monotonic()):
+                        self.on_peer_lost(role, peer)
+                item = inbox.take(busy, self.tick_s)
+                if item == DRAINED:
+                    self.after_drain()
+                    continue  # tick ran after the last message; wait as before
+                if item is not None:
+                    self._dispatch(*item)
                 busy = bool(self.tick())
         finally:
             self.shutdown()
+
+    def _dispatch(self, tag: str, key: str, payload: bytes) -> None:
+        try:
+            if tag in ("start", "stop"):
+                self._on_control(tag, key, payload)
+            elif tag == "learner_status":
+                self._on_learner_status(key, payload)
+            elif tag == "live":
+                self._peer_event(key, payload == b"1")
+            else:
+                self.handle(tag, key, payload)
+        except WireError as err:
+            self.reject(key, str(err))
 
     def shutdown(self) -> None:
         """Flush what must survive (hook), then close the session."""

@@ -1,17 +1,26 @@
-"""The counter service's pure parts in process, no bus: a burst's plan by the
-exactly-once rule, and a run's snapshot plus its log giving back the same counts."""
+"""The counter service's parts in process, no bus: a burst's plan by the exactly-once
+rule, buffered and committed; a run's snapshot plus its log giving back the same counts;
+bonus queries answered and the service thread stepping aside for them; runs' folders
+resumed, archived and restored; the stats and the snapshot schedule."""
 
 from __future__ import annotations
 
 import logging
+import threading
+import time
 
 import numpy as np
+import pytest
 
-from services.counter import burst, snapshot
+from services.counter import bonus, burst, snapshot
+from services.counter.runs import Runs
 from services.counter.state import RunState
+from services.counter.stats import run_stats, update_rate
 from shared.config import make_config
 from shared.envs.tasks import task_spec_for
+from shared.net.messages import BonusQuery, BonusReply
 from shared.net.protocol import ReceiveCursor
+from shared.net.wire import WireError, decode
 from shared.persist.wal import WriteAheadLog
 from shared.run.factories import build_exploration
 
@@ -83,3 +92,177 @@ def test_a_snapshot_and_the_log_beyond_it_give_the_same_counts_back(tmp_path):
     for mine, theirs in zip(again.explorer.counts(o, a), st.explorer.counts(o, a)):
         assert np.array_equal(mine, theirs)
     assert snapshot.size(again) > 0
+
+
+# ------------------------------------------------------------ a burst: buffered, committed
+def test_a_pending_burst_fills_ages_and_is_taken_by_run_in_arrival_order(tmp_path):
+    st1, st2 = new_run(tmp_path / "r1"), new_run(tmp_path / "r2")
+    o, a = rows(4, 1, st1.obs_dim, st1.act_dim)
+    pending = burst.Pending(max_rows=10, max_wait_s=0.5)
+    assert not pending.due(100.0)  # nothing buffered: never due
+    assert not pending.add("r2", st2, ("a0", 0, o, a), now=100.0)
+    assert not pending.add("r1", st1, ("a0", 0, o, a), now=100.3)
+    assert not pending.due(100.4) and pending.due(100.5)  # the oldest's age counts
+    assert pending.add("r2", st2, ("a1", 0, o, a), now=100.6)  # 12 rows >= 10: full
+    taken = pending.take()
+    assert list(taken) == ["r2", "r1"]
+    assert taken["r2"][0] is st2 and [b[0] for b in taken["r2"][1]] == ["a0", "a1"]
+    assert pending.rows == 0 and not pending.runs and not pending.due(200.0)
+
+
+def test_a_commit_logs_counts_and_moves_the_cursor_once_and_gives_queries_their_turns(tmp_path):
+    st = new_run(tmp_path / "r")
+    o, a = rows(8, 2, st.obs_dim, st.act_dim)
+    plan = burst.plan(st.cursor, [("a0", 0, o[:5], a[:5]), ("a1", 0, o[5:], a[5:])])
+    turns = []
+    burst.commit(st, plan, threading.RLock(), lambda: turns.append(1))
+    assert len(turns) == 3  # before hashing, logging and counting
+    assert st.counted == 8 and st.dirty and st.cursor.positions() == {"a0": 5, "a1": 3}
+    assert st.wal.records == 2  # a record per actor of the burst (in one write)
+    want = build_exploration(st.config, task_spec_for(st.config))
+    want.observe(o, a)
+    for mine, theirs in zip(st.explorer.counts(o, a), want.counts(o, a)):
+        assert np.array_equal(mine, theirs)
+
+    again = burst.plan(st.cursor, [("a0", 0, o[:5], a[:5])])  # a resend: nothing new
+    burst.commit(st, again, threading.RLock(), lambda: turns.append(1))
+    assert len(turns) == 3 and st.counted == 8 and st.wal.records == 2
+    assert st.cursor.duplicate_rows == 5  # only the tally changed
+
+
+# ------------------------------------------------------------ bonus queries
+def query(st: RunState, obs, act) -> BonusQuery:
+    return BonusQuery("r", obs=obs, act=act)
+
+
+def test_a_bonus_query_is_answered_from_the_counts_and_tallies_rows_never_counted(tmp_path):
+    st = new_run(tmp_path / "r")
+    o, a = rows(6, 3, st.obs_dim, st.act_dim)
+    count(st, "a0", 0, o[:4], a[:4])
+    count(st, "a0", 4, o[:2], a[:2])  # rows 0-1 twice
+    msg = query(st, o, a)
+    bonus.check(st, msg)
+    reply = decode(bonus.answer(st, msg, threading.RLock(), time.perf_counter()), BonusReply)
+    assert reply.counts.shape == (len(st.explorer.tables), 6)
+    for table_counts, want in zip(reply.counts, st.explorer.counts(o, a)):
+        assert np.array_equal(table_counts, want)
+    assert reply.bonus.shape[0] == 6 and np.all(np.isfinite(reply.bonus))
+    assert reply.tables["table_size"] > 0
+    assert st.queries == 1 and len(st.latencies) == 1
+    assert st.uncounted_rows_queried == 2  # rows 4 and 5 were never counted
+
+    st.closed = True  # stopped while the query was on its way: no reply
+    assert bonus.answer(st, msg, threading.RLock(), time.perf_counter()) is None
+
+
+def test_a_bonus_query_of_another_shape_is_refused(tmp_path):
+    st = new_run(tmp_path / "r")
+    o, a = rows(6, 3, st.obs_dim, st.act_dim)
+    with pytest.raises(WireError, match="same B"):
+        bonus.check(st, query(st, o, a[:5]))
+    with pytest.raises(WireError, match="bonus_query"):
+        bonus.check(st, query(st, o[0], a[0]))
+    with pytest.raises(WireError):
+        bonus.check(st, query(st, o[:, :3], a))
+
+
+def test_the_service_thread_steps_aside_only_while_a_query_is_answered():
+    gate = bonus.QueryGate(max_wait_s=0.2)
+    t0 = time.monotonic()
+    gate.step_aside()
+    assert time.monotonic() - t0 < 0.1  # no query: no wait
+    with gate.answering():
+        t0 = time.monotonic()
+        gate.step_aside()
+        assert time.monotonic() - t0 >= 0.19  # waits, but no longer than its bound
+    done = threading.Event()
+    with gate.answering():
+
+        def service_thread() -> None:
+            gate.step_aside()
+            done.set()
+
+        threading.Thread(target=service_thread).start()
+        assert not done.wait(0.05)  # held while the query is answered ...
+    assert done.wait(1.0)  # ... and let go when it is
+
+
+# ------------------------------------------------------------ runs on disk
+CONFIG = {"task": "speaker_listener", "explore": "dis-macb", "k": 32}
+
+
+def test_a_runs_folder_is_resumed_for_the_same_config_and_archived_otherwise(tmp_path):
+    runs = Runs(tmp_path, logging.getLogger("t"))
+    cfg = make_config(CONFIG)
+    with pytest.raises(ValueError, match="safe directory"):
+        runs.prepare("../x", cfg, {})
+    path = runs.prepare("r", cfg, {"learner": "L"})
+    st, replayed = runs.open("r", cfg, path)
+    assert replayed == 0 and st.learner == "L" and runs.get("r") is st
+    o, a = rows(5, 4, st.obs_dim, st.act_dim)
+    count(st, "a0", 0, o, a)
+    runs.close("r")
+    assert st.closed and runs.get("r") is None
+
+    again, replayed = runs.open("r", cfg, runs.prepare("r", cfg, {"learner": "L"}))
+    assert replayed == 1 and again.counted == 5  # same config: resumed from its log
+    assert (path / "snapshot.npz").exists()  # the log folded into a snapshot at once
+    runs.close("r")
+
+    other = make_config({**CONFIG, "k": 16})
+    fresh, _ = runs.open("r", other, runs.prepare("r", other, {}))
+    assert fresh.counted == 0 and len(list((tmp_path / ".archive").iterdir())) == 1
+    runs.mark_stopped("r", fresh, "done")
+    runs.close("r")
+    st3, _ = runs.open("r", other, runs.prepare("r", other, {}))  # stopped: afresh
+    assert st3.counted == 0 and len(list((tmp_path / ".archive").iterdir())) == 2
+    runs.close("r")
+
+
+def test_restore_opens_every_unfinished_run_and_skips_the_rest(tmp_path):
+    runs = Runs(tmp_path, logging.getLogger("t"))
+    cfg = make_config(CONFIG)
+    for run in ("a", "b", "c"):
+        st, _ = runs.open(run, cfg, runs.prepare(run, cfg, {}))
+        o, a = rows(3, 5, st.obs_dim, st.act_dim)
+        count(st, "x", 0, o, a)
+    runs.mark_stopped("b", runs.get("b"), "done")
+    for run in ("a", "b", "c"):
+        runs.close(run)
+    (tmp_path / "c" / "config.json").write_text('{"task": "no-such-task"}')
+    (tmp_path / "d").mkdir()  # no config: not a run
+
+    again = Runs(tmp_path, logging.getLogger("t"))
+    restored = again.restore_all()
+    assert [(run, st.counted) for run, _, st in restored] == [("a", 3)]
+    assert again.restored == {"a"} and again.get("c") is None
+    again.close("a")
+    assert again.restored == set()
+
+
+# ------------------------------------------------------------ stats, snapshot schedule
+def test_stats_report_the_tables_the_tallies_and_the_query_latency(tmp_path):
+    st = new_run(tmp_path / "r")
+    o, a = rows(10, 6, st.obs_dim, st.act_dim)
+    count(st, "a0", 0, o, a)
+    st.latencies.extend([0.001, 0.002, 0.003])
+    st.rate_t, st.rate_counted = 10.0, 0
+    update_rate(st, 12.0)
+    assert st.rate == 5.0 and st.rate_counted == 10 and st.rate_t == 12.0
+    s = run_stats(st, rejects_total=7)
+    assert s["counted_transitions"] == 10 and s["rejects_total"] == 7 and s["actors"] == 1
+    assert s["transitions_per_sec"] == 5.0 and s["query_p50_ms"] == pytest.approx(2.0)
+    assert s["table_size"] > 0 and s["memory_bytes"] > 0 and s["wal_records"] == 1
+
+
+def test_a_timed_snapshot_waits_for_changes_and_a_big_enough_log(tmp_path):
+    st = new_run(tmp_path / "r")
+    assert not snapshot.due(st)  # nothing changed
+    o, a = rows(50, 7, st.obs_dim, st.act_dim)
+    count(st, "a0", 0, o, a)
+    st.dirty = True
+    assert snapshot.due(st)  # the log holds every key: as big as the snapshot
+    snapshot.write("r", st)
+    assert not snapshot.due(st)
+    assert snapshot.next_check(100.0, 5.0, 0.01) == 105.0
+    assert snapshot.next_check(100.0, 5.0, 1.0) == 100.0 + snapshot.SNAPSHOT_SPACING

@@ -17,6 +17,12 @@ from shared.persist.files import atomic_write
 from shared.persist.wal import WalRecord
 
 SNAPSHOT_FORMAT = 1
+# A timed snapshot rewrites the whole table and exists to bound what a restart replays:
+# so it waits until the log is this share of the snapshot's size ...
+SNAPSHOT_LOG_RATIO = 0.25
+# ... and, when the log grows that fast anyway (a flood of new keys), the next check
+# waits this many times as long as the last snapshots took: at most ~5% of the time.
+SNAPSHOT_SPACING = 20.0
 
 
 def write(run: str, st: RunState) -> None:
@@ -114,3 +120,13 @@ def replay(run: str, st: RunState, records: list[WalRecord], log: logging.Logger
 def size(st: RunState) -> int:
     """About what a snapshot of the run writes: keys plus an int64 count per key."""
     return sum(len(t) * (t.key_bytes + 8) for t in st.explorer.tables)
+
+
+def due(st: RunState) -> bool:
+    """A timed check should snapshot the run: it changed, and its log is big enough."""
+    return st.dirty and st.wal.bytes >= SNAPSHOT_LOG_RATIO * size(st)
+
+
+def next_check(now: float, every_s: float, spent_s: float) -> float:
+    """When to check again, `spent_s` having gone into this check's snapshots."""
+    return now + max(every_s, SNAPSHOT_SPACING * spent_s)

@@ -1,0 +1,146 @@
+"""The runs the counter counts: their folders under `data_dir/counter/`, opened from
+snapshot and log, restored at startup, archived when a start cannot resume them.
+
+`Runs` owns the run states and the lock that guards their tables and stats between the
+service thread (counting) and Zenoh's threads (queries, info). File work only, no bus:
+the service publishes what follows (docs/architecture.md, "The counter's files").
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import shutil
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from services.counter import snapshot
+from services.counter.state import RunState
+from shared.config import TrainConfig, make_config
+from shared.envs.tasks import task_spec_for
+from shared.persist.files import read_json, write_json
+from shared.persist.wal import WriteAheadLog
+from shared.run.factories import build_exploration
+
+_RUN_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,127}")
+
+
+def keys_held(st: RunState) -> int:
+    return sum(len(t) for t in st.explorer.tables)
+
+
+class Runs:
+    """Run id -> its state, under `lock`; which of them were restored from disk."""
+
+    def __init__(self, root: Path, log: logging.Logger) -> None:
+        self.root = root
+        self.log = log
+        self.lock = threading.RLock()  # tables and run states: ingestion vs queries/info
+        self.states: dict[str, RunState] = {}
+        self.restored: set[str] = set()  # runs resumed from disk, not started here
+
+    def get(self, run: str) -> RunState | None:
+        with self.lock:
+            return self.states.get(run)
+
+    def items(self) -> list[tuple[str, RunState]]:
+        with self.lock:
+            return list(self.states.items())
+
+    def prepare(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> Path:
+        """The run's folder for a start: kept if it holds an unfinished run of the same
+        config (resumed), else what is there is archived; config and assignment noted."""
+        if not _RUN_ID.fullmatch(run):
+            raise ValueError(f"run id {run!r} is not a safe directory name")
+        path = self.root / run
+        if path.exists():
+            saved = read_json(path / "config.json")
+            if (path / "stopped").exists() or saved != config.model_dump(mode="json"):
+                why = "was stopped" if (path / "stopped").exists() else "had another config"
+                dest = self.archive(path)
+                self.log.warning("run %s %s: old state moved to %s", run, why, dest)
+        path.mkdir(parents=True, exist_ok=True)
+        write_json(path / "config.json", config.model_dump(mode="json"))
+        write_json(path / "assign.json", assign)
+        return path
+
+    def open(self, run: str, config: TrainConfig, path: Path) -> tuple[RunState, int]:
+        """Build the run's tables, load its snapshot and log; register it. Returns the
+        state and how many log records were replayed (then folded into a snapshot)."""
+        spec = task_spec_for(config)
+        explorer = build_exploration(config, spec)
+        wal, records = WriteAheadLog.open(path / "wal.bin")
+        st = RunState(
+            config=config,
+            explorer=explorer,
+            obs_dim=spec.joint_obs_dim,
+            act_dim=spec.joint_act_dim,
+            path=path,
+            wal=wal,
+        )
+        try:
+            if (path / "snapshot.npz").exists():
+                snapshot.load(st)
+            replayed = snapshot.replay(run, st, records, self.log)
+        except Exception:
+            wal.close()
+            raise
+        st.rate_counted = st.counted
+        if (path / "assign.json").exists():
+            st.learner = (read_json(path / "assign.json") or {}).get("learner")
+        with self.lock:
+            self.states[run] = st
+        if replayed:
+            snapshot.write(run, st)  # fold the log into a snapshot right away
+        return st, replayed
+
+    def restore_all(self) -> list[tuple[str, TrainConfig, RunState]]:
+        """Open every run this counter had not finished (no `stopped` marker); a run
+        that cannot be opened is logged and left on disk."""
+        restored = []
+        for path in sorted(self.root.iterdir()):
+            if not path.is_dir() or path.name.startswith(".") or (path / "stopped").exists():
+                continue
+            if not (path / "config.json").exists():
+                continue
+            run = path.name
+            try:
+                config = make_config(read_json(path / "config.json"))
+                st, replayed = self.open(run, config, path)
+            except Exception:
+                self.log.exception("could not restore run %s from %s", run, path)
+                continue
+            self.restored.add(run)
+            restored.append((run, config, st))
+            self.log.info(
+                "restored run %s: %d counted, %d keys, %d WAL records replayed",
+                run,
+                st.counted,
+                keys_held(st),
+                replayed,
+            )
+        return restored
+
+    def archive(self, path: Path) -> Path:
+        archive = self.root / ".archive"
+        archive.mkdir(exist_ok=True)
+        dest = archive / f"{path.name}.{time.strftime('%Y%m%d-%H%M%S')}.{time.time_ns()}"
+        shutil.move(str(path), str(dest))
+        return dest
+
+    def mark_stopped(self, run: str, st: RunState, reason: str) -> None:
+        """The final snapshot, and the marker that keeps a restart from resuming it."""
+        snapshot.write(run, st)
+        write_json(st.path / "stopped", {"reason": reason, "time": time.time()})
+
+    def close(self, run: str) -> None:
+        """Forget a run: closed first, so a query or burst holding it does nothing more."""
+        self.restored.discard(run)
+        with self.lock:
+            st = self.states.pop(run, None)
+            if st is not None:
+                st.closed = True
+        if st is not None:
+            st.wal.close()

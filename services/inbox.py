@@ -1,0 +1,69 @@
+"""A service thread's side of its messages: taken off the queue in bursts, and the
+dropped ones counted.
+
+Zenoh's callbacks only put (tag, key, payload) on the queue. The service thread takes
+them without waiting while a burst is under way or it has work of its own, and learns
+when a burst has drained, for work cheaper done once a burst than once a message.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections import Counter
+from typing import Literal
+
+Item = tuple[str, str, bytes]  # tag, key expression, payload
+DRAINED: Literal["drained"] = "drained"
+
+
+class Inbox:
+    """The queue, and whether a burst (messages taken since it was last found empty) is
+    under way."""
+
+    def __init__(self, q: queue.Queue[Item] | queue.SimpleQueue[Item]) -> None:
+        self.queue = q
+        self.in_burst = False
+
+    def take(self, busy: bool, wait_s: float) -> Item | Literal["drained"] | None:
+        """The next message; DRAINED, once, when the queue is found empty after a burst;
+        None when it is empty otherwise (after waiting up to `wait_s`, unless `busy` or
+        in a burst: then it does not wait)."""
+        try:
+            if busy or self.in_burst:
+                item = self.queue.get_nowait()
+            else:
+                item = self.queue.get(timeout=wait_s)
+        except queue.Empty:
+            if self.in_burst:
+                self.in_burst = False
+                return DRAINED
+            return None
+        self.in_burst = True
+        return item
+
+
+class Rejects:
+    """Messages dropped, by reason (the text before its first ':'). Safe from any thread
+    (the counter drops bonus queries on Zenoh's); says when a drop should be logged, at
+    most once every `log_every_s`, so a flood of garbage does not flood the log."""
+
+    def __init__(self, log_every_s: float = 1.0) -> None:
+        self.by_reason: Counter[str] = Counter()
+        self._lock = threading.Lock()
+        self._log_every_s = log_every_s
+        self._last_log = 0.0
+
+    def add(self, reason: str, now: float) -> int | None:
+        """Count one drop; the total so far if it is to be logged now, else None."""
+        with self._lock:
+            self.by_reason[reason.split(":")[0]] += 1
+            if now - self._last_log > self._log_every_s:
+                self._last_log = now
+                return sum(self.by_reason.values())
+        return None
+
+    def counts(self) -> tuple[dict[str, int], int]:
+        """Drops by reason, and their total, read together."""
+        with self._lock:
+            return dict(self.by_reason), sum(self.by_reason.values())

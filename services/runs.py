@@ -1,0 +1,126 @@
+"""Which runs a service serves, which starts it takes, and the file a restart rejoins from.
+
+A service takes a run when the start's assignment names it and it has room (one run,
+or the runs of the group it serves; the counter, many). The runs taken are noted in
+`DATA_DIR/services/ID.json` so that the same service started again rejoins them before
+it announces itself. No bus here: the service calls these and runs its hooks.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from shared.config import ConfigError, TrainConfig, make_config
+from shared.persist.files import write_json
+
+
+def is_assigned(role: str, service_id: str, assign: dict[str, Any]) -> bool:
+    """Does the assignment name this service (under its role, or its role's plural:
+    "actors" is a list)?"""
+    value = assign.get(role, assign.get(f"{role}s"))
+    return service_id in value if isinstance(value, list) else value == service_id
+
+
+@dataclass(frozen=True)
+class SavedRun:
+    """A run noted in the runs file: its id, config (raw and parsed) and assignment."""
+
+    run: str
+    config: TrainConfig
+    assign: dict[str, Any]
+    raw: dict
+
+
+class ServedRuns:
+    """The runs served now (`active`, in the order taken), the assignment they came with,
+    the last runs let go (their late traffic is expected), and the runs file."""
+
+    def __init__(self, max_runs: int, path: Path | None, log: logging.Logger) -> None:
+        self.max_runs = max_runs
+        self.path = path  # None: nothing is noted (the counter restores its own runs)
+        self.log = log
+        self.active: dict[str, TrainConfig] = {}
+        self.assign: dict[str, Any] = {}
+        self.finished: collections.deque[str] = collections.deque(maxlen=64)
+        self._joined: dict[str, tuple[dict, dict[str, Any]]] = {}  # run -> (raw config, assign)
+
+    def full(self) -> bool:
+        return len(self.active) >= self.max_runs
+
+    def joins_group(self, run: str, assign: dict[str, Any]) -> bool:
+        """A start for another run of the group served now (a run group: one learner,
+        actor and evaluator for all its runs, `assign["group"]` their ids)."""
+        group = assign.get("group")
+        return (
+            isinstance(group, list)
+            and run in group
+            and bool(self.active)
+            and self.assign.get("group") == group
+        )
+
+    def refusal(self, key_run: str | None, msg_run: str) -> str | None:
+        """Why a per-run message is dropped (its key's run and its own): None if it is
+        for a run served now, "" if silently (late traffic of a run let go is expected)."""
+        if key_run is None or msg_run != key_run:
+            return "run mismatch: key and message name different runs"
+        if key_run not in self.active:
+            return "" if key_run in self.finished else f"unknown run: {key_run}"
+        return None
+
+    def join(self, run: str, config: TrainConfig, assign: dict[str, Any], raw: dict) -> None:
+        self.active[run] = config
+        self.assign = assign
+        self._joined[run] = (raw, assign)
+
+    def leave(self, run: str) -> None:
+        if run in self.active:
+            self.finished.append(run)
+        self.active.pop(run, None)
+        self._joined.pop(run, None)
+
+    def entries(self) -> list[dict[str, Any]]:
+        """What the runs file holds: the runs served, in order, as they were started."""
+        return [
+            {"run": run, "config": self._joined[run][0], "assign": self._joined[run][1]}
+            for run in self.active
+        ]
+
+    def save(self) -> None:
+        """Note the runs served for a restart (the file removed when none)."""
+        if self.path is None:
+            return
+        if not self.active:
+            self.path.unlink(missing_ok=True)
+            return
+        runs = self.entries()
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            write_json(self.path, {"runs": runs})
+        except OSError as err:  # the runs go on; only a restart cannot rejoin them
+            why = "cannot write %s (%s): a restart will not rejoin %s"
+            self.log.error(why, self.path, err, runs)
+
+    def saved(self) -> list[SavedRun]:
+        """The runs noted when the process died; none if there is no file, and none if
+        it is unreadable, holds no run or a bad config (then it is renamed *.refused)."""
+        if self.path is None or not self.path.exists():
+            return []
+        try:
+            data = json.loads(self.path.read_text())
+            entries = data.get("runs", [data])  # one run, as a file of old versions holds
+            runs = [
+                SavedRun(e["run"], make_config(e["config"]), e["assign"], e["config"])
+                for e in entries
+            ]
+            if not runs:
+                raise ValueError("no run in it")
+        except (OSError, ValueError, KeyError, TypeError, ConfigError) as err:
+            self.log.error("refusing %s (%s): renamed *.refused; not rejoining", self.path, err)
+            self.path.replace(self.path.with_name(self.path.name + ".refused"))
+            return []
+        return runs

@@ -1,0 +1,158 @@
+"""The parts every service shares, in process, no bus: the runs served and the starts
+taken (`services/runs.py`), the runs file a restart rejoins from, peers away and their
+grace (`services/peers.py`), the inbox's bursts and the rejects tally (`services/inbox.py`)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+
+from services.inbox import DRAINED, Inbox, Rejects
+from services.peers import CHECK_S, PeerWatch, live_peer
+from services.runs import ServedRuns, is_assigned
+from shared.config import make_config
+
+LOG = logging.getLogger("test")
+RAW = {"task": "speaker_listener", "explore": "dis-macb", "k": 32}
+
+
+# ------------------------------------------------------------ runs served, starts taken
+def test_a_service_is_assigned_by_its_role_or_in_its_roles_list():
+    assign = {"learner": "L", "actors": ["a0", "a1"], "counter": "c0"}
+    assert is_assigned("learner", "L", assign) and not is_assigned("learner", "L2", assign)
+    assert is_assigned("actor", "a1", assign) and not is_assigned("actor", "a2", assign)
+    assert not is_assigned("evaluator", "e", assign)
+
+
+def test_a_service_serving_a_group_takes_its_other_runs_and_nothing_else():
+    served = ServedRuns(1, None, LOG)
+    group = {"learner": "L", "group": ["g1", "g2"]}
+    assert not served.full() and not served.joins_group("g2", group)  # free: not a join
+    served.join("g1", make_config(RAW), group, RAW)
+    assert served.full()
+    assert served.joins_group("g2", group)
+    assert not served.joins_group("g3", group)  # not one of the group's runs
+    assert not served.joins_group("g2", {"learner": "L", "group": ["g1", "g2", "g4"]})
+    assert not served.joins_group("x", {"learner": "L"})
+
+
+def test_messages_are_for_a_served_run_and_a_run_let_go_is_dropped_silently():
+    served = ServedRuns(2, None, LOG)
+    served.join("r", make_config(RAW), {}, RAW)
+    assert served.refusal("r", "r") is None
+    assert served.refusal("r", "other").startswith("run mismatch")
+    assert served.refusal(None, "r").startswith("run mismatch")
+    assert served.refusal("x", "x") == "unknown run: x"
+    served.leave("r")
+    assert list(served.finished) == ["r"] and not served.active
+    assert served.refusal("r", "r") == ""  # late traffic of a finished run
+    served.leave("never-served")
+    assert list(served.finished) == ["r"]
+
+
+def test_the_runs_file_holds_the_runs_served_in_order_and_brings_them_back(tmp_path):
+    path = tmp_path / "services" / "s.json"
+    served = ServedRuns(2, path, LOG)
+    raw2 = {**RAW, "k": 16}
+    served.join("g1", make_config(RAW), {"group": ["g1", "g2"]}, RAW)
+    served.join("g2", make_config(raw2), {"group": ["g1", "g2"]}, raw2)
+    served.save()
+    back = ServedRuns(2, path, LOG).saved()
+    assert [(s.run, s.config.k, s.raw, s.assign) for s in back] == [
+        ("g1", 32, RAW, {"group": ["g1", "g2"]}),
+        ("g2", 16, raw2, {"group": ["g1", "g2"]}),
+    ]
+    served.leave("g1")
+    served.leave("g2")
+    served.save()
+    assert not path.exists() and ServedRuns(2, path, LOG).saved() == []
+
+
+def test_a_runs_file_of_one_run_still_loads_and_a_bad_one_is_refused_aside(tmp_path):
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps({"run": "r", "config": RAW, "assign": {"learner": "L"}}))
+    assert [s.run for s in ServedRuns(1, path, LOG).saved()] == ["r"]
+    for bad in ("not json", json.dumps({"runs": []}), json.dumps({"runs": [{"run": "r"}]})):
+        path.write_text(bad)
+        assert ServedRuns(1, path, LOG).saved() == []
+        assert not path.exists() and path.with_name("s.json.refused").read_text() == bad
+
+
+def test_a_service_that_restores_its_own_runs_writes_no_runs_file(tmp_path):
+    served = ServedRuns(5, None, LOG)
+    served.join("r", make_config(RAW), {}, RAW)
+    served.save()
+    assert served.saved() == [] and list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------ peers
+def test_a_peer_away_is_given_its_grace_and_one_back_is_forgiven():
+    assert live_peer("macb/live/actor/a0") == ("actor", "a0")
+    assert live_peer("macb/live/actor") is None
+    peers = PeerWatch(grace_s=10.0)
+    assert peers.seen("macb/other", False, 0.0) is None
+    assert peers.seen("macb/live/learner/L", False, 0.0) == ("learner", "L", False)
+    assert peers.seen("macb/live/actor/a0", False, 1.0) == ("actor", "a0", False)
+    assert peers.given_up(9.0) == []
+    assert peers.seen("macb/live/actor/a0", True, 9.5).back  # back within its grace
+    assert not peers.seen("macb/live/actor/a0", True, 9.6).back  # already back
+    assert peers.given_up(10.0) == [("learner", "L")]  # given up: forgotten
+    assert peers.given_up(30.0) == []
+
+
+def test_peers_away_are_looked_at_no_more_than_every_check_interval():
+    peers = PeerWatch(grace_s=0.0)
+    peers.seen("macb/live/actor/a0", False, 100.0)
+    assert peers.given_up(100.0) == [("actor", "a0")]
+    peers.seen("macb/live/actor/a1", False, 100.0)
+    assert peers.given_up(100.0 + CHECK_S / 2) == []  # too soon after the last look
+    assert peers.given_up(100.0 + CHECK_S * 2) == [("actor", "a1")]
+    peers.seen("macb/live/actor/a2", False, 200.0)
+    peers.clear()
+    assert peers.given_up(300.0) == []
+
+
+# ------------------------------------------------------------ inbox and rejects
+def test_the_inbox_says_once_when_a_burst_has_drained_and_waits_only_when_idle():
+    q: queue.SimpleQueue = queue.SimpleQueue()
+    inbox = Inbox(q)
+    t0 = time.monotonic()
+    assert inbox.take(busy=False, wait_s=0.05) is None  # idle: waits for a message
+    assert time.monotonic() - t0 >= 0.04
+    t0 = time.monotonic()
+    assert inbox.take(busy=True, wait_s=5.0) is None  # work waiting: no wait
+    assert time.monotonic() - t0 < 1.0
+    q.put(("t", "k1", b"1"))
+    q.put(("t", "k2", b"2"))
+    assert inbox.take(False, 5.0) == ("t", "k1", b"1")
+    assert inbox.take(False, 5.0) == ("t", "k2", b"2")
+    t0 = time.monotonic()
+    assert inbox.take(False, 5.0) == DRAINED  # in a burst: not kept waiting
+    assert time.monotonic() - t0 < 1.0
+    assert inbox.take(False, 0.01) is None  # once
+
+
+def test_rejects_are_counted_by_reason_and_logged_at_most_once_an_interval():
+    rejects = Rejects(log_every_s=1.0)
+    assert rejects.add("unknown run: r1", now=10.0) == 1
+    assert rejects.add("unknown run: r2", now=10.5) is None
+    assert rejects.add("bad config: k", now=11.2) == 3
+    assert rejects.counts() == ({"unknown run": 2, "bad config": 1}, 3)
+
+
+def test_rejects_from_several_threads_are_all_counted():
+    rejects = Rejects()
+
+    def drop() -> None:
+        for _ in range(2000):
+            rejects.add("x: y", time.monotonic())
+
+    threads = [threading.Thread(target=drop) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert rejects.counts() == ({"x": 8000}, 8000)
