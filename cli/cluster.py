@@ -175,7 +175,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     service_id = args.id or f"{args.role}-{socket.gethostname()}-{os.getpid()}"
     connect = args.connect or default_connect()
     service = module.make_service(service_id, connect, Path(args.data_dir or default_data_dir()))
-    service.install_signal_handlers()
+    from services.common import stop_on_signals
+
+    stop_on_signals(service)
     service.serve_forever()
     return 0
 

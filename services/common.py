@@ -37,15 +37,16 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
+from services.endpoint import Endpoint
 from services.inbox import DRAINED, Inbox, Item, Rejects
 from services.peers import PeerWatch
 from services.runs import ServedRuns, is_assigned
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
-from shared.net.messages import MESSAGES, Message, Metrics, Start, Status, Stop
+from shared.net.messages import MESSAGES, Message, Start, Status, Stop
 from shared.net.monitor import peer_grace_s
-from shared.net.wire import WireError, decode, encode
+from shared.net.wire import WireError, decode
 
 M = TypeVar("M", bound=Message)
 
@@ -64,7 +65,52 @@ def learner_end_reason(msg: Status) -> str:
     return f"learner {msg.state}: {msg.detail.get('reason', '')}".strip()
 
 
-class ServiceBase:
+class ServiceHooks:
+    """What a service does, as `ServiceBase` calls it: the hooks each service overrides
+    (all of them optional), apart from the machinery that calls them, so a service's
+    main.py reads as its answers to these events."""
+
+    def start_replaces(self, run: str) -> bool:
+        """A start for a run this service already serves: False ignores it (a repeated
+        start); True means it begins a new attempt, and the service has let the old go."""
+        return False
+
+    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        """Take up `run` (its config, and the services assigned to it)."""
+
+    def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+        """Rejoin `run` after this process restarted; by default, as if it started."""
+        self.on_start(run, config, assign)
+
+    def on_stop(self, run: str, reason: str) -> None:
+        """Let `run` go (stopped, or its learner gone); its status follows."""
+
+    def on_learner_completed(self, run: str) -> None:
+        """The run's learner completed (a follower that is done by then: nothing to do)."""
+
+    def on_peer_found(self, role: str, peer: str) -> None:
+        """A service's liveliness token appeared (it started, or came back)."""
+
+    def handle(self, tag: str, key: str, payload: bytes) -> None:
+        """A message the service listened for (`tag`), on the service's thread."""
+
+    def tick(self) -> bool:
+        """Work between messages; return True while more work is waiting (no idle wait)."""
+        return False
+
+    def after_drain(self) -> None:
+        """The inbox is empty after one or more messages were handled: for work cheaper
+        done once a burst than once a message (the counter counts a burst at once)."""
+
+    def on_shutdown(self) -> None:
+        """The process is ending while serving: flush what must survive a restart."""
+
+    def on_peer_lost(self, role: str, peer: str) -> None:
+        """A service's liveliness token vanished (it exited or was killed) and did not
+        come back within the grace period."""
+
+
+class ServiceBase(ServiceHooks):
     role = "service"
     # queue.SimpleQueue puts and gets much cheaper (C, no Python-level locks): worth it
     # where Zenoh's thread enqueues thousands of messages a second (the counter).
@@ -91,8 +137,11 @@ class ServiceBase:
         self.finished = self.served.finished  # runs let go lately: late traffic expected
         self.peers = PeerWatch(peer_grace_s())  # peers whose liveliness token went away
         self.resumed: dict[str, Any] | None = None  # what on_resume restored, for info()
-        self._run_subs: dict[str, list] = {}  # run -> its subscriptions
         self.bus = Bus(connect or keys.default_connect())
+        self.endpoint = Endpoint(self.bus, self.inbox.put, self.id, self.role)
+        # Subscriptions that enqueue (a run's end with it), statuses and metrics out.
+        self.listen, self.subscribe = self.endpoint.listen, self.endpoint.subscribe
+        self.publish_status, self.publish_metrics = self.endpoint.status, self.endpoint.metrics
         self.listen(keys.k_control("start"), "start")
         self.listen(keys.k_control("stop"), "stop")
         self.bus.queryable(keys.k_info(self.role, self.id), self._info_reply)
@@ -111,20 +160,6 @@ class ServiceBase:
         return self.peers.grace.grace_s
 
     # ------------------------------------------------------------ plumbing
-    def listen(self, key_expr: str, tag: str, run: str | None = None) -> None:
-        """Subscribe; the callback only enqueues (tag, key, payload).
-
-        With `run`, the subscription belongs to that run and ends when the run is freed,
-        so a service never receives the traffic of runs other services serve.
-        """
-        put = self.inbox.put
-        self.subscribe(key_expr, lambda key, payload: put((tag, key, payload)), run)
-
-    def subscribe(self, key_expr: str, callback, run: str | None = None) -> None:
-        handle = self.bus.subscribe(key_expr, callback)
-        if run is not None:
-            self._run_subs.setdefault(run, []).append(handle)
-
     def reject(self, key: str, reason: str) -> None:
         """Drop a message: count it by reason and log it (at most once a second)."""
         total = self.reject_tally.add(reason, time.monotonic())
@@ -170,16 +205,6 @@ class ServiceBase:
 
     def _info_reply(self, key: str, payload: bytes) -> bytes:
         return json.dumps(self.info()).encode()
-
-    def publish_status(self, run: str, state: str, **detail: Any) -> None:
-        self.bus.put(
-            keys.k_status(run, self.id),
-            encode(Status(run, service=self.id, state=state, detail=detail)),
-        )
-
-    def publish_metrics(self, run: str, data: dict[str, Any], source: str | None = None) -> None:
-        source = source or f"{self.role}/{self.id}"
-        self.bus.put(keys.k_metrics(run, source), encode(Metrics(run, source=source, data=data)))
 
     # ------------------------------------------------------------ control
     def _on_control(self, tag: str, key: str, payload: bytes) -> None:
@@ -264,33 +289,12 @@ class ServiceBase:
 
     def free(self, run: str) -> None:
         """Forget a run: the service is free for the next one."""
-        for handle in self._run_subs.pop(run, []):
-            self.bus.undeclare(handle)
+        self.endpoint.drop_run(run)
         self.served.leave(run)
         self.served.save()
         if not self.active:
             self.peers.clear()
             self.resumed = None
-
-    # ------------------------------------------------------------ hooks
-    def start_replaces(self, run: str) -> bool:
-        """A start for a run this service already serves: False ignores it (a repeated
-        start); True means it begins a new attempt, and the service has let the old go."""
-        return False
-
-    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None: ...
-
-    def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
-        """Rejoin `run` after this process restarted; by default, as if it started."""
-        self.on_start(run, config, assign)
-
-    def on_stop(self, run: str, reason: str) -> None: ...
-
-    def on_learner_completed(self, run: str) -> None:
-        """The run's learner completed (a follower that is done by then: nothing to do)."""
-
-    def on_peer_found(self, role: str, peer: str) -> None:
-        """A service's liveliness token appeared (it started, or came back)."""
 
     def _peer_event(self, key: str, alive: bool) -> None:
         seen = self.peers.seen(key, alive, time.monotonic()) if self.active else None
@@ -300,26 +304,14 @@ class ServiceBase:
             self.on_peer_found(seen.role, seen.peer)
 
     def on_peer_lost(self, role: str, peer: str) -> None:
-        """A service's liveliness token vanished (it exited or was killed) and did not
-        come back within the grace period.
-
-        A service that follows its run's learner gives the run up as failed when the
-        learner is gone: without it no credits, weights or evaluation points can come."""
+        """A peer gone past the grace period. A service that follows its run's learner
+        gives the run up as failed when the learner is gone: without it no credits,
+        weights or evaluation points can come."""
         if role == "learner" and self.follows_learner and self.assign.get("learner") == peer:
             for run in list(self.active):  # the run, or every run of its group
                 self.log.error("run %s: learner %s is gone; giving the run up", run, peer)
                 why = f"learner {peer} is gone (not back within {self.grace_s:g} s)"
                 self._end(run, "failed", why)
-
-    def handle(self, tag: str, key: str, payload: bytes) -> None: ...
-
-    def tick(self) -> bool:
-        """Work between messages; return True while more work is waiting (no idle wait)."""
-        return False
-
-    def after_drain(self) -> None:
-        """The inbox is empty after one or more messages were handled: for work cheaper
-        done once a burst than once a message (the counter counts a burst at once)."""
 
     # ------------------------------------------------------------ loop
     def serve_forever(self) -> None:
@@ -364,12 +356,13 @@ class ServiceBase:
         finally:
             self.bus.close()
 
-    def on_shutdown(self) -> None: ...
 
-    def install_signal_handlers(self) -> None:
-        def handler(signum: int, frame: object) -> None:
-            self.log.info("signal %d: shutting down", signum)
-            self.stop_event.set()
+def stop_on_signals(service: ServiceBase) -> None:
+    """SIGTERM and SIGINT end the service's loop; `shutdown` then flushes and closes."""
 
-        signal.signal(signal.SIGTERM, handler)
-        signal.signal(signal.SIGINT, handler)
+    def handler(signum: int, frame: object) -> None:
+        service.log.info("signal %d: shutting down", signum)
+        service.stop_event.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)

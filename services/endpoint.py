@@ -1,0 +1,45 @@
+"""A service's side of the bus: subscriptions whose callbacks only enqueue (those of a
+run end with it, so a service never receives the traffic of runs others serve), and
+its statuses and metric rows out."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from shared.net import bus as keys
+from shared.net.bus import Bus
+from shared.net.messages import Metrics, Status
+from shared.net.wire import encode
+
+
+class Endpoint:
+    """`put` enqueues (tag, key, payload) for the service's thread."""
+
+    def __init__(self, bus: Bus, put: Callable[[Any], None], service_id: str, role: str) -> None:
+        self.bus, self.put, self.id, self.role = bus, put, service_id, role
+        self.run_subs: dict[str, list] = {}  # run -> its subscriptions
+
+    def listen(self, key_expr: str, tag: str, run: str | None = None) -> None:
+        """Subscribe; the callback only enqueues (tag, key, payload). With `run`, the
+        subscription belongs to that run and ends when the run is freed."""
+        put = self.put
+        self.subscribe(key_expr, lambda key, payload: put((tag, key, payload)), run)
+
+    def subscribe(self, key_expr: str, callback: Callable, run: str | None = None) -> None:
+        handle = self.bus.subscribe(key_expr, callback)
+        if run is not None:
+            self.run_subs.setdefault(run, []).append(handle)
+
+    def drop_run(self, run: str) -> None:
+        """The run's subscriptions end."""
+        for handle in self.run_subs.pop(run, []):
+            self.bus.undeclare(handle)
+
+    def status(self, run: str, state: str, **detail: Any) -> None:
+        msg = Status(run, service=self.id, state=state, detail=detail)
+        self.bus.put(keys.k_status(run, self.id), encode(msg))
+
+    def metrics(self, run: str, data: dict[str, Any], source: str | None = None) -> None:
+        source = source or f"{self.role}/{self.id}"
+        self.bus.put(keys.k_metrics(run, source), encode(Metrics(run, source=source, data=data)))
