@@ -14,7 +14,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from shared.net import bus as keys
 from shared.net.messages import Metrics, Status
@@ -23,6 +23,8 @@ from shared.net.wire import WireError, decode
 
 from .store import Store
 from .watch import Ending, Watch
+
+M = TypeVar("M", Metrics, Status)
 
 log = logging.getLogger("macb.api.scheduler")
 
@@ -114,29 +116,30 @@ class RunBook:
             self.changed()
         return added
 
-    def _metrics(self, key: str, payload: bytes, rows: dict[str, list]) -> None:
+    def _followed(self, key: str, payload: bytes, cls: type[M]) -> tuple[Watch, M] | None:
+        """A message for a run followed here, on that run's key; None otherwise (another
+        run's, or one that does not decode: the services count those)."""
         run = keys.run_of(key)
         w = self.watches.get(run or "")
         if w is None:
-            return
+            return None
         try:
-            msg = decode(payload, Metrics)
+            msg = decode(payload, cls)
         except WireError:
-            return
-        if msg.run == run and (row := w.metrics(msg)) is not None:
-            rows.setdefault(run, []).append(row)
+            return None
+        return (w, msg) if msg.run == run else None
+
+    def _metrics(self, key: str, payload: bytes, rows: dict[str, list]) -> None:
+        if (got := self._followed(key, payload, Metrics)) is not None:
+            w, msg = got
+            if (row := w.metrics(msg)) is not None:
+                rows.setdefault(msg.run, []).append(row)
 
     def _status(self, key: str, payload: bytes) -> None:
-        run = keys.run_of(key)
-        w = self.watches.get(run or "")
-        if w is None:
+        got = self._followed(key, payload, Status)
+        if got is None or self.superseded(got[0]):
             return
-        try:
-            msg = decode(payload, Status)
-        except WireError:
-            return
-        if msg.run != run or self.superseded(w):
-            return
+        w, msg = got
         note = w.status(msg, self.clock())
         if note is not None:
             log.info("run %s: %s", w.run, note)
