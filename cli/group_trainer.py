@@ -159,7 +159,7 @@ class GroupRun:
             device=c0.device,
         )
         self.collector = make_vec_collector(cfgs, self.venv)
-        self.draws = minibatches_per_update(c0)
+        self.minibatches_per_update = minibatches_per_update(c0)
         self.first_episode = 1
         self.resumed = False
         self.width = {
@@ -277,7 +277,8 @@ class GroupRun:
                 parts = []
                 for m in members:
                     batches = [
-                        m.buffer.sample(c0.batch_size, m.sample_rng) for _ in range(self.draws)
+                        m.buffer.sample(c0.batch_size, m.sample_rng)
+                        for _ in range(self.minibatches_per_update)
                     ]
                     bonuses = price_batches(m.explorer, batches, m.diagnostics)
                     parts.append(update_arrays(batches, bonuses))

@@ -235,7 +235,7 @@ class Run:
         self.buffer = ReplayBuffer(capacity, spec.joint_obs_dim, spec.joint_act_dim, stored)
         self.collector = make_collector(cfg, self.env)
         self.sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
-        self.draws = minibatches_per_update(cfg)
+        self.minibatches_per_update = minibatches_per_update(cfg)
         self.diagnostics = BonusDiagnostics()
         self.rows: list[dict] = []
         self.shift_warned = False
@@ -340,7 +340,8 @@ class Run:
             self.collisions_cum += tr.collisions
             if self.env_steps > cfg.learning_starts:
                 batches = [
-                    buffer.sample(cfg.batch_size, self.sample_rng) for _ in range(self.draws)
+                    buffer.sample(cfg.batch_size, self.sample_rng)
+                    for _ in range(self.minibatches_per_update)
                 ]
                 bonuses = price_batches(explorer, batches, self.diagnostics)
                 self.learner.update(*update_arrays(batches, bonuses))

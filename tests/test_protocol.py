@@ -15,10 +15,10 @@ from hypothesis import strategies as st
 
 from shared.net.protocol import (
     AckTracker,
+    Arrival,
     Decision,
     ReceiveCursor,
     Sender,
-    Verdict,
     decide,
     run_verdict,
 )
@@ -26,29 +26,29 @@ from shared.net.protocol import (
 
 # --------------------------------------------------------------------- the rule
 @pytest.mark.parametrize(
-    ("expected", "seq", "n", "verdict", "skip", "taken"),
+    ("expected", "seq", "n", "arrival", "skip", "taken"),
     [
-        (0, 0, 20, Verdict.TAKE, 0, 20),
-        (40, 40, 20, Verdict.TAKE, 0, 20),
-        (40, 20, 20, Verdict.DUPLICATE, 20, 0),  # ends exactly at expected
-        (40, 0, 20, Verdict.DUPLICATE, 20, 0),
-        (40, 60, 20, Verdict.GAP, 0, 0),
-        (40, 41, 20, Verdict.GAP, 0, 0),
-        (40, 30, 20, Verdict.OVERLAP, 10, 10),
-        (40, 39, 20, Verdict.OVERLAP, 1, 19),
+        (0, 0, 20, Arrival.TAKE, 0, 20),
+        (40, 40, 20, Arrival.TAKE, 0, 20),
+        (40, 20, 20, Arrival.DUPLICATE, 20, 0),  # ends exactly at expected
+        (40, 0, 20, Arrival.DUPLICATE, 20, 0),
+        (40, 60, 20, Arrival.GAP, 0, 0),
+        (40, 41, 20, Arrival.GAP, 0, 0),
+        (40, 30, 20, Arrival.OVERLAP, 10, 10),
+        (40, 39, 20, Arrival.OVERLAP, 1, 19),
     ],
 )
-def test_decide_every_case(expected, seq, n, verdict, skip, taken):
-    assert decide(expected, seq, n) == Decision(verdict, skip, taken)
+def test_decide_every_case(expected, seq, n, arrival, skip, taken):
+    assert decide(expected, seq, n) == Decision(arrival, skip, taken)
 
 
 def test_cursor_takes_in_order_and_counts_duplicates_and_gaps():
     c = ReceiveCursor()
-    assert c.take("a", 0, 20).verdict is Verdict.TAKE
-    assert c.take("a", 0, 20).verdict is Verdict.DUPLICATE
-    assert c.take("a", 40, 20).verdict is Verdict.GAP
+    assert c.take("a", 0, 20).arrival is Arrival.TAKE
+    assert c.take("a", 0, 20).arrival is Arrival.DUPLICATE
+    assert c.take("a", 40, 20).arrival is Arrival.GAP
     d = c.take("a", 10, 20)  # overlap: rows 20..29 are new
-    assert (d.verdict, d.skip, d.taken) == (Verdict.OVERLAP, 10, 10)
+    assert (d.arrival, d.skip, d.taken) == (Arrival.OVERLAP, 10, 10)
     assert c.take("b", 0, 5).took  # another actor has its own number
     assert c.positions() == {"a": 30, "b": 5}
     assert c.duplicate_rows == 20 + 10
@@ -59,7 +59,7 @@ def test_whole_batch_cursor_refuses_an_overlap_without_advancing():
     c = ReceiveCursor(actors=["a"], partial=False)
     c.take("a", 0, 20)
     d = c.take("a", 10, 20)
-    assert d.verdict is Verdict.OVERLAP and not d.took
+    assert d.arrival is Arrival.OVERLAP and not d.took
     assert c.expected("a") == 20  # the sender resends from the ack
     assert c.gaps == 1 and c.duplicate_rows == 0
 
@@ -89,8 +89,8 @@ def test_restart_from_positions_continues_exactly():
     for seq in range(0, 100, 20):
         before.take("a", seq, 20)
     after = ReceiveCursor(before.positions())
-    assert after.take("a", 80, 20).verdict is Verdict.DUPLICATE
-    assert after.take("a", 100, 20).verdict is Verdict.TAKE
+    assert after.take("a", 80, 20).arrival is Arrival.DUPLICATE
+    assert after.take("a", 100, 20).arrival is Arrival.TAKE
 
 
 def test_ack_tracker_only_moves_forward_and_ignores_junk():

@@ -12,7 +12,7 @@ import numpy as np
 
 from services.counter.state import RunState
 from shared.core.counting import CountTable
-from shared.net.protocol import ReceiveCursor, Verdict
+from shared.net.protocol import Arrival, ReceiveCursor
 from shared.persist.files import atomic_write
 from shared.persist.wal import WalRecord
 
@@ -92,9 +92,9 @@ def replay(run: str, st: RunState, records: list[WalRecord], log: logging.Logger
     for rec in records:
         exp = cursor.expected(rec.actor)
         d = cursor.peek(rec.actor, rec.seq, rec.n)
-        if d.verdict is Verdict.DUPLICATE:
+        if d.arrival is Arrival.DUPLICATE:
             continue  # already in the snapshot (killed between snapshot and truncate)
-        if d.verdict is Verdict.GAP:
+        if d.arrival is Arrival.GAP:
             log.error(
                 "run %s: WAL record %s@%d is past expected %d: skipped",
                 run,

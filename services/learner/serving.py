@@ -74,7 +74,7 @@ class Serving:
         self.out.boundaries(st)
         self.out.housekeep(st, owed)
         if ckpt.due(st) and not st.unpriced:
-            self.checkpoint(st)  # (not with draws in hand: a cut holds the sampler after them)
+            self.checkpoint(st)  # (not with minibatches in hand: a cut holds the sampler)
         if st.lockstep and owed == 0:
             for actor, payload in lockstep.answers(st):
                 st.action_pubs[actor](payload)

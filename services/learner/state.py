@@ -119,7 +119,7 @@ class LearnerRun:
     time: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_PHASES, 0.0))
     contended_updates: int = 0
     diagnostics: BonusDiagnostics = field(default_factory=BonusDiagnostics)
-    draws: int = 1  # minibatches per update (`minibatch: per-agent`: one per agent)
+    minibatches_per_update: int = 1  # 1, or one per agent (`minibatch: per-agent`)
     log: WriteAheadLog | None = None  # every batch taken, before it is acknowledged
     folder: Path | None = None  # DATA_DIR/learner/RUN
     ingested_pos: dict[str, int] = field(default_factory=dict)  # per actor, in replay
@@ -249,7 +249,7 @@ def new_run(
         received=ReceiveCursor(actors=actors, partial=False),
         counted=AckTracker(actors),
         held={a: collections.deque() for a in actors},
-        draws=minibatches_per_update(config),
+        minibatches_per_update=minibatches_per_update(config),
         folder=folder,
         shares={
             a: episode_share(config.episodes, len(actors), r) * config.episode_len

@@ -33,26 +33,26 @@ def updates_due(st: LearnerRun) -> int:
 def update_run(st: LearnerRun, todo: int) -> int:
     """Up to `todo` updates of a run served alone, their minibatches priced in one
     bonus query; the number done (0 while the counter is silent)."""
-    spent, draws = st.time, st.draws  # minibatches per update: 1, or one per agent
+    spent, per = st.time, st.minibatches_per_update  # 1, or one per agent
     t0 = time.perf_counter()
     if st.unpriced:  # drawn before the counter fell silent: priced now, not redrawn
         batches, st.unpriced = st.unpriced, []
     else:
-        batches = [st.buffer.sample(st.config.batch_size, st.rng) for _ in range(todo * draws)]
+        batches = [st.buffer.sample(st.config.batch_size, st.rng) for _ in range(todo * per)]
     spent["sample"] += time.perf_counter() - t0
     st.bonus.fresh = False
     bonuses = st.bonus.bonus_for(batches) if batches else []
     if bonuses is None:
         # The counter is silent (paused, restarting): the same minibatches wait for
-        # its answer, so the sampler's stream stays the one per-update draws give.
+        # its answer, so the sampler's stream stays the one per-update sampling gives.
         st.unpriced = batches
         return 0
     t0 = time.perf_counter()
     evaluating = st.evaluations.busy
     counts = st.bonus.counts if len(st.bonus.counts) == len(bonuses) else None
-    done = len(batches) // draws
+    done = len(batches) // per
     for u in range(done):
-        mine = slice(u * draws, (u + 1) * draws)
+        mine = slice(u * per, (u + 1) * per)
         # Counted here for every kind of learner; a tuned one polls the same signal
         # for its tuners and its own count (in its stats(), which take precedence).
         contended = evaluating()
@@ -71,7 +71,8 @@ def update_group(g: LockstepGroup, members: list[LearnerRun]) -> bool:
     t0 = time.perf_counter()
     batch = members[0].config.batch_size
     drawn = g.unpriced or [
-        [st.buffer.sample(batch, st.rng) for _ in range(st.draws)] for st in members
+        [st.buffer.sample(batch, st.rng) for _ in range(st.minibatches_per_update)]
+        for st in members
     ]
     t1 = time.perf_counter()
     for st in members:

@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 
-class Verdict(enum.Enum):
-    """What a receiver does with a batch [seq, seq + n) from one actor."""
+class Arrival(enum.Enum):
+    """A batch [seq, seq + n) from one actor, against the next number expected: what
+    its arrival is, and so what a receiver does with it."""
 
     TAKE = "take"  # starts at the expected number: take it whole
     OVERLAP = "overlap"  # starts below it, ends above: its head was taken before
@@ -29,7 +30,7 @@ class Verdict(enum.Enum):
 
 @dataclass(frozen=True)
 class Decision:
-    verdict: Verdict
+    arrival: Arrival
     skip: int = 0  # rows at the head already taken; the rows to keep are [skip:]
     taken: int = 0  # rows taken (0 unless the cursor advanced)
 
@@ -41,12 +42,12 @@ class Decision:
 def decide(expected: int, seq: int, n: int) -> Decision:
     """The rule itself, for one batch against the next expected number."""
     if seq + n <= expected:
-        return Decision(Verdict.DUPLICATE, skip=n)
+        return Decision(Arrival.DUPLICATE, skip=n)
     if seq > expected:
-        return Decision(Verdict.GAP)
+        return Decision(Arrival.GAP)
     if seq == expected:
-        return Decision(Verdict.TAKE, skip=0, taken=n)
-    return Decision(Verdict.OVERLAP, skip=expected - seq, taken=seq + n - expected)
+        return Decision(Arrival.TAKE, skip=0, taken=n)
+    return Decision(Arrival.OVERLAP, skip=expected - seq, taken=seq + n - expected)
 
 
 class ReceiveCursor:
@@ -86,8 +87,8 @@ class ReceiveCursor:
     def peek(self, actor: str, seq: int, n: int) -> Decision:
         """What `take` would decide, without advancing."""
         d = decide(self.expected(actor), seq, n)
-        if d.verdict is Verdict.OVERLAP and not self.partial:
-            return Decision(Verdict.OVERLAP, skip=d.skip)
+        if d.arrival is Arrival.OVERLAP and not self.partial:
+            return Decision(Arrival.OVERLAP, skip=d.skip)
         return d
 
     def take(self, actor: str, seq: int, n: int) -> Decision:
@@ -95,7 +96,7 @@ class ReceiveCursor:
         d = self.peek(actor, seq, n)
         if d.took:
             self._next[actor] = seq + n
-        if d.took or d.verdict is Verdict.DUPLICATE:
+        if d.took or d.arrival is Arrival.DUPLICATE:
             self.duplicate_rows += d.skip
         else:
             self.gaps += 1  # a gap, or an overlap refused whole: the sender resends
