@@ -26,6 +26,7 @@ from _procs import ROOT, Procs
 from cli.supervisor import Cluster, ServiceSpec
 from shared.net.bus import Bus
 from shared.net.control import RunWatch
+from shared.net.messages import Assignment
 
 RESULTS = ROOT / "benchmarks" / "results"
 # The thesis's speaker_listener arm (figure 8's sparse Cen-MACB; appendix A's networks
@@ -86,7 +87,7 @@ class TimedWatch(RunWatch):
     service is what arrived (a message it drops leaves the stored value unchanged)."""
 
     def __init__(self, endpoint: str) -> None:
-        super().__init__(run="*", assign={})
+        super().__init__(run="*", assign=Assignment(learner="*", actors=()))  # no run's own
         self.metric_times: dict[str, list[tuple[float, dict[str, Any]]]] = {}
         self.status_times: dict[str, list[tuple[float, dict[str, Any]]]] = {}
         self.bus = Bus([endpoint])

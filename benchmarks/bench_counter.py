@@ -68,7 +68,7 @@ from _stats import fmt, median, rotated, top_tottime
 
 from cli.supervisor import THREAD_ENV, cluster_plan, free_port
 from shared.net.bus import Bus, k_ack, k_bonus, k_control, k_info, k_transitions
-from shared.net.messages import Ack, BonusQuery, BonusReply, Start, Stop, Transitions
+from shared.net.messages import Ack, Assignment, BonusQuery, BonusReply, Start, Stop, Transitions
 from shared.net.wire import check_dims, decode, encode
 
 # Publisher and echo processes import only the above (numpy, zenoh, msgpack, pydantic):
@@ -273,7 +273,7 @@ class CounterHarness:
     def new_run(self, actors: list[str]) -> str:
         self.runs += 1
         run = f"bench-{self.runs}"
-        assign = {"counter": COUNTER, "learner": "L", "actors": actors, "evaluator": "e"}
+        assign = Assignment(learner="L", actors=tuple(actors), counter=COUNTER, evaluator="e")
         config = {**CONFIG, "k": self.k}
         self.bus.put(k_control("start"), encode(Start(run, config=config, assign=assign)))
         deadline = time.monotonic() + 20

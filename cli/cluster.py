@@ -239,7 +239,7 @@ def follow_run(bus: Bus, cfg: TrainConfig, actors: int, out: Path | None, quiet:
     except NoFreeServices as err:
         print(f"macb: cannot start the run: {err}", file=sys.stderr)
         return 1
-    print(f"run {watch.run} started on {watch.assign}", file=sys.stderr)
+    print(f"run {watch.run} started on {watch.assign.to_wire()}", file=sys.stderr)
     try:
         state = watch.wait()
     except KeyboardInterrupt:

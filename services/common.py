@@ -40,11 +40,11 @@ from typing import Any, TypeVar
 from services.endpoint import Endpoint
 from services.inbox import DRAINED, Inbox, Item, Rejects
 from services.peers import PeerWatch
-from services.runs import ServedRuns, is_assigned
+from services.runs import ServedRuns
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
-from shared.net.messages import MESSAGES, Message, Start, Status, Stop
+from shared.net.messages import MESSAGES, Assignment, Message, Start, Status, Stop
 from shared.net.monitor import peer_grace_s
 from shared.net.wire import WireError, decode
 
@@ -75,10 +75,10 @@ class ServiceHooks:
         start); True means it begins a new attempt, and the service has let the old go."""
         return False
 
-    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+    def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         """Take up `run` (its config, and the services assigned to it)."""
 
-    def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+    def on_resume(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         """Rejoin `run` after this process restarted; by default, as if it started."""
         self.on_start(run, config, assign)
 
@@ -151,8 +151,8 @@ class ServiceBase(ServiceHooks):
         )
 
     @property
-    def assign(self) -> dict[str, Any]:
-        """The services of the run served now (of the last run taken)."""
+    def assign(self) -> Assignment | None:
+        """The services of the run served now (of the last run taken; None before any)."""
         return self.served.assign
 
     @property
@@ -234,22 +234,21 @@ class ServiceBase(ServiceHooks):
             self.publish_status(run, "failed", reason=f"invalid config: {err}")
             return
         self.log.info("starting run %s", run)
-        self._join(run, config, dict(msg.assign), msg.config, self.on_start)
+        self._join(run, config, msg.assign, msg.config, self.on_start)
 
     def _join(
         self,
         run: str,
         config: TrainConfig,
-        assign: dict[str, Any],
+        assign: Assignment,
         raw: dict,
-        hook: Callable[[str, TrainConfig, dict[str, Any]], None],
+        hook: Callable[[str, TrainConfig, Assignment], None],
     ) -> None:
         """Take the run (`hook` is on_start, or on_resume after a restart) and note it
         in the service's file, so that a restarted process rejoins it."""
         self.served.join(run, config, assign, raw)
-        learner = assign.get("learner")
-        if self.follows_learner and isinstance(learner, str):
-            self.listen(keys.k_status(run, learner), "learner_status", run)
+        if self.follows_learner:
+            self.listen(keys.k_status(run, assign.learner), "learner_status", run)
         try:
             hook(run, config, assign)
         except Exception as err:
@@ -280,12 +279,12 @@ class ServiceBase(ServiceHooks):
         self.publish_status(run, state, reason=reason)
         self.free(run)
 
-    def joins_group(self, run: str, assign: dict[str, Any]) -> bool:
+    def joins_group(self, run: str, assign: Assignment) -> bool:
         """A start for another run of the group this service serves."""
         return self.served.joins_group(run, assign)
 
-    def assigned(self, assign: dict[str, Any]) -> bool:
-        return is_assigned(self.role, self.id, assign)
+    def assigned(self, assign: Assignment) -> bool:
+        return assign.names(self.role, self.id)
 
     def free(self, run: str) -> None:
         """Forget a run: the service is free for the next one."""
@@ -307,7 +306,8 @@ class ServiceBase(ServiceHooks):
         """A peer gone past the grace period. A service that follows its run's learner
         gives the run up as failed when the learner is gone: without it no credits,
         weights or evaluation points can come."""
-        if role == "learner" and self.follows_learner and self.assign.get("learner") == peer:
+        ours = self.assign is not None and self.assign.learner == peer
+        if role == "learner" and self.follows_learner and ours:
             for run in list(self.active):  # the run, or every run of its group
                 self.log.error("run %s: learner %s is gone; giving the run up", run, peer)
                 why = f"learner {peer} is gone (not back within {self.grace_s:g} s)"

@@ -2,8 +2,9 @@
 
 A service takes a run when the start's assignment names it and it has room (one run,
 or the runs of the group it serves; the counter, many). The runs taken are noted in
-`DATA_DIR/services/ID.json` so that the same service started again rejoins them before
-it announces itself. No bus here: the service calls these and runs its hooks.
+`DATA_DIR/services/ID.json` (each with its assignment's `to_wire` map, read back
+through `from_wire`) so that the same service started again rejoins them before it
+announces itself. No bus here: the service calls these and runs its hooks.
 """
 
 from __future__ import annotations
@@ -16,14 +17,8 @@ from pathlib import Path
 from typing import Any
 
 from shared.config import ConfigError, TrainConfig, make_config
+from shared.net.messages import Assignment
 from shared.persist.files import write_json
-
-
-def is_assigned(role: str, service_id: str, assign: dict[str, Any]) -> bool:
-    """Does the assignment name this service (under its role, or its role's plural:
-    "actors" is a list)?"""
-    value = assign.get(role, assign.get(f"{role}s"))
-    return service_id in value if isinstance(value, list) else value == service_id
 
 
 @dataclass(frozen=True)
@@ -32,7 +27,7 @@ class SavedRun:
 
     run: str
     config: TrainConfig
-    assign: dict[str, Any]
+    assign: Assignment
     raw: dict
 
 
@@ -45,22 +40,23 @@ class ServedRuns:
         self.path = path  # None: nothing is noted (the counter restores its own runs)
         self.log = log
         self.active: dict[str, TrainConfig] = {}
-        self.assign: dict[str, Any] = {}
+        self.assign: Assignment | None = None  # of the last run taken
         self.finished: collections.deque[str] = collections.deque(maxlen=64)
-        self._joined: dict[str, tuple[dict, dict[str, Any]]] = {}  # run -> (raw config, assign)
+        self._joined: dict[str, tuple[dict, Assignment]] = {}  # run -> (raw config, assign)
 
     def full(self) -> bool:
         return len(self.active) >= self.max_runs
 
-    def joins_group(self, run: str, assign: dict[str, Any]) -> bool:
+    def joins_group(self, run: str, assign: Assignment) -> bool:
         """A start for another run of the group served now (a run group: one learner,
-        actor and evaluator for all its runs, `assign["group"]` their ids)."""
-        group = assign.get("group")
+        actor and evaluator for all its runs, `assign.group` their ids)."""
+        group = assign.group
         return (
-            isinstance(group, list)
+            group is not None
             and run in group
             and bool(self.active)
-            and self.assign.get("group") == group
+            and self.assign is not None
+            and self.assign.group == group
         )
 
     def refusal(self, key_run: str | None, msg_run: str) -> str | None:
@@ -72,7 +68,7 @@ class ServedRuns:
             return "" if key_run in self.finished else f"unknown run: {key_run}"
         return None
 
-    def join(self, run: str, config: TrainConfig, assign: dict[str, Any], raw: dict) -> None:
+    def join(self, run: str, config: TrainConfig, assign: Assignment, raw: dict) -> None:
         self.active[run] = config
         self.assign = assign
         self._joined[run] = (raw, assign)
@@ -86,7 +82,7 @@ class ServedRuns:
     def entries(self) -> list[dict[str, Any]]:
         """What the runs file holds: the runs served, in order, as they were started."""
         return [
-            {"run": run, "config": self._joined[run][0], "assign": self._joined[run][1]}
+            {"run": run, "config": self._joined[run][0], "assign": self._joined[run][1].to_wire()}
             for run in self.active
         ]
 
@@ -107,14 +103,20 @@ class ServedRuns:
 
     def saved(self) -> list[SavedRun]:
         """The runs noted when the process died; none if there is no file, and none if
-        it is unreadable, holds no run or a bad config (then it is renamed *.refused)."""
+        it is unreadable, holds no run, a bad config or a bad assignment (then it is
+        renamed *.refused)."""
         if self.path is None or not self.path.exists():
             return []
         try:
             data = json.loads(self.path.read_text())
             entries = data.get("runs", [data])  # one run, as a file of old versions holds
             runs = [
-                SavedRun(e["run"], make_config(e["config"]), e["assign"], e["config"])
+                SavedRun(
+                    e["run"],
+                    make_config(e["config"]),
+                    Assignment.from_wire(e["assign"]),
+                    e["config"],
+                )
                 for e in entries
             ]
             if not runs:

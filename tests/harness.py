@@ -456,7 +456,8 @@ class Finished:
         """A run watched on the bus (shared.net.control.RunWatch)."""
         rows = sorted(watch.rows, key=lambda r: r["episode"])
         state = watch.state()
-        return cls(config, state, watch.assign, watch.states, rows, said=(state, watch.states))
+        assign = watch.assign.to_wire()  # as the API's record shows it
+        return cls(config, state, assign, watch.states, rows, said=(state, watch.states))
 
     @property
     def learner(self) -> dict:

@@ -11,11 +11,11 @@ from services.actor.outbox import RESEND_AFTER_S, Outbox, rejoin_from, run_sende
 from services.actor.run import ActorRun
 from shared.config import make_config
 from shared.envs.tasks import make_task_for
-from shared.net.messages import ActRequest, Transitions, Weights
+from shared.net.messages import ActRequest, Assignment, Transitions, Weights
 from shared.net.wire import decode
 from shared.run.rollout import make_collector
 
-ASSIGN = {"learner": "learner", "counter": "counter", "actors": ["a0"]}
+ASSIGN = Assignment.from_wire({"learner": "learner", "counter": "counter", "actors": ["a0"]})
 BASE = {"task": "speaker_listener", "episodes": 3, "episode_len": 5, "hidden": [16, 16]}
 
 

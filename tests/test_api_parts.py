@@ -15,7 +15,7 @@ from services.api.runbook import RunBook
 from services.api.store import Store
 from services.api.watch import Ending, Watch, flat_row
 from shared.net import bus as keys
-from shared.net.messages import Metrics, Status
+from shared.net.messages import Assignment, Metrics, Status
 from shared.net.monitor import Graces
 from shared.net.wire import encode
 from tests.harness import TINY
@@ -44,8 +44,8 @@ def test_the_queue_starts_runs_oldest_first_on_free_services_and_the_rest_wait()
     plan = QueuePass([queued("r1"), queued("r2"), queued("r3")], infos(), reserved=set())
     started = []
     for start in plan.proposals():
-        assert isinstance(start, Start) and "group" not in start.assign
-        started.append((start.ids, start.assign))
+        assert isinstance(start, Start) and start.assign.group is None
+        started.append((start.ids, start.assign.to_wire()))
         plan.took(start)
     assert started == [
         (["r1"], {"counter": "C", "learner": "L1", "evaluator": "E1", "actors": ["A1"]}),
@@ -83,14 +83,14 @@ def test_a_stored_config_this_api_refuses_is_proposed_as_invalid():
     plan = QueuePass([queued("r1", episodes=-3), queued("r2")], infos(), reserved=set())
     bad, good = list(plan.proposals())
     assert isinstance(bad, Invalid) and bad.run == "r1" and bad.reason.startswith("invalid config")
-    assert isinstance(good, Start) and good.ids == ["r2"] and good.assign["learner"] == "L1"
+    assert isinstance(good, Start) and good.ids == ["r2"] and good.assign.learner == "L1"
 
 
 def test_runs_that_can_share_a_group_start_together_up_to_the_group_size():
     runs = [queued("a1"), queued("b1", exp="y"), queued("a22"), queued("a333"), queued("a4444")]
     plan = QueuePass(runs, infos(), reserved=set(), group_size=3)
     first = next(iter(plan.proposals()))
-    assert first.ids == ["a1", "a22", "a333"] and first.assign["group"] == first.ids
+    assert first.ids == ["a1", "a22", "a333"] and list(first.assign.group or ()) == first.ids
     assert [cfg.seed for _, cfg in first.members] == [2, 3, 4]
     plan.took(first)
     rest = list(plan.proposals())
@@ -104,7 +104,9 @@ def test_a_started_runs_rows_are_a_new_attempt_and_the_queued_rows_stay():
     plan = QueuePass([row], infos(), reserved=set())
     start = next(iter(plan.proposals()))
     (attempt,) = start.attempt_rows()
-    assert attempt["assign"] == start.assign and attempt["services"] == attempt["live"] == {}
+    assert (
+        attempt["assign"] == start.assign.to_wire() and attempt["services"] == attempt["live"] == {}
+    )
     assert row["services"] == {"L0": {"state": "failed"}} and "assign" not in row
 
 
@@ -233,7 +235,7 @@ def book(tmp_path):
     store = Store(tmp_path / "api.sqlite3")
     runs = [{"id": r, "seed": 0, "point": {}, "config": TINY, "actors": 1} for r in ("r1", "r2")]
     store.create_experiment("x", "x", {"config": TINY}, runs)
-    assert store.claim("r1", ASSIGN)
+    assert store.claim("r1", Assignment.from_wire(ASSIGN))
     clock = Clock()
     b = RunBook(store, GRACES, clock=clock)
     b.watch(store.run("r1"), started=0.0)
@@ -316,6 +318,19 @@ def test_a_run_stopped_over_http_is_not_decided_again(book):
     store.finish("r1", "stopped", "stopped by user", stop_sent=False)
     w = b.watches["r1"]
     assert b.decide(w, 2.0, lambda w: 0) is None and w.ended == 2.0
+
+
+def test_running_runs_are_followed_once_and_one_whose_stored_assignment_is_refused_fails(book):
+    b, store, _ = book
+    assert store.claim("r2", Assignment.from_wire({**ASSIGN, "learner": "L2"}))
+    assert store.run("r2")["assign"] == {**ASSIGN, "learner": "L2"}  # the map, as REST shows it
+    assert [r["id"] for r in b.to_follow(store.runs_with_status("running"))] == ["r2"]
+    with store.db.tx() as c:  # as no API writes it: an assignment without actors
+        c.execute("UPDATE runs SET assign = ? WHERE id = 'r2'", ('{"learner": "L2"}',))
+    assert b.to_follow(store.runs_with_status("running")) == []  # r1 is followed already
+    r2 = store.run("r2")
+    assert r2["status"] == "failed" and "field 'actors' is missing" in r2["reason"]
+    assert [run for run, _ in store.stops_to_send()] == ["r2"]  # its services told to stop
 
 
 # ---------------------------------------------------------------- metric points

@@ -5,6 +5,7 @@ resumed, archived and restored; the stats and the snapshot schedule."""
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -18,7 +19,7 @@ from services.counter.state import RunState
 from services.counter.stats import run_stats, update_rate
 from shared.config import make_config
 from shared.envs.tasks import task_spec_for
-from shared.net.messages import BonusQuery, BonusReply
+from shared.net.messages import Assignment, BonusQuery, BonusReply
 from shared.net.protocol import ReceiveCursor
 from shared.net.wire import WireError, decode
 from shared.persist.wal import WriteAheadLog
@@ -189,32 +190,39 @@ def test_the_service_thread_steps_aside_only_while_a_query_is_answered():
 
 # ------------------------------------------------------------ runs on disk
 CONFIG = {"task": "speaker_listener", "explore": "dis-macb", "k": 32}
+ASSIGN = Assignment.from_wire({"counter": "c0", "learner": "L", "actors": ["a0"]})
 
 
 def test_a_runs_folder_is_resumed_for_the_same_config_and_archived_otherwise(tmp_path):
     runs = Runs(tmp_path, logging.getLogger("t"))
     cfg = make_config(CONFIG)
     with pytest.raises(ValueError, match="safe directory"):
-        runs.prepare("../x", cfg, {})
-    path = runs.prepare("r", cfg, {"learner": "L"})
+        runs.prepare("../x", cfg, ASSIGN)
+    path = runs.prepare("r", cfg, ASSIGN)
     st, replayed = runs.open("r", cfg, path)
     assert replayed == 0 and st.learner == "L" and runs.get("r") is st
+    assert json.loads((path / "assign.json").read_text()) == ASSIGN.to_wire()  # the map
     o, a = rows(5, 4, st.obs_dim, st.act_dim)
     count(st, "a0", 0, o, a)
     runs.close("r")
     assert st.closed and runs.get("r") is None
 
-    again, replayed = runs.open("r", cfg, runs.prepare("r", cfg, {"learner": "L"}))
+    again, replayed = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN))
     assert replayed == 1 and again.counted == 5  # same config: resumed from its log
     assert (path / "snapshot.npz").exists()  # the log folded into a snapshot at once
     runs.close("r")
 
+    (path / "assign.json").write_text('{"learner": "L"}')  # no actors: refused, not followed
+    again, _ = runs.open("r", cfg, path)
+    assert again.learner is None and again.counted == 5
+    runs.close("r")
+
     other = make_config({**CONFIG, "k": 16})
-    fresh, _ = runs.open("r", other, runs.prepare("r", other, {}))
+    fresh, _ = runs.open("r", other, runs.prepare("r", other, ASSIGN))
     assert fresh.counted == 0 and len(list((tmp_path / ".archive").iterdir())) == 1
     runs.mark_stopped("r", fresh, "done")
     runs.close("r")
-    st3, _ = runs.open("r", other, runs.prepare("r", other, {}))  # stopped: afresh
+    st3, _ = runs.open("r", other, runs.prepare("r", other, ASSIGN))  # stopped: afresh
     assert st3.counted == 0 and len(list((tmp_path / ".archive").iterdir())) == 2
     runs.close("r")
 
@@ -223,7 +231,7 @@ def test_restore_opens_every_unfinished_run_and_skips_the_rest(tmp_path):
     runs = Runs(tmp_path, logging.getLogger("t"))
     cfg = make_config(CONFIG)
     for run in ("a", "b", "c"):
-        st, _ = runs.open(run, cfg, runs.prepare(run, cfg, {}))
+        st, _ = runs.open(run, cfg, runs.prepare(run, cfg, ASSIGN))
         o, a = rows(3, 5, st.obs_dim, st.act_dim)
         count(st, "x", 0, o, a)
     runs.mark_stopped("b", runs.get("b"), "done")

@@ -22,14 +22,25 @@ import pytest
 from shared.config import make_config
 from shared.envs.tasks import task_spec_for
 from shared.net.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
-from shared.net.messages import Ack, BonusQuery, BonusReply, Start, Status, Stop, Transitions
+from shared.net.messages import (
+    Ack,
+    Assignment,
+    BonusQuery,
+    BonusReply,
+    Start,
+    Status,
+    Stop,
+    Transitions,
+)
 from shared.net.wire import SCHEMA_VERSION, decode, encode
 from shared.persist.wal import WriteAheadLog, read_wal
 from shared.run.factories import build_exploration
 from tests.conftest import wait_for
 
 OBS, ACT = 14, 5  # speaker_listener: joint obs 3 + 11, joint act 3 + 2
-ASSIGN = {"counter": "c0", "learner": "L", "actors": ["a0", "a1"], "evaluator": "e"}
+ASSIGN = Assignment.from_wire(
+    {"counter": "c0", "learner": "L", "actors": ["a0", "a1"], "evaluator": "e"}
+)
 BASE = {"task": "speaker_listener", "algo": "cen-maddpg", "explore": "cen-macb", "k": 64}
 
 
@@ -324,7 +335,10 @@ def test_garbage_is_dropped_counted_and_harmless(counter):
     counter.bus.put(key, transitions(run, "a0", 10, nan, good.act[10:15]))  # non-finite
     counter.bus.put(k_transitions(run, "a1"), ok)  # key names a1, message a0
     counter.bus.put(k_transitions("r-other", "a0"), ok)  # key and message runs differ
-    sent = 7
+    start = msgpack.unpackb(encode(Start("r-x", config=BASE, assign=ASSIGN)), raw=False)
+    start["assign"]["actors"] = "a0"  # an assignment whose actors are not a list
+    counter.bus.put(k_control("start"), msgpack.packb(start, use_bin_type=True))
+    sent = 8
     # Queries that get no reply: garbage, wrong dims, unknown run.
     assert counter.bus.get(k_bonus(run), b"garbage", timeout=1.0) == []
     assert counter.query(run, wide, good.act[:5]) is None
@@ -333,10 +347,10 @@ def test_garbage_is_dropped_counted_and_harmless(counter):
 
     wait_for(lambda: counter.info()["rejects_total"] == before + sent, 10, what=f"{sent} rejects")
     info = counter.info()
-    for reason in ("undecodable payload", "unknown run", "actor mismatch", "run mismatch"):
+    for reason in ("undecodable payload", "unknown run", "actor mismatch", "run mismatch", "start"):
         assert info["rejects"].get(reason, 0) >= 1, (reason, info["rejects"])
     assert any(r.startswith(f"schema version {SCHEMA_VERSION + 1}") for r in info["rejects"])
-    assert counter.alive()
+    assert counter.alive() and "r-x" not in info["runs"]
     s = info["runs"][run]
     assert s["counted_transitions"] == 10 and s["acked"] == {"a0": 10}
     assert s["run_rejects"] == 4  # dims, non-finite, actor mismatch, query dims

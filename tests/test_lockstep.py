@@ -146,7 +146,7 @@ def test_a_late_count_or_a_late_message_changes_nothing(cluster, bus, tmp_path, 
     states = learner_states(cluster.data, watch.run, config, tmp_path / "l")
     cluster_state, local_state, local = states
     diffs = compare(sorted(watch.rows, key=lambda r: r["episode"]), local)
-    learner = watch.states[watch.assign["learner"]]
+    learner = watch.states[watch.assign.learner]
     assert not diffs, "\n".join([f"bonus failures {learner['bonus_failures']}"] + diffs[:20])
     assert not state_differences(cluster_state, local_state)
 

@@ -3,9 +3,12 @@ and the services end a run, fed events with the caller's clock."""
 
 from __future__ import annotations
 
+from shared.net.messages import Assignment
 from shared.net.monitor import Graces, PeerGrace, RunMonitor
 
-ASSIGN = {"learner": "L", "counter": "C", "evaluator": "E", "actors": ["A0", "A1"]}
+ASSIGN = Assignment.from_wire(
+    {"learner": "L", "counter": "C", "evaluator": "E", "actors": ["A0", "A1"]}
+)
 GRACES = Graces(peer_s=30.0, counter_s=120.0, completion_s=5.0, start_s=60.0)
 
 

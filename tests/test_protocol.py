@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from shared.net.messages import Assignment
 from shared.net.protocol import (
     AckTracker,
     Arrival,
@@ -257,7 +258,7 @@ def test_sender_and_receiver_over_a_lossy_channel_deliver_exactly_once():
 
 
 # --------------------------------------------------------------------- run status
-ASSIGN = {"learner": "L", "evaluator": "E", "counter": "C", "actors": ["A0"]}
+ASSIGN = Assignment.from_wire({"learner": "L", "evaluator": "E", "counter": "C", "actors": ["A0"]})
 
 
 def test_run_verdict_running_until_learner_and_evaluator_complete():

@@ -12,36 +12,42 @@ import time
 
 from services.inbox import DRAINED, Inbox, Rejects
 from services.peers import CHECK_S, PeerWatch, live_peer
-from services.runs import ServedRuns, is_assigned
+from services.runs import ServedRuns
 from shared.config import make_config
+from shared.net.messages import Assignment
 
 LOG = logging.getLogger("test")
 RAW = {"task": "speaker_listener", "explore": "dis-macb", "k": 32}
 
 
+def assignment(**fields) -> Assignment:
+    """An assignment of learner L and actor a0, with `fields` on top."""
+    return Assignment.from_wire({"learner": "L", "actors": ["a0"], **fields})
+
+
 # ------------------------------------------------------------ runs served, starts taken
 def test_a_service_is_assigned_by_its_role_or_in_its_roles_list():
-    assign = {"learner": "L", "actors": ["a0", "a1"], "counter": "c0"}
-    assert is_assigned("learner", "L", assign) and not is_assigned("learner", "L2", assign)
-    assert is_assigned("actor", "a1", assign) and not is_assigned("actor", "a2", assign)
-    assert not is_assigned("evaluator", "e", assign)
+    assign = assignment(actors=["a0", "a1"], counter="c0")
+    assert assign.names("learner", "L") and not assign.names("learner", "L2")
+    assert assign.names("actor", "a1") and not assign.names("actor", "a2")
+    assert not assign.names("evaluator", "e")
 
 
 def test_a_service_serving_a_group_takes_its_other_runs_and_nothing_else():
     served = ServedRuns(1, None, LOG)
-    group = {"learner": "L", "group": ["g1", "g2"]}
+    group = assignment(group=["g1", "g2"])
     assert not served.full() and not served.joins_group("g2", group)  # free: not a join
     served.join("g1", make_config(RAW), group, RAW)
     assert served.full()
     assert served.joins_group("g2", group)
     assert not served.joins_group("g3", group)  # not one of the group's runs
-    assert not served.joins_group("g2", {"learner": "L", "group": ["g1", "g2", "g4"]})
-    assert not served.joins_group("x", {"learner": "L"})
+    assert not served.joins_group("g2", assignment(group=["g1", "g2", "g4"]))
+    assert not served.joins_group("x", assignment())
 
 
 def test_messages_are_for_a_served_run_and_a_run_let_go_is_dropped_silently():
     served = ServedRuns(2, None, LOG)
-    served.join("r", make_config(RAW), {}, RAW)
+    served.join("r", make_config(RAW), assignment(), RAW)
     assert served.refusal("r", "r") is None
     assert served.refusal("r", "other").startswith("run mismatch")
     assert served.refusal(None, "r").startswith("run mismatch")
@@ -57,14 +63,17 @@ def test_the_runs_file_holds_the_runs_served_in_order_and_brings_them_back(tmp_p
     path = tmp_path / "services" / "s.json"
     served = ServedRuns(2, path, LOG)
     raw2 = {**RAW, "k": 16}
-    served.join("g1", make_config(RAW), {"group": ["g1", "g2"]}, RAW)
-    served.join("g2", make_config(raw2), {"group": ["g1", "g2"]}, raw2)
+    group = assignment(group=["g1", "g2"])
+    served.join("g1", make_config(RAW), group, RAW)
+    served.join("g2", make_config(raw2), group, raw2)
     served.save()
     back = ServedRuns(2, path, LOG).saved()
     assert [(s.run, s.config.k, s.raw, s.assign) for s in back] == [
-        ("g1", 32, RAW, {"group": ["g1", "g2"]}),
-        ("g2", 16, raw2, {"group": ["g1", "g2"]}),
+        ("g1", 32, RAW, group),
+        ("g2", 16, raw2, group),
     ]
+    on_file = {"learner": "L", "actors": ["a0"], "group": ["g1", "g2"]}  # the map a Start holds
+    assert [e["assign"] for e in json.loads(path.read_text())["runs"]] == [on_file, on_file]
     served.leave("g1")
     served.leave("g2")
     served.save()
@@ -73,9 +82,17 @@ def test_the_runs_file_holds_the_runs_served_in_order_and_brings_them_back(tmp_p
 
 def test_a_runs_file_of_one_run_still_loads_and_a_bad_one_is_refused_aside(tmp_path):
     path = tmp_path / "s.json"
-    path.write_text(json.dumps({"run": "r", "config": RAW, "assign": {"learner": "L"}}))
-    assert [s.run for s in ServedRuns(1, path, LOG).saved()] == ["r"]
-    for bad in ("not json", json.dumps({"runs": []}), json.dumps({"runs": [{"run": "r"}]})):
+    assign = {"counter": "c0", "learner": "L", "evaluator": "e", "actors": ["a0"]}
+    path.write_text(json.dumps({"run": "r", "config": RAW, "assign": assign}))
+    back = ServedRuns(1, path, LOG).saved()
+    assert [s.run for s in back] == ["r"] and [s.assign.to_wire() for s in back] == [assign]
+    no_actors = {"runs": [{"run": "r", "config": RAW, "assign": {"learner": "L"}}]}
+    for bad in (
+        "not json",
+        json.dumps({"runs": []}),
+        json.dumps({"runs": [{"run": "r"}]}),
+        json.dumps(no_actors),
+    ):
         path.write_text(bad)
         assert ServedRuns(1, path, LOG).saved() == []
         assert not path.exists() and path.with_name("s.json.refused").read_text() == bad
@@ -83,7 +100,7 @@ def test_a_runs_file_of_one_run_still_loads_and_a_bad_one_is_refused_aside(tmp_p
 
 def test_a_service_that_restores_its_own_runs_writes_no_runs_file(tmp_path):
     served = ServedRuns(5, None, LOG)
-    served.join("r", make_config(RAW), {}, RAW)
+    served.join("r", make_config(RAW), assignment(), RAW)
     served.save()
     assert served.saved() == [] and list(tmp_path.iterdir()) == []
 

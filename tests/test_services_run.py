@@ -51,7 +51,7 @@ def test_short_speaker_listener_cen_macb_run_is_exact(cluster, bus, actors, opti
     rows = round(learner["bonus_rows_per_query"] * learner["bonus_queries"])
     assert rows == draws * config.batch_size * learner["updates"], learner
     # Actors saw the weights version rise, and stamped transitions with it.
-    for a in watch.assign["actors"]:
+    for a in watch.assign.actors:
         assert watch.states[a]["policy_version"] > 1
     # Services are free again.
     wait_for(lambda: all(not i.get("run") for i in discover(bus)), timeout=10, what="free")

@@ -71,7 +71,7 @@ def test_a_run_across_two_routers_is_exact(two):
         assert watch.wait(timeout=240) == "completed", watch.states
         wait_final_counts(watch, config)
         assert_exact(watch, config)
-        assert set(watch.assign["actors"]) == set(two.actors)
+        assert set(watch.assign.actors) == set(two.actors)
         workers = httpx.get(f"{two.url}/workers", timeout=10).json()["workers"]
         assert {w["id"] for w in workers} >= {"counter", "learner", "evaluator", *two.actors}
         no_denials(cli)

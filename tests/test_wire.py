@@ -1,5 +1,6 @@
 """The codec's array decoding and validation, in process: what every inbound message goes
-through, so malformed arrays must be refused here whatever shortcuts the decoder takes."""
+through, so malformed arrays must be refused here whatever shortcuts the decoder takes;
+and a run's `Assignment`, which a start carries as the same map as before it was typed."""
 
 from __future__ import annotations
 
@@ -7,7 +8,17 @@ import msgpack
 import numpy as np
 import pytest
 
-from shared.net.messages import MESSAGES, Ack, Metrics, Status, Stop, Transitions, Weights
+from shared.net.messages import (
+    MESSAGES,
+    Ack,
+    Assignment,
+    Metrics,
+    Start,
+    Status,
+    Stop,
+    Transitions,
+    Weights,
+)
 from shared.net.wire import SCHEMA_VERSION, SCHEMAS, WireError, check_dims, decode, encode
 
 
@@ -143,3 +154,92 @@ def test_a_message_of_another_type_or_lacking_a_field_is_refused():
     raw["v"] = SCHEMA_VERSION - 1  # the version before: its weights carried other fields
     with pytest.raises(WireError, match="schema version"):
         decode(_repack(raw))
+
+
+# ---------------------------------------------------------------- the assignment
+RUN = {"counter": "c0", "learner": "L", "evaluator": "E", "actors": ["a0", "a1"]}
+GROUP = {"counter": "c0", "learner": "L", "evaluator": "E", "actors": ["a0"], "group": ["g0", "g1"]}
+
+
+@pytest.mark.parametrize("wire", [RUN, GROUP, {"learner": "L", "actors": ["a0"]}])
+def test_an_assignment_round_trips_as_its_map(wire):
+    assign = Assignment.from_wire(wire)
+    assert assign.to_wire() == wire and Assignment.from_wire(assign.to_wire()) == assign
+    assert list(assign.to_wire()) == list(wire)  # the keys in the order they were sent
+
+
+def test_an_assignment_names_its_services_by_role():
+    run, group = Assignment.from_wire(RUN), Assignment.from_wire(GROUP)
+    assert run.names("learner", "L") and run.names("counter", "c0") and run.names("evaluator", "E")
+    assert (
+        run.names("actor", "a1") and not run.names("actor", "L") and not run.names("learner", "a0")
+    )
+    assert not run.names("service", "L") and not run.names("actors", "a0")
+    assert run.services() == [
+        ("counter", "c0"), ("learner", "L"), ("evaluator", "E"), ("actor", "a0"), ("actor", "a1")
+    ]  # fmt: skip
+    assert run.held() == {"L", "E", "a0", "a1"}  # the counter serves many runs
+    assert group.group == ("g0", "g1") and run.group is None
+    alone = Assignment.from_wire({"learner": "L", "actors": ["a0"]})
+    assert alone.services() == [("learner", "L"), ("actor", "a0")] and alone.counter is None
+
+
+@pytest.mark.parametrize(
+    "change, field, why",
+    [
+        ({"learner": None}, "learner", "is missing"),
+        ({"actors": None}, "actors", "is missing"),
+        ({"learner": ""}, "learner", "is not a service id"),
+        ({"learner": 3}, "learner", "is not a service id"),
+        ({"counter": ["c0"]}, "counter", "is not a service id"),
+        ({"evaluator": 1.5}, "evaluator", "is not a service id"),
+        ({"actors": "a0"}, "actors", "is not a non-empty list"),
+        ({"actors": []}, "actors", "is not a non-empty list"),
+        ({"actors": ["a0", 1]}, "actors", "holds something other than an id"),
+        ({"actors": ["a0", "a0"]}, "actors", "names an id twice"),
+        ({"group": {"g0": 0}}, "group", "is not a non-empty list"),
+        ({"group": ["g0", ""]}, "group", "holds something other than an id"),
+        ({"group": ["g0", "g0"]}, "group", "names an id twice"),
+        ({"actor": "a0"}, "actor", "unknown field"),
+    ],
+)
+def test_a_malformed_assignment_is_refused_naming_the_field(change, field, why):
+    wire = {k: v for k, v in {**GROUP, **change}.items() if v is not None or k not in change}
+    if why == "unknown field":
+        match = f"assignment: unknown field {field!r}"
+    else:
+        match = f"assignment: field {field!r} {why}"
+    with pytest.raises(WireError, match=match):
+        Assignment.from_wire(wire)
+
+
+def test_an_assignment_that_is_no_map_is_refused():
+    for bad in (None, ["L"], "L"):
+        with pytest.raises(WireError, match="assignment: not a map"):
+            Assignment.from_wire(bad)
+    none = Assignment.from_wire({**RUN, "counter": None, "evaluator": None})  # null: none named
+    assert none.counter is None and none.evaluator is None
+
+
+@pytest.mark.parametrize("assign", [RUN, GROUP])
+def test_a_start_sent_before_the_assignment_was_typed_decodes_and_encodes_the_same(assign):
+    # A start as the code before Assignment sent it: its assignment a plain map.
+    config = {"task": "speaker_listener", "k": 32}
+    body = {"v": SCHEMA_VERSION, "type": "start", "run": "g0", "config": config, "assign": assign}
+    before = msgpack.packb(body, use_bin_type=True)
+    start = decode(before, Start)
+    assert start.assign == Assignment.from_wire(assign) and start.assign.learner == "L"
+    assert msgpack.unpackb(encode(start), raw=False) == body
+    assert encode(start) == before  # the same bytes: nothing on the wire changed
+
+
+def test_a_start_with_a_malformed_assignment_is_refused_naming_the_field():
+    raw = msgpack.unpackb(
+        encode(Start("r", config={}, assign=Assignment.from_wire(RUN))), raw=False
+    )
+    raw["assign"]["actors"] = "a0"
+    with pytest.raises(WireError, match="start: assignment: field 'actors' is not a non-empty"):
+        decode(_repack(raw), Start)
+    del raw["assign"]
+    with pytest.raises(WireError, match="missing field 'assign'"):
+        decode(_repack(raw), Start)

@@ -18,7 +18,7 @@ weights once every earlier step is counted and learnt, adds its own noise, steps
 publishes that one transition. Actions come from the learner's own network, so they are
 the one-process trainer's to the bit (SEED RL's central inference).
 
-A run group in lockstep (`assign["group"]`: its runs in order) has one actor for all its
+A run group in lockstep (`assign.group`: its runs in order) has one actor for all its
 runs: it steps their worlds as one VecTask (world r is run r's), asks for every run's
 action in one request on the first run's keys, adds each run's own noise and publishes
 each run's transition on that run's keys, numbered and resent as a run's are.
@@ -38,7 +38,6 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 import torch
 
@@ -49,7 +48,7 @@ from services.actor.run import ActorRun
 from services.common import ServiceBase
 from shared.config import TrainConfig
 from shared.net import bus as keys
-from shared.net.messages import Ack, Action, Weights
+from shared.net.messages import Ack, Action, Assignment, Weights
 
 # Runs whose newest weights an actor keeps (it serves one at a time; the others are
 # runs beside it on the bus, or over).
@@ -87,19 +86,19 @@ class ActorService(ServiceBase):
                 newest.pop(next(iter(newest)))
 
     # ------------------------------------------------------------ lifecycle
-    def outbox(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> Outbox:
+    def outbox(self, run: str, config: TrainConfig, assign: Assignment) -> Outbox:
         """A run's outbox on the bus (its acks listened to)."""
         self.listen(keys.k_ack(run, "*"), "ack", run)
         sender = run_sender(config, assign)
         return Outbox(run, self.id, sender, self.bus.publisher(keys.k_transitions(run, self.id)))
 
-    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
-        if assign.get("group"):
+    def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
+        if assign.group:
             self._members[run] = config
-            if set(self._members) == set(assign["group"]):
+            if set(self._members) == set(assign.group):
                 self.open_group(assign)
             return
-        actors = list(assign["actors"])
+        actors = list(assign.actors)
         rank = actors.index(self.id)
         outbox = self.outbox(run, config, assign)
         act_pub = None
@@ -109,20 +108,20 @@ class ActorService(ServiceBase):
         self.st = ActorRun.open(config, rank, len(actors), outbox, act_pub)
         self.publish_status(run, "running", rank=rank, episodes=self.st.todo)
 
-    def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
-        if assign.get("group"):
+    def on_resume(self, run: str, config: TrainConfig, assign: Assignment) -> None:
+        if assign.group:
             self._members[run] = config
-            if set(self._members) == set(assign["group"]):
+            if set(self._members) == set(assign.group):
                 self.open_group(assign, rejoining=True)
             return
         self.on_start(run, config, assign)
         assert self.st is not None
         self.st.rejoin = rejoin_from(assign, [config], time.monotonic())
 
-    def open_group(self, assign: dict[str, Any], rejoining: bool = False) -> None:
+    def open_group(self, assign: Assignment, rejoining: bool = False) -> None:
         """Every run of the group has its start: their worlds as one VecTask. After a
         restart (`rejoining`) it first waits to hear where each run is."""
-        runs = list(assign["group"])
+        runs = list(assign.group or ())
         cfgs = [self._members.pop(run) for run in runs]
         outboxes = {run: self.outbox(run, cfg, assign) for run, cfg in zip(runs, cfgs)}
         lead = runs[0]

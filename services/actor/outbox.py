@@ -11,12 +11,11 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from shared.config import TrainConfig
-from shared.net.messages import Transitions
+from shared.net.messages import Assignment, Transitions
 from shared.net.protocol import Rejoin, Sender
 from shared.net.wire import encode
 from shared.run.rollout import Transition
@@ -30,10 +29,10 @@ def counts(config: TrainConfig) -> bool:
     return config.explore in ("dis-macb", "cen-macb")
 
 
-def run_sender(config: TrainConfig, assign: dict[str, Any]) -> Sender:
+def run_sender(config: TrainConfig, assign: Assignment) -> Sender:
     """A run's numbering, resends and credit: confirmed by its learner and, when it
     counts, its counter (which also bounds what may be in flight uncounted)."""
-    learner, counter = assign.get("learner"), assign.get("counter")
+    learner, counter = assign.learner, assign.counter
     counting = counts(config)
     return Sender(
         confirm=(learner, counter) if counting else (learner,),
@@ -45,11 +44,11 @@ def run_sender(config: TrainConfig, assign: dict[str, Any]) -> Sender:
     )
 
 
-def rejoin_from(assign: dict[str, Any], cfgs: Sequence[TrainConfig], now: float) -> Rejoin:
+def rejoin_from(assign: Assignment, cfgs: Sequence[TrainConfig], now: float) -> Rejoin:
     """A restarted actor's wait for where to go on: the learner's ack and, when any of
     its runs counts, the counter's (`shared.net.protocol.Rejoin`)."""
-    counter = assign.get("counter") if any(counts(c) for c in cfgs) else None
-    return Rejoin(assign.get("learner", ""), counter, since=now)
+    counter = assign.counter if any(counts(c) for c in cfgs) else None
+    return Rejoin(assign.learner, counter, since=now)
 
 
 def transitions_payload(

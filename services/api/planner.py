@@ -7,11 +7,12 @@ stopped meanwhile, leaves them free). A run that finds no free services gets a
 `waiting: ...` reason, and runs needing as many actors are not tried again in the pass.
 With `group_size` > 1 the runs of one experiment that can share a group
 (`shared.groups.group_error`: lockstep, one actor, the same config but for the
-per-run fields) start together on one assignment naming them (`assign["group"]`).
+per-run fields) start together on one assignment naming them (`Assignment.group`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -19,6 +20,7 @@ from typing import Any
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.groups import group_error, group_key
 from shared.net.control import NoFreeServices, assign_services
+from shared.net.messages import Assignment
 
 Member = tuple[dict[str, Any], TrainConfig]  # a queued run's row and its config
 
@@ -28,7 +30,7 @@ class Start:
     """Runs to start on one assignment: one run, or a group led by its first."""
 
     members: list[Member]
-    assign: dict[str, Any]
+    assign: Assignment
 
     @property
     def ids(self) -> list[str]:
@@ -36,8 +38,9 @@ class Start:
 
     def attempt_rows(self) -> list[dict[str, Any]]:
         """The members' rows as the store has them once claimed: a new attempt on this
-        assignment, with no services' states or stats yet."""
-        return [{**m, "assign": self.assign, "services": {}, "live": {}} for m, _ in self.members]
+        assignment (its map, as the store holds it), with no services' states or stats yet."""
+        assign = self.assign.to_wire()
+        return [{**m, "assign": assign, "services": {}, "live": {}} for m, _ in self.members]
 
 
 @dataclass(frozen=True)
@@ -121,14 +124,13 @@ class QueuePass:
                 continue
             members = group_of(run, config, self.queued, self._started, self.group_size)
             if len(members) > 1:
-                assign["group"] = [m["id"] for m, _ in members]
+                assign = dataclasses.replace(assign, group=tuple(m["id"] for m, _ in members))
             yield Start(members, assign)
 
     def took(self, start: Start) -> None:
         """`start` was claimed: its runs are not started again, its services are busy."""
         self._started.update(start.ids)
-        a = start.assign
-        taken = {a["learner"], a["evaluator"], *a["actors"]}
+        taken = start.assign.held()
         for info in self.infos:
             if info["id"] in taken and info["role"] != "counter":
                 info["run"] = start.ids[0]

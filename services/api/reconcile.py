@@ -66,7 +66,7 @@ def reconcile_run(
     if now - w.monitor.started < settle_s:
         return None
     served = bool(serving(w.run, w.services(), infos))
-    learner = w.assign["learner"]
+    learner = w.assign.learner
     if ("learner", learner) not in alive and learner not in infos:
         w.monitor.peer("learner", learner, False, now)  # gone unseen: the same grace
     if not w.unserved_for(served, now, wait_s):

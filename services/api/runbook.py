@@ -17,7 +17,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 from shared.net import bus as keys
-from shared.net.messages import Metrics, Status
+from shared.net.messages import Assignment, Metrics, Status
 from shared.net.monitor import Graces
 from shared.net.wire import WireError, decode
 
@@ -53,6 +53,24 @@ class RunBook:
         w = Watch.of(run, started, self.graces, stats)
         self.watches[w.run] = w
         return w
+
+    def to_follow(self, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        """The running rows no watch follows yet, to re-attach to. A row whose stored
+        assignment is refused (this API writes none such) fails saying so, its services
+        told to stop: no watch could ever end it."""
+        out = []
+        for run in rows:
+            if run["id"] in self.watches or not run.get("assign"):
+                continue
+            try:
+                Assignment.from_wire(run["assign"])
+            except WireError as err:
+                log.error("run %s cannot be followed: %s", run["id"], err)
+                reason = f"its stored assignment is refused: {err}"
+                self.store.finish(run["id"], "failed", reason, stop_sent=False)
+                continue
+            out.append(run)
+        return out
 
     def drop(self, w: Watch) -> None:
         self.watches.pop(w.run, None)

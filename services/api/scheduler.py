@@ -242,7 +242,8 @@ class Scheduler:
             for member, member_config in start.members:
                 send_start(self.bus, member["id"], member_config, start.assign)
             plan.took(start)
-            log.info("run %s started on %s", start.assign.get("group", start.ids[0]), start.assign)
+            a = start.assign
+            log.info("run %s started on %s", start.ids if a.group else start.ids[0], a.to_wire())
             self.book.changed()
         self.store.set_waiting(plan.waiting)
 
@@ -285,9 +286,7 @@ class Scheduler:
     def _reattach(self) -> None:
         """After a (re)start: follow the runs the store says are running, and store the
         points their evaluators published while nobody listened."""
-        for run in self.store.runs_with_status("running"):
-            if run["id"] in self.book.watches or not run.get("assign"):
-                continue
+        for run in self.book.to_follow(self.store.runs_with_status("running")):
             w = self._watch(run, time.monotonic())
             filled = self._fill_gaps(w)
             log.info("re-attached to run %s (%d points, %d filled)", w.run, w.points, filled)

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.metrics import ALL_FIELDS
+from shared.net.messages import Assignment
 
 from .db import SCHEMA_VERSION, Database, StoreError, default_arm, loads
 from .points import Points
@@ -133,11 +134,11 @@ class Store:
         )
         return [run_row(r) for r in rows]
 
-    def claim(self, run_id: str, assign: dict[str, Any]) -> bool:
+    def claim(self, run_id: str, assign: Assignment) -> bool:
         """queued -> running with these services; False if it is no longer queued."""
         return self.claim_all([run_id], assign)
 
-    def claim_all(self, run_ids: list[str], assign: dict[str, Any]) -> bool:
+    def claim_all(self, run_ids: list[str], assign: Assignment) -> bool:
         """`claim` for the runs of a group: all of them, or none (one stopped meanwhile)."""
         marks = ",".join("?" * len(run_ids))
         try:
@@ -145,7 +146,7 @@ class Store:
                 cur = c.execute(
                     "UPDATE runs SET status = 'running', started = ?, assign = ?, reason = NULL"
                     f" WHERE id IN ({marks}) AND status = 'queued'",
-                    (time.time(), json.dumps(assign), *run_ids),
+                    (time.time(), json.dumps(assign.to_wire()), *run_ids),
                 )
                 if cur.rowcount != len(run_ids):
                     raise _NotAll  # rolled back: none is claimed

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from shared.net.messages import Metrics, Status
+from shared.net.messages import Assignment, Metrics, Status
 from shared.net.monitor import Graces, RunMonitor
 
 LIVE_SAVE_S = 1.0  # a running run's latest stats are saved at most this often
@@ -56,7 +56,7 @@ class Watch:
     """What the scheduler holds for one running run."""
 
     run: str
-    assign: dict[str, Any]
+    assign: Assignment
     episodes: int
     monitor: RunMonitor  # the rule that ends it, fed with its events
     live: dict[str, Any] = field(default_factory=dict)
@@ -72,11 +72,13 @@ class Watch:
         cls, run: dict[str, Any], started: float, graces: Graces, stats: tuple[int, int, int]
     ) -> Watch:
         """A watch over a store row; `stats`: its stored points (count, last seq, last
-        episode), so a re-attached watch counts on from what the store has."""
-        monitor = RunMonitor(run["assign"], started, graces, run.get("services"), stats[0])
+        episode), so a re-attached watch counts on from what the store has. The row's
+        assignment is its map, read through `Assignment.from_wire` (WireError if bad)."""
+        assign = Assignment.from_wire(run["assign"])
+        monitor = RunMonitor(assign, started, graces, run.get("services"), stats[0])
         return cls(
             run=run["id"],
-            assign=run["assign"],
+            assign=assign,
             episodes=int(run["config"].get("episodes", 0)),
             monitor=monitor,
             live=dict(run.get("live") or {}),
@@ -96,8 +98,7 @@ class Watch:
 
     def holds(self) -> set[str]:
         """The services it keeps from other runs until it ends (not the shared counter)."""
-        a = self.assign
-        return {a["learner"], a["evaluator"], *a.get("actors", [])}
+        return self.assign.held()
 
     def reason(self) -> str | None:
         """What the run's record says while it runs: what it waits for, else its notes."""
@@ -123,7 +124,7 @@ class Watch:
         (new notes only: a learner reports its resume in every status)."""
         self.monitor.status(msg.service, msg.state, flat_row(msg.detail), now)
         resumed = msg.detail.get("resumed")
-        if msg.service != self.assign["learner"] or not isinstance(resumed, dict):
+        if msg.service != self.assign.learner or not isinstance(resumed, dict):
             return None
         cut = resumed.get("from_episode")
         where = f"the cut at episode {cut}" if cut is not None else "its log (no cut yet)"

@@ -36,7 +36,7 @@ from services.counter.state import RunState
 from services.counter.stats import run_stats, update_rate
 from shared.config import TrainConfig
 from shared.net.bus import k_ack, k_bonus, k_status, k_transitions, run_of
-from shared.net.messages import Ack, BonusQuery, Status, Transitions
+from shared.net.messages import Ack, Assignment, BonusQuery, Status, Transitions
 from shared.net.wire import WireError, check_dims, encode
 
 DEFAULT_SNAPSHOT_S = 5.0
@@ -88,7 +88,7 @@ class CounterService(ServiceBase):
         self.log.info("counter %s ready (data in %s)", self.id, self.root)
 
     # ------------------------------------------------------------ run lifecycle
-    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+    def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         path = self.runs.prepare(run, config, assign)
         st, replayed = self.runs.open(run, config, path)
         if replayed or st.counted:

@@ -14,12 +14,12 @@ import shutil
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 from services.counter import snapshot
 from services.counter.state import RunState
 from shared.config import TrainConfig, make_config
 from shared.envs.tasks import task_spec_for
+from shared.net.messages import Assignment, WireError
 from shared.persist.files import read_json, write_json
 from shared.persist.wal import WriteAheadLog
 from shared.run.factories import build_exploration
@@ -49,9 +49,10 @@ class Runs:
         with self.lock:
             return list(self.states.items())
 
-    def prepare(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> Path:
+    def prepare(self, run: str, config: TrainConfig, assign: Assignment) -> Path:
         """The run's folder for a start: kept if it holds an unfinished run of the same
-        config (resumed), else what is there is archived; config and assignment noted."""
+        config (resumed), else what is there is archived; config and assignment (its
+        `to_wire` map) noted."""
         if not _RUN_ID.fullmatch(run):
             raise ValueError(f"run id {run!r} is not a safe directory name")
         path = self.root / run
@@ -63,7 +64,7 @@ class Runs:
                 self.log.warning("run %s %s: old state moved to %s", run, why, dest)
         path.mkdir(parents=True, exist_ok=True)
         write_json(path / "config.json", config.model_dump(mode="json"))
-        write_json(path / "assign.json", assign)
+        write_json(path / "assign.json", assign.to_wire())
         return path
 
     def open(self, run: str, config: TrainConfig, path: Path) -> tuple[RunState, int]:
@@ -89,7 +90,10 @@ class Runs:
             raise
         st.rate_counted = st.counted
         if (path / "assign.json").exists():
-            st.learner = (read_json(path / "assign.json") or {}).get("learner")
+            try:  # the learner whose end ends the run
+                st.learner = Assignment.from_wire(read_json(path / "assign.json")).learner
+            except WireError as err:
+                self.log.warning("run %s: %s in %s: its learner is not known", run, err, path)
         with self.lock:
             self.states[run] = st
         if replayed:

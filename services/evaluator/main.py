@@ -35,7 +35,6 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
-from typing import Any
 
 import torch
 
@@ -51,7 +50,7 @@ from services.evaluator.points import (
 )
 from shared.config import TrainConfig
 from shared.net import bus as keys
-from shared.net.messages import History, Weights
+from shared.net.messages import Assignment, History, Weights
 from shared.net.wire import encode
 from shared.run.rollout import EvalResult, evaluate, evaluate_group
 
@@ -87,12 +86,12 @@ class EvaluatorService(ServiceBase):
         state, rows = entry
         return encode(History(run, source="eval", rows=rows, state=state))
 
-    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+    def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         self.listen(keys.k_weights(run, "eval"), "weights", run)
         self.runs[run] = EvaluatorRun.open(run, config)
         self.history.start(run)
         self.publish_status(run, "running")
-        group = assign.get("group")
+        group = assign.group
         if not group:
             self.group = None  # (whatever group ended before this run)
         if group and set(group) <= set(self.runs) and config.interleave == "lockstep":

@@ -62,7 +62,15 @@ from shared.core.learners.group import GroupMADDPG
 from shared.envs.tasks import task_spec_for
 from shared.groups import group_error
 from shared.net import bus as keys
-from shared.net.messages import MESSAGES, Ack, ActRequest, Message, Status, Transitions
+from shared.net.messages import (
+    MESSAGES,
+    Ack,
+    ActRequest,
+    Assignment,
+    Message,
+    Status,
+    Transitions,
+)
 from shared.net.wire import WireError
 from shared.persist import provenance
 from shared.run.factories import agent_dims, build_learner, learner_spec
@@ -91,25 +99,25 @@ class LearnerService(ServiceBase):
         return self.serving.st
 
     # ------------------------------------------------------------ run lifecycle
-    def on_start(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+    def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         self._open(run, config, assign, resume=False)
 
-    def on_resume(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+    def on_resume(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         """Restarted mid-run: the newest good cut, then the log beyond it (module doc)."""
         self._open(run, config, assign, resume=True)
 
-    def _open(self, run: str, config: TrainConfig, assign: dict[str, Any], resume: bool) -> None:
+    def _open(self, run: str, config: TrainConfig, assign: Assignment, resume: bool) -> None:
         """A run alone, or a group once every run of it has its start: one GroupMADDPG
-        for them all (run r of `assign["group"]` is member r), each run's own intake,
+        for them all (run r of `assign.group` is member r), each run's own intake,
         replay, sampler, bonus queries, boundaries, evaluation points and cuts; resumed
         from the newest update every run has a cut of, then each run's log."""
-        group = assign.get("group")
+        group = assign.group
         if group and not self.serving.gathered(run, config, assign):
             return
         t0, runs = time.perf_counter(), list(group or [run])
         try:
             configs = [self.serving.gathering.pop(r) for r in runs] if group else [config]
-            if group and (why := group_error(configs, len(assign["actors"]))):
+            if group and (why := group_error(configs, len(assign.actors))):
                 raise ValueError(why)
             for r in runs if not resume else []:
                 ckpt.wipe(self.data_dir / "learner" / r)
@@ -145,13 +153,13 @@ class LearnerService(ServiceBase):
                 self.out.ack(st)  # the actors go on from what the log holds
 
     def _open_group(
-        self, runs: list[str], configs: list[TrainConfig], assign: dict[str, Any]
+        self, runs: list[str], configs: list[TrainConfig], assign: Assignment
     ) -> list[LearnerRun]:
         spec, c0 = task_spec_for(configs[0]), configs[0]
         torch.set_num_threads(c0.threads)
         specs = [learner_spec(c) for c in configs]
         learner = GroupMADDPG(agent_dims(spec), specs, precision=c0.precision, device=c0.device)
-        actor, lead = assign["actors"][0], runs[0]
+        actor, lead = assign.actors[0], runs[0]
         pub = self.bus.publisher(keys.k_action(lead, actor))
         self.serving.group = LockstepGroup(runs, learner, actor, pub)
         self.listen(keys.k_act(lead, "*"), "act_request", lead)
@@ -161,9 +169,9 @@ class LearnerService(ServiceBase):
         ]
 
     def _open_run(
-        self, run: str, config: TrainConfig, assign: dict[str, Any], member: Any = None
+        self, run: str, config: TrainConfig, assign: Assignment, member: Any = None
     ) -> LearnerRun:
-        actors = list(assign["actors"])
+        actors = list(assign.actors)
         if why := open_error(config, len(actors)):
             raise ValueError(why)  # the run fails, saying so (not a silent change)
         torch.set_num_threads(config.threads)
@@ -184,7 +192,7 @@ class LearnerService(ServiceBase):
             run, config, spec, actors,
             learner=member or build_learner(config, spec, contended=evaluations.busy),
             bonus=BonusClient(self, run, config.explore, config.beta, spec.n_agents),
-            evaluations=evaluations, pubs=pubs, counter=assign.get("counter"), folder=folder,
+            evaluations=evaluations, pubs=pubs, counter=assign.counter, folder=folder,
             incarnation=f"{self.id}:{os.getpid()}:{time.time_ns()}",
             member=-1 if member is None else member.r,
         )  # fmt: skip
@@ -274,10 +282,10 @@ class LearnerService(ServiceBase):
 
     # ------------------------------------------------------------ peers, ends
     def on_peer_found(self, role: str, peer: str) -> None:
-        self.serving.peer_found(role, peer, self.assign.get("evaluator"))
+        self.serving.peer_found(role, peer, self.assign.evaluator if self.assign else None)
 
     def on_peer_lost(self, role: str, peer: str) -> None:
-        evaluator = self.assign.get("evaluator")
+        evaluator = self.assign.evaluator if self.assign else None
         for st, reason in self.serving.peer_lost(role, peer, evaluator, self.grace_s):
             self.fail(st, reason)
 

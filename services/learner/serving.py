@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
 
 from services.learner import checkpoint as ckpt
 from services.learner import lockstep, updates
@@ -19,7 +18,7 @@ from services.learner.outbound import Outbound
 from services.learner.state import LearnerRun, LockstepGroup
 from shared.config import TrainConfig
 from shared.net import bus as keys
-from shared.net.messages import ActRequest
+from shared.net.messages import ActRequest, Assignment
 
 
 class Serving:
@@ -36,11 +35,11 @@ class Serving:
         """The run served alone (None when free or serving a group)."""
         return None if self.group is not None else next(iter(self.runs.values()), None)
 
-    def gathered(self, run: str, config: TrainConfig, assign: dict[str, Any]) -> bool:
+    def gathered(self, run: str, config: TrainConfig, assign: Assignment) -> bool:
         """A group's run noted; True once every run of the group has its start."""
-        if assign.get("group"):
+        if assign.group:
             self.gathering[run] = config
-            return set(self.gathering) == set(assign["group"])
+            return set(self.gathering) == set(assign.group)
         return False
 
     def group_of(self, run: str) -> list[str]:

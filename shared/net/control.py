@@ -8,6 +8,7 @@ free evaluator and `actors` free actors.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
@@ -19,7 +20,7 @@ from typing import Any
 from shared.config import TrainConfig, actors_error
 from shared.net import bus as keys
 from shared.net.bus import Bus
-from shared.net.messages import History, Metrics, Start, Status, Stop
+from shared.net.messages import Assignment, History, Metrics, Start, Status, Stop
 from shared.net.monitor import Decision, Graces, RunMonitor, peer_grace_s
 from shared.net.protocol import RunVerdict
 from shared.net.wire import WireError, decode, encode
@@ -46,7 +47,10 @@ def discover(bus: Bus, timeout: float = 1.0) -> list[dict[str, Any]]:
     return sorted(infos, key=lambda i: (i["role"], i["id"]))
 
 
-def assign_services(infos: list[dict[str, Any]], actors: int) -> dict[str, Any]:
+def assign_services(infos: list[dict[str, Any]], actors: int) -> Assignment:
+    """The first free learner, evaluator and `actors` actors of `infos`, and the first
+    counter (busy or not); NoFreeServices says what is missing."""
+
     def free(role: str) -> list[str]:
         return [i["id"] for i in infos if i["role"] == role and not i.get("run")]
 
@@ -63,12 +67,12 @@ def assign_services(infos: list[dict[str, Any]], actors: int) -> dict[str, Any]:
         missing.append(f"{actors - len(free_actors)} actor(s)")
     if missing:
         raise NoFreeServices("no free " + ", ".join(missing))
-    return {
-        "counter": counters[0],
-        "learner": learners[0],
-        "evaluator": evaluators[0],
-        "actors": free_actors[:actors],
-    }
+    return Assignment(
+        learner=learners[0],
+        actors=tuple(free_actors[:actors]),
+        counter=counters[0],
+        evaluator=evaluators[0],
+    )
 
 
 def start_group(
@@ -89,7 +93,7 @@ def start_group(
     deadline = time.monotonic() + wait_for_services
     while True:
         try:
-            assign = {**assign_services(discover(bus), 1), "group": list(runs)}
+            assign = dataclasses.replace(assign_services(discover(bus), 1), group=tuple(runs))
             break
         except NoFreeServices:
             if time.monotonic() > deadline:
@@ -120,7 +124,7 @@ def history_rows(bus: Bus, run: str, timeout: float = 2.0) -> list[dict[str, Any
     return []
 
 
-def send_start(bus: Bus, run: str, config: TrainConfig, assign: dict[str, Any]) -> None:
+def send_start(bus: Bus, run: str, config: TrainConfig, assign: Assignment) -> None:
     bus.put(
         keys.k_control("start"),
         encode(Start(run, config=config.model_dump(mode="json"), assign=assign)),
@@ -138,7 +142,7 @@ class RunWatch:
     reports, its services' liveliness, and the graces for what does not come."""
 
     run: str
-    assign: dict[str, Any]
+    assign: Assignment
     rows: list[dict[str, Any]] = field(default_factory=list)
     latest: dict[str, dict[str, Any]] = field(default_factory=dict)  # source -> last data
     changed: threading.Condition = field(default_factory=threading.Condition)

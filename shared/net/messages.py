@@ -8,15 +8,103 @@ evaluates at `Weights.eval_point`. `Start`, `Stop` and `Status` run the runs; `M
 and `History` carry their rows.
 
 shared/net/wire.py derives its schema (field names and types, checked on every decode)
-from these classes, so a field added here is on the wire and checked there.
+from these classes, so a field added here is on the wire and checked there. A field
+of a typed value (`Start.assign`, an `Assignment`) travels as the map its `to_wire`
+gives and is read back through its `from_wire`, which refuses anything else.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
+
+
+class WireError(ValueError):
+    """A message that must be dropped: undecodable, wrong version, wrong shape."""
+
+
+def _service_ids(value: Any, name: str) -> tuple[str, ...]:
+    """A non-empty list of distinct service (or run) ids, or a WireError naming `name`."""
+    if not isinstance(value, list | tuple) or not value:
+        raise WireError(f"assignment: field {name!r} is not a non-empty list")
+    if not all(isinstance(v, str) and v for v in value):
+        raise WireError(f"assignment: field {name!r} holds something other than an id")
+    if len(set(value)) != len(value):
+        raise WireError(f"assignment: field {name!r} names an id twice")
+    return tuple(value)
+
+
+@dataclass(frozen=True)
+class Assignment:
+    """The services of a run or a run group, by id, as the start names them: one
+    learner, its actors in rank order, the counter and the evaluator (None: none named),
+    and for a run group its runs in order (run r is member r of the group's learner).
+
+    Files, the API's store and REST show it as the map `to_wire` gives, the same map
+    a `Start` carries; `from_wire` reads such a map back and refuses anything else, so
+    what a service acts on is always a whole assignment.
+    """
+
+    learner: str
+    actors: tuple[str, ...]
+    counter: str | None = None
+    evaluator: str | None = None
+    group: tuple[str, ...] | None = None
+
+    def names(self, role: str, service_id: str) -> bool:
+        """Does it name `service_id` as its `role` (an actor: as one of `actors`)?"""
+        if role == "actor":
+            return service_id in self.actors
+        return role in ("learner", "counter", "evaluator") and getattr(self, role) == service_id
+
+    def services(self) -> list[tuple[str, str]]:
+        """(role, id) of every service it names: counter, learner, evaluator, actors."""
+        one = [("counter", self.counter), ("learner", self.learner), ("evaluator", self.evaluator)]
+        return [(r, s) for r, s in one if s is not None] + [("actor", a) for a in self.actors]
+
+    def held(self) -> set[str]:
+        """The services the run keeps from other runs while it runs: all but the
+        counter, which serves many runs."""
+        return {s for r, s in self.services() if r != "counter"}
+
+    def to_wire(self) -> dict[str, Any]:
+        """The map the wire, files and the store hold (keys of None fields left out)."""
+        group = None if self.group is None else list(self.group)
+        out = {"counter": self.counter, "learner": self.learner, "evaluator": self.evaluator}
+        out |= {"actors": list(self.actors), "group": group}
+        return {k: v for k, v in out.items() if v is not None}
+
+    @classmethod
+    def from_wire(cls, value: Any) -> Assignment:
+        """The assignment a map holds; WireError naming the field and why if it holds
+        anything but one (a learner, at least one actor, ids as strings, no other key)."""
+        if not isinstance(value, Mapping):
+            raise WireError("assignment: not a map")
+        for key in value:
+            if key not in _ASSIGNMENT_FIELDS:
+                raise WireError(f"assignment: unknown field {key!r}")
+        for name in ("learner", "actors"):
+            if name not in value:
+                raise WireError(f"assignment: field {name!r} is missing")
+        for name in ("learner", "counter", "evaluator"):
+            one = value.get(name)
+            if (one is not None or name == "learner") and not (isinstance(one, str) and one):
+                raise WireError(f"assignment: field {name!r} is not a service id")
+        group = value.get("group")
+        return cls(
+            learner=value["learner"],
+            actors=_service_ids(value["actors"], "actors"),
+            counter=value.get("counter"),
+            evaluator=value.get("evaluator"),
+            group=None if group is None else _service_ids(group, "group"),
+        )
+
+
+_ASSIGNMENT_FIELDS = frozenset(f.name for f in dataclasses.fields(Assignment))
 
 
 @dataclass(frozen=True)
@@ -139,11 +227,11 @@ class History(Message):
 @dataclass(frozen=True)
 class Start(Message):
     """control -> services: start (or join) a run; `assign` names the services that
-    serve it."""
+    serve it (on the wire: its `to_wire` map)."""
 
     TYPE: ClassVar[str] = "start"
     config: dict[str, Any]
-    assign: dict[str, Any]
+    assign: Assignment
 
 
 @dataclass(frozen=True)

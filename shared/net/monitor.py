@@ -16,6 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from shared.net.messages import Assignment
 from shared.net.protocol import RunVerdict, run_verdict
 
 # Services without which a run cannot go on; the counter has a grace of its own (it
@@ -105,7 +106,7 @@ class RunMonitor:
 
     def __init__(
         self,
-        assign: Mapping[str, Any],
+        assign: Assignment,
         started: float,
         graces: Graces,
         states: Mapping[str, Mapping[str, Any]] | None = None,
@@ -120,20 +121,18 @@ class RunMonitor:
         self.counter_down: float | None = None
         self.evaluator_done: float | None = None  # when the evaluator said completed
         self.history_asked = False
-        evaluator = self.states.get(str(assign.get("evaluator")), {})
+        evaluator = self.states.get(str(assign.evaluator), {})
         if evaluator.get("state") == "completed":  # a watcher started after its end
             self.evaluator_done = started
 
     def services(self) -> list[tuple[str, str]]:
         """(role, id) of every service serving the run."""
-        a = self.assign
-        out = [("counter", a["counter"]), ("learner", a["learner"]), ("evaluator", a["evaluator"])]
-        return out + [("actor", x) for x in a.get("actors", [])]
+        return self.assign.services()
 
     # ------------------------------------------------------------ events
     def status(self, service: str, state: str, detail: Mapping[str, Any], now: float) -> None:
         self.states[service] = {**detail, "state": state}
-        if service == self.assign.get("evaluator") and state == "completed":
+        if service == self.assign.evaluator and state == "completed":
             self.evaluator_done = now
 
     def points_seen(self, n: int = 1) -> None:
@@ -159,7 +158,7 @@ class RunMonitor:
     def waiting(self) -> str | None:
         """What the run waits for now (a service to come back), or None."""
         if self.counter_down is not None:
-            return f"counter {self.assign['counter']} is down; waiting for it to return"
+            return f"counter {self.assign.counter} is down; waiting for it to return"
         for sid, (role, _) in self.peers.down.items():
             return f"{role} {sid} is down; waiting up to {self.graces.peer_s:g} s for it"
         return None
@@ -191,7 +190,7 @@ class RunMonitor:
                 f"within {self.graces.peer_s:g} s",
             )
         if self.counter_down is not None and now - self.counter_down > self.graces.counter_s:
-            return Decision("failed", f"counter {self.assign['counter']} did not come back")
+            return Decision("failed", f"counter {self.assign.counter} did not come back")
         if not self.states and now - self.started > self.graces.start_s:
             return Decision("failed", f"no service took the run within {self.graces.start_s:.0f} s")
         return Decision("running")

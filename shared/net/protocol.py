@@ -17,6 +17,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from shared.net.messages import Assignment
+
 
 class Arrival(enum.Enum):
     """A batch [seq, seq + n) from one actor, against the next number expected: what
@@ -277,7 +279,7 @@ class RunVerdict:
 
 
 def run_verdict(
-    states: Mapping[str, Mapping[str, Any]], assign: Mapping[str, Any], points_seen: int
+    states: Mapping[str, Mapping[str, Any]], assign: Assignment, points_seen: int
 ) -> RunVerdict:
     """One rule for "is this run over": first any failure, then any stop, then completion.
 
@@ -293,13 +295,13 @@ def run_verdict(
     for svc, st in states.items():
         if st.get("state") == "stopped":
             return RunVerdict("stopped", f"{svc}: {st.get('reason', 'stopped')}", svc)
-    learner = states.get(assign.get("learner"), {}).get("state")
-    evaluator = states.get(assign.get("evaluator"), {})
+    learner = states.get(assign.learner, {}).get("state")
+    evaluator = states.get(assign.evaluator or "", {})
     if learner != "completed" or evaluator.get("state") != "completed":
         return RunVerdict("running")
     expected = int(evaluator.get("points", 0))
     missing = max(0, expected - points_seen)  # the evaluator's status may overtake its rows
-    counter = assign.get("counter")
+    counter = assign.counter
     pending = counter is not None and states.get(counter, {}).get("state") != "completed"
     if missing == 0 and not pending:
         return RunVerdict("completed", points_expected=expected)

@@ -4,8 +4,9 @@ This is the only module that imports msgpack. Every message is one of
 shared/net/messages.py's dataclasses, sent as a map with `v` (schema version), `type`,
 `run` and its fields; numpy arrays travel as maps
 {"nd": dtype, "shape": [...], "data": bytes} restricted to plain numeric dtypes
-(never objects, never pickle). `decode` checks the version, the type, the presence
-and type of every field, and array dtypes and shapes where the schema fixes them;
+(never objects, never pickle), an `Assignment` as its `to_wire` map. `decode` checks
+the version, the type, the presence and type of every field, array dtypes and shapes
+where the schema fixes them, and an assignment through `Assignment.from_wire`;
 anything else raises `WireError`, which services count, log and drop.
 """
 
@@ -18,7 +19,14 @@ from typing import Any, TypeVar, overload
 import msgpack
 import numpy as np
 
-from shared.net.messages import MESSAGES, BonusQuery, Message, Transitions
+from shared.net.messages import (
+    MESSAGES,
+    Assignment,
+    BonusQuery,
+    Message,
+    Transitions,
+    WireError,
+)
 
 # 2: messages are shared/net/messages.py's dataclasses; the weights' incarnation and
 # unreported points are fields of their own (version 1 carried them in its stats map).
@@ -30,9 +38,12 @@ M = TypeVar("M", bound=Message)
 
 
 def _kind(annotation: str) -> Any:
-    """The check of a field of type `annotation`: a Python type, or "nd" for an array."""
+    """The check of a field of type `annotation`: a Python type, "nd" for an array, or
+    Assignment (a map on the wire, read through its `from_wire`)."""
     if annotation == "np.ndarray":
         return "nd"
+    if annotation == "Assignment":
+        return Assignment
     base = annotation.split("[")[0]
     return {"str": str, "int": int, "dict": dict, "list": list}[base]
 
@@ -43,10 +54,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     type_: {f.name: _kind(str(f.type)) for f in dataclasses.fields(cls) if f.name != "run"}
     for type_, cls in MESSAGES.items()
 }
-
-
-class WireError(ValueError):
-    """A message that must be dropped: undecodable, wrong version, wrong shape."""
+# type -> its fields sent as their `to_wire` map (an assignment)
+_TYPED = {t: [f for f, kind in s.items() if kind is Assignment] for t, s in SCHEMAS.items()}
 
 
 def _pack_default(obj: Any) -> Any:
@@ -81,6 +90,8 @@ def _unpack_hook(obj: dict) -> Any:
 def encode(msg: Message) -> bytes:
     """Serialize a message; `decode` checks it against the same schema."""
     fields = {name: getattr(msg, name) for name in SCHEMAS[msg.TYPE]}
+    for name in _TYPED[msg.TYPE]:
+        fields[name] = fields[name].to_wire()
     body = {"v": SCHEMA_VERSION, "type": msg.TYPE, "run": msg.run, **fields}
     return msgpack.packb(body, default=_pack_default, use_bin_type=True)
 
@@ -116,6 +127,11 @@ def decode(payload: bytes, expect: type[Message] | None = None) -> Message:
         if kind == "nd":
             if not isinstance(value, np.ndarray):
                 raise WireError(f"{type_}: field {field!r} is not an array")
+        elif kind is Assignment:
+            try:
+                msg[field] = Assignment.from_wire(value)
+            except WireError as err:
+                raise WireError(f"{type_}: {err}") from None
         elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
             raise WireError(f"{type_}: field {field!r} is not {kind.__name__}")
     if type_ == "transitions":
