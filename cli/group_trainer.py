@@ -52,15 +52,8 @@ from shared.envs.tasks import make_task_for, task_spec_for
 from shared.envs.vectask import vectorize
 from shared.groups import check_group
 from shared.persist import provenance
-from shared.persist.cuts import (
-    CutError,
-    ReplayLog,
-    latest_cut,
-    load_tables,
-    read_cut,
-    tables_state,
-    write_cut,
-)
+from shared.persist.checkpoint import CutError, load_tables
+from shared.persist.cuts import ReplayLog, latest_cut, read_cut, write_cut
 from shared.persist.cuts import clear as clear_cuts
 from shared.run.factories import (
     agent_dims,
@@ -328,15 +321,13 @@ class GroupRun:
             write_cut(
                 m.cuts,
                 episode,
-                {
-                    "config": json.dumps(m.cfg.model_dump(mode="json")),
-                    "learner": self.learner.run_state_dict(r),
-                    "tables": tables_state(m.explorer.tables),
-                    "replay_rows": m.replay_rows,
-                    "counters": cut_counters(m, wall),
-                    "rng": json.dumps(rng),
-                    "torch_rng": torch.get_rng_state(),
-                },
+                config=m.cfg.model_dump(mode="json"),
+                learner=self.learner.run_state_dict(r),
+                counters=cut_counters(m, wall),
+                rng=rng,
+                tables=m.explorer.tables,
+                replay_rows=m.replay_rows,
+                torch_rng=torch.get_rng_state(),
             )
         self.last_cut = time.monotonic()
         self.cut_log.append((episode, time.perf_counter() - t0))
@@ -360,7 +351,7 @@ class GroupRun:
             self.learner.load_run_state_dicts([c.state["learner"] for c in cuts])
         except (ValueError, KeyError, RuntimeError) as err:
             raise CutError(f"{cuts[0].path}: learner states do not fit: {err}") from None
-        rngs = [json.loads(c.state["rng"]) for c in cuts]
+        rngs = [c.state["rng"] for c in cuts]
         self.collector.load_state([rng["collector"] for rng in rngs])
         m_eval = min(self.cfg.eval_episodes, 10)
         for r, (m, cut, rng) in enumerate(zip(self.members, cuts, rngs)):

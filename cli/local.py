@@ -85,7 +85,7 @@ def _same_config(folder: Path, cfg: TrainConfig) -> bool:
 def config_conflict(folder: Path, cfg: TrainConfig) -> str | None:
     """Why `folder` holds another config's run ('field: a in the folder, b here'), or
     None (no config written there yet, or the same)."""
-    from shared.persist.cuts import config_difference
+    from shared.persist.checkpoint import config_difference
 
     path = folder / "config.json"
     if not path.exists():

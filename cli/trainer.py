@@ -26,20 +26,10 @@ from shared.core.learners import Learner
 from shared.core.replay import ReplayBuffer, update_arrays
 from shared.envs.tasks import make_task_for
 from shared.metrics import TRAIN_FIELDS
-from shared.persist import provenance
-from shared.persist.cuts import (
-    CutError,
-    ReplayLog,
-    atomic_torch_save,
-    config_difference,
-    latest_cut,
-    load_tables,
-    tables_state,
-    write_cut,
-)
-from shared.persist.cuts import (
-    clear as clear_cuts,
-)
+from shared.persist import checkpoint, provenance
+from shared.persist.checkpoint import CutError, config_difference, load_tables
+from shared.persist.cuts import ReplayLog, latest_cut, write_cut
+from shared.persist.cuts import clear as clear_cuts
 from shared.persist.files import read_json
 from shared.run.factories import build_exploration, build_learner, minibatches_per_update
 from shared.run.rollout import derive_seed, evaluate, make_collector
@@ -87,19 +77,15 @@ def save_checkpoint(
     counters: dict,
     cfg: TrainConfig,
 ) -> None:
-    """Networks, optimizers, step counters and count tables together, without pickle."""
-    tables = {f"table{t}": table for t, table in enumerate(tables_state(explorer.tables))}
-    state = {
-        "config": json.dumps(cfg.model_dump(mode="json")),
-        "learner": learner.state_dict(),
-        "counters": counters,
-        "tables": tables,
-    }
-    atomic_torch_save(state, path)
+    """Networks, optimizers, step counters and count tables together, without pickle:
+    a learner checkpoint of kind `final` (shared/persist/checkpoint.py)."""
+    config = cfg.model_dump(mode="json")
+    checkpoint.save(path, "final", config, learner.state_dict(), counters, tables=explorer.tables)
 
 
 def load_checkpoint(path: Path) -> dict:
-    return torch.load(path, weights_only=True)
+    """A run's final checkpoint.pt (torch.load with weights_only=True inside)."""
+    return checkpoint.load(path, "final")
 
 
 def _say_if_constant_shift(rows: list[dict], warned: bool, counting: bool = True) -> bool:
@@ -373,15 +359,13 @@ class Run:
         path = write_cut(
             self.cuts,
             episode,
-            {
-                "config": json.dumps(self.cfg.model_dump(mode="json")),
-                "learner": self.learner.state_dict(),
-                "tables": tables_state(self.explorer.tables),
-                "replay_rows": self.replay_rows,
-                "counters": cut_counters(self, wall),
-                "rng": json.dumps(rng),
-                "torch_rng": torch.get_rng_state(),
-            },
+            config=self.cfg.model_dump(mode="json"),
+            learner=self.learner.state_dict(),
+            counters=cut_counters(self, wall),
+            rng=rng,
+            tables=self.explorer.tables,
+            replay_rows=self.replay_rows,
+            torch_rng=torch.get_rng_state(),
         )
         self.last_cut = time.monotonic()
         spent = time.perf_counter() - t0
@@ -402,7 +386,7 @@ class Run:
             raise CutError(f"{cut.path}: learner state does not fit: {err}") from None
         load_tables(self.explorer.tables, st["tables"], cut.path)
         refill(self, int(st["replay_rows"]), self.width, cut.path)
-        rng = json.loads(st["rng"])
+        rng = st["rng"]
         self.collector.load_state(rng["collector"])
         self.sample_rng.bit_generator.state = rng["sampler"]
         for e, state in zip(self.eval_envs, rng["eval_envs"], strict=True):

@@ -95,6 +95,36 @@ def test_a_snapshot_and_the_log_beyond_it_give_the_same_counts_back(tmp_path):
     assert snapshot.size(again) > 0
 
 
+def test_a_snapshot_npz_from_before_still_loads_and_a_corrupt_one_is_refused_by_name(tmp_path):
+    """Format 1 (snapshot.npz: keys, counts and a JSON meta) is read; the next snapshot
+    replaces it with snapshot.pt. A snapshot that does not read names its file."""
+    st = new_run(tmp_path / "r")
+    o, a = rows(12, 3, st.obs_dim, st.act_dim)
+    count(st, "a0", 0, o, a)
+    arrays = {}
+    for t, table in enumerate(st.explorer.tables):
+        arrays[f"keys{t}"], arrays[f"counts{t}"] = table.to_arrays()
+    meta = {"format": 1, "run": "r", "expected": {"a0": 12},
+            "totals": [t.total for t in st.explorer.tables],
+            "stats": {"counted": 12, "duplicates": 0, "gaps": 0, "snapshots": 1}}  # fmt: skip
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(tmp_path / "r" / "snapshot.npz", **arrays)
+    st.wal.close()
+
+    again = new_run(tmp_path / "r")
+    assert snapshot.exists(tmp_path / "r")
+    snapshot.load(again)
+    assert again.counted == 12 and again.cursor.positions() == {"a0": 12}
+    for mine, theirs in zip(again.explorer.counts(o, a), st.explorer.counts(o, a)):
+        assert np.array_equal(mine, theirs)
+    snapshot.write("r", again)
+    assert sorted(p.name for p in (tmp_path / "r").glob("snapshot*")) == ["snapshot.pt"]
+
+    (tmp_path / "r" / "snapshot.pt").write_bytes(b"not a snapshot")
+    with pytest.raises(ValueError, match="snapshot.pt: unreadable"):
+        snapshot.load(new_run(tmp_path / "r"))
+
+
 # ------------------------------------------------------------ a burst: buffered, committed
 def test_a_pending_burst_fills_ages_and_is_taken_by_run_in_arrival_order(tmp_path):
     st1, st2 = new_run(tmp_path / "r1"), new_run(tmp_path / "r2")
@@ -209,7 +239,7 @@ def test_a_runs_folder_is_resumed_for_the_same_config_and_archived_otherwise(tmp
 
     again, replayed = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN))
     assert replayed == 1 and again.counted == 5  # same config: resumed from its log
-    assert (path / "snapshot.npz").exists()  # the log folded into a snapshot at once
+    assert (path / "snapshot.pt").exists()  # the log folded into a snapshot at once
     runs.close("r")
 
     (path / "assign.json").write_text('{"learner": "L"}')  # no actors: refused, not followed

@@ -188,10 +188,36 @@ def test_a_cut_written_before_a_config_key_existed_still_resumes(tmp_path):
     """A key the saved config lacks counts as its default: a run from before the key
     (here `device` and `bonus_at`) resumes; one that differs from the default is still
     refused, naming it."""
-    from shared.persist.cuts import config_difference
+    from shared.persist.checkpoint import config_difference
 
     cfg = make_config({"task": "simple", "algo": "ddpg"}).model_dump(mode="json")
     old = {k: v for k, v in cfg.items() if k not in ("device", "bonus_at")}
     assert config_difference(old, cfg) is None
     assert "device" in config_difference(old, {**cfg, "device": "cuda"})
     assert "beta" in config_difference({**old, "beta": 0.1}, cfg)
+
+
+def test_a_run_with_columnar_replay_files_resumes_and_keeps_one_replay_log(tmp_path, straight):
+    """A run written before the record log kept its replay rows as one float32 file per
+    field: it resumes to the same rows, its rows rewritten once as cuts/replay.log."""
+    import numpy as np
+
+    from shared.envs.tasks import make_task_for
+    from shared.persist.cuts import ReplayLog
+
+    rows, _ = straight()
+    cfg = make_config(BASE)
+    train(cfg, tmp_path, progress=False, cut_every_s=0, stop_when=lambda r: r["episode"] == 6)
+    cuts = tmp_path / "cuts"
+    cut = torch.load(cut_files(cuts)[0], weights_only=True)
+    n = int(cut["replay_rows"])
+    spec = make_task_for(cfg).spec
+    obs, act = spec.joint_obs_dim, spec.joint_act_dim
+    width = {"obs": obs, "act": act, "rew": 1, "next_obs": obs, "done": 1}
+    data = ReplayLog(cuts).read(n, width, cuts)
+    for name, values in data.items():  # as the columnar format held them
+        np.ascontiguousarray(values, np.float32).tofile(cuts / f"replay.{name}.f32")
+    (cuts / "replay.log").unlink()
+    resumed = train(cfg, tmp_path, progress=False, cut_every_s=0, resume=True)
+    assert strip(resumed) == strip(rows)
+    assert sorted(p.name for p in cuts.glob("replay.*")) == ["replay.log"]

@@ -82,7 +82,7 @@ class Runs:
             wal=wal,
         )
         try:
-            if (path / "snapshot.npz").exists():
+            if snapshot.exists(path):
                 snapshot.load(st)
             replayed = snapshot.replay(run, st, records, self.log)
         except Exception:

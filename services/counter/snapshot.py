@@ -1,22 +1,31 @@
-"""A counter run's durable state: its tables, positions and stats in snapshot.npz
+"""A counter run's durable state: its tables, positions and stats in snapshot.pt
 (written atomically, then the log emptied), and the write-ahead log replayed over it
-after a restart, exactly once by sequence number. Pure file work over a `RunState`."""
+after a restart, exactly once by sequence number. Pure file work over a `RunState`.
+
+The snapshot is built from the pieces a learner checkpoint is (shared/persist/
+checkpoint.py): one atomic write, a `torch.save` file of tensors and primitives read
+with weights_only=True, the count tables in the checkpoint's form. A snapshot.npz
+from before is still read (and replaced by the next snapshot)."""
 
 from __future__ import annotations
 
 import json
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
+import torch
 
 from services.counter.state import RunState
 from shared.core.counting import CountTable
 from shared.net.protocol import Arrival, ReceiveCursor
+from shared.persist.checkpoint import CutError, load_tables, tables_state
 from shared.persist.files import atomic_write
 from shared.persist.wal import WalRecord
 
-SNAPSHOT_FORMAT = 1
+SNAPSHOT_FORMAT = 2  # 1: snapshot.npz, still read
+SNAPSHOT, LEGACY = "snapshot.pt", "snapshot.npz"
 # A timed snapshot rewrites the whole table and exists to bound what a restart replays:
 # so it waits until the log is this share of the snapshot's size ...
 SNAPSHOT_LOG_RATIO = 0.25
@@ -25,24 +34,24 @@ SNAPSHOT_LOG_RATIO = 0.25
 SNAPSHOT_SPACING = 20.0
 
 
+def exists(path: Path) -> bool:
+    """The run folder holds a snapshot (of either format)."""
+    return (path / SNAPSHOT).exists() or (path / LEGACY).exists()
+
+
 def write(run: str, st: RunState) -> None:
-    """Tables + expected + stats into snapshot.npz (atomic replace), then empty the log.
+    """Tables + expected + stats into snapshot.pt (atomic replace), then empty the log.
 
     Runs on the service thread, the only writer of the tables, so reading them
     needs no lock (queries only read too).
     """
-    arrays: dict[str, np.ndarray] = {}
-    for t, table in enumerate(st.explorer.tables):
-        keys, counts = table.to_arrays()
-        arrays[f"keys{t}"] = keys
-        arrays[f"counts{t}"] = counts
-    meta = {
+    state = {
         "format": SNAPSHOT_FORMAT,
+        "kind": "counter",
         "run": run,
         "time": time.time(),
         "expected": st.cursor.positions(),
-        "totals": [t.total for t in st.explorer.tables],
-        "key_bytes": [t.key_bytes for t in st.explorer.tables],
+        "tables": tables_state(st.explorer.tables),
         "stats": {
             "counted": st.counted,
             "duplicates": st.cursor.duplicate_rows,
@@ -53,26 +62,28 @@ def write(run: str, st: RunState) -> None:
             "snapshots": st.snapshots + 1,
         },
     }
-    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    atomic_write(st.path / "snapshot.npz", lambda f: np.savez(f, **arrays))
+    atomic_write(st.path / SNAPSHOT, lambda f: torch.save(state, f))
+    (st.path / LEGACY).unlink(missing_ok=True)
     st.wal.truncate()
     st.snapshots += 1
     st.dirty = False
 
 
 def load(st: RunState) -> None:
-    """A run's tables, positions and stats from its snapshot.npz."""
-    with np.load(st.path / "snapshot.npz", allow_pickle=False) as z:
-        meta = json.loads(bytes(z["meta"]).decode())
-        tables = st.explorer.tables
-        if len(meta["totals"]) != len(tables):
-            have = len(meta["totals"])
-            raise ValueError(f"snapshot has {have} tables, run has {len(tables)}")
-        for t, table in enumerate(tables):
-            keys, counts = z[f"keys{t}"], z[f"counts{t}"]
-            if keys.ndim != 2 or keys.shape[1] != table.key_bytes:
-                raise ValueError(f"snapshot table {t} has keys {keys.shape}")
-            tables[t] = CountTable.from_arrays(keys, counts, meta["totals"][t])
+    """A run's tables, positions and stats from its snapshot; CutError naming the file
+    if it does not read or is not this run's."""
+    path = st.path / SNAPSHOT
+    if not path.exists() and (st.path / LEGACY).exists():
+        meta = _load_legacy(st)
+    else:
+        try:
+            meta = torch.load(path, weights_only=True)
+        except Exception as err:
+            raise CutError(f"{path}: unreadable ({type(err).__name__}: {err})") from None
+        if not isinstance(meta, dict) or meta.get("format") != SNAPSHOT_FORMAT:
+            found = meta.get("format") if isinstance(meta, dict) else None
+            raise CutError(f"{path}: snapshot format {found}, this version reads {SNAPSHOT_FORMAT}")
+        load_tables(st.explorer.tables, meta["tables"], path)
     stats = meta["stats"]
     st.cursor = ReceiveCursor({str(a): int(s) for a, s in meta["expected"].items()})
     st.cursor.duplicate_rows = int(stats["duplicates"])
@@ -82,6 +93,28 @@ def load(st: RunState) -> None:
     st.queries = int(stats.get("queries", 0))
     st.uncounted_rows_queried = int(stats.get("uncounted_rows_queried", 0))
     st.snapshots = int(stats.get("snapshots", 0))
+
+
+def _load_legacy(st: RunState) -> dict:
+    """The tables of a snapshot.npz (format 1) into `st`; its meta map."""
+    path = st.path / LEGACY
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(bytes(z["meta"]).decode())
+            tables = st.explorer.tables
+            if len(meta["totals"]) != len(tables):
+                have = len(meta["totals"])
+                raise CutError(f"{path}: {have} count tables, the run has {len(tables)}")
+            for t, table in enumerate(tables):
+                keys, counts = z[f"keys{t}"], z[f"counts{t}"]
+                if keys.ndim != 2 or keys.shape[1] != table.key_bytes:
+                    raise CutError(f"{path}: table {t} has keys {keys.shape}")
+                tables[t] = CountTable.from_arrays(keys, counts, meta["totals"][t])
+    except CutError:
+        raise
+    except Exception as err:
+        raise CutError(f"{path}: unreadable ({type(err).__name__}: {err})") from None
+    return meta
 
 
 def replay(run: str, st: RunState, records: list[WalRecord], log: logging.Logger) -> int:

@@ -1,31 +1,31 @@
 """A learner run's checkpoint (a "cut"): written atomically every CHECKPOINT_EVERY_S,
 found again after a restart, applied to a fresh `LearnerRun`.
 
-A cut holds everything but the replay rows, which the write-ahead log holds: networks,
-optimizers, targets, the update and episode counters, the sampler's RNG, which logged
-batches the buffer holds and the episode boundaries still owed. Pure file work over a
-`LearnerRun` (no bus), so a resume is tested in process.
+A cut is a learner checkpoint of kind `service` (shared/persist/checkpoint.py, the
+schema `macb train`'s cuts and final checkpoint share) and holds everything but the
+replay rows, which the write-ahead log holds: networks, optimizers, targets, the update
+and episode counters, the sampler's RNG, which logged batches the buffer holds and the
+episode boundaries still owed. Pure file work over a `LearnerRun` (no bus), so a resume
+is tested in process.
 """
 
 from __future__ import annotations
 
 import collections
-import json
 import os
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from services.learner.state import Boundary, LearnerRun
-from shared.persist.cuts import CutError, atomic_torch_save, config_difference
+from shared.persist import checkpoint
+from shared.persist.checkpoint import CutError as CutError  # what `good` raises
+from shared.persist.checkpoint import UnreadableCheckpoint
 from shared.persist.wal import WriteAheadLog
 
 # A cut every this many seconds (MACB_LEARNER_CUT_S overrides): what a restart redoes.
 CHECKPOINT_EVERY_S = float(os.environ.get("MACB_LEARNER_CUT_S", "30"))
-CUT_FORMAT = 1
 LOG = "transitions.wal"
 CUT, PREVIOUS = "checkpoint.pt", "checkpoint.prev.pt"
 
@@ -43,24 +43,26 @@ def write(st: LearnerRun) -> float:
     st.last_ckpt = time.monotonic()
     if st.log is not None:
         st.log.sync()  # the rows the cut names are on disk before the cut is
-    state = {
-        "format": CUT_FORMAT,
-        "config": json.dumps(st.config.model_dump(mode="json")),
-        "learner": st.learner.state_dict(),
-        "counters": {
-            "ingested": st.ingested,
-            "episodes": st.episodes,
-            "updates": st.learner.updates,
-            "expected": st.received.positions(),
-            "version": st.version,
-            "collisions_cum": st.collisions_cum,
-        },
-        "ingested_pos": dict(st.ingested_pos),
-        "boundaries": [list(b) for b in st.boundaries],
-        "rng": json.dumps(st.rng.bit_generator.state),
+    counters = {
+        "ingested": st.ingested,
+        "episodes": st.episodes,
+        "updates": st.learner.updates,
+        "expected": st.received.positions(),
+        "version": st.version,
+        "collisions_cum": st.collisions_cum,
     }
     path = st.folder / CUT
-    atomic_torch_save(state, path, previous=st.folder / PREVIOUS)
+    checkpoint.save(
+        path,
+        "service",
+        st.config.model_dump(mode="json"),
+        st.learner.state_dict(),
+        counters,
+        rng={"sampler": st.rng.bit_generator.state},
+        previous=st.folder / PREVIOUS,
+        ingested_pos=dict(st.ingested_pos),
+        boundaries=[list(b) for b in st.boundaries],
+    )
     spent = time.monotonic() - st.last_ckpt
     st.cuts += 1
     st.cut_s += spent
@@ -80,19 +82,11 @@ def good(st: LearnerRun, warn: Callable[[str], None]) -> Iterator[tuple[Path, di
         if not path.exists():
             continue
         try:
-            state = torch.load(path, weights_only=True)
-            state["counters"]
-        except Exception as err:
-            warn(f"refusing cut {path}: unreadable ({err}); trying the one before")
+            state = checkpoint.load(path, "service", mine)
+        except UnreadableCheckpoint as err:
+            warn(f"refusing cut {err}; trying the one before")
             path.replace(path.with_name(path.name + ".refused"))
             continue
-        if state.get("format") != CUT_FORMAT:
-            raise CutError(
-                f"{path}: cut format {state.get('format')}, this version reads {CUT_FORMAT}"
-            )
-        diff = config_difference(json.loads(state["config"]), mine)
-        if diff is not None:
-            raise CutError(f"{path}: written by another config ({diff})")
         yield path, state
 
 
@@ -106,7 +100,7 @@ def apply(st: LearnerRun, state: dict[str, Any]) -> int:
     st.collisions_cum = int(counters["collisions_cum"])
     st.ingested_pos = {str(a): int(p) for a, p in state["ingested_pos"].items()}
     st.boundaries = collections.deque(Boundary(*map(int, b)) for b in state["boundaries"])
-    st.rng.bit_generator.state = json.loads(state["rng"])
+    st.rng.bit_generator.state = state["rng"]["sampler"]
     return st.episodes
 
 

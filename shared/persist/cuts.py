@@ -7,119 +7,194 @@ and how many replay rows exist. Resuming from it gives the metric rows that not
 stopping would have given, bit for bit (timing columns aside), for a fixed lane count.
 
 Files in `DIR/cuts/`:
-- `replay.{obs,act,rew,next_obs,done}.f32`: every collected transition, appended as raw
-  float32 rows at each cut (never rewritten: a cut writes only what came since the
-  last one); a cut names the row count it covers, and resuming truncates what lies
-  beyond it (rows written by a run killed after its last cut).
-- `cut-EEEEEEEEE.pt`: the rest, written atomically (temporary file, fsync, rename) in
-  `torch.save` format with tensors and primitives only, loaded with
-  `torch.load(weights_only=True)`; it carries `format` and the run's config. The two
-  newest are kept: a truncated or corrupt newest cut is refused, naming the file, and
-  the one before it is used.
+- `replay.log`: every collected transition, on the one record log (`records.py`): each
+  cut appends one record of the rows that came since the last one (obs, act, rew,
+  next_obs, done and a stored bonus, float32), never rewriting earlier ones; a cut names
+  the row count it covers, and resuming cuts off what lies beyond it (rows appended by a
+  run killed after its last cut). Runs written before the record log kept the rows as
+  `replay.{field}.f32` columns: they are read and rewritten as a `replay.log` once.
+- `cut-EEEEEEEEE.pt`: the rest, a learner checkpoint of kind `cut` (checkpoint.py: the
+  one schema the final checkpoint.pt and the learner service's share). The two newest
+  are kept: a truncated or corrupt newest cut is refused, naming the file, and the one
+  before it is used.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
-from collections.abc import Sequence
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
-from shared.core.counting import CountTable
-from shared.persist.files import atomic_write
+from shared.persist import checkpoint, records
+from shared.persist.checkpoint import CutError
+from shared.persist.files import fsync_dir
+from shared.persist.records import RecordLog, RecordLogError
 
 log = logging.getLogger("macb.cuts")
 
-CUT_FORMAT = 1
+CUT_FORMAT = checkpoint.CHECKPOINT_FORMAT
 KEEP_CUTS = 2
 REPLAY_FIELDS = ("obs", "act", "rew", "next_obs", "done")
+REPLAY_LOG, REPLAY_MAGIC, REPLAY_WHAT = "replay.log", b"MACBRPL1", "replay log"
+_HEAD = struct.Struct("<qIH")  # first row, rows, fields
+_FIELD = struct.Struct("<BI")  # name length, width (float32 values per row)
+LEGACY_CHUNK = 1 << 16  # rows per record when a columnar replay is rewritten as a log
 
 
-class CutError(ValueError):
-    """A cut that cannot be used: the message names the file and what is wrong."""
+def pack_rows(first: int, arrays: dict[str, np.ndarray], width: dict[str, int]) -> bytes:
+    """One replay record's body: rows [first, first + n) of every field in `width`."""
+    cols = {name: np.ascontiguousarray(arrays[name], dtype="<f4") for name in width}
+    n = len(next(iter(cols.values()))) if cols else 0
+    parts = [_HEAD.pack(first, n, len(cols))]
+    for name, data in cols.items():
+        if data.size != n * width[name]:
+            raise ValueError(f"replay field {name}: {data.shape}, {n} rows of {width[name]}")
+        parts += [_FIELD.pack(len(name), width[name]), name.encode(), data.tobytes()]
+    return b"".join(parts)
 
 
-def atomic_torch_save(obj: Any, path: Path, previous: Path | None = None) -> None:
-    """Write `obj` to `path` so that a crash leaves the old file or the new one, whole.
-
-    With `previous`, the old file is kept there, moved aside only once the new one is
-    written and fsynced: a kill at any point leaves a good file at `path` or, between
-    the two renames, at `previous`."""
-    atomic_write(path, lambda f: torch.save(obj, f), previous)
-
-
-def tables_state(tables: Sequence[CountTable]) -> list[dict[str, Any]]:
-    out = []
-    for table in tables:
-        keys, counts = table.to_arrays()
-        out.append(
-            {
-                "keys": torch.from_numpy(keys.copy()),
-                "counts": torch.from_numpy(counts),
-                "total": table.total,
-                "key_bytes": table.key_bytes,
-            }
-        )
-    return out
-
-
-def load_tables(tables: list[CountTable], state: list[dict[str, Any]], where: Path) -> None:
-    if len(state) != len(tables):
-        raise CutError(f"{where}: {len(state)} count tables, the run has {len(tables)}")
-    for t, saved in enumerate(state):
-        if int(saved["key_bytes"]) != tables[t].key_bytes:
-            raise CutError(f"{where}: table {t} has {saved['key_bytes']}-byte keys")
-        keys, counts = saved["keys"].numpy(), saved["counts"].numpy()
-        tables[t] = CountTable.from_arrays(keys, counts, int(saved["total"]))
+def unpack_rows(body: memoryview) -> tuple[int, int, dict[str, np.ndarray]]:
+    """A replay record's first row, its row count and each field's (n, width) rows."""
+    first, n, count = _HEAD.unpack_from(body, 0)
+    pos, out = _HEAD.size, {}
+    for _ in range(count):
+        size, width = _FIELD.unpack_from(body, pos)
+        pos += _FIELD.size
+        name = bytes(body[pos : pos + size]).decode()
+        pos += size
+        values = np.frombuffer(body, "<f4", count=n * width, offset=pos)
+        out[name] = values.reshape(n, width)
+        pos += values.nbytes
+    if pos != len(body):
+        raise ValueError("replay record has trailing bytes")
+    return first, n, out
 
 
 class ReplayLog:
-    """The replay rows of a run on disk, appended at each cut (see the module doc)."""
+    """The replay rows of a run on disk: one record per cut (see the module doc)."""
 
     def __init__(self, folder: Path) -> None:
         self.folder = folder
+        self.path = folder / REPLAY_LOG
         folder.mkdir(parents=True, exist_ok=True)
+        self._log: RecordLog | None = None
+        self._index: list[tuple[int, int, int]] = []  # (first row, rows, frame offset)
 
-    def path(self, name: str) -> Path:
-        return self.folder / f"replay.{name}.f32"
-
-    def rows_on_disk(self, width: dict[str, int]) -> int:
-        sizes = []
-        for name in width:
-            p = self.path(name)
-            sizes.append(p.stat().st_size // (4 * width[name]) if p.exists() else 0)
-        return min(sizes)
+    def _read(self) -> tuple[bytes, list[tuple[int, int, int]]]:
+        try:
+            data, starts, _, _ = records.read(self.path, REPLAY_MAGIC, REPLAY_WHAT)
+        except RecordLogError as err:
+            raise CutError(str(err)) from None
+        index = []
+        for start in starts:
+            first, n, _ = _HEAD.unpack_from(records.body(data, start), 0)
+            index.append((first, n, start))
+        return data, index
 
     def append(self, arrays: dict[str, np.ndarray], start: int, width: dict[str, int]) -> int:
-        """Append rows [start, start + n) (the ones since the last cut); returns bytes
-        written. Rows beyond `start` already on disk (a run killed after appending but
-        before its cut was written) are cut off first."""
-        written = 0
-        for name in width:  # REPLAY_FIELDS, and a stored bonus where the run keeps one
-            data = np.ascontiguousarray(arrays[name], dtype=np.float32)
-            with open(self.path(name), "ab") as f:
-                f.truncate(start * 4 * width[name])
-                f.write(data.tobytes())
-                f.flush()
-                os.fsync(f.fileno())
-            written += data.nbytes
+        """Append rows [start, start + n) (the ones since the last cut) as one record,
+        fsynced; returns bytes written. Rows from `start` on already in the log (a run
+        killed after appending but before its cut was written) are cut off first."""
+        if self._log is None:
+            self._index = self._read()[1]  # also refuses a file that is not a replay log
+            self._log = RecordLog.open(self.path, REPLAY_MAGIC, REPLAY_WHAT)[0]
+        end = self._index[-1][0] + self._index[-1][1] if self._index else 0
+        if end != start:
+            self._cut_from(start, width)
+        offset = len(REPLAY_MAGIC) + self._log.bytes
+        n = len(arrays["obs"])
+        written = self._log.append([pack_rows(start, arrays, width)])
+        self._log.sync()
+        self._index.append((start, n, offset))
         return written
 
+    def _cut_from(self, start: int, width: dict[str, int]) -> None:
+        """Drop the rows from `start` on; a record holding rows on both sides is
+        rewritten with the ones before."""
+        assert self._log is not None
+        keep = [i for i, (first, n, _) in enumerate(self._index) if first + n <= start]
+        i = len(keep)
+        have = self._index[i - 1][0] + self._index[i - 1][1] if i else 0
+        straddle = i < len(self._index) and self._index[i][0] < start
+        prefix = None
+        if straddle:
+            data, _ = self._read()
+            first, _, rows = unpack_rows(records.body(data, self._index[i][2]))
+            prefix = (first, {k: v[: start - first] for k, v in rows.items()})
+        if i < len(self._index):
+            self._log.truncate(self._index[i][2], kept=i)
+            self._index = self._index[:i]
+        if prefix is not None:
+            first, rows = prefix
+            offset = len(REPLAY_MAGIC) + self._log.bytes
+            self._log.append([pack_rows(first, rows, {k: width[k] for k in rows})])
+            self._index.append((first, start - first, offset))
+            have = start
+        if have != start:
+            raise CutError(f"{self.path}: holds {have} rows, a cut appends from row {start}")
+
     def read(self, rows: int, width: dict[str, int], where: Path) -> dict[str, np.ndarray]:
+        """The first `rows` rows of every field (rew and done as vectors); CutError
+        naming the file if it holds fewer or other fields."""
+        if not self.path.exists() and self._legacy_path("obs").exists():
+            return self._read_legacy(rows, width, where)
+        data, index = self._read()
+        parts: dict[str, list[np.ndarray]] = {name: [] for name in width}
+        have = 0
+        for first, _, start in index:
+            if have >= rows:
+                break
+            if first != have:
+                raise CutError(f"{self.path}: a record starts at row {first}, not {have}")
+            _, n, cols = unpack_rows(records.body(data, start))
+            shapes = {k: v.shape[1] for k, v in cols.items()}
+            if shapes != width:
+                raise CutError(f"{self.path}: rows of {shapes}, the run's are {width}")
+            take = min(n, rows - have)
+            for name in width:
+                parts[name].append(cols[name][:take])
+            have += take
+        if have < rows:
+            raise CutError(f"{where}: needs {rows} replay rows, {self.path} holds {have}")
         out = {}
-        for name in width:
-            p, w = self.path(name), width[name]
+        for name, w in width.items():
+            cat = np.concatenate(parts[name]) if parts[name] else np.zeros((0, w), np.float32)
+            out[name] = cat.reshape(-1) if name in ("rew", "done") else cat.reshape(rows, w)
+        return out
+
+    # ---- runs written before the record log: one raw float32 file per field
+    def _legacy_path(self, name: str) -> Path:
+        return self.folder / f"replay.{name}.f32"
+
+    def _read_legacy(self, rows: int, width: dict[str, int], where: Path) -> dict:
+        """The columnar files' first `rows` rows, rewritten as this folder's replay.log
+        (whole before the columns are removed: a kill leaves one or the other)."""
+        out = {}
+        for name, w in width.items():
+            p = self._legacy_path(name)
             have = p.stat().st_size // (4 * w) if p.exists() else 0
             if have < rows:
                 raise CutError(f"{where}: needs {rows} replay rows, {p} holds {have}")
             data = np.fromfile(p, dtype=np.float32, count=rows * w)
             out[name] = data if name in ("rew", "done") else data.reshape(rows, w)
+        tmp = self.path.with_name(REPLAY_LOG + ".tmp")
+        tmp.unlink(missing_ok=True)
+        rewritten = RecordLog(tmp, REPLAY_MAGIC)
+        for first in range(0, rows, LEGACY_CHUNK):
+            part = {k: v[first : first + LEGACY_CHUNK] for k, v in out.items()}
+            rewritten.append([pack_rows(first, part, width)])
+        rewritten.sync()
+        rewritten.close()
+        os.replace(tmp, self.path)
+        fsync_dir(self.folder)
+        for name in width:
+            self._legacy_path(name).unlink(missing_ok=True)
+        log.info("%s: %d replay rows of columnar files rewritten as %s", where, rows, self.path)
         return out
 
 
@@ -135,7 +210,7 @@ class Cut:
 
 def clear(folder: Path) -> None:
     """Forget a previous run's cuts and replay log (a fresh run in the same folder)."""
-    for path in [*folder.glob("cut-*.pt*"), *folder.glob("replay.*.f32")]:
+    for path in [*folder.glob("cut-*.pt*"), *folder.glob("replay.*")]:
         path.unlink()
 
 
@@ -144,51 +219,20 @@ def cut_files(folder: Path) -> list[Path]:
     return sorted(folder.glob("cut-*.pt"), reverse=True)
 
 
-def write_cut(folder: Path, episode: int, state: dict[str, Any]) -> Path:
-    """Write the cut for `episode` and drop all but the newest KEEP_CUTS."""
+def write_cut(folder: Path, episode: int, **fields: Any) -> Path:
+    """Write the cut for `episode` (a checkpoint of kind `cut`: `fields` are
+    `checkpoint.save`'s) and drop all but the newest KEEP_CUTS."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"cut-{episode:09d}.pt"
-    atomic_torch_save({"format": CUT_FORMAT, "episode": episode, **state}, path)
+    checkpoint.save(path, "cut", episode=episode, **fields)
     for old in cut_files(folder)[KEEP_CUTS:]:
         old.unlink(missing_ok=True)
     return path
 
 
-def config_difference(saved: dict[str, Any], config: dict[str, Any]) -> str | None:
-    """The first field where a cut's config and the run's differ, as 'field: a != b'.
-
-    A key the saved config lacks counts as its default (a run written before the key
-    existed ran with what the default does), so adding a config key does not make
-    earlier runs unresumable."""
-    from shared.config import TrainConfig
-
-    fields = TrainConfig.model_fields
-    for key in sorted(set(saved) | set(config)):
-        if key not in saved and key in fields and config.get(key) == _default(fields[key]):
-            continue
-        if saved.get(key) != config.get(key):
-            return f"{key}: {saved.get(key)!r} in the cut, {config.get(key)!r} in the run"
-    return None
-
-
 def read_cut(path: Path, config: dict[str, Any]) -> Cut:
-    """Load and check one cut: format, and the config field by field."""
-    try:
-        state = torch.load(path, weights_only=True)
-    except Exception as err:  # truncated or not a torch file at all
-        raise CutError(f"{path}: unreadable ({type(err).__name__}: {err})") from None
-    if not isinstance(state, dict) or "format" not in state:
-        raise CutError(f"{path}: not a cut (no format field)")
-    if state["format"] != CUT_FORMAT:
-        raise CutError(f"{path}: cut format {state['format']}, this version reads {CUT_FORMAT}")
-    try:
-        saved = json.loads(state["config"])
-    except (KeyError, ValueError) as err:
-        raise CutError(f"{path}: no readable config ({err})") from None
-    diff = config_difference(saved, config)
-    if diff is not None:
-        raise CutError(f"{path}: written by another config ({diff})")
-    return Cut(path, state)
+    """Load and check one cut: format, kind, and the config field by field."""
+    return Cut(path, checkpoint.load(path, "cut", config))
 
 
 def latest_cut(folder: Path, config: dict[str, Any]) -> Cut:
@@ -212,9 +256,3 @@ def latest_cut(folder: Path, config: dict[str, Any]) -> Cut:
     if not reasons:
         raise CutError(f"{folder}: no cut to resume from")
     raise CutError("no usable cut: " + "; ".join(reasons))
-
-
-def _default(field: Any) -> Any:
-    """A config field's default as JSON (what model_dump(mode="json") writes)."""
-    value = field.default
-    return list(value) if isinstance(value, tuple) else value

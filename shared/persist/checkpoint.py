@@ -1,0 +1,151 @@
+"""The one learner checkpoint schema: a one-process run's cuts (`cuts/cut-E.pt`), its
+final `checkpoint.pt` and the learner service's `checkpoint.pt` are all written by
+`save` and read by `load`.
+
+A checkpoint is a `torch.save` file of tensors and primitives only, read with
+`torch.load(weights_only=True)` (no pickle), written atomically (files.atomic_write).
+Its fields:
+
+- `format` (CHECKPOINT_FORMAT) and `kind`: `cut`, `final` or `service`;
+- `config`: the run's config as JSON (a checkpoint of another config is refused,
+  naming the first field that differs);
+- `learner`: the learner's state_dict (networks, optimizers, targets, update count);
+- `counters`: the kind's step, episode and update counters (plain numbers);
+- `rng`: the random states as JSON (`sampler` always; a cut also `collector`, `eval_envs`);
+- `tables`: the count tables as {"table0": {keys, counts, total, key_bytes}, ...}, where
+  the kind keeps them (the service's are the counter's);
+- the kind's own fields: a cut's `episode`, `replay_rows`, `torch_rng`; the service's
+  `ingested_pos` (each actor's next transition) and `boundaries` (episode ends owed).
+
+Files written before `kind` existed carry none (their place says which they are); the
+learner service's kept its sampler state as the whole `rng`; the trainer's cuts kept
+`tables` as a list, its final checkpoint had no `format`. `load` reads all of them.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from shared.core.counting import CountTable
+from shared.persist.files import atomic_write
+
+CHECKPOINT_FORMAT = 1
+KINDS = ("cut", "final", "service")
+
+
+class CutError(ValueError):
+    """A checkpoint that cannot be used: the message names the file and what is wrong."""
+
+
+class UnreadableCheckpoint(CutError):
+    """The file is not a whole checkpoint (cut short by a kill, or not one at all), as
+    opposed to a whole one of another config or format."""
+
+
+def save(
+    path: Path,
+    kind: str,
+    config: dict[str, Any],
+    learner: dict[str, Any],
+    counters: dict[str, Any],
+    rng: dict[str, Any] | None = None,
+    tables: Sequence[CountTable] | None = None,
+    previous: Path | None = None,
+    **own: Any,
+) -> None:
+    """Write a checkpoint of `kind` to `path` atomically (`previous`: the old file is
+    kept there, moved aside only once the new one is on disk)."""
+    if kind not in KINDS:
+        raise ValueError(f"checkpoint kind {kind!r}, not one of {KINDS}")
+    state = {
+        "format": CHECKPOINT_FORMAT,
+        "kind": kind,
+        "config": json.dumps(config),
+        "learner": learner,
+        "counters": counters,
+        **({} if rng is None else {"rng": json.dumps(rng)}),
+        **({} if tables is None else {"tables": tables_state(tables)}),
+        **own,
+    }
+    atomic_write(path, lambda f: torch.save(state, f), previous)
+
+
+def load(path: Path, kind: str, config: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A checkpoint of `kind` from `path`, checked: UnreadableCheckpoint if it does not
+    load as one, CutError naming the file if it is of another format, kind or (with
+    `config`) config. `rng` comes back decoded, with `sampler` in it."""
+    try:
+        state = torch.load(path, weights_only=True)
+    except Exception as err:  # truncated, or not a torch file at all
+        raise UnreadableCheckpoint(f"{path}: unreadable ({type(err).__name__}: {err})") from None
+    if not isinstance(state, dict):
+        raise UnreadableCheckpoint(f"{path}: not a checkpoint (a {type(state).__name__})")
+    found = state.get("format", CHECKPOINT_FORMAT if kind == "final" else None)
+    if found != CHECKPOINT_FORMAT:
+        raise CutError(f"{path}: cut format {found}, this version reads {CHECKPOINT_FORMAT}")
+    if state.get("kind", kind) != kind:
+        raise CutError(f"{path}: a {state['kind']} checkpoint, not a {kind} one")
+    try:
+        saved = json.loads(state["config"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise CutError(f"{path}: no readable config ({err})") from None
+    if config is not None and (diff := config_difference(saved, config)) is not None:
+        raise CutError(f"{path}: written by another config ({diff})")
+    if "rng" in state:
+        rng = json.loads(state["rng"])
+        state["rng"] = rng if "sampler" in rng else {"sampler": rng}  # the service's, before
+    return state
+
+
+def tables_state(tables: Sequence[CountTable]) -> dict[str, dict[str, Any]]:
+    """Count tables as a checkpoint holds them."""
+    out = {}
+    for t, table in enumerate(tables):
+        keys, counts = table.to_arrays()
+        out[f"table{t}"] = {
+            "keys": torch.from_numpy(keys.copy()),
+            "counts": torch.from_numpy(counts),
+            "total": table.total,
+            "key_bytes": table.key_bytes,
+        }
+    return out
+
+
+def load_tables(tables: list[CountTable], state: Any, where: Path) -> None:
+    """A checkpoint's count tables into `tables` (in place), refused naming `where`
+    if they are not the run's; the list form of earlier cuts is read too."""
+    saved = [state[f"table{t}"] for t in range(len(state))] if isinstance(state, dict) else state
+    if len(saved) != len(tables):
+        raise CutError(f"{where}: {len(saved)} count tables, the run has {len(tables)}")
+    for t, one in enumerate(saved):
+        if int(one["key_bytes"]) != tables[t].key_bytes:
+            raise CutError(f"{where}: table {t} has {one['key_bytes']}-byte keys")
+        keys, counts = one["keys"].numpy(), one["counts"].numpy()
+        tables[t] = CountTable.from_arrays(keys, counts, int(one["total"]))
+
+
+def config_difference(saved: dict[str, Any], config: dict[str, Any]) -> str | None:
+    """The first field where a checkpoint's config and the run's differ, as 'field: a !=
+    b'. A key the saved config lacks counts as its default (a run written before the key
+    existed ran with what the default does), so adding a config key does not make
+    earlier runs unresumable."""
+    from shared.config import TrainConfig
+
+    fields = TrainConfig.model_fields
+    for key in sorted(set(saved) | set(config)):
+        if key not in saved and key in fields and config.get(key) == _default(fields[key]):
+            continue
+        if saved.get(key) != config.get(key):
+            return f"{key}: {saved.get(key)!r} in the cut, {config.get(key)!r} in the run"
+    return None
+
+
+def _default(field: Any) -> Any:
+    """A config field's default as JSON (what model_dump(mode="json") writes)."""
+    value = field.default
+    return list(value) if isinstance(value, tuple) else value
