@@ -21,6 +21,7 @@ The definitions, stated once here and in every FIGURE.md:
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
 from collections import Counter
@@ -77,6 +78,9 @@ class ArmCurve:
     raw: dict[str, np.ndarray]  # the mean over seeds of the points as stored
     metric: str = "success_rate"
     window: int = 1
+    # per seed, a digest of every point the run stored (episode, success, return,
+    # collisions): two arms with equal traces are the same runs, point for point
+    traces: dict[int, str] = field(default_factory=dict)
 
     @property
     def length(self) -> int:
@@ -189,7 +193,19 @@ def arm_curve(
         raw=raw,
         metric=metric,
         window=window_points(len(shared)),
+        traces={r["seed"]: _trace(s) for r, s in zip(runs, series) if len(s["episode"])},
     )
+
+
+TRACED = ("episode", "success_rate", "eval_return", "collisions_cum")
+
+
+def _trace(points: Columns) -> str:
+    """A digest of a run's stored points: equal for two runs that gave the same rows."""
+    h = hashlib.sha256()
+    for f in TRACED:
+        h.update(np.ascontiguousarray(points[f], dtype=float).tobytes())
+    return h.hexdigest()
 
 
 def _num(x: Any) -> float:
@@ -264,6 +280,9 @@ def _summary(a: Analysis, arm: ArmCurve) -> str:
     return f"{head}, {tail}" if head else tail
 
 
+SAME_RUNS = "counting gave every reward the constant's bonus"
+
+
 def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]:
     """(MACB arm, its control, MACB measured, control measured, verdict) per MACB arm:
     does counting beat the constant bonus of the same beta (the control's point)?"""
@@ -279,13 +298,17 @@ def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]
             continue
         theirs = a.arm(control)
         if not len(mine.episodes) or not len(theirs.episodes):
-            verdict = "no points"
+            out.append((arm_def.name, control, _summary(a, mine), _summary(a, theirs), "no points"))
+            continue
+        if mine.traces and mine.traces == theirs.traces:  # every seed's rows equal
+            verdict = f"the same runs as the control, point for point: {SAME_RUNS}"
+        elif _score(a, mine) < _score(a, theirs):
+            verdict = "beats the control"
         else:
-            beats = _score(a, mine) < _score(a, theirs)
-            verdict = "beats the control" if beats else "does not beat the control"
-            length = min(mine.length, theirs.length)
-            if length < a.fig.episodes:
-                verdict += f" (at {length:,} of {a.fig.episodes:,} episodes)"
+            verdict = "does not beat the control"
+        length = min(mine.length, theirs.length)
+        if length < a.fig.episodes:
+            verdict += f" (at {length:,} of {a.fig.episodes:,} episodes)"
         out.append((arm_def.name, control, _summary(a, mine), _summary(a, theirs), verdict))
     return out
 

@@ -136,7 +136,7 @@ def synthetic(fig, shapes: dict[str, tuple], episodes: int, seeds=(0, 1), step: 
                     "success_rate": float(s),
                     "collisions_cum": float(top * e),
                     "count1_pct": 100.0 * top,
-                    "eval_return": -1.0,
+                    "eval_return": -1.0 - 1e-3 * i,  # arms' runs are never the same
                     "env_steps": int(e) * 20,
                 }
                 for e, s in zip(eps, sr, strict=True)
@@ -257,6 +257,27 @@ def test_a_short_run_says_so_and_a_wrong_curve_is_not_reproduced():
     md = report.markdown(short, "thesis")
     assert "0 reproduced, 0 not reproduced, 3 not run to that length." in md
     assert "beats the control (at 300 of 5,000 episodes)" in md or "(at 300 of 5,000" in md
+
+
+def test_an_arm_whose_runs_are_its_controls_runs_is_said_to_be_them():
+    """Counting that gives every reward the constant's bonus (every key new: profile
+    thesis's fig3 arms) makes the control's runs again; the verdict says so rather than
+    "does not beat", and only when every seed's points are equal."""
+    fig = FIGURES["fig3"]
+    exp, points = synthetic(fig, FIG3_AS_THESIS, 5000)
+    run_of = {(r["arm"], r["seed"]): r["id"] for r in exp["runs"]}
+    for seed in (0, 1):
+        mine = points[run_of[("beta=0.8", seed)]]
+        points[run_of[("constant beta=0.8 (control)", seed)]] = [dict(p) for p in mine]
+    controls = {c[0]: c[4] for c in report.control_verdicts(report.analyse(fig, exp, points))}
+    assert controls["beta=0.8"] == (
+        "the same runs as the control, point for point: " + report.SAME_RUNS
+    )
+    assert controls["beta=0.6"] == "beats the control"
+    other = points[run_of[("constant beta=0.8 (control)", 1)]]
+    other[-1] = {**other[-1], "eval_return": -1.5}  # one seed's last point differs
+    controls = {c[0]: c[4] for c in report.control_verdicts(report.analyse(fig, exp, points))}
+    assert controls["beta=0.8"] == "does not beat the control"
 
 
 def test_fig8_reports_success_at_its_milestones_and_fig7_the_collisions():
