@@ -824,6 +824,23 @@ def experiment_body(
     }
 
 
+def select_arms(fig: FigureDef, body: dict[str, Any], patterns: list[str]) -> dict[str, Any]:
+    """The body with only the arms whose name matches one of `patterns` (shell-style,
+    any case: "Sparse*"), in the figure's order; ValueError naming a pattern that
+    matches no arm, and the arms there are."""
+    import fnmatch
+
+    names = [a["name"] for a in body["arms"]]
+    keep: set[str] = set()
+    for pattern in patterns:
+        hits = [n for n in names if fnmatch.fnmatch(n.lower(), pattern.lower())]
+        if not hits:
+            listed = "; ".join(names)
+            raise ValueError(f"--arms {pattern!r}: no arm of {fig.name} matches ({listed})")
+        keep.update(hits)
+    return {**body, "arms": [a for a in body["arms"] if a["name"] in keep]}
+
+
 def experiment_name(fig: FigureDef, body: dict[str, Any]) -> str:
     """The experiment's name, which `macb reproduce` finds it again by: the figure, the
     profile, the length, the seeds, and a digest of the whole body, so an edited config

@@ -20,7 +20,15 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
 from cli.config_flags import HelpFormatter
-from cli.figures import FIGURES, PROFILES, FigureDef, experiment_body, experiment_name, file_seeds
+from cli.figures import (
+    FIGURES,
+    PROFILES,
+    FigureDef,
+    experiment_body,
+    experiment_name,
+    file_seeds,
+    select_arms,
+)
 from cli.local import add_group_flags, group_flag_error
 from shared.persist.files import data_dir_help, default_data_dir
 
@@ -48,6 +56,14 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
     )
     rp.add_argument("--profile", choices=PROFILES, default="mpe2", help="the config profile")
     rp.add_argument("--episodes", type=int, metavar="N", help="cut every run to N episodes")
+    rp.add_argument(
+        "--arms",
+        nargs="+",
+        metavar="PATTERN",
+        help="only the arms whose name matches a PATTERN (shell-style, any case; e.g. "
+        "'Sparse*' for fig8's sparse arms and their control); the page says the others "
+        "have no points. A later run of all arms reuses the runs these complete (--local)",
+    )
     rp.add_argument(
         "--precision",
         choices=("fp32", "bf16"),
@@ -133,6 +149,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     try:
         seeds = args.seeds or file_seeds(fig)
         body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
+        if args.arms:
+            body = select_arms(fig, body, args.arms)
         if args.threads is not None:
             body["threads"] = args.threads
         if not (args.local or args.report_only):  # groups always run the thesis's loop

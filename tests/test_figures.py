@@ -103,6 +103,24 @@ def test_the_experiment_name_is_deterministic_and_follows_the_body():
         experiment_body(fig, "pz", [0], None)
 
 
+def test_select_arms_keeps_the_matching_arms_in_the_figures_order():
+    fig = FIGURES["fig8"]
+    body = experiment_body(fig, "thesis", [0, 1, 2], None)
+    sparse = figures.select_arms(fig, body, ["sparse*"])
+    assert [a["name"] for a in sparse["arms"]] == [
+        "Sparse",
+        "Sparse + Dis-MACB",
+        "Sparse + Cen-MACB",
+        "Sparse + constant beta=0.8 (control)",
+    ]
+    assert {k: v for k, v in sparse.items() if k != "arms"} == {
+        k: v for k, v in body.items() if k != "arms"
+    }
+    assert figures.experiment_name(fig, sparse) != figures.experiment_name(fig, body)
+    with pytest.raises(ValueError, match="'dense': no arm of fig8 matches"):
+        figures.select_arms(fig, body, ["Sparse", "dense"])
+
+
 def test_table2_has_the_theses_numbers_and_a_control_row():
     fig = FIGURES["table2"]
     cells = {(a.row, a.col): a.thesis for a in fig.arms}

@@ -120,6 +120,23 @@ def test_reproduce_local_and_report_only(tmp_path):
     assert none.returncode == 2 and "no runs stored" in none.stderr
 
 
+def test_reproduce_arms_runs_only_the_arms_named_and_refuses_a_pattern_of_none(tmp_path):
+    out = tmp_path / "fig3"
+    got = macb("reproduce", "fig3", "--local", "--episodes", "3", "--seeds", "0", "--quiet",
+               "--arms", "beta=0.8", "CONSTANT beta=0.8*", "--out", str(out))  # fmt: skip
+    assert got.returncode == 0, got.stderr
+    assert "2 completed" in got.stderr
+    assert sorted(p.name for p in (out / "runs").iterdir()) == [
+        "beta_0.8-s0",
+        "constant_beta_0.8_control-s0",
+    ]
+    md = (out / "fig3.md").read_text()
+    assert '| beta=0.0 | explore="none", beta=0.0 | 0 |' in md  # listed, no runs
+    bad = macb("reproduce", "fig3", "--local", "--arms", "sparse*", "--out", str(tmp_path))
+    assert bad.returncode == 2
+    assert "--arms 'sparse*': no arm of fig3 matches (beta=0.0; beta=0.2;" in bad.stderr
+
+
 @pytest.mark.parametrize("flag", ["--jobs", "--group-size", "--threads"])
 def test_reproduce_refuses_bad_counts(flag, tmp_path):
     got = macb("reproduce", "fig3", "--local", flag, "0", "--out", str(tmp_path))
