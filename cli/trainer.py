@@ -84,8 +84,9 @@ def save_checkpoint(
 
 
 def load_checkpoint(path: Path) -> dict:
-    """A run's final checkpoint.pt (torch.load with weights_only=True inside)."""
-    return checkpoint.load(path, "final")
+    """A run's final checkpoint.pt (torch.load with weights_only=True inside): the
+    trainer's, or the learner service's that `macb start --out` copies beside its rows."""
+    return checkpoint.load(path, ("final", "service"))
 
 
 def _say_if_constant_shift(rows: list[dict], warned: bool, counting: bool = True) -> bool:

@@ -119,6 +119,15 @@ def test_a_snapshot_npz_from_before_still_loads_and_a_corrupt_one_is_refused_by_
         assert np.array_equal(mine, theirs)
     snapshot.write("r", again)
     assert sorted(p.name for p in (tmp_path / "r").glob("snapshot*")) == ["snapshot.pt"]
+    # a version of before ran on the folder since: its newer snapshot.npz is the one read
+    arrays["meta"] = np.frombuffer(
+        json.dumps({**meta, "time": time.time() + 60, "expected": {"a0": 7}}).encode(), np.uint8
+    )
+    np.savez(tmp_path / "r" / "snapshot.npz", **arrays)
+    newer = new_run(tmp_path / "r")
+    snapshot.load(newer)
+    assert newer.cursor.positions() == {"a0": 7}
+    (tmp_path / "r" / "snapshot.npz").unlink()
 
     (tmp_path / "r" / "snapshot.pt").write_bytes(b"not a snapshot")
     with pytest.raises(ValueError, match="snapshot.pt: unreadable"):

@@ -251,7 +251,7 @@ def _learner_rejoins(cluster, cut: dict) -> tuple[dict, Path]:
     [
         ({"k": 32}, "k: 32 in the cut, 64 in the run"),
         ({"task": "spread"}, "task: 'spread' in the cut, 'speaker_listener' in the run"),
-        ({"format": 2}, "cut format 2, this version reads 1"),
+        ({"format": 3}, "cut format 3, this version reads 2"),
     ],
 )
 def test_a_cut_of_another_config_or_format_is_refused_naming_it(cluster, change, named):

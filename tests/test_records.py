@@ -92,3 +92,81 @@ def test_a_replay_record_of_other_fields_is_refused_naming_the_file(tmp_path):
     other = {**WIDTH, "obs": 4}
     with pytest.raises(CutError, match="replay.log: rows of"):
         ReplayLog(tmp_path).read(4, other, tmp_path)
+
+
+def test_rows_go_in_records_of_bounded_size_and_an_oversized_record_is_refused(
+    tmp_path, monkeypatch
+):
+    from shared.persist import cuts
+
+    monkeypatch.setattr(cuts, "RECORD_BYTES", 4 * 10 * 7)  # 7 rows of 10 values a record
+    log = ReplayLog(tmp_path)
+    log.append(rows(0, 30), 0, WIDTH)
+    _, starts, _, _ = records.read(tmp_path / "replay.log", b"MACBRPL1", "replay log")
+    assert len(starts) == 5  # 7 + 7 + 7 + 7 + 2 rows
+    back = ReplayLog(tmp_path).read(30, WIDTH, tmp_path)
+    assert np.array_equal(back["next_obs"], rows(0, 30)["next_obs"])
+    monkeypatch.setattr(records, "MAX_RECORD", 16)
+    big = RecordLog(tmp_path / "big.log", MAGIC)
+    with pytest.raises(ValueError, match="a record over 16 bytes"):
+        big.append([b"x" * 17])
+    big.close()
+
+
+def test_columnar_rows_of_before_are_read_as_they_are_and_converted_at_the_next_cut(tmp_path):
+    for name, values in rows(0, 12).items():
+        np.ascontiguousarray(values, np.float32).tofile(tmp_path / f"replay.{name}.f32")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    back = ReplayLog(tmp_path).read(10, WIDTH, tmp_path)  # a resume from a cut at row 10
+    assert np.array_equal(back["obs"], rows(0, 10)["obs"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == before, "reading changes nothing"
+    log = ReplayLog(tmp_path)
+    log.append(rows(40, 3), 10, WIDTH)  # the next cut: rows 10.. as the resumed run has them
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["replay.log"]
+    back = ReplayLog(tmp_path).read(13, WIDTH, tmp_path)
+    assert np.array_equal(back["done"], np.concatenate([rows(0, 10)["done"], rows(40, 3)["done"]]))
+    # a conversion killed after replay.log was in place, before the columns were removed
+    (tmp_path / "replay.obs.f32").write_bytes(b"\0" * 48)
+    ReplayLog(tmp_path).append(rows(50, 1), 13, WIDTH)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["replay.log"]
+
+
+def test_checkpoints_of_format_1_still_load_and_other_formats_or_kinds_are_refused(tmp_path):
+    """Format 2 adds `kind`; a format-1 file (no kind, the service's bare sampler state
+    as its rng, a cut's tables as a list) reads as before; an earlier version refuses a
+    format-2 file by its format rather than misreading it."""
+    import json
+
+    import torch
+
+    from shared.config import make_config
+    from shared.core.counting import CountTable
+    from shared.persist import checkpoint
+
+    config = make_config({"task": "simple", "algo": "ddpg"}).model_dump(mode="json")
+    table = CountTable(4)
+    table.increment(np.arange(8, dtype=np.uint8).reshape(2, 4))
+    path = tmp_path / "c.pt"
+    checkpoint.save(path, "cut", config, {"w": torch.ones(2)}, {"rows": 2},
+                    rng={"sampler": {"state": 1}}, tables=[table], episode=3)  # fmt: skip
+    raw = torch.load(path, weights_only=True)
+    assert raw["format"] == 2 and raw["kind"] == "cut" and set(raw["tables"]) == {"table0"}
+    assert checkpoint.load(path, "cut", config)["rng"] == {"sampler": {"state": 1}}
+    with pytest.raises(CutError, match="a cut checkpoint, not a service one"):
+        checkpoint.load(path, "service", config)
+
+    old = {k: v for k, v in raw.items() if k != "kind"}
+    old |= {"format": 1, "rng": json.dumps({"state": 1}), "tables": [raw["tables"]["table0"]]}
+    torch.save(old, path)
+    state = checkpoint.load(path, "service", config)
+    assert state["rng"] == {"sampler": {"state": 1}}
+    tables = [CountTable(4)]
+    checkpoint.load_tables(tables, state["tables"], path)
+    assert tables[0].total == 2
+
+    torch.save({**old, "format": 3}, path)
+    with pytest.raises(CutError, match="c.pt: cut format 3, this version reads 2"):
+        checkpoint.load(path, "cut", config)
+    torch.save({k: v for k, v in old.items() if k != "learner"}, path)
+    with pytest.raises(checkpoint.UnreadableCheckpoint, match="no learner or counters"):
+        checkpoint.load(path, "cut", config)

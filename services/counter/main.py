@@ -11,7 +11,7 @@ switch interval, the service thread stepping aside): the learner waits for them.
 
 This class is the shell: the bus, the timers and the dispatch. Its parts: `runs.py`
 (the runs' folders, opened, restored, archived; the lock), `burst.py` (a burst's new
-rows, counted), `bonus.py` (queries answered), `snapshot.py` (snapshot.npz and the log
+rows, counted), `bonus.py` (queries answered), `snapshot.py` (snapshot.pt and the log
 replayed), `stats.py` (what is reported), `state.py` (`RunState`).
 
 Durability (files, snapshot schedule, restore) is in docs/architecture.md, "The

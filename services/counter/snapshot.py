@@ -70,20 +70,20 @@ def write(run: str, st: RunState) -> None:
 
 
 def load(st: RunState) -> None:
-    """A run's tables, positions and stats from its snapshot; CutError naming the file
-    if it does not read or is not this run's."""
-    path = st.path / SNAPSHOT
-    if not path.exists() and (st.path / LEGACY).exists():
-        meta = _load_legacy(st)
+    """A run's tables, positions and stats from its snapshot (of both formats there,
+    the newer by the time it was written); CutError naming the file if it does not
+    read or is not this run's."""
+    pt, npz = st.path / SNAPSHOT, st.path / LEGACY
+    state = _read_pt(pt) if pt.exists() else None
+    legacy = _read_npz(npz) if npz.exists() else None
+    if legacy is not None and (state is None or legacy[0].get("time", 0) > state.get("time", 0)):
+        meta, arrays = legacy
+        _legacy_tables(st, meta, arrays, npz)
+    elif state is not None:
+        meta = state
+        load_tables(st.explorer.tables, state["tables"], pt)
     else:
-        try:
-            meta = torch.load(path, weights_only=True)
-        except Exception as err:
-            raise CutError(f"{path}: unreadable ({type(err).__name__}: {err})") from None
-        if not isinstance(meta, dict) or meta.get("format") != SNAPSHOT_FORMAT:
-            found = meta.get("format") if isinstance(meta, dict) else None
-            raise CutError(f"{path}: snapshot format {found}, this version reads {SNAPSHOT_FORMAT}")
-        load_tables(st.explorer.tables, meta["tables"], path)
+        raise CutError(f"{st.path}: no snapshot")
     stats = meta["stats"]
     st.cursor = ReceiveCursor({str(a): int(s) for a, s in meta["expected"].items()})
     st.cursor.duplicate_rows = int(stats["duplicates"])
@@ -95,26 +95,36 @@ def load(st: RunState) -> None:
     st.snapshots = int(stats.get("snapshots", 0))
 
 
-def _load_legacy(st: RunState) -> dict:
-    """The tables of a snapshot.npz (format 1) into `st`; its meta map."""
-    path = st.path / LEGACY
+def _read_pt(path: Path) -> dict:
     try:
-        with np.load(path, allow_pickle=False) as z:
-            meta = json.loads(bytes(z["meta"]).decode())
-            tables = st.explorer.tables
-            if len(meta["totals"]) != len(tables):
-                have = len(meta["totals"])
-                raise CutError(f"{path}: {have} count tables, the run has {len(tables)}")
-            for t, table in enumerate(tables):
-                keys, counts = z[f"keys{t}"], z[f"counts{t}"]
-                if keys.ndim != 2 or keys.shape[1] != table.key_bytes:
-                    raise CutError(f"{path}: table {t} has keys {keys.shape}")
-                tables[t] = CountTable.from_arrays(keys, counts, meta["totals"][t])
-    except CutError:
-        raise
+        state = torch.load(path, weights_only=True)
     except Exception as err:
         raise CutError(f"{path}: unreadable ({type(err).__name__}: {err})") from None
-    return meta
+    if not isinstance(state, dict) or state.get("format") != SNAPSHOT_FORMAT:
+        found = state.get("format") if isinstance(state, dict) else None
+        raise CutError(f"{path}: snapshot format {found}, this version reads {SNAPSHOT_FORMAT}")
+    return state
+
+
+def _read_npz(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
+    """A snapshot.npz (format 1): its meta map and its arrays."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        return json.loads(bytes(arrays.pop("meta")).decode()), arrays
+    except Exception as err:
+        raise CutError(f"{path}: unreadable ({type(err).__name__}: {err})") from None
+
+
+def _legacy_tables(st: RunState, meta: dict, arrays: dict[str, np.ndarray], path: Path) -> None:
+    tables = st.explorer.tables
+    if len(meta["totals"]) != len(tables):
+        raise CutError(f"{path}: {len(meta['totals'])} count tables, the run has {len(tables)}")
+    for t, table in enumerate(tables):
+        keys, counts = arrays[f"keys{t}"], arrays[f"counts{t}"]
+        if keys.ndim != 2 or keys.shape[1] != table.key_bytes:
+            raise CutError(f"{path}: table {t} has keys {keys.shape}")
+        tables[t] = CountTable.from_arrays(keys, counts, meta["totals"][t])
 
 
 def replay(run: str, st: RunState, records: list[WalRecord], log: logging.Logger) -> int:

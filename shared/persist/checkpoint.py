@@ -6,7 +6,8 @@ A checkpoint is a `torch.save` file of tensors and primitives only, read with
 `torch.load(weights_only=True)` (no pickle), written atomically (files.atomic_write).
 Its fields:
 
-- `format` (CHECKPOINT_FORMAT) and `kind`: `cut`, `final` or `service`;
+- `format` (CHECKPOINT_FORMAT: an earlier version refuses the file by it, rather
+  than misreading a field) and `kind`: `cut`, `final` or `service`;
 - `config`: the run's config as JSON (a checkpoint of another config is refused,
   naming the first field that differs);
 - `learner`: the learner's state_dict (networks, optimizers, targets, update count);
@@ -17,9 +18,9 @@ Its fields:
 - the kind's own fields: a cut's `episode`, `replay_rows`, `torch_rng`; the service's
   `ingested_pos` (each actor's next transition) and `boundaries` (episode ends owed).
 
-Files written before `kind` existed carry none (their place says which they are); the
-learner service's kept its sampler state as the whole `rng`; the trainer's cuts kept
-`tables` as a list, its final checkpoint had no `format`. `load` reads all of them.
+Files of format 1 carry no `kind` (their place says which they are); the learner
+service's kept its sampler state as the whole `rng`; the trainer's cuts kept `tables`
+as a list, its final checkpoint had no `format`. `load` reads all of them.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import torch
 from shared.core.counting import CountTable
 from shared.persist.files import atomic_write
 
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2  # 1: the same fields, before `kind` (still read)
 KINDS = ("cut", "final", "service")
 
 
@@ -75,27 +76,33 @@ def save(
     atomic_write(path, lambda f: torch.save(state, f), previous)
 
 
-def load(path: Path, kind: str, config: dict[str, Any] | None = None) -> dict[str, Any]:
-    """A checkpoint of `kind` from `path`, checked: UnreadableCheckpoint if it does not
-    load as one, CutError naming the file if it is of another format, kind or (with
-    `config`) config. `rng` comes back decoded, with `sampler` in it."""
+def load(
+    path: Path, kind: str | tuple[str, ...], config: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """A checkpoint of `kind` (or one of several) from `path`, checked: CutError naming
+    the file if it is of another format, kind or (with `config`) config, then
+    UnreadableCheckpoint if it does not load as one or lacks its learner or counters.
+    `rng` comes back decoded, with `sampler` in it."""
+    kinds = (kind,) if isinstance(kind, str) else kind
     try:
         state = torch.load(path, weights_only=True)
     except Exception as err:  # truncated, or not a torch file at all
         raise UnreadableCheckpoint(f"{path}: unreadable ({type(err).__name__}: {err})") from None
     if not isinstance(state, dict):
         raise UnreadableCheckpoint(f"{path}: not a checkpoint (a {type(state).__name__})")
-    found = state.get("format", CHECKPOINT_FORMAT if kind == "final" else None)
-    if found != CHECKPOINT_FORMAT:
+    found = state.get("format", 1 if "final" in kinds else None)
+    if found not in (1, CHECKPOINT_FORMAT):
         raise CutError(f"{path}: cut format {found}, this version reads {CHECKPOINT_FORMAT}")
-    if state.get("kind", kind) != kind:
-        raise CutError(f"{path}: a {state['kind']} checkpoint, not a {kind} one")
+    if state.get("kind", kinds[0]) not in kinds:
+        raise CutError(f"{path}: a {state['kind']} checkpoint, not a {' or '.join(kinds)} one")
     try:
         saved = json.loads(state["config"])
     except (KeyError, TypeError, ValueError) as err:
         raise CutError(f"{path}: no readable config ({err})") from None
     if config is not None and (diff := config_difference(saved, config)) is not None:
         raise CutError(f"{path}: written by another config ({diff})")
+    if "learner" not in state or "counters" not in state:
+        raise UnreadableCheckpoint(f"{path}: not a whole checkpoint (no learner or counters)")
     if "rng" in state:
         rng = json.loads(state["rng"])
         state["rng"] = rng if "sampler" in rng else {"sampler": rng}  # the service's, before

@@ -22,6 +22,7 @@ Files in `DIR/cuts/`:
 from __future__ import annotations
 
 import logging
+import mmap
 import os
 import struct
 from dataclasses import dataclass
@@ -43,7 +44,7 @@ REPLAY_FIELDS = ("obs", "act", "rew", "next_obs", "done")
 REPLAY_LOG, REPLAY_MAGIC, REPLAY_WHAT = "replay.log", b"MACBRPL1", "replay log"
 _HEAD = struct.Struct("<qIH")  # first row, rows, fields
 _FIELD = struct.Struct("<BI")  # name length, width (float32 values per row)
-LEGACY_CHUNK = 1 << 16  # rows per record when a columnar replay is rewritten as a log
+RECORD_BYTES = 64 << 20  # a record holds at most this many bytes of rows
 
 
 def pack_rows(first: int, arrays: dict[str, np.ndarray], width: dict[str, int]) -> bytes:
@@ -76,7 +77,9 @@ def unpack_rows(body: memoryview) -> tuple[int, int, dict[str, np.ndarray]]:
 
 
 class ReplayLog:
-    """The replay rows of a run on disk: one record per cut (see the module doc)."""
+    """The replay rows of a run on disk: records of rows, appended at each cut (see
+    the module doc). Read through a read-only mapping, so a resume holds the buffer's
+    rows once, not the file as well."""
 
     def __init__(self, folder: Path) -> None:
         self.folder = folder
@@ -85,95 +88,133 @@ class ReplayLog:
         self._log: RecordLog | None = None
         self._index: list[tuple[int, int, int]] = []  # (first row, rows, frame offset)
 
-    def _read(self) -> tuple[bytes, list[tuple[int, int, int]]]:
+    def _map(self) -> bytes | mmap.mmap:
         try:
-            data, starts, _, _ = records.read(self.path, REPLAY_MAGIC, REPLAY_WHAT)
+            return records.mapped(self.path, REPLAY_MAGIC, REPLAY_WHAT)
         except RecordLogError as err:
             raise CutError(str(err)) from None
-        index = []
-        for start in starts:
-            first, n, _ = _HEAD.unpack_from(records.body(data, start), 0)
-            index.append((first, n, start))
-        return data, index
+
+    def _scan(self) -> tuple[list[tuple[int, int, int]], int]:
+        """Each whole record's (first row, rows, frame offset), and where they end."""
+        data = self._map()
+        if len(data) < len(REPLAY_MAGIC):  # empty, or killed while writing the header
+            return [], 0
+        starts, valid = records.scan(data, REPLAY_MAGIC)
+        index = [(*_HEAD.unpack_from(data, s + records.FRAME.size)[:2], s) for s in starts]
+        return index, valid
+
+    def _open(self, start: int, width: dict[str, int]) -> None:
+        """This process's first append: a columnar replay of before becomes the log
+        (its first `start` rows, the ones the cut names), a torn tail is cut off."""
+        if not self.path.exists() and self._legacy_path("obs").exists():
+            self._convert_legacy(start, width)
+        for name in width:  # a conversion killed before it removed them
+            self._legacy_path(name).unlink(missing_ok=True)
+        self._index, valid = self._scan()
+        if self.path.exists() and self.path.stat().st_size != valid:
+            os.truncate(self.path, valid)
+        self._log = RecordLog(self.path, REPLAY_MAGIC)
+        self._log.records = len(self._index)
+        self._log.bytes = os.path.getsize(self.path) - len(REPLAY_MAGIC)
 
     def append(self, arrays: dict[str, np.ndarray], start: int, width: dict[str, int]) -> int:
-        """Append rows [start, start + n) (the ones since the last cut) as one record,
-        fsynced; returns bytes written. Rows from `start` on already in the log (a run
-        killed after appending but before its cut was written) are cut off first."""
+        """Append rows [start, start + n) (the ones since the last cut), fsynced; returns
+        bytes written. Rows from `start` on already in the log (a run killed after
+        appending but before its cut was written) are cut off first."""
         if self._log is None:
-            self._index = self._read()[1]  # also refuses a file that is not a replay log
-            self._log = RecordLog.open(self.path, REPLAY_MAGIC, REPLAY_WHAT)[0]
+            self._open(start, width)
+        assert self._log is not None
         end = self._index[-1][0] + self._index[-1][1] if self._index else 0
         if end != start:
             self._cut_from(start, width)
-        offset = len(REPLAY_MAGIC) + self._log.bytes
         n = len(arrays["obs"])
-        written = self._log.append([pack_rows(start, arrays, width)])
+        step = max(1, RECORD_BYTES // (4 * sum(width.values())))
+        written = 0
+        for a in range(0, n, step):
+            part = {k: arrays[k][a : a + step] for k in width}
+            offset = len(REPLAY_MAGIC) + self._log.bytes
+            written += self._log.append([pack_rows(start + a, part, width)])
+            self._index.append((start + a, len(part["obs"]), offset))
         self._log.sync()
-        self._index.append((start, n, offset))
         return written
 
     def _cut_from(self, start: int, width: dict[str, int]) -> None:
-        """Drop the rows from `start` on; a record holding rows on both sides is
-        rewritten with the ones before."""
+        """Drop the rows from `start` on. A record holding rows on both sides makes the
+        log rewritten whole (temporary file, fsync, rename): a kill leaves the old log
+        or the new one, never fewer rows than the cut names."""
         assert self._log is not None
-        keep = [i for i, (first, n, _) in enumerate(self._index) if first + n <= start]
-        i = len(keep)
+        i = sum(1 for first, n, _ in self._index if first + n <= start)
         have = self._index[i - 1][0] + self._index[i - 1][1] if i else 0
-        straddle = i < len(self._index) and self._index[i][0] < start
-        prefix = None
-        if straddle:
-            data, _ = self._read()
-            first, _, rows = unpack_rows(records.body(data, self._index[i][2]))
-            prefix = (first, {k: v[: start - first] for k, v in rows.items()})
-        if i < len(self._index):
+        if i < len(self._index) and self._index[i][0] < start:
+            self._rewrite_to(i, start, width)
+            have = start
+        elif i < len(self._index):
             self._log.truncate(self._index[i][2], kept=i)
             self._index = self._index[:i]
-        if prefix is not None:
-            first, rows = prefix
-            offset = len(REPLAY_MAGIC) + self._log.bytes
-            self._log.append([pack_rows(first, rows, {k: width[k] for k in rows})])
-            self._index.append((first, start - first, offset))
-            have = start
         if have != start:
             raise CutError(f"{self.path}: holds {have} rows, a cut appends from row {start}")
 
+    def _rewrite_to(self, i: int, start: int, width: dict[str, int]) -> None:
+        """The log as records 0..i-1 and record i's rows before `start`."""
+        assert self._log is not None
+        self._log.close()
+        data = self._map()
+        offset = self._index[i][2]
+        first, _, rows = unpack_rows(records.body(data, offset))
+        prefix = pack_rows(first, {k: v[: start - first] for k, v in rows.items()}, width)
+        tmp = self.path.with_name(REPLAY_LOG + ".tmp")
+        with open(tmp, "wb") as f:
+            f.write(data[:offset])
+            f.write(records.frame(prefix))
+            f.flush()
+            os.fsync(f.fileno())
+        del rows, data
+        os.replace(tmp, self.path)
+        fsync_dir(self.folder)
+        self._index = [*self._index[:i], (first, start - first, offset)]
+        self._log = RecordLog(self.path, REPLAY_MAGIC)
+        self._log.records = len(self._index)
+        self._log.bytes = os.path.getsize(self.path) - len(REPLAY_MAGIC)
+
     def read(self, rows: int, width: dict[str, int], where: Path) -> dict[str, np.ndarray]:
         """The first `rows` rows of every field (rew and done as vectors); CutError
-        naming the file if it holds fewer or other fields."""
+        naming the file if it holds fewer or other fields. Reads only: a columnar
+        replay of before is read as it is (the first append converts it)."""
         if not self.path.exists() and self._legacy_path("obs").exists():
             return self._read_legacy(rows, width, where)
-        data, index = self._read()
-        parts: dict[str, list[np.ndarray]] = {name: [] for name in width}
+        out = {name: np.empty((rows, w), np.float32) for name, w in width.items()}
+        have = self._copy_into(out, rows, width)
+        if have < rows:
+            raise CutError(f"{where}: needs {rows} replay rows, {self.path} holds {have}")
+        return {k: v.reshape(-1) if k in ("rew", "done") else v for k, v in out.items()}
+
+    def _copy_into(self, out: dict[str, np.ndarray], rows: int, width: dict[str, int]) -> int:
+        """Copy the log's first rows into `out`; how many it holds (up to `rows`)."""
+        data = self._map()
+        if len(data) < len(REPLAY_MAGIC):
+            return 0
         have = 0
-        for first, _, start in index:
+        for start in records.scan(data, REPLAY_MAGIC)[0]:
             if have >= rows:
                 break
+            first, n, cols = unpack_rows(records.body(data, start))
             if first != have:
                 raise CutError(f"{self.path}: a record starts at row {first}, not {have}")
-            _, n, cols = unpack_rows(records.body(data, start))
             shapes = {k: v.shape[1] for k, v in cols.items()}
             if shapes != width:
                 raise CutError(f"{self.path}: rows of {shapes}, the run's are {width}")
             take = min(n, rows - have)
             for name in width:
-                parts[name].append(cols[name][:take])
+                out[name][have : have + take] = cols[name][:take]
             have += take
-        if have < rows:
-            raise CutError(f"{where}: needs {rows} replay rows, {self.path} holds {have}")
-        out = {}
-        for name, w in width.items():
-            cat = np.concatenate(parts[name]) if parts[name] else np.zeros((0, w), np.float32)
-            out[name] = cat.reshape(-1) if name in ("rew", "done") else cat.reshape(rows, w)
-        return out
+        return have
 
     # ---- runs written before the record log: one raw float32 file per field
     def _legacy_path(self, name: str) -> Path:
         return self.folder / f"replay.{name}.f32"
 
     def _read_legacy(self, rows: int, width: dict[str, int], where: Path) -> dict:
-        """The columnar files' first `rows` rows, rewritten as this folder's replay.log
-        (whole before the columns are removed: a kill leaves one or the other)."""
+        """The columnar files' first `rows` rows."""
         out = {}
         for name, w in width.items():
             p = self._legacy_path(name)
@@ -182,20 +223,24 @@ class ReplayLog:
                 raise CutError(f"{where}: needs {rows} replay rows, {p} holds {have}")
             data = np.fromfile(p, dtype=np.float32, count=rows * w)
             out[name] = data if name in ("rew", "done") else data.reshape(rows, w)
+        return out
+
+    def _convert_legacy(self, rows: int, width: dict[str, int]) -> None:
+        """The columnar files' first `rows` rows written as this folder's replay.log,
+        whole (temporary file, fsync, rename) before the columns are removed."""
+        cols = self._read_legacy(rows, width, self.folder)
         tmp = self.path.with_name(REPLAY_LOG + ".tmp")
         tmp.unlink(missing_ok=True)
         rewritten = RecordLog(tmp, REPLAY_MAGIC)
-        for first in range(0, rows, LEGACY_CHUNK):
-            part = {k: v[first : first + LEGACY_CHUNK] for k, v in out.items()}
+        step = max(1, RECORD_BYTES // (4 * sum(width.values())))
+        for first in range(0, rows, step):
+            part = {k: v[first : first + step] for k, v in cols.items()}
             rewritten.append([pack_rows(first, part, width)])
         rewritten.sync()
         rewritten.close()
         os.replace(tmp, self.path)
         fsync_dir(self.folder)
-        for name in width:
-            self._legacy_path(name).unlink(missing_ok=True)
-        log.info("%s: %d replay rows of columnar files rewritten as %s", where, rows, self.path)
-        return out
+        log.info("%d replay rows of columnar files rewritten as %s", rows, self.path)
 
 
 @dataclass

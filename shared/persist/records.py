@@ -62,6 +62,21 @@ def frame(payload: bytes) -> bytes:
     return FRAME.pack(len(payload), zlib.crc32(payload)) + payload
 
 
+def mapped(path: Path, magic: bytes, what: str) -> bytes | mmap.mmap:
+    """The file mapped read-only (b"" if missing or empty), its header checked as
+    `read` does: nothing of it is copied until read. The mapping closes when the last
+    view of it goes (no explicit close: a view still held would make that fail)."""
+    path = Path(path)
+    if not path.exists() or path.stat().st_size == 0:
+        return b""
+    with open(path, "rb") as f:
+        data = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    head = data[:MAGIC_BYTES]
+    if head != magic and not (magic.startswith(head) and len(data) < MAGIC_BYTES):
+        raise RecordLogError(f"{path}: not a MACB {what} (header {head!r})")
+    return data
+
+
 def read(path: Path, magic: bytes, what: str) -> tuple[bytes, list[int], int, bool]:
     """A whole log: (its bytes, each record's frame offset, the valid prefix's length,
     whether a tail past it was cut short). A missing or empty file is an empty log; a
@@ -110,8 +125,11 @@ class RecordLog:
         return log, data, starts
 
     def append(self, payloads: Iterable[bytes]) -> int:
-        """Write records (one write, one flush); the bytes written."""
+        """Write records (one write, one flush); the bytes written. A payload over
+        MAX_RECORD is refused (ValueError): it could not be read back."""
         frames = [frame(p) for p in payloads]
+        if any(len(f) - FRAME.size > MAX_RECORD for f in frames):
+            raise ValueError(f"{self.path}: a record over {MAX_RECORD} bytes")
         data = b"".join(frames)
         self._f.write(data)
         self._f.flush()
