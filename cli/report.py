@@ -21,7 +21,6 @@ The definitions, stated once here and in every FIGURE.md:
 from __future__ import annotations
 
 import csv
-import hashlib
 import json
 import math
 from collections import Counter
@@ -78,9 +77,9 @@ class ArmCurve:
     raw: dict[str, np.ndarray]  # the mean over seeds of the points as stored
     metric: str = "success_rate"
     window: int = 1
-    # per seed, a digest of every point the run stored (episode, success, return,
-    # collisions): two arms with equal traces are the same runs, point for point
-    traces: dict[int, str] = field(default_factory=dict)
+    # per seed, every point the run stored as (episode, success, return, collisions)
+    # rows: two arms whose traces agree as far as both go are the same runs
+    traces: dict[int, np.ndarray] = field(default_factory=dict)
 
     @property
     def length(self) -> int:
@@ -200,12 +199,21 @@ def arm_curve(
 TRACED = ("episode", "success_rate", "eval_return", "collisions_cum")
 
 
-def _trace(points: Columns) -> str:
-    """A digest of a run's stored points: equal for two runs that gave the same rows."""
-    h = hashlib.sha256()
-    for f in TRACED:
-        h.update(np.ascontiguousarray(points[f], dtype=float).tobytes())
-    return h.hexdigest()
+def _trace(points: Columns) -> np.ndarray:
+    return np.stack([np.asarray(points[f], dtype=float) for f in TRACED], axis=1)
+
+
+def same_runs(mine: ArmCurve, theirs: ArmCurve) -> bool:
+    """Every seed of both arms gave the same points as far as both runs went (one may
+    have been stopped sooner): the same runs, not two that happen to end alike."""
+    if not mine.traces or mine.traces.keys() != theirs.traces.keys():
+        return False
+    for seed, a in mine.traces.items():
+        b = theirs.traces[seed]
+        n = min(len(a), len(b))
+        if n == 0 or not np.array_equal(a[:n], b[:n], equal_nan=True):
+            return False
+    return True
 
 
 def _num(x: Any) -> float:
@@ -300,7 +308,7 @@ def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]
         if not len(mine.episodes) or not len(theirs.episodes):
             out.append((arm_def.name, control, _summary(a, mine), _summary(a, theirs), "no points"))
             continue
-        if mine.traces and mine.traces == theirs.traces:  # every seed's rows equal
+        if same_runs(mine, theirs):
             verdict = f"the same runs as the control, point for point: {SAME_RUNS}"
         elif _score(a, mine) < _score(a, theirs):
             verdict = "beats the control"

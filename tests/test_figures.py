@@ -292,10 +292,18 @@ def test_an_arm_whose_runs_are_its_controls_runs_is_said_to_be_them():
         "the same runs as the control, point for point: " + report.SAME_RUNS
     )
     assert controls["beta=0.6"] == "beats the control"
+    for seed in (0, 1):  # the controls stopped halfway: as far as both went, the same
+        del points[run_of[("constant beta=0.8 (control)", seed)]][250:]
+    controls = {c[0]: c[4] for c in report.control_verdicts(report.analyse(fig, exp, points))}
+    assert controls["beta=0.8"] == (
+        "the same runs as the control, point for point: "
+        + report.SAME_RUNS
+        + " (at 2,500 of 5,000 episodes)"
+    )
     other = points[run_of[("constant beta=0.8 (control)", 1)]]
     other[-1] = {**other[-1], "eval_return": -1.5}  # one seed's last point differs
     controls = {c[0]: c[4] for c in report.control_verdicts(report.analyse(fig, exp, points))}
-    assert controls["beta=0.8"] == "does not beat the control"
+    assert controls["beta=0.8"] == "does not beat the control (at 2,500 of 5,000 episodes)"
 
 
 def test_fig8_reports_success_at_its_milestones_and_fig7_the_collisions():
