@@ -111,11 +111,7 @@ class ReplayLog:
         for name in width:  # a conversion killed before it removed them
             self._legacy_path(name).unlink(missing_ok=True)
         self._index, valid = self._scan()
-        if self.path.exists() and self.path.stat().st_size != valid:
-            os.truncate(self.path, valid)
-        self._log = RecordLog(self.path, REPLAY_MAGIC)
-        self._log.records = len(self._index)
-        self._log.bytes = os.path.getsize(self.path) - len(REPLAY_MAGIC)
+        self._log = RecordLog.resume(self.path, REPLAY_MAGIC, valid, len(self._index))
 
     def append(self, arrays: dict[str, np.ndarray], start: int, width: dict[str, int]) -> int:
         """Append rows [start, start + n) (the ones since the last cut), fsynced; returns
@@ -172,9 +168,8 @@ class ReplayLog:
         os.replace(tmp, self.path)
         fsync_dir(self.folder)
         self._index = [*self._index[:i], (first, start - first, offset)]
-        self._log = RecordLog(self.path, REPLAY_MAGIC)
-        self._log.records = len(self._index)
-        self._log.bytes = os.path.getsize(self.path) - len(REPLAY_MAGIC)
+        size = os.path.getsize(self.path)
+        self._log = RecordLog.resume(self.path, REPLAY_MAGIC, size, len(self._index))
 
     def read(self, rows: int, width: dict[str, int], where: Path) -> dict[str, np.ndarray]:
         """The first `rows` rows of every field (rew and done as vectors); CutError

@@ -114,15 +114,20 @@ class RecordLog:
     def open(cls, path: Path, magic: bytes, what: str) -> tuple[RecordLog, bytes, list[int]]:
         """The log at `path` for appending, with what it held: (log, its bytes, each
         whole record's frame offset). A torn tail is cut off first."""
+        data, starts, valid, _ = read(path, magic, what)
+        return cls.resume(path, magic, valid, len(starts)), data, starts
+
+    @classmethod
+    def resume(cls, path: Path, magic: bytes, valid: int, records: int) -> RecordLog:
+        """The log at `path` for appending after a read found `records` whole records
+        in its first `valid` bytes: anything past them (a torn tail) is cut off."""
         path = Path(path)
-        data, starts, valid, torn = read(path, magic, what)
-        if torn:
-            with open(path, "r+b") as f:
-                f.truncate(valid)
+        if path.exists() and path.stat().st_size > valid:
+            os.truncate(path, valid)
         log = cls(path, magic)
-        log.records = len(starts)
+        log.records = records
         log.bytes = max(0, valid - len(magic))
-        return log, data, starts
+        return log
 
     def append(self, payloads: Iterable[bytes]) -> int:
         """Write records (one write, one flush); the bytes written. A payload over

@@ -119,14 +119,8 @@ class WriteAheadLog:
     @classmethod
     def open(cls, path: Path) -> tuple[WriteAheadLog, list[WalRecord]]:
         """Read what an earlier process logged, cut a torn tail, and open for appending."""
-        path = Path(path)
-        found, valid, torn = read_wal(path)
-        if torn:
-            with open(path, "r+b") as f:
-                f.truncate(valid)
-        log = RecordLog(path, MAGIC)
-        log.records, log.bytes = len(found), max(0, valid - len(MAGIC))
-        return cls(path, log), found
+        found, valid, _ = read_wal(path)
+        return cls(path, RecordLog.resume(path, MAGIC, valid, len(found))), found
 
     def append(self, actor: str, seq: int, n: int, keys: list[np.ndarray]) -> None:
         """Write one record and hand it to the OS before returning."""
