@@ -275,7 +275,8 @@ def test_a_short_run_says_so_and_a_wrong_curve_is_not_reproduced():
     assert "(runs reached 300 of 5,000 episodes)" in result[0][1]
     md = render.markdown(short, "thesis")
     assert "0 reproduced, 0 not reproduced, 3 not run to that length." in md
-    assert "beats the control (at 300 of 5,000 episodes)" in md or "(at 300 of 5,000" in md
+    assert "not run to that length (300 of 5,000 episodes); so far" in md
+    assert "**beats the control" not in md, "no verdict on the figure's length before it"
 
 
 def test_an_arm_whose_runs_are_its_controls_runs_is_said_to_be_them():
@@ -304,7 +305,9 @@ def test_an_arm_whose_runs_are_its_controls_runs_is_said_to_be_them():
     other = points[run_of[("constant beta=0.8 (control)", 1)]]
     other[-1] = {**other[-1], "eval_return": -1.5}  # one seed's last point differs
     controls = {c[0]: c[4] for c in analysis.control_verdicts(analysis.analyse(fig, exp, points))}
-    assert controls["beta=0.8"] == "does not beat the control (at 2,500 of 5,000 episodes)"
+    assert controls["beta=0.8"] == (
+        "not run to that length (2,500 of 5,000 episodes); so far does not beat the control"
+    )
 
 
 def test_fig8_reports_success_at_its_milestones_and_fig7_the_collisions():

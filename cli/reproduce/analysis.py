@@ -37,6 +37,16 @@ CONVERGED = 0.9
 METRICS = ("success_rate", "collisions_cum", "count1_pct")
 UNSMOOTHED = ("collisions_cum",)  # cumulative: smooth by construction
 CSV_COLUMNS = ("arm", "seed", "run", "episode", "env_steps", *METRICS, "eval_return")
+# Read besides the CSV's: what a counting arm paid (cli/reproduce/why.py) and each run's
+# own clock (cli/reproduce/status.py).
+LOADED = (*CSV_COLUMNS[4:], "bonus_mean", "bonus_std", "wall_s")
+BANDS = {
+    "std": "mean +- one standard deviation over seeds",
+    "ci75": "the 75% confidence interval of the mean over seeds (bootstrap: the 12.5th to "
+    "87.5th percentile of the mean over every resample of the seeds with replacement, "
+    "as seaborn's `ci=75` draws it)",
+}
+EXACT_BOOTSTRAP_SEEDS = 4  # up to n seeds every one of the n**n resamples; beyond, 1,000
 
 
 def smooth(values: np.ndarray, share: float = SMOOTH_SHARE) -> np.ndarray:
@@ -75,6 +85,17 @@ class ArmCurve:
     # per seed, every point the run stored as (episode, success, return, collisions)
     # rows: two arms whose traces agree as far as both go are the same runs
     traces: dict[int, np.ndarray] = field(default_factory=dict)
+    smoothed: dict[str, np.ndarray] = field(default_factory=dict)  # (seeds, points) each
+    band_kind: str = "std"  # the band drawn around the mean: a key of BANDS
+
+    def band(self, metric: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) of the band drawn around the mean curve, at each episode."""
+        metric = metric or self.metric
+        m = self.mean.get(metric, np.zeros(0))
+        if self.band_kind == "ci75" and metric in self.smoothed:
+            return bootstrap_ci(self.smoothed[metric], 75.0)
+        s = self.std.get(metric, np.zeros(0))
+        return m - s, m + s
 
     @property
     def length(self) -> int:
@@ -145,7 +166,7 @@ def columns(points: list[dict[str, Any]]) -> Columns:
     take gigabytes, as columns a few megabytes per run. A repeated episode is kept once."""
     rows = sorted({int(p["episode"]): p for p in points if "episode" in p}.items())
     out = {"episode": np.array([e for e, _ in rows], dtype=np.int64)}
-    for f in CSV_COLUMNS[4:]:
+    for f in LOADED:
         out[f] = np.array([_num(p.get(f)) for _, p in rows], dtype=float)
     return out
 
@@ -154,10 +175,36 @@ def as_columns(points: Columns | list[dict[str, Any]]) -> Columns:
     return columns(points) if isinstance(points, list) else points
 
 
+def bootstrap_ci(stack: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """The percentile bootstrap interval of the mean over the rows of `stack` (seeds x
+    points), at each point: exact (every resample of the n seeds with replacement) up to
+    EXACT_BOOTSTRAP_SEEDS seeds, else 1,000 resamples of a fixed seed, so a page rebuilt
+    from the same runs draws the same band."""
+    n = len(stack)
+    if n == 0 or not stack.shape[1]:
+        return np.zeros(0), np.zeros(0)
+    if n <= EXACT_BOOTSTRAP_SEEDS:
+        idx = np.stack(np.meshgrid(*[np.arange(n)] * n, indexing="ij"), -1).reshape(-1, n)
+    else:
+        idx = np.random.default_rng(0).integers(0, n, size=(1000, n))
+    q = [50 - level / 2, 50 + level / 2]
+    lo, hi = np.empty(stack.shape[1]), np.empty(stack.shape[1])
+    for a in range(0, stack.shape[1], 4096):  # bounded memory on 50,000-point curves
+        means = stack[:, a : a + 4096][idx].mean(axis=1)
+        lo[a : a + 4096], hi[a : a + 4096] = np.percentile(means, q, axis=0)
+    return lo, hi
+
+
 def arm_curve(
-    name: str, runs: list[dict[str, Any]], points: dict[str, Columns], metric: str
+    name: str,
+    runs: list[dict[str, Any]],
+    points: dict[str, Columns],
+    metric: str,
+    only: np.ndarray | None = None,
+    band: str = "std",
 ) -> ArmCurve:
-    """Smooth each seed's curves, then mean and std over seeds at the shared episodes."""
+    """Smooth each seed's curves, then mean and std over seeds at the shared episodes
+    (or at `only`'s, those of the arm this is one seed of)."""
     empty = columns([])
     series = [points.get(r["id"], empty) for r in runs]
     shared = np.arange(0)
@@ -165,7 +212,9 @@ def arm_curve(
         shared = series[0]["episode"]
         for s in series[1:]:
             shared = np.intersect1d(shared, s["episode"])
-    mean, std, raw = {}, {}, {}
+    if only is not None:
+        shared = np.intersect1d(shared, only)
+    mean, std, raw, stacks = {}, {}, {}, {}
     for m in METRICS:
         rows, smoothed = [], []
         for s in series:
@@ -175,7 +224,8 @@ def arm_curve(
         if not len(shared):
             mean[m] = std[m] = raw[m] = np.zeros(0)
             continue
-        mean[m], std[m] = np.stack(smoothed).mean(axis=0), np.stack(smoothed).std(axis=0)
+        stacks[m] = np.stack(smoothed)
+        mean[m], std[m] = stacks[m].mean(axis=0), stacks[m].std(axis=0)
         raw[m] = np.stack(rows).mean(axis=0)
     return ArmCurve(
         name=name,
@@ -188,6 +238,8 @@ def arm_curve(
         metric=metric,
         window=window_points(len(shared)),
         traces={r["seed"]: _trace(s) for r, s in zip(runs, series) if len(s["episode"])},
+        smoothed=stacks,
+        band_kind=band,
     )
 
 
@@ -220,9 +272,33 @@ class Analysis:
     fig: FigureDef
     arms: dict[str, ArmCurve]
     experiment: dict[str, Any] = field(default_factory=dict)
+    points: dict[str, Columns] = field(default_factory=dict)  # per run
+    _seeds: dict[int, Analysis] = field(default_factory=dict, repr=False)
 
     def arm(self, name: str) -> ArmCurve:
         return self.arms[name]
+
+    @property
+    def seeds(self) -> list[int]:
+        return list(self.experiment.get("seeds") or [])
+
+    def for_seed(self, seed: int) -> Analysis:
+        """The figure as one seed ran it: each arm's run of that seed alone, at the
+        episodes its arm's mean is taken at (so the mean of the seeds' values at an
+        episode is the arm's value there)."""
+        if seed not in self._seeds:
+            arms = {
+                n: arm_curve(
+                    n,
+                    [r for r in self.experiment["runs"] if r["arm"] == n and r["seed"] == seed],
+                    self.points,
+                    self.fig.metric,
+                    only=arm.episodes,
+                )
+                for n, arm in self.arms.items()
+            }
+            self._seeds[seed] = Analysis(self.fig, arms, self.experiment, self.points)
+        return self._seeds[seed]
 
 
 def analyse(
@@ -234,8 +310,8 @@ def analyse(
     by_arm: dict[str, list[dict]] = {a.name: [] for a in fig.arms}
     for r in exp["runs"]:
         by_arm.setdefault(r["arm"], []).append(r)
-    arms = {n: arm_curve(n, runs, cols, fig.metric) for n, runs in by_arm.items()}
-    return Analysis(fig, arms, exp)
+    arms = {n: arm_curve(n, runs, cols, fig.metric, band=fig.band) for n, runs in by_arm.items()}
+    return Analysis(fig, arms, exp, cols)
 
 
 # ---------------------------------------------------------------- verdicts
@@ -303,15 +379,19 @@ def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]
         if not len(mine.episodes) or not len(theirs.episodes):
             out.append((arm_def.name, control, summary(a, mine), summary(a, theirs), "no points"))
             continue
-        if same_runs(mine, theirs):
-            verdict = f"the same runs as the control, point for point: {SAME_RUNS}"
-        elif _score(a, mine) < _score(a, theirs):
-            verdict = "beats the control"
-        else:
-            verdict = "does not beat the control"
         length = min(mine.length, theirs.length)
-        if length < a.fig.episodes:
-            verdict += f" (at {length:,} of {a.fig.episodes:,} episodes)"
+        if same_runs(mine, theirs):  # a fact as far as both went, at any length
+            verdict = f"the same runs as the control, point for point: {SAME_RUNS}"
+            if length < a.fig.episodes:
+                verdict += f" (at {length:,} of {a.fig.episodes:,} episodes)"
+        else:
+            verdict = "beats the control"
+            if _score(a, mine) >= _score(a, theirs):
+                verdict = "does not beat the control"
+            if length < a.fig.episodes:  # a verdict about the figure's length: not yet
+                verdict = (
+                    f"{TOO_SHORT} ({length:,} of {a.fig.episodes:,} episodes); so far {verdict}"
+                )
         out.append((arm_def.name, control, summary(a, mine), summary(a, theirs), verdict))
     return out
 

@@ -117,6 +117,14 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         help="train nothing: rebuild OUT/FIGURE.png/.md/.csv from the runs a --local "
         "reproduce stored in OUT/runs/",
     )
+    rp.add_argument(
+        "--status",
+        action="store_true",
+        help="train nothing: print each run's episode of its target, its speed over the "
+        "last hour of its own clock and the figure's projected finish, from the runs a "
+        "--local reproduce stores in OUT/runs/ (or --runs; give the same --profile, "
+        "--arms, --episodes as the run). Reads the folders only: safe while it trains",
+    )
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     rp.add_argument("--quiet-services", action="store_true", help="service logs to files only")
     rp.set_defaults(func=cmd_reproduce)
@@ -142,7 +150,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
             body = select_arms(fig, body, args.arms)
         if args.threads is not None:
             body["threads"] = args.threads
-        if not (args.local or args.report_only):  # groups always run the thesis's loop
+        if not (args.local or args.report_only or args.status):  # groups: the thesis's loop
             body["interleave"] = args.interleave
         body["name"] = experiment_name(fig, body)
         ExperimentCreate.model_validate(body)  # refused here, before any process starts
@@ -150,6 +158,13 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         return _refuse(str(err))
     suffix = f"-{args.precision}" if args.precision not in (None, "fp32") else ""
     out = Path(args.out or f"runs/reproduce/{fig.name}-{args.profile}{suffix}")
+    if args.status:
+        from cli.local import expand_body
+        from cli.reproduce.status import print_status
+
+        _, _, runs = expand_body(body)
+        runs_dir = Path(args.runs) if args.runs else out / "runs"
+        return print_status(f"{fig.name}, profile {args.profile}", runs, runs_dir, fig.episodes)
     if args.local or args.report_only:
         return reproduce_local(fig, body, args.profile, out, args)
     url = (args.api or _env_url() or DEFAULT_URL).rstrip("/")

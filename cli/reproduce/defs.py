@@ -48,6 +48,9 @@ class FigureDef:
     # differs from the text's (docs/fidelity.md, "The thesis repo's loops, and which one
     # produced which result").
     thesis_method: tuple[tuple[str, Any], ...] = ()
+    # The band drawn around each arm's mean (cli/reproduce/analysis.py BANDS): "std",
+    # or "ci75", the thesis's 75% confidence interval over seeds (§6 l.373, seaborn).
+    band: str = "std"
 
     def arm(self, name: str) -> ArmDef:
         (arm,) = [a for a in self.arms if a.name == name]

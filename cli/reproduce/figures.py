@@ -304,6 +304,7 @@ FIG8 = FigureDef(
     ),
     note="Two controls: the constant bonus at each bonus arm's beta and reward (0.8 "
     "sparse, 0.1 distance).",
+    band="ci75",
 )
 
 # Table 2 (§6.4 l.445-453): (sr %, c-1 %) after 4e4 episodes per (k, beta).

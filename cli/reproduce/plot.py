@@ -14,6 +14,7 @@ from cli.reproduce.analysis import Analysis, ArmCurve, count1
 from cli.reproduce.experiments import arm_configs
 
 LABELS = {"success_rate": "success rate", "collisions_cum": "cumulative collisions"}
+BAND_TITLES = {"std": "band ± one std", "ci75": "band: 75% CI of the mean (bootstrap over seeds)"}
 
 
 def legend_text(arm: ArmCurve) -> str:
@@ -35,12 +36,12 @@ def draw(a: Analysis, profile: str) -> tuple[Any, list[str]]:
     metric = a.fig.metric
     drawn = [arm for arm in a.arms.values() if len(arm.episodes)]
     for arm, color in zip(drawn, palette(len(drawn)), strict=True):
-        m, s = arm.mean[metric], arm.std[metric]
+        m, (lo, hi) = arm.mean[metric], arm.band(metric)
         dashed = "control" in arm.name
         ax.plot(
             arm.episodes, m, lw=1.5, color=color, ls="--" if dashed else "-", label=legend_text(arm)
         )
-        ax.fill_between(arm.episodes, m - s, m + s, color=color, alpha=0.18, lw=0)
+        ax.fill_between(arm.episodes, lo, hi, color=color, alpha=0.18, lw=0)
     ax.set_xlabel("training episodes")
     ax.set_ylabel(LABELS.get(metric, metric))
     if metric == "success_rate":
@@ -49,7 +50,7 @@ def draw(a: Analysis, profile: str) -> tuple[Any, list[str]]:
     window = sorted({arm.window for arm in drawn})
     ax.set_title(
         f"{a.fig.title} (profile {profile})\nsmoothed (moving average, "
-        f"{'/'.join(map(str, window)) or '-'} points), mean over seeds, band ± one std",
+        f"{'/'.join(map(str, window)) or '-'} points), mean over seeds, {BAND_TITLES[a.fig.band]}",
         fontsize=9,
     )
     legend: list[str] = []

@@ -9,12 +9,14 @@ from __future__ import annotations
 import csv
 import json
 import math
+import time
 from collections import Counter
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from cli.reproduce.analysis import (
+    BANDS,
     CONVERGED,
     CSV_COLUMNS,
     LEARNED,
@@ -33,11 +35,22 @@ from cli.reproduce.analysis import (
 )
 from cli.reproduce.experiments import arm_configs, split_base
 from cli.reproduce.plot import write_png
+from cli.reproduce.status import from_points, page_line
+from cli.reproduce.why import claim_per_seed, why_section
 from cli.results import claims_record
 
 
 def _fmt_point(point: dict[str, Any]) -> str:
     return ", ".join(f"{k}={json.dumps(v)}" for k, v in point.items()) or "(the base)"
+
+
+def _band_text(band: str) -> str:
+    if band == "std":  # the pages before the thesis's band was drawn say it so
+        return (
+            "band: mean +- one standard deviation over seeds (the thesis also draws a 75% "
+            "confidence interval, not drawn here)."
+        )
+    return f"band: {BANDS[band]}, the band the thesis draws (§6 l.373, with seaborn: l.525)."
 
 
 def _milestone(arm: ArmCurve, episode: int, metric: str) -> str:
@@ -104,12 +117,12 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         f"- Profile `{profile}`; seeds {exp.get('seeds', [])}; the thesis ran 3 seeds of "
         f"{fig.episodes:,} episodes; these runs reached "
         f"{', '.join(f'{n:,}' for n in sorted(lengths))} episodes.",
+        page_line(from_points(exp, a.points, fig.episodes), time.time()),
         f"- Base config (every arm): {_fmt_point(base)}.",
         f"- Smoothing: centred moving average over {SMOOTH_SHARE:.0%} of each seed's "
         f"evaluation points (W = {', '.join(map(str, window))} point(s); the window shrinks "
         "symmetrically at the ends, which go unsmoothed; cumulative collisions are not "
-        "smoothed), then the mean over seeds; band: mean +- one standard deviation over "
-        "seeds (the thesis also draws a 75% confidence interval, not drawn here).",
+        f"smoothed), then the mean over seeds; {_band_text(fig.band)}",
         f"- Plateau: the mean over seeds and over the last {PLATEAU_SHARE:.0%} of the "
         f"points. Episodes to convergence: the first episode where the smoothed mean "
         f"reaches {CONVERGED:.0%} of the plateau, if the plateau is at least {LEARNED:.0%} "
@@ -160,13 +173,16 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         "",
         "## Claims",
         "",
-        "| # | the thesis says | where | the thesis | measured | verdict |",
+        "| # | the thesis says | where | the thesis | measured (mean over seeds) | per seed "
+        "| verdict |",
     ]
-    lines.append("|---|---|---|---|---|---|")
+    lines.append("|---|---|---|---|---|---|---|")
     verdicts = claim_verdicts(a)
     for i, (claim, text, verdict) in enumerate(verdicts, 1):
+        seeds = claim_per_seed(a, claim.check)
         lines.append(
-            f"| {i} | {claim.text} | {claim.where} | {claim.thesis} | {text} | **{verdict}** |"
+            f"| {i} | {claim.text} | {claim.where} | {claim.thesis} | {text} | {seeds} "
+            f"| **{verdict}** |"
         )
     tally = {v: sum(1 for *_, x in verdicts if x == v) for v in (REPRODUCED, NOT_REPRODUCED)}
     too_short = len(verdicts) - sum(tally.values())
@@ -174,6 +190,7 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         "",
         f"{tally[REPRODUCED]} reproduced, {tally[NOT_REPRODUCED]} not reproduced, "
         f"{too_short} not run to that length.",
+        *why_section(a),
         "",
         "## Against the control",
         "",
