@@ -13,6 +13,7 @@ import yaml
 from PIL import Image
 
 from cli.reproduce import analysis, experiments, figures, render
+from cli.reproduce.controls import SAME_RUNS, control_verdicts
 from cli.reproduce.experiments import arm_configs, control_of, experiment_body
 from cli.reproduce.figures import FIGURES, PROFILES
 from services.api.schemas import ExperimentCreate
@@ -239,7 +240,7 @@ def test_fig3_as_the_thesis_reports_it_reproduces_every_claim(tmp_path):
     assert a.arm("beta=1.2").converged is None
     verdicts = analysis.claim_verdicts(a)
     assert [v for *_, v in verdicts] == ["reproduced"] * 3, verdicts
-    controls = analysis.control_verdicts(a)
+    controls = control_verdicts(a)
     assert [(c[0], c[1], c[4]) for c in controls] == [
         ("beta=0.2", "constant beta=0.2 (control)", "beats the control"),
         ("beta=0.4", "constant beta=0.4 (control)", "beats the control"),
@@ -267,7 +268,7 @@ def test_a_short_run_says_so_and_a_wrong_curve_is_not_reproduced():
     a = analysis.analyse(fig, *synthetic(fig, shapes, 5000))
     verdicts = [v for *_, v in analysis.claim_verdicts(a)]
     assert verdicts == ["reproduced", "not reproduced", "not reproduced"]
-    controls = {c[0]: c[4] for c in analysis.control_verdicts(a)}
+    controls = {c[0]: c[4] for c in control_verdicts(a)}
     assert controls["beta=0.8"] == "does not beat the control"
     short = analysis.analyse(fig, *synthetic(fig, FIG3_AS_THESIS, 300))
     result = analysis.claim_verdicts(short)
@@ -289,22 +290,20 @@ def test_an_arm_whose_runs_are_its_controls_runs_is_said_to_be_them():
     for seed in (0, 1):
         mine = points[run_of[("beta=0.8", seed)]]
         points[run_of[("constant beta=0.8 (control)", seed)]] = [dict(p) for p in mine]
-    controls = {c[0]: c[4] for c in analysis.control_verdicts(analysis.analyse(fig, exp, points))}
-    assert controls["beta=0.8"] == (
-        "the same runs as the control, point for point: " + analysis.SAME_RUNS
-    )
+    controls = {c[0]: c[4] for c in control_verdicts(analysis.analyse(fig, exp, points))}
+    assert controls["beta=0.8"] == ("the same runs as the control, point for point: " + SAME_RUNS)
     assert controls["beta=0.6"] == "beats the control"
     for seed in (0, 1):  # the controls stopped halfway: as far as both went, the same
         del points[run_of[("constant beta=0.8 (control)", seed)]][250:]
-    controls = {c[0]: c[4] for c in analysis.control_verdicts(analysis.analyse(fig, exp, points))}
+    controls = {c[0]: c[4] for c in control_verdicts(analysis.analyse(fig, exp, points))}
     assert controls["beta=0.8"] == (
         "the same runs as the control, point for point: "
-        + analysis.SAME_RUNS
+        + SAME_RUNS
         + " (at 2,500 of 5,000 episodes)"
     )
     other = points[run_of[("constant beta=0.8 (control)", 1)]]
     other[-1] = {**other[-1], "eval_return": -1.5}  # one seed's last point differs
-    controls = {c[0]: c[4] for c in analysis.control_verdicts(analysis.analyse(fig, exp, points))}
+    controls = {c[0]: c[4] for c in control_verdicts(analysis.analyse(fig, exp, points))}
     assert controls["beta=0.8"] == (
         "not run to that length (2,500 of 5,000 episodes); so far does not beat the control"
     )
@@ -345,7 +344,7 @@ def test_fig8_reports_success_at_its_milestones_and_fig7_the_collisions():
         "not reproduced",  # Dis-MADDPG + Cen-MACB: 0.9x, not "vastly" fewer
         "reproduced",
     ]
-    controls = {c[0]: c[4] for c in analysis.control_verdicts(b)}
+    controls = {c[0]: c[4] for c in control_verdicts(b)}
     assert controls["Cen-MADDPG + Cen-MACB"] == "beats the control"
     assert controls["Dis-MADDPG + Cen-MACB"] == "beats the control"  # 0.9 of 1.0
     assert controls["Cen-MADDPG + Dis-MACB"] == "does not beat the control"  # as many

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from cli.reproduce.defs import FigureDef
-from cli.reproduce.experiments import arm_configs, control_of, counts
+from cli.reproduce.experiments import counts
 
 SMOOTH_SHARE = 0.02
 PLATEAU_SHARE = 0.10
@@ -334,65 +334,6 @@ def claim_verdicts(a: Analysis) -> list[tuple[Any, str, str]]:
         else:
             verdict = REPRODUCED if ok else NOT_REPRODUCED
         out.append((claim, text, verdict))
-    return out
-
-
-def _score(a: Analysis, arm: ArmCurve) -> tuple[float, float]:
-    """Smaller is better: (episodes to convergence or inf, -final success); for
-    collisions the final count."""
-    if a.fig.metric == "collisions_cum":
-        return (arm.final, 0.0)
-    if a.fig.kind == "table":
-        return (-arm.final, 0.0)
-    conv = arm.converged
-    return (float(conv) if conv is not None else math.inf, -arm.final)
-
-
-def summary(a: Analysis, arm: ArmCurve) -> str:
-    if not len(arm.episodes):
-        return "no points"
-    if a.fig.metric == "collisions_cum":
-        return f"{arm.final:,.0f} collisions"
-    conv = arm.converged
-    head = f"converged at {conv:,}" if conv is not None and a.fig.kind != "table" else ""
-    tail = f"final {arm.final:.0%}"
-    return f"{head}, {tail}" if head else tail
-
-
-SAME_RUNS = "counting gave every reward the constant's bonus"
-
-
-def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]:
-    """(MACB arm, its control, MACB measured, control measured, verdict) per MACB arm:
-    does counting beat the constant bonus of the same beta (the control's point)?"""
-    configs = arm_configs(a.fig)
-    out = []
-    for arm_def in a.fig.arms:
-        if not counts(configs[arm_def.name]):
-            continue
-        control = control_of(a.fig, arm_def.name)
-        mine = a.arm(arm_def.name)
-        if control is None:
-            out.append((arm_def.name, None, summary(a, mine), "-", "no control at its beta"))
-            continue
-        theirs = a.arm(control)
-        if not len(mine.episodes) or not len(theirs.episodes):
-            out.append((arm_def.name, control, summary(a, mine), summary(a, theirs), "no points"))
-            continue
-        length = min(mine.length, theirs.length)
-        if same_runs(mine, theirs):  # a fact as far as both went, at any length
-            verdict = f"the same runs as the control, point for point: {SAME_RUNS}"
-            if length < a.fig.episodes:
-                verdict += f" (at {length:,} of {a.fig.episodes:,} episodes)"
-        else:
-            verdict = "beats the control"
-            if _score(a, mine) >= _score(a, theirs):
-                verdict = "does not beat the control"
-            if length < a.fig.episodes:  # a verdict about the figure's length: not yet
-                verdict = (
-                    f"{TOO_SHORT} ({length:,} of {a.fig.episodes:,} episodes); so far {verdict}"
-                )
-        out.append((arm_def.name, control, summary(a, mine), summary(a, theirs), verdict))
     return out
 
 

@@ -29,14 +29,12 @@ from cli.reproduce.analysis import (
     Columns,
     as_columns,
     claim_verdicts,
-    control_verdicts,
     count1,
-    summary,
 )
+from cli.reproduce.controls import claim_per_seed, control_verdicts, summary, why_section
 from cli.reproduce.experiments import arm_configs, split_base
 from cli.reproduce.plot import write_png
 from cli.reproduce.status import from_points, page_line
-from cli.reproduce.why import claim_per_seed, why_section
 from cli.results import claims_record
 
 
