@@ -56,6 +56,20 @@ def test_each_arm_is_a_valid_config_and_the_experiment_expands(name, profile):
         assert r["config"].model_copy(update={"precision": "fp32"}) == s["config"], r["arm"]
 
 
+def test_an_arm_counts_exactly_when_its_run_config_counts():
+    """One rule (shared.config.COUNTING_EXPLORE) for an arm's file, where a missing
+    `explore` is the default's, and for the run config built from it."""
+    for fig in FIGURES.values():
+        for arm in fig.arms:
+            file = arm_configs(fig)[arm.name]
+            run = experiments.full_config(fig, arm.name, "mpe2")
+            assert experiments.counts(file) == run.counts == (run.explore in MACB_MODES)
+    assert experiments.counts({}) and not experiments.counts({"explore": "constant"})
+
+
+MACB_MODES = ("dis-macb", "cen-macb")
+
+
 @pytest.mark.parametrize("name", list(FIGURES))
 def test_every_count_bonus_arm_has_a_constant_control_of_the_same_beta(name):
     fig = FIGURES[name]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -206,7 +207,7 @@ def why_rows(a: Analysis) -> list[list[str]]:
     return rows
 
 
-def _c1(a: Analysis, name: str, config: dict) -> float | None:
+def _c1(a: Analysis, name: str, config: dict[str, Any]) -> float | None:
     v = count1(a, name, config)
     return None if v is None else v / 100
 
@@ -238,17 +239,17 @@ def why_section(a: Analysis) -> list[str]:
     return lines
 
 
-def claim_per_seed(a: Analysis, check: object) -> str:
+def claim_per_seed(a: Analysis, check: Any) -> str:
     """A claim measured on each seed's runs alone (an arm's name dropped when the claim
     is about one arm)."""
-    arms = check.arms()  # type: ignore[attr-defined]
+    arms = check.arms()
     parts = []
     for s in a.seeds:
         one = a.for_seed(s)
         if min((one.arm(n).length for n in arms), default=0) == 0:
             parts.append(f"s{s}: no points")
             continue
-        text, _ = check.measure(one)  # type: ignore[attr-defined]
+        text, _ = check.measure(one)
         if len(arms) == 1:
             text = text.removeprefix(f"{arms[0]}: ")
         parts.append(f"s{s}: {text}")

@@ -14,7 +14,7 @@ from cli.reproduce.analysis import Analysis, ArmCurve, count1
 from cli.reproduce.experiments import arm_configs
 
 LABELS = {"success_rate": "success rate", "collisions_cum": "cumulative collisions"}
-BAND_TITLES = {"std": "band ± one std", "ci75": "band: 75% CI of the mean (bootstrap over seeds)"}
+BAND_TITLES = {"std": "band ± one std", "ci75": "band: 75% CI over seeds (bootstrap)"}
 
 
 def legend_text(arm: ArmCurve) -> str:

@@ -129,7 +129,9 @@ class FigureProgress:
         )
 
 
-def from_points(exp: dict[str, Any], points: dict[str, dict[str, np.ndarray]], target: int):
+def from_points(
+    exp: dict[str, Any], points: dict[str, dict[str, np.ndarray]], target: int
+) -> FigureProgress:
     """A page's runs (its experiment and their columns, cli/reproduce/analysis.py)."""
     runs = []
     for r in exp.get("runs") or []:
