@@ -172,4 +172,4 @@ def test_bonus_paid_is_none_before_updates_and_pools_the_rows():
     assert bonus_paid([{"bonus_mean": np.zeros(3), "bonus_std": np.zeros(3)}]) is None
     paid = bonus_paid([{"bonus_mean": np.array([0.0, 0.4, 0.8]), "bonus_std": np.zeros(3)}])
     assert paid is not None and paid.mean == pytest.approx(0.6)
-    assert paid.spread == pytest.approx(0.2)  # the rows pooled: 0, 0.4, 0.8 about 0.6
+    assert paid.spread == pytest.approx(0.2)  # the 0 before updates left out: 0.4, 0.8
