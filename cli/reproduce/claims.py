@@ -13,14 +13,30 @@ from typing import Any
 
 
 @dataclass(frozen=True)
-class ConvergesNear:
+class OneArm:
+    """A claim about one arm (its first field)."""
+
     arm: str
-    lo: int
-    hi: int
-    needs: int
 
     def arms(self) -> tuple[str, ...]:
         return (self.arm,)
+
+
+class AtEpisode:
+    """A claim about the value at `episode`: the runs must reach that episode."""
+
+    episode: int
+
+    @property
+    def needs(self) -> int:
+        return self.episode
+
+
+@dataclass(frozen=True)
+class ConvergesNear(OneArm):
+    lo: int
+    hi: int
+    needs: int
 
     def measure(self, a: Any) -> tuple[str, bool | None]:
         conv = a.arm(self.arm).converged
@@ -74,13 +90,9 @@ class FasterThan:
 
 
 @dataclass(frozen=True)
-class NoLearning:
-    arm: str
+class NoLearning(OneArm):
     needs: int
     below: float = 0.1
-
-    def arms(self) -> tuple[str, ...]:
-        return (self.arm,)
 
     def measure(self, a: Any) -> tuple[str, bool | None]:
         plateau = a.arm(self.arm).plateau
@@ -157,13 +169,9 @@ class SameAs:
 
 
 @dataclass(frozen=True)
-class DecreasesAfterPeak:
-    arm: str
+class DecreasesAfterPeak(OneArm):
     needs: int
     drop: float = 0.1
-
-    def arms(self) -> tuple[str, ...]:
-        return (self.arm,)
 
     def measure(self, a: Any) -> tuple[str, bool | None]:
         x = a.arm(self.arm)
@@ -171,18 +179,10 @@ class DecreasesAfterPeak:
 
 
 @dataclass(frozen=True)
-class ValueAt:
-    arm: str
+class ValueAt(OneArm, AtEpisode):
     episode: int
     lo: float
     hi: float
-
-    @property
-    def needs(self) -> int:
-        return self.episode
-
-    def arms(self) -> tuple[str, ...]:
-        return (self.arm,)
 
     def measure(self, a: Any) -> tuple[str, bool | None]:
         x = a.arm(self.arm)
@@ -214,21 +214,13 @@ class LowerAtEnd:
 
 
 @dataclass(frozen=True)
-class Cell:
+class Cell(OneArm, AtEpisode):
     """A table cell after `episode` episodes: success within 0.15, count-1 within 10
     points of the thesis's (3 seeds x 10 evaluation episodes are noisy)."""
 
-    arm: str
     episode: int
     sr: float
     c1: float | None  # percent; None: the thesis gives none
-
-    @property
-    def needs(self) -> int:
-        return self.episode
-
-    def arms(self) -> tuple[str, ...]:
-        return (self.arm,)
 
     def measure(self, a: Any) -> tuple[str, bool | None]:
         x = a.arm(self.arm)
@@ -245,14 +237,10 @@ class Cell:
 
 
 @dataclass(frozen=True)
-class MostBeat:
+class MostBeat(AtEpisode):
     arms_: tuple[str, ...]
     ref: str
     episode: int
-
-    @property
-    def needs(self) -> int:
-        return self.episode
 
     def arms(self) -> tuple[str, ...]:
         return (*self.arms_, self.ref)
@@ -267,15 +255,11 @@ class MostBeat:
 
 
 @dataclass(frozen=True)
-class PeaksAt:
+class PeaksAt(AtEpisode):
     """For each k, success at the peak beta exceeds success at the beta before it."""
 
     pairs: tuple[tuple[str, str], ...]  # (arm at the peak beta, arm at the beta before)
     episode: int
-
-    @property
-    def needs(self) -> int:
-        return self.episode
 
     def arms(self) -> tuple[str, ...]:
         return tuple(n for p in self.pairs for n in p)
@@ -292,15 +276,11 @@ class PeaksAt:
 
 
 @dataclass(frozen=True)
-class CountOneGrows:
+class CountOneGrows(AtEpisode):
     """count-1 % does not fall as k grows (per beta), and is >= 99% at the largest k."""
 
     rows: tuple[tuple[str, ...], ...]  # per beta, its arms in increasing k
     episode: int
-
-    @property
-    def needs(self) -> int:
-        return self.episode
 
     def arms(self) -> tuple[str, ...]:
         return tuple(n for r in self.rows for n in r)
