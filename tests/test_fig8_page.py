@@ -21,7 +21,7 @@ from cli.reproduce import analysis, render
 from cli.reproduce.controls import against_control, bonus_paid
 from cli.reproduce.experiments import experiment_body, select_arms
 from cli.reproduce.figures import FIGURES
-from cli.reproduce.status import measure
+from cli.reproduce.status import measure, tail_rows
 from tests.test_figures import synthetic
 
 FIG8 = FIGURES["fig8"]
@@ -173,3 +173,16 @@ def test_bonus_paid_is_none_before_updates_and_pools_the_rows():
     paid = bonus_paid([{"bonus_mean": np.array([0.0, 0.4, 0.8]), "bonus_std": np.zeros(3)}])
     assert paid is not None and paid.mean == pytest.approx(0.6)
     assert paid.spread == pytest.approx(0.2)  # the 0 before updates left out: 0.4, 0.8
+
+
+def test_the_last_hour_is_read_from_the_end_of_a_long_file(tmp_path):
+    """Blocks from the end, grown until a row an hour of clock back is in them; a cut
+    first line of a block is not taken for a row."""
+    path = tmp_path / "metrics.jsonl"
+    rows = ({"episode": e, "wall_s": float(e), "pad": "x" * 300} for e in range(1, 5001))
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    got = tail_rows(path)
+    assert [r["episode"] for r in got] == list(range(1400, 5001))
+    short = tmp_path / "short.jsonl"
+    short.write_text("".join(json.dumps({"episode": e, "wall_s": e * 10.0}) + "\n" for e in (1, 2)))
+    assert [r["episode"] for r in tail_rows(short)] == [1, 2]  # under an hour: all of it

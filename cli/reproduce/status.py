@@ -165,12 +165,30 @@ def page_line(progress: FigureProgress, now: float) -> str:
 # ---------------------------------------------------------------- --status on folders
 def tail_rows(path: Path, seconds: float = HOUR_S) -> list[dict[str, Any]]:
     """The rows of a metrics.jsonl from the last one `seconds` of its `wall_s` back (and
-    the one before them), reading from the end: a 40,000-row file is not parsed whole.
-    A torn last line (a row being written) is skipped."""
+    the one before them), reading blocks from the end: a 40,000-row file is neither read
+    nor parsed whole. A torn last line (a row being written) is skipped."""
     if not path.exists():
         return []
+    with path.open("rb") as f:
+        size = f.seek(0, 2)
+        block = 1 << 18
+        while True:
+            start = max(0, size - block)
+            f.seek(start)
+            lines = f.read(size - start).splitlines()
+            if start:  # the first line may be cut: read from the next one
+                lines = lines[1:]
+            rows, reached = _rows_back(lines, seconds)
+            if reached or not start:
+                return rows
+            block *= 4
+
+
+def _rows_back(lines: list[bytes], seconds: float) -> tuple[list[dict[str, Any]], bool]:
+    """(the rows from the end back to one `seconds` before the last, in order; whether
+    one that old was found)."""
     rows: list[dict[str, Any]] = []
-    for line in reversed(path.read_bytes().splitlines()):
+    for line in reversed(lines):
         try:
             row = json.loads(line)
         except ValueError:
@@ -178,10 +196,11 @@ def tail_rows(path: Path, seconds: float = HOUR_S) -> list[dict[str, Any]]:
         if not isinstance(row, dict) or "episode" not in row:
             continue
         rows.append(row)
-        wall = row.get("wall_s")
-        if isinstance(wall, int | float) and wall <= rows[0].get("wall_s", 0.0) - seconds:
-            break
-    return rows[::-1]
+        wall, last = row.get("wall_s"), rows[0].get("wall_s")
+        clocked = isinstance(wall, int | float) and isinstance(last, int | float)
+        if clocked and wall <= last - seconds:
+            return rows[::-1], True
+    return rows[::-1], False
 
 
 def read_folders(runs: list[Any], runs_dir: Path, target: int) -> FigureProgress:
