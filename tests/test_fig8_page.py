@@ -130,7 +130,8 @@ def test_the_page_says_how_far_why_and_each_seed(runs_dir, tmp_path):
     assert "0.600 ± 0.141 (s0 0.500 ± 0.100, s1 0.700 ± 0.100)" in dis
     assert "distinguishable: above the control" in dis and "not run to that length" in dis
     assert "0.800 ± 0.000 (a constant shift: every sampled key new)" in cen
-    assert "the same runs as the control, point for point" in cen
+    assert "the same runs as the control, point for point (as far as both went: 1,500 of" in cen
+    assert "not run to that length" not in cen, "equal points are a fact at any length"
     claims = md.split("## Claims")[1].split("\n## ")[0]
     (dis_claim,) = [x for x in claims.splitlines() if "around 70%" in x]
     assert "s0: 90% at 2,000; s1: 92% at 2,000" in dis_claim

@@ -138,31 +138,33 @@ def per_seed(a: Analysis, values: dict[int, str]) -> str:
 def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
     """Can the arm's curve be told from its control's: the same runs (`same_runs`),
     else whether the bands drawn stay apart over the last PLATEAU_SHARE of the episodes
-    both reached; 'not run to that length' before the figure's length."""
+    both reached, which before the figure's length is 'not run to that length'."""
     if not len(mine.episodes) or not len(theirs.episodes):
         return "no points"
     length = min(mine.length, theirs.length)
-    if same_runs(mine, theirs):
+    if same_runs(mine, theirs):  # a fact as far as both went, at any length
         text = "the same runs as the control, point for point"
+        if length < a.fig.episodes:
+            text += f" (as far as both went: {length:,} of {a.fig.episodes:,} episodes)"
+        return text
+    common = np.intersect1d(mine.episodes, theirs.episodes)
+    (lo_m, hi_m), (lo_t, hi_t) = mine.band(), theirs.band()
+    im, it = np.isin(mine.episodes, common), np.isin(theirs.episodes, common)
+    above = lo_m[im] > hi_t[it]
+    below = hi_m[im] < lo_t[it]
+    tail = slice(-max(1, round(PLATEAU_SHARE * len(common))), None)
+    up, down = float(above[tail].mean()), float(below[tail].mean())
+    if up >= DISTINGUISHED:
+        text = "distinguishable: above the control"
+    elif down >= DISTINGUISHED:
+        text = "distinguishable: below the control"
     else:
-        common = np.intersect1d(mine.episodes, theirs.episodes)
-        (lo_m, hi_m), (lo_t, hi_t) = mine.band(), theirs.band()
-        im, it = np.isin(mine.episodes, common), np.isin(theirs.episodes, common)
-        above = lo_m[im] > hi_t[it]
-        below = hi_m[im] < lo_t[it]
-        tail = slice(-max(1, round(PLATEAU_SHARE * len(common))), None)
-        up, down = float(above[tail].mean()), float(below[tail].mean())
-        if up >= DISTINGUISHED:
-            text = "distinguishable: above the control"
-        elif down >= DISTINGUISHED:
-            text = "distinguishable: below the control"
-        else:
-            text = "not distinguishable: the bands overlap"
-        text += (
-            f" (bands apart at {up + down:.0%} of the last {PLATEAU_SHARE:.0%} of the "
-            f"episodes both ran; above at {above.mean():.0%}, below at {below.mean():.0%} "
-            "of all of them)"
-        )
+        text = "not distinguishable: the bands overlap"
+    text += (
+        f" (bands apart at {up + down:.0%} of the last {PLATEAU_SHARE:.0%} of the "
+        f"episodes both ran; above at {above.mean():.0%}, below at {below.mean():.0%} "
+        "of all of them)"
+    )
     if length < a.fig.episodes:
         return f"{TOO_SHORT} ({length:,} of {a.fig.episodes:,} episodes); so far: {text}"
     return text
