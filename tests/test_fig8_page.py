@@ -166,7 +166,7 @@ def test_fig8_draws_the_bootstrap_75_percent_band_and_seeds_average_to_the_mean(
         ]
     b = analysis.analyse(FIG8, exp, points)
     verdict = against_control(b, b.arm(arm.name), b.arm(control.name))
-    assert verdict.startswith("not distinguishable: the bands overlap")
+    assert verdict.startswith("not distinguishable: the spreads overlap")
 
 
 def test_bonus_paid_is_none_before_updates_and_pools_the_rows():

@@ -88,8 +88,8 @@ def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]
     return out
 
 
-DISTINGUISHED = 0.5  # share of the last points with the bands apart
-BAND_NAMES = {"std": "mean ± one std over seeds", "ci75": "the 75% confidence interval"}
+DISTINGUISHED = 0.5  # share of the last points with the spreads apart
+SPREAD_VS_BAND = {"std": "the band drawn", "ci75": "wider than the 75% interval drawn"}
 
 
 @dataclass(frozen=True)
@@ -137,8 +137,10 @@ def per_seed(a: Analysis, values: dict[int, str]) -> str:
 
 def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
     """Can the arm's curve be told from its control's: the same runs (`same_runs`),
-    else whether the bands drawn stay apart over the last PLATEAU_SHARE of the episodes
-    both reached, which before the figure's length is 'not run to that length'."""
+    else whether their spreads (mean +- one std over seeds) stay apart over the last
+    PLATEAU_SHARE of the episodes both reached, which before the figure's length is
+    'not run to that length'. The spread, not a confidence band: with 3 seeds a band of
+    the mean is narrow enough to part two runs of the same method by chance."""
     if not len(mine.episodes) or not len(theirs.episodes):
         return "no points"
     length = min(mine.length, theirs.length)
@@ -148,7 +150,7 @@ def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
             text += f" (as far as both went: {length:,} of {a.fig.episodes:,} episodes)"
         return text
     common = np.intersect1d(mine.episodes, theirs.episodes)
-    (lo_m, hi_m), (lo_t, hi_t) = mine.band(), theirs.band()
+    (lo_m, hi_m), (lo_t, hi_t) = _spread(mine), _spread(theirs)
     im, it = np.isin(mine.episodes, common), np.isin(theirs.episodes, common)
     above = lo_m[im] > hi_t[it]
     below = hi_m[im] < lo_t[it]
@@ -159,15 +161,20 @@ def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
     elif down >= DISTINGUISHED:
         text = "distinguishable: below the control"
     else:
-        text = "not distinguishable: the bands overlap"
+        text = "not distinguishable: the spreads overlap"
     text += (
-        f" (bands apart at {up + down:.0%} of the last {PLATEAU_SHARE:.0%} of the "
+        f" (spreads apart at {up + down:.0%} of the last {PLATEAU_SHARE:.0%} of the "
         f"episodes both ran; above at {above.mean():.0%}, below at {below.mean():.0%} "
         "of all of them)"
     )
     if length < a.fig.episodes:
         return f"{TOO_SHORT} ({length:,} of {a.fig.episodes:,} episodes); so far: {text}"
     return text
+
+
+def _spread(arm: ArmCurve) -> tuple[np.ndarray, np.ndarray]:
+    m, s = arm.mean[arm.metric], arm.std[arm.metric]
+    return m - s, m + s
 
 
 def why_rows(a: Analysis) -> list[list[str]]:
@@ -219,7 +226,7 @@ def why_section(a: Analysis) -> list[str]:
     rows = why_rows(a)
     if not rows:
         return []
-    band = BAND_NAMES[a.fig.band]
+    band = SPREAD_VS_BAND[a.fig.band]
     lines = [
         "",
         "## Why: what each counting arm counted and paid",
@@ -229,9 +236,9 @@ def why_section(a: Analysis) -> list[str]:
         "it paid (the mean ± standard deviation of the bonus on every row it sampled once "
         "updates began; a spread of 0 is a constant shift, the control's method), each for "
         "every seed (s0, s1, ...) after the mean, and whether its curve can be told from its "
-        f"constant control's: the same runs point for point, or the bands drawn ({band}) "
-        f"apart over at least {DISTINGUISHED:.0%} of the last {PLATEAU_SHARE:.0%} of the "
-        "episodes both ran.",
+        "constant control's: the same runs point for point, or else their spreads (mean ± "
+        f"one standard deviation over seeds, {band}) apart over at least "
+        f"{DISTINGUISHED:.0%} of the last {PLATEAU_SHARE:.0%} of the episodes both ran.",
         "",
         "| counting arm | at the end | count-1 % | bonus paid | its control "
         "| against the control |",
