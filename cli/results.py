@@ -1,8 +1,8 @@
 """`macb results`: docs/results/README.md's table of every thesis claim, from the pages.
 
-Each figure's page (`macb reproduce FIGURE`, written by cli/report.py) keeps its
+Each figure's page (`macb reproduce FIGURE`, written by cli/reproduce/render.py) keeps its
 verdicts in `FIGURE-claims.json`. This command reads every page under a results folder
-and writes one row per claim of cli/figures.py (every claim of the thesis's sections
+and writes one row per claim of cli/reproduce/figures.py (every claim of the thesis's sections
 6.1-6.4): what the thesis reports, what each profile measured and how long its runs
 were, and the verdicts; a claim with no page says `not run`. The README's prose stays
 as written: only the part between the two markers is generated, so the table can never
@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from cli.figures import FIGURES, PROFILES
+from cli.reproduce.figures import FIGURES, PROFILES
 
 BEGIN = "<!-- results:begin (macb results writes this part) -->"
 END = "<!-- results:end -->"

@@ -18,6 +18,9 @@ BUILTIN_TASKS = ("simple", *MULTI_AGENT_TASKS)
 # Options that only the built-in particle tasks have (their worlds' sizes, rewards,
 # observations and physics); a custom task refuses a value other than the default.
 WORLD_OPTIONS = ("cover", "landmark_size", "pad_obs", "comm_obs", "integrator")
+# The explore modes that count transitions (a table, a count-1 share, a bonus that can
+# fall); `constant` pays the bonus on every reward and counts nothing.
+COUNTING_EXPLORE = ("dis-macb", "cen-macb")
 
 
 class TrainConfig(BaseModel):
@@ -284,6 +287,11 @@ class TrainConfig(BaseModel):
                 "fp32 definition the batched learner is checked against"
             )
         return self
+
+    @property
+    def counts(self) -> bool:
+        """The run counts its transitions (Dis- or Cen-MACB): a table, a bonus that falls."""
+        return self.explore in COUNTING_EXPLORE
 
     @property
     def n_agents(self) -> int:

@@ -508,7 +508,7 @@ def assert_exact(run, config=None, *, faults: str | None = None) -> Finished:
     for r in run.rows:
         assert 0.0 <= r["success_rate"] <= 1.0
         assert r["env_steps"] == r["episode"] * config.episode_len
-        if config.explore in ("dis-macb", "cen-macb") and r["env_steps"] > config.learning_starts:
+        if config.counts and r["env_steps"] > config.learning_starts:
             # the counter's tables as of the tick that trained up to this point: it has
             # counted at least every transition trained on
             assert r["counted_transitions"] >= r["env_steps"], r
@@ -519,7 +519,7 @@ def assert_exact(run, config=None, *, faults: str | None = None) -> Finished:
             beta = config.beta if config.explore != "none" else 0.0
             assert 0.0 <= r["bonus_std"] <= beta and 0.0 <= r["sampled_count1_pct"] <= 100, r
             assert (0.0 < r["bonus_mean"] <= beta + 1e-6) or beta == 0.0, r
-    if config.explore in ("dis-macb", "cen-macb") and config.interleave == "async":
+    if config.counts and config.interleave == "async":
         # bonuses priced per tick (all of its minibatches in one query), not per update
         # (lockstep: a tick is one step's one update)
         assert learner["bonus_rows_per_query"] >= 5 * config.batch_size, learner

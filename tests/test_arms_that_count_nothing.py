@@ -13,8 +13,8 @@ import re
 import httpx
 import pytest
 
-from cli import report
-from cli.figures import FIGURES
+from cli.reproduce import analysis, plot, render
+from cli.reproduce.figures import FIGURES
 from cli.trainer import train
 from services.api.main import ApiServer, Settings
 from services.api.plot import draw_curves, figure_legend
@@ -90,8 +90,8 @@ def test_a_table_figure_gives_no_count1_for_the_arms_that_count_nothing():
     measured column says none either, rather than the 0% their rows carry."""
     fig = FIGURES["table2"]
     shapes = {x.name: (5000, 0.5) for x in fig.arms}  # count-1 50% in every row
-    a = report.analyse(fig, *synthetic(fig, shapes, 40000, step=200))
-    md = report.markdown(a, "mpe2")
+    a = analysis.analyse(fig, *synthetic(fig, shapes, 40000, step=200))
+    md = render.markdown(a, "mpe2")
 
     def measured(arm: str) -> str:
         arms = md[md.index("## Arms") : md.index("## Claims")]
@@ -101,7 +101,7 @@ def test_a_table_figure_gives_no_count1_for_the_arms_that_count_nothing():
     assert re.fullmatch(r"\d+%, 50%", measured("beta=0.8,k=512"))
     assert re.fullmatch(r"\d+%, -", measured("beta=0.0")), "explore none"
     assert re.fullmatch(r"\d+%, -", measured("constant beta=0.8 (control)"))
-    png, _ = report.draw(a, "mpe2")
+    png, _ = plot.draw(a, "mpe2")
     cells = [t.get_text() for t in png.axes[0].texts]
     controls = [c for c in cells if c.endswith("(thesis none: control)")]
     assert len(controls) == 4 and all(re.fullmatch(r"\d+%\n.*", c) for c in controls)

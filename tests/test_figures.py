@@ -12,12 +12,14 @@ import pytest
 import yaml
 from PIL import Image
 
-from cli import figures, report
-from cli.figures import FIGURES, PROFILES, arm_configs, control_of, experiment_body
+from cli.reproduce import analysis, experiments, figures, render
+from cli.reproduce.controls import SAME_RUNS, control_verdicts
+from cli.reproduce.experiments import arm_configs, control_of, experiment_body
+from cli.reproduce.figures import FIGURES, PROFILES
 from services.api.schemas import ExperimentCreate
 from shared.config import TrainConfig
 
-ROOT_CONFIGS = figures.CONFIGS
+ROOT_CONFIGS = experiments.CONFIGS
 
 
 def test_every_figure_the_issue_names_is_defined():
@@ -33,7 +35,7 @@ def test_each_arm_is_a_valid_config_and_the_experiment_expands(name, profile):
     names = [a.name for a in fig.arms]
     assert len(names) == len(set(names)) >= 4
     for arm in fig.arms:
-        cfg = figures.full_config(fig, arm.name, profile)
+        cfg = experiments.full_config(fig, arm.name, profile)
         assert cfg.profile == profile and cfg.episodes == fig.episodes, arm.name
         if profile == "thesis":
             assert cfg.success_terminal and cfg.integrator == "velocity-first"
@@ -42,7 +44,7 @@ def test_each_arm_is_a_valid_config_and_the_experiment_expands(name, profile):
     runs = exp.expand()
     assert [r["arm"] for r in runs] == [n for n in names for _ in range(3)]
     for r in runs:  # what each run gets is its file, under the profile
-        want = figures.full_config(fig, r["arm"], profile, seed=r["seed"])
+        want = experiments.full_config(fig, r["arm"], profile, seed=r["seed"])
         assert r["config"] == want, r["arm"]
     short = ExperimentCreate.model_validate(experiment_body(fig, profile, [4], 300)).expand()
     assert {r["config"].episodes for r in short} == {300} and {r["seed"] for r in short} == {4}
@@ -52,6 +54,20 @@ def test_each_arm_is_a_valid_config_and_the_experiment_expands(name, profile):
     assert {r["config"].precision for r in runs} == {"bf16"}
     for r, s in zip(runs, short, strict=True):  # nothing else changes
         assert r["config"].model_copy(update={"precision": "fp32"}) == s["config"], r["arm"]
+
+
+def test_an_arm_counts_exactly_when_its_run_config_counts():
+    """One rule (shared.config.COUNTING_EXPLORE) for an arm's file, where a missing
+    `explore` is the default's, and for the run config built from it."""
+    for fig in FIGURES.values():
+        for arm in fig.arms:
+            file = arm_configs(fig)[arm.name]
+            run = experiments.full_config(fig, arm.name, "mpe2")
+            assert experiments.counts(file) == run.counts == (run.explore in MACB_MODES)
+    assert experiments.counts({}) and not experiments.counts({"explore": "constant"})
+
+
+MACB_MODES = ("dis-macb", "cen-macb")
 
 
 @pytest.mark.parametrize("name", list(FIGURES))
@@ -86,19 +102,19 @@ def test_every_shipped_thesis_config_lists_three_seeds_and_every_file_is_an_arm(
         assert data["seeds"] == [0, 1, 2], rel
         TrainConfig.model_validate({k: v for k, v in data.items() if k != "seeds"})
     for fig in FIGURES.values():
-        assert figures.file_seeds(fig) == [0, 1, 2]
+        assert experiments.file_seeds(fig) == [0, 1, 2]
 
 
 def test_the_experiment_name_is_deterministic_and_follows_the_body():
     fig = FIGURES["fig3"]
     body = experiment_body(fig, "mpe2", [0, 1], 300)
-    name = figures.experiment_name(fig, body)
-    assert name == figures.experiment_name(fig, experiment_body(fig, "mpe2", [0, 1], 300))
+    name = experiments.experiment_name(fig, body)
+    assert name == experiments.experiment_name(fig, experiment_body(fig, "mpe2", [0, 1], 300))
     assert name.startswith("reproduce fig3 profile=mpe2 episodes=300 seeds=0,1 [")
-    bf16 = figures.experiment_name(fig, experiment_body(fig, "mpe2", [0, 1], 300, "bf16"))
+    bf16 = experiments.experiment_name(fig, experiment_body(fig, "mpe2", [0, 1], 300, "bf16"))
     assert bf16.startswith("reproduce fig3 profile=mpe2 episodes=300 seeds=0,1 precision=bf16 [")
     for other in (("thesis", [0, 1], 300), ("mpe2", [0], 300), ("mpe2", [0, 1], 301)):
-        assert figures.experiment_name(fig, experiment_body(fig, *other)) != name
+        assert experiments.experiment_name(fig, experiment_body(fig, *other)) != name
     with pytest.raises(ValueError, match="unknown profile 'pz'"):
         experiment_body(fig, "pz", [0], None)
 
@@ -106,7 +122,7 @@ def test_the_experiment_name_is_deterministic_and_follows_the_body():
 def test_select_arms_keeps_the_matching_arms_in_the_figures_order():
     fig = FIGURES["fig8"]
     body = experiment_body(fig, "thesis", [0, 1, 2], None)
-    sparse = figures.select_arms(fig, body, ["sparse*"])
+    sparse = experiments.select_arms(fig, body, ["sparse*"])
     assert [a["name"] for a in sparse["arms"]] == [
         "Sparse",
         "Sparse + Dis-MACB",
@@ -116,9 +132,9 @@ def test_select_arms_keeps_the_matching_arms_in_the_figures_order():
     assert {k: v for k, v in sparse.items() if k != "arms"} == {
         k: v for k, v in body.items() if k != "arms"
     }
-    assert figures.experiment_name(fig, sparse) != figures.experiment_name(fig, body)
+    assert experiments.experiment_name(fig, sparse) != experiments.experiment_name(fig, body)
     with pytest.raises(ValueError, match="'dense': no arm of fig8 matches"):
-        figures.select_arms(fig, body, ["Sparse", "dense"])
+        experiments.select_arms(fig, body, ["Sparse", "dense"])
 
 
 def test_table2_has_the_theses_numbers_and_a_control_row():
@@ -196,49 +212,49 @@ def test_the_report_says_what_ran_and_when_bf16_ran_fp32():
         }
         return {"live": {"provenance": start}}
 
-    fell_back = report.what_ran([run("fp32"), run("fp32")])
+    fell_back = render.what_ran([run("fp32"), run("fp32")])
     assert "learner precision fp32 on 2 run(s) (**asked bf16**" in fell_back
     assert "CPU AMD EPYC 7B13; code 0123456789ab." in fell_back
-    native = report.what_ran([run("bf16"), {"live": {}}])
+    native = render.what_ran([run("bf16"), {"live": {}}])
     assert "bf16 on 1 run(s);" in native and "asked" not in native
     assert native.endswith("; 1 run(s) reported none.")
     elsewhere = run("fp32", "fp32")
     elsewhere["live"]["provenance"]["code"] = {"commit": None, "dirty": None}
     dirty = run("fp32", "fp32")
     dirty["live"]["provenance"]["code"]["dirty"] = True
-    both = report.what_ran([elsewhere, dirty])
+    both = render.what_ran([elsewhere, dirty])
     assert "code 0123456789ab (dirty), not a git checkout." in both
-    assert "no run reported" in report.what_ran([{"live": {}}])
+    assert "no run reported" in render.what_ran([{"live": {}}])
     fig = FIGURES["fig3"]
     exp, points = synthetic(fig, FIG3_AS_THESIS, 500)
     exp["runs"] = [{**r, **run("fp32", "fp32")} for r in exp["runs"]]
-    md = report.markdown(report.analyse(fig, exp, points), "mpe2")
+    md = render.markdown(analysis.analyse(fig, exp, points), "mpe2")
     assert f"learner precision fp32 on {len(exp['runs'])} run(s); CPU" in md
 
 
 def test_smoothing_is_a_centred_moving_average_shrunk_symmetrically_at_the_ends():
     steps = np.repeat([0.0, 1.0], 50)
-    s = report.smooth(steps, share=0.05)  # a 5-point window
-    assert report.window_points(100, 0.05) == 5
+    s = analysis.smooth(steps, share=0.05)  # a 5-point window
+    assert analysis.window_points(100, 0.05) == 5
     assert s[49] == pytest.approx(2 / 5) and s[50] == pytest.approx(3 / 5)
     assert s[47] == 0.0 and s[52] == 1.0, "two points either side"
     line = np.arange(100, dtype=float)
-    assert np.allclose(report.smooth(line, share=0.05), line), "a straight line stays"
-    assert report.smooth(np.array([0.0, 3.0, 0.0, 0.0]), share=0.75)[1] == 1.0
-    assert np.array_equal(report.smooth(steps[:10]), steps[:10]), "under 50 points: none"
+    assert np.allclose(analysis.smooth(line, share=0.05), line), "a straight line stays"
+    assert analysis.smooth(np.array([0.0, 3.0, 0.0, 0.0]), share=0.75)[1] == 1.0
+    assert np.array_equal(analysis.smooth(steps[:10]), steps[:10]), "under 50 points: none"
 
 
 def test_fig3_as_the_thesis_reports_it_reproduces_every_claim(tmp_path):
     fig = FIGURES["fig3"]
     exp, points = synthetic(fig, FIG3_AS_THESIS, 5000)
-    a = report.analyse(fig, exp, points)
+    a = analysis.analyse(fig, exp, points)
     b0 = a.arm("beta=0.0")
     assert b0.length == 5000 and len(b0.runs) == 2 and b0.window == 11
     assert 0.95 < b0.plateau <= 1.0 and 2667 <= b0.converged <= 6000
     assert a.arm("beta=1.2").converged is None
-    verdicts = report.claim_verdicts(a)
+    verdicts = analysis.claim_verdicts(a)
     assert [v for *_, v in verdicts] == ["reproduced"] * 3, verdicts
-    controls = report.control_verdicts(a)
+    controls = control_verdicts(a)
     assert [(c[0], c[1], c[4]) for c in controls] == [
         ("beta=0.2", "constant beta=0.2 (control)", "beats the control"),
         ("beta=0.4", "constant beta=0.4 (control)", "beats the control"),
@@ -246,7 +262,7 @@ def test_fig3_as_the_thesis_reports_it_reproduces_every_claim(tmp_path):
         ("beta=0.8", "constant beta=0.8 (control)", "beats the control"),
         ("beta=1.2", "constant beta=1.2 (control)", "does not beat the control"),
     ]
-    md = report.markdown(a, "mpe2", "fig3.png")
+    md = render.markdown(a, "mpe2", "fig3.png")
     assert "3 reproduced, 0 not reproduced, 0 not run to that length." in md
     assert "| beta=0.8 | constant beta=0.8 (control) |" in md and "**beats the control**" in md
     assert "converges at around 4000 episodes" in md and "~4,000 episodes" in md
@@ -263,18 +279,19 @@ def test_a_short_run_says_so_and_a_wrong_curve_is_not_reproduced():
     fig = FIGURES["fig3"]
     shapes = {**FIG3_AS_THESIS, "beta=1.2": (200, 1.0), "beta=0.8": (2600, 1.0)}
     shapes["constant beta=0.8 (control)"] = (1500, 1.0)
-    a = report.analyse(fig, *synthetic(fig, shapes, 5000))
-    verdicts = [v for *_, v in report.claim_verdicts(a)]
+    a = analysis.analyse(fig, *synthetic(fig, shapes, 5000))
+    verdicts = [v for *_, v in analysis.claim_verdicts(a)]
     assert verdicts == ["reproduced", "not reproduced", "not reproduced"]
-    controls = {c[0]: c[4] for c in report.control_verdicts(a)}
+    controls = {c[0]: c[4] for c in control_verdicts(a)}
     assert controls["beta=0.8"] == "does not beat the control"
-    short = report.analyse(fig, *synthetic(fig, FIG3_AS_THESIS, 300))
-    result = report.claim_verdicts(short)
+    short = analysis.analyse(fig, *synthetic(fig, FIG3_AS_THESIS, 300))
+    result = analysis.claim_verdicts(short)
     assert [v for *_, v in result] == ["not run to that length"] * 3
     assert "(runs reached 300 of 5,000 episodes)" in result[0][1]
-    md = report.markdown(short, "thesis")
+    md = render.markdown(short, "thesis")
     assert "0 reproduced, 0 not reproduced, 3 not run to that length." in md
-    assert "beats the control (at 300 of 5,000 episodes)" in md or "(at 300 of 5,000" in md
+    assert "not run to that length (300 of 5,000 episodes); so far" in md
+    assert "**beats the control" not in md, "no verdict on the figure's length before it"
 
 
 def test_an_arm_whose_runs_are_its_controls_runs_is_said_to_be_them():
@@ -287,23 +304,23 @@ def test_an_arm_whose_runs_are_its_controls_runs_is_said_to_be_them():
     for seed in (0, 1):
         mine = points[run_of[("beta=0.8", seed)]]
         points[run_of[("constant beta=0.8 (control)", seed)]] = [dict(p) for p in mine]
-    controls = {c[0]: c[4] for c in report.control_verdicts(report.analyse(fig, exp, points))}
-    assert controls["beta=0.8"] == (
-        "the same runs as the control, point for point: " + report.SAME_RUNS
-    )
+    controls = {c[0]: c[4] for c in control_verdicts(analysis.analyse(fig, exp, points))}
+    assert controls["beta=0.8"] == ("the same runs as the control, point for point: " + SAME_RUNS)
     assert controls["beta=0.6"] == "beats the control"
     for seed in (0, 1):  # the controls stopped halfway: as far as both went, the same
         del points[run_of[("constant beta=0.8 (control)", seed)]][250:]
-    controls = {c[0]: c[4] for c in report.control_verdicts(report.analyse(fig, exp, points))}
+    controls = {c[0]: c[4] for c in control_verdicts(analysis.analyse(fig, exp, points))}
     assert controls["beta=0.8"] == (
         "the same runs as the control, point for point: "
-        + report.SAME_RUNS
+        + SAME_RUNS
         + " (at 2,500 of 5,000 episodes)"
     )
     other = points[run_of[("constant beta=0.8 (control)", 1)]]
     other[-1] = {**other[-1], "eval_return": -1.5}  # one seed's last point differs
-    controls = {c[0]: c[4] for c in report.control_verdicts(report.analyse(fig, exp, points))}
-    assert controls["beta=0.8"] == "does not beat the control (at 2,500 of 5,000 episodes)"
+    controls = {c[0]: c[4] for c in control_verdicts(analysis.analyse(fig, exp, points))}
+    assert controls["beta=0.8"] == (
+        "not run to that length (2,500 of 5,000 episodes); so far does not beat the control"
+    )
 
 
 def test_fig8_reports_success_at_its_milestones_and_fig7_the_collisions():
@@ -317,9 +334,9 @@ def test_fig8_reports_success_at_its_milestones_and_fig7_the_collisions():
         "Distance + Cen-MACB (beta=0.1)": (11000, 0.85),
         "Distance + constant beta=0.1 (control)": (10000, 0.9),
     }
-    a = report.analyse(fig8, *synthetic(fig8, shapes, 40000, step=100))
-    assert [v for *_, v in report.claim_verdicts(a)] == ["reproduced"] * 4
-    md = report.markdown(a, "mpe2")
+    a = analysis.analyse(fig8, *synthetic(fig8, shapes, 40000, step=100))
+    assert [v for *_, v in analysis.claim_verdicts(a)] == ["reproduced"] * 4
+    md = render.markdown(a, "mpe2")
     assert (
         "| arm | sets over the base | seeds | the thesis | measured | success_rate at 15,000 |"
         in md
@@ -334,14 +351,14 @@ def test_fig8_reports_success_at_its_milestones_and_fig7_the_collisions():
     rates = {a.name: (math.inf, 1.0) for a in fig7.arms}  # collisions/episode = "top"
     rates.update({"Cen-MADDPG": (math.inf, 2.0), "Cen-MADDPG + Cen-MACB": (math.inf, 0.5)})
     rates.update({"Dis-MADDPG + Dis-MACB": (math.inf, 0.5), "Dis-MADDPG + Cen-MACB": (0, 0.9)})
-    b = report.analyse(fig7, *synthetic(fig7, rates, 50000, step=500))
+    b = analysis.analyse(fig7, *synthetic(fig7, rates, 50000, step=500))
     assert b.arm("Cen-MADDPG").final == pytest.approx(100000.0)
-    assert [v for *_, v in report.claim_verdicts(b)] == [
+    assert [v for *_, v in analysis.claim_verdicts(b)] == [
         "reproduced",
         "not reproduced",  # Dis-MADDPG + Cen-MACB: 0.9x, not "vastly" fewer
         "reproduced",
     ]
-    controls = {c[0]: c[4] for c in report.control_verdicts(b)}
+    controls = {c[0]: c[4] for c in control_verdicts(b)}
     assert controls["Cen-MADDPG + Cen-MACB"] == "beats the control"
     assert controls["Dis-MADDPG + Cen-MACB"] == "beats the control"  # 0.9 of 1.0
     assert controls["Cen-MADDPG + Dis-MACB"] == "does not beat the control"  # as many
@@ -351,12 +368,12 @@ def test_table2_cells_against_the_theses_numbers():
     fig = FIGURES["table2"]
     shapes = {a.name: (5000, 0.5) for a in fig.arms}
     shapes["beta=0.8,k=512"] = (5000, 1.0)
-    a = report.analyse(fig, *synthetic(fig, shapes, 40000, step=200))
-    result = {c.text: (m, v) for c, m, v in report.claim_verdicts(a)}
+    a = analysis.analyse(fig, *synthetic(fig, shapes, 40000, step=200))
+    result = {c.text: (m, v) for c, m, v in analysis.claim_verdicts(a)}
     assert result["Table 2, β = 0.8, k = 512 (sr, c-1)"][1] == "reproduced"
     assert result["Table 2, β = 0.8, k = 512 (sr, c-1)"][0].startswith("100%, 100%")
     assert result["Table 2, β = 0.4, k = 64 (sr, c-1)"][1] == "not reproduced"  # 50% vs 34%
-    md = report.markdown(a, "mpe2")
+    md = render.markdown(a, "mpe2")
     cell = '| beta=0.8,k=512 | explore="cen-macb", beta=0.8, k=512 | 2 | 100%, 100% | 100%, 100% |'
     assert cell in md
     assert '| constant beta=0.8 (control) | explore="constant", beta=0.8 | 2 |' in md
@@ -366,15 +383,15 @@ def test_table2_cells_against_the_theses_numbers():
 def test_the_png_is_written_with_every_arm_in_its_legend(tmp_path, name):
     fig = FIGURES[name]
     exp, points = synthetic(fig, {a.name: (1000, 0.8) for a in fig.arms}, 3000, step=30)
-    a = report.analyse(fig, exp, points)
-    paths = report.write_report(a, points, "mpe2", tmp_path)
+    a = analysis.analyse(fig, exp, points)
+    paths = render.write_report(a, points, "mpe2", tmp_path)
     assert [p.name for p in paths] == [
         f"{name}.png", f"{name}.md", f"{name}.csv", f"{name}-claims.json"
     ]  # fmt: skip
     claims = json.loads((tmp_path / f"{name}-claims.json").read_text())
     assert (claims["figure"], claims["profile"], claims["episodes_reached"]) == (name, "mpe2", 3000)
     assert [(c["text"], c["measured"], c["verdict"]) for c in claims["claims"]] == [
-        (claim.text, text, verdict) for claim, text, verdict in report.claim_verdicts(a)
+        (claim.text, text, verdict) for claim, text, verdict in analysis.claim_verdicts(a)
     ]
     with Image.open(tmp_path / f"{name}.png") as png:
         assert png.size[0] > 600
@@ -382,7 +399,7 @@ def test_the_png_is_written_with_every_arm_in_its_legend(tmp_path, name):
     assert legend == [f"{arm.name} (2 seeds)" for arm in fig.arms]
     assert f"![{name}]({name}.png)" in (tmp_path / f"{name}.md").read_text()
     rows = (tmp_path / f"{name}.csv").read_text().splitlines()
-    assert rows[0] == ",".join(report.CSV_COLUMNS)
+    assert rows[0] == ",".join(analysis.CSV_COLUMNS)
     assert len(rows) == 1 + sum(len(p) for p in points.values())
 
 
@@ -390,7 +407,7 @@ def test_fig3_under_profile_thesis_runs_the_code_s_fig3_loop():
     """Its beta arms: raw observation keys priced at collection and stored (the
     SMADDPG loop); under mpe2 the text's SimHash over o||a at sample time; the
     controls and beta 0.0 unchanged in both."""
-    from cli.figures import experiment_body
+    from cli.reproduce.experiments import experiment_body
 
     fig = FIGURES["fig3"]
     thesis = {a["name"]: a for a in experiment_body(fig, "thesis", [0], 10)["arms"]}

@@ -17,7 +17,7 @@ import httpx
 import pytest
 from PIL import Image
 
-from cli.figures import FIGURES
+from cli.reproduce.figures import FIGURES
 from services.api.store import Store
 from tests.harness import cluster_processes, free_port, macb, spawn, wait_for
 

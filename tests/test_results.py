@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from cli.figures import FIGURES
+from cli.reproduce.figures import FIGURES
 from cli.results import BEGIN, END, render, table
 
 ROOT = Path(__file__).resolve().parents[1]

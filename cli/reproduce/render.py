@@ -1,0 +1,249 @@
+"""A reproduced figure's page: FIGURE.md (what ran, the definitions, each arm beside
+the thesis, a verdict per claim, each counting arm against its control), FIGURE.csv
+(every point the curves read) and FIGURE-claims.json (for `macb results`), with
+FIGURE.png from cli/reproduce/plot.py.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from collections import Counter
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from cli.reproduce.analysis import (
+    BANDS,
+    CONVERGED,
+    CSV_COLUMNS,
+    LEARNED,
+    NOT_REPRODUCED,
+    PLATEAU_SHARE,
+    REPRODUCED,
+    SMOOTH_SHARE,
+    Analysis,
+    ArmCurve,
+    Columns,
+    as_columns,
+    claim_verdicts,
+    count1,
+)
+from cli.reproduce.controls import claim_per_seed, control_verdicts, summary, why_section
+from cli.reproduce.experiments import arm_configs, split_base
+from cli.reproduce.plot import write_png
+from cli.reproduce.status import from_points, page_line
+from cli.results import claims_record
+
+
+def _fmt_point(point: dict[str, Any]) -> str:
+    return ", ".join(f"{k}={json.dumps(v)}" for k, v in point.items()) or "(the base)"
+
+
+def _band_text(band: str) -> str:
+    if band == "std":  # the pages before the thesis's band was drawn say it so
+        return (
+            "band: mean +- one standard deviation over seeds (the thesis also draws a 75% "
+            "confidence interval, not drawn here)."
+        )
+    return f"band: {BANDS[band]}, the band the thesis draws (§6 l.373, with seaborn: l.525)."
+
+
+def _milestone(arm: ArmCurve, episode: int, metric: str) -> str:
+    v, at = arm.value_at(episode, metric)
+    if v is None or arm.length < episode:
+        return "-" if v is None else f"({v:.0%} at {at:,})"
+    return f"{v:.0%}"
+
+
+def what_ran(runs: list[dict[str, Any]]) -> str:
+    """The report's line on what the runs ran on, from each run's provenance (the
+    learner's report, `live.provenance`): the precision as run, which may not be the one
+    asked (bf16 on a CPU without it runs fp32), the CPUs and the code."""
+    # provenance.reported(r), read here without it: shared.persist.provenance loads torch.
+    starts = [(r.get("live") or {}).get("provenance") for r in runs]
+    known = [s for s in starts if isinstance(s, dict)]
+    if not known:
+        return "- What ran: no run reported its provenance (docs/reliability.md)."
+    ran = Counter(str((s.get("learner") or {}).get("precision")) for s in known)
+    asked = sorted({str((s.get("learner") or {}).get("precision_asked")) for s in known})
+    cpus = sorted({str((s.get("machine") or {}).get("cpu")) for s in known})
+    commits = sorted({_commit(s.get("code") or {}) for s in known})
+    precision = ", ".join(f"{p} on {n} run(s)" for p, n in sorted(ran.items()))
+    line = f"- What ran (each run's provenance): learner precision {precision}"
+    if set(ran) != set(asked):
+        line += f" (**asked {', '.join(asked)}**: a CPU without native bf16 runs fp32)"
+    line += f"; CPU {', '.join(cpus)}; code {', '.join(commits)}"
+    if missing := len(starts) - len(known):
+        line += f"; {missing} run(s) reported none"
+    return line + "."
+
+
+def _commit(code: dict[str, Any]) -> str:
+    """A provenance's code as the report names it: the commit's first 12 digits, and
+    whether tracked files differed from it."""
+    commit = code.get("commit")
+    if not commit:
+        return "not a git checkout"
+    return f"{str(commit)[:12]}{' (dirty)' if code.get('dirty') else ''}"
+
+
+def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None = None) -> str:
+    """FIGURE.md: what ran, the definitions, each arm beside what the thesis reports for
+    it, a verdict per claim, and each MACB arm against its control."""
+    fig, exp = a.fig, a.experiment
+    configs = arm_configs(fig)
+    base, sets = split_base(configs)
+    runs = exp.get("runs") or []
+    if runs and "config" in runs[0]:  # what ran: --episodes cuts the files' length
+        base["episodes"] = runs[0]["config"]["episodes"]
+    base["profile"] = profile
+    counts = ", ".join(f"{v} {k}" for k, v in (exp.get("counts") or {}).items())
+    lengths = {arm.length for arm in a.arms.values()}
+    window = sorted({arm.window for arm in a.arms.values()})
+    lines = [
+        f"# {fig.title}",
+        "",
+        f"Reproduced with `{command or f'macb reproduce {fig.name} --profile {profile}'}` on "
+        f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC. The thesis: {fig.section} of "
+        "`count-based-exploration-for-multi-agent-learning.txt`.",
+        "",
+        f"- Experiment: `{exp.get('id', '?')}` ({exp.get('name', '')}), status "
+        f"{exp.get('status', '?')} ({counts or 'no runs'}).",
+        f"- Profile `{profile}`; seeds {exp.get('seeds', [])}; the thesis ran 3 seeds of "
+        f"{fig.episodes:,} episodes; these runs reached "
+        f"{', '.join(f'{n:,}' for n in sorted(lengths))} episodes.",
+        page_line(from_points(exp, a.points, fig.episodes), time.time()),
+        f"- Base config (every arm): {_fmt_point(base)}.",
+        f"- Smoothing: centred moving average over {SMOOTH_SHARE:.0%} of each seed's "
+        f"evaluation points (W = {', '.join(map(str, window))} point(s); the window shrinks "
+        "symmetrically at the ends, which go unsmoothed; cumulative collisions are not "
+        f"smoothed), then the mean over seeds; {_band_text(fig.band)}",
+        f"- Plateau: the mean over seeds and over the last {PLATEAU_SHARE:.0%} of the "
+        f"points. Episodes to convergence: the first episode where the smoothed mean "
+        f"reaches {CONVERGED:.0%} of the plateau, if the plateau is at least {LEARNED:.0%} "
+        "(else: no plateau). The value at episode E: the mean over seeds and over the W "
+        "points up to E (collisions: the count at E); final: the value at the last "
+        "episode run.",
+        "- Verdicts: reproduced / not reproduced by the stated rule; not run to that "
+        "length when a run stopped short of the episodes the claim is about (the measured "
+        "number is still given).",
+    ]
+    lines += [what_ran(runs)]
+    if exp.get("wall_s"):  # local runs: their own clocks, over every start
+        lines += [
+            f"- Wall time: {exp['wall_s'] / 3600:.2f} h, the longest run's own clock (its "
+            "`wall_s`, summed over its starts; runs of a group share it)."
+        ]
+    if fig.note:
+        lines += [f"- {fig.note}"]
+    if out_png:
+        lines += ["", f"![{fig.name}]({out_png})"]
+    lines += ["", "## Arms", ""]
+    milestone_cols = [f"{fig.metric} at {e:,}" for e in fig.milestones]
+    head = ["arm", "sets over the base", "seeds", "the thesis", "measured", *milestone_cols]
+    if fig.kind == "table":
+        head = ["arm", "sets over the base", "seeds", "the thesis (sr, c-1)", "measured (sr, c-1)"]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for arm_def in fig.arms:
+        arm = a.arm(arm_def.name)
+        thesis = arm_def.thesis or "not in the thesis (control)"
+        if fig.kind == "table":
+            v, _ = arm.value_at(fig.episodes)
+            c1 = count1(a, arm_def.name, configs[arm_def.name])
+            measured = "-" if v is None else f"{v:.0%}, " + ("-" if c1 is None else f"{c1:.0f}%")
+            if v is not None and arm.length < fig.episodes:
+                measured += f" (at {arm.length:,})"
+        else:
+            measured = arm.describe() if fig.metric != "collisions_cum" else summary(a, arm)
+        row = [
+            arm_def.name,
+            _fmt_point(sets[arm_def.name]),
+            str(len(arm.runs)),
+            thesis,
+            measured,
+            *(_milestone(arm, e, fig.metric) for e in fig.milestones),
+        ]
+        lines.append("| " + " | ".join(row) + " |")
+    lines += [
+        "",
+        "## Claims",
+        "",
+        "| # | the thesis says | where | the thesis | measured (mean over seeds) | per seed "
+        "| verdict |",
+    ]
+    lines.append("|---|---|---|---|---|---|---|")
+    verdicts = claim_verdicts(a)
+    for i, (claim, text, verdict) in enumerate(verdicts, 1):
+        seeds = claim_per_seed(a, claim.check)
+        lines.append(
+            f"| {i} | {claim.text} | {claim.where} | {claim.thesis} | {text} | {seeds} "
+            f"| **{verdict}** |"
+        )
+    tally = {v: sum(1 for *_, x in verdicts if x == v) for v in (REPRODUCED, NOT_REPRODUCED)}
+    too_short = len(verdicts) - sum(tally.values())
+    lines += [
+        "",
+        f"{tally[REPRODUCED]} reproduced, {tally[NOT_REPRODUCED]} not reproduced, "
+        f"{too_short} not run to that length.",
+        *why_section(a),
+        "",
+        "## Against the control",
+        "",
+        "The control is the constant bonus with the same beta and reward, no counting: a "
+        "count-bonus arm that does not beat it owes its effect to the reward shift, not "
+        "to counting. Better: fewer episodes to convergence (then a higher final "
+        "success)" + ("; fewer collisions" if fig.metric == "collisions_cum" else "") + ".",
+        "",
+        "| MACB arm | control | MACB measured | control measured | verdict |",
+        "|---|---|---|---|---|",
+    ]
+    for name, control, mine, theirs, verdict in control_verdicts(a):
+        lines.append(f"| {name} | {control or '-'} | {mine} | {theirs} | **{verdict}** |")
+    return "\n".join(lines) + "\n"
+
+
+def write_csv(exp: dict[str, Any], points: dict[str, Columns | list], path: Path) -> Path:
+    """FIGURE.csv: every point of every run, only the columns the report reads."""
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(CSV_COLUMNS)
+        for r in exp["runs"]:
+            c = as_columns(points.get(r["id"], []))
+            fields = [c[k] for k in CSV_COLUMNS[3:]]
+            for i in range(len(c["episode"])):
+                w.writerow([r["arm"], r["seed"], r["id"], *(_cell(x[i]) for x in fields)])
+    return path
+
+
+def _cell(x: Any) -> Any:
+    """A CSV cell: integral values without '.0', a missing value empty."""
+    x = float(x)
+    if math.isnan(x):
+        return ""
+    return int(x) if x.is_integer() else x
+
+
+def write_report(
+    a: Analysis,
+    points: dict[str, Columns | list],
+    profile: str,
+    out: Path,
+    command: str | None = None,
+) -> list[Path]:
+    """FIGURE.png, FIGURE.md, FIGURE.csv and FIGURE-claims.json (for `macb results`) in out/."""
+    out.mkdir(parents=True, exist_ok=True)
+    name = a.fig.name
+    png = write_png(a, profile, out / f"{name}.png")
+    md = out / f"{name}.md"
+    md.write_text(markdown(a, profile, png.name, command))
+    lengths = [arm.length for arm in a.arms.values() if arm.runs]
+    record = claims_record(
+        name, profile, claim_verdicts(a), min(lengths, default=0), a.fig.episodes,
+        list(a.experiment.get("seeds") or []),
+    )  # fmt: skip
+    claims = out / f"{name}-claims.json"
+    claims.write_text(json.dumps(record, indent=1) + "\n")
+    return [png, md, write_csv(a.experiment, points, out / f"{name}.csv"), claims]

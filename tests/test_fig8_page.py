@@ -1,0 +1,189 @@
+"""Where a campaign stands and why its arms end where they do: `macb reproduce --status`
+and the page's header, its Why table, its claims per seed and fig8's 75% band, on
+synthetic run folders (rows as `--local` writes them) and synthetic points.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cli.local import expand_body
+from cli.main import main
+from cli.reproduce import analysis, render
+from cli.reproduce.controls import against_control, bonus_paid
+from cli.reproduce.experiments import experiment_body, select_arms
+from cli.reproduce.figures import FIGURES
+from cli.reproduce.status import measure, tail_rows
+from tests.test_figures import synthetic
+
+FIG8 = FIGURES["fig8"]
+SPARSE = (
+    "Sparse",
+    "Sparse + Dis-MACB",
+    "Sparse + Cen-MACB",
+    "Sparse + constant beta=0.8 (control)",
+)
+ARGS = ("fig8", "--profile", "thesis", "--arms", "sparse*", "--seeds", "0", "1")
+
+
+def _rows(arm: str, seed: int) -> list[dict]:
+    """Sparse and Dis-MACB (one group) at 1,000 episodes an hour of their clock for 2 h;
+    Cen-MACB and the control (the other group) 1,000 in the first hour, then 500: the
+    last hour's speed is 500, not the 750 of the whole run. Cen-MACB pays beta on every
+    row (every key new) and gives its control's rows exactly."""
+    fast = arm in SPARSE[:2]
+    episodes = np.arange(1, 2001 if fast else 1501)
+    slow = np.where(episodes <= 1000, episodes * 3.6, 3600 + (episodes - 1000) * 7.2)
+    wall = episodes * 3.6 if fast else slow
+    success = {"Sparse": 0.1, "Sparse + Dis-MACB": 0.9}.get(arm, 0.2)
+    counting = arm in SPARSE[1:3]
+    dis = arm == "Sparse + Dis-MACB"
+    rows = []
+    for e, w in zip(episodes, wall, strict=True):
+        rows.append(
+            {
+                "episode": int(e),
+                "env_steps": int(e) * 20,
+                "success_rate": success + (0.02 * seed if dis else 0.0),
+                "eval_return": -20.0 + success + (0.001 * (arm == "Sparse")),
+                "collisions_cum": 0,
+                "count1_pct": (90.0 + 4 * seed if dis else 100.0) if counting else 0.0,
+                "bonus_mean": (0.5 + 0.2 * seed if dis else 0.8) if e > 5 else 0.0,
+                "bonus_std": 0.1 if dis and e > 5 else 0.0,
+                "wall_s": float(w),
+            }
+        )
+    return rows
+
+
+@pytest.fixture
+def runs_dir(tmp_path: Path) -> Path:
+    body = select_arms(FIG8, experiment_body(FIG8, "thesis", [0, 1], None), ["sparse*"])
+    _, _, runs = expand_body(body)
+    for r in runs:
+        folder = tmp_path / "runs" / r.name
+        folder.mkdir(parents=True)
+        (folder / "config.json").write_text(json.dumps(r.config.model_dump(mode="json")))
+        lines = [json.dumps(row) for row in _rows(r.arm or "", r.seed)]
+        (folder / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    return tmp_path / "runs"
+
+
+def test_status_gives_each_run_its_episode_last_hour_speed_and_the_finish(runs_dir, capsys):
+    torn = runs_dir / "Sparse-s0" / "metrics.jsonl"
+    with torn.open("a") as f:
+        f.write('{"episode": 2001, "wall')  # a row being written: skipped
+    assert main(["reproduce", *ARGS, "--status", "--runs", str(runs_dir)]) == 0
+    out = capsys.readouterr().out
+    line = {x.split()[0]: x for x in out.splitlines() if x.startswith("Sparse")}
+    assert "2,000 of 40,000 (5.0%)" in line["Sparse-s0"] and "1,000" in line["Sparse-s0"]
+    assert "1,500 of 40,000" in line["Sparse_Cen-MACB-s1"]
+    speed = line["Sparse_Cen-MACB-s1"].split("(3.8%)")[1].split()[0]
+    assert speed == "500", "the last hour's speed, not the whole run's 750"
+    # the figure ends with its slowest group: 38,500 episodes at 500 an hour
+    assert "in 77.0 h of running" in out and "38,500 episodes left at 500/h" in out
+    assert "1,500 of 40,000 episodes (per arm: Sparse 2,000;" in out
+    assert "not running" not in out
+    old = time.time() - 3 * 3600
+    for metrics in runs_dir.glob("*/metrics.jsonl"):
+        os.utime(metrics, (old, old))
+    assert main(["reproduce", *ARGS, "--status", "--runs", str(runs_dir)]) == 0
+    assert "the campaign is not running" in capsys.readouterr().out
+
+
+def test_status_refuses_a_missing_runs_folder(tmp_path, capsys):
+    assert main(["reproduce", *ARGS, "--status", "--runs", str(tmp_path / "none")]) == 2
+
+
+def test_speed_is_over_the_last_hour_of_the_runs_own_clock():
+    episodes = np.arange(1, 101)
+    wall = np.concatenate([np.arange(1, 51) * 72.0, 3600 + np.arange(1, 51) * 144.0])
+    p = measure("r", "a", 0, 1000, episodes, wall)
+    assert p.episode == 100 and p.speed == pytest.approx(25.0) and p.span_h == 1.0
+    assert p.hours_left == pytest.approx(900 / 25.0)
+    no_clock = measure("r", "a", 0, 1000, episodes, np.full(100, math.nan))
+    assert no_clock.episode == 100 and no_clock.speed is None
+
+
+def test_the_page_says_how_far_why_and_each_seed(runs_dir, tmp_path):
+    out = tmp_path / "page"
+    got = main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
+    assert got == 1  # incomplete runs: the page is written, the exit says so
+    md = (out / "fig8.md").read_text()
+    header = md.split("## Arms")[0]
+    assert "- Progress (page built " in header
+    assert "1,500 of 40,000 episodes (per arm: Sparse 2,000; Sparse + Dis-MACB 2,000;" in header
+    assert "in 77.0 h of running" in header and "75% confidence interval" in header
+    why = md.split("## Why")[1].split("\n## ")[0]
+    rows = {r.split(" | ")[0][2:]: r for r in why.splitlines() if r.startswith("| Sparse")}
+    dis, cen = rows["Sparse + Dis-MACB"], rows["Sparse + Cen-MACB"]
+    assert "| 92% (s0 90%, s1 94%) |" in dis  # count-1 %, mean then per seed
+    # pooled over both seeds' rows: mean 0.6, spread sqrt(0.1^2 + 0.1^2)
+    assert "0.600 ± 0.141 (s0 0.500 ± 0.100, s1 0.700 ± 0.100)" in dis
+    assert "distinguishable: above the control" in dis and "not run to that length" in dis
+    assert "0.800 ± 0.000 (a constant shift: every sampled key new)" in cen
+    assert "the same runs as the control, point for point (as far as both went: 1,500 of" in cen
+    assert "not run to that length" not in cen, "equal points are a fact at any length"
+    claims = md.split("## Claims")[1].split("\n## ")[0]
+    (dis_claim,) = [x for x in claims.splitlines() if "around 70%" in x]
+    assert "s0: 90% at 2,000; s1: 92% at 2,000" in dis_claim
+    assert dis_claim.endswith("| **not run to that length** |")
+    assert "**beats the control" not in md.split("## Against the control")[1]
+
+
+def test_fig8_draws_the_bootstrap_75_percent_band_and_seeds_average_to_the_mean():
+    shapes = {"Sparse": (30000, 0.45), "Sparse + Dis-MACB": (20000, 0.7)}
+    exp, points = synthetic(FIG8, shapes, 40000, seeds=(0, 1, 2), step=200)
+    a = analysis.analyse(FIG8, exp, points)
+    arm = a.arm("Sparse + Dis-MACB")
+    lo, hi = arm.band()
+    stack = arm.smoothed["success_rate"]
+    i = len(arm.episodes) - 1
+    means = [np.mean([stack[j, i] for j in pick]) for pick in itertools.product(range(3), repeat=3)]
+    assert lo[i] == pytest.approx(np.percentile(means, 12.5))
+    assert hi[i] == pytest.approx(np.percentile(means, 87.5))
+    assert not np.allclose(hi, arm.mean["success_rate"] + arm.std["success_rate"])
+    assert "the band the thesis draws" in render.markdown(a, "thesis")
+    v, _ = arm.value_at(40000)
+    per_seed = [a.for_seed(s).arm(arm.name).value_at(40000)[0] for s in (0, 1, 2)]
+    assert np.mean(per_seed) == pytest.approx(v)
+    control = a.arm("Sparse + constant beta=0.8 (control)")
+    assert against_control(a, arm, control).startswith("distinguishable: above the control")
+    # a control a hair above the arm, inside its spread: not told apart
+    run_of = {(r["arm"], r["seed"]): r["id"] for r in exp["runs"]}
+    for s in (0, 1, 2):
+        mine = points[run_of[("Sparse + Dis-MACB", s)]]
+        points[run_of[("Sparse + constant beta=0.8 (control)", s)]] = [
+            {**p, "success_rate": p["success_rate"] + 1e-3, "eval_return": 0.0} for p in mine
+        ]
+    b = analysis.analyse(FIG8, exp, points)
+    verdict = against_control(b, b.arm(arm.name), b.arm(control.name))
+    assert verdict.startswith("not distinguishable: the spreads overlap")
+
+
+def test_bonus_paid_is_none_before_updates_and_pools_the_rows():
+    assert bonus_paid([{"bonus_mean": np.zeros(3), "bonus_std": np.zeros(3)}]) is None
+    paid = bonus_paid([{"bonus_mean": np.array([0.0, 0.4, 0.8]), "bonus_std": np.zeros(3)}])
+    assert paid is not None and paid.mean == pytest.approx(0.6)
+    assert paid.spread == pytest.approx(0.2)  # the 0 before updates left out: 0.4, 0.8
+
+
+def test_the_last_hour_is_read_from_the_end_of_a_long_file(tmp_path):
+    """Blocks from the end, grown until a row an hour of clock back is in them; a cut
+    first line of a block is not taken for a row."""
+    path = tmp_path / "metrics.jsonl"
+    rows = ({"episode": e, "wall_s": float(e), "pad": "x" * 300} for e in range(1, 5001))
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    got = tail_rows(path)
+    assert [r["episode"] for r in got] == list(range(1400, 5001))
+    short = tmp_path / "short.jsonl"
+    short.write_text("".join(json.dumps({"episode": e, "wall_s": e * 10.0}) + "\n" for e in (1, 2)))
+    assert [r["episode"] for r in tail_rows(short)] == [1, 2]  # under an hour: all of it
