@@ -12,7 +12,6 @@ completed runs and their points are kept.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ from cli.figures import (
 )
 from cli.local import add_group_flags, group_flag_error
 from shared.persist.files import data_dir_help, default_data_dir
+from shared.settings import settings
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -250,7 +250,7 @@ def _refuse(msg: str) -> int:
 
 
 def _env_url() -> str | None:
-    return os.environ.get("MACB_API_URL")
+    return settings().api_url
 
 
 def _answers(api: ApiClient) -> bool:

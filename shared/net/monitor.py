@@ -13,17 +13,17 @@ and `live_peer` is the one reader of a liveliness key.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Container, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from shared.net.messages import Assignment
+from shared.settings import Settings, settings
 
 # Services without which a run cannot go on; the counter has a grace of its own (it
 # serves many runs and resumes them from disk, so it is waited for longer).
 ROLES_THAT_MUST_LIVE = ("learner", "evaluator", "actor")
-DEFAULT_PEER_GRACE_S = 30.0
+DEFAULT_PEER_GRACE_S: float = Settings.model_fields["peer_grace_s"].default
 LIVE_PREFIX = "macb/live/"  # shared.net.bus.k_live's keys: macb/live/ROLE/ID
 
 
@@ -38,7 +38,7 @@ def live_peer(key: str) -> tuple[str, str] | None:
 def peer_grace_s() -> float:
     """How long a lost peer may take to come back before its runs are given up
     (`MACB_PEER_GRACE_S`): the same for services, the API and `macb start`."""
-    return float(os.environ.get("MACB_PEER_GRACE_S", DEFAULT_PEER_GRACE_S))
+    return settings().peer_grace_s
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import ipaddress
-import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -24,18 +23,23 @@ from pathlib import Path
 from typing import Any
 
 from shared.net.roles import SecurityError, acl_config, role_of
+from shared.settings import Settings, settings
 
 # ---------------------------------------------------------------- settings
+# Each setting's variable (`shared.settings.Settings`' zenoh_* fields), by its name here.
 ENV = {
-    "secrets": "MACB_ZENOH_SECRETS",
-    "user": "MACB_ZENOH_USER",
-    "password": "MACB_ZENOH_PASSWORD",
-    "password_file": "MACB_ZENOH_PASSWORD_FILE",
-    "users_file": "MACB_ZENOH_USERS_FILE",
-    "tls_ca": "MACB_ZENOH_TLS_CA",
-    "tls_cert": "MACB_ZENOH_TLS_CERT",
-    "tls_key": "MACB_ZENOH_TLS_KEY",
-    "mtls": "MACB_ZENOH_MTLS",
+    k: Settings.env_name(f"zenoh_{k}")
+    for k in (
+        "secrets",
+        "user",
+        "password",
+        "password_file",
+        "users_file",
+        "tls_ca",
+        "tls_cert",
+        "tls_key",
+        "mtls",
+    )
 }
 
 
@@ -65,8 +69,10 @@ class Security:
 
     @classmethod
     def from_env(cls, env: Mapping[str, str] | None = None) -> Security:
-        env = os.environ if env is None else env
-        raw = {k: env.get(v) or None for k, v in ENV.items()}
+        """The settings of MACB_ZENOH_* in `env` (default: the process's environment, as
+        it is now); an empty variable counts as unset."""
+        s = settings() if env is None else Settings.of(env)
+        raw = {k: getattr(s, f"zenoh_{k}") or None for k in ENV}
         secrets = Path(raw["secrets"]) if raw["secrets"] else None
         if secrets is not None and not secrets.is_dir():
             raise SecurityError(f"{ENV['secrets']}={secrets}: no such directory")
