@@ -114,6 +114,7 @@ SHARED_LAYERS: dict[str, tuple[str, ...]] = {
     "shared.persist": ("shared.core", "shared.config"),  # files that outlive a process
     "shared.run": ("shared.core", "shared.envs", "shared.config"),  # a run's parts
     "shared.settings": (),  # the MACB_* variables (pydantic-settings)
+    "shared.procs": (),  # child processes started and ended by PID (stdlib)
     "shared.net": ("shared.config", "shared.groups", "shared.settings"),  # wire, bus, watcher
 }
 # What shared.core may import from outside the standard library.
