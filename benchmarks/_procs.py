@@ -3,9 +3,10 @@
 Benchmarks time real processes on a machine shared with other people's, so they must
 neither leave one behind nor touch one that is not theirs: every child starts in a
 process group of its own and is ended by its PID (SIGTERM, then SIGKILL to its group),
-never by name. CPU seconds come from /proc, which is where the cores went. Only the
-standard library and cli/supervisor.py (stdlib only too), so a script can import this
-before it sets its thread variables and loads numpy.
+never by name, with `shared.procs` (as `macb up` and the tests). CPU seconds come from
+/proc, which is where the cores went. Only the standard library, shared/procs.py and
+cli/supervisor.py (stdlib only too), so a script can import this before it sets its
+thread variables and loads numpy.
 """
 
 from __future__ import annotations
@@ -18,13 +19,14 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import IO
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # the project's packages, also without `pip install -e`
     sys.path.insert(0, str(ROOT))
 
 from cli.supervisor import THREAD_ENV  # noqa: E402
+from shared import procs  # noqa: E402
+from shared.procs import cmdline  # noqa: E402
 
 # The variables that set BLAS/OpenMP threads, as `macb up` gives every service.
 THREAD_VARS = tuple(THREAD_ENV)
@@ -53,35 +55,12 @@ def start(
     """A child in its own process group (a terminal's Ctrl-C reaches only us, and its
     group can be ended without touching anyone else's), output to `log` or nowhere;
     `env` None: this process's environment."""
-    out: IO[bytes] | int = open(log, "ab") if log else subprocess.DEVNULL  # noqa: SIM115
-    try:
-        return subprocess.Popen(
-            argv,
-            cwd=ROOT,
-            env=env,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,
-        )
-    finally:
-        if not isinstance(out, int):
-            out.close()  # the child holds its own copy
+    return procs.start(argv, log=log, env=env, cwd=ROOT)
 
 
 def end(p: subprocess.Popen, grace: float = 30.0) -> None:
-    """SIGTERM by PID (services flush and exit), wait, then SIGKILL its process group.
-    The group id is the child's PID, and it is still ours: the child is not reaped
-    until wait() returns, so the PID cannot have been reused."""
-    if p.poll() is not None:
-        return
-    p.send_signal(signal.SIGTERM)
-    try:
-        p.wait(timeout=grace)
-    except subprocess.TimeoutExpired:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(p.pid, signal.SIGKILL)
-        p.wait()
+    """SIGTERM by PID (services flush and exit), wait, then SIGKILL its process group."""
+    procs.end(p, grace, group=True)
 
 
 class Procs:
@@ -128,14 +107,6 @@ def children(pid: int) -> list[int]:
     return out
 
 
-def cmdline(pid: int) -> list[str] | None:
-    try:
-        raw = Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return None
-    return [a.decode(errors="replace") for a in raw.split(b"\0")]
-
-
 def role_of(pid: int) -> str:
     """A `macb serve` process's service id (or role), from its command line; else `?`."""
     argv = cmdline(pid) or []
@@ -149,8 +120,7 @@ def role_of(pid: int) -> str:
 
 def ours(pid: int, marks: tuple[str, ...]) -> bool:
     """Whether pid is still one of this run's processes (its command line names them)."""
-    argv = cmdline(pid)
-    return argv is not None and any(m in "\0".join(argv) for m in marks)
+    return procs.names_one_of(pid, marks)
 
 
 class CpuSampler:

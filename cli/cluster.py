@@ -24,6 +24,7 @@ from cli.security import add_security_flags
 from cli.supervisor import Cluster, cluster_plan
 from shared.config import ConfigError, TrainConfig, actors_error
 from shared.persist.files import data_dir_help, default_data_dir
+from shared.settings import settings
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -160,7 +161,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     if args.role == "router":
         from services.router.main import serve
 
-        listen = args.listen or [os.environ.get("MACB_ZENOH_LISTEN", DEFAULT_ENDPOINT)]
+        listen = args.listen or [settings().zenoh_listen or DEFAULT_ENDPOINT]
         try:
             serve(listen, connect=args.connect, router_id=args.id or sec.user or "router")
         except SecurityError as err:
@@ -362,7 +363,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 def _secure_endpoint(endpoint: str) -> tuple[str, str | None]:
     """With a secrets folder (--secrets / MACB_ZENOH_SECRETS), the cluster runs on TLS
     (tcp/ becomes tls/) and `macb up` itself signs in as `cli` unless told otherwise."""
-    secrets = os.environ.get("MACB_ZENOH_SECRETS")
+    secrets = settings().zenoh_secrets
     if not secrets:
         return endpoint, None
     os.environ.setdefault("MACB_ZENOH_USER", "cli")

@@ -19,7 +19,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from shared.net.security import ENV, SecurityError, read_users_file, role_of
+from shared.net.roles import role_of
+from shared.net.security import ENV, SecurityError, read_users_file
 
 FLAGS = (
     ("--secrets", "secrets", "DIR", "folder `macb certs` wrote (ca.pem, USER.pem/.key/.password)"),

@@ -14,6 +14,8 @@ stops, naming it. `DATA_DIR/cluster.json` lists each child's PID and restarts.
 
 Shutdown: Ctrl-C or SIGTERM stops the children with SIGTERM (they flush snapshots and
 checkpoints), waits, and SIGKILLs whatever is left, so no process outlives `macb up`.
+Children are started and ended by PID with `shared.procs`, as the tests and the
+benchmarks do.
 """
 
 from __future__ import annotations
@@ -21,7 +23,6 @@ from __future__ import annotations
 import collections
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -30,6 +31,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
+
+from shared import procs
 
 RESTART_LIMIT = 5  # deaths of one service within RESTART_WINDOW_S: it is given up
 RESTART_WINDOW_S = 60.0
@@ -157,14 +160,8 @@ class Cluster:
             **dict(spec.env),
             "MACB_RESTARTS": str(self.restarts[spec.name]),
         }
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "cli", "serve", *spec.args],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,  # our signal handler, not the terminal, ends them
-        )
+        # In a session of its own: our signal handler, not the terminal, ends it.
+        proc = procs.start([sys.executable, "-m", "cli", "serve", *spec.args], pipe=True, env=env)
         self.procs[spec.name] = proc
         log_file = (self.log_dir / f"{spec.name}.log").open("ab")
         t = threading.Thread(
@@ -232,27 +229,9 @@ class Cluster:
     def stop(self, grace: float = 15.0) -> None:
         self._stopping = True
         # Services first, router last, so they can flush over a live bus.
-        order = [n for n in self.procs if n != "router"] + ["router"]
-        for name in order[:-1]:
-            p = self.procs.get(name)
-            if p and p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + grace
-        for name in order[:-1]:
-            p = self.procs.get(name)
-            if p:
-                self._reap(p, deadline)
+        procs.end_all([p for n, p in self.procs.items() if n != "router"], grace)
         router = self.procs.get("router")
-        if router and router.poll() is None:
-            router.send_signal(signal.SIGTERM)
-            self._reap(router, time.monotonic() + 5)
+        if router:
+            procs.end(router, 5.0)
         if self.procs:
             self._write_state()
-
-    @staticmethod
-    def _reap(p: subprocess.Popen, deadline: float) -> None:
-        try:
-            p.wait(timeout=max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import queue
 import signal
 import threading
@@ -47,6 +46,7 @@ from shared.net.bus import Bus
 from shared.net.messages import MESSAGES, Assignment, Message, Start, Status, Stop
 from shared.net.monitor import peer_grace_s
 from shared.net.wire import WireError, decode
+from shared.settings import settings
 
 M = TypeVar("M", bound=Message)
 
@@ -54,7 +54,7 @@ M = TypeVar("M", bound=Message)
 def restarts() -> int:
     """How many times this service was restarted (set by `macb up`'s supervisor)."""
     try:
-        return int(os.environ.get("MACB_RESTARTS", "0"))
+        return settings().restarts
     except ValueError:
         return 0
 

@@ -10,15 +10,9 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-from shared.net.monitor import PeerGrace
+from shared.net.monitor import PeerGrace, live_peer
 
 CHECK_S = 0.25  # how often peers away are looked at while any is
-
-
-def live_peer(key: str) -> tuple[str, str] | None:
-    """(role, id) of a liveliness key `macb/live/ROLE/ID`, or None for another key."""
-    parts = key.split("/", 3)
-    return (parts[2], parts[3]) if len(parts) == 4 else None
 
 
 class Seen(NamedTuple):

@@ -3,7 +3,8 @@ processes on loopback, the exactness check of a finished run, and the small conf
 
 `Cluster` is the one cluster harness. Its processes listen on 127.0.0.1 ports of their
 own, each logs to its own file, and `stop()` (or leaving its `with` block) ends every
-one by PID and fails if any outlived it. It runs either way a test needs:
+one by PID (`shared.procs`, as `macb up` and the benchmarks do) and fails if any
+outlived it. It runs either way a test needs:
 
 - one by one, `macb serve ROLE` per process (`router`, `services`, `api`, `start`), so
   a test can kill, pause or restart any one of them;
@@ -30,6 +31,7 @@ from typing import Any
 import pytest
 
 from cli.supervisor import THREAD_ENV, free_port, wait_port
+from shared import procs
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -107,19 +109,7 @@ def macb(
 def spawn(*args: str, log: Path | None = None, env: dict | None = None) -> subprocess.Popen:
     """`macb ARGS` started in a session of its own (a test ends it, and whatever it
     started, by PID), its output appended to `log` (or dropped)."""
-    out = open(log, "ab") if log else subprocess.DEVNULL  # noqa: SIM115 (closed below)
-    try:
-        return subprocess.Popen(
-            [sys.executable, "-m", "cli", *args],
-            cwd=ROOT,
-            env=_environ(env),
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-    finally:
-        if log:
-            out.close()  # the child has its own copy
+    return procs.start([sys.executable, "-m", "cli", *args], log=log, env=_environ(env), cwd=ROOT)
 
 
 def processes_with(marker: str) -> list[str]:
@@ -131,22 +121,6 @@ def cluster_processes(endpoint: str, data: Path) -> list[str]:
     """`macb serve` processes of one cluster (its router by port, services by data dir)."""
     lines = processes_with(endpoint.split(":")[-1]) + processes_with(str(data))
     return sorted({line for line in lines if " serve " in line})
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:  # a zombie is not running
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except OSError:
-        return False
-
-
-def _signal(pid: int, sig: int) -> None:
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(pid, sig)
 
 
 # ---------------------------------------------------------------- the secure bus
@@ -297,7 +271,7 @@ class Cluster:
     def kill(self, name: str, sig: int = signal.SIGKILL, timeout: float = 20) -> None:
         """Signal one process (SIGKILL unless told); one of ours is waited for."""
         if name not in self.procs:
-            _signal(self.pids()[name], sig)
+            procs.send(self.pids()[name], sig)
         elif self.procs[name].poll() is None:
             os.kill(self.procs[name].pid, sig)
             self.procs[name].wait(timeout=timeout)
@@ -307,11 +281,11 @@ class Cluster:
         pids = [self.pid(name) for name in names]
         try:
             for pid in pids:
-                _signal(pid, signal.SIGSTOP)
+                procs.send(pid, signal.SIGSTOP)
             time.sleep(seconds)
         finally:
             for pid in pids:
-                _signal(pid, signal.SIGCONT)
+                procs.send(pid, signal.SIGCONT)
 
     def kill_all(self) -> None:
         """SIGKILL `macb up` and every service: nothing is told, nothing flushes."""
@@ -319,7 +293,7 @@ class Cluster:
         self.procs["up"].kill()
         self.procs["up"].wait()
         for pid in pids.values():
-            _signal(pid, signal.SIGKILL)
+            procs.send(pid, signal.SIGKILL)
 
     def log(self, name: str) -> str:
         return (self.tmp / f"{name}.log").read_text(errors="replace")
@@ -389,32 +363,19 @@ class Cluster:
     def stop(self) -> None:
         """End every process by PID: SIGTERM, SIGKILL what is left after a grace (a
         minute for `macb up`, which ends its own); fail if any of the cluster's outlived it."""
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + (60 if "up" in self.procs else 10)
-        for p in self.procs.values():
-            try:
-                p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        procs.end_all(self.procs.values(), 60 if "up" in self.procs else 10)
         if (self.data / "cluster.json").exists():
             self.pids()
         ours = {p.pid for p in self.procs.values()}  # waited for: their PIDs are free
-        left = [pid for pid in self.seen - ours if _alive(pid) and self._mine(pid)]
+        left = [pid for pid in self.seen - ours if procs.alive(pid) and self._mine(pid)]
         for pid in left:
-            _signal(pid, signal.SIGKILL)
+            procs.send(pid, signal.SIGKILL)
         if left:
             pytest.fail(f"process(es) {left} outlived the cluster")
 
     def _mine(self, pid: int) -> bool:
         """A PID still this cluster's (not reused by another process since)."""
-        try:
-            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            return False
-        return str(self.data) in cmd or self.endpoint.rsplit(":", 1)[1] in cmd
+        return procs.names_one_of(pid, (str(self.data), self.endpoint.rsplit(":", 1)[1]))
 
 
 @contextlib.contextmanager

@@ -10,13 +10,13 @@ import pytest
 
 from services.api.planner import Invalid, QueuePass, Start
 from services.api.points import Points
-from services.api.reconcile import reconcile_run, serving, stale_runs, worker_rows
+from services.api.reconcile import reconcile_run, stale_runs, worker_rows
 from services.api.runbook import RunBook
 from services.api.store import Store
 from services.api.watch import Ending, Watch, flat_row
 from shared.net import bus as keys
 from shared.net.messages import Assignment, Metrics, Status
-from shared.net.monitor import Graces
+from shared.net.monitor import Graces, serving
 from shared.net.wire import encode
 from tests.harness import TINY
 

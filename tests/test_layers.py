@@ -113,7 +113,9 @@ SHARED_LAYERS: dict[str, tuple[str, ...]] = {
     "shared.groups": ("shared.config",),  # which runs may share a group
     "shared.persist": ("shared.core", "shared.config"),  # files that outlive a process
     "shared.run": ("shared.core", "shared.envs", "shared.config"),  # a run's parts
-    "shared.net": ("shared.config", "shared.groups"),  # wire, bus, security, protocol
+    "shared.settings": (),  # the MACB_* variables (pydantic-settings)
+    "shared.procs": (),  # child processes started and ended by PID (stdlib)
+    "shared.net": ("shared.config", "shared.groups", "shared.settings"),  # wire, bus, watcher
 }
 # What shared.core may import from outside the standard library.
 CORE_THIRD_PARTY = {"numpy", "torch"}

@@ -1,10 +1,22 @@
 """The run monitor in process: the one rule by which the API, `macb start` (RunWatch)
-and the services end a run, fed events with the caller's clock."""
+and the services end a run, fed events with the caller's clock, including the end of
+a run no service serves any more, and the one reader of a liveliness key."""
 
 from __future__ import annotations
 
-from shared.net.messages import Assignment
-from shared.net.monitor import Graces, PeerGrace, RunMonitor
+from shared.net import bus as keys
+from shared.net.control import RunWatch
+from shared.net.messages import Assignment, Metrics
+from shared.net.monitor import (
+    LIVE_PREFIX,
+    Decision,
+    Graces,
+    PeerGrace,
+    RunMonitor,
+    live_peer,
+    serving,
+)
+from shared.net.wire import encode
 
 ASSIGN = Assignment.from_wire(
     {"learner": "L", "counter": "C", "evaluator": "E", "actors": ["A0", "A1"]}
@@ -111,3 +123,101 @@ def test_peer_grace_keeps_the_first_loss_and_forgets_what_it_gave_up():
     assert "A0" in g and g.expired(9.9) == []
     assert g.expired(10.0) == [("actor", "A0")] and not g
     assert not g.back("A0")
+
+
+# ---------------------------------------------------------------- one liveliness key reader
+def test_a_liveliness_key_is_read_in_one_place_as_the_bus_writes_it():
+    assert keys.k_live("actor", "a0").startswith(LIVE_PREFIX)
+    assert live_peer(keys.k_live("actor", "a0")) == ("actor", "a0")
+    for other in ("macb/live/actor", "macb/live/actor/a/b", "macb/run/r/live/x", "bad", ""):
+        assert live_peer(other) is None, other
+
+
+# ---------------------------------------------------------------- a run no service serves
+def serves(run: str | None) -> dict[str, dict]:
+    return {"L": {"id": "L", "role": "learner", "run": run}, "C": {"runs": [run]}}
+
+
+def test_a_run_no_service_serves_ends_by_its_last_point_after_the_wait():
+    m = running(monitor(episodes=12))
+    m.points_seen(3, last_episode=12)
+    alive = {("learner", "L")}
+    assert m.unserved("r", {}, alive, now=10.0, settle_s=15.0, wait_s=30.0) is None  # young
+    assert m.unserved("r", {}, alive, 20.0, 15.0, 30.0) is None and m.unserved_since == 20.0
+    assert m.unserved("r", serves("r"), alive, 40.0, 15.0, 30.0) is None  # served again
+    assert m.unserved_since is None
+    assert m.unserved("r", {}, alive, 41.0, 15.0, 30.0) is None
+    assert m.unserved("r", {}, alive, 70.0, 15.0, 30.0) is None
+    end = m.unserved("r", {}, alive, 71.0, 15.0, 30.0)
+    assert end == Decision("completed", "its end was not observed (the API was not listening)")
+    assert not end.stop
+
+
+def test_a_run_ended_unseen_before_its_last_point_failed_and_its_services_are_stopped():
+    m = monitor(episodes=12, last_episode=8, watcher="macb start")
+    end = m.unobserved_end()
+    assert end.state == "failed" and end.stop
+    assert "episode 8" in end.reason and "macb start was not listening" in end.reason
+    assert monitor(episodes=0).unobserved_end().state == "failed"  # no length: no claim
+
+
+def test_the_counter_alone_does_not_serve_a_run_and_a_learner_gone_unseen_gets_the_grace():
+    assert serving("r", ASSIGN.services(), serves(None)) == []
+    assert serving("r", ASSIGN.services(), {"A1": {"runs": ["r"]}}) == ["A1"]
+    m = running(monitor())
+    m.unserved("r", serves("r"), set(), 20.0, 15.0, 30.0)  # its info answers: not lost
+    assert m.waiting() is None
+    m.unserved("r", {}, set(), 20.0, 15.0, 30.0)  # neither token nor info
+    assert m.waiting() == "learner L is down; waiting up to 30 s for it"
+    assert m.decide(51.0).state == "failed"
+
+
+def test_graces_say_when_a_run_has_settled_and_how_long_unserved_is_waited():
+    assert GRACES.settle_s == 15.0
+    assert GRACES.unserved_s(3.0) == 30.0 and GRACES.unserved_s(45.0) == 45.0
+    assert [Decision(s).stop for s in ("running", "completed", "stopped", "failed")] == [
+        False,
+        False,
+        True,
+        True,
+    ]
+
+
+# ---------------------------------------------------------------- the CLI's adapter
+class QuietBus:
+    """A bus on which nothing serves the run: no info answers, no token."""
+
+    def __init__(self) -> None:
+        self.asked = 0
+
+    def get(self, key: str, timeout: float = 1.0) -> list[bytes]:
+        self.asked += 1
+        return []
+
+    def subscribe(self, key: str, callback) -> None:
+        pass
+
+    def watch_liveliness(self, key: str, callback) -> None:
+        pass
+
+
+def test_macb_starts_watch_ends_a_run_no_service_serves_by_the_same_rule():
+    graces = Graces(peer_s=0.0, counter_s=120.0, completion_s=5.0, start_s=60.0)
+    w = RunWatch("r", ASSIGN, episodes=4, check_s=0.0, graces=graces)
+    w.monitor.started -= 20.0  # settled (a quarter of the start grace)
+    bus = QuietBus()
+    w.attach(bus)  # type: ignore[arg-type]
+    w._on_live(keys.k_live("learner", "L"), True)  # its token is up: not lost, just idle
+    w._on_metrics(keys.k_metrics("r", "eval"), encode(Metrics("r", "eval", {"episode": 4})))
+    assert w.state() == "running" and bus.asked == 1  # the unserved clock starts
+    assert w.decision() == Decision(
+        "completed", "its end was not observed (macb start was not listening)"
+    )
+    assert w.state() == "completed" and bus.asked == 2  # once over, it stays so
+
+
+def test_macb_starts_watch_asks_who_serves_no_more_than_every_check():
+    w = RunWatch("r", ASSIGN, episodes=4, check_s=3600.0)
+    bus = QuietBus()
+    w.attach(bus)  # type: ignore[arg-type]
+    assert w.state() == "running" and w.state() == "running" and bus.asked == 0

@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from shared.net.messages import Assignment
+from shared.net.monitor import run_verdict
 from shared.net.protocol import (
     AckTracker,
     Arrival,
@@ -21,7 +22,6 @@ from shared.net.protocol import (
     ReceiveCursor,
     Sender,
     decide,
-    run_verdict,
 )
 
 

@@ -1,6 +1,6 @@
-"""shared/net/security.py without a network: the permission table as the ACL enforces it, the
-settings and their checks, where a router may listen, and reading denials from zenoh's
-log (on lines a zenoh 1.10.2 router really wrote)."""
+"""shared/net/roles.py and security.py without a network: the permission table as the ACL
+enforces it (roles.py), the settings and their checks, where a router may listen, and
+reading denials from zenoh's log (on lines a zenoh 1.10.2 router really wrote)."""
 
 from __future__ import annotations
 
@@ -13,17 +13,14 @@ import zenoh
 
 from shared.net import bus as keys
 from shared.net.bus import session_config
+from shared.net.roles import ROLES, acl_config, permissions_markdown, role_of
 from shared.net.security import (
-    ROLES,
     AclLog,
     Denial,
     Security,
     SecurityError,
-    acl_config,
     check_router_listen,
-    permissions_markdown,
     read_users_file,
-    role_of,
 )
 
 ROOT = Path(__file__).resolve().parent.parent

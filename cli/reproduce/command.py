@@ -12,7 +12,6 @@ completed runs and their points are kept.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ from cli.reproduce.experiments import experiment_body, experiment_name, file_see
 from cli.reproduce.figures import FIGURES, PROFILES
 from cli.reproduce.session import Session, answers_at, with_local_cluster
 from shared.persist.files import data_dir_help
+from shared.settings import settings
 
 
 def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
@@ -255,4 +255,4 @@ def _refuse(msg: str) -> int:
 
 
 def _env_url() -> str | None:
-    return os.environ.get("MACB_API_URL")
+    return settings().api_url

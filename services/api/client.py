@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import httpx
+
+from shared.settings import settings
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 
@@ -28,8 +29,9 @@ def format_detail(detail: Any) -> str:
 
 class ApiClient:
     def __init__(self, url: str | None = None, token: str | None = None, timeout: float = 30.0):
-        self.url = (url or os.environ.get("MACB_API_URL") or DEFAULT_URL).rstrip("/")
-        token = token or os.environ.get("MACB_API_TOKEN")
+        env = settings()
+        self.url = (url or env.api_url or DEFAULT_URL).rstrip("/")
+        token = token or env.api_token
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.http = httpx.Client(base_url=self.url, headers=headers, timeout=timeout)
 

@@ -14,6 +14,8 @@ from collections.abc import Callable, Container, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from shared.net.monitor import live_peer
+
 from .watch import Ending, Watch
 
 FINAL = ("completed", "failed", "stopped")
@@ -37,19 +39,6 @@ class Stale:
         return f"{self.role} {self.service} serves run {self.run}, which has {self.status}"
 
 
-def serving(run: str, services: Iterable[tuple[str, str]], infos: Mapping[str, Any]) -> list[str]:
-    """The run's services whose info says they serve it. Not the counter: it serves many
-    runs and resumes those it had from disk when it restarts, including one whose
-    learner is gone for good."""
-    return [
-        sid
-        for role, sid in services
-        if role != "counter"
-        and sid in infos
-        and (infos[sid].get("run") == run or run in (infos[sid].get("runs") or []))
-    ]
-
-
 def reconcile_run(
     w: Watch,
     infos: Mapping[str, dict[str, Any]],
@@ -58,20 +47,10 @@ def reconcile_run(
     settle_s: float,
     wait_s: float,
 ) -> Ending | None:
-    """How a running run ends that its services no longer serve (None: it goes on).
-
-    A run younger than `settle_s` is left to its start. A learner with neither a token
-    nor an info is lost as if its token went away (the monitor's grace applies). A run
-    no service serves for `wait_s` ended unseen: completed if its last point is in."""
-    if now - w.monitor.started < settle_s:
-        return None
-    served = bool(serving(w.run, w.services(), infos))
-    learner = w.assign.learner
-    if ("learner", learner) not in alive and learner not in infos:
-        w.monitor.peer("learner", learner, False, now)  # gone unseen: the same grace
-    if not w.unserved_for(served, now, wait_s):
-        return None
-    return w.unobserved_end()
+    """How a running run ends that its services no longer serve (None: it goes on):
+    the monitor's rule (`RunMonitor.unserved`), which `macb start` applies too."""
+    decision = w.monitor.unserved(w.run, infos, alive, now, settle_s, wait_s)
+    return None if decision is None else Ending.of(decision)
 
 
 def stale_runs(
@@ -99,10 +78,9 @@ def worker_rows(tokens: Iterable[str], infos: Iterable[dict[str, Any]]) -> list[
     by_key = {(i["role"], i["id"]): i for i in infos}
     out = []
     for key in sorted(set(tokens)):
-        parts = key.split("/")
-        if len(parts) != 4:
+        if (peer := live_peer(key)) is None:
             continue
-        role, sid = parts[2], parts[3]
+        role, sid = peer
         info = by_key.get((role, sid))
         out.append(
             {

@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 
 from shared.net import bus as keys
 from shared.net.messages import Assignment, Metrics, Status
-from shared.net.monitor import Graces
+from shared.net.monitor import Graces, live_peer
 from shared.net.wire import WireError, decode
 
 from .store import Store
@@ -166,10 +166,9 @@ class RunBook:
         self.changed()
 
     def _live(self, key: str, up: bool) -> bool:
-        parts = key.split("/")
-        if len(parts) != 4:
+        if (peer := live_peer(key)) is None:
             return False
-        role, sid = parts[2], parts[3]
+        role, sid = peer
         if up:
             self.alive.add((role, sid))
         else:
@@ -210,10 +209,8 @@ class RunBook:
         if decision.ask_history:
             fill_gaps(w)
             decision = w.monitor.decide(now)
-        if decision.state == "failed":
-            return Ending("failed", decision.reason or "failed", True)
-        if decision.state in ("stopped", "completed"):
-            return Ending(decision.state, decision.reason, decision.state == "stopped")
+        if (ending := Ending.of(decision)) is not None:
+            return ending
         self.show_waiting(w, before)
         return None
 

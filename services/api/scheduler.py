@@ -275,8 +275,8 @@ class Scheduler:
         for stale in stale_runs(infos, self.book.watches, self.store.run):
             log.info("%s: stopping it", stale)
             send_stop(self.bus, stale.run, stale.reason)
-        wait_s = max(self.reconcile_s, self.graces.peer_s)
-        settle_s = self.graces.start_s / 4
+        wait_s = self.graces.unserved_s(self.reconcile_s)
+        settle_s = self.graces.settle_s
         for w in list(self.book.watches.values()):
             if w.ended is None:
                 ending = reconcile_run(w, infos, self.book.alive, now, settle_s, wait_s)

@@ -1,11 +1,11 @@
 """One run as the API's scheduler follows it, with no bus and no store.
 
 `Watch` holds what the scheduler knows of a run it started or re-attached to: its
-`RunMonitor` (the one rule that ends a run, shared with `macb start` and the services),
-the latest stats per source and whether they are saved, the notes a resumed learner
-leaves, the last episode stored, and since when no service serves it. The scheduler
-feeds it decoded messages and clock readings and writes to the store what it returns,
-so each rule here can be checked in process.
+`RunMonitor` (shared/net/monitor.py: the one rule that ends a run, shared with
+`macb start` and the services, including the end of a run no service serves any
+more), the latest stats per source and whether they are saved, and the notes a
+resumed learner leaves. The scheduler feeds it decoded messages and clock readings and
+writes to the store what it returns, so each rule here can be checked in process.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from shared.net.messages import Assignment, Metrics, Status
-from shared.net.monitor import Graces, RunMonitor
+from shared.net.monitor import Decision, Graces, RunMonitor
 
 LIVE_SAVE_S = 1.0  # a running run's latest stats are saved at most this often
 
@@ -50,6 +50,14 @@ class Ending:
     reason: str | None
     stop: bool
 
+    @classmethod
+    def of(cls, decision: Decision) -> Ending | None:
+        """The monitor's decision as a status to record; None while the run goes on."""
+        if decision.state == "running":
+            return None
+        reason = decision.reason or ("failed" if decision.state == "failed" else None)
+        return cls(decision.state, reason, decision.stop)
+
 
 @dataclass
 class Watch:
@@ -57,13 +65,10 @@ class Watch:
 
     run: str
     assign: Assignment
-    episodes: int
     monitor: RunMonitor  # the rule that ends it, fed with its events
     live: dict[str, Any] = field(default_factory=dict)
     live_dirty: bool = False
     live_written: float = 0.0
-    last_episode: int = 0
-    unserved_since: float | None = None
     ended: float | None = None  # monotonic time it reached a final status
     notes: list[str] = field(default_factory=list)  # resumes: kept as the run's reason
 
@@ -75,15 +80,16 @@ class Watch:
         episode), so a re-attached watch counts on from what the store has. The row's
         assignment is its map, read through `Assignment.from_wire` (WireError if bad)."""
         assign = Assignment.from_wire(run["assign"])
-        monitor = RunMonitor(assign, started, graces, run.get("services"), stats[0])
-        return cls(
-            run=run["id"],
-            assign=assign,
+        monitor = RunMonitor(
+            assign,
+            started,
+            graces,
+            run.get("services"),
+            points=stats[0],
             episodes=int(run["config"].get("episodes", 0)),
-            monitor=monitor,
-            live=dict(run.get("live") or {}),
             last_episode=stats[2],
         )
+        return cls(run=run["id"], assign=assign, monitor=monitor, live=dict(run.get("live") or {}))
 
     @property
     def states(self) -> dict[str, dict[str, Any]]:
@@ -92,6 +98,19 @@ class Watch:
     @property
     def points(self) -> int:
         return self.monitor.points
+
+    @property
+    def episodes(self) -> int:
+        return self.monitor.episodes
+
+    @property
+    def last_episode(self) -> int:
+        """The last episode among its stored points."""
+        return self.monitor.last_episode
+
+    @property
+    def unserved_since(self) -> float | None:
+        return self.monitor.unserved_since
 
     def services(self) -> list[tuple[str, str]]:
         return self.monitor.services()
@@ -137,8 +156,7 @@ class Watch:
     def stored(self, rows: list[dict[str, Any]], added: int) -> None:
         """`added` of these evaluation rows were new to the store."""
         if added:
-            self.monitor.points_seen(added)
-            self.last_episode = max([self.last_episode] + [int(r["episode"]) for r in rows])
+            self.monitor.points_seen(added, max(int(r["episode"]) for r in rows))
 
     def live_due(self, now: float) -> bool:
         """Unsaved stats to save now: at most every LIVE_SAVE_S, at once when it ended."""
@@ -148,26 +166,8 @@ class Watch:
         self.live_dirty, self.live_written = False, now
 
     # ------------------------------------------------------------ what the bus shows
-    def unserved_for(self, serving: bool, now: float, wait_s: float) -> bool:
-        """No service has served it for `wait_s` (restarted services take a while to
-        rejoin); the clock starts at the first check that finds none."""
-        if serving:
-            self.unserved_since = None
-            return False
-        if self.unserved_since is None:
-            self.unserved_since = now
-            return False
-        return now - self.unserved_since >= wait_s
-
     def unobserved_end(self) -> Ending:
-        """How a run no service serves any more ended, judged by its stored points."""
-        if self.last_episode >= self.episodes and self.episodes > 0:
-            return Ending(
-                "completed", "its end was not observed (the API was not listening)", False
-            )
-        return Ending(
-            "failed",
-            "its services no longer serve it and no end was seen (it ended while the "
-            f"API was not listening); last point stored: episode {self.last_episode}",
-            True,
-        )
+        """How a run no service serves any more ended (the monitor's rule)."""
+        ending = Ending.of(self.monitor.unobserved_end())
+        assert ending is not None
+        return ending

@@ -22,7 +22,6 @@ they are is in docs/performance.md, "Counter service".
 from __future__ import annotations
 
 import logging
-import os
 import queue
 import sys
 import time
@@ -38,12 +37,9 @@ from shared.config import TrainConfig
 from shared.net.bus import k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.net.messages import Ack, Assignment, BonusQuery, Status, Transitions
 from shared.net.wire import WireError, check_dims, encode
+from shared.settings import settings
 
-DEFAULT_SNAPSHOT_S = 5.0
 STATS_S = 1.0
-# The interpreter's default (5 ms) lets the ingest thread hold the GIL for a whole
-# slice while a bonus query waits on Zenoh's thread; MACB_COUNTER_SWITCH_S overrides.
-DEFAULT_SWITCH_INTERVAL_S = 0.0005
 
 
 class CounterService(ServiceBase):
@@ -67,7 +63,7 @@ class CounterService(ServiceBase):
         self.pending = burst.Pending()  # batches checked, not taken yet
         self.queries = bonus.QueryGate()  # bonus queries being answered now
         if snapshot_s is None:
-            snapshot_s = float(os.environ.get("MACB_COUNTER_SNAPSHOT_S", DEFAULT_SNAPSHOT_S))
+            snapshot_s = settings().counter_snapshot_s  # MACB_COUNTER_SNAPSHOT_S
         self.snapshot_s = snapshot_s
         self.stats_s = stats_s
         super().__init__(service_id, connect, data_dir)
@@ -278,6 +274,7 @@ class CounterService(ServiceBase):
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> CounterService:
-    # Process-wide, so set here (the counter's own process) rather than in the class.
-    sys.setswitchinterval(float(os.environ.get("MACB_COUNTER_SWITCH_S", DEFAULT_SWITCH_INTERVAL_S)))
+    # Process-wide, so set here (the counter's own process) rather than in the class; a
+    # short interval keeps the ingest thread from holding the GIL while a query waits.
+    sys.setswitchinterval(settings().counter_switch_s)  # MACB_COUNTER_SWITCH_S
     return CounterService(service_id, connect, data_dir)

@@ -53,6 +53,7 @@ from shared.net import bus as keys
 from shared.net.messages import Assignment, History, Weights
 from shared.net.wire import encode
 from shared.run.rollout import EvalResult, evaluate, evaluate_group
+from shared.settings import settings
 
 
 class EvaluatorService(ServiceBase):
@@ -66,7 +67,7 @@ class EvaluatorService(ServiceBase):
         # bursts disturb the learner's two threads less (no clear gain in paired runs; off
         # by default because a starved evaluator on a saturated machine falls behind and
         # queues weights).
-        if nice := int(os.environ.get("MACB_EVALUATOR_NICE", "0")):
+        if nice := settings().evaluator_nice:
             os.nice(nice)
         self.runs: dict[str, EvaluatorRun] = {}  # the run served, or a group's runs
         self.group: GroupEval | None = None

@@ -12,7 +12,6 @@ is tested in process.
 from __future__ import annotations
 
 import collections
-import os
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -23,9 +22,10 @@ from shared.persist import checkpoint
 from shared.persist.checkpoint import CutError as CutError  # what `good` raises
 from shared.persist.checkpoint import UnreadableCheckpoint
 from shared.persist.wal import WriteAheadLog
+from shared.settings import settings
 
 # A cut every this many seconds (MACB_LEARNER_CUT_S overrides): what a restart redoes.
-CHECKPOINT_EVERY_S = float(os.environ.get("MACB_LEARNER_CUT_S", "30"))
+CHECKPOINT_EVERY_S = settings().learner_cut_s  # read in the learner's own process
 LOG = "transitions.wal"
 CUT, PREVIOUS = "checkpoint.pt", "checkpoint.prev.pt"
 

@@ -3,7 +3,7 @@
 On loopback with no settings it is the plain router of one machine. Listening anywhere
 else it refuses to start unless TLS and user/password authentication are configured
 (`shared.net.security.check_router_listen`); with a users file it enforces the per-role
-ACL built from `shared.net.security.ROLES`. The ACL's denials are logged here (the first of
+ACL built from `shared.net.roles.ROLES`. The ACL's denials are logged here (the first of
 each kind at once, then a summary at most every 10 s) and counted; the counts answer
 queries on `macb/router/{id}` (`macb ps` shows them). The run goes on: a denied
 message is dropped, nothing else happens to its sender.
@@ -19,6 +19,7 @@ import threading
 import time
 
 from shared.net.bus import Bus, capture_zenoh_log, k_router
+from shared.net.roles import role_of
 from shared.net.security import (
     ACL_LOG_TARGET,
     AclLog,
@@ -26,7 +27,6 @@ from shared.net.security import (
     Security,
     SecurityError,
     check_router_listen,
-    role_of,
 )
 
 log = logging.getLogger("macb.router")

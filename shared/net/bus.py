@@ -24,6 +24,7 @@ from typing import Any
 import zenoh
 
 from shared.net.security import Security, check_endpoints_match
+from shared.settings import settings
 
 log = logging.getLogger("macb.bus")
 
@@ -97,7 +98,8 @@ def run_of(key: str) -> str | None:
 
 # ---------------------------------------------------------------- sessions
 def default_connect() -> list[str]:
-    raw = os.environ.get("MACB_ZENOH_CONNECT", DEFAULT_ENDPOINT)
+    raw = settings().zenoh_connect
+    raw = DEFAULT_ENDPOINT if raw is None else raw
     return [e.strip() for e in raw.split(",") if e.strip()]
 
 

@@ -21,8 +21,7 @@ from shared.config import TrainConfig, actors_error
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.messages import Assignment, History, Metrics, Start, Status, Stop
-from shared.net.monitor import Decision, Graces, RunMonitor, peer_grace_s
-from shared.net.protocol import RunVerdict
+from shared.net.monitor import Decision, Graces, RunMonitor, RunVerdict, live_peer, peer_grace_s
 from shared.net.wire import WireError, decode, encode
 
 
@@ -100,8 +99,8 @@ def start_group(
                 raise
             time.sleep(0.2)
     watches = []
-    for run in runs:
-        watch = RunWatch(run, assign)
+    for run, config in zip(runs, configs):
+        watch = RunWatch(run, assign, episodes=config.episodes)
         watch.attach(bus)
         watches.append(watch)
     for run, config in zip(runs, configs):
@@ -135,14 +134,21 @@ def send_stop(bus: Bus, run: str, reason: str = "stopped by user") -> None:
     bus.put(keys.k_control("stop"), encode(Stop(run, reason=reason)))
 
 
+UNSERVED_CHECK_S = 3.0  # how often a watch asks who serves its run (as the API does)
+
+
 @dataclass
 class RunWatch:
     """Collects a run's metric rows and service states from the bus as they arrive, and
     ends the run by the API's own rule (`shared.net.monitor.RunMonitor`): its services'
-    reports, its services' liveliness, and the graces for what does not come."""
+    reports, its services' liveliness, the graces for what does not come, and the end
+    of a run no service serves any more (asked every `check_s`; `episodes` says
+    whether its last point was in)."""
 
     run: str
     assign: Assignment
+    episodes: int = 0
+    check_s: float = UNSERVED_CHECK_S
     rows: list[dict[str, Any]] = field(default_factory=list)
     latest: dict[str, dict[str, Any]] = field(default_factory=dict)  # source -> last data
     changed: threading.Condition = field(default_factory=threading.Condition)
@@ -151,9 +157,14 @@ class RunWatch:
     _episodes: set[Any] = field(default_factory=set)  # of the rows kept
     _bus: Bus | None = None
     _final: Decision | None = None  # once a run is over, it stays so
+    _alive: set[tuple[str, str]] = field(default_factory=set)  # (role, id) with a token
+    _checked: float = 0.0  # when who serves the run was last asked
 
     def __post_init__(self) -> None:
-        self.monitor = RunMonitor(self.assign, time.monotonic(), self.graces)
+        self.monitor = RunMonitor(
+            self.assign, time.monotonic(), self.graces, episodes=self.episodes, watcher="macb start"
+        )
+        self._checked = self.monitor.started
 
     @property
     def states(self) -> dict[str, dict[str, Any]]:
@@ -184,7 +195,7 @@ class RunWatch:
             return
         self._episodes.add(episode)
         self.rows.append(row)
-        self.monitor.points_seen()
+        self.monitor.points_seen(1, episode if isinstance(episode, int) else None)
         if self.on_row:
             self.on_row(row)
 
@@ -198,11 +209,15 @@ class RunWatch:
             self.changed.notify_all()
 
     def _on_live(self, key: str, up: bool) -> None:
-        parts = key.split("/")
-        if len(parts) == 4:
-            with self.changed:
-                self.monitor.peer(parts[2], parts[3], up, time.monotonic())
-                self.changed.notify_all()
+        if (peer := live_peer(key)) is None:
+            return
+        with self.changed:
+            if up:
+                self._alive.add(peer)
+            else:
+                self._alive.discard(peer)
+            self.monitor.peer(*peer, up, time.monotonic())
+            self.changed.notify_all()
 
     def _fill_gaps(self) -> None:
         """Ask the evaluator for every row it published (some were lost on the way)."""
@@ -212,6 +227,22 @@ class RunWatch:
         with self.changed:
             for row in rows:
                 self._add_row(row)
+
+    def _unserved(self) -> Decision | None:
+        """Every `check_s`: the run's end if no service serves it any more (they
+        restarted without it, or it ended unseen), by the API's rule."""
+        now = time.monotonic()
+        if self._bus is None or now - self._checked < self.check_s:
+            return None
+        self._checked = now
+        infos = {i["id"]: i for i in discover(self._bus)}  # (a query: not under the lock)
+        with self.changed:
+            g = self.graces
+            now = time.monotonic()
+            ending = self.monitor.unserved(
+                self.run, infos, self._alive, now, g.settle_s, g.unserved_s(self.check_s)
+            )
+            return ending or self.monitor.decide(now)  # a learner found gone meanwhile
 
     def verdict(self) -> RunVerdict:
         """The run's status by its services' reports alone."""
@@ -227,6 +258,8 @@ class RunWatch:
             self._fill_gaps()  # (a query: not under the lock the bus's callbacks take)
             with self.changed:
                 decision = self.monitor.decide(time.monotonic())
+        if decision.state == "running":
+            decision = self._unserved() or decision
         with self.changed:
             if decision.state != "running" and self._final is None:
                 self._final = decision
@@ -275,7 +308,7 @@ def start_run(
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.2)
-    watch = RunWatch(run, assign, on_row=on_row)
+    watch = RunWatch(run, assign, episodes=config.episodes, on_row=on_row)
     watch.attach(bus)
     send_start(bus, run, config, assign)
     return watch

@@ -1,34 +1,95 @@
-"""Is this run over? One rule for every watcher, fed by events, with no bus and no clock.
+"""Is this run over? The one watcher rule, fed by events, with no bus and no clock.
 
-`run_verdict` (shared/net/protocol.py) judges a run by its services' reports. A watcher
-also has to judge what did not come: a service whose liveliness token went away and
-did not come back (`PeerGrace`), a counter that stays down, a run no service took, a
-finished run whose last points or counter report never arrive. `RunMonitor` holds those
-timers for one run: the API's scheduler, `shared.net.control.RunWatch` (`macb start`)
-feed it the same events and so end runs by the same rule; a service's own peer grace
-is the same `PeerGrace`.
+`run_verdict` judges a run by its services' reports. A watcher also has to judge what
+did not come: a service whose liveliness token went away and did not come back
+(`PeerGrace`), a counter that stays down, a run no service took, a finished run whose
+last points or counter report never arrive, and a run no service serves any more
+(its end went unseen: `RunMonitor.unserved`). `RunMonitor` holds those timers for one
+run. The API's scheduler (services/api/watch.py, runbook.py, reconcile.py) and
+`shared.net.control.RunWatch` (`macb start`) are adapters that feed it the same events
+and so end runs by the same rule; a service's own peer grace is the same `PeerGrace`,
+and `live_peer` is the one reader of a liveliness key.
 """
 
 from __future__ import annotations
 
-import os
-from collections.abc import Mapping
+from collections.abc import Container, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from shared.net.messages import Assignment
-from shared.net.protocol import RunVerdict, run_verdict
+from shared.settings import Settings, settings
 
 # Services without which a run cannot go on; the counter has a grace of its own (it
 # serves many runs and resumes them from disk, so it is waited for longer).
 ROLES_THAT_MUST_LIVE = ("learner", "evaluator", "actor")
-DEFAULT_PEER_GRACE_S = 30.0
+DEFAULT_PEER_GRACE_S: float = Settings.model_fields["peer_grace_s"].default
+LIVE_PREFIX = "macb/live/"  # shared.net.bus.k_live's keys: macb/live/ROLE/ID
+
+
+def live_peer(key: str) -> tuple[str, str] | None:
+    """(role, id) of a liveliness key `macb/live/ROLE/ID`, or None for another key."""
+    if not key.startswith(LIVE_PREFIX):
+        return None
+    parts = key.split("/")
+    return (parts[2], parts[3]) if len(parts) == 4 and parts[2] and parts[3] else None
 
 
 def peer_grace_s() -> float:
     """How long a lost peer may take to come back before its runs are given up
     (`MACB_PEER_GRACE_S`): the same for services, the API and `macb start`."""
-    return float(os.environ.get("MACB_PEER_GRACE_S", DEFAULT_PEER_GRACE_S))
+    return settings().peer_grace_s
+
+
+@dataclass(frozen=True)
+class RunVerdict:
+    """A run's status from its services' reports.
+
+    `finishing`: learner and evaluator have completed but fewer metric points were seen
+    than the evaluator says it published (`missing`), or the counter's last report (its
+    final count, sent after its snapshot) has not come (`counter_pending`): the watcher
+    waits for them (or asks for the points) before it calls the run completed, so a
+    completed run's record holds every service's final numbers.
+    """
+
+    state: str
+    reason: str | None = None
+    service: str | None = None  # the service whose report decided a failure or stop
+    points_expected: int = 0
+    missing: int = 0
+    counter_pending: bool = False
+
+
+def run_verdict(
+    states: Mapping[str, Mapping[str, Any]], assign: Assignment, points_seen: int
+) -> RunVerdict:
+    """One rule for "is this run over": first any failure, then any stop, then completion.
+
+    `states` maps service id -> its last status detail (with `state`, maybe `reason`,
+    the evaluator's `points`); `assign` names the run's learner and evaluator. Of
+    several failures the one that gives a reason is reported (a service that merely
+    follows another's failure may report first, without one).
+    """
+    failed = [(svc, st) for svc, st in states.items() if st.get("state") == "failed"]
+    if failed:
+        svc, st = sorted(failed, key=lambda f: "reason" not in f[1])[0]
+        return RunVerdict("failed", f"{svc}: {st.get('reason', 'failed')}", svc)
+    for svc, st in states.items():
+        if st.get("state") == "stopped":
+            return RunVerdict("stopped", f"{svc}: {st.get('reason', 'stopped')}", svc)
+    learner = states.get(assign.learner, {}).get("state")
+    evaluator = states.get(assign.evaluator or "", {})
+    if learner != "completed" or evaluator.get("state") != "completed":
+        return RunVerdict("running")
+    expected = int(evaluator.get("points", 0))
+    missing = max(0, expected - points_seen)  # the evaluator's status may overtake its rows
+    counter = assign.counter
+    pending = counter is not None and states.get(counter, {}).get("state") != "completed"
+    if missing == 0 and not pending:
+        return RunVerdict("completed", points_expected=expected)
+    return RunVerdict(
+        "finishing", points_expected=expected, missing=missing, counter_pending=pending
+    )
 
 
 class PeerGrace:
@@ -75,6 +136,17 @@ class Graces:
     completion_s: float = 5.0  # the last points and the counter's report after the end
     start_s: float = 60.0  # some service to take the run
 
+    @property
+    def settle_s(self) -> float:
+        """A run younger than this is left to its start: no service serving it yet is
+        not yet a sign that it ended unseen."""
+        return self.start_s / 4
+
+    def unserved_s(self, check_s: float) -> float:
+        """How long no service may serve a run, looked at every `check_s`, before it
+        is judged ended unseen (restarted services take a while to rejoin)."""
+        return max(check_s, self.peer_s)
+
 
 @dataclass(frozen=True)
 class Decision:
@@ -86,23 +158,45 @@ class Decision:
     reason: str | None = None
     ask_history: bool = False
 
+    @property
+    def stop(self) -> bool:
+        """The run's services are to be told to stop it (a failed or stopped run frees
+        them; a completed one has let them go already)."""
+        return self.state in ("failed", "stopped")
 
-def finishing_note(verdict: RunVerdict) -> str:
+
+def finishing_note(verdict: RunVerdict, watcher: str = "the API") -> str:
     """Why a run completed with something missing, once its grace ran out."""
     notes = []
     if verdict.missing:
         notes.append(
             f"{verdict.missing} of {verdict.points_expected} metric points were "
-            "published while the API was not listening"
+            f"published while {watcher} was not listening"
         )
     if verdict.counter_pending:
         notes.append("the counter's final report did not come (its count is not recorded)")
     return "; ".join(notes)
 
 
+def serving(run: str, services: Iterable[tuple[str, str]], infos: Mapping[str, Any]) -> list[str]:
+    """The run's services whose info says they serve it. Not the counter: it serves many
+    runs and resumes those it had from disk when it restarts, including one whose
+    learner is gone for good."""
+    return [
+        sid
+        for role, sid in services
+        if role != "counter"
+        and sid in infos
+        and (infos[sid].get("run") == run or run in (infos[sid].get("runs") or []))
+    ]
+
+
 class RunMonitor:
     """One run's watcher rule: its services' reports, points and liveliness in; the
-    decision (and what it is waiting for) out. Times are the caller's monotonic clock."""
+    decision (and what it is waiting for) out. Times are the caller's monotonic clock.
+
+    `episodes` (the run's length) and the last episode among its points judge a run
+    whose end went unseen; `watcher` names who watches, in the reasons it gives."""
 
     def __init__(
         self,
@@ -111,12 +205,19 @@ class RunMonitor:
         graces: Graces,
         states: Mapping[str, Mapping[str, Any]] | None = None,
         points: int = 0,
+        episodes: int = 0,
+        last_episode: int = 0,
+        watcher: str = "the API",
     ) -> None:
         self.assign = assign
         self.started = started
         self.graces = graces
         self.states: dict[str, dict[str, Any]] = {k: dict(v) for k, v in (states or {}).items()}
         self.points = points
+        self.episodes = episodes
+        self.last_episode = last_episode
+        self.watcher = watcher
+        self.unserved_since: float | None = None  # first check that found no service
         self.peers = PeerGrace(graces.peer_s)
         self.counter_down: float | None = None
         self.evaluator_done: float | None = None  # when the evaluator said completed
@@ -135,8 +236,11 @@ class RunMonitor:
         if service == self.assign.evaluator and state == "completed":
             self.evaluator_done = now
 
-    def points_seen(self, n: int = 1) -> None:
+    def points_seen(self, n: int = 1, last_episode: int | None = None) -> None:
+        """`n` new evaluation points, the latest at `last_episode` if given."""
         self.points += n
+        if last_episode is not None:
+            self.last_episode = max(self.last_episode, last_episode)
 
     def peer(self, role: str, sid: str, up: bool, now: float) -> None:
         """A liveliness token of the run's `role` `sid` appeared (`up`) or went away."""
@@ -181,7 +285,7 @@ class RunMonitor:
                 return Decision("running", ask_history=True)
             done = self.evaluator_done if self.evaluator_done is not None else now
             if now - done > self.graces.completion_s:
-                return Decision("completed", finishing_note(v))
+                return Decision("completed", finishing_note(v, self.watcher))
             return Decision("running")
         for role, sid in self.peers.expired(now):
             return Decision(
@@ -194,3 +298,55 @@ class RunMonitor:
         if not self.states and now - self.started > self.graces.start_s:
             return Decision("failed", f"no service took the run within {self.graces.start_s:.0f} s")
         return Decision("running")
+
+    # ------------------------------------------------------------ what the bus shows
+    def unserved(
+        self,
+        run: str,
+        infos: Mapping[str, Mapping[str, Any]],
+        alive: Container[tuple[str, str]],
+        now: float,
+        settle_s: float,
+        wait_s: float,
+    ) -> Decision | None:
+        """How the run ends that its services no longer serve (None: it goes on), from
+        the services' infos (`shared.net.control.discover`, by id) and the liveliness
+        tokens alive, looked at now and then.
+
+        A run younger than `settle_s` is left to its start. A learner with neither a
+        token nor an info is lost as if its token went away (the peer grace applies).
+        A run no service serves for `wait_s` ended unseen: `unobserved_end`."""
+        if now - self.started < settle_s:
+            return None
+        served = bool(serving(run, self.services(), infos))
+        learner = self.assign.learner
+        if ("learner", learner) not in alive and learner not in infos:
+            self.peer("learner", learner, False, now)  # gone unseen: the same grace
+        if not self.unserved_for(served, now, wait_s):
+            return None
+        return self.unobserved_end()
+
+    def unserved_for(self, served: bool, now: float, wait_s: float) -> bool:
+        """No service has served it for `wait_s`; the clock starts at the first check
+        that finds none."""
+        if served:
+            self.unserved_since = None
+            return False
+        if self.unserved_since is None:
+            self.unserved_since = now
+            return False
+        return now - self.unserved_since >= wait_s
+
+    def unobserved_end(self) -> Decision:
+        """How a run no service serves any more ended, judged by its points: completed
+        with its last point in, else failed."""
+        if self.last_episode >= self.episodes and self.episodes > 0:
+            return Decision(
+                "completed", f"its end was not observed ({self.watcher} was not listening)"
+            )
+        return Decision(
+            "failed",
+            "its services no longer serve it and no end was seen (it ended while "
+            f"{self.watcher} was not listening); last point stored: episode "
+            f"{self.last_episode}",
+        )

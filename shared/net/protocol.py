@@ -1,12 +1,11 @@
-"""Exactly-once delivery of numbered transitions, and when a run is over: the rules alone.
+"""Exactly-once delivery of numbered transitions: the rule alone.
 
 Every actor numbers its transitions from 0 and publishes them in batches; the counter
 and the learner each keep, per actor, the number of the next transition they expect.
 `ReceiveCursor` is that receive rule, `Sender` the actor's side of it (numbering,
-the batches not yet acknowledged, when to resend, flow control), and `run_verdict`
-the rule that turns the services' reported states into the run's status. They live
-here, pure (no bus, no codec), so the services, the CLI's watcher and the API's
-scheduler share one definition and tests can drive every case in process.
+the batches not yet acknowledged, when to resend, flow control). They live here, pure
+(no bus, no codec), so every service shares one definition and tests can drive every
+case in process. When a run is over is the watcher's rule (shared/net/monitor.py).
 """
 
 from __future__ import annotations
@@ -16,8 +15,6 @@ import enum
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
-
-from shared.net.messages import Assignment
 
 
 class Arrival(enum.Enum):
@@ -257,54 +254,3 @@ class Rejoin:
 
 # ----------------------------------------------------------------------- run status
 RUN_STATES = ("running", "finishing", "completed", "stopped", "failed")
-
-
-@dataclass(frozen=True)
-class RunVerdict:
-    """A run's status from its services' reports.
-
-    `finishing`: learner and evaluator have completed but fewer metric points were seen
-    than the evaluator says it published (`missing`), or the counter's last report (its
-    final count, sent after its snapshot) has not come (`counter_pending`): the watcher
-    waits for them (or asks for the points) before it calls the run completed, so a
-    completed run's record holds every service's final numbers.
-    """
-
-    state: str
-    reason: str | None = None
-    service: str | None = None  # the service whose report decided a failure or stop
-    points_expected: int = 0
-    missing: int = 0
-    counter_pending: bool = False
-
-
-def run_verdict(
-    states: Mapping[str, Mapping[str, Any]], assign: Assignment, points_seen: int
-) -> RunVerdict:
-    """One rule for "is this run over": first any failure, then any stop, then completion.
-
-    `states` maps service id -> its last status detail (with `state`, maybe `reason`,
-    the evaluator's `points`); `assign` names the run's learner and evaluator. Of
-    several failures the one that gives a reason is reported (a service that merely
-    follows another's failure may report first, without one).
-    """
-    failed = [(svc, st) for svc, st in states.items() if st.get("state") == "failed"]
-    if failed:
-        svc, st = sorted(failed, key=lambda f: "reason" not in f[1])[0]
-        return RunVerdict("failed", f"{svc}: {st.get('reason', 'failed')}", svc)
-    for svc, st in states.items():
-        if st.get("state") == "stopped":
-            return RunVerdict("stopped", f"{svc}: {st.get('reason', 'stopped')}", svc)
-    learner = states.get(assign.learner, {}).get("state")
-    evaluator = states.get(assign.evaluator or "", {})
-    if learner != "completed" or evaluator.get("state") != "completed":
-        return RunVerdict("running")
-    expected = int(evaluator.get("points", 0))
-    missing = max(0, expected - points_seen)  # the evaluator's status may overtake its rows
-    counter = assign.counter
-    pending = counter is not None and states.get(counter, {}).get("state") != "completed"
-    if missing == 0 and not pending:
-        return RunVerdict("completed", points_expected=expected)
-    return RunVerdict(
-        "finishing", points_expected=expected, missing=missing, counter_pending=pending
-    )

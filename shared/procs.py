@@ -1,0 +1,128 @@
+"""Child processes started and ended by PID: the one way `macb up`'s supervisor, the
+tests' harness and the benchmarks do it.
+
+The machine may be shared (a campaign, other people's processes), so a child is never
+looked for by name: each starts in a session (and process group) of its own, so a
+terminal's Ctrl-C reaches only its parent and its group can be ended without touching
+anyone else's; it is ended by its PID, SIGTERM first (services flush their snapshots
+and checkpoints), SIGKILL once its grace is over. A PID that is not our child any more
+is signalled only after checking, from its command line, that it is still one of ours.
+Standard library only, so a benchmark can import this before it sets its thread
+variables and loads numpy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import time
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import IO
+
+
+def start(
+    argv: list[str],
+    *,
+    log: Path | None = None,
+    pipe: bool = False,
+    env: Mapping[str, str] | None = None,
+    cwd: Path | None = None,
+) -> subprocess.Popen[bytes]:
+    """A child in a session of its own, stdin from /dev/null, stdout and stderr appended
+    to `log`, or readable from `p.stdout` with `pipe`, else dropped. `env` None: this
+    process's environment."""
+    out: IO[bytes] | int = subprocess.DEVNULL
+    if pipe:
+        out = subprocess.PIPE
+    elif log is not None:
+        out = open(log, "ab")  # noqa: SIM115 (closed below: the child has its own copy)
+    try:
+        return subprocess.Popen(
+            argv,
+            cwd=cwd,
+            env=None if env is None else dict(env),
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+    finally:
+        if not isinstance(out, int):
+            out.close()
+
+
+def send(pid: int, sig: int) -> None:
+    """Signal a PID; one that is gone already is no error."""
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, sig)
+
+
+def terminate(p: subprocess.Popen) -> None:
+    """SIGTERM a child of ours still running (it flushes and exits)."""
+    if p.poll() is None:
+        p.send_signal(signal.SIGTERM)
+
+
+def reap(p: subprocess.Popen, deadline: float, group: bool = False) -> None:
+    """Wait for a child until `deadline` (monotonic; at least a moment), then SIGKILL it,
+    or with `group` its whole process group, and wait. The group id is the child's PID
+    and still ours: a child is not reaped until wait() returns, so its PID cannot have
+    been reused."""
+    try:
+        p.wait(timeout=max(0.1, deadline - time.monotonic()))
+    except subprocess.TimeoutExpired:
+        if group:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+        else:
+            p.kill()
+        p.wait()
+
+
+def end(p: subprocess.Popen, grace: float, group: bool = False) -> None:
+    """SIGTERM, `grace` seconds to exit, then SIGKILL (`reap`)."""
+    if p.poll() is not None:
+        return
+    terminate(p)
+    reap(p, time.monotonic() + grace, group)
+
+
+def end_all(procs: Iterable[subprocess.Popen], grace: float, group: bool = False) -> None:
+    """SIGTERM every one at once, then reap each by one deadline `grace` from now."""
+    procs = list(procs)
+    for p in procs:
+        terminate(p)
+    deadline = time.monotonic() + grace
+    for p in procs:
+        reap(p, deadline, group)
+
+
+def cmdline(pid: int) -> list[str] | None:
+    """A process's arguments, from /proc; None once it is gone."""
+    try:
+        raw = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return None
+    return [a.decode(errors="replace") for a in raw.split(b"\0")]
+
+
+def names_one_of(pid: int, marks: Iterable[str]) -> bool:
+    """Whether the process runs one of ours: its command line contains one of `marks`
+    (a data dir, a port), so a PID reused by someone else's process is left alone."""
+    argv = cmdline(pid)
+    return argv is not None and any(m in "\0".join(argv) for m in marks)
+
+
+def alive(pid: int) -> bool:
+    """The PID runs (a zombie, exited but not yet reaped, does not)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return False

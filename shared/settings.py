@@ -1,0 +1,94 @@
+"""Every `MACB_*` environment variable of the services, the CLI and the learners, in one
+class (the API's own `MACB_API_*` server settings are `services.api.main.Settings`).
+
+`settings()` reads the environment when called, not at import: tests and `macb up`'s
+supervisor set variables per process (and a test may change one between two calls),
+so nothing here is frozen in a module constant. docs/deploy.md's table of variables
+is kept equal to `Settings`' fields by tests/test_settings.py.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+PREFIX = "MACB_"
+
+
+class Settings(BaseSettings):
+    """One process's `MACB_*` settings; each field is read from MACB_<NAME>."""
+
+    model_config = SettingsConfigDict(env_prefix=PREFIX, extra="ignore")
+
+    # ---------------------------------------------------------------- the bus
+    zenoh_connect: str | None = Field(
+        None, description="router endpoints, comma-separated (default tcp/127.0.0.1:7447)"
+    )
+    zenoh_listen: str | None = Field(
+        None, description="where `macb serve router` listens (default tcp/127.0.0.1:7447)"
+    )
+    zenoh_secrets: str | None = Field(
+        None, description="a folder as `macb certs` writes it: TLS files and passwords by user"
+    )
+    zenoh_user: str | None = Field(None, description="this session's user (its service id)")
+    zenoh_password: str | None = Field(None, description="its password")
+    zenoh_password_file: str | None = Field(None, description="a file holding its password")
+    zenoh_users_file: str | None = Field(None, description="a router's user:password file")
+    zenoh_tls_ca: str | None = Field(None, description="the CA certificate (turns TLS on)")
+    zenoh_tls_cert: str | None = Field(None, description="this session's certificate")
+    zenoh_tls_key: str | None = Field(None, description="its private key")
+    zenoh_mtls: str | None = Field(None, description="1: routers also check clients' certificates")
+    # ---------------------------------------------------------------- watching runs
+    peer_grace_s: float = Field(
+        30.0, description="how long a lost service may take to come back before its runs fail"
+    )
+    # ---------------------------------------------------------------- services
+    restarts: int = Field(0, description="set by `macb up`'s supervisor: this service's restarts")
+    learner_cut_s: float = Field(30.0, description="a learner's cut every this many seconds")
+    counter_snapshot_s: float = Field(
+        5.0, description="a counter's snapshot every this many seconds"
+    )
+    # The interpreter's default (5 ms) lets the counter's ingest thread hold the GIL for a
+    # whole slice while a bonus query waits on Zenoh's thread.
+    counter_switch_s: float = Field(
+        0.0005, description="the counter process's thread switch interval, seconds"
+    )
+    evaluator_nice: int = Field(0, description="a lower CPU priority for the evaluator")
+    # ---------------------------------------------------------------- learners
+    # shared/core/learners/fused.py reads these two itself (shared.core imports numpy
+    # and torch only, not pydantic); they are here to be documented and checked alike.
+    fused: str = Field("", description="0, off, false or no: the bf16 learner's fused kernel off")
+    kernel_cache: Path | None = Field(
+        None, description="where the fused kernel is built (default ~/.cache/macb/kernels)"
+    )
+    # ---------------------------------------------------------------- the API's clients
+    api_url: str | None = Field(None, description="the API `macb run/ls/stop/reproduce` call")
+    api_token: str | None = Field(
+        None, description="the bearer token they send (the server reads it too)"
+    )
+
+    @classmethod
+    def env_name(cls, field: str) -> str:
+        """The variable that sets `field`."""
+        if field not in cls.model_fields:
+            raise KeyError(field)
+        return PREFIX + field.upper()
+
+    @classmethod
+    def of(cls, env: Mapping[str, str]) -> Settings:
+        """The settings `env` gives, and the defaults for the rest: the process's own
+        environment is not read (`Security.from_env` checks an explicit mapping)."""
+        values: dict[str, Any] = {}
+        for name, info in cls.model_fields.items():
+            raw = env.get(cls.env_name(name))
+            values[name] = raw if raw is not None else info.get_default(call_default_factory=True)
+        return cls(**values)
+
+
+def settings() -> Settings:
+    """The `MACB_*` variables as they are now (a malformed one raises, naming it)."""
+    return Settings()

@@ -1,0 +1,79 @@
+"""shared/procs.py, the one way children are started and ended by PID (`macb up`'s
+supervisor, tests/harness.py, benchmarks/_procs.py): each child in a session of its
+own, SIGTERM first, SIGKILL (to it, or its whole group) once its grace is over."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+from shared import procs
+
+# A child that ignores SIGTERM and starts a grandchild in its group (which would be
+# left behind by a kill of the child alone), printing the grandchild's PID.
+STUBBORN = """
+import os, signal, subprocess, sys, time
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
+g = subprocess.Popen([sys.executable, "-c", "import signal, time; "
+    "signal.signal(signal.SIGTERM, signal.SIG_IGN); time.sleep(60)"])
+print(g.pid, flush=True)
+time.sleep(60)
+"""
+
+
+def grandchild(log: Path) -> int:
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        text = log.read_text().strip()
+        if text:
+            return int(text)
+        time.sleep(0.05)
+    raise TimeoutError("the child did not start its grandchild")
+
+
+def test_a_child_runs_in_a_session_of_its_own_and_logs_to_its_file(tmp_path):
+    log = tmp_path / "child.log"
+    p = procs.start([sys.executable, "-c", "import os; print(os.getsid(0))"], log=log)
+    assert p.wait(timeout=30) == 0
+    assert int(log.read_text()) == p.pid != os.getsid(0)  # its own session, led by it
+    piped = procs.start([sys.executable, "-c", "print('hi')"], pipe=True)
+    assert piped.stdout is not None and piped.stdout.read() == b"hi\n"
+    piped.wait(timeout=30)
+
+
+def test_end_asks_first_and_a_child_that_exits_is_not_killed(tmp_path):
+    p = procs.start([sys.executable, "-c", "import time; time.sleep(60)"])
+    procs.end(p, grace=30)
+    assert p.returncode == -signal.SIGTERM  # SIGTERM was enough
+    procs.end(p, grace=30)  # ended already: nothing to do
+
+
+def test_past_its_grace_a_child_is_killed_by_pid_or_with_its_whole_group(tmp_path):
+    for group in (False, True):
+        log = tmp_path / f"stubborn-{group}.log"
+        p = procs.start([sys.executable, "-c", STUBBORN], log=log)
+        g = grandchild(log)
+        assert procs.alive(g) and procs.names_one_of(g, ("time.sleep(60)",))
+        procs.end_all([p], grace=0.2, group=group)
+        assert p.returncode == -signal.SIGKILL
+        time.sleep(0.2)
+        assert procs.alive(g) != group  # a group kill takes the grandchild too
+        if not group:
+            procs.send(g, signal.SIGKILL)  # ours: end it here (by PID)
+            deadline = time.monotonic() + 10
+            while procs.alive(g) and time.monotonic() < deadline:
+                time.sleep(0.05)
+        assert not procs.alive(g)
+
+
+def test_a_child_that_exited_is_not_alive_and_signalling_it_is_no_error():
+    p = procs.start([sys.executable, "-c", "pass"])
+    deadline = time.monotonic() + 30
+    while procs.alive(p.pid) and time.monotonic() < deadline:  # exited, not reaped yet
+        time.sleep(0.05)
+    assert not procs.alive(p.pid)
+    procs.send(p.pid, signal.SIGTERM)  # still our (zombie) child: its PID is not reused
+    assert p.wait(timeout=30) == 0
