@@ -289,8 +289,15 @@ class Member:
             self.cuts = out / "cuts"
             self.replay = ReplayLog(self.cuts)
 
-    def collect(self, obs: np.ndarray, act: np.ndarray, rew: float, next_obs: np.ndarray,
-                done: float, collisions: int) -> None:  # fmt: skip
+    def collect(
+        self,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: float,
+        next_obs: np.ndarray,
+        done: float,
+        collisions: int,
+    ) -> None:
         """Count one transition of this run's, store it (with its bonus when priced at
         collection) and keep it for the replay log."""
         self.explorer.observe(obs[None], act[None])
@@ -430,8 +437,13 @@ class GroupRun:
 
             alone = f"{c0.task} {c0.algo}+{c0.explore}"
             desc = desc or (alone if self.runs == 1 else f"{self.runs} runs: {c0.task} {c0.algo}")
-            bar = tqdm(total=c0.episodes, initial=self.first_episode - 1, unit="ep",
-                       desc=desc, position=position)  # fmt: skip
+            bar = tqdm(
+                total=c0.episodes,
+                initial=self.first_episode - 1,
+                unit="ep",
+                desc=desc,
+                position=position,
+            )
         self.start = time.perf_counter()
         try:
             for episode in range(self.first_episode, c0.episodes + 1):
@@ -508,8 +520,14 @@ class GroupRun:
             t1 = clock()
             timing["act_env"] += t1 - t0
             for r, m in enumerate(members):
-                m.collect(tr.obs[r], tr.act[r], float(tr.rew[r]), tr.next_obs[r],
-                          float(tr.done[r]), int(tr.collisions[r]))  # fmt: skip
+                m.collect(
+                    tr.obs[r],
+                    tr.act[r],
+                    float(tr.rew[r]),
+                    tr.next_obs[r],
+                    float(tr.done[r]),
+                    int(tr.collisions[r]),
+                )
             t2 = clock()
             timing["store_count"] += t2 - t1
             if members[0].env_steps > c0.learning_starts:
