@@ -80,7 +80,7 @@ class Serving:
         return owed > 0 and not st.done
 
     def group_tick(self, g: LockstepGroup) -> None:
-        """The group trainer's step (cli/group_trainer.py) over the bus: once every
+        """The one-process trainer's step (cli/trainer.py) over the bus: once every
         run has taken (and counted) this step, each samples and prices its own
         minibatches and one GroupMADDPG update updates them all; then the group's next
         request is answered with one `act` for every run."""
