@@ -12,20 +12,27 @@ from __future__ import annotations
 
 import os
 import re
+import secrets
 import shutil
 import subprocess
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import httpx
 import kubernetes_validate
 import pytest
 import yaml
 
 from shared.net.roles import role_of
+from tests.conftest import free_port, offline, wait_for
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ROOT / "deploy" / "kubernetes"
 KUBECTL = shutil.which("kubectl")
+PODMAN = shutil.which("podman")
 # Every Kubernetes minor the pinned kubernetes-validate ships schemas for, oldest and newest.
 VERSIONS = ("1.25.0", "1.37.0")
 SECRETS = "/run/secrets/macb"
@@ -263,3 +270,220 @@ def test_the_overlay_in_the_docs_sets_namespace_image_and_slots(tmp_path):
     assert by_kind(objs)[("StatefulSet", "slot")]["spec"]["replicas"] == replicas["count"] > 1
     for obj in objs:
         kubernetes_validate.validate(obj, VERSIONS[-1], strict=True)
+
+
+# ---------------------------------------------------------------- podman kube play
+# Not Kubernetes, but real containers from the rendered manifests: the closest this
+# machine gets. Podman 4.3 (Debian 12) plays Pods, Deployments and PVCs only, so each
+# workload becomes the Pod(s) Kubernetes would make of it, with what a kubelet would do
+# done here: the downward API and $(VAR) expanded (node "podman", pods slot-0...), the
+# Secrets given as the folder `macb certs` wrote and the token. Commands, images' entry
+# points, settings and mounts stay as rendered. Opt-in (it builds the image and runs a
+# cluster): MACB_K8S_PODMAN=1, as root with podman.
+PLAY = os.environ.get("MACB_K8S_PODMAN") == "1"
+NODE = "podman"
+# This VM's kernel lacks what podman's defaults need (crun refuses its hybrid cgroups;
+# raising rlimits needs CAP_SYS_RESOURCE, which the sandbox withholds): runc and limits
+# no higher than the shell's.
+CONTAINERS_CONF = """[containers]
+default_ulimits = ["nofile=20000:20000", "nproc=4096:4096"]
+[engine]
+runtime = "runc"
+cgroup_manager = "cgroupfs"
+"""
+RUN = {
+    "task": "simple",
+    "algo": "ddpg",
+    "explore": "dis-macb",
+    "hidden": [64, 64],
+    "batch_size": 32,
+    "eval_every": 10,
+    "seeds": [0],
+}
+
+
+def as_pods(
+    objs: list[dict[str, Any]], image: str, secrets_dir: Path, token: str, prefix: str, host: Path
+) -> list[dict[str, Any]]:
+    """The workloads as the Pods (and PVCs) a cluster of one node named NODE would run."""
+    out: list[dict[str, Any]] = []
+    for o in objs:
+        if o["kind"] == "PersistentVolumeClaim":
+            out.append({**o, "metadata": {"name": f"{prefix}-{o['metadata']['name']}"}})
+        if o["kind"] not in ("Deployment", "DaemonSet", "StatefulSet"):
+            continue
+        name, spec = o["metadata"]["name"], o["spec"]
+        names = (
+            [f"{name}-{i}" for i in range(spec["replicas"])]
+            if o["kind"] == "StatefulSet"
+            else [name]
+        )
+        for pod_name in names:
+            pod = yaml.safe_load(yaml.safe_dump(spec["template"]["spec"]))  # a deep copy
+            pod.pop("nodeSelector", None)
+            pod["hostname"] = pod_name
+            for t in spec.get("volumeClaimTemplates", []):
+                claim = f"{prefix}-{t['metadata']['name']}-{pod_name}"
+                out.append({"apiVersion": "v1", "kind": "PersistentVolumeClaim",
+                            "metadata": {"name": claim}, "spec": t["spec"]})  # fmt: skip
+                pod.setdefault("volumes", []).append(
+                    {"name": t["metadata"]["name"], "persistentVolumeClaim": {"claimName": claim}}
+                )
+            for v in pod.get("volumes", []):
+                if "secret" in v:
+                    v.pop("secret")
+                    v["hostPath"] = {"path": str(secrets_dir), "type": "Directory"}
+                elif "hostPath" in v:  # the node's folder, here one of this test's
+                    v["hostPath"]["path"] = str(host / v["name"])
+                elif "persistentVolumeClaim" in v and not v["persistentVolumeClaim"][
+                    "claimName"
+                ].startswith(prefix):
+                    v["persistentVolumeClaim"]["claimName"] = (
+                        f"{prefix}-{v['persistentVolumeClaim']['claimName']}"
+                    )
+            for c in pod["containers"]:
+                c["image"] = image
+                c.pop("readinessProbe", None)  # polled by the test instead
+                c.pop("resources", None)
+                env: dict[str, str] = {}
+                for e in c.get("env", []):
+                    ref = e.pop("valueFrom", None)
+                    if ref and "fieldRef" in ref:
+                        path = ref["fieldRef"]["fieldPath"]
+                        e["value"] = {"spec.nodeName": NODE, "metadata.name": pod_name}[path]
+                    elif ref:
+                        assert ref["secretKeyRef"] == {"name": "macb-api", "key": "token"}
+                        e["value"] = token
+                    e["value"] = expand(e["value"], env)
+                    env[e["name"]] = e["value"]
+                c["command"] = [expand(a, env) for a in c["command"]]
+                if c["name"] == "api":
+                    (port,) = c["ports"]
+                    port["hostIP"], port["hostPort"] = "127.0.0.1", free_port()
+            labels = spec["template"]["metadata"]["labels"]
+            meta = {"name": pod_name, "labels": labels}
+            out.append({"apiVersion": "v1", "kind": "Pod", "metadata": meta, "spec": pod})
+    return out
+
+
+@dataclass
+class Played:
+    """The manifests played by podman: its environment, the files played, the API."""
+
+    env: dict[str, str]
+    files: list[Path]
+    pods: list[dict[str, Any]]
+    url: str
+    token: str
+
+    def podman(self, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+        assert PODMAN is not None
+        return subprocess.run(
+            [PODMAN, *args], capture_output=True, text=True, timeout=timeout, env=self.env
+        )
+
+    def client(self) -> httpx.Client:
+        auth = {"authorization": f"Bearer {self.token}"}
+        return httpx.Client(base_url=self.url, headers=auth, timeout=30)
+
+
+def _ready(p: Played, ids: set[str]) -> bool:
+    try:
+        with p.client() as http:
+            if not http.get("/health").json().get("bus"):
+                return False
+            workers = http.get("/workers").json()["workers"]
+    except (httpx.HTTPError, ValueError, KeyError):
+        return False
+    return {w["id"] for w in workers if w["answers"]} >= ids
+
+
+@pytest.fixture(scope="module")
+def played(rendered, tmp_path_factory) -> Iterator[Played]:
+    if not PLAY:
+        pytest.skip("podman kube play is opt-in: MACB_K8S_PODMAN=1 (builds the image)")
+    if PODMAN is None or os.geteuid() != 0:
+        pytest.skip("podman kube play here needs podman (apt-get install podman) and root")
+    tmp = tmp_path_factory.mktemp("podman")
+    conf = tmp / "containers.conf"
+    conf.write_text(CONTAINERS_CONF)
+    env = {**os.environ, "CONTAINERS_CONF": str(conf)}
+    prefix = f"macbk8s{os.getpid()}"
+    os.environ["CONTAINERS_CONF"] = str(conf)  # for offline.ensure_image's podman build
+    try:
+        built = offline.ensure_image(PODMAN)
+    finally:
+        del os.environ["CONTAINERS_CONF"]
+    secrets_dir = tmp / "secrets"
+    users = ["learner-slot-0", "evaluator-slot-0", "actor-slot-0", f"counter-{NODE}"]
+    proc = subprocess.run(
+        [str(ROOT / ".venv" / "bin" / "macb"), "certs", str(secrets_dir),
+         *[a for u in users for a in ("--user", u)]],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    token = secrets.token_urlsafe(16)
+    pods = as_pods(rendered, built.tag, secrets_dir, token, prefix, tmp / "node")
+    (tmp / "node").mkdir()
+    files = []
+    for kind in ("PersistentVolumeClaim", "Pod"):
+        for i, obj in enumerate(o for o in pods if o["kind"] == kind):
+            f = tmp / f"{i:02d}-{kind}-{obj['metadata']['name']}.yaml"
+            f.write_text(yaml.safe_dump(obj))
+            files.append(f)
+    api_port = next(
+        c["ports"][0]["hostPort"]
+        for p in pods if p["kind"] == "Pod"
+        for c in p["spec"]["containers"] if c["name"] == "api"
+    )  # fmt: skip
+    p = Played(env, files, pods, f"http://127.0.0.1:{api_port}", token)
+    net = p.podman("network", "create", prefix)
+    assert net.returncode == 0, net.stderr
+    try:
+        t0 = time.monotonic()
+        for f in files:  # the router first: the others connect to it by name
+            out = p.podman("kube", "play", "--network", prefix, str(f))
+            assert out.returncode == 0, f"{f.name}: {out.stdout}{out.stderr}"
+        ids = {"counter-podman", "learner-slot-0", "evaluator-slot-0", "actor-slot-0"}
+        wait_for(lambda: _ready(p, ids), timeout=300, interval=1, what="API and services")
+        print(f"\npodman: {len(files)} objects played, cluster up in {time.monotonic() - t0:.0f} s")
+        yield p
+    finally:
+        for obj in (o for o in pods if o["kind"] == "Pod"):
+            logs = p.podman("pod", "logs", "--tail", "15", obj["metadata"]["name"])
+            print(f"--- {obj['metadata']['name']}\n{(logs.stdout + logs.stderr)[-3000:]}")
+        for f in reversed(files):
+            p.podman("kube", "down", str(f), timeout=120)
+        for obj in (o for o in pods if o["kind"] == "PersistentVolumeClaim"):
+            p.podman("volume", "rm", "-f", obj["metadata"]["name"])
+        p.podman("network", "rm", "-f", prefix)
+        left = p.podman("pod", "ps", "-q", "--filter", f"network={prefix}").stdout.strip()
+        assert left == "", f"pods left: {left}"
+
+
+def test_podman_plays_the_manifests_and_a_run_completes_exactly(played):
+    """The rendered commands, settings and mounts run as containers on the secure bus:
+    every service signs in under its pod-derived id, a run posted over REST completes
+    on slot-0's workers and the node's counter, every transition counted once."""
+    episodes = 40
+    with played.client() as http:
+        exp = http.post("/experiments", json={**RUN, "episodes": episodes})
+        assert exp.status_code == 201, exp.text
+        run_id = exp.json()["runs"][0]["id"]
+        run = wait_for(
+            lambda: (
+                (r := http.get(f"/runs/{run_id}").json())["status"] not in ("queued", "running")
+                and r
+            ),
+            timeout=900,
+            interval=1,
+            what=f"run {run_id} to end",
+        )
+        points = http.get(f"/runs/{run_id}/metrics", params={"since": 0}).json()["points"]
+    assert run["status"] == "completed", run
+    assert run["assign"]["learner"] == "learner-slot-0"
+    assert run["assign"]["counter"] == f"counter-{NODE}"
+    assert [p["episode"] for p in points] == list(range(10, episodes + 1, 10))
+    last = points[-1]
+    assert last["counted_transitions"] == last["env_steps"] == episodes * 20
+    assert last["replay_ratio"] == 1.0
