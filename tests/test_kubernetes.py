@@ -28,6 +28,7 @@ import yaml
 
 from shared.net.roles import role_of
 from tests.conftest import free_port, offline, wait_for
+from tests.harness import macb
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ROOT / "deploy" / "kubernetes"
@@ -402,30 +403,31 @@ def _ready(p: Played, ids: set[str]) -> bool:
 def played(rendered, tmp_path_factory) -> Iterator[Played]:
     if not PLAY:
         pytest.skip("podman kube play is opt-in: MACB_K8S_PODMAN=1 (builds the image)")
-    if PODMAN is None or os.geteuid() != 0:
-        pytest.skip("podman kube play here needs podman (apt-get install podman) and root")
+    lacking = [t for t in ("podman", "runc", "debootstrap", "openssl") if not shutil.which(t)]
+    if lacking or os.geteuid() != 0:
+        pytest.skip(f"podman kube play here needs root, podman and runc; lacking: {lacking}")
     tmp = tmp_path_factory.mktemp("podman")
     conf = tmp / "containers.conf"
     conf.write_text(CONTAINERS_CONF)
     env = {**os.environ, "CONTAINERS_CONF": str(conf)}
     prefix = f"macbk8s{os.getpid()}"
+    before = os.environ.get("CONTAINERS_CONF")
     os.environ["CONTAINERS_CONF"] = str(conf)  # for offline.ensure_image's podman build
     try:
-        built = offline.ensure_image(PODMAN)
+        built = offline.ensure_image(PODMAN)  # as for docker, cached under its digest tag
     finally:
-        del os.environ["CONTAINERS_CONF"]
+        os.environ.pop("CONTAINERS_CONF")
+        if before is not None:
+            os.environ["CONTAINERS_CONF"] = before
     secrets_dir = tmp / "secrets"
     users = ["learner-slot-0", "evaluator-slot-0", "actor-slot-0", f"counter-{NODE}"]
-    proc = subprocess.run(
-        [str(ROOT / ".venv" / "bin" / "macb"), "certs", str(secrets_dir),
-         *[a for u in users for a in ("--user", u)]],
-        capture_output=True, text=True,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
+    macb("certs", str(secrets_dir), *[a for u in users for a in ("--user", u)], check=True)
     token = secrets.token_urlsafe(16)
     pods = as_pods(rendered, built.tag, secrets_dir, token, prefix, tmp / "node")
     (tmp / "node").mkdir()
     files = []
+    first = {"PersistentVolumeClaim": 0, "router": 1}  # volumes, then the router
+    pods.sort(key=lambda o: first.get(o["kind"], first.get(o["metadata"]["name"], 2)))
     for kind in ("PersistentVolumeClaim", "Pod"):
         for i, obj in enumerate(o for o in pods if o["kind"] == kind):
             f = tmp / f"{i:02d}-{kind}-{obj['metadata']['name']}.yaml"
