@@ -6,6 +6,8 @@ server), and its images, commands, ports, settings and mounts are docker-compose
 
 No Kubernetes runs here, so nothing is applied to a cluster. Without kubectl the file
 skips, saying so; `.ci/run` installs Debian's (`kubernetes-client`) when it is missing.
+Opt-in (MACB_K8S_PODMAN=1, root): the rendered workloads played by podman as the Pods a
+one-node cluster would run, and a run through the API completing exactly.
 """
 
 from __future__ import annotations
@@ -217,7 +219,7 @@ def test_slots_are_workers_with_one_cpu_each_on_nodes_that_have_a_counter(render
 def test_the_api_is_ready_when_it_answers_health(rendered):
     from services.api.main import TokenAuth
 
-    (c, _), probe = containers(rendered)["api"], None
+    c, _ = containers(rendered)["api"]
     probe = c["readinessProbe"]["httpGet"]
     named = {p["name"]: p["containerPort"] for p in c["ports"]}
     assert named.get(probe["port"], probe["port"]) == 8000
