@@ -28,8 +28,10 @@ def bare_evaluator() -> tuple[EvaluatorService, list[tuple[str, str]]]:
 
 
 def start(ev: EvaluatorService, runs: list[str]) -> None:
-    assign = Assignment.from_wire({"learner": "l", "counter": "c", "actors": ["a0"],
-                                   "evaluator": "e", **({"group": runs} if len(runs) > 1 else {})})  # fmt: skip
+    group = {"group": runs} if len(runs) > 1 else {}
+    assign = Assignment.from_wire(
+        {"learner": "l", "counter": "c", "actors": ["a0"], "evaluator": "e", **group}
+    )
     for seed, run in enumerate(runs):
         cfg = make_config({"task": "speaker_listener", "interleave": "lockstep", "seed": seed,
                            "eval_episodes": 2, "episode_len": 5, "hidden": [8, 8]})  # fmt: skip

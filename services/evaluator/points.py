@@ -2,9 +2,9 @@
 
 A point may come twice (the learner resends what it has no row of), out of order (a
 restarted evaluator gets the newest point before the resends of those it missed), or
-for only some runs of a group (a run alone is a group of one). The rules deciding what to take, hold, publish again or
-evaluate together are here on the clock they are given, so they are tested without a
-bus; the service evaluates and publishes.
+for only some runs of a group (a run alone is a group of one). The rules deciding what
+to take, hold, publish again or evaluate together are here on the clock they are
+given, so they are tested without a bus; the service evaluates and publishes.
 """
 
 from __future__ import annotations
