@@ -52,11 +52,12 @@ import torch
 from services.common import ServiceBase
 from services.learner import checkpoint as ckpt
 from services.learner import intake
-from services.learner.bonus import BonusClient
+from services.learner.bonus import BonusClient, bus_query
 from services.learner.evaluations import EvaluationsInFlight, reported_point
+from services.learner.lockstep import LockstepGroup
 from services.learner.outbound import Outbound
 from services.learner.serving import Serving
-from services.learner.state import LearnerRun, LockstepGroup, MemberLearner, new_run, open_error
+from services.learner.state import LearnerRun, MemberLearner, new_run, open_error
 from shared.config import TrainConfig
 from shared.core.learners.group import GroupMADDPG
 from shared.envs.tasks import task_spec_for
@@ -128,8 +129,10 @@ class LearnerService(ServiceBase):
             if resume:
                 learner = self.serving.group.learner if self.serving.group else None
                 cuts = ckpt.restore_all(learner, sts, self.log.warning)
-            for st, records, cut in zip(sts, logs, cuts):
-                for batch in intake.replay(st, records, cut):
+            for st, records in zip(sts, logs):
+                skipped, newest = intake.replay(st, records)
+                st.outgoing.version_at_least(newest)
+                for batch in skipped:
                     self.log.warning("run %s: logged batch %s out of order: skipped", run, batch)
         except Exception as err:
             self.log.exception("runs %s failed to %s", runs, "resume" if resume else "start")
@@ -188,17 +191,22 @@ class LearnerService(ServiceBase):
             "eval": self.bus.publisher(keys.k_weights(run, "eval")),
             "ack": self.bus.publisher(keys.k_ack(run, self.id)),
         }
+        action_pubs = {}
+        if config.interleave == "lockstep" and member is None:  # (a group's requests come
+            self.listen(keys.k_act(run, "*"), "act_request", run)  # on its first run's keys)
+            action_pubs = {a: self.bus.publisher(keys.k_action(run, a)) for a in actors}
+        bonus_key = keys.k_bonus(run)
+        bonus = BonusClient(
+            bus_query(self.bus, bonus_key), lambda why: self.reject(bonus_key, why),
+            run, config.explore, config.beta, spec.n_agents,
+        )  # fmt: skip
         st = self.runs[run] = new_run(
             run, config, spec, actors,
             learner=member or build_learner(config, spec, contended=evaluations.busy),
-            bonus=BonusClient(self, run, config.explore, config.beta, spec.n_agents),
-            evaluations=evaluations, pubs=pubs, counter=assign.counter, folder=folder,
-            incarnation=f"{self.id}:{os.getpid()}:{time.time_ns()}",
-            member=-1 if member is None else member.r,
+            bonus=bonus, evaluations=evaluations, pubs=pubs, counter=assign.counter,
+            folder=folder, incarnation=f"{self.id}:{os.getpid()}:{time.time_ns()}",
+            member=-1 if member is None else member.r, action_pubs=action_pubs,
         )  # fmt: skip
-        if st.lockstep and member is None:  # (a group's requests come on its first run's keys)
-            self.listen(keys.k_act(run, "*"), "act_request", run)
-            st.action_pubs = {a: self.bus.publisher(keys.k_action(run, a)) for a in actors}
         return st
 
     def publish_provenance(self, st: LearnerRun) -> None:
@@ -240,11 +248,11 @@ class LearnerService(ServiceBase):
         try:
             self._handle(st, key, msg)
         finally:
-            st.time["inbound"] += time.perf_counter() - t0
+            st.time.add("inbound", time.perf_counter() - t0)
 
     def _handle(self, st: LearnerRun, key: str, msg: Message) -> None:
         if isinstance(msg, Transitions):
-            if not st.received.knows(msg.actor):
+            if not st.intake.received.knows(msg.actor):
                 self.reject(key, f"unknown actor: {msg.actor}")
                 return
             # A duplicate (a resend) or a gap is not taken; either way the ack tells the
@@ -256,9 +264,7 @@ class LearnerService(ServiceBase):
                 self.reject(key, why)
         elif isinstance(msg, Ack):
             if msg.service == st.counter:
-                for actor, seq in msg.acked.items():
-                    st.counted.ack(actor, seq)
-                intake.release_counted(st)
+                intake.counter_acked(st, msg.acked)
         elif isinstance(msg, Status) and msg.service in st.actors:
             if msg.state == "completed":
                 st.final[msg.service] = int(msg.detail.get("final_seq", 0))

@@ -14,8 +14,9 @@ import time
 
 from services.learner import checkpoint as ckpt
 from services.learner import lockstep, updates
+from services.learner.lockstep import LockstepGroup
 from services.learner.outbound import Outbound
-from services.learner.state import LearnerRun, LockstepGroup
+from services.learner.state import LearnerRun
 from shared.config import TrainConfig
 from shared.net import bus as keys
 from shared.net.messages import ActRequest, Assignment
@@ -72,11 +73,11 @@ class Serving:
         owed = st.owed_total - st.learner.updates
         self.out.boundaries(st)
         self.out.housekeep(st, owed)
-        if ckpt.due(st) and not st.unpriced:
+        if ckpt.due(st) and not st.sampling.unpriced:
             self.checkpoint(st)  # (not with minibatches in hand: a cut holds the sampler)
         if st.lockstep and owed == 0:
             for actor, payload in lockstep.answers(st):
-                st.action_pubs[actor](payload)
+                st.asks.pubs[actor](payload)
         return owed > 0 and not st.done
 
     def group_tick(self, g: LockstepGroup) -> None:
@@ -94,7 +95,7 @@ class Serving:
         for st in members:
             self.out.boundaries(st)
             self.out.housekeep(st, st.owed_total - g.learner.updates)
-        if members and ckpt.due(members[0]) and not g.unpriced:
+        if members and ckpt.due(members[0]) and not any(st.sampling.unpriced for st in members):
             for st in members:  # together: a group resumes from one update
                 self.checkpoint(st)
         if (payload := lockstep.group_answer(g, self.runs)) is not None:
@@ -102,10 +103,10 @@ class Serving:
 
     def checkpoint(self, st: LearnerRun) -> None:
         """A cut of the run (checkpoint.py)."""
-        if st.folder is not None:
+        if st.cuts.folder is not None:
             spent = ckpt.write(st)
             self.log.debug("run %s: cut at episode %d (%d bytes, %.1f ms)",
-                           st.run, st.episodes, st.cut_bytes, 1e3 * spent)  # fmt: skip
+                           st.run, st.intake.episodes, st.cuts.size, 1e3 * spent)  # fmt: skip
 
     # ------------------------------------------------------------ events
     def act_request(self, st: LearnerRun, key: str, msg: ActRequest) -> str | None:
@@ -117,10 +118,10 @@ class Serving:
                 return f"act_request from {msg.actor}: not this group's actor"
             if again := lockstep.take_group_request(g, st.spec.joint_obs_dim, msg):
                 g.action_pub(again)  # the answer was lost: the same actions again
-        elif not st.lockstep or msg.actor not in st.action_pubs:
+        elif not st.lockstep or msg.actor not in st.asks.pubs:
             return f"act_request from {msg.actor}: not a lockstep actor of this run"
         elif again := lockstep.take_request(st, msg):
-            st.action_pubs[msg.actor](again)  # the answer was lost: the same action again
+            st.asks.pubs[msg.actor](again)  # the answer was lost: the same action again
         return None
 
     def peer_found(self, role: str, peer: str, evaluator: str | None) -> None:
