@@ -15,8 +15,9 @@ from services.learner import checkpoint as ckpt
 from services.learner import intake, lockstep, updates
 from services.learner.bonus import BonusClient, bus_query
 from services.learner.evaluations import EvaluationsInFlight, reported_point
+from services.learner.group_of_one import GroupOfOne
 from services.learner.outbound import MAX_BACKLOG_EPISODES, Outbound
-from services.learner.state import new_run
+from services.learner.state import LearnerRun, RunGroup, new_run
 from shared.config import make_config
 from shared.envs.tasks import task_spec_for
 from shared.net.messages import Ack, Action, ActRequest, Metrics, Weights
@@ -68,6 +69,15 @@ def run(tmp_path, explore="constant", interleave="async", svc=None, **extra):  #
                    folder=folder)  # fmt: skip
 
 
+def alone(st: LearnerRun, asks: lockstep.Asks | None = None) -> RunGroup:
+    """The run served alone: a group of one."""
+    return RunGroup([st.run], GroupOfOne(st.learner), asks=asks)
+
+
+def update_run(st: LearnerRun, todo: int) -> int:
+    return updates.update(alone(st), [st], todo)
+
+
 def outbound(metrics=None) -> Outbound:  # noqa: ANN001
     return Outbound("l", metrics or (lambda *a, **k: None), lambda: 0, lambda c: [],
                     logging.getLogger("test"))  # fmt: skip
@@ -83,10 +93,10 @@ def test_a_tick_does_the_updates_owed_up_to_the_episodes_end_and_no_more(tmp_pat
     fill(st, episodes=2)  # 10 transitions, 3 of warm-up: 7 updates owed
     assert st.owed_total == 7 and [b.updates for b in st.intake.boundaries] == [2, 7]
     assert updates.updates_due(st) == 2  # the first episode's end comes first
-    assert updates.update_run(st, updates.updates_due(st)) == 2 and st.learner.updates == 2
+    assert update_run(st, updates.updates_due(st)) == 2 and st.learner.updates == 2
     assert updates.updates_due(st) == 0  # its weights go out before more updates
     outbound().boundaries(st)
-    assert updates.update_run(st, updates.updates_due(st)) == 5 and st.learner.updates == 7
+    assert update_run(st, updates.updates_due(st)) == 5 and st.learner.updates == 7
     assert updates.updates_due(st) == 0
 
 
@@ -96,21 +106,21 @@ def test_minibatches_a_silent_counter_left_unpriced_are_priced_later_not_redrawn
     intake.counter_acked(st, {"a0": LEN})
     sp = st.sampling
     state = dict(sp.rng.bit_generator.state)
-    assert updates.update_run(st, 2) == 0 and st.learner.updates == 0
+    assert update_run(st, 2) == 0 and st.learner.updates == 0
     drawn = sp.unpriced
     assert len(drawn) == 2 and sp.rng.bit_generator.state != state
     after = dict(sp.rng.bit_generator.state)
-    assert updates.update_run(st, 2) == 0  # still silent: the same two, nothing drawn
+    assert update_run(st, 2) == 0  # still silent: the same two, nothing drawn
     assert sp.unpriced is drawn and sp.rng.bit_generator.state == after
     st.bonus.mode = "constant"  # the counter answers (priced here, for the test)
-    assert updates.update_run(st, 2) == 2 and not sp.unpriced
+    assert update_run(st, 2) == 2 and not sp.unpriced
     assert sp.rng.bit_generator.state == after  # priced, not redrawn
 
 
 def test_weights_go_out_at_each_episode_end_and_every_eval_every_to_the_evaluator(tmp_path):
     st, out = run(tmp_path), outbound()
     fill(st, episodes=2)
-    updates.update_run(st, 7)
+    update_run(st, 7)
     out.boundaries(st)
     sent = st.outgoing
     assert [(w.episodes, w.eval_point) for w in sent.weights_pub] == [(1, -1)]
@@ -134,21 +144,23 @@ def test_the_credit_window_closes_while_the_learner_is_behind_and_reopens(tmp_pa
 
 def test_a_lockstep_request_is_answered_only_once_its_steps_are_in_replay_and_learnt(tmp_path):
     st = run(tmp_path, interleave="lockstep")
-    obs = np.zeros(st.spec.joint_obs_dim, np.float32)
-    assert lockstep.take_request(st, ActRequest("r", "a0", seq=1, obs=obs)) is None
-    assert lockstep.answers(st) == []  # step 0 is not in replay
+    obs, dim = np.zeros(st.spec.joint_obs_dim, np.float32), st.spec.joint_obs_dim
+    g, runs = alone(st, lockstep.Asks("a0", print)), {"r": st}
+    assert lockstep.take_request(g, dim, ActRequest("r", "a0", seq=1, obs=obs)) is None
+    assert lockstep.answer(g, runs) is None  # step 0 is not in replay
     it = st.intake
+    it.received.take("a0", 0, 1)
     it.ingested_pos["a0"], it.ingested = 1, 4  # step 0 of a0 in; one update owed (warm-up 3)
     b = batch(st, "a0", 0)
     it.buffer.add(b.obs, b.act, b.rew, b.next_obs, b.done)  # (rows to sample from)
-    assert lockstep.answers(st) == []  # its update is not done
-    updates.update_run(st, 1)
-    [(actor, payload)] = lockstep.answers(st)
-    assert actor == "a0" and decode(payload, Action).seq == 1
-    again = lockstep.take_request(st, ActRequest("r", "a0", seq=1, obs=obs))
+    assert lockstep.answer(g, runs) is None  # its update is not done
+    update_run(st, 1)
+    payload = lockstep.answer(g, runs)
+    assert payload is not None and decode(payload, Action).seq == 1
+    again = lockstep.take_request(g, dim, ActRequest("r", "a0", seq=1, obs=obs))
     assert again == payload  # the answer was lost: the same one again
     with pytest.raises(WireError, match="obs"):
-        lockstep.take_request(st, ActRequest("r", "a0", seq=2, obs=obs[:3]))
+        lockstep.take_request(g, dim, ActRequest("r", "a0", seq=2, obs=obs[:3]))
 
 
 def test_a_group_resumes_from_the_newest_update_every_run_has_a_cut_of(tmp_path):
@@ -165,7 +177,7 @@ def test_a_group_resumes_from_the_newest_update_every_run_has_a_cut_of(tmp_path)
     loaded = []
     group = types.SimpleNamespace(load_run_state_dicts=loaded.extend)
     fresh = [run(tmp_path / str(r)) for r in range(2)]
-    assert ckpt.restore_group(group, fresh, print) == [2, 2]
+    assert ckpt.restore(group, fresh, print) == [2, 2]
     assert len(loaded) == 2 and [st.intake.episodes for st in fresh] == [2, 2]
 
 

@@ -142,38 +142,23 @@ def open_log(st: LearnerRun) -> list:
     return st.intake.open_log(st.cuts.folder / LOG)
 
 
-def restore_all(
-    learner: Any, sts: list[LearnerRun], warn: Callable[[str], None]
-) -> list[int | None]:
-    """`restore` for a run alone (`learner` None: each run's own), `restore_group` for
-    a group's runs (`learner`: the group's)."""
-    if learner is None:
-        return [restore(st, warn) for st in sts]
-    return restore_group(learner, sts, warn)
-
-
-def restore(st: LearnerRun, warn: Callable[[str], None]) -> int | None:
-    """The newest good cut into `st`, its learner included; the cut's episode (None:
-    no cut, the log alone from the initial weights)."""
-    for _, state in good(st, warn):
-        st.learner.load_state_dict(state["learner"])
-        return apply(st, state)
-    return None
-
-
-def restore_group(
-    learner: Any, sts: list[LearnerRun], warn: Callable[[str], None]
-) -> list[int | None]:
-    """Every run of a group from its cut at the newest update all of them have a cut
-    of (a group's cuts are written together; a kill between two runs' files leaves the
-    one before for some); each run's cut episode, all None if there is no such update."""
-    options = [
-        {int(state["counters"]["updates"]): state for _, state in good(st, warn)} for st in sts
-    ]
+def restore(learner: Any, sts: list[LearnerRun], warn: Callable[[str], None]) -> list[int | None]:
+    """The runs served (a run alone, or a group's runs) from their cuts at the newest
+    update all of them have a cut of (a group's cuts are written together; a kill
+    between two runs' files leaves the one before for some), into `learner` (their one
+    learner: `load_run_state_dicts`) and each run's state; each run's cut episode, all
+    None if there is no such update (the logs alone, from the initial weights). Of two
+    cuts of one update, the newer is taken."""
+    options = []
+    for st in sts:
+        cuts: dict[int, dict[str, Any]] = {}
+        for _, state in good(st, warn):  # newest first
+            cuts.setdefault(int(state["counters"]["updates"]), state)
+        options.append(cuts)
     common = set.intersection(*(set(o) for o in options))
     if not common:
         if any(options):
-            warn(f"group {[st.run for st in sts]}: no update all runs have a cut of: the logs")
+            warn(f"runs {[st.run for st in sts]}: no update all have a cut of: the logs")
         return [None] * len(sts)
     states = [o[max(common)] for o in options]
     learner.load_run_state_dicts([s["learner"] for s in states])

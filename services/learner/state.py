@@ -4,11 +4,12 @@ which builds it from a run's config and assignment.
 A run's state is split by owner: `Intake` (intake.py: replay, what was taken and
 counted, the episode boundaries, the log), `Sampling` (updates.py: the sampler, the
 minibatches awaiting prices, the bonuses learnt from), `Outgoing` (outbound.py: the
-publishers, the weights version, the credit window), `Cuts` (checkpoint.py) and `Asks`
-(lockstep.py: a lone run's act requests). Each module is the one writer of its part;
-the others read it or call its methods. `LearnerRun` holds the parts and what the run
-is (config, actors, learner, bonus client); a group's run reads its share of the one
-`GroupMADDPG` through a `MemberLearner`.
+publishers, the weights version, the credit window) and `Cuts` (checkpoint.py). Each
+module is the one writer of its part; the others read it or call its methods.
+`LearnerRun` holds the parts and what the run is (config, actors, learner, bonus
+client). The runs served are a `RunGroup`: a run alone is a group of one (its learner
+a `GroupOfOne`), a lockstep group's runs share one `GroupMADDPG`; each run reads its
+share of the group's learner through a `MemberLearner`.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import torch
 from services.learner.bonus import BonusClient
 from services.learner.checkpoint import Cuts
 from services.learner.evaluations import EvaluationsInFlight
+from services.learner.group_of_one import GroupOfOne
 from services.learner.intake import Intake
 from services.learner.lockstep import Asks
 from services.learner.outbound import Outgoing
@@ -52,11 +54,23 @@ class PhaseTimes:
         self.spent[phase] += seconds
 
 
+@dataclass
+class RunGroup:
+    """The runs a learner serves as one (run r of `runs` is member r): a run alone, a
+    group of one, or a lockstep group's runs; one learner for all of them and, in
+    lockstep, their one actor's requests."""
+
+    runs: list[str]
+    learner: GroupMADDPG | GroupOfOne
+    grouped: bool = False  # a group's runs (`Assignment.group`), not a run alone
+    asks: Asks | None = None  # lockstep
+
+
 class MemberLearner:
     """Run r's view of its group's learner: what the service reads and writes per run
     (the update and the acting are the group's, one call for every run)."""
 
-    def __init__(self, group: GroupMADDPG, r: int) -> None:
+    def __init__(self, group: GroupMADDPG | GroupOfOne, r: int) -> None:
         self.group, self.r = group, r
 
     @property
@@ -89,7 +103,6 @@ class LearnerRun:
     sampling: Sampling
     outgoing: Outgoing
     cuts: Cuts = field(default_factory=Cuts)
-    asks: Asks = field(default_factory=Asks)
     final: dict[str, int] = field(default_factory=dict)  # actor -> transitions it published
     time: PhaseTimes = field(default_factory=PhaseTimes)
 
@@ -143,13 +156,12 @@ def new_run(
     counter: str | None = None,
     folder: Path | None = None,
     incarnation: str = "",
-    member: int = -1,
-    action_pubs: dict[str, Callable[[bytes], None]] | None = None,
+    grouped: bool = False,
 ) -> LearnerRun:
     """A run's state as it starts: an empty replay buffer (no larger than the run),
     the sampler seeded from the run's seed, nothing received, each actor's share of
-    the episodes. `pubs` are the run's publishers: weights, eval, ack; `action_pubs`
-    each actor's actions (a lone lockstep run's)."""
+    the episodes. `pubs` are the run's publishers: weights, eval, ack (a `grouped`
+    run's actor acts by request: no weights go to it)."""
     shares = {
         a: episode_share(config.episodes, len(actors), r) * config.episode_len
         for r, a in enumerate(actors)
@@ -170,8 +182,7 @@ def new_run(
             per_update=minibatches_per_update(config),
         ),
         outgoing=Outgoing(
-            pubs["weights"], pubs["eval"], pubs["ack"], incarnation, to_actors=member < 0
+            pubs["weights"], pubs["eval"], pubs["ack"], incarnation, to_actors=not grouped
         ),
         cuts=Cuts(folder),
-        asks=Asks(pubs=dict(action_pubs or {})),
     )
