@@ -101,8 +101,9 @@ class ActorService(ServiceBase):
     def _open(self, run: str, config: TrainConfig, assign: Assignment, rejoining: bool) -> None:
         """Once every run has its start (a run alone at once, a group's last run), their
         worlds; after a restart (`rejoining`) it first waits to hear where each run is."""
-        self._members[run] = config
         runs = list(assign.group or [run])
+        self._members = {r: c for r, c in self._members.items() if r in runs}  # (not others')
+        self._members[run] = config
         if set(self._members) != set(runs):
             return
         cfgs = [self._members.pop(r) for r in runs]
@@ -114,11 +115,10 @@ class ActorService(ServiceBase):
         actors = list(assign.actors)
         rank, grouped = actors.index(self.id), assign.group is not None
         self.st = st = ActorRuns.open(self.id, cfgs, outboxes, act_pub, rank, len(actors), grouped)
-        if rejoining:
-            st.rejoin = rejoin_from(assign, cfgs, time.monotonic())
-            return
         for r in runs:
             self.publish_status(r, "running", **self.running(st))
+        if rejoining:
+            st.rejoin = rejoin_from(assign, cfgs, time.monotonic())
 
     def running(self, st: ActorRuns) -> dict[str, Any]:
         """A run's "running" status: where the actor is among the run's actors."""
