@@ -70,18 +70,16 @@ class Serving:
             return False
         whole = len(members) == len(g.runs)
         updates.update(g, members, min(map(updates.updates_due, members)) if whole else 0)
-        busy = False
         for st in members:
-            owed = st.owed_total - st.learner.updates
             self.out.boundaries(st)
-            self.out.housekeep(st, owed)
-            busy |= owed > 0 and not st.done
+            self.out.housekeep(st, st.owed_total - st.learner.updates)
         if ckpt.due(members[0]) and not any(st.sampling.unpriced for st in members):
             for st in members:  # (not with minibatches in hand: a cut holds the sampler)
                 self.checkpoint(st)
         if g.asks is not None and (payload := lockstep.answer(g, self.runs)) is not None:
             g.asks.action_pub(payload)
-        return busy
+        # (not while a group's run waits for another's step: nothing would be done)
+        return whole and min(map(updates.updates_due, members)) > 0
 
     def checkpoint(self, st: LearnerRun) -> None:
         """A cut of the run (checkpoint.py)."""
