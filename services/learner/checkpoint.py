@@ -7,8 +7,8 @@ replay rows, which the write-ahead log holds: networks, optimizers, targets, the
 and episode counters, the sampler's RNG, which logged batches the buffer holds and the
 episode boundaries still owed. `Cuts` is a run's cut state (its folder, when and how
 long the cuts were) and this module its one writer; a cut's contents come from, and go
-back to, the parts that own them (`Intake.counters`/`restore`, `Sampling.rng_state`/
-`load_rng`, `Outgoing.restore_version`). Pure file work over a `LearnerRun` (no bus),
+back to, the parts that own them (`Intake.restore`, `Sampling.load_rng`,
+`Outgoing.restore_version`). Pure file work over a `LearnerRun` (no bus),
 so a resume is tested in process.
 """
 
@@ -59,14 +59,13 @@ def write(st: LearnerRun) -> float:
     cuts.last = time.monotonic()
     if it.log is not None:
         it.log.sync()  # the rows the cut names are on disk before the cut is
-    kept = it.counters()
     counters = {
-        "ingested": kept["ingested"],
-        "episodes": kept["episodes"],
+        "ingested": it.ingested,
+        "episodes": it.episodes,
         "updates": st.learner.updates,
-        "expected": kept["expected"],
+        "expected": it.received.positions(),
         "version": st.outgoing.version,
-        "collisions_cum": kept["collisions_cum"],
+        "collisions_cum": it.collisions_cum,
     }
     path = cuts.folder / CUT
     checkpoint.save(
@@ -75,7 +74,7 @@ def write(st: LearnerRun) -> float:
         st.config.model_dump(mode="json"),
         st.learner.state_dict(),
         counters,
-        rng={"sampler": st.sampling.rng_state()},
+        rng={"sampler": st.sampling.rng.bit_generator.state},
         previous=cuts.folder / PREVIOUS,
         ingested_pos=dict(it.ingested_pos),
         boundaries=[list(b) for b in it.boundaries],

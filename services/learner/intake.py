@@ -94,15 +94,6 @@ class Intake:
             return self.boundaries.popleft()
         return None
 
-    def counters(self) -> dict[str, Any]:
-        """What a cut keeps of the intake (the rows are in the log)."""
-        return {
-            "ingested": self.ingested,
-            "episodes": self.episodes,
-            "expected": self.received.positions(),
-            "collisions_cum": self.collisions_cum,
-        }
-
     def restore(
         self, counters: dict[str, Any], ingested_pos: dict, boundaries: Iterable[Iterable]
     ) -> None:

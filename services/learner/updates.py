@@ -42,9 +42,6 @@ class Sampling:
     )
     diagnostics: BonusDiagnostics = field(default_factory=BonusDiagnostics)
 
-    def rng_state(self) -> dict[str, Any]:
-        return dict(self.rng.bit_generator.state)
-
     def load_rng(self, state: dict[str, Any]) -> None:
         """The sampler where a cut left it."""
         self.rng.bit_generator.state = state
