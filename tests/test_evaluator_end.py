@@ -80,3 +80,21 @@ def test_a_run_alone_evaluates_its_next_point_at_once_and_in_order():
     ev.tick()  # no group wait for a group of one: 2, then 4
     ev.tick()
     assert st.points == 2 and [p for p in st.published] == [2, 4]
+
+
+def test_a_groups_point_only_some_runs_have_goes_alone_after_the_wait_one_at_a_time(monkeypatch):
+    import services.evaluator.main as ev_main
+    from services.evaluator.points import GROUP_WAIT_S
+
+    clock = [100.0]
+    monkeypatch.setattr(ev_main.time, "monotonic", lambda: clock[0])
+    ev, _ = bare_evaluator()
+    start(ev, ["r0", "r1"])
+    for st in ev.runs.values():
+        st.policy.load = lambda actors: None  # type: ignore[method-assign]
+    ev.runs["r0"].receive(point("r0", 2), now=clock[0])
+    ev.runs["r1"].receive(point("r1", 4), now=clock[0])  # (its 2 is on its way)
+    assert not ev.tick()  # not every run has 2: it waits
+    clock[0] += GROUP_WAIT_S
+    assert ev.tick()  # r0's 2 alone; r1's 4 is still there
+    assert (ev.runs["r0"].points, ev.runs["r1"].points, len(ev.runs["r1"].pending)) == (1, 0, 1)

@@ -33,6 +33,7 @@ This module is the shell: the bus, the timers and the dispatch. The parts hold n
 
 from __future__ import annotations
 
+import itertools
 import os
 import time
 from pathlib import Path
@@ -143,10 +144,11 @@ class EvaluatorService(ServiceBase):
         elif not g.waited_out(time.monotonic()):
             return False
         else:  # one run's point alone (its own worlds, the same streams)
-            ready = next(([(st, m)] for st in sts if (m := self.next_point(st))), [])
+            alone = ((st, m) for st in sts if (m := self.next_point(st)) is not None)
+            ready = list(itertools.islice(alone, 1))  # (the runs after it are not asked)
             if not ready:
                 return False
-            results = [ready[0][0].evaluate(ready[0][1])]
+            results = [st.evaluate(msg) for st, msg in ready]
         g.waiting_since = None
         for (st, msg), ev in zip(ready, results):
             self.publish_row(st, msg, ev)
