@@ -45,7 +45,7 @@ THESIS = {**THESIS_ARM, "learner_lanes": 1}
 
 
 def one_run(cfg, out: Path, cut_every_s: float) -> dict:
-    run = GroupRun([cfg], [out], cut_every_s)
+    run = GroupRun([cfg], [out], cut_every_s, own_learner=True)
     t0 = time.perf_counter()
     run.go(False, None)
     wall = time.perf_counter() - t0

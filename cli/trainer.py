@@ -217,6 +217,7 @@ def train(
         resume=resume,
         cut_every_s=cut_every_s,
         stop_when=None if stop_when is None else lambda rows: stop_when(rows[0]),
+        own_learner=True,
     )
     return rows[0]
 
@@ -231,12 +232,18 @@ def train_group(
     desc: str | None = None,
     position: int | None = None,
     stop_when: Callable[[list[dict]], bool] | None = None,
+    own_learner: bool = False,
 ) -> list[list[dict]]:
     """Train `cfgs` as one group; returns each run's metric rows (also written under
-    its `outs` folder). `on_metrics(r, row)` sees run r's rows as they come (after the
-    point's cut); `stop_when(rows)` returning True ends every run after that point. With
-    `resume`, every run continues from its newest cut that all runs have (one episode),
-    keeping its rows up to it.
+    its `outs` folder). The runs share one `GroupMADDPG`, a group of one too: with
+    `learner_lanes: auto` a run's own learner picks its lanes by timing, so a resumed
+    run would not give its uninterrupted rows bit for bit. `own_learner` (`train`,
+    one run) keeps the learner its config asks for instead.
+
+    `on_metrics(r, row)` sees run r's rows as they come (after the point's cut);
+    `stop_when(rows)` returning True ends every run after that point. With `resume`,
+    every run continues from its newest cut that all runs have (one episode), keeping
+    its rows up to it.
 
     numpy's BLAS (the SimHash projections) runs on one thread while it trains, as in
     `macb train` and the services, which set it before numpy loads: from Python, numpy
@@ -246,7 +253,7 @@ def train_group(
     if resume and any(o is None for o in outs):
         raise ValueError("resume needs every run's output folder")
     with threadpool_limits(limits=1, user_api="blas"):
-        group = GroupRun(cfgs, outs, cut_every_s)
+        group = GroupRun(cfgs, outs, cut_every_s, own_learner)
         if resume:
             group.restore()
         else:
@@ -371,18 +378,23 @@ class Member:
 
 class GroupRun:
     """R >= 1 runs' shared parts (worlds, learner, collector), their `Member`s and the
-    one loop, cut and restore. A run alone keeps the learner its config builds
-    (`SoloRuns` around it); R >= 2 runs share one `GroupMADDPG`."""
+    one loop, cut and restore. The runs share one `GroupMADDPG`; with `own_learner` a
+    run alone keeps the learner its config builds (`SoloRuns` around it: `macb train`)."""
 
     def __init__(
-        self, cfgs: Sequence[TrainConfig], outs: Sequence[Path | None], cut_every_s: float
+        self,
+        cfgs: Sequence[TrainConfig],
+        outs: Sequence[Path | None],
+        cut_every_s: float,
+        own_learner: bool = False,
     ) -> None:
         cfgs = list(cfgs)
         if len(outs) != len(cfgs):
             raise ValueError(f"{len(cfgs)} runs but {len(outs)} output folders")
         if len({o is None for o in outs}) > 1:
             raise ValueError("give every run of a group an output folder, or none")
-        if len(cfgs) > 1:
+        self.own = own = own_learner and len(cfgs) == 1
+        if not own:
             check_group(cfgs)
         c0 = self.cfg = cfgs[0]
         torch.set_num_threads(c0.threads)
@@ -400,7 +412,7 @@ class GroupRun:
                 eval_envs.append(env)
         self.eval_venv = vectorize(eval_envs)
         self.learner: RunsLearner
-        if self.runs == 1:
+        if own:
             self.learner = SoloRuns(build_learner(c0, spec))
         else:
             specs = [learner_spec(cfg) for cfg in cfgs]
@@ -498,10 +510,8 @@ class GroupRun:
             if m.out is None:
                 continue
             m.out.mkdir(parents=True, exist_ok=True)
-            start = provenance.entry(
-                m.cfg.precision, stats, "trainer" if self.runs == 1 else "group"
-            )
-            if self.runs > 1:
+            start = provenance.entry(m.cfg.precision, stats, "trainer" if self.own else "group")
+            if not self.own:
                 start["group"] = {"runs": self.runs}
             if self.resumed:
                 provenance.append(m.out / provenance.FILE, start)

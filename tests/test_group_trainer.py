@@ -148,3 +148,19 @@ def test_every_run_of_a_group_has_a_folder_or_none(tmp_path):
     a = make_config({**BASE, "task": "simple", "algo": "ddpg"})
     with pytest.raises(ValueError, match="every run of a group an output folder, or none"):
         GroupRun([a, a], [tmp_path / "x", None], 60.0)
+
+
+def test_a_group_of_one_shares_the_group_learner_and_train_keeps_its_own():
+    """`learner_lanes: auto` (the default) picks its lanes by timing, so a `--local` run
+    grouped alone must update as a group does (its resume is then exact); `macb train`
+    keeps the learner its config asks for."""
+    from cli.trainer import GroupRun
+    from shared.core.learners import TunedMADDPG
+    from shared.core.learners.group import GroupMADDPG
+    from shared.core.learners.runs import SoloRuns
+
+    cfg = make_config({"task": "simple", "algo": "ddpg", "episodes": 2})
+    assert cfg.learner_lanes == "auto"
+    assert isinstance(GroupRun([cfg], [None], 60.0).learner, GroupMADDPG)
+    own = GroupRun([cfg], [None], 60.0, own_learner=True).learner
+    assert isinstance(own, SoloRuns) and isinstance(own.learner, TunedMADDPG)
