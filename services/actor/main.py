@@ -78,6 +78,8 @@ class ActorService(ServiceBase):
 
     def _on_weights(self, key: str, payload: bytes) -> None:
         run = keys.run_of(key)
+        if run is None:
+            return  # (subscribed on run keys: every key names its run)
         with self._newest_lock:  # Zenoh's threads
             newest = self._newest
             newest.pop(run, None)  # re-inserted: the order is then the order of arrival

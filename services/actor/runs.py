@@ -24,8 +24,8 @@ from services.actor.lockstep import ActExchange
 from services.actor.outbox import Outbox
 from shared.config import TrainConfig
 from shared.core.networks import JointPolicy
-from shared.envs.tasks import make_task_for
-from shared.envs.vectask import vectorize
+from shared.envs.tasks import TaskEnv, make_task_for
+from shared.envs.vectask import ListTask, VecTask, vectorize
 from shared.net.messages import ActRequest, Weights
 from shared.net.protocol import Rejoin, episode_share
 from shared.net.wire import encode
@@ -88,12 +88,14 @@ class ActorRuns:
         """Every run's start has come (`outboxes` in the group's order): the worlds
         seeded for `rank`, untrained actors when async."""
         cfg = cfgs[0]
+        world: VecTask | ListTask | TaskEnv
+        collector: Collector | VecCollector
         if grouped:
-            world = vectorize([make_task_for(c) for c in cfgs])
-            collector: Collector | VecCollector = make_vec_collector(cfgs, world)
+            world = vec = vectorize([make_task_for(c) for c in cfgs])
+            collector = make_vec_collector(cfgs, vec)
         else:
-            world = make_task_for(cfg)
-            collector = make_collector(cfg, world, rank, actors)
+            world = one = make_task_for(cfg)
+            collector = make_collector(cfg, one, rank, actors)
         return cls(
             actor=actor,
             cfgs=cfgs,
@@ -165,9 +167,11 @@ class ActorRuns:
     def publish(self, steps: list[VecTransitions], now: float) -> None:
         """Each run's rows of `steps` as one numbered batch on its keys."""
         for r, box in enumerate(self.outboxes.values()):
-            cols = (np.concatenate([getattr(t, k)[r : r + 1] for t in steps]) for k in (
-                "obs", "act", "rew", "next_obs", "done", "collisions"))  # fmt: skip
-            box.publish(*cols, self.version, now)
+            obs, act, rew, next_obs, done, collisions = (
+                np.concatenate([getattr(t, k)[r : r + 1] for t in steps])
+                for k in ("obs", "act", "rew", "next_obs", "done", "collisions")
+            )
+            box.publish(obs, act, rew, next_obs, done, collisions, self.version, now)
         self.steps += len(steps)
 
     def run_episode(self) -> None:

@@ -164,7 +164,13 @@ class Scheduler:
             self._check_runs()
 
     def _info_reply(self, key: str, payload: bytes) -> bytes:
-        info = {"id": self.service_id, "role": "api", "run": None, "runs": [], "rejects": {}}
+        info: dict[str, Any] = {
+            "id": self.service_id,
+            "role": "api",
+            "run": None,
+            "runs": [],
+            "rejects": {},
+        }
         info |= {"rejects_total": 0, "restarts": restarts(), "http": self.http_url}
         return json.dumps(info).encode()
 

@@ -234,7 +234,7 @@ class CounterService(ServiceBase):
             return bonus.answer(st, msg, self.runs.lock, t0)
 
     # ------------------------------------------------------------ stats, timers
-    def tick(self) -> None:
+    def tick(self) -> bool:
         now = time.monotonic()
         if self.pending.due(now):
             self._take_burst()  # an inbox that never empties still gets its acks
@@ -254,6 +254,7 @@ class CounterService(ServiceBase):
                     except OSError:
                         self.log.exception("snapshot of run %s failed (the log keeps it)", run)
             self._next_snapshot = snapshot.next_check(now, self.snapshot_s, time.monotonic() - now)
+        return False  # its work comes in messages: nothing waits between them
 
     def _run_stats(self, st: RunState) -> dict[str, Any]:
         _, rejects_total = self.reject_tally.counts()

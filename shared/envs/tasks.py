@@ -109,7 +109,7 @@ def _set_integrator(world: World, integrator: str) -> None:
     """Velocity-first replaces the world's integration step on this world only."""
     if integrator == "velocity-first":
         bound = types.MethodType(integrate_velocity_first, world)
-        world.integrate_state = bound  # type: ignore[method-assign]
+        world.integrate_state = bound
 
 
 def _obs_layout(task: str, agent: Agent, world: World) -> list[tuple[str, int]]:

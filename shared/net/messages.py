@@ -74,7 +74,8 @@ class Assignment:
     def to_wire(self) -> dict[str, Any]:
         """The map the wire, files and the store hold (keys of None fields left out)."""
         group = None if self.group is None else list(self.group)
-        out = {"counter": self.counter, "learner": self.learner, "evaluator": self.evaluator}
+        out: dict[str, Any] = {"counter": self.counter, "learner": self.learner}
+        out["evaluator"] = self.evaluator
         out |= {"actors": list(self.actors), "group": group}
         return {k: v for k, v in out.items() if v is not None}
 

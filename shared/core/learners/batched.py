@@ -415,6 +415,7 @@ class StackedMADDPG:
         # d actor_loss_i / d Q_i (in bf16 -1/B is off by < 2^-9: a scale Adam divides out)
         grad_q = torch.full_like(critic_acts[-1], -1.0 / batch)
         _, grad_in = mlp_backward(critic, critic_acts, grad_q, False, True)
+        assert grad_in is not None  # asked for (`inputs`)
         if self.centralized:
             grad_a = torch.gather(grad_in, 2, self._own_cols.expand(-1, rows, -1))
         else:
