@@ -62,7 +62,7 @@ def restarts() -> int:
 def learner_end_reason(msg: Status) -> str:
     """Why a run ended, from its learner's decoded `status` message, for the status
     other services publish when they follow it (watchers show the first failure)."""
-    return f"learner {msg.state}: {msg.detail.get('reason', '')}".strip()
+    return f"learner {msg.state}: {msg.reason or ''}".strip()
 
 
 class ServiceHooks:

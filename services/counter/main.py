@@ -192,10 +192,8 @@ class CounterService(ServiceBase):
             return
         self.publish_metrics(run, self._run_stats(st), source="counter")
         self.on_stop(run, f"learner {msg.state}")
-        detail = self._run_stats(st)
-        if msg.state == "failed":
-            detail["reason"] = learner_end_reason(msg)
-        self.publish_status(run, msg.state, **detail)
+        reason = learner_end_reason(msg) if msg.state == "failed" else None
+        self.publish_status(run, msg.state, reason=reason, **self._run_stats(st))
         self.free(run)
 
     def _take_burst(self) -> None:

@@ -205,7 +205,7 @@ class RunWatch:
         except WireError:
             return
         with self.changed:
-            self.monitor.status(msg.service, msg.state, msg.detail, time.monotonic())
+            self.monitor.status(msg.service, msg.state, msg.fields(), time.monotonic())
             self.changed.notify_all()
 
     def _on_live(self, key: str, up: bool) -> None:
