@@ -28,6 +28,7 @@ from shared.envs.tasks import TaskEnv, make_task_for
 from shared.envs.vectask import ListTask, VecTask, vectorize
 from shared.net.messages import ActRequest, Weights
 from shared.net.protocol import Rejoin, episode_share
+from shared.net.stats import ActorStats
 from shared.net.wire import encode
 from shared.run.rollout import (
     Collector,
@@ -224,21 +225,21 @@ class ActorRuns:
         self.exchange.forget()
         return position
 
-    def stats(self, run: str, rejects_total: int) -> dict[str, Any]:
+    def stats(self, run: str, rejects_total: int) -> ActorStats:
         wall = time.perf_counter() - self.t0
         sender = self.outboxes[run].sender
-        out = {
-            "rank": self.rank,
-            "episodes": self.done,
-            "published": sender.seq,
-            "policy_version": self.version,
-            "resends": sender.resends,
-            "steps_per_sec": self.steps / wall if wall > 0 else 0.0,
-            "rejects_total": rejects_total,
+        return ActorStats(
+            rank=self.rank,
+            episodes=self.done,
+            published=sender.seq,
+            policy_version=self.version,
+            resends=sender.resends,
+            steps_per_sec=self.steps / wall if wall > 0 else 0.0,
+            rejects_total=rejects_total,
             # lockstep: mean time from an act request to its action (the learner's
             # update, the count before it and the bus's round trips)
-            "act_wait_ms": (
+            act_wait_ms=(
                 1e3 * self.exchange.wait_s / self.steps if self.lockstep and self.steps else 0.0
             ),
-        }
-        return {**out, "group": len(self.cfgs)} if self.grouped else out
+            group=len(self.cfgs) if self.grouped else None,
+        )

@@ -255,9 +255,10 @@ class CounterService(ServiceBase):
         return False  # its work comes in messages: nothing waits between them
 
     def _run_stats(self, st: RunState) -> dict[str, Any]:
+        """The run's stats as published (`CounterStats`' map)."""
         _, rejects_total = self.reject_tally.counts()
         with self.runs.lock:
-            return run_stats(st, rejects_total)
+            return run_stats(st, rejects_total).to_wire()
 
     def info(self) -> dict[str, Any]:
         out = super().info()

@@ -305,7 +305,7 @@ class LearnerService(ServiceBase):
         """Every share in replay and learnt, every point out: the run completes."""
         self.serving.checkpoint(st)
         ckpt.retire(st)
-        stats = self.out.stats(st)
+        stats = self.out.stats(st).to_wire()
         self.publish_metrics(st.run, stats, source="learner")
         self.publish_status(st.run, "completed", resumed=self.resume, **stats)
         self.log.info("run %s completed: %s", st.run, json.dumps(stats))
