@@ -21,6 +21,7 @@ they are is in docs/performance.md, "Counter service".
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import sys
@@ -35,6 +36,7 @@ from services.counter.state import RunState
 from services.counter.stats import run_stats, update_rate
 from shared.config import TrainConfig
 from shared.net.bus import k_ack, k_bonus, k_status, k_transitions, run_of
+from shared.net.info import CounterInfo, ServiceInfo
 from shared.net.messages import Ack, Assignment, BonusQuery, Status, Transitions
 from shared.net.wire import WireError, check_dims, encode
 from shared.settings import settings
@@ -260,17 +262,19 @@ class CounterService(ServiceBase):
         with self.runs.lock:
             return run_stats(st, rejects_total).to_wire()
 
-    def info(self) -> dict[str, Any]:
-        out = super().info()
+    def info(self) -> CounterInfo:
+        base = super().info()
         stats = {}
         for run, st in self.runs.items():
             stats[run] = self._run_stats(st)
             with self.runs.lock:
                 stats[run]["acked"] = st.cursor.positions()
-        out["runs"] = stats
-        out["ready"] = self._ready
-        out["snapshot_s"] = self.snapshot_s
-        return out
+        return CounterInfo(
+            **{f.name: getattr(base, f.name) for f in dataclasses.fields(ServiceInfo)},
+            run_stats=stats,
+            ready=self._ready,
+            snapshot_s=self.snapshot_s,
+        )
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> CounterService:

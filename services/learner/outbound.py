@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from shared.core.networks import weights_as_arrays
+from shared.net.info import CounterInfo
 from shared.net.messages import Ack, Weights
 from shared.net.stats import LearnerStats
 from shared.net.wire import encode
@@ -231,7 +232,8 @@ class Outbound:
             return dict(st.bonus.tables)
         for raw in self.counter_info(st.counter):
             try:
-                return dict(json.loads(raw).get("runs", {}).get(st.run, {}))
+                info = CounterInfo.from_json(json.loads(raw))
             except (ValueError, AttributeError, TypeError):
                 return {}
+            return {} if info is None else dict(info.run_stats.get(st.run, {}))
         return {}
