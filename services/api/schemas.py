@@ -193,7 +193,9 @@ class _ExperimentFields(BaseModel):
         return config
 
     def seed_list(self) -> list[int]:
-        return list(self.seeds) if self.seeds is not None else [self.seed]  # type: ignore[attr-defined]
+        if self.seeds is not None:
+            return list(self.seeds)
+        return [self.seed]  # type: ignore[attr-defined]  # (a config field create_model adds)
 
     def arm_list(self) -> list[tuple[str | None, dict[str, Any]]]:
         """(name, keys it sets) per arm; one unnamed arm setting nothing without arms."""

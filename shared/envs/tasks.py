@@ -602,6 +602,7 @@ def make_task(
     if is_custom(task):
         from shared.envs.custom_task import CustomTaskEnv
 
+        # (a TaskEnv by interface, not by class: what every caller uses of one)
         return CustomTaskEnv(  # type: ignore[return-value]
             task,
             options.get("task_kwargs"),
