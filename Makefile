@@ -30,6 +30,7 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q -rs -m "not slow and not soak"
 
 # The long checks: learning (DDPG learns sparse simple; bf16 learns like fp32; the
@@ -51,9 +52,11 @@ soak: $(STAMP)
 test-compose: $(STAMP)
 	MACB_COMPOSE_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m compose tests/test_compose.py
 
+# mypy checks shared/, services/ and cli/ (pyproject.toml's [tool.mypy]): zero errors.
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache
+	rm -rf $(VENV) runs .pytest_cache .mypy_cache

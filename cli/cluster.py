@@ -350,7 +350,7 @@ def cmd_up(args: argparse.Namespace) -> int:
             secrets=secrets,
             group_size=args.group_size,
         ) as up:
-            if cfg is None or up.stop.is_set():
+            if cfg is None or body is None or up.stop.is_set():  # (both None without --run)
                 return _serve_until_stopped(up.cluster, up.stop)
             code = up.run(_experiment(args, cfg, body, up.bus, up.api, data_dir))
             if up.api is not None:
@@ -515,7 +515,7 @@ def _api_came_up(api: ApiClient, cluster: Cluster, data_dir: Path) -> bool:
 def _experiment(
     args: argparse.Namespace,
     cfg: TrainConfig,
-    body: dict | None,
+    body: dict,
     bus: Bus,
     api: ApiClient | None,
     data_dir: Path,

@@ -62,6 +62,8 @@ def _from_store(db: str, ident: str) -> tuple[dict[str, Any], list[dict[str, Any
             if run is None:
                 return None
             exp, only = store.experiment(run["experiment_id"]), ident
+            if exp is None:  # (a run's experiment is never deleted)
+                return None
         runs = store.runs_of([exp["id"]])[exp["id"]]
         runs = [dict(r, points=store.points(r["id"])) for r in runs if only in (None, r["id"])]
         return exp, runs

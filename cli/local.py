@@ -156,9 +156,9 @@ def run_groups(
             size = max_runs or -(-len(g) // jobs)
             groups += [(state, [idx[j] for j in g[k : k + size]]) for k in range(0, len(g), size)]
     tasks = []
-    for g, (state, members) in enumerate(groups, 1):
+    for n, (state, members) in enumerate(groups, 1):
         chosen = [runs[i] for i in members]
-        what = f"group {g}/{len(groups)} ({len(chosen)} runs: {chosen[0].config.task})"
+        what = f"group {n}/{len(groups)} ({len(chosen)} runs: {chosen[0].config.task})"
         resume = state != "new"
         print(f"{what}: {'resuming from ' + state if resume else 'starting'}", file=sys.stderr)
         args = (
@@ -168,7 +168,7 @@ def run_groups(
             resume,
             cut_every_s,
             what,
-            (g - 1) % max(jobs, 1) if jobs > 1 else None,
+            (n - 1) % max(jobs, 1) if jobs > 1 else None,
         )
         tasks.append(args)
     if jobs <= 1 or len(tasks) <= 1:
@@ -226,7 +226,7 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
     report reads): each run's status, config and latest provenance."""
     from shared.persist import provenance
 
-    described = []
+    described: list[dict[str, Any]] = []
     for r in runs:
         folder = out / r.name
         state = run_state(folder, r.config)

@@ -95,9 +95,9 @@ def cluster_plan(
     if api is not None:
         if listen and listen.split("/", 1)[-1].startswith("0.0.0.0:"):
             api = "0.0.0.0:" + api.rsplit(":", 1)[1]
-        args = ("api", "--id", "api", "--listen-http", api, "--data-dir", data_dir)
+        api_args = ("api", "--id", "api", "--listen-http", api, "--data-dir", data_dir)
         api_env = (*env, ("MACB_API_GROUP_SIZE", str(group_size))) if group_size > 1 else env
-        plan.append(ServiceSpec("api", args, signed_in("api", api_env)))
+        plan.append(ServiceSpec("api", api_args, signed_in("api", api_env)))
     return plan
 
 

@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cli.config_flags import (
     HelpFormatter,
@@ -15,6 +16,9 @@ from cli.config_flags import (
     resolve_config,
 )
 from shared.config import ConfigError, load_config
+
+if TYPE_CHECKING:  # (imported when a writer opens: tensorboard is slow to import)
+    from cli.tensorboard import TensorBoardRun
 
 
 def add_train_parser(sub: argparse._SubParsersAction) -> None:
@@ -70,7 +74,7 @@ class _TensorBoardRows:
 
     def __init__(self, folder: Path, resume: bool) -> None:
         self.folder, self.resume = folder, resume
-        self.run = None
+        self.run: TensorBoardRun | None = None
 
     def __call__(self, row: dict) -> None:
         if self.run is None:

@@ -72,7 +72,7 @@ class MetricsWriter:
     resumed run's rows up to its cut) are written first, replacing what was there."""
 
     def __init__(
-        self, out: Path, fields: tuple[str, ...] = METRIC_FIELDS, rows: list[dict] = ()
+        self, out: Path, fields: tuple[str, ...] = METRIC_FIELDS, rows: Sequence[dict] = ()
     ) -> None:
         self.csv_file = (out / "metrics.csv").open("w", newline="")
         self.csv = csv.DictWriter(self.csv_file, fieldnames=fields, extrasaction="ignore")
@@ -352,9 +352,11 @@ class Member:
         first = replay_rows - min(replay_rows, buffer.capacity)
         buffer.added = first
         buffer.pos = first % buffer.capacity
+        obs, act, rew, next_obs, done = (
+            data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")
+        )
         buffer.add(
-            *(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")),
-            data["bonus"][first:] if self.collection else None,
+            obs, act, rew, next_obs, done, data["bonus"][first:] if self.collection else None
         )
 
     def counters(self, wall: float) -> dict:

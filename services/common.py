@@ -43,6 +43,7 @@ from services.runs import ServedRuns
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
+from shared.net.info import ServiceInfo
 from shared.net.messages import MESSAGES, Assignment, Message, Start, Status, Stop
 from shared.net.monitor import peer_grace_s
 from shared.net.wire import WireError, decode
@@ -62,7 +63,7 @@ def restarts() -> int:
 def learner_end_reason(msg: Status) -> str:
     """Why a run ended, from its learner's decoded `status` message, for the status
     other services publish when they follow it (watchers show the first failure)."""
-    return f"learner {msg.state}: {msg.detail.get('reason', '')}".strip()
+    return f"learner {msg.state}: {msg.reason or ''}".strip()
 
 
 class ServiceHooks:
@@ -190,21 +191,21 @@ class ServiceBase(ServiceHooks):
     def config(self) -> TrainConfig | None:
         return self.active.get(self.run_id) if self.run_id else None
 
-    def info(self) -> dict[str, Any]:
+    def info(self) -> ServiceInfo:
         rejects, total = self.reject_tally.counts()
-        return {
-            "id": self.id,
-            "role": self.role,
-            "run": self.run_id,
-            "runs": list(self.active),
-            "rejects": rejects,
-            "rejects_total": total,
-            "restarts": restarts(),
-            "resumed": self.resumed,
-        }
+        return ServiceInfo(
+            id=self.id,
+            role=self.role,
+            run=self.run_id,
+            runs=list(self.active),
+            rejects=rejects,
+            rejects_total=total,
+            restarts=restarts(),
+            resumed=self.resumed,
+        )
 
     def _info_reply(self, key: str, payload: bytes) -> bytes:
-        return json.dumps(self.info()).encode()
+        return json.dumps(self.info().to_json()).encode()
 
     # ------------------------------------------------------------ control
     def _on_control(self, tag: str, key: str, payload: bytes) -> None:

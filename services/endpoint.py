@@ -9,7 +9,7 @@ from typing import Any
 
 from shared.net import bus as keys
 from shared.net.bus import Bus
-from shared.net.messages import Metrics, Status
+from shared.net.messages import Metrics, Resumed, Status
 from shared.net.wire import encode
 
 
@@ -36,8 +36,29 @@ class Endpoint:
         for handle in self.run_subs.pop(run, []):
             self.bus.undeclare(handle)
 
-    def status(self, run: str, state: str, **detail: Any) -> None:
-        msg = Status(run, service=self.id, state=state, detail=detail)
+    def status(
+        self,
+        run: str,
+        state: str,
+        *,
+        reason: str | None = None,
+        final_seq: int | None = None,
+        points: int | None = None,
+        resumed: Resumed | None = None,
+        **detail: Any,
+    ) -> None:
+        """The service's `Status` in the run: the fields a reader acts on, the rest
+        (where it is, its stats) as its detail."""
+        msg = Status(
+            run,
+            service=self.id,
+            state=state,
+            detail=detail,
+            reason=reason,
+            final_seq=final_seq,
+            points=points,
+            resumed=resumed,
+        )
         self.bus.put(keys.k_status(run, self.id), encode(msg))
 
     def metrics(self, run: str, data: dict[str, Any], source: str | None = None) -> None:

@@ -4,6 +4,7 @@ bus shows, the run book's store writes, and the metric points table."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import pytest
@@ -15,7 +16,7 @@ from services.api.runbook import RunBook
 from services.api.store import Store
 from services.api.watch import Ending, Watch, flat_row
 from shared.net import bus as keys
-from shared.net.messages import Assignment, Metrics, Status
+from shared.net.messages import Assignment, Metrics, Resumed, Status
 from shared.net.monitor import Graces, serving
 from shared.net.wire import encode
 from tests.harness import TINY
@@ -136,13 +137,15 @@ def test_an_evaluation_row_is_a_point_and_every_source_its_latest_stats():
 
 def test_a_resumed_learner_leaves_one_note_per_resume():
     w = watch()
-    resumed = Status("r1", service="L1", state="running", detail={"resumed": {"from_episode": 8}})
+    cut = Resumed("r1", from_episode=8, updates=3, replay_rows=9, held_batches=0, seconds=0.1)
+    resumed = Status("r1", service="L1", state="running", detail={}, resumed=cut)
     note = "learner L1 restarted and resumed from the cut at episode 8"
     assert w.status(resumed, 1.0) == note
     assert w.status(resumed, 2.0) is None and w.notes == [note]  # said again in every status
-    no_cut = Status("r1", service="L1", state="running", detail={"resumed": {}})
+    log = dataclasses.replace(cut, from_episode=None)
+    no_cut = Status("r1", service="L1", state="running", detail={}, resumed=log)
     assert w.status(no_cut, 3.0).endswith("from its log (no cut yet)")
-    actor = Status("r1", service="A1", state="running", detail={"resumed": {"from_episode": 1}})
+    actor = Status("r1", service="A1", state="running", detail={}, resumed=cut)
     assert w.status(actor, 4.0) is None and w.states["A1"]["state"] == "running"
     assert w.reason() == "; ".join(w.notes)
 
@@ -244,7 +247,8 @@ def book(tmp_path):
 
 
 def status(state: str, service: str = "L1", run: str = "r1", **detail) -> tuple:
-    msg = Status(run, service=service, state=state, detail=detail)
+    typed = {k: detail.pop(k) for k in ("reason", "points", "final_seq", "resumed") if k in detail}
+    msg = Status(run, service=service, state=state, detail=detail, **typed)
     return ("status", keys.k_status(run, service), encode(msg))
 
 
@@ -255,7 +259,8 @@ def metrics(episode: int, run: str = "r1", source: str = "eval") -> tuple:
 
 def test_events_write_points_states_and_notes_into_the_store(book):
     b, store, _ = book
-    resumed = status("running", resumed={"from_episode": 4})
+    cut = Resumed("r1", from_episode=4, updates=3, replay_rows=9, held_batches=0, seconds=0.1)
+    resumed = status("running", resumed=cut)
     came_up = b.handle([metrics(4), metrics(8), metrics(4), resumed, ("live", "bad", True)])
     assert not came_up
     assert [p["episode"] for p in store.points("r1")] == [4, 8]

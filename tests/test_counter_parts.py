@@ -297,9 +297,9 @@ def test_stats_report_the_tables_the_tallies_and_the_query_latency(tmp_path):
     update_rate(st, 12.0)
     assert st.rate == 5.0 and st.rate_counted == 10 and st.rate_t == 12.0
     s = run_stats(st, rejects_total=7)
-    assert s["counted_transitions"] == 10 and s["rejects_total"] == 7 and s["actors"] == 1
-    assert s["transitions_per_sec"] == 5.0 and s["query_p50_ms"] == pytest.approx(2.0)
-    assert s["table_size"] > 0 and s["memory_bytes"] > 0 and s["wal_records"] == 1
+    assert s.counted_transitions == 10 and s.rejects_total == 7 and s.actors == 1
+    assert s.transitions_per_sec == 5.0 and s.query_p50_ms == pytest.approx(2.0)
+    assert s.table_size > 0 and s.memory_bytes > 0 and s.wal_records == 1
 
 
 def test_a_timed_snapshot_waits_for_changes_and_a_big_enough_log(tmp_path):

@@ -262,7 +262,7 @@ def test_a_cut_of_another_config_or_format_is_refused_naming_it(cluster, change,
     cut = {"format": change.get("format", 1), "config": json.dumps(other), "counters": {}}
     status, path = _learner_rejoins(cluster, cut)
     assert status.state == "failed", status
-    reason = status.detail["reason"]
+    reason = status.reason
     assert named in reason and str(path) in reason, reason
 
 

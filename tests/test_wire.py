@@ -13,6 +13,7 @@ from shared.net.messages import (
     Ack,
     Assignment,
     Metrics,
+    Resumed,
     Start,
     Status,
     Stop,
@@ -243,3 +244,68 @@ def test_a_start_with_a_malformed_assignment_is_refused_naming_the_field():
     del raw["assign"]
     with pytest.raises(WireError, match="missing field 'assign'"):
         decode(_repack(raw), Start)
+
+
+# ---------------------------------------------------------------- a status's fields
+RESUMED = Resumed("r", from_episode=40, updates=9, replay_rows=120, held_batches=0, seconds=0.5)
+
+
+def test_a_status_round_trips_its_typed_fields():
+    msg = Status(
+        "r", service="L", state="completed", detail={"rank": 0}, final_seq=7, resumed=RESUMED
+    )
+    back = decode(encode(msg), Status)
+    assert back == msg and back.resumed is not None and back.resumed.from_episode == 40
+    assert back.fields() == {"rank": 0, "final_seq": 7, "resumed": RESUMED.to_wire()}
+    grouped = RESUMED.grouped(["g0", "g1"])
+    assert decode(encode(Status("g0", "L", "running", {}, resumed=grouped))).resumed == grouped
+
+
+@pytest.mark.parametrize(
+    "old, field, value",
+    [
+        ({"final_seq": 12, "episodes": 4}, "final_seq", 12),
+        ({"points": 3}, "points", 3),
+        ({"reason": "learner failed: x"}, "reason", "learner failed: x"),
+        ({"resumed": RESUMED.to_wire()}, "resumed", RESUMED),
+        ({"resumed": {**RESUMED.to_wire(), "from_episode": None}}, "resumed", None),
+    ],
+)
+def test_an_older_peers_status_is_read_into_the_fields(old, field, value):
+    """A peer from before the fields sent them in `detail` (and no key of its own):
+    read into the fields, off the detail, so a reader sees one form."""
+    raw = {"v": SCHEMA_VERSION, "type": "status", "run": "r", "service": "a0"}
+    msg = decode(_repack({**raw, "state": "completed", "detail": dict(old)}), Status)
+    if field == "resumed" and value is None:  # a resume from the log alone: no cut
+        assert msg.resumed is not None and msg.resumed.from_episode is None
+    else:
+        assert getattr(msg, field) == value
+    assert field not in msg.detail and msg.fields() == {**old, **msg.fields()}
+    assert msg.detail == {k: v for k, v in old.items() if k != field}
+
+
+@pytest.mark.parametrize(
+    "change, why",
+    [
+        ({"final_seq": "12"}, "field 'final_seq' is not int"),
+        ({"final_seq": True}, "field 'final_seq' is not int"),
+        ({"detail": {"points": 2.5}}, "field 'points' is not int"),  # (an old form, malformed)
+        ({"reason": 3}, "field 'reason' is not str"),
+        ({"resumed": {"run": "r"}}, "resumed: field 'updates' is not int"),
+        ({"resumed": [1]}, "resumed: not a map"),
+        ({"detail": None}, "field 'detail' is not dict"),
+    ],
+)
+def test_a_malformed_status_is_refused_naming_the_field(change, why):
+    raw = msgpack.unpackb(encode(Status("r", "a0", "completed", {})), raw=False)
+    if "detail" in change:  # an older peer's form: no key of the fields' own
+        raw = {k: v for k, v in raw.items() if k not in ("reason", "final_seq", "points")}
+    with pytest.raises(WireError, match=why):
+        decode(_repack({**raw, **change}), Status)
+
+
+def test_a_status_without_the_newer_fields_reads_them_as_unset():
+    raw = {"v": SCHEMA_VERSION, "type": "status", "run": "r", "service": "e", "state": "running"}
+    msg = decode(_repack({**raw, "detail": {"rank": 1}}), Status)
+    assert (msg.reason, msg.final_seq, msg.points, msg.resumed) == (None, None, None, None)
+    assert msg.fields() == {"rank": 1}

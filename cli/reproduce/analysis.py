@@ -22,6 +22,7 @@ The definitions, stated once here and in every FIGURE.md:
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -302,7 +303,7 @@ class Analysis:
 
 
 def analyse(
-    fig: FigureDef, exp: dict[str, Any], points: dict[str, Columns | list[dict[str, Any]]]
+    fig: FigureDef, exp: dict[str, Any], points: Mapping[str, Columns | list[dict[str, Any]]]
 ) -> Analysis:
     """The figure's arms from an experiment (GET /experiments/{id}) and its points (per
     run: `columns`, or the points as the API serves them)."""

@@ -58,7 +58,7 @@ def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]
     """(MACB arm, its control, MACB measured, control measured, verdict) per MACB arm:
     does counting beat the constant bonus of the same beta (the control's point)?"""
     configs = arm_configs(a.fig)
-    out = []
+    out: list[tuple[str, str | None, str, str, str]] = []
     for arm_def in a.fig.arms:
         if not counts(configs[arm_def.name]):
             continue

@@ -11,6 +11,7 @@ import json
 import math
 import time
 from collections import Counter
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -205,7 +206,7 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
     return "\n".join(lines) + "\n"
 
 
-def write_csv(exp: dict[str, Any], points: dict[str, Columns | list], path: Path) -> Path:
+def write_csv(exp: dict[str, Any], points: Mapping[str, Columns | list], path: Path) -> Path:
     """FIGURE.csv: every point of every run, only the columns the report reads."""
     with path.open("w", newline="") as f:
         w = csv.writer(f)
@@ -228,7 +229,7 @@ def _cell(x: Any) -> Any:
 
 def write_report(
     a: Analysis,
-    points: dict[str, Columns | list],
+    points: Mapping[str, Columns | list],
     profile: str,
     out: Path,
     command: str | None = None,

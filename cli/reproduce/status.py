@@ -197,8 +197,11 @@ def _rows_back(lines: list[bytes], seconds: float) -> tuple[list[dict[str, Any]]
             continue
         rows.append(row)
         wall, last = row.get("wall_s"), rows[0].get("wall_s")
-        clocked = isinstance(wall, int | float) and isinstance(last, int | float)
-        if clocked and wall <= last - seconds:
+        if (
+            isinstance(wall, int | float)
+            and isinstance(last, int | float)
+            and wall <= last - seconds
+        ):
             return rows[::-1], True
     return rows[::-1], False
 

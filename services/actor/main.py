@@ -78,6 +78,8 @@ class ActorService(ServiceBase):
 
     def _on_weights(self, key: str, payload: bytes) -> None:
         run = keys.run_of(key)
+        if run is None:
+            return  # (subscribed on run keys: every key names its run)
         with self._newest_lock:  # Zenoh's threads
             newest = self._newest
             newest.pop(run, None)  # re-inserted: the order is then the order of arrival
@@ -198,7 +200,7 @@ class ActorService(ServiceBase):
         if now - st.last_stats > STATS_EVERY_S:
             st.last_stats = now
             for run in st.runs:
-                self.publish_metrics(run, st.stats(run, sum(self.rejects.values())))
+                self.publish_metrics(run, st.stats(run, sum(self.rejects.values())).to_wire())
         if st.finished:
             return self.finish_if_settled(st)
         if st.lockstep:  # one step of every world per answered act request
@@ -211,7 +213,7 @@ class ActorService(ServiceBase):
     def finish_if_settled(self, st: ActorRuns) -> bool:
         if st.settled:
             for run in st.runs:
-                stats = st.stats(run, sum(self.rejects.values()))
+                stats = st.stats(run, sum(self.rejects.values())).to_wire()
                 self.publish_metrics(run, stats)
                 seq = st.outboxes[run].sender.seq
                 self.publish_status(run, "completed", final_seq=seq, **stats)

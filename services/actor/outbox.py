@@ -32,12 +32,12 @@ def counts(config: TrainConfig) -> bool:
 def run_sender(config: TrainConfig, assign: Assignment) -> Sender:
     """A run's numbering, resends and credit: confirmed by its learner and, when it
     counts, its counter (which also bounds what may be in flight uncounted)."""
-    learner, counter = assign.learner, assign.counter
-    counting = counts(config)
+    learner = assign.learner
+    counter = assign.counter if counts(config) else None
     return Sender(
-        confirm=(learner, counter) if counting else (learner,),
+        confirm=(learner,) if counter is None else (learner, counter),
         credit_from=learner,
-        bounded=(counter,) if counting else (),
+        bounded=() if counter is None else (counter,),
         max_unconfirmed=MAX_UNCOUNTED_BATCHES,
         resend_after_s=RESEND_AFTER_S,
         last_progress=time.monotonic(),

@@ -24,10 +24,11 @@ from services.actor.lockstep import ActExchange
 from services.actor.outbox import Outbox
 from shared.config import TrainConfig
 from shared.core.networks import JointPolicy
-from shared.envs.tasks import make_task_for
-from shared.envs.vectask import vectorize
+from shared.envs.tasks import TaskEnv, make_task_for
+from shared.envs.vectask import ListTask, VecTask, vectorize
 from shared.net.messages import ActRequest, Weights
 from shared.net.protocol import Rejoin, episode_share
+from shared.net.stats import ActorStats
 from shared.net.wire import encode
 from shared.run.rollout import (
     Collector,
@@ -88,12 +89,14 @@ class ActorRuns:
         """Every run's start has come (`outboxes` in the group's order): the worlds
         seeded for `rank`, untrained actors when async."""
         cfg = cfgs[0]
+        world: VecTask | ListTask | TaskEnv
+        collector: Collector | VecCollector
         if grouped:
-            world = vectorize([make_task_for(c) for c in cfgs])
-            collector: Collector | VecCollector = make_vec_collector(cfgs, world)
+            world = vec = vectorize([make_task_for(c) for c in cfgs])
+            collector = make_vec_collector(cfgs, vec)
         else:
-            world = make_task_for(cfg)
-            collector = make_collector(cfg, world, rank, actors)
+            world = one = make_task_for(cfg)
+            collector = make_collector(cfg, one, rank, actors)
         return cls(
             actor=actor,
             cfgs=cfgs,
@@ -165,9 +168,11 @@ class ActorRuns:
     def publish(self, steps: list[VecTransitions], now: float) -> None:
         """Each run's rows of `steps` as one numbered batch on its keys."""
         for r, box in enumerate(self.outboxes.values()):
-            cols = (np.concatenate([getattr(t, k)[r : r + 1] for t in steps]) for k in (
-                "obs", "act", "rew", "next_obs", "done", "collisions"))  # fmt: skip
-            box.publish(*cols, self.version, now)
+            obs, act, rew, next_obs, done, collisions = (
+                np.concatenate([getattr(t, k)[r : r + 1] for t in steps])
+                for k in ("obs", "act", "rew", "next_obs", "done", "collisions")
+            )
+            box.publish(obs, act, rew, next_obs, done, collisions, self.version, now)
         self.steps += len(steps)
 
     def run_episode(self) -> None:
@@ -220,21 +225,21 @@ class ActorRuns:
         self.exchange.forget()
         return position
 
-    def stats(self, run: str, rejects_total: int) -> dict[str, Any]:
+    def stats(self, run: str, rejects_total: int) -> ActorStats:
         wall = time.perf_counter() - self.t0
         sender = self.outboxes[run].sender
-        out = {
-            "rank": self.rank,
-            "episodes": self.done,
-            "published": sender.seq,
-            "policy_version": self.version,
-            "resends": sender.resends,
-            "steps_per_sec": self.steps / wall if wall > 0 else 0.0,
-            "rejects_total": rejects_total,
+        return ActorStats(
+            rank=self.rank,
+            episodes=self.done,
+            published=sender.seq,
+            policy_version=self.version,
+            resends=sender.resends,
+            steps_per_sec=self.steps / wall if wall > 0 else 0.0,
+            rejects_total=rejects_total,
             # lockstep: mean time from an act request to its action (the learner's
             # update, the count before it and the bus's round trips)
-            "act_wait_ms": (
+            act_wait_ms=(
                 1e3 * self.exchange.wait_s / self.steps if self.lockstep and self.steps else 0.0
             ),
-        }
-        return {**out, "group": len(self.cfgs)} if self.grouped else out
+            group=len(self.cfgs) if self.grouped else None,
+        )

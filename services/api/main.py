@@ -18,6 +18,7 @@ import ipaddress
 import json
 import logging
 import threading
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs
@@ -26,7 +27,7 @@ from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -213,8 +214,9 @@ class TokenAuth:
 
 
 # ---------------------------------------------------------------- the app
-def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+def _validation_error(request: Request, exc: Exception) -> JSONResponse:
     """422 naming each field and the reason (400 when the body is not JSON at all)."""
+    assert isinstance(exc, RequestValidationError)  # (registered for it alone)
     errors = []
     for e in exc.errors():
         loc = [str(p) for p in e.get("loc", ())]
@@ -234,7 +236,7 @@ def _validation_error(request: Request, exc: RequestValidationError) -> JSONResp
 METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
 
 
-def allowed_methods(app: FastAPI, scope: dict[str, Any]) -> list[str]:
+def allowed_methods(app: FastAPI, scope: Mapping[str, Any]) -> list[str]:
     """The methods some route of the app answers on this request's path."""
     return [
         method
@@ -243,9 +245,10 @@ def allowed_methods(app: FastAPI, scope: dict[str, Any]) -> list[str]:
     ]
 
 
-async def _http_error(request: Request, exc: StarletteHTTPException):
+async def _http_error(request: Request, exc: Exception) -> Response:
     """A 405's `Allow` lists every method of the path, not only those of the route that
     matched first (GET and POST /experiments are two routes: Starlette named one)."""
+    assert isinstance(exc, StarletteHTTPException)  # (registered for it alone)
     if exc.status_code == 405 and (allowed := allowed_methods(request.app, request.scope)):
         headers = {**(exc.headers or {}), "Allow": ", ".join(allowed)}
         exc = StarletteHTTPException(405, exc.detail, headers)

@@ -52,6 +52,7 @@ from services.common import restarts
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.control import discover, history_rows, send_start, send_stop
+from shared.net.info import ApiInfo
 from shared.net.monitor import Graces
 from shared.net.monitor import peer_grace_s as peer_grace
 
@@ -164,9 +165,8 @@ class Scheduler:
             self._check_runs()
 
     def _info_reply(self, key: str, payload: bytes) -> bytes:
-        info = {"id": self.service_id, "role": "api", "run": None, "runs": [], "rejects": {}}
-        info |= {"rejects_total": 0, "restarts": restarts(), "http": self.http_url}
-        return json.dumps(info).encode()
+        info = ApiInfo(id=self.service_id, role="api", restarts=restarts(), http=self.http_url)
+        return json.dumps(info.to_json()).encode()
 
     # ------------------------------------------------------------ events
     def _drain(self, timeout: float) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import itertools
 import math
+import types
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
@@ -27,6 +28,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+from pydantic.config import JsonDict
 
 from shared.config import TrainConfig, actors_error, format_errors, profile_preset
 
@@ -85,24 +87,27 @@ class _GridBase(BaseModel):
         ]
 
 
+# A field's type is known only here, at import: list[that type] is spelled as the
+# GenericAlias it is, and the fields go in as a map of Any (create_model's own typing).
+_GRID_FIELDS: dict[str, Any] = {
+    name: (
+        types.GenericAlias(list, (_value_type(name),)) | None,
+        Field(
+            None,
+            min_length=1,
+            max_length=MAX_VALUES,
+            description=f"values of {name}"
+            + (f": {d}" if (d := TrainConfig.model_fields[name].description) else ""),
+        ),
+    )
+    for name in _varied_keys()
+}
 Grid = create_model(
     "Grid",
     __base__=_GridBase,
     __doc__="Values to sweep over any config key but the seed; each run takes one "
     "combination (the product of the lists). A point's name is `key=value,...`.",
-    **{
-        name: (
-            list[_value_type(name)] | None,
-            Field(
-                None,
-                min_length=1,
-                max_length=MAX_VALUES,
-                description=f"values of {name}"
-                + (f": {d}" if (d := TrainConfig.model_fields[name].description) else ""),
-            ),
-        )
-        for name in _varied_keys()
-    },
+    **_GRID_FIELDS,
 )
 
 
@@ -121,24 +126,24 @@ class _ArmBase(BaseModel):
         return {n: getattr(self, n) for n in fields if n in self.model_fields_set}
 
 
+_ARM_FIELDS: dict[str, Any] = {
+    name: (_value_type(name), Field(None, description=TrainConfig.model_fields[name].description))
+    for name in _varied_keys()
+}
 Arm = create_model(
     "Arm",
     __base__=_ArmBase,
     __doc__="An arm: a `name` and the config keys it sets over the base config (any "
     'key but the seed), e.g. {"name": "control", "explore": "constant"}.',
-    **{
-        name: (
-            _value_type(name),
-            Field(None, description=TrainConfig.model_fields[name].description),
-        )
-        for name in _varied_keys()
-    },
+    **_ARM_FIELDS,
 )
 
 
 # `seed` and a list of `seeds` exclude each other (`_check` refuses the pair): the
 # schema says so too, so that a client generated from it does not send both.
-SEED_OR_SEEDS = {"not": {"required": ["seed", "seeds"], "properties": {"seeds": {"type": "array"}}}}
+SEED_OR_SEEDS: JsonDict = {
+    "not": {"required": ["seed", "seeds"], "properties": {"seeds": {"type": "array"}}}
+}
 
 
 class _ExperimentFields(BaseModel):
@@ -154,10 +159,10 @@ class _ExperimentFields(BaseModel):
         description="one run per seed (and arm and grid point); default: [seed]. Not "
         "with `seed`: give one or the other",
     )
-    grid: Grid | None = Field(  # type: ignore[valid-type]
+    grid: Grid | None = Field(
         None, description='e.g. {"explore": ["none", "cen-macb"], "beta": [0.2, 0.8]}'
     )
-    arms: list[Arm] | None = Field(  # type: ignore[valid-type]
+    arms: list[Arm] | None = Field(
         None,
         min_length=1,
         max_length=MAX_ARMS,
@@ -188,7 +193,9 @@ class _ExperimentFields(BaseModel):
         return config
 
     def seed_list(self) -> list[int]:
-        return list(self.seeds) if self.seeds is not None else [self.seed]  # type: ignore[attr-defined]
+        if self.seeds is not None:
+            return list(self.seeds)
+        return [self.seed]  # type: ignore[attr-defined]  # (a config field create_model adds)
 
     def arm_list(self) -> list[tuple[str | None, dict[str, Any]]]:
         """(name, keys it sets) per arm; one unnamed arm setting nothing without arms."""
@@ -281,7 +288,7 @@ class _ExperimentFields(BaseModel):
     def _check_cells(self) -> None:
         """Every arm and grid point must make a valid config with the base (the
         cross-field rules: task/algo, ...); the first invalid one is named."""
-        base = {**self.config_part(), "seed": self.seed_list()[0]}  # type: ignore[attr-defined]
+        base = {**self.config_part(), "seed": self.seed_list()[0]}
         failures: list[str] = []
         run_names: set[str] = set()
         for cell in self.cells():

@@ -7,6 +7,8 @@ from collections import defaultdict
 from datetime import UTC, datetime
 from typing import Any
 
+from shared.net.stats import LearnerStats
+
 from .store import Store
 
 
@@ -17,7 +19,7 @@ def _ts(t: float | None) -> datetime | None:
 def run_public(run: dict[str, Any], stats: tuple[int, int, int]) -> dict[str, Any]:
     points, _, last_episode = stats
     episodes = int(run["config"].get("episodes", 0)) or 1
-    learner = run["live"].get("learner") or {}
+    learner = LearnerStats.from_wire(run["live"].get("learner") or {})
     return {
         "id": run["id"],
         "experiment_id": run["experiment_id"],
@@ -36,7 +38,7 @@ def run_public(run: dict[str, Any], stats: tuple[int, int, int]) -> dict[str, An
             "episode": last_episode,
             "episodes": episodes,
             "fraction": 1.0 if run["status"] == "completed" else min(1.0, last_episode / episodes),
-            "trained_episodes": int(learner.get("episodes_ingested", 0) or 0),
+            "trained_episodes": int(learner.episodes_ingested or 0),
         },
         "points": points,
         "attempts": run.get("attempts", 1),

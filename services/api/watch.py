@@ -141,11 +141,10 @@ class Watch:
     def status(self, msg: Status, now: float) -> str | None:
         """A service's status into the monitor; a note when it says its learner resumed
         (new notes only: a learner reports its resume in every status)."""
-        self.monitor.status(msg.service, msg.state, flat_row(msg.detail), now)
-        resumed = msg.detail.get("resumed")
-        if msg.service != self.assign.learner or not isinstance(resumed, dict):
+        self.monitor.status(msg.service, msg.state, flat_row(msg.fields()), now)
+        if msg.service != self.assign.learner or msg.resumed is None:
             return None
-        cut = resumed.get("from_episode")
+        cut = msg.resumed.from_episode
         where = f"the cut at episode {cut}" if cut is not None else "its log (no cut yet)"
         note = f"learner {msg.service} restarted and resumed from {where}"
         if note in self.notes:

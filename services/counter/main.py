@@ -21,6 +21,7 @@ they are is in docs/performance.md, "Counter service".
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import queue
 import sys
@@ -35,6 +36,7 @@ from services.counter.state import RunState
 from services.counter.stats import run_stats, update_rate
 from shared.config import TrainConfig
 from shared.net.bus import k_ack, k_bonus, k_status, k_transitions, run_of
+from shared.net.info import CounterInfo, ServiceInfo
 from shared.net.messages import Ack, Assignment, BonusQuery, Status, Transitions
 from shared.net.wire import WireError, check_dims, encode
 from shared.settings import settings
@@ -192,10 +194,8 @@ class CounterService(ServiceBase):
             return
         self.publish_metrics(run, self._run_stats(st), source="counter")
         self.on_stop(run, f"learner {msg.state}")
-        detail = self._run_stats(st)
-        if msg.state == "failed":
-            detail["reason"] = learner_end_reason(msg)
-        self.publish_status(run, msg.state, **detail)
+        reason = learner_end_reason(msg) if msg.state == "failed" else None
+        self.publish_status(run, msg.state, reason=reason, **self._run_stats(st))
         self.free(run)
 
     def _take_burst(self) -> None:
@@ -234,7 +234,7 @@ class CounterService(ServiceBase):
             return bonus.answer(st, msg, self.runs.lock, t0)
 
     # ------------------------------------------------------------ stats, timers
-    def tick(self) -> None:
+    def tick(self) -> bool:
         now = time.monotonic()
         if self.pending.due(now):
             self._take_burst()  # an inbox that never empties still gets its acks
@@ -254,23 +254,27 @@ class CounterService(ServiceBase):
                     except OSError:
                         self.log.exception("snapshot of run %s failed (the log keeps it)", run)
             self._next_snapshot = snapshot.next_check(now, self.snapshot_s, time.monotonic() - now)
+        return False  # its work comes in messages: nothing waits between them
 
     def _run_stats(self, st: RunState) -> dict[str, Any]:
+        """The run's stats as published (`CounterStats`' map)."""
         _, rejects_total = self.reject_tally.counts()
         with self.runs.lock:
-            return run_stats(st, rejects_total)
+            return run_stats(st, rejects_total).to_wire()
 
-    def info(self) -> dict[str, Any]:
-        out = super().info()
+    def info(self) -> CounterInfo:
+        base = super().info()
         stats = {}
         for run, st in self.runs.items():
             stats[run] = self._run_stats(st)
             with self.runs.lock:
                 stats[run]["acked"] = st.cursor.positions()
-        out["runs"] = stats
-        out["ready"] = self._ready
-        out["snapshot_s"] = self.snapshot_s
-        return out
+        return CounterInfo(
+            **{f.name: getattr(base, f.name) for f in dataclasses.fields(ServiceInfo)},
+            run_stats=stats,
+            ready=self._ready,
+            snapshot_s=self.snapshot_s,
+        )
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> CounterService:

@@ -78,8 +78,8 @@ class EvaluatorService(ServiceBase):
 
     def _history_reply(self, key: str, payload: bytes) -> bytes | None:
         run = keys.run_of(key)
-        entry = self.history.get(run or "")
-        if entry is None:
+        entry = None if run is None else self.history.get(run)
+        if run is None or entry is None:
             return None  # not ours: another evaluator may answer
         state, rows = entry
         return encode(History(run, source="eval", rows=rows, state=state))

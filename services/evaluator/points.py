@@ -21,6 +21,7 @@ from shared.core.networks import JointPolicy
 from shared.envs.tasks import TaskEnv, make_task_for
 from shared.envs.vectask import vectorize
 from shared.net.messages import Weights
+from shared.net.stats import LearnerStats
 from shared.run.rollout import EvalResult, derive_seed, evaluate, evaluate_group
 
 REPUBLISH_AFTER_S = 5.0  # a row is published again for a resend only this long after
@@ -177,26 +178,26 @@ class GroupEval:
 def eval_row(msg: Weights, ev: EvalResult) -> dict[str, Any]:
     """A point's metric row: the trainer's fields, the evaluation's and the learner's
     statistics at that point (the counter's and the bonus's ride in its weights)."""
-    info = msg.stats
-    counts = info.get("counter") or {}  # the counter's stats at this boundary
-    bonus = info.get("bonus") or {}  # what the bonus did since the last point
+    info = LearnerStats.from_wire(msg.stats)
+    counts = info.tables  # the counter's stats at this boundary
     return {
         "episode": msg.eval_point,
         "env_steps": msg.env_steps,
         "success_rate": ev.success_rate,
         "eval_return": ev.eval_return,
         "collisions_cum": msg.collisions_cum,
-        "count1_pct": counts.get("count1_pct", 0.0),
-        "table_size": counts.get("table_size", 0),
-        "counted_transitions": counts.get("counted_transitions", 0),
-        "bonus_mean": bonus.get("bonus_mean", 0.0),
-        "bonus_std": bonus.get("bonus_std", 0.0),
-        "sampled_count1_pct": bonus.get("sampled_count1_pct", 0.0),
-        "steps_per_sec": info.get("steps_per_sec", 0.0),
-        "train_steps_per_sec": info.get("steps_per_sec", 0.0),
+        "count1_pct": counts.count1_pct,
+        "table_size": counts.table_size,
+        "counted_transitions": counts.counted_transitions,
+        # what the bonus did since the last point
+        "bonus_mean": info.bonus_stat("bonus_mean"),
+        "bonus_std": info.bonus_stat("bonus_std"),
+        "sampled_count1_pct": info.bonus_stat("sampled_count1_pct"),
+        "steps_per_sec": info.steps_per_sec,
+        "train_steps_per_sec": info.steps_per_sec,
         "updates": msg.updates,
-        "wall_s": info.get("wall_s", 0.0),
-        "replay_ratio": info.get("replay_ratio", 0.0),
-        "policy_lag": info.get("policy_lag", 0.0),
+        "wall_s": info.wall_s,
+        "replay_ratio": info.replay_ratio,
+        "policy_lag": info.policy_lag,
         "policy_version": msg.version,
     }

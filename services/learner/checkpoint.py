@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from shared.net.messages import Resumed
 from shared.persist import checkpoint
 from shared.persist.checkpoint import CutError as CutError  # what `good` raises
 from shared.persist.checkpoint import UnreadableCheckpoint
@@ -164,13 +165,13 @@ def restore(learner: Any, sts: list[LearnerRun], warn: Callable[[str], None]) ->
     return [apply(st, state) for st, state in zip(sts, states)]
 
 
-def resumed(st: LearnerRun, cut: int | None, seconds: float) -> dict[str, Any]:
+def resumed(st: LearnerRun, cut: int | None, seconds: float) -> Resumed:
     """What a resume restored (the service's info and its "running" status say it)."""
-    return {
-        "run": st.run,
-        "from_episode": cut,
-        "updates": st.learner.updates,
-        "replay_rows": len(st.intake.buffer),
-        "held_batches": sum(len(h) for h in st.intake.held.values()),
-        "seconds": round(seconds, 3),
-    }
+    return Resumed(
+        run=st.run,
+        from_episode=cut,
+        updates=st.learner.updates,
+        replay_rows=len(st.intake.buffer),
+        held_batches=sum(len(h) for h in st.intake.held.values()),
+        seconds=round(seconds, 3),
+    )

@@ -70,6 +70,7 @@ from shared.net.messages import (
     ActRequest,
     Assignment,
     Message,
+    Resumed,
     Status,
     Transitions,
 )
@@ -95,6 +96,7 @@ class LearnerService(ServiceBase):
         )
         self.serving = Serving(self.out, self.log)
         self.runs = self.serving.runs  # the run served, or a group's runs
+        self.resume: Resumed | None = None  # what the start of the runs served resumed
 
     # ------------------------------------------------------------ run lifecycle
     def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
@@ -134,18 +136,19 @@ class LearnerService(ServiceBase):
             self.fail_runs(f"{type(err).__name__}: {err}", runs)
             return
         infos = [ckpt.resumed(st, cut, time.perf_counter() - t0) for st, cut in zip(sts, cuts)]
-        if resume:
-            self.resumed = {**infos[0], "group": runs} if grouped else infos[0]
+        # what this start resumed (a group's: its lead run's, naming its runs)
+        self.resume = (infos[0].grouped(runs) if grouped else infos[0]) if resume else None
+        if self.resume is not None:
+            self.resumed = self.resume.to_wire()
         for info in infos if resume else []:
-            self.log.info("run %s resumed: %s", info["run"], json.dumps(info))
+            self.log.info("run %s resumed: %s", info.run, json.dumps(info.to_wire()))
         self.log.info("runs %s %s", runs, "resumed" if resume else "started")
         for st, info in zip(sts, infos):
             if not grouped:  # version 0: every actor starts from these (a group's acts by request)
                 self.out.weights(st, eval_point=-1)
             detail: dict[str, Any] = {"group": runs} if grouped else {}
-            if resume:
-                detail["resumed"] = info
-            self.publish_status(st.run, "running", actors=st.actors, **detail)
+            resumed = info if resume else None
+            self.publish_status(st.run, "running", resumed=resumed, actors=st.actors, **detail)
             self.publish_provenance(st)
             if resume:
                 self.out.ack(st)  # the actors go on from what the log holds
@@ -270,9 +273,9 @@ class LearnerService(ServiceBase):
                 intake.counter_acked(st, msg.acked)
         elif isinstance(msg, Status) and msg.service in st.actors:
             if msg.state == "completed":
-                st.final[msg.service] = int(msg.detail.get("final_seq", 0))
+                st.final[msg.service] = msg.final_seq or 0
             elif msg.state == "failed":
-                self.fail(st, f"actor {msg.service} failed: {msg.detail}")
+                self.fail(st, f"actor {msg.service} failed: {msg.fields()}")
 
     def on_eval_row(self, evaluations: EvaluationsInFlight, key: str, payload: bytes) -> None:
         """The evaluator's row for a point (on Zenoh's thread): that evaluation is over.
@@ -302,9 +305,9 @@ class LearnerService(ServiceBase):
         """Every share in replay and learnt, every point out: the run completes."""
         self.serving.checkpoint(st)
         ckpt.retire(st)
-        stats = self.out.stats(st)
+        stats = self.out.stats(st).to_wire()
         self.publish_metrics(st.run, stats, source="learner")
-        self.publish_status(st.run, "completed", **stats, resumed=self.resumed)
+        self.publish_status(st.run, "completed", resumed=self.resume, **stats)
         self.log.info("run %s completed: %s", st.run, json.dumps(stats))
         self.serving.drop(st.run)
         self.free(st.run)

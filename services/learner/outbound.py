@@ -12,6 +12,7 @@ process with publishers that record.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -22,7 +23,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from shared.core.networks import weights_as_arrays
+from shared.net.info import CounterInfo
 from shared.net.messages import Ack, Weights
+from shared.net.stats import LearnerStats
 from shared.net.wire import encode
 
 if TYPE_CHECKING:
@@ -61,7 +64,7 @@ class Outgoing:
         self.version = max(self.version, version)
 
 
-def run_stats(st: LearnerRun, rejects_total: int) -> dict[str, Any]:
+def run_stats(st: LearnerRun, rejects_total: int) -> LearnerStats:
     """The run's learner stats: progress, replay ratio and lag, where the time per update
     goes, the bonus queries, the cuts, and the learner's own."""
     updates, it, sp, cuts = st.learner.updates, st.intake, st.sampling, st.cuts
@@ -70,36 +73,36 @@ def run_stats(st: LearnerRun, rejects_total: int) -> dict[str, Any]:
     lat = sorted(st.bonus.latencies)
     per_update = 1e3 / updates if updates else 0.0
     phases = {**st.time.spent, "bonus_wait": st.bonus.wait_s}
-    spent = {f"ms_per_update_{k}": v * per_update for k, v in phases.items()}
-    spent["ms_per_update_other"] = (wall - sum(phases.values())) * per_update
-    return {
-        "updates": updates,
-        "ingested": it.ingested,
-        "episodes_ingested": it.episodes,
-        "replay_ratio": updates / owed_total if owed_total else 0.0,
-        "policy_lag": float(np.mean(it.lags)) if it.lags else 0.0,
-        "policy_version": st.outgoing.version,
-        "wall_s": wall,
-        "steps_per_sec": it.ingested / wall if wall > 0 else 0.0,
-        "updates_per_sec": updates / wall if wall > 0 else 0.0,
-        "backlog": owed_total - updates,
-        "window_open": st.outgoing.window_open,
-        "bonus_p50_ms": 1e3 * lat[len(lat) // 2] if lat else 0.0,
-        "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
-        "bonus_wait_ms_per_update": spent["ms_per_update_bonus_wait"],
-        "bonus_queries": st.bonus.queries,
-        "bonus_rows_per_query": st.bonus.rows / max(1, st.bonus.queries),
-        "bonus_failures": st.bonus.failures,
-        "bonus_mean": float(np.mean(sp.bonus_means)) if sp.bonus_means else 0.0,
-        "rejects_total": rejects_total,
-        "contended_updates": sp.contended_updates,
-        "eval_rows_seen": st.evaluations.reported_rows,
-        "cuts": cuts.written,
-        "cut_ms_mean": 1e3 * cuts.seconds / cuts.written if cuts.written else 0.0,
-        "cut_bytes": cuts.size,
-        **spent,
-        **st.learner.stats(),
-    }
+    spent = {k: v * per_update for k, v in phases.items()}
+    spent["other"] = (wall - sum(phases.values())) * per_update
+    return LearnerStats(
+        updates=updates,
+        ingested=it.ingested,
+        episodes_ingested=it.episodes,
+        replay_ratio=updates / owed_total if owed_total else 0.0,
+        policy_lag=float(np.mean(it.lags)) if it.lags else 0.0,
+        policy_version=st.outgoing.version,
+        wall_s=wall,
+        steps_per_sec=it.ingested / wall if wall > 0 else 0.0,
+        updates_per_sec=updates / wall if wall > 0 else 0.0,
+        backlog=owed_total - updates,
+        window_open=st.outgoing.window_open,
+        bonus_p50_ms=1e3 * lat[len(lat) // 2] if lat else 0.0,
+        bonus_p99_ms=1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
+        bonus_wait_ms_per_update=spent["bonus_wait"],
+        bonus_queries=st.bonus.queries,
+        bonus_rows_per_query=st.bonus.rows / max(1, st.bonus.queries),
+        bonus_failures=st.bonus.failures,
+        bonus_mean=float(np.mean(sp.bonus_means)) if sp.bonus_means else 0.0,
+        rejects_total=rejects_total,
+        contended_updates=sp.contended_updates,
+        eval_rows_seen=st.evaluations.reported_rows,
+        cuts=cuts.written,
+        cut_ms_mean=1e3 * cuts.seconds / cuts.written if cuts.written else 0.0,
+        cut_bytes=cuts.size,
+        spent=spent,
+        own=st.learner.stats(),
+    )
 
 
 class Outbound:
@@ -120,7 +123,7 @@ class Outbound:
         self.id, self.metrics, self.rejects_total = service_id, metrics, rejects_total
         self.counter_info, self.log = counter_info, log
 
-    def stats(self, st: LearnerRun) -> dict[str, Any]:
+    def stats(self, st: LearnerRun) -> LearnerStats:
         return run_stats(st, self.rejects_total())
 
     def ack(self, st: LearnerRun) -> None:
@@ -170,12 +173,12 @@ class Outbound:
             eval_point=eval_point,
             collisions_cum=collisions,
             actors=weights_as_arrays(st.learner.actor_weights()),
-            stats={
-                **self.stats(st),
-                "counter": self.counter_stats(st) if point else {},
+            stats=dataclasses.replace(
+                self.stats(st),
+                counter=self.counter_stats(st) if point else {},
                 # What the bonus did on the rows sampled since the last point.
-                "bonus": st.sampling.diagnostics.take() if point else {},
-            },
+                bonus=st.sampling.diagnostics.take() if point else {},
+            ).to_wire(),
             incarnation=st.outgoing.incarnation,
             # The points before this one that had no row when it went out: the
             # evaluator evaluates those first, so a run's rows come in episode order
@@ -217,7 +220,7 @@ class Outbound:
             self.weights(st, eval_point=-1)
         if now - out.last_stats > 1.0:
             out.last_stats = now
-            self.metrics(st.run, self.stats(st), source="learner")
+            self.metrics(st.run, self.stats(st).to_wire(), source="learner")
         self.resend(st, now)
 
     def counter_stats(self, st: LearnerRun) -> dict[str, Any]:
@@ -229,7 +232,8 @@ class Outbound:
             return dict(st.bonus.tables)
         for raw in self.counter_info(st.counter):
             try:
-                return dict(json.loads(raw).get("runs", {}).get(st.run, {}))
+                info = CounterInfo.from_json(json.loads(raw))
             except (ValueError, AttributeError, TypeError):
                 return {}
+            return {} if info is None else dict(info.run_stats.get(st.run, {}))
         return {}

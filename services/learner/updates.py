@@ -90,8 +90,8 @@ def update(g: RunGroup, members: list[LearnerRun], todo: int) -> int:
             for m, batches in zip(members, drawn):
                 m.sampling.unpriced = batches
             return 0
-        counts = st.bonus.counts
-        priced.append((bonuses, list(counts) if len(counts) == len(bonuses) else None))
+        known = st.bonus.counts
+        priced.append((bonuses, list(known) if len(known) == len(bonuses) else None))
     t2 = time.perf_counter()
     per = members[0].sampling.per_update  # 1, or one per agent
     done = len(drawn[0]) // per

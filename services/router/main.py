@@ -17,6 +17,7 @@ import logging
 import signal
 import threading
 import time
+from typing import Any
 
 from shared.net.bus import Bus, capture_zenoh_log, k_router
 from shared.net.roles import role_of
@@ -111,7 +112,7 @@ def serve(
     with Bus.router(listen, connect=connect, security=sec, acl=acl) as bus:
 
         def stats(key: str, payload: bytes) -> bytes:
-            body = {"id": router_id, "listen": listen, "connect": connect or []}
+            body: dict[str, Any] = {"id": router_id, "listen": listen, "connect": connect or []}
             body["acl"] = acl is not None
             body.update(denials.snapshot() if denials else {"denied_total": 0, "denied": []})
             return json.dumps(body).encode()

@@ -25,6 +25,9 @@ def mlp(in_dim: int, out_dim: int, hidden: Sequence[int]) -> nn.Sequential:
 class Actor(nn.Module):
     """mu_i(o_i): a tanh output rescaled into the agent's action box [low, high]."""
 
+    scale: torch.Tensor  # buffers (registered in __init__, saved in the state dict)
+    center: torch.Tensor
+
     def __init__(
         self, obs_dim: int, low: Sequence[float], high: Sequence[float], hidden: Sequence[int]
     ) -> None:

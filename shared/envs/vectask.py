@@ -51,8 +51,8 @@ class VecTask:
         first = envs[0]
         if is_custom(first.task if hasattr(first, "task") else ":"):
             raise ValueError("custom tasks are stepped world by world (ListTask)")
-        for e in envs[1:]:
-            if _signature(e) != _signature(first):
+        for other in envs[1:]:
+            if _signature(other) != _signature(first):
                 raise ValueError("every world of a VecTask must be the same task and options")
         self.envs = list(envs)
         self.e = len(envs)
@@ -192,7 +192,7 @@ class VecTask:
                     force[ib] = -f + (0.0 if force[ib] is None else force[ib])
         pos, vel = self.pos, self.vel
         keep = 1 - self.damping
-        for j in np.nonzero(self.movable)[0]:
+        for j in map(int, np.nonzero(self.movable)[0]):
             f = force[j]
             if self.velocity_first:
                 vel[:, j] = vel[:, j] * keep

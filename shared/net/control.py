@@ -20,6 +20,7 @@ from typing import Any
 from shared.config import TrainConfig, actors_error
 from shared.net import bus as keys
 from shared.net.bus import Bus
+from shared.net.info import ServiceInfo
 from shared.net.messages import Assignment, History, Metrics, Start, Status, Stop
 from shared.net.monitor import Decision, Graces, RunMonitor, RunVerdict, live_peer, peer_grace_s
 from shared.net.wire import WireError, decode, encode
@@ -41,7 +42,7 @@ def discover(bus: Bus, timeout: float = 1.0) -> list[dict[str, Any]]:
             info = json.loads(raw)
         except ValueError:
             continue
-        if isinstance(info, dict) and "id" in info and "role" in info:
+        if ServiceInfo.from_json(info) is not None:  # (the reply's map: its readers' own keys)
             infos.append(info)
     return sorted(infos, key=lambda i: (i["role"], i["id"]))
 
@@ -205,7 +206,7 @@ class RunWatch:
         except WireError:
             return
         with self.changed:
-            self.monitor.status(msg.service, msg.state, msg.detail, time.monotonic())
+            self.monitor.status(msg.service, msg.state, msg.fields(), time.monotonic())
             self.changed.notify_all()
 
     def _on_live(self, key: str, up: bool) -> None:

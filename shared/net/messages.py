@@ -74,7 +74,8 @@ class Assignment:
     def to_wire(self) -> dict[str, Any]:
         """The map the wire, files and the store hold (keys of None fields left out)."""
         group = None if self.group is None else list(self.group)
-        out = {"counter": self.counter, "learner": self.learner, "evaluator": self.evaluator}
+        out: dict[str, Any] = {"counter": self.counter, "learner": self.learner}
+        out["evaluator"] = self.evaluator
         out |= {"actors": list(self.actors), "group": group}
         return {k: v for k, v in out.items() if v is not None}
 
@@ -242,14 +243,89 @@ class Stop(Message):
     reason: str
 
 
+def _field(value: Mapping[str, Any], name: str, kind: type | tuple[type, ...], where: str) -> Any:
+    """`value[name]` if it is a `kind` (never a bool for an int), else a WireError."""
+    one = value.get(name)
+    if not isinstance(one, kind) or (isinstance(one, bool) and kind is not bool):
+        raise WireError(f"{where}: field {name!r} is not {getattr(kind, '__name__', kind)}")
+    return one
+
+
+@dataclass(frozen=True)
+class Resumed:
+    """What a learner's resume restored for a run: the cut it went on from
+    (`from_episode`, None: its log alone), its learner's updates, the replay's rows and
+    the held batches then, how long it took, and a group's runs. Its "running" status,
+    its "completed" one and its info reply say it (the API notes the restart from it)."""
+
+    run: str
+    from_episode: int | None
+    updates: int
+    replay_rows: int
+    held_batches: int
+    seconds: float
+    group: tuple[str, ...] | None = None
+
+    def to_wire(self) -> dict[str, Any]:
+        """The map the wire, the info reply and the log hold (no `group` for a run alone)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return out | {"group": list(self.group)} if self.group is not None else out
+
+    def grouped(self, runs: list[str]) -> Resumed:
+        return dataclasses.replace(self, group=tuple(runs))
+
+    @classmethod
+    def from_wire(cls, value: Any) -> Resumed:
+        """The resume a map says; WireError naming the field for anything else."""
+        if not isinstance(value, Mapping):
+            raise WireError("resumed: not a map")
+        cut = value.get("from_episode")
+        if cut is not None:
+            cut = _field(value, "from_episode", int, "resumed")
+        group = value.get("group")
+        return cls(
+            run=_field(value, "run", str, "resumed"),
+            from_episode=cut,
+            updates=_field(value, "updates", int, "resumed"),
+            replay_rows=_field(value, "replay_rows", int, "resumed"),
+            held_batches=_field(value, "held_batches", int, "resumed"),
+            seconds=float(_field(value, "seconds", (int, float), "resumed")),
+            group=None if group is None else _service_ids(group, "group"),
+        )
+
+
 @dataclass(frozen=True)
 class Status(Message):
-    """a service -> watchers: its state in a run (running, completed, failed, ...)."""
+    """a service -> watchers: its state in a run (running, completed, failed, ...).
+
+    What a reader acts on is a field of its own: why it failed or stopped (`reason`),
+    an actor's transitions published in all (`final_seq`, when completed: the learner
+    waits for that many), the evaluator's points (`points`, when completed: the run
+    completes once that many rows are stored), a restarted learner's resume
+    (`resumed`). `detail` holds the rest, shown and stored but read by no rule: where
+    the service is (rank, episodes, its runs) and its stats. An older peer sent all of
+    it in `detail`: shared/net/wire.py reads those keys into the fields.
+    """
 
     TYPE: ClassVar[str] = "status"
     service: str
     state: str
     detail: dict[str, Any]
+    reason: str | None = None
+    final_seq: int | None = None
+    points: int | None = None
+    resumed: Resumed | None = None
+
+    def fields(self) -> dict[str, Any]:
+        """The status as one flat map, as watchers show and store it: `detail` and each
+        field that is set (`resumed` as its map)."""
+        typed: dict[str, Any] = {
+            "reason": self.reason,
+            "final_seq": self.final_seq,
+            "points": self.points,
+        }
+        typed["resumed"] = None if self.resumed is None else self.resumed.to_wire()
+        return self.detail | {k: v for k, v in typed.items() if v is not None}
 
 
 MESSAGES: dict[str, type[Message]] = {

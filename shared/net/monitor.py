@@ -65,8 +65,9 @@ def run_verdict(
 ) -> RunVerdict:
     """One rule for "is this run over": first any failure, then any stop, then completion.
 
-    `states` maps service id -> its last status detail (with `state`, maybe `reason`,
-    the evaluator's `points`); `assign` names the run's learner and evaluator. Of
+    `states` maps service id -> its last status as one map (`Status.fields`, with
+    `state`, maybe `reason`, the evaluator's `points`); `assign` names the run's learner
+    and evaluator. Of
     several failures the one that gives a reason is reported (a service that merely
     follows another's failure may report first, without one).
     """

@@ -193,8 +193,8 @@ def _messages(user: str) -> list[tuple[str, tuple[str, ...], str]]:
     for g in ROLES[role]:
         key = g.key.format(id=user, role=role)
         for flow, msgs in ACTIONS[g.action]:
-            asked = g.action == "serve" and flow == "egress" and g.asked_as is not None
-            parts.append((flow, msgs, g.asked_as if asked else key))
+            asked = g.asked_as if g.action == "serve" and flow == "egress" else None
+            parts.append((flow, msgs, asked if asked is not None else key))
     parts.append((*SEE_DECLARATIONS[0], SEE_DECLARATIONS[1]))
     return parts
 

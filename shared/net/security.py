@@ -79,8 +79,8 @@ class Security:
         user = raw["user"]
 
         def path(key: str, default_name: str | None) -> Path | None:
-            if raw[key]:
-                return Path(raw[key])
+            if value := raw[key]:
+                return Path(value)
             if secrets is not None and default_name and (secrets / default_name).exists():
                 return secrets / default_name
             return None

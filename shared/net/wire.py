@@ -6,8 +6,14 @@ shared/net/messages.py's dataclasses, sent as a map with `v` (schema version), `
 {"nd": dtype, "shape": [...], "data": bytes} restricted to plain numeric dtypes
 (never objects, never pickle), an `Assignment` as its `to_wire` map. `decode` checks
 the version, the type, the presence and type of every field, array dtypes and shapes
-where the schema fixes them, and an assignment through `Assignment.from_wire`;
-anything else raises `WireError`, which services count, log and drop.
+where the schema fixes them, and an assignment through `Assignment.from_wire` (a
+`Resumed` through its own); anything else raises `WireError`, which services count,
+log and drop.
+
+A field with a default may be absent: a peer older than the field did not send it,
+and the message is read with the default. A field typed `X | None` may be nil. An
+older peer's `Status` carried its reason, final sequence number, points and resume in
+its `detail` map: those keys are read into the fields (checked alike).
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from shared.net.messages import (
     Assignment,
     BonusQuery,
     Message,
+    Resumed,
     Transitions,
     WireError,
 )
@@ -35,27 +42,48 @@ _DTYPES = {"<f4", "<f8", "<i8", "<i4", "|u1", "|b1"}
 _NP_DTYPES = {d: np.dtype(d) for d in _DTYPES}
 
 M = TypeVar("M", bound=Message)
+# the field types sent as their `to_wire` map and read through their `from_wire`
+_TYPED_CLASSES: dict[str, Any] = {"Assignment": Assignment, "Resumed": Resumed}
 
 
 def _kind(annotation: str) -> Any:
-    """The check of a field of type `annotation`: a Python type, "nd" for an array, or
-    Assignment (a map on the wire, read through its `from_wire`)."""
+    """The check of a field of type `annotation` (less its `| None`): a Python type,
+    "nd" for an array, or a typed class (a map on the wire, read through its `from_wire`)."""
+    annotation = annotation.removesuffix(" | None")
     if annotation == "np.ndarray":
         return "nd"
-    if annotation == "Assignment":
-        return Assignment
+    if annotation in _TYPED_CLASSES:
+        return _TYPED_CLASSES[annotation]
     base = annotation.split("[")[0]
     return {"str": str, "int": int, "dict": dict, "list": list}[base]
 
 
-# type -> {field: python type, or "nd" for an ndarray}: what decode checks, from the
-# dataclasses themselves.
+# type -> {field: python type, "nd" for an ndarray, or a typed class}: what decode
+# checks, from the dataclasses themselves.
 SCHEMAS: dict[str, dict[str, Any]] = {
     type_: {f.name: _kind(str(f.type)) for f in dataclasses.fields(cls) if f.name != "run"}
     for type_, cls in MESSAGES.items()
 }
-# type -> its fields sent as their `to_wire` map (an assignment)
-_TYPED = {t: [f for f, kind in s.items() if kind is Assignment] for t, s in SCHEMAS.items()}
+# type -> its fields that may be nil (typed `X | None`)
+_NULLABLE = {
+    t: {f.name for f in dataclasses.fields(cls) if str(f.type).endswith(" | None")}
+    for t, cls in MESSAGES.items()
+}
+# type -> its fields that may be absent (they have a default: an older peer lacks them)
+_OPTIONAL = {
+    t: {
+        f.name
+        for f in dataclasses.fields(cls)
+        if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+    }
+    for t, cls in MESSAGES.items()
+}
+# type -> its fields sent as their `to_wire` map (an assignment, a resume)
+_TYPED = {
+    t: [f for f, kind in s.items() if kind in _TYPED_CLASSES.values()] for t, s in SCHEMAS.items()
+}
+# the keys an older peer's status carried in its detail, now fields of their own
+_STATUS_LIFTED = ("reason", "final_seq", "points", "resumed")
 
 
 def _pack_default(obj: Any) -> Any:
@@ -91,7 +119,8 @@ def encode(msg: Message) -> bytes:
     """Serialize a message; `decode` checks it against the same schema."""
     fields = {name: getattr(msg, name) for name in SCHEMAS[msg.TYPE]}
     for name in _TYPED[msg.TYPE]:
-        fields[name] = fields[name].to_wire()
+        if fields[name] is not None:
+            fields[name] = fields[name].to_wire()
     body = {"v": SCHEMA_VERSION, "type": msg.TYPE, "run": msg.run, **fields}
     return msgpack.packb(body, default=_pack_default, use_bin_type=True)
 
@@ -120,23 +149,39 @@ def decode(payload: bytes, expect: type[Message] | None = None) -> Message:
         raise WireError(f"unexpected message type {type_!r}")
     if not isinstance(msg.get("run"), str):
         raise WireError("message lacks a run id")
+    if type_ == "status" and isinstance(msg.get("detail"), dict):
+        _lift_status(msg)
+    present = {}
     for field, kind in SCHEMAS[type_].items():
         if field not in msg:
+            if field in _OPTIONAL[type_]:
+                continue  # an older peer's: the dataclass's default
             raise WireError(f"{type_}: missing field {field!r}")
-        value = msg[field]
+        value = present[field] = msg[field]
+        if value is None and field in _NULLABLE[type_]:
+            continue
         if kind == "nd":
             if not isinstance(value, np.ndarray):
                 raise WireError(f"{type_}: field {field!r} is not an array")
-        elif kind is Assignment:
+        elif kind in _TYPED_CLASSES.values():
             try:
-                msg[field] = Assignment.from_wire(value)
+                present[field] = kind.from_wire(value)
             except WireError as err:
                 raise WireError(f"{type_}: {err}") from None
         elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
             raise WireError(f"{type_}: field {field!r} is not {kind.__name__}")
     if type_ == "transitions":
         _check_transitions(msg)
-    return MESSAGES[type_](run=msg["run"], **{f: msg[f] for f in SCHEMAS[type_]})
+    return MESSAGES[type_](run=msg["run"], **present)
+
+
+def _lift_status(msg: dict) -> None:
+    """An older peer's status: what it carried in `detail` that is now a field of its
+    own goes there (unless the field came too), to be checked like any field."""
+    detail = msg["detail"]
+    for key in _STATUS_LIFTED:
+        if key in detail and key not in msg:
+            msg[key] = detail.pop(key)
 
 
 def _check_transitions(msg: dict) -> None:

@@ -305,6 +305,7 @@ class VecCollector:
             if warm[r]:
                 a = self.rngs[r].uniform(self.low, self.high).astype(np.float32)
             else:
+                assert policy_act is not None  # some run is past its warmup
                 a = policy_act[r]
             act[r] = self._noisy(r, a)
         res = venv.step(act)

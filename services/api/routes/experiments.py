@@ -84,7 +84,9 @@ def create_experiment(body: ExperimentCreate, store: StoreDep, scheduler: Schedu
     store.create_experiment(exp_id, name, spec, runs)
     if scheduler is not None:
         scheduler.wake()
-    return load_experiments(store, [store.experiment(exp_id)])[0]
+    created = store.experiment(exp_id)
+    assert created is not None  # (created above)
+    return load_experiments(store, [created])[0]
 
 
 @router.get("", response_model=ExperimentList)

@@ -45,6 +45,7 @@ def stop_run(run: RunDep, store: StoreDep, scheduler: SchedulerDep):
     if scheduler is not None:
         scheduler.wake()
     fresh = load_run(store, run["id"])
+    assert fresh is not None  # (runs are never deleted)
     return {
         "changed": changed,
         "detail": "stopped" if changed else f"run already {fresh['status']}: nothing to stop",

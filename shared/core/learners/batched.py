@@ -371,7 +371,8 @@ class StackedMADDPG:
         grads, _ = mlp_backward(
             critic, acts, grad, True, False, torch.float32, self._low_grads(batch, obs)
         )
-        return diff.square().sum(1), grads  # type: ignore[return-value]
+        assert grads is not None  # (asked for: `weights`)
+        return diff.square().sum(1), grads
 
     def critic_step(
         self, obs: torch.Tensor, act: torch.Tensor, next_q_value: torch.Tensor
@@ -415,6 +416,7 @@ class StackedMADDPG:
         # d actor_loss_i / d Q_i (in bf16 -1/B is off by < 2^-9: a scale Adam divides out)
         grad_q = torch.full_like(critic_acts[-1], -1.0 / batch)
         _, grad_in = mlp_backward(critic, critic_acts, grad_q, False, True)
+        assert grad_in is not None  # asked for (`inputs`)
         if self.centralized:
             grad_a = torch.gather(grad_in, 2, self._own_cols.expand(-1, rows, -1))
         else:
@@ -431,7 +433,8 @@ class StackedMADDPG:
             self._low_grads(batch, obs),
         )
         q_sum = critic_acts[-1].squeeze(-1).sum(1, dtype=torch.float32)
-        return q_sum, grads  # type: ignore[return-value]
+        assert grads is not None  # (asked for: `weights`)
+        return q_sum, grads
 
     def actor_step(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         """One Adam step of every actor on -mean(Q_i(.., mu_i(o_i), ..)); returns (N,) losses.

@@ -151,7 +151,8 @@ class MasterKernel:
         i64 = ctypes.c_int64
         lib.macb_adam.restype = None
         lib.macb_adam.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(ctypes.c_int32), _P(_ptrs)]
-        lib.macb_adam.argtypes += [_P(_ptrs), _P(_ptrs), _P(i64)] + [f] * 7 + [ctypes.c_int32] * 2
+        lib.macb_adam.argtypes += [_P(_ptrs), _P(_ptrs), _P(i64)]
+        lib.macb_adam.argtypes += [f] * 7 + [ctypes.c_int32] * 2
         lib.macb_flush_denormals.restype = ctypes.c_int32
         lib.macb_flush_denormals.argtypes = [ctypes.c_int32, ctypes.c_int32]
         lib.macb_soft_update.restype = None

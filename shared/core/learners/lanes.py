@@ -148,7 +148,9 @@ class LaneTuner(Generic[O]):
         # (the last one is many blocks old, from another load).
         consecutive = old is not None and self._wait[done] == 0
         self.estimate_s[done] = (
-            self.smoothing * typical + (1 - self.smoothing) * old if consecutive else typical
+            self.smoothing * typical + (1 - self.smoothing) * old
+            if old is not None and consecutive
+            else typical
         )
         self._times = []
         best = self.best()

@@ -124,6 +124,7 @@ def mlp_backward(
     fused.py, reads bf16 gradients: the same values without a conversion pass).
     """
     layers = len(params) // 2
+    # (every slot is filled below when `weights`; the list is returned only then)
     grads: list[torch.Tensor] = [None] * len(params)  # type: ignore[list-item]
     for layer in reversed(range(layers)):
         x = acts[layer]

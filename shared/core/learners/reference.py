@@ -190,8 +190,9 @@ class MADDPG:
             (self.critics, self.critic_targets),
         ):
             for net, target in zip(nets, targets):
-                tp = list(target.parameters())
-                torch._foreach_lerp_(tp, list(net.parameters()), tau)
+                tp: list[torch.Tensor] = list(target.parameters())
+                src: list[torch.Tensor] = list(net.parameters())
+                torch._foreach_lerp_(tp, src, tau)
 
     # ----------------------------------------------------------------- state
     def state_dict(self) -> dict:
