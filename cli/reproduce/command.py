@@ -125,6 +125,37 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "--local reproduce stores in OUT/runs/ (or --runs; give the same --profile, "
         "--arms, --episodes as the run). Reads the folders only: safe while it trains",
     )
+    rp.add_argument(
+        "--launcher",
+        choices=("local", "slurm"),
+        default="local",
+        help="--local: where the run groups train: in this process tree (local) or as the "
+        "tasks of one Slurm array job, one group each, writing to the runs folder on a "
+        "filesystem the nodes share (slurm; followed to the end unless --detach, the same "
+        "command again reports, submits again what ended unfinished, and builds the page "
+        "when all are complete: docs/deploy.md, 'On a Slurm cluster')",
+    )
+    slurm = rp.add_argument_group("--launcher slurm")
+    slurm.add_argument("--partition", help="the tasks' partition (sbatch --partition)")
+    slurm.add_argument("--time", metavar="LIMIT", help="each task's time limit (sbatch --time)")
+    slurm.add_argument("--account", help="the account charged (sbatch --account)")
+    slurm.add_argument(
+        "--sbatch-args",
+        metavar="ARGS",
+        help="more sbatch arguments, as one string (e.g. '--qos=long --mem=4G')",
+    )
+    slurm.add_argument(
+        "--detach",
+        action="store_true",
+        help="submit and return at once; the same command later says where each group stands",
+    )
+    rp.add_argument(
+        "--group-runs",
+        nargs="+",
+        metavar="RUN",
+        help="--local: train only these runs (their folder names) as one group and write no "
+        "page: the command each Slurm task runs; run again, it resumes them from their cuts",
+    )
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     rp.add_argument("--quiet-services", action="store_true", help="service logs to files only")
     rp.set_defaults(func=cmd_reproduce)
@@ -142,6 +173,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     if args.slots < 1:
         return _refuse(f"--slots {args.slots}: give a number of runs at once >= 1")
     if error := group_flag_error(args, "--threads"):
+        return _refuse(error)
+    if error := launcher_error(args):
         return _refuse(error)
     try:
         seeds = args.seeds or file_seeds(fig)
@@ -165,6 +198,10 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         _, _, runs = expand_body(body)
         runs_dir = Path(args.runs) if args.runs else out / "runs"
         return print_status(f"{fig.name}, profile {args.profile}", runs, runs_dir, fig.episodes)
+    if args.launcher == "slurm" and not (args.report_only or args.group_runs):
+        from cli.reproduce.slurm import reproduce_slurm
+
+        return reproduce_slurm(fig, body, args.profile, out, args)
     if args.local or args.report_only:
         return reproduce_local(fig, body, args.profile, out, args)
     url = (args.api or _env_url() or DEFAULT_URL).rstrip("/")
@@ -208,12 +245,16 @@ def reproduce_local(
 ) -> int:
     """The figure's runs as run groups in this process (or, with --report-only, none),
     then the report from the runs' folders."""
-    from cli.local import expand_body, local_experiment, local_points, run_groups
-    from cli.reproduce.analysis import analyse, claim_verdicts, columns
-    from cli.reproduce.render import write_report
+    from cli.local import expand_body, run_groups
 
-    name, seeds, runs = expand_body(body)
+    _, _, runs = expand_body(body)
     runs_dir = Path(args.runs) if args.runs else out / "runs"
+    if args.group_runs:  # one group of the figure (a Slurm task's): no page
+        chosen = [r for r in runs if r.name in set(args.group_runs)]
+        unknown = sorted(set(args.group_runs) - {r.name for r in chosen})
+        if unknown:
+            return _refuse(f"--group-runs: no run {', '.join(unknown)} in this figure's runs")
+        return run_groups(chosen, runs_dir, len(chosen), args.quiet, jobs=1)
     code = 0
     if not args.report_only:
         t0 = time.monotonic()
@@ -221,13 +262,28 @@ def reproduce_local(
         print(f"trained in {time.monotonic() - t0:,.0f} s", file=sys.stderr)
     elif not runs_dir.exists():
         return _refuse(f"--report-only: no runs stored in {runs_dir}")
+    page = write_page(fig, body, profile, out, runs_dir, not args.report_only)
+    return code or page
+
+
+def write_page(
+    fig: FigureDef, body: dict[str, Any], profile: str, out: Path, runs_dir: Path, trained: bool
+) -> int:
+    """The page (FIGURE.png/.md/.csv, FIGURE-runs.json) from the runs in `runs_dir`: 0
+    when every run completed, else 1. `trained`: this command trained them (the page
+    names it), else it names the --local command that would."""
+    from cli.local import expand_body, local_experiment, local_points
+    from cli.reproduce.analysis import analyse, claim_verdicts, columns
+    from cli.reproduce.render import write_report
+
+    name, seeds, runs = expand_body(body)
     exp = local_experiment(name, seeds, runs, runs_dir)
     points = {k: columns(v) for k, v in local_points(runs, runs_dir).items()}
     analysis = analyse(fig, exp, points)
     import shlex
 
-    trained = "" if args.report_only else shlex.join(["macb", *sys.argv[1:]])
-    command = trained or f"macb reproduce {fig.name} --local --profile {profile}"
+    command = shlex.join(["macb", *sys.argv[1:]]) if trained else ""
+    command = command or f"macb reproduce {fig.name} --local --profile {profile}"
     paths = write_report(analysis, points, profile, out, command)
     paths.append(write_runs_record(exp, out / f"{fig.name}-runs.json"))
     csv_path = out / f"{fig.name}.csv"
@@ -246,7 +302,22 @@ def reproduce_local(
         f"{fig.name}: {counts}; claims: {tally}; wrote " + ", ".join(str(p) for p in paths),
         file=sys.stderr,
     )
-    return code or (0 if exp["status"] == "completed" else 1)
+    return 0 if exp["status"] == "completed" else 1
+
+
+def launcher_error(args: argparse.Namespace) -> str | None:
+    """Why the launcher flags do not fit together, or None."""
+    if args.launcher == "slurm" and not (args.local or args.report_only or args.status):
+        return "--launcher slurm: give --local (the figure's run groups are the Slurm tasks)"
+    if args.launcher != "slurm":
+        for flag in ("partition", "time", "account", "sbatch_args"):
+            if getattr(args, flag):
+                return f"--{flag.replace('_', '-')} is for --launcher slurm"
+        if args.detach:
+            return "--detach is for --launcher slurm"
+    if args.group_runs and not args.local:
+        return "--group-runs trains with --local"
+    return None
 
 
 def _refuse(msg: str) -> int:
