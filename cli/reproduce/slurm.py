@@ -76,19 +76,14 @@ def preflight(
     opts: SlurmOptions, runs_dirs: Sequence[Path], run: Runner = run_command
 ) -> str | None:
     """Why nothing can be submitted, or None: sbatch missing, Slurm not answering, an
-    unknown partition, a runs folder that cannot be written."""
+    unknown partition, a runs folder that cannot be written (made when missing, once
+    the rest is known to be right)."""
     missing = [c for c in ("sbatch", "squeue", "sinfo") if shutil.which(c) is None]
     if missing:
         return (
             f"--launcher slurm: {', '.join(missing)} not found on PATH; run this on a "
             "Slurm login node (or put Slurm's commands on PATH)"
         )
-    for runs_dir in runs_dirs:
-        if why := unwritable(runs_dir):
-            return f"--launcher slurm: the runs folder {runs_dir} is not writable ({why}); " + (
-                "every task writes its runs there: give --runs (or --out) on a filesystem "
-                "the nodes share and you can write"
-            )
     got = run(["sinfo", "-h", "-o", "%R"])
     if got.returncode:
         return f"--launcher slurm: Slurm does not answer (sinfo: {got.stderr.strip()})"
@@ -98,6 +93,12 @@ def preflight(
             f"--partition {opts.partition}: no such partition (sinfo lists: "
             f"{', '.join(partitions) or 'none'})"
         )
+    for runs_dir in runs_dirs:
+        if why := unwritable(runs_dir):
+            return f"--launcher slurm: the runs folder {runs_dir} is not writable ({why}); " + (
+                "every task writes its runs there: give --runs (or --out) on a filesystem "
+                "the nodes share and you can write"
+            )
     return None
 
 
@@ -491,7 +492,7 @@ def reproduce_slurm(fig: Any, body: dict[str, Any], profile: str, out: Path, arg
     missing = [g for g in now.groups if g.status == "incomplete"]
     if missing or not all(done(r.name) for r in runs):
         for g in missing:
-            print(f"incomplete: {g.line()}", file=sys.stderr)
+            print(g.line(), file=sys.stderr)
         logs = runs_dir / ".slurm"
         print(
             f"{fig.name}: {len(missing)} group(s) incomplete (their logs: {logs}); the same "
