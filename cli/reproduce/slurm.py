@@ -500,7 +500,7 @@ def reproduce_slurm(fig: Any, body: dict[str, Any], profile: str, out: Path, arg
             file=sys.stderr,
         )
         return 1
-    from cli.reproduce.command import write_page
+    from cli.reproduce.page import write_page
 
     return write_page(fig, body, profile, out, runs_dir, trained=True)
 
