@@ -40,7 +40,13 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "the runs that did not complete run again.",
         formatter_class=HelpFormatter,
     )
-    rp.add_argument("figure", metavar="FIGURE", choices=list(FIGURES), help=", ".join(FIGURES))
+    rp.add_argument(
+        "figure",
+        metavar="FIGURE",
+        choices=[*FIGURES, "all"],
+        help=", ".join(FIGURES) + "; or all (with --local --launcher slurm: every figure's "
+        "groups in one submission, each in OUT/FIGURE-PROFILE, OUT default runs/reproduce)",
+    )
     rp.add_argument(
         "--seeds", type=int, nargs="+", metavar="SEED", help="default: the files' (0 1 2)"
     )
@@ -166,9 +172,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from services.api.client import DEFAULT_URL, ApiClient
-    from services.api.schemas import ExperimentCreate
 
-    fig = FIGURES[args.figure]
     if args.episodes is not None and args.episodes < 1:
         return _refuse(f"--episodes {args.episodes}: give a number of episodes >= 1")
     if args.slots < 1:
@@ -177,21 +181,14 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         return _refuse(error)
     if error := launcher_error(args):
         return _refuse(error)
+    if args.figure == "all":
+        return reproduce_all(args)
+    fig = FIGURES[args.figure]
     try:
-        seeds = args.seeds or file_seeds(fig)
-        body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
-        if args.arms:
-            body = select_arms(fig, body, args.arms)
-        if args.threads is not None:
-            body["threads"] = args.threads
-        if not (args.local or args.report_only or args.status):  # groups: the thesis's loop
-            body["interleave"] = args.interleave
-        body["name"] = experiment_name(fig, body)
-        ExperimentCreate.model_validate(body)  # refused here, before any process starts
+        body = figure_body(fig, args)
     except (ValueError, OSError, ValidationError) as err:
         return _refuse(str(err))
-    suffix = f"-{args.precision}" if args.precision not in (None, "fp32") else ""
-    out = Path(args.out or f"runs/reproduce/{fig.name}-{args.profile}{suffix}")
+    out = Path(args.out or f"runs/reproduce/{out_name(fig, args)}")
     if args.status:
         from cli.local import expand_body
         from cli.reproduce.status import print_status
@@ -200,9 +197,10 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         runs_dir = Path(args.runs) if args.runs else out / "runs"
         return print_status(f"{fig.name}, profile {args.profile}", runs, runs_dir, fig.episodes)
     if args.launcher == "slurm" and not (args.report_only or args.group_runs):
-        from cli.reproduce.slurm import reproduce_slurm
+        from cli.reproduce.slurm import campaign, reproduce_slurm
 
-        return reproduce_slurm(fig, body, args.profile, out, args)
+        runs = Path(args.runs) if args.runs else None
+        return reproduce_slurm([campaign(fig, body, args.profile, out, runs)], args)
     if args.local or args.report_only:
         return reproduce_local(fig, body, args.profile, out, args)
     url = (args.api or _env_url() or DEFAULT_URL).rstrip("/")
@@ -220,6 +218,54 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
             except KeyboardInterrupt:
                 return session.interrupted()
     return with_local_cluster(args, url, fig, body, out)
+
+
+def figure_body(fig: FigureDef, args: argparse.Namespace) -> dict[str, Any]:
+    """The experiment body of FIGURE under the flags (profile, seeds, episodes, arms,
+    precision, threads), validated as the API would: ValueError / ValidationError."""
+    from services.api.schemas import ExperimentCreate
+
+    seeds = args.seeds or file_seeds(fig)
+    body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
+    if args.arms:
+        body = select_arms(fig, body, args.arms)
+    if args.threads is not None:
+        body["threads"] = args.threads
+    if not (args.local or args.report_only or args.status):  # groups: the thesis's loop
+        body["interleave"] = args.interleave
+    body["name"] = experiment_name(fig, body)
+    ExperimentCreate.model_validate(body)  # refused here, before any process starts
+    return body
+
+
+def out_name(fig: FigureDef, args: argparse.Namespace) -> str:
+    """FIGURE-PROFILE (-bf16 in bf16): a figure's folder under runs/reproduce."""
+    suffix = f"-{args.precision}" if args.precision not in (None, "fp32") else ""
+    return f"{fig.name}-{args.profile}{suffix}"
+
+
+def reproduce_all(args: argparse.Namespace) -> int:
+    """`macb reproduce all --local --launcher slurm`: every figure's groups in one Slurm
+    submission, each figure in OUT/FIGURE-PROFILE (OUT: --out, default runs/reproduce),
+    each page built as its figure completes."""
+    from pydantic import ValidationError
+
+    from cli.reproduce.slurm import campaign, reproduce_slurm
+
+    if not (args.local and args.launcher == "slurm") or args.status or args.report_only:
+        return _refuse("all: give --local --launcher slurm (or name one figure)")
+    for flag in ("arms", "runs", "group_runs"):
+        if getattr(args, flag):
+            return _refuse(f"all: --{flag.replace('_', '-')} is for one figure")
+    parent = Path(args.out or "runs/reproduce")
+    campaigns = []
+    for fig in FIGURES.values():
+        try:
+            body = figure_body(fig, args)
+        except (ValueError, OSError, ValidationError) as err:
+            return _refuse(f"{fig.name}: {err}")
+        campaigns.append(campaign(fig, body, args.profile, parent / out_name(fig, args), None))
+    return reproduce_slurm(campaigns, args, parent.resolve() / ".slurm")
 
 
 def reproduce_local(

@@ -304,13 +304,13 @@ def standing(
 def submit(
     name: str,
     tasks: Sequence[Task],
-    runs_dir: Path,
+    slurm_dir: Path,
     cpus: int,
     opts: SlurmOptions,
     run: Runner = run_command,
 ) -> tuple[str, dict[str, Any]]:
-    """One array job of `tasks`; its record entry (job id, script, each task's runs)."""
-    slurm_dir = runs_dir / ".slurm"
+    """One array job of `tasks` (script and logs in `slurm_dir`): its id and the record
+    of it (when, how, each task's index, label, runs and command)."""
     slurm_dir.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
     script = slurm_dir / f"{name}-{stamp}.sh"
@@ -324,6 +324,7 @@ def submit(
         "job": job,
         "submitted": datetime.now(UTC).isoformat(timespec="seconds"),
         "sbatch": argv,
+        "logs": str(slurm_dir),
         "tasks": [
             {"index": i, "label": t.label, "runs": list(t.runs), "command": list(t.argv)}
             for i, t in enumerate(tasks)
@@ -336,16 +337,25 @@ def follow(
     look: Callable[[], Standing],
     total: Callable[[], tuple[int, int]],
     quiet: bool,
+    each: Callable[[Standing], list[str]] | None = None,
     poll_s: float = POLL_S,
 ) -> Standing:
-    """Polls until Slurm runs none of the groups, a line per group whose status changes
-    and (unless quiet) a bar of the runs' episodes; the last standing."""
+    """Polls until Slurm runs none of the groups: a line per group whose status changes,
+    the lines `each` returns for a standing (pages built), and (unless quiet) a bar of
+    the runs' episodes; the last standing."""
     bar = None
     if not quiet:
         from tqdm import tqdm
 
         done, target = total()
         bar = tqdm(total=target, initial=done, unit="ep", desc="episodes (all runs)")
+
+    def say(text: str) -> None:
+        if bar:
+            bar.write(text, file=sys.stderr)
+        else:
+            print(text, file=sys.stderr, flush=True)
+
     last: dict[str, str] = {}
     try:
         while True:
@@ -353,11 +363,9 @@ def follow(
             for g in now.groups:
                 if last.get(g.task) != g.status:
                     last[g.task] = g.status
-                    text = f"{g.line()}"
-                    if bar:
-                        bar.write(text, file=sys.stderr)
-                    else:
-                        print(text, file=sys.stderr, flush=True)
+                    say(g.line())
+            for text in each(now) if each else []:
+                say(text)
             if bar:
                 done, _ = total()
                 bar.update(done - bar.n)
@@ -406,41 +414,91 @@ def options(args: Any) -> SlurmOptions:
     )
 
 
-def reproduce_slurm(fig: Any, body: dict[str, Any], profile: str, out: Path, args: Any) -> int:
-    """`macb reproduce FIGURE --local --launcher slurm`: submit the groups not done and
-    not in Slurm's hands, follow them (or not: --detach), then the page when every run
-    is complete; 1 while some group is incomplete, naming it."""
-    from cli.local import config_conflict, expand_body, plan_groups, run_state
-    from cli.reproduce.status import read_folders
+@dataclass(eq=False)  # one per figure, told apart by identity
+class Campaign:
+    """One figure of a submission: its runs (cli.local.LocalRun), where they go, and the
+    body and flags that name them (each task's command repeats them)."""
 
-    name, _, runs = expand_body(body)
-    out = out.resolve()
-    runs_dir = (Path(args.runs) if args.runs else out / "runs").resolve()
-    opts = options(args)
-    if error := preflight(opts, [runs_dir]):
-        return _refuse(error)
-    conflicts = [(r, why) for r in runs if (why := config_conflict(runs_dir / r.name, r.config))]
-    if conflicts:
-        for r, why in conflicts:
-            print(f"{runs_dir / r.name}: holds a run of another config ({why})", file=sys.stderr)
-        return _refuse("move those folders away or give another --out: nothing was submitted")
-    by_name = {r.name: r for r in runs}
-    names = set(by_name)
+    fig: Any  # cli.reproduce.defs.FigureDef
+    body: dict[str, Any]
+    profile: str
+    out: Path
+    runs_dir: Path
+    runs: list[Any]
+    page_built: bool = False
 
-    def done(run: str) -> bool:
-        r = by_name[run]
-        return run_state(runs_dir / r.name, r.config) == "done"
+    @property
+    def names(self) -> set[str]:
+        return {r.name for r in self.runs}
 
-    def progress_of() -> dict[str, tuple[int, int]]:
-        p = read_folders(runs, runs_dir, fig.episodes)
+    def done(self, name: str) -> bool:
+        from cli.local import run_state
+
+        r = next(r for r in self.runs if r.name == name)
+        return run_state(self.runs_dir / r.name, r.config) == "done"
+
+    def complete(self) -> bool:
+        return all(self.done(r.name) for r in self.runs)
+
+    def progress(self) -> dict[str, tuple[int, int]]:
+        from cli.reproduce.status import read_folders
+
+        p = read_folders(self.runs, self.runs_dir, self.fig.episodes)
         return {r.run: (r.episode, r.target) for r in p.runs}
 
+    def standing(self, slurm: dict[str, TaskState]) -> Standing:
+        eps = self.progress()
+        return standing(
+            load_record(self.runs_dir), slurm, self.done, lambda r: eps.get(r, (0, 0)), self.names
+        )
+
+    def page(self) -> int:
+        """The figure's page, once (0 when every run completed)."""
+        from cli.reproduce.page import write_page
+
+        self.page_built = True
+        return write_page(self.fig, self.body, self.profile, self.out, self.runs_dir, True)
+
+
+def campaign(
+    fig: Any, body: dict[str, Any], profile: str, out: Path, runs: Path | None
+) -> Campaign:
+    from cli.local import expand_body
+
+    out = out.resolve()
+    runs_dir = (runs or out / "runs").resolve()
+    return Campaign(fig, body, profile, out, runs_dir, expand_body(body)[2])
+
+
+def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None = None) -> int:
+    """`macb reproduce FIGURE|all --local --launcher slurm`: submit, as one array job,
+    the groups of runs neither complete nor in Slurm's hands; follow them (or not:
+    --detach); build each figure's page once its runs are complete. 0 when every page
+    is built (or, with --detach, when nothing ended unfinished), 1 while some group is
+    incomplete (named), 2 when refused before submitting."""
+    from cli.local import config_conflict, plan_groups
+
+    opts = options(args)
+    if error := preflight(opts, [c.runs_dir for c in campaigns]):
+        return _refuse(error)
+    conflicts = [
+        (c.runs_dir / r.name, why)
+        for c in campaigns
+        for r in c.runs
+        if (why := config_conflict(c.runs_dir / r.name, r.config))
+    ]
+    if conflicts:
+        for folder, why in conflicts:
+            print(f"{folder}: holds a run of another config ({why})", file=sys.stderr)
+        return _refuse("move those folders away or give another --out: nothing was submitted")
+    slurm_dir = slurm_dir or campaigns[0].runs_dir / ".slurm"
+
     def look() -> Standing:
-        eps = progress_of()
-        return standing(load_record(runs_dir), query(), done, lambda r: eps.get(r, (0, 0)), names)
+        slurm = query()
+        return Standing([g for c in campaigns for g in c.standing(slurm).groups])
 
     def total() -> tuple[int, int]:
-        eps = progress_of().values()
+        eps = [e for c in campaigns for e in c.progress().values()]
         return sum(e for e, _ in eps), sum(t for _, t in eps)
 
     try:
@@ -450,59 +508,72 @@ def reproduce_slurm(fig: Any, body: dict[str, Any], profile: str, out: Path, arg
     held = {r for g in before.groups if g.status in ("running", "pending") for r in g.runs}
     for g in before.of("incomplete"):
         print(f"{g.line()}: submitting its runs again", file=sys.stderr)
-    todo = [r for r in runs if r.name not in held and not done(r.name)]
-    if todo:
-        plan = plan_groups(todo, runs_dir, args.group_size, args.jobs)
-        tasks = []
+    tasks: list[Task] = []
+    owner: list[Campaign] = []
+    for c in campaigns:
+        todo = [r for r in c.runs if r.name not in held and not c.done(r.name)]
+        if not todo:
+            continue
+        plan = plan_groups(todo, c.runs_dir, args.group_size, args.jobs)
         for i, (state, members) in enumerate(plan, 1):
             chosen = [todo[m] for m in members]
-            label = (
-                f"{fig.name} group {i}/{len(plan)} ({len(chosen)} runs: {chosen[0].config.task})"
-            )
-            start = "resumes from " + state if state != "new" else "starts"
-            print(f"{label}: {start}", file=sys.stderr)
-            argv = group_command(fig.name, profile, args, out, runs_dir, [r.name for r in chosen])
-            tasks.append(Task(label, tuple(r.name for r in chosen), tuple(argv)))
-        cpus = cpus_for([r.config for r in todo])
+            task = chosen[0].config.task
+            label = f"{c.fig.name} group {i}/{len(plan)} ({len(chosen)} runs: {task})"
+            print(f"{label}: {'resumes from ' + state if state != 'new' else 'starts'}",
+                  file=sys.stderr)  # fmt: skip
+            names = [r.name for r in chosen]
+            argv = group_command(c.fig.name, c.profile, args, c.out, c.runs_dir, names)
+            tasks.append(Task(label, tuple(names), tuple(argv)))
+            owner.append(c)
+    if tasks:
+        name = "macb-" + "-".join(dict.fromkeys(c.fig.name for c in owner))
+        cpus = cpus_for([r.config for c in campaigns for r in c.runs])
         try:
-            job, entry = submit(f"macb-{fig.name}", tasks, runs_dir, cpus, opts)
+            job, entry = submit(name[:64], tasks, slurm_dir, cpus, opts)
         except (RuntimeError, ValueError, OSError) as err:
             return _refuse(str(err))
-        save_record(runs_dir, [*load_record(runs_dir), entry])
-        print(
-            f"submitted job {job}{env_note()}: {len(tasks)} task(s), logs in "
-            f"{runs_dir / '.slurm'}/{job}_<task>.log",
-            file=sys.stderr,
-        )
+        for c in dict.fromkeys(owner):  # each figure records its own tasks
+            mine = [t for t, o in zip(entry["tasks"], owner) if o is c]
+            save_record(c.runs_dir, [*load_record(c.runs_dir), {**entry, "tasks": mine}])
+        print(f"submitted job {job}{env_note()}: {len(tasks)} task(s), logs in "
+              f"{slurm_dir}/{job}_<task>.log", file=sys.stderr)  # fmt: skip
     elif before.active:
-        print(f"{fig.name}: every unfinished run is in Slurm's hands already", file=sys.stderr)
+        print("every unfinished run is in Slurm's hands already", file=sys.stderr)
+
+    codes: list[int] = []
+
+    def pages(now: Standing) -> list[str]:
+        built = []
+        for c in campaigns:
+            if not c.page_built and c.complete():
+                codes.append(c.page())
+                built.append(f"{c.fig.name}: complete, its page is in {c.out}")
+        return built
+
     if args.detach:
         now = look()
         for g in now.groups:
             print(g.line(), file=sys.stderr)
-        if now.active or not all(done(r.name) for r in runs):
+        pages(now)
+        if now.active:
             print(
-                f"{fig.name}: {now.summary() or 'nothing submitted'}; the same command "
-                "again reports, and builds the page once every group is complete",
+                f"{now.summary()}; the same command again reports, and builds each page once "
+                "its figure's groups are complete",
                 file=sys.stderr,
             )
-            return 0
     else:
-        now = follow(look, total, args.quiet)
-    missing = [g for g in now.groups if g.status == "incomplete"]
-    if missing or not all(done(r.name) for r in runs):
-        for g in missing:
-            print(g.line(), file=sys.stderr)
-        logs = runs_dir / ".slurm"
+        now = follow(look, total, args.quiet, pages)
+    missing = now.of("incomplete")
+    for g in missing:
+        print(g.line(), file=sys.stderr)
+    if missing:
         print(
-            f"{fig.name}: {len(missing)} group(s) incomplete (their logs: {logs}); the same "
-            "command again submits them again and resumes their runs from their cuts",
+            f"{len(missing)} group(s) incomplete (their logs: {slurm_dir}); the same command "
+            "again submits them again and resumes their runs from their cuts",
             file=sys.stderr,
         )
         return 1
-    from cli.reproduce.page import write_page
-
-    return write_page(fig, body, profile, out, runs_dir, trained=True)
+    return max(codes, default=0)
 
 
 def _refuse(msg: str) -> int:
