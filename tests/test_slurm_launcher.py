@@ -189,3 +189,20 @@ def test_launcher_flags_that_do_not_fit_are_refused(
     assert args.func(args) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--local"], "all: give --local --launcher slurm (or name one figure)"),
+        (["--local", "--launcher", "slurm", "--arms", "x*"], "all: --arms is for one figure"),
+        (["--local", "--launcher", "slurm", "--runs", "r"], "all: --runs is for one figure"),
+    ],
+)
+def test_all_is_every_figure_on_slurm_and_refuses_one_figure_s_flags(
+    reproduce_parser, tmp_path, flags, message, capsys
+):
+    args = reproduce_parser.parse_args(["all", "--out", str(tmp_path / "o"), *flags])
+    assert args.func(args) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
