@@ -206,3 +206,30 @@ def test_all_is_every_figure_on_slurm_and_refuses_one_figure_s_flags(
     assert args.func(args) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_following_says_each_change_once_survives_a_silent_controller_and_ends(capsys):
+    from cli.reproduce.slurm import GroupState, Standing
+
+    def at(status: str) -> Standing:
+        return Standing([GroupState("fig3 group 1/1", "5_0", ["a-s0"], status, "", (0, 6))])
+
+    seen = iter([at("pending"), at("pending"), RuntimeError("squeue failed: timeout"),
+                 at("running"), at("complete")])  # fmt: skip
+
+    def look() -> Standing:
+        item = next(seen)
+        if isinstance(item, Exception):
+            raise item
+        return item
+
+    pages = lambda now: ["page built"] if not now.active else []  # noqa: E731
+    last = slurm.follow(look, lambda: (0, 6), quiet=True, each=pages, poll_s=0)
+    assert last.of("complete") and not last.active
+    assert capsys.readouterr().err.splitlines() == [
+        "fig3 group 1/1 [job 5_0]: pending, episode 0 of 6",
+        "squeue failed: timeout; asking again in 0 s",
+        "fig3 group 1/1 [job 5_0]: running, episode 0 of 6",
+        "fig3 group 1/1 [job 5_0]: complete, episode 0 of 6",
+        "page built",
+    ]

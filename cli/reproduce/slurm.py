@@ -175,7 +175,12 @@ class TaskState:
     reason: str = ""  # Slurm's reason for a pending task (e.g. BeginTime, Resources)
 
 
-SQUEUE = ["squeue", "--me", "-h", "-r", "-t", "all", "-o", "%i|%T|%r"]
+def squeue_argv() -> list[str]:
+    """This user's tasks, ended ones too, one line per array task."""
+    import pwd
+
+    user = pwd.getpwuid(os.getuid()).pw_name
+    return ["squeue", "-u", user, "-h", "-r", "-t", "all", "-o", "%i|%T|%r"]
 
 
 def parse_squeue(text: str) -> dict[str, TaskState]:
@@ -195,7 +200,7 @@ def parse_squeue(text: str) -> dict[str, TaskState]:
 
 def query(run: Runner = run_command) -> dict[str, TaskState]:
     """Every task of this user's jobs that the controller still knows."""
-    got = run(SQUEUE)
+    got = run(squeue_argv())
     if got.returncode:
         raise RuntimeError(f"squeue failed: {got.stderr.strip()}")
     return parse_squeue(got.stdout)
@@ -359,7 +364,12 @@ def follow(
     last: dict[str, str] = {}
     try:
         while True:
-            now = look()
+            try:
+                now = look()
+            except RuntimeError as err:  # the controller busy or restarting: ask again
+                say(f"{err}; asking again in {poll_s:.0f} s")
+                time.sleep(poll_s)
+                continue
             for g in now.groups:
                 if last.get(g.task) != g.status:
                     last[g.task] = g.status
@@ -562,7 +572,15 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
                 file=sys.stderr,
             )
     else:
-        now = follow(look, total, args.quiet, pages)
+        try:
+            now = follow(look, total, args.quiet, pages)
+        except KeyboardInterrupt:
+            print(
+                "stopped following; the tasks go on in Slurm (scancel to stop them), and "
+                "the same command again reports where they stand",
+                file=sys.stderr,
+            )
+            return 130
     missing = now.of("incomplete")
     for g in missing:
         print(g.line(), file=sys.stderr)
