@@ -61,12 +61,14 @@ def test_what_sbatch_and_squeue_print_is_read_back():
     assert slurm.sbatch_argv(SlurmOptions(extra=("--qos=long", "--mem", "4G")), Path("s.sh")) == [
         "sbatch", "--parsable", "--qos=long", "--mem", "4G", "s.sh",
     ]  # fmt: skip
-    text = "12_0|RUNNING|None\n12_1|PENDING|BeginTime\n13|COMPLETED|None\n\n12_2|CANCELLED|None\n"
+    text = ("12_0|RUNNING|None|macb-fig3\n12_1|PENDING|BeginTime|macb-fig3\n"
+            "13|COMPLETED|None|a|b\n\n12_2|CANCELLED|None|macb-fig3\n14|RUNNING\n")  # fmt: skip
     assert slurm.parse_squeue(text) == {
-        "12_0": TaskState("RUNNING"),
-        "12_1": TaskState("PENDING", "BeginTime"),
-        "13": TaskState("COMPLETED"),
-        "12_2": TaskState("CANCELLED"),
+        "12_0": TaskState("RUNNING", "", "macb-fig3"),
+        "12_1": TaskState("PENDING", "BeginTime", "macb-fig3"),
+        "13": TaskState("COMPLETED", "", "a|b"),
+        "12_2": TaskState("CANCELLED", "", "macb-fig3"),
+        "14": TaskState("RUNNING"),
     }
 
 
@@ -91,7 +93,7 @@ def test_each_group_stands_where_slurm_and_its_runs_folders_say():
                    "7_3": "incomplete", "7_4": "incomplete"}  # fmt: skip
     assert s.active and s.summary() == "1 running, 1 pending, 2 incomplete, 1 complete"
     lines = {g.task: g.line() for g in s.groups}
-    assert lines["7_2"] == "g7.2 [job 7_2]: pending (PENDING, BeginTime), episode 3 of 10"
+    assert lines["7_2"] == "g7.2 [job 7_2]: pending (BeginTime), episode 3 of 10"
     assert lines["7_3"] == "g7.3 [job 7_3]: incomplete (TIMEOUT), episode 3 of 10; runs: e"
     assert "no longer known to Slurm" in lines["7_4"] and lines["7_4"].endswith("runs: f")
     # A later submission of a run supersedes the earlier task; `wanted` keeps one figure's.
@@ -105,6 +107,14 @@ def test_each_group_stands_where_slurm_and_its_runs_folders_say():
     }
     ended = slurm.standing(subs[:1], {}, lambda r: True, lambda r: (10, 10))
     assert not ended.active and ended.summary() == "5 complete"
+    # A task of another job that has the recorded id (ids started again) is not ours.
+    named = [{**subs[1], "name": "macb-fig3"}]
+    other = {"9_0": TaskState("RUNNING", "", "someone-else")}
+    (g,) = slurm.standing(named, other, done.__contains__, lambda r: (0, 10)).groups
+    assert g.status == "incomplete" and "no longer known to Slurm" in g.line()
+    requeued = {"9_0": TaskState("REQUEUE_HOLD", "JobHeldAdmin", "macb-fig3")}
+    (g,) = slurm.standing(named, requeued, done.__contains__, lambda r: (0, 10)).groups
+    assert g.line() == "g9.0 [job 9_0]: pending (REQUEUE_HOLD, JobHeldAdmin), episode 0 of 10"
 
 
 class FakeSlurm:

@@ -43,7 +43,9 @@ ACTIVE = frozenset(
 #: Of those, the ones that are waiting to (re)start.
 WAITING = frozenset({"PENDING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED"})
 RECORD = "jobs.json"
-POLL_S = 3.0
+#: How often following asks squeue and reads the folders: often at first (a task that
+#: fails at once is said at once), then gently for the controller over hours.
+POLL_S, POLL_LATER_S, POLL_FAST_FOR_S = 5.0, 30.0, 120.0
 
 Runner = Callable[[Sequence[str]], subprocess.CompletedProcess]
 
@@ -173,6 +175,7 @@ def parse_job_id(stdout: str) -> str:
 class TaskState:
     state: str  # Slurm's, e.g. RUNNING, PENDING, CANCELLED
     reason: str = ""  # Slurm's reason for a pending task (e.g. BeginTime, Resources)
+    name: str | None = None  # the job's name (None: not asked)
 
 
 def squeue_argv() -> list[str]:
@@ -180,21 +183,21 @@ def squeue_argv() -> list[str]:
     import pwd
 
     user = pwd.getpwuid(os.getuid()).pw_name
-    return ["squeue", "-u", user, "-h", "-r", "-t", "all", "-o", "%i|%T|%r"]
+    return ["squeue", "-u", user, "-h", "-r", "-t", "all", "-o", "%i|%T|%r|%j"]
 
 
 def parse_squeue(text: str) -> dict[str, TaskState]:
-    """`squeue -h -r -o '%i|%T|%r'` lines as {'JOB_INDEX': state}. Lines of other shapes
-    (a job that is no array) are kept under their own id."""
+    """`squeue -h -r -o '%i|%T|%r|%j'` lines as {'JOB_INDEX': state} (a job that is no
+    array under its own id; the name, last, may hold '|')."""
     out: dict[str, TaskState] = {}
     for line in text.splitlines():
         parts = line.strip().split("|")
         if len(parts) < 2 or not parts[0]:
             continue
         reason = parts[2].strip() if len(parts) > 2 else ""
-        out[parts[0].strip()] = TaskState(
-            parts[1].strip().split()[0], "" if reason == "None" else reason
-        )
+        name = "|".join(parts[3:]).strip() if len(parts) > 3 else None
+        state = parts[1].strip().split()[0]
+        out[parts[0].strip()] = TaskState(state, "" if reason == "None" else reason, name)
     return out
 
 
@@ -236,15 +239,22 @@ class GroupState:
     task: str  # JOB_INDEX
     runs: list[str]
     status: str
-    slurm: str = ""  # Slurm's state (and reason), when it still knows the task
+    slurm: TaskState | None = None  # what Slurm says of the task, while it knows it
     episodes: tuple[int, int] = (0, 0)  # the group's least episode, its target
+
+    def said(self) -> str:
+        """Slurm's words where they add to the status: why a task waits (a requeued
+        one's state and reason), the state an incomplete one ended in."""
+        s = self.slurm
+        if self.status == "pending" and s:
+            return ", ".join(w for w in (s.state if s.state != "PENDING" else "", s.reason) if w)
+        if self.status == "incomplete":
+            return s.state if s else "no longer known to Slurm"
+        return ""
 
     def line(self) -> str:
         ep, target = self.episodes
-        # Slurm's words when they add to the status: a pending task's reason, the
-        # state an incomplete one ended in.
-        said = self.slurm if self.status in ("pending", "incomplete") else ""
-        how = f" ({said})" if said and said != "PENDING" else ""
+        how = f" ({said})" if (said := self.said()) else ""
         text = f"{self.label} [job {self.task}]: {self.status}{how}, episode {ep:,} of {target:,}"
         if self.status == "incomplete":
             text += "; runs: " + ", ".join(self.runs)
@@ -277,9 +287,11 @@ def standing(
     """Each run's latest task (a later submission of a run supersedes an earlier one),
     judged by Slurm's state and the runs' folders. `wanted`: only tasks with such runs."""
     latest: dict[str, tuple[str, dict[str, Any]]] = {}
+    sub_name: dict[str, str | None] = {}
     for sub in submissions:
         for t in sub["tasks"]:
             task_id = f"{sub['job']}_{t['index']}"
+            sub_name[task_id] = sub.get("name")
             for r in t["runs"]:
                 latest[r] = (task_id, t)
     seen: dict[str, GroupState] = {}
@@ -288,20 +300,17 @@ def standing(
             continue
         runs = [r for r in t["runs"] if latest[r][0] == task_id]
         state = slurm.get(task_id)
+        if state and sub_name.get(task_id) not in (None, state.name):
+            state = None  # another job of that id (a Slurm whose ids started again)
         eps = [progress(r) for r in runs]
-        episodes = (min(e for e, _ in eps), max(t for _, t in eps))
+        episodes = (min(e for e, _ in eps), max(n for _, n in eps))
         if all(done(r) for r in runs):
             status = "complete"
         elif state and state.state in ACTIVE:
             status = "pending" if state.state in WAITING else "running"
         else:
             status = "incomplete"
-        slurm_text = ""
-        if state:
-            slurm_text = state.state + (f", {state.reason}" if state.reason else "")
-        elif status == "incomplete":
-            slurm_text = "no longer known to Slurm"
-        seen[task_id] = GroupState(t["label"], task_id, runs, status, slurm_text, episodes)
+        seen[task_id] = GroupState(t["label"], task_id, runs, status, state, episodes)
     return Standing(list(seen.values()))
 
 
@@ -327,6 +336,7 @@ def submit(
     job = parse_job_id(got.stdout)
     entry = {
         "job": job,
+        "name": name,
         "submitted": datetime.now(UTC).isoformat(timespec="seconds"),
         "sbatch": argv,
         "logs": str(slurm_dir),
@@ -343,7 +353,7 @@ def follow(
     total: Callable[[], tuple[int, int]],
     quiet: bool,
     each: Callable[[Standing], list[str]] | None = None,
-    poll_s: float = POLL_S,
+    poll_s: float | None = None,
 ) -> Standing:
     """Polls until Slurm runs none of the groups: a line per group whose status changes,
     the lines `each` returns for a standing (pages built), and (unless quiet) a bar of
@@ -362,13 +372,20 @@ def follow(
             print(text, file=sys.stderr, flush=True)
 
     last: dict[str, str] = {}
+    t0 = time.monotonic()
+
+    def pause() -> float:
+        if poll_s is not None:
+            return poll_s
+        return POLL_S if time.monotonic() - t0 < POLL_FAST_FOR_S else POLL_LATER_S
+
     try:
         while True:
             try:
                 now = look()
             except RuntimeError as err:  # the controller busy or restarting: ask again
-                say(f"{err}; asking again in {poll_s:.0f} s")
-                time.sleep(poll_s)
+                say(f"{err}; asking again in {pause():.0f} s")
+                time.sleep(pause())
                 continue
             for g in now.groups:
                 if last.get(g.task) != g.status:
@@ -382,7 +399,7 @@ def follow(
                 bar.set_postfix_str(now.summary())
             if not now.active:
                 return now
-            time.sleep(poll_s)
+            time.sleep(pause())
     finally:
         if bar:
             bar.close()
@@ -441,25 +458,35 @@ class Campaign:
     def names(self) -> set[str]:
         return {r.name for r in self.runs}
 
-    def done(self, name: str) -> bool:
-        from cli.local import run_state
-
-        r = next(r for r in self.runs if r.name == name)
-        return run_state(self.runs_dir / r.name, r.config) == "done"
-
-    def complete(self) -> bool:
-        return all(self.done(r.name) for r in self.runs)
-
     def progress(self) -> dict[str, tuple[int, int]]:
+        """Each run's (episode, target), from the end of its rows only: cheap to ask
+        every poll of a campaign whose files hold tens of thousands of rows."""
         from cli.reproduce.status import read_folders
 
         p = read_folders(self.runs, self.runs_dir, self.fig.episodes)
         return {r.run: (r.episode, r.target) for r in p.runs}
 
+    def finished(self, eps: dict[str, tuple[int, int]]) -> Callable[[str], bool]:
+        """Whether a run is complete, as cli.local.run_state says (every episode run,
+        the checkpoint written; the config was checked before submitting)."""
+
+        def done(name: str) -> bool:
+            episode, target = eps.get(name, (0, 1))
+            return episode >= target and (self.runs_dir / name / "checkpoint.pt").exists()
+
+        return done
+
+    def complete(self) -> bool:
+        return all(map(self.finished(self.progress()), self.names))
+
     def standing(self, slurm: dict[str, TaskState]) -> Standing:
         eps = self.progress()
         return standing(
-            load_record(self.runs_dir), slurm, self.done, lambda r: eps.get(r, (0, 0)), self.names
+            load_record(self.runs_dir),
+            slurm,
+            self.finished(eps),
+            lambda r: eps.get(r, (0, 0)),
+            self.names,
         )
 
     def page(self) -> int:
@@ -521,7 +548,8 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
     tasks: list[Task] = []
     owner: list[Campaign] = []
     for c in campaigns:
-        todo = [r for r in c.runs if r.name not in held and not c.done(r.name)]
+        done = c.finished(c.progress())
+        todo = [r for r in c.runs if r.name not in held and not done(r.name)]
         if not todo:
             continue
         plan = plan_groups(todo, c.runs_dir, args.group_size, args.jobs)
