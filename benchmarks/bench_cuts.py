@@ -38,18 +38,18 @@ from _harness import (
 )
 from _stats import fmt, ratio_median
 
-from cli.trainer import DEFAULT_CUT_EVERY_S, Run
+from cli.trainer import DEFAULT_CUT_EVERY_S, GroupRun
 from shared.config import make_config
 
 THESIS = {**THESIS_ARM, "learner_lanes": 1}
 
 
 def one_run(cfg, out: Path, cut_every_s: float) -> dict:
-    run = Run(cfg, out, cut_every_s)
+    run = GroupRun([cfg], [out], cut_every_s)
     t0 = time.perf_counter()
-    run.go(False, None, None)
+    run.go(False, None)
     wall = time.perf_counter() - t0
-    return {"wall_s": wall, "env_steps": run.env_steps, "cuts": run.cut_log}
+    return {"wall_s": wall, "env_steps": run.members[0].env_steps, "cuts": run.cut_log}
 
 
 def main(argv: list[str] | None = None) -> int:

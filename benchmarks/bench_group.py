@@ -216,7 +216,7 @@ def fig8_pair(opts: dict[str, Any]) -> list:
 def group_child(spec: str) -> None:
     """In a process of its own: the group run of `spec` (JSON), its rate and shares."""
     opts = json.loads(spec)
-    from cli.group_trainer import GroupRun
+    from cli.trainer import GroupRun
 
     cfgs = fig8_pair(opts)
     jobs, job = opts.get("jobs", 1), opts.get("job", 0)
@@ -232,7 +232,7 @@ def group_child(spec: str) -> None:
         wall = time.perf_counter() - g.start
     steps = sum(m.env_steps for m in g.members)
     print(json.dumps({"run_steps_per_s": steps / wall, "wall_s": wall, "timing": g.timing,
-                      "precision": g.learner.precision}))  # fmt: skip
+                      "precision": "bf16" if g.learner.stats()["bf16"] else "fp32"}))  # fmt: skip
 
 
 def cluster_rate(args: argparse.Namespace, work: Path) -> float:

@@ -1,4 +1,4 @@
-"""Many runs in this process as run groups (cli/group_trainer.py), without the bus:
+"""Many runs in this process as run groups (cli/trainer.py), without the bus:
 what `macb train --seeds`, `macb run --local` and `macb reproduce --local` share.
 
 Each run writes to its own folder under OUT (metrics.csv/jsonl, config.json,
@@ -205,7 +205,7 @@ def _train_group_job(
     position: int | None = None,
 ) -> str | None:
     """One group, in this process or a pool's: None, or why it could not resume."""
-    from cli.group_trainer import train_group
+    from cli.trainer import train_group
     from shared.config import make_config
     from shared.core.learners.precision import DeviceError
     from shared.persist.cuts import CutError

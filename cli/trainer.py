@@ -1,10 +1,23 @@
-"""The one-process trainer: the thesis's loop with the same cores the services use.
+"""The one-process trainer: the thesis's loop for R >= 1 runs, with the same cores the
+services use. A run alone is a group of one: one loop, one cut and one restore.
 
-Per environment step: act with noise, store the transition, count it (collection is
-the only place counts change), and, after `learning_starts` transitions, sample one
-batch, price its bonus from the current counts and do one update. After every
-`eval_every` training episodes, run `eval_episodes` noise-free episodes and write
-one metrics row.
+Per environment step: one policy call acts (with noise) for every run, the R worlds step
+as arrays (shared/envs/vectask.py; a custom task's world by world), each run stores and
+counts its own transition (collection is the only place counts change), and, after
+`learning_starts` transitions, samples its own minibatch, prices its bonus from its own
+counts, and one learner update updates every run. After every `eval_every` training
+episodes one batched rollout runs every run's `eval_episodes` noise-free episodes and
+each run writes one metrics row.
+
+What stays per run (`Member`) is everything that makes it a run: its config (seed,
+exploration, beta, k, reward, noise, ...), replay buffer, count tables, RNG streams,
+metrics, output folder, cuts and provenance. The learner is R runs' (`RunsLearner`): a
+run alone keeps the one its config asks for (`build_learner`: the reference, the
+batched one with its lanes, or the tuned one), R >= 2 runs share one `GroupMADDPG`, and
+run r's rows are those it gives alone (fp32, `learner_lanes: 1`, timing columns aside;
+tests/test_group_trainer.py). Each run's cut is a one-run cut: a group resumes from
+them, and so could each run alone. Runs may be grouped when their update and their
+task's steps can be shared (`shared.groups`).
 """
 
 from __future__ import annotations
@@ -13,8 +26,9 @@ import csv
 import json
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -22,17 +36,26 @@ from threadpoolctl import threadpool_limits
 
 from shared.config import TrainConfig
 from shared.core.exploration import BonusDiagnostics, CountExploration, constant_shift
-from shared.core.learners import Learner
+from shared.core.learners import Learner, RunsLearner, SoloRuns
+from shared.core.learners.group import GroupMADDPG
 from shared.core.replay import ReplayBuffer, update_arrays
-from shared.envs.tasks import make_task_for
+from shared.envs.tasks import TaskSpec, make_task_for
+from shared.envs.vectask import vectorize
+from shared.groups import check_group
 from shared.metrics import TRAIN_FIELDS
 from shared.persist import checkpoint, provenance
 from shared.persist.checkpoint import CutError, config_difference, load_tables
-from shared.persist.cuts import ReplayLog, latest_cut, write_cut
+from shared.persist.cuts import ReplayLog, latest_cut, read_cut, write_cut
 from shared.persist.cuts import clear as clear_cuts
 from shared.persist.files import read_json
-from shared.run.factories import build_exploration, build_learner, minibatches_per_update
-from shared.run.rollout import derive_seed, evaluate, make_collector
+from shared.run.factories import (
+    agent_dims,
+    build_exploration,
+    build_learner,
+    learner_spec,
+    minibatches_per_update,
+)
+from shared.run.rollout import EvalResult, derive_seed, evaluate_group, make_vec_collector
 
 log = logging.getLogger("macb.trainer")
 
@@ -115,10 +138,9 @@ def _say_if_constant_shift(rows: list[dict], warned: bool, counting: bool = True
     return shift
 
 
-def metric_row(episode: int, ev, run, updates: int, wall: float) -> dict:
-    """One evaluation point's row: `run` has the run's counters (`env_steps`,
-    `collisions_cum`, `eval_s`), `explorer` and `diagnostics` (a `Run` or a group's
-    `Member`)."""
+def metric_row(episode: int, ev: EvalResult, run: Member, updates: int, wall: float) -> dict:
+    """One evaluation point's row: `run`'s counters (`env_steps`, `collisions_cum`,
+    `eval_s`), exploration stats and bonus diagnostics."""
     return {
         "episode": episode,
         "env_steps": run.env_steps,
@@ -177,258 +199,437 @@ def train(
     resume: bool = False,
     cut_every_s: float = DEFAULT_CUT_EVERY_S,
 ) -> list[dict]:
-    """Run one experiment; returns the metric rows (also written under `out`).
+    """Run one experiment; returns the metric rows (also written under `out`): a group of
+    one run (`train_group`), whose learner is the one its config asks for.
 
     `stop_when(row)` returning True ends the run early after that evaluation. With
     `out`, a cut (shared/persist/cuts.py) is written at an evaluation point whenever
     `cut_every_s` seconds have passed since the last one, and at the end; `resume`
     continues from the newest usable cut in `out` (its config.json must equal `cfg`),
-    keeping the rows written up to it, so the rows come out as without the stop.
+    keeping the rows written up to it, so the rows come out as without the stop."""
+    if resume and out is None:
+        raise ValueError("resume needs the run's output folder")
+    rows = train_group(
+        [cfg],
+        [out],
+        progress,
+        on_metrics=None if on_metrics is None else lambda r, row: on_metrics(row),
+        resume=resume,
+        cut_every_s=cut_every_s,
+        stop_when=None if stop_when is None else lambda rows: stop_when(rows[0]),
+    )
+    return rows[0]
+
+
+def train_group(
+    cfgs: Sequence[TrainConfig],
+    outs: Sequence[Path | None],
+    progress: bool = True,
+    on_metrics: Callable[[int, dict], None] | None = None,
+    resume: bool = False,
+    cut_every_s: float = DEFAULT_CUT_EVERY_S,
+    desc: str | None = None,
+    position: int | None = None,
+    stop_when: Callable[[list[dict]], bool] | None = None,
+) -> list[list[dict]]:
+    """Train `cfgs` as one group; returns each run's metric rows (also written under
+    its `outs` folder). `on_metrics(r, row)` sees run r's rows as they come (after the
+    point's cut); `stop_when(rows)` returning True ends every run after that point. With
+    `resume`, every run continues from its newest cut that all runs have (one episode),
+    keeping its rows up to it.
 
     numpy's BLAS (the SimHash projections) runs on one thread while it trains, as in
     `macb train` and the services, which set it before numpy loads: from Python, numpy
     is usually loaded already with a thread per core, and the k=512 projections of a
-    100-row batch then kept a second core busy (1.03 cores for counting against 0.04,
-    bench_scaling) beside torch's own threads. The caller's setting is restored after.
-    """
-    if resume and out is None:
-        raise ValueError("resume needs the run's output folder")
+    100-row batch then kept a second core busy beside torch's own threads
+    (bench_scaling). The caller's setting is restored after."""
+    if resume and any(o is None for o in outs):
+        raise ValueError("resume needs every run's output folder")
     with threadpool_limits(limits=1, user_api="blas"):
-        run = Run(cfg, out, cut_every_s)
+        group = GroupRun(cfgs, outs, cut_every_s)
         if resume:
-            run.restore()
-        elif run.cuts is not None and run.cuts.exists():
-            clear_cuts(run.cuts)  # a fresh run: an earlier run's cuts are not its own
-        return run.go(progress, on_metrics, stop_when)
+            group.restore()
+        else:
+            for m in group.members:
+                if m.cuts is not None and m.cuts.exists():
+                    clear_cuts(m.cuts)  # a fresh run: an earlier run's cuts are not its own
+        return group.go(progress, on_metrics, stop_when, desc, position)
 
 
-class Run:
-    """One run's parts and counters: the loop, its cuts and their restore."""
+class Member:
+    """One run of a group: its own parts (count tables, replay buffer, sampler),
+    counters, rows and files, and its cut's share of what it writes and reads back."""
 
-    def __init__(self, cfg: TrainConfig, out: Path | None, cut_every_s: float) -> None:
-        torch.set_num_threads(cfg.threads)
-        self.cfg, self.out, self.cut_every_s = cfg, out, cut_every_s
-        self.env = make_task_for(cfg)
-        spec = self.spec = self.env.spec
-        self.eval_envs = [make_task_for(cfg) for _ in range(min(cfg.eval_episodes, 10))]
-        for j, e in enumerate(self.eval_envs):
-            e.reset(seed=derive_seed(cfg.seed, "eval", j))
-        self.learner = build_learner(cfg, spec)
+    def __init__(self, cfg: TrainConfig, out: Path | None, spec: TaskSpec) -> None:
+        self.cfg, self.out = cfg, out
         self.explorer = build_exploration(cfg, spec)
         capacity = min(cfg.buffer_size, cfg.episodes * cfg.episode_len)
         # bonus_at collection: priced once, when collected, and stored with the reward
         self.collection = cfg.bonus_at == "collection"
         stored = spec.n_agents if self.collection else 0
         self.buffer = ReplayBuffer(capacity, spec.joint_obs_dim, spec.joint_act_dim, stored)
-        self.collector = make_collector(cfg, self.env)
         self.sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
-        self.minibatches_per_update = minibatches_per_update(cfg)
         self.diagnostics = BonusDiagnostics()
         self.rows: list[dict] = []
         self.shift_warned = False
-        self.first_episode = 1
-        self.resumed = False
         self.env_steps = self.collisions_cum = 0
         self.eval_s = self.wall_before = 0.0  # time spent in earlier lives of the run
-        self.width = {
-            "obs": spec.joint_obs_dim,
-            "act": spec.joint_act_dim,
-            "rew": 1,
-            "next_obs": spec.joint_obs_dim,
-            "done": 1,
-        }
+        # The replay log's columns (the stored bonus too, where the run stores one).
+        self.width = {"obs": spec.joint_obs_dim, "act": spec.joint_act_dim, "rew": 1}
+        self.width |= {"next_obs": spec.joint_obs_dim, "done": 1}
         if self.collection:
             self.width["bonus"] = spec.n_agents
-        self.cuts = self.replay = None
+        self.cuts: Path | None = None
+        self.replay: ReplayLog | None = None
         self.replay_rows = 0  # rows of the replay log on disk, as of the last cut
-        self.last_cut = time.monotonic()
-        # (episode, seconds, replay bytes appended, cut file bytes) of each cut written.
-        self.cut_log: list[tuple[int, float, int, int]] = []
         # Every transition collected, kept since the last cut for the replay log.
-        self.pending: list[tuple[np.ndarray, ...]] = []
+        self.pending: list[tuple[Any, ...]] = []
+        self.writer: MetricsWriter | None = None
         if out is not None:
             self.cuts = out / "cuts"
             self.replay = ReplayLog(self.cuts)
 
+    def collect(
+        self,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: float,
+        next_obs: np.ndarray,
+        done: float,
+        collisions: int,
+    ) -> None:
+        """Count one transition of this run's, store it (with its bonus when priced at
+        collection) and keep it for the replay log."""
+        self.explorer.observe(obs[None], act[None])
+        stored = price_at_collection(self.explorer, obs, act, self.diagnostics, self.collection)
+        self.buffer.add(obs, act, rew, next_obs, done, stored)
+        if self.replay is not None:
+            row = (obs, act, rew, next_obs, done)
+            self.pending.append(row if stored is None else (*row, stored))
+        self.env_steps += 1
+        self.collisions_cum += collisions
+
+    def minibatches(self, batch_size: int, count: int) -> tuple[np.ndarray, ...]:
+        """This run's `count` minibatches and their bonuses, as one update's arrays."""
+        batches = [self.buffer.sample(batch_size, self.sample_rng) for _ in range(count)]
+        return update_arrays(batches, price_batches(self.explorer, batches, self.diagnostics))
+
+    def append_pending(self) -> int:
+        """The transitions collected since the last cut, onto the replay log; bytes."""
+        assert self.replay is not None
+        if not self.pending:
+            return 0
+        cols = list(zip(*self.pending))
+        arrays = {
+            "obs": np.stack(cols[0]),
+            "act": np.stack(cols[1]),
+            "rew": np.asarray(cols[2], np.float32),
+            "next_obs": np.stack(cols[3]),
+            "done": np.asarray(cols[4], np.float32),
+        }
+        if self.collection:
+            arrays["bonus"] = np.stack(cols[5])
+        written = self.replay.append(arrays, self.replay_rows, self.width)
+        self.replay_rows += len(self.pending)
+        self.pending = []
+        return written
+
+    def refill(self, replay_rows: int, where: Path) -> None:
+        """The replay buffer as it was at the cut: the log's last `capacity` rows, each
+        at the slot it had (row r at r % capacity), so sampling goes on as without the
+        stop."""
+        assert self.replay is not None
+        self.replay_rows = replay_rows
+        data = self.replay.read(replay_rows, self.width, where)
+        buffer = self.buffer
+        first = replay_rows - min(replay_rows, buffer.capacity)
+        buffer.added = first
+        buffer.pos = first % buffer.capacity
+        buffer.add(
+            *(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")),
+            data["bonus"][first:] if self.collection else None,
+        )
+
+    def counters(self, wall: float) -> dict:
+        return {
+            "env_steps": self.env_steps,
+            "collisions_cum": self.collisions_cum,
+            "rows": len(self.rows),
+            "shift_warned": self.shift_warned,
+            "eval_s": self.eval_s,
+            "wall_s": wall,
+        }
+
+    def load_counters(self, c: dict, where: Path) -> None:
+        """`counters` back, and the metric rows written up to the cut."""
+        assert self.out is not None
+        self.env_steps, self.collisions_cum = int(c["env_steps"]), int(c["collisions_cum"])
+        self.shift_warned = bool(c["shift_warned"])
+        self.eval_s, self.wall_before = float(c["eval_s"]), float(c["wall_s"])
+        self.rows = _read_rows(self.out / "metrics.jsonl", int(c["rows"]), where)
+
+
+class GroupRun:
+    """R >= 1 runs' shared parts (worlds, learner, collector), their `Member`s and the
+    one loop, cut and restore. A run alone keeps the learner its config builds
+    (`SoloRuns` around it); R >= 2 runs share one `GroupMADDPG`."""
+
+    def __init__(
+        self, cfgs: Sequence[TrainConfig], outs: Sequence[Path | None], cut_every_s: float
+    ) -> None:
+        cfgs = list(cfgs)
+        if len(outs) != len(cfgs):
+            raise ValueError(f"{len(cfgs)} runs but {len(outs)} output folders")
+        if len({o is None for o in outs}) > 1:
+            raise ValueError("give every run of a group an output folder, or none")
+        if len(cfgs) > 1:
+            check_group(cfgs)
+        c0 = self.cfg = cfgs[0]
+        torch.set_num_threads(c0.threads)
+        self.runs = len(cfgs)
+        self.cut_every_s = cut_every_s
+        self.venv = vectorize([make_task_for(cfg) for cfg in cfgs])
+        self.spec = spec = self.venv.spec
+        self.members = [Member(cfg, out, spec) for cfg, out in zip(cfgs, outs)]
+        self.m_eval = m = min(c0.eval_episodes, 10)  # evaluation worlds per run
+        eval_envs = []
+        for cfg in cfgs:
+            for j in range(m):
+                env = make_task_for(cfg)
+                env.reset(seed=derive_seed(cfg.seed, "eval", j))
+                eval_envs.append(env)
+        self.eval_venv = vectorize(eval_envs)
+        self.learner: RunsLearner
+        if self.runs == 1:
+            self.learner = SoloRuns(build_learner(c0, spec))
+        else:
+            specs = [learner_spec(cfg) for cfg in cfgs]
+            dims = agent_dims(spec)
+            self.learner = GroupMADDPG(dims, specs, precision=c0.precision, device=c0.device)
+        self.collector = make_vec_collector(cfgs, self.venv)
+        self.minibatches_per_update = minibatches_per_update(c0)
+        self.first_episode = 1
+        self.resumed = False
+        self.last_cut = time.monotonic()
+        # (episode, seconds, replay bytes appended, cut file bytes) of each cut written,
+        # summed over the runs.
+        self.cut_log: list[tuple[int, float, int, int]] = []
+        # Seconds spent acting and stepping the worlds, storing and counting, sampling
+        # and pricing, updating, evaluating (what benchmarks/bench_group.py reports).
+        self.timing = dict.fromkeys(
+            ("act_env", "store_count", "sample_price", "update", "eval"), 0.0
+        )
+
     # ------------------------------------------------------------------ the loop
-    def go(self, progress, on_metrics, stop_when) -> list[dict]:
-        cfg, out = self.cfg, self.out
-        writer = None
-        if out is not None:
-            out.mkdir(parents=True, exist_ok=True)
-            # What this start runs on (a resume adds its own entry: it may be elsewhere).
-            start = provenance.entry(cfg.precision, self.learner.stats(), "trainer")
-            if self.resumed:
-                provenance.append(out / provenance.FILE, start)
-            else:
-                provenance.write(out / provenance.FILE, [start])
-            config = json.dumps(cfg.model_dump(mode="json"), indent=2) + "\n"
-            (out / "config.json").write_text(config)
-            writer = MetricsWriter(out, rows=self.rows)
+    def go(
+        self,
+        progress: bool,
+        on_metrics: Callable[[int, dict], None] | None,
+        stop_when: Callable[[list[dict]], bool] | None = None,
+        desc: str | None = None,
+        position: int | None = None,
+    ) -> list[list[dict]]:
+        c0 = self.cfg
+        self.start_files()
         bar = None
         if progress:
             from tqdm import tqdm
 
-            desc = f"{cfg.task} {cfg.algo}+{cfg.explore}"
-            bar = tqdm(total=cfg.episodes, initial=self.first_episode - 1, unit="ep", desc=desc)
+            alone = f"{c0.task} {c0.algo}+{c0.explore}"
+            desc = desc or (alone if self.runs == 1 else f"{self.runs} runs: {c0.task} {c0.algo}")
+            bar = tqdm(
+                total=c0.episodes,
+                initial=self.first_episode - 1,
+                unit="ep",
+                desc=desc,
+                position=position,
+            )
         self.start = time.perf_counter()
         try:
-            for episode in range(self.first_episode, cfg.episodes + 1):
+            for episode in range(self.first_episode, c0.episodes + 1):
                 self.episode()
-                if episode % cfg.eval_every == 0 or episode == cfg.episodes:
-                    row = self.point(episode)
-                    if writer:
-                        writer.write(row)
-                    if self.cuts is not None and (
-                        len(self.rows) == 1  # a run killed in its first minute resumes too
+                if episode % c0.eval_every == 0 or episode == c0.episodes:
+                    rows = self.point(episode)
+                    for m, row in zip(self.members, rows):
+                        if m.writer:
+                            m.writer.write(row)
+                    if self.members[0].cuts is not None and (
+                        len(self.members[0].rows) == 1  # killed in its first minute: resumes too
                         or time.monotonic() - self.last_cut >= self.cut_every_s
-                        or episode == cfg.episodes
+                        or episode == c0.episodes
                     ):
                         self.cut(episode)
-                    if on_metrics:
-                        on_metrics(row)
+                    for r, row in enumerate(rows):
+                        if on_metrics:
+                            on_metrics(r, row)
                     if bar:
-                        bar.set_postfix(
-                            success=f"{row['success_rate']:.2f}",
-                            sps=f"{row['steps_per_sec']:.0f}",
-                        )
-                    if stop_when and stop_when(row):
+                        mean = np.mean([row["success_rate"] for row in rows])
+                        sps = sum(row["steps_per_sec"] for row in rows)
+                        bar.set_postfix(success=f"{mean:.2f}", sps=f"{sps:.0f}")
+                    if stop_when and stop_when(rows):
                         break
                 if bar:
                     bar.update(1)
         finally:
             if bar:
                 bar.close()
-            if writer:
-                writer.close()
-        if out is not None:
-            episodes = self.rows[-1]["episode"] if self.rows else 0
+            for m in self.members:
+                if m.writer:
+                    m.writer.close()
+        for r, m in enumerate(self.members):
+            if m.out is None:
+                continue
+            episodes = m.rows[-1]["episode"] if m.rows else 0
             counters = {
-                "env_steps": self.env_steps,
+                "env_steps": m.env_steps,
                 "episodes": episodes,
                 "updates": self.learner.updates,
             }
-            save_checkpoint(out / "checkpoint.pt", self.learner, self.explorer, counters, cfg)
-            log.info("wrote %s", out)
-        return self.rows
+            one = self.learner.run_learner(r)
+            save_checkpoint(m.out / "checkpoint.pt", one, m.explorer, counters, m.cfg)
+            log.info("wrote %s", m.out)
+        return [m.rows for m in self.members]
+
+    def start_files(self) -> None:
+        """Each run's provenance entry for this start (a resume adds its own: it may run
+        elsewhere), its config.json, and its metrics files with the rows kept so far."""
+        stats = self.learner.stats()
+        for m in self.members:
+            if m.out is None:
+                continue
+            m.out.mkdir(parents=True, exist_ok=True)
+            start = provenance.entry(
+                m.cfg.precision, stats, "trainer" if self.runs == 1 else "group"
+            )
+            if self.runs > 1:
+                start["group"] = {"runs": self.runs}
+            if self.resumed:
+                provenance.append(m.out / provenance.FILE, start)
+            else:
+                provenance.write(m.out / provenance.FILE, [start])
+            config = json.dumps(m.cfg.model_dump(mode="json"), indent=2) + "\n"
+            (m.out / "config.json").write_text(config)
+            m.writer = MetricsWriter(m.out, rows=m.rows)
 
     def episode(self) -> None:
-        cfg, explorer, buffer = self.cfg, self.explorer, self.buffer
-        for _ in range(cfg.episode_len):
+        c0, members, timing = self.cfg, self.members, self.timing
+        clock = time.perf_counter
+        for _ in range(c0.episode_len):
+            t0 = clock()
             tr = self.collector.step(self.learner.act)
-            explorer.observe(tr.obs[None], tr.act[None])
-            diag = self.diagnostics
-            stored = price_at_collection(explorer, tr.obs, tr.act, diag, self.collection)
-            buffer.add(tr.obs, tr.act, tr.rew, tr.next_obs, tr.done, stored)
-            if self.replay is not None:
-                row = (tr.obs, tr.act, tr.rew, tr.next_obs, tr.done)
-                self.pending.append(row if stored is None else (*row, stored))
-            self.env_steps += 1
-            self.collisions_cum += tr.collisions
-            if self.env_steps > cfg.learning_starts:
-                batches = [
-                    buffer.sample(cfg.batch_size, self.sample_rng)
-                    for _ in range(self.minibatches_per_update)
-                ]
-                bonuses = price_batches(explorer, batches, self.diagnostics)
-                self.learner.update(*update_arrays(batches, bonuses))
+            t1 = clock()
+            timing["act_env"] += t1 - t0
+            for r, m in enumerate(members):
+                m.collect(
+                    tr.obs[r],
+                    tr.act[r],
+                    float(tr.rew[r]),
+                    tr.next_obs[r],
+                    float(tr.done[r]),
+                    int(tr.collisions[r]),
+                )
+            t2 = clock()
+            timing["store_count"] += t2 - t1
+            if members[0].env_steps > c0.learning_starts:
+                k = self.minibatches_per_update
+                parts = [m.minibatches(c0.batch_size, k) for m in members]
+                arrays = [np.stack(cols) for cols in zip(*parts)]
+                t3 = clock()
+                self.learner.update(*arrays)
+                timing["sample_price"] += t3 - t2
+                timing["update"] += clock() - t3
 
-    def point(self, episode: int) -> dict:
+    def point(self, episode: int) -> list[dict]:
         t0 = time.perf_counter()
-        ev = evaluate(self.learner.act, self.eval_envs, self.cfg.eval_episodes)
-        self.eval_s += time.perf_counter() - t0
-        wall = self.wall_before + time.perf_counter() - self.start
-        row = metric_row(episode, ev, self, self.learner.updates, wall)
-        self.rows.append(row)
-        self.shift_warned = _say_if_constant_shift(
-            self.rows, self.shift_warned, self.explorer.counting
+        results = evaluate_group(
+            self.learner.act, self.eval_venv, self.runs, self.cfg.eval_episodes
         )
-        return row
+        spent = time.perf_counter() - t0
+        self.timing["eval"] += spent
+        rows = []
+        for m, ev in zip(self.members, results):
+            m.eval_s += spent
+            wall = m.wall_before + time.perf_counter() - self.start
+            row = metric_row(episode, ev, m, self.learner.updates, wall)
+            m.rows.append(row)
+            m.shift_warned = _say_if_constant_shift(m.rows, m.shift_warned, m.explorer.counting)
+            rows.append(row)
+        return rows
 
     # ------------------------------------------------------------------ cuts
     def cut(self, episode: int) -> None:
-        """Replay rows since the last cut appended, then the cut itself (atomic)."""
-        assert self.cuts is not None and self.replay is not None
+        """Each run's cut, in one run's format (its replay rows appended first): a run
+        of a group resumes alone, and a run alone in a group."""
         t0 = time.perf_counter()
-        replay_bytes = append_pending(self, self.width)
-        rng = {
-            "collector": self.collector.state(),
-            "sampler": dict(self.sample_rng.bit_generator.state),
-            "eval_envs": [e.rng_state() for e in self.eval_envs],
-        }
-        wall = self.wall_before + time.perf_counter() - self.start
-        path = write_cut(
-            self.cuts,
-            episode,
-            config=self.cfg.model_dump(mode="json"),
-            learner=self.learner.state_dict(),
-            counters=cut_counters(self, wall),
-            rng=rng,
-            tables=self.explorer.tables,
-            replay_rows=self.replay_rows,
-            torch_rng=torch.get_rng_state(),
-        )
+        replay_bytes = file_bytes = 0
+        for r, m in enumerate(self.members):
+            assert m.cuts is not None
+            replay_bytes += m.append_pending()
+            m_eval = self.m_eval
+            rng = {
+                "collector": self.collector.state(r),
+                "sampler": dict(m.sample_rng.bit_generator.state),
+                "eval_envs": [self.eval_venv.rng_state(r * m_eval + j) for j in range(m_eval)],
+            }
+            wall = m.wall_before + time.perf_counter() - self.start
+            path = write_cut(
+                m.cuts,
+                episode,
+                config=m.cfg.model_dump(mode="json"),
+                learner=self.learner.run_state_dict(r),
+                counters=m.counters(wall),
+                rng=rng,
+                tables=m.explorer.tables,
+                replay_rows=m.replay_rows,
+                torch_rng=torch.get_rng_state(),
+            )
+            file_bytes += path.stat().st_size
         self.last_cut = time.monotonic()
         spent = time.perf_counter() - t0
-        self.cut_log.append((episode, spent, replay_bytes, path.stat().st_size))
+        self.cut_log.append((episode, spent, replay_bytes, file_bytes))
         log.debug("cut at episode %d in %.3f s", episode, spent)
 
     def restore(self) -> None:
-        """Continue from the newest usable cut in `out`; the rows after it are dropped."""
-        assert self.out is not None and self.cuts is not None and self.replay is not None
-        config = self.cfg.model_dump(mode="json")
-        check_resumable(self.out, config)
-        self.resumed = True
-        cut = latest_cut(self.cuts, config)
-        st = cut.state
+        """Continue every run from its cut at the newest episode all runs have a cut of;
+        the rows after it are dropped."""
+        cuts = []
+        for m in self.members:
+            assert m.out is not None and m.cuts is not None
+            config = m.cfg.model_dump(mode="json")
+            check_resumable(m.out, config)
+            cuts.append(latest_cut(m.cuts, config))
+        episode = min(c.episode for c in cuts)
+        for i, (m, c) in enumerate(zip(self.members, cuts)):
+            if c.episode != episode:  # a group stopped while writing its runs' cuts
+                assert m.cuts is not None
+                path = m.cuts / f"cut-{episode:09d}.pt"
+                if not path.exists():
+                    raise CutError(f"{m.cuts}: no cut at episode {episode}, where the others are")
+                cuts[i] = read_cut(path, m.cfg.model_dump(mode="json"))
         try:
-            self.learner.load_state_dict(st["learner"])
+            self.learner.load_run_state_dicts([c.state["learner"] for c in cuts])
         except (ValueError, KeyError, RuntimeError) as err:
-            raise CutError(f"{cut.path}: learner state does not fit: {err}") from None
-        load_tables(self.explorer.tables, st["tables"], cut.path)
-        refill(self, int(st["replay_rows"]), self.width, cut.path)
-        rng = st["rng"]
-        self.collector.load_state(rng["collector"])
-        self.sample_rng.bit_generator.state = rng["sampler"]
-        for e, state in zip(self.eval_envs, rng["eval_envs"], strict=True):
-            e.set_rng_state(state)
-        torch.set_rng_state(st["torch_rng"])
-        load_counters(self, st["counters"], self.out, cut.path)
-        self.first_episode = cut.episode + 1
+            raise CutError(f"{cuts[0].path}: learner state does not fit: {err}") from None
+        rngs = [c.state["rng"] for c in cuts]
+        self.collector.load_state([rng["collector"] for rng in rngs])
+        for r, (m, cut, rng) in enumerate(zip(self.members, cuts, rngs)):
+            st = cut.state
+            load_tables(m.explorer.tables, st["tables"], cut.path)
+            m.refill(int(st["replay_rows"]), cut.path)
+            m.sample_rng.bit_generator.state = rng["sampler"]
+            for j, state in enumerate(rng["eval_envs"]):
+                self.eval_venv.set_rng_state(r * self.m_eval + j, state)
+            m.load_counters(st["counters"], cut.path)
+        torch.set_rng_state(cuts[0].state["torch_rng"])
+        self.resumed = True
+        self.first_episode = episode + 1
         log.info(
-            "resuming %s from %s: episode %d, %d transitions, %d updates",
-            self.out,
-            cut.path.name,
-            cut.episode,
-            self.env_steps,
+            "resuming %s from episode %d: %d transitions, %d updates",
+            ", ".join(str(m.out) for m in self.members),
+            episode,
+            self.members[0].env_steps,
             self.learner.updates,
         )
-
-
-# ------------------------------------------------------------------ one run's cut
-# A `Run` and a group's `Member` keep the same per-run fields (replay, pending,
-# replay_rows, collection, buffer, the counters); a group writes each run's cut in this
-# same format, so a run of a group resumes alone with `macb train --resume`.
-
-
-def append_pending(run, width: dict[str, int]) -> int:
-    """The transitions collected since the last cut, onto the run's replay log; bytes."""
-    if not run.pending:
-        return 0
-    cols = list(zip(*run.pending))
-    arrays = {
-        "obs": np.stack(cols[0]),
-        "act": np.stack(cols[1]),
-        "rew": np.asarray(cols[2], np.float32),
-        "next_obs": np.stack(cols[3]),
-        "done": np.asarray(cols[4], np.float32),
-    }
-    if run.collection:
-        arrays["bonus"] = np.stack(cols[5])
-    written = run.replay.append(arrays, run.replay_rows, width)
-    run.replay_rows += len(run.pending)
-    run.pending = []
-    return written
 
 
 def check_resumable(out: Path, config: dict) -> None:
@@ -441,40 +642,6 @@ def check_resumable(out: Path, config: dict) -> None:
         provenance.read(out / provenance.FILE)
     except provenance.ProvenanceError as err:
         raise CutError(str(err)) from None
-
-
-def refill(run, replay_rows: int, width: dict[str, int], where: Path) -> None:
-    """The replay buffer as it was at the cut: the log's last `capacity` rows, each at
-    the slot it had (row r at r % capacity), so sampling goes on as without the stop."""
-    run.replay_rows = replay_rows
-    data = run.replay.read(replay_rows, width, where)
-    buffer = run.buffer
-    first = replay_rows - min(replay_rows, buffer.capacity)
-    buffer.added = first
-    buffer.pos = first % buffer.capacity
-    buffer.add(
-        *(data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")),
-        data["bonus"][first:] if run.collection else None,
-    )
-
-
-def cut_counters(run, wall: float) -> dict:
-    return {
-        "env_steps": run.env_steps,
-        "collisions_cum": run.collisions_cum,
-        "rows": len(run.rows),
-        "shift_warned": run.shift_warned,
-        "eval_s": run.eval_s,
-        "wall_s": wall,
-    }
-
-
-def load_counters(run, c: dict, out: Path, where: Path) -> None:
-    """`cut_counters` back, and the metric rows written up to the cut."""
-    run.env_steps, run.collisions_cum = int(c["env_steps"]), int(c["collisions_cum"])
-    run.shift_warned = bool(c["shift_warned"])
-    run.eval_s, run.wall_before = float(c["eval_s"]), float(c["wall_s"])
-    run.rows = _read_rows(out / "metrics.jsonl", int(c["rows"]), where)
 
 
 def _read_rows(path: Path, n: int, where: Path) -> list[dict]:

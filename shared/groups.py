@@ -2,7 +2,7 @@
 
 A group shares its task's steps and one update of all its runs' networks, so its
 runs may differ only in the fields a run chooses for itself (`PER_RUN_FIELDS`). The
-one-process group (cli/group_trainer.py), the API's scheduler, `shared.net.control` and
+one-process group (cli/trainer.py), the API's scheduler, `shared.net.control` and
 the learner service all ask these functions.
 """
 

@@ -1,14 +1,14 @@
 """The actor service's parts in process, no bus: the lockstep handshake, the outbox's
-numbering, resends and rejoin position, a run's steps and weights, a group's steps."""
+numbering, resends and rejoin position, a run's steps and weights, a group's steps
+(`ActorRuns`: a run alone is a group of one)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from services.actor.group import GroupActor
 from services.actor.lockstep import ACT_RESEND_S, ActExchange, valid_action
 from services.actor.outbox import RESEND_AFTER_S, Outbox, rejoin_from, run_sender
-from services.actor.run import ActorRun
+from services.actor.runs import ActorRuns
 from shared.config import make_config
 from shared.envs.tasks import make_task_for
 from shared.net.messages import ActRequest, Assignment, Transitions, Weights
@@ -26,6 +26,11 @@ def config(**extra):
 def outbox(cfg, run: str = "r") -> tuple[Outbox, list[bytes]]:
     sent: list[bytes] = []
     return Outbox(run, "a0", run_sender(cfg, ASSIGN), sent.append), sent
+
+
+def alone(cfg, box: Outbox, act_pub=None) -> ActorRuns:  # noqa: ANN001
+    """A run alone: rank 0 of one actor."""
+    return ActorRuns.open("a0", [cfg], {box.run: box}, act_pub)
 
 
 # ------------------------------------------------------------ the handshake
@@ -98,7 +103,7 @@ def test_weights_are_loaded_when_newer_or_from_another_learner_process():
         def load(self, actors) -> None:
             self.loads.append(actors)
 
-    st = ActorRun.open(config(), 0, 1, outbox(config())[0])
+    st = alone(config(), outbox(config())[0])
     st.policy = Policy()
 
     def weights(version: int, incarnation: str) -> Weights:
@@ -114,7 +119,7 @@ def test_weights_are_loaded_when_newer_or_from_another_learner_process():
 def test_an_episode_goes_out_as_one_batch_stamped_with_the_version():
     cfg = config()
     box, sent = outbox(cfg)
-    st = ActorRun.open(cfg, 0, 1, box)
+    st = alone(cfg, box)
     st.version = 4
     st.run_episode()
     (msg,) = [decode(p, Transitions) for p in sent]
@@ -126,7 +131,7 @@ def test_lockstep_steps_with_the_learners_actions_as_the_collector_would():
     cfg = config(interleave="lockstep")
     box, sent = outbox(cfg)
     asked: list[bytes] = []
-    st = ActorRun.open(cfg, 0, 1, box, act_pub=asked.append)
+    st = alone(cfg, box, act_pub=asked.append)
     twin = make_collector(cfg, make_task_for(cfg))  # the same seeds: the same world
     assert not st.lockstep_step(now=0.0)  # no answer yet: asks for step 0
     req = decode(asked[0], ActRequest)
@@ -149,36 +154,37 @@ def test_lockstep_steps_with_the_learners_actions_as_the_collector_would():
 
 def test_a_rejoin_goes_on_from_whole_episodes_async_and_from_the_step_in_lockstep():
     cfg = config()
-    st = ActorRun.open(cfg, 0, 1, outbox(cfg)[0])
-    assert st.rejoin_at(12) == 10  # episodes of 5: the one begun is collected anew
-    assert (st.outbox.sender.seq, st.done) == (10, 2)
-    assert set(st.outbox.sender.acked.values()) == {10}
+    st = alone(cfg, outbox(cfg)[0])
+    assert st.rejoin_at({"r": 12}) == 10  # episodes of 5: the one begun is collected anew
+    assert (st.lead.sender.seq, st.done) == (10, 2)
+    assert set(st.lead.sender.acked.values()) == {10}
     cfg = config(interleave="lockstep")
-    st = ActorRun.open(cfg, 0, 1, outbox(cfg)[0], act_pub=[].append)
-    assert st.rejoin_at(12) == 12 and st.done == 2
+    st = alone(cfg, outbox(cfg)[0], act_pub=[].append)
+    assert st.rejoin_at({"r": 12}) == 12 and st.done == 2
 
 
 # ------------------------------------------------------------ a group
-def group(n: int = 2) -> tuple[GroupActor, dict[str, list[bytes]], list[bytes]]:
+def group(n: int = 2) -> tuple[ActorRuns, dict[str, list[bytes]], list[bytes]]:
     cfgs = [config(interleave="lockstep", seed=s) for s in range(n)]
     boxes = {f"r{i}": outbox(c, f"r{i}") for i, c in enumerate(cfgs)}
     asked: list[bytes] = []
-    ga = GroupActor.open("a0", cfgs, {r: b for r, (b, _) in boxes.items()}, asked.append)
+    outboxes = {r: b for r, (b, _) in boxes.items()}
+    ga = ActorRuns.open("a0", cfgs, outboxes, asked.append, grouped=True)
     return ga, {r: s for r, (_, s) in boxes.items()}, asked
 
 
 def test_a_group_asks_once_for_every_run_and_publishes_each_runs_step_on_its_keys():
     ga, sent, asked = group()
-    assert not ga.step(now=0.0)
+    assert not ga.lockstep_step(now=0.0)
     req = decode(asked[0], ActRequest)
     assert req.run == "r0" and req.seq == 0 and req.obs.shape[0] == 2  # the lead's keys
     act = np.zeros(ga.act_shape, np.float32)
     ga.exchange.answer(0, act)
-    assert not ga.step(now=0.5)
+    assert not ga.lockstep_step(now=0.5)
     for run in ("r0", "r1"):
         (msg,) = [decode(p, Transitions) for p in sent[run]]
         assert (msg.run, msg.seq, len(msg), msg.policy_version) == (run, 0, 1, -1)
-    assert ga.seq == 1 and decode(asked[-1], ActRequest).seq == 1
+    assert ga.lead.sender.seq == 1 and decode(asked[-1], ActRequest).seq == 1
     assert not ga.settled
     for box in ga.outboxes.values():
         box.sender.on_ack("learner", 1, now=1.0)
@@ -190,5 +196,5 @@ def test_a_group_rejoins_every_world_at_the_least_position():
     ga, _, _ = group()
     ga.exchange.ask(0, now=0.0)
     assert ga.rejoin_at({"r0": 11, "r1": 10}) == 10
-    assert (ga.seq, ga.done, ga.exchange.asked) == (10, 2, None)
+    assert (ga.lead.sender.seq, ga.done, ga.exchange.asked) == (10, 2, None)
     assert {box.sender.seq for box in ga.outboxes.values()} == {10}

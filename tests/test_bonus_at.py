@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cli.trainer import Run, train
+from cli.trainer import GroupRun, train
 from shared.config import ConfigError, make_config
 from shared.core.counting import count_bonus
 from shared.core.exploration import CountExploration, ExploreSpec
@@ -39,10 +39,11 @@ def test_raw_keys_are_the_float32_bytes():
 def test_bonus_stored_at_collection_is_priced_from_the_count_then():
     cfg = make_config({**BASE, "explore": "dis-macb", "k": 2, "beta": 0.8,
                        "bonus_at": "collection"})  # fmt: skip
-    run = Run(cfg, None, 60.0)
+    group = GroupRun([cfg], [None], 60.0)
+    run = group.members[0]
     shadow = build_exploration(cfg, task_spec_for(cfg))  # the run's tables, counted anew
     expected = []
-    run.episode()  # 20 steps: collection only (learning starts after 30)
+    group.episode()  # 20 steps: collection only (learning starts after 30)
     for i in range(20):
         o, a = run.buffer.obs[i : i + 1], run.buffer.act[i : i + 1]
         shadow.observe(o, a)
@@ -65,7 +66,7 @@ def test_raw_keys_at_collection_store_beta_on_every_transition(tmp_path):
 def test_sample_time_pricing_is_unchanged_by_default():
     cfg = make_config({**BASE, "explore": "dis-macb"})
     assert cfg.bonus_at == "sample"
-    assert Run(cfg, None, 60.0).buffer.bonus is None
+    assert GroupRun([cfg], [None], 60.0).members[0].buffer.bonus is None
 
 
 def test_bad_values_are_refused_naming_the_field():

@@ -97,7 +97,8 @@ def _learner(unreported: dict[int, float], last_sent: int, reported_at: float):
     ev.unreported = {p: (t, _weights(p, [20] if p > 20 else [])) for p, t in unreported.items()}
     ev.last_sent, ev.reported_at = last_sent, reported_at
     sent: list[bytes] = []
-    st = types.SimpleNamespace(run="r", evaluations=ev, eval_pub=sent.append)
+    outgoing = types.SimpleNamespace(eval_pub=sent.append)
+    st = types.SimpleNamespace(run="r", evaluations=ev, outgoing=outgoing)
     out = Outbound("l", print, lambda: 0, lambda counter: [], logging.getLogger("test"))
     return out, st, sent
 

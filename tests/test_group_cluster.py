@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import httpx
 
-from cli.group_trainer import train_group
+from cli.trainer import train_group
 from shared.config import make_config
 from tests.harness import api_cluster, wait_for
 from tests.test_lockstep import BASE, CASES, compare

@@ -13,8 +13,7 @@ import json
 
 import pytest
 
-from cli.group_trainer import train_group
-from cli.trainer import train
+from cli.trainer import train, train_group
 from shared.config import make_config
 from shared.groups import check_group, form_groups
 
@@ -144,7 +143,7 @@ def test_groups_are_formed_and_refused_by_what_runs_share():
 
 
 def test_every_run_of_a_group_has_a_folder_or_none(tmp_path):
-    from cli.group_trainer import GroupRun
+    from cli.trainer import GroupRun
 
     a = make_config({**BASE, "task": "simple", "algo": "ddpg"})
     with pytest.raises(ValueError, match="every run of a group an output folder, or none"):

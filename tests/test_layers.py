@@ -237,3 +237,63 @@ def layer_violations() -> list[str]:
 
 def test_each_layer_of_shared_imports_only_the_layers_below_it():
     assert layer_violations() == []
+
+
+def module_level_imports(path: Path, module: str, modules: dict[str, Path]) -> set[str]:
+    """The modules of `modules` that `path` (the module `module`) imports at module level:
+    in its body and in the `if`/`try`/`with` blocks there (`if TYPE_CHECKING:` too: a
+    type checker follows those), never inside a function or class body. `from p import
+    n` is an import of the package p (its __init__ runs, and n may be a name it
+    defines), and of p.n when that is a module too."""
+    package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    found: set[str] = set()
+
+    def visit(body: list[ast.stmt]) -> None:
+        for node in body:
+            if isinstance(node, ast.Import):
+                found.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = package[: len(package) - node.level + 1] if node.level else []
+                name = ".".join([*base, *([node.module] if node.module else [])])
+                found.add(name)
+                found.update(f"{name}.{a.name}" for a in node.names)
+            elif isinstance(node, ast.If | ast.Try | ast.With):
+                for block in ("body", "orelse", "finalbody"):
+                    visit(getattr(node, block, []))
+                for handler in getattr(node, "handlers", []):
+                    visit(handler.body)
+
+    visit(ast.parse(path.read_text()).body)
+    return {m for m in found if m in modules and m != module}
+
+
+def module_level_graph(package: str) -> dict[str, set[str]]:
+    modules = _modules(package)
+    return {m: module_level_imports(p, m, modules) for m, p in modules.items()}
+
+
+def test_no_module_of_shared_imports_itself_at_module_level():
+    """A module-level cycle makes the import order matter (a half-initialised module
+    seen from the other side) and the modules one unit; imports inside functions, which
+    run after every module has loaded, are left out."""
+    assert cycles(module_level_graph("shared")) == []
+
+
+def test_the_module_level_check_sees_a_package_imported_by_its_module(tmp_path, monkeypatch):
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("from pkg.a import f\n")
+    (pkg / "a.py").write_text("from pkg import b\n\ndef f():\n    import pkg.c\n")
+    (pkg / "b.py").write_text("")
+    (pkg / "c.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import pkg.a\n"
+    )
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    graph = module_level_graph("pkg")
+    assert graph == {
+        "pkg": {"pkg.a"},
+        "pkg.a": {"pkg", "pkg.b"},
+        "pkg.b": set(),
+        "pkg.c": {"pkg.a"},
+    }
+    assert cycles(graph) == [["pkg", "pkg.a"]]

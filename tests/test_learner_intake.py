@@ -4,8 +4,6 @@ checkpoint plus the log giving back the same state after a restart."""
 
 from __future__ import annotations
 
-import collections
-
 import numpy as np
 import pytest
 
@@ -13,13 +11,11 @@ from services.learner import checkpoint as ckpt
 from services.learner import intake
 from services.learner.evaluations import EvaluationsInFlight
 from services.learner.state import LearnerRun
+from services.learner.state import new_run as new_learner_run
 from shared.config import make_config
-from shared.core.replay import ReplayBuffer
 from shared.envs.tasks import task_spec_for
 from shared.net.messages import Transitions
-from shared.net.protocol import AckTracker, ReceiveCursor
 from shared.net.wire import WireError
-from shared.persist.wal import WriteAheadLog
 from shared.run.factories import build_learner
 
 LEN = 5
@@ -33,13 +29,10 @@ def new_run(tmp_path, explore: str = "cen-macb") -> LearnerRun:
     spec = task_spec_for(cfg)
     folder = tmp_path / "learner" / "r"
     folder.mkdir(parents=True, exist_ok=True)
-    return LearnerRun(
-        run="r", config=cfg, spec=spec, learner=build_learner(cfg, spec),
-        buffer=ReplayBuffer(100, spec.joint_obs_dim, spec.joint_act_dim),
-        rng=np.random.default_rng(0), actors=ACTORS, counter="c", bonus=None,
-        evaluations=EvaluationsInFlight(), weights_pub=print, eval_pub=print, ack_pub=print,
-        received=ReceiveCursor(actors=ACTORS, partial=False), counted=AckTracker(ACTORS),
-        held={a: collections.deque() for a in ACTORS}, folder=folder,
+    return new_learner_run(
+        "r", cfg, spec, ACTORS, learner=build_learner(cfg, spec), bonus=None,  # type: ignore[arg-type]
+        evaluations=EvaluationsInFlight(), pubs=dict.fromkeys(("weights", "eval", "ack"), print),
+        counter="c", folder=folder,
     )  # fmt: skip
 
 
@@ -57,19 +50,19 @@ def batch(st: LearnerRun, actor: str, seq: int, n: int = LEN, obs_dim: int | Non
 def test_a_batch_waits_for_the_counters_ack_and_joins_replay_once(tmp_path):
     st = new_run(tmp_path)
     assert intake.take(st, batch(st, "a0", 0))
-    assert len(st.buffer) == 0 and len(st.held["a0"]) == 1  # not counted yet
+    assert len(st.intake.buffer) == 0 and len(st.intake.held["a0"]) == 1  # not counted yet
     assert not intake.take(st, batch(st, "a0", 0))  # a resend: not taken again
     assert not intake.take(st, batch(st, "a0", 2 * LEN))  # a gap: not taken
-    st.counted.ack("a0", LEN)
+    st.intake.counted.ack("a0", LEN)
     intake.release_counted(st)
-    assert len(st.buffer) == LEN and not st.held["a0"] and st.ingested == LEN
-    assert st.received.positions() == {"a0": LEN, "a1": 0}
-    assert [tuple(b) for b in st.boundaries] == [(1, LEN - 3, LEN, LEN)]  # one episode
+    assert len(st.intake.buffer) == LEN and not st.intake.held["a0"] and st.intake.ingested == LEN
+    assert st.intake.received.positions() == {"a0": LEN, "a1": 0}
+    assert [tuple(b) for b in st.intake.boundaries] == [(1, LEN - 3, LEN, LEN)]  # one episode
 
 
 def test_an_arm_that_counts_nothing_takes_batches_into_replay_at_once(tmp_path):
     st = new_run(tmp_path, explore="constant")
-    assert intake.take(st, batch(st, "a1", 0)) and len(st.buffer) == LEN
+    assert intake.take(st, batch(st, "a1", 0)) and len(st.intake.buffer) == LEN
 
 
 def test_a_batch_of_another_length_or_layout_is_refused(tmp_path):
@@ -78,33 +71,34 @@ def test_a_batch_of_another_length_or_layout_is_refused(tmp_path):
         intake.take(st, batch(st, "a0", 0, n=LEN - 1))
     with pytest.raises(WireError, match="dims"):
         intake.take(st, batch(st, "a0", 0, obs_dim=3))
-    assert st.received.positions() == {"a0": 0, "a1": 0} and not st.held["a0"]
+    assert st.intake.received.positions() == {"a0": 0, "a1": 0} and not st.intake.held["a0"]
 
 
 def test_a_checkpoint_and_the_log_give_the_same_state_back(tmp_path):
     st = new_run(tmp_path)
-    st.log, _ = WriteAheadLog.open(st.folder / ckpt.LOG)
+    ckpt.open_log(st)
     for seq in (0, LEN):
         intake.take(st, batch(st, "a0", seq))
-    st.counted.ack("a0", LEN)
+    st.intake.counted.ack("a0", LEN)
     intake.release_counted(st)  # the first episode is in replay, the second held
     ckpt.write(st)
     intake.take(st, batch(st, "a1", 0))  # taken after the cut: the log has it
-    st.log.close()
+    st.intake.log.close()
 
     again = new_run(tmp_path)
-    again.log, records = WriteAheadLog.open(again.folder / ckpt.LOG)
+    records = ckpt.open_log(again)
     (path, state), *_ = list(ckpt.good(again, warn=print))
     assert path.name == ckpt.CUT
     again.learner.load_state_dict(state["learner"])
     assert ckpt.apply(again, state) == 1
-    assert intake.replay(again, records, 1) == []
-    assert len(again.buffer) == len(st.buffer) == LEN
-    assert np.array_equal(again.buffer.obs[:LEN], st.buffer.obs[:LEN])
-    assert [m.seq for m in again.held["a0"]] == [LEN] and [m.seq for m in again.held["a1"]] == [0]
-    assert again.received.positions() == st.received.positions()
-    assert again.rng.bit_generator.state == st.rng.bit_generator.state
-    again.log.close()
+    assert intake.replay(again, records)[0] == []
+    assert len(again.intake.buffer) == len(st.intake.buffer) == LEN
+    assert np.array_equal(again.intake.buffer.obs[:LEN], st.intake.buffer.obs[:LEN])
+    held = again.intake.held
+    assert [m.seq for m in held["a0"]] == [LEN] and [m.seq for m in held["a1"]] == [0]
+    assert again.intake.received.positions() == st.intake.received.positions()
+    assert again.sampling.rng.bit_generator.state == st.sampling.rng.bit_generator.state
+    again.intake.log.close()
 
 
 def test_a_cut_of_another_config_is_refused_naming_the_field(tmp_path):

@@ -13,11 +13,12 @@ import pytest
 
 from services.learner import checkpoint as ckpt
 from services.learner import intake, lockstep, updates
-from services.learner.bonus import BonusClient
+from services.learner.bonus import BonusClient, bus_query
 from services.learner.evaluations import EvaluationsInFlight, reported_point
 from services.learner.outbound import MAX_BACKLOG_EPISODES, Outbound
-from services.learner.state import new_run
+from services.learner.state import LearnerRun, RunGroup, new_run
 from shared.config import make_config
+from shared.core.learners.runs import SoloRuns
 from shared.envs.tasks import task_spec_for
 from shared.net.messages import Ack, Action, ActRequest, Metrics, Weights
 from shared.net.wire import WireError, decode, encode
@@ -60,12 +61,21 @@ def run(tmp_path, explore="constant", interleave="async", svc=None, **extra):  #
     spec = task_spec_for(cfg)
     folder = tmp_path / "learner" / "r"
     folder.mkdir(parents=True, exist_ok=True)
-    bonus = BonusClient(types.SimpleNamespace(bus=svc, reject=print), "r", cfg.explore,
-                        cfg.beta, spec.n_agents)  # fmt: skip
+    bonus = BonusClient(bus_query(svc, "bonus"), print, "r", cfg.explore, cfg.beta,
+                        spec.n_agents)  # fmt: skip
     pubs = {"weights": Sent(Weights), "eval": Sent(Weights), "ack": Sent(Ack)}
     return new_run("r", cfg, spec, ACTORS, learner=build_learner(cfg, spec), bonus=bonus,
                    evaluations=EvaluationsInFlight(), pubs=pubs, counter="c",
                    folder=folder)  # fmt: skip
+
+
+def alone(st: LearnerRun, asks: lockstep.Asks | None = None) -> RunGroup:
+    """The run served alone: a group of one."""
+    return RunGroup([st.run], SoloRuns(st.learner), asks=asks)
+
+
+def update_run(st: LearnerRun, todo: int) -> int:
+    return updates.update(alone(st), [st], todo)
 
 
 def outbound(metrics=None) -> Outbound:  # noqa: ANN001
@@ -81,71 +91,76 @@ def fill(st, actor="a0", episodes=1):  # noqa: ANN001
 def test_a_tick_does_the_updates_owed_up_to_the_episodes_end_and_no_more(tmp_path):
     st = run(tmp_path)
     fill(st, episodes=2)  # 10 transitions, 3 of warm-up: 7 updates owed
-    assert st.owed_total == 7 and [b.updates for b in st.boundaries] == [2, 7]
+    assert st.owed_total == 7 and [b.updates for b in st.intake.boundaries] == [2, 7]
     assert updates.updates_due(st) == 2  # the first episode's end comes first
-    assert updates.update_run(st, updates.updates_due(st)) == 2 and st.learner.updates == 2
+    assert update_run(st, updates.updates_due(st)) == 2 and st.learner.updates == 2
     assert updates.updates_due(st) == 0  # its weights go out before more updates
     outbound().boundaries(st)
-    assert updates.update_run(st, updates.updates_due(st)) == 5 and st.learner.updates == 7
+    assert update_run(st, updates.updates_due(st)) == 5 and st.learner.updates == 7
     assert updates.updates_due(st) == 0
 
 
 def test_minibatches_a_silent_counter_left_unpriced_are_priced_later_not_redrawn(tmp_path):
     st = run(tmp_path, explore="dis-macb", svc=SilentCounter())
     fill(st)
-    st.counted.ack("a0", LEN)
-    intake.release_counted(st)
-    state = dict(st.rng.bit_generator.state)
-    assert updates.update_run(st, 2) == 0 and st.learner.updates == 0
-    drawn = st.unpriced
-    assert len(drawn) == 2 and st.rng.bit_generator.state != state
-    after = dict(st.rng.bit_generator.state)
-    assert updates.update_run(st, 2) == 0  # still silent: the same two, nothing drawn
-    assert st.unpriced is drawn and st.rng.bit_generator.state == after
+    intake.counter_acked(st, {"a0": LEN})
+    sp = st.sampling
+    state = dict(sp.rng.bit_generator.state)
+    assert update_run(st, 2) == 0 and st.learner.updates == 0
+    drawn = sp.unpriced
+    assert len(drawn) == 2 and sp.rng.bit_generator.state != state
+    after = dict(sp.rng.bit_generator.state)
+    assert update_run(st, 2) == 0  # still silent: the same two, nothing drawn
+    assert sp.unpriced is drawn and sp.rng.bit_generator.state == after
     st.bonus.mode = "constant"  # the counter answers (priced here, for the test)
-    assert updates.update_run(st, 2) == 2 and not st.unpriced
-    assert st.rng.bit_generator.state == after  # priced, not redrawn
+    assert update_run(st, 2) == 2 and not sp.unpriced
+    assert sp.rng.bit_generator.state == after  # priced, not redrawn
 
 
 def test_weights_go_out_at_each_episode_end_and_every_eval_every_to_the_evaluator(tmp_path):
     st, out = run(tmp_path), outbound()
     fill(st, episodes=2)
-    updates.update_run(st, 7)
+    update_run(st, 7)
     out.boundaries(st)
-    assert [(w.episodes, w.eval_point) for w in st.weights_pub] == [(1, -1)]
-    assert [(w.episodes, w.eval_point, w.version) for w in st.eval_pub] == [(2, 2, 2)]
+    sent = st.outgoing
+    assert [(w.episodes, w.eval_point) for w in sent.weights_pub] == [(1, -1)]
+    assert [(w.episodes, w.eval_point, w.version) for w in sent.eval_pub] == [(2, 2, 2)]
     assert set(st.evaluations.unreported) == {2}  # kept until the evaluator's row comes
-    assert st.eval_pub[0].stats["updates"] == 7
+    assert sent.eval_pub[0].stats["updates"] == 7
 
 
 def test_the_credit_window_closes_while_the_learner_is_behind_and_reopens(tmp_path):
     st, rows = run(tmp_path), []
     out = outbound(lambda run, data, source: rows.append(source))
     behind = MAX_BACKLOG_EPISODES * LEN * len(ACTORS)
+    sent = st.outgoing
     out.housekeep(st, behind)
-    assert st.ack_pub[-1].window == 0 and not st.window_open
+    assert sent.ack_pub[-1].window == 0 and not sent.window_open
     out.housekeep(st, behind - 1)
-    assert st.ack_pub[-1].window > 0 and st.window_open
-    assert len(st.weights_pub) == 1  # nothing taken yet: the first weights again
+    assert sent.ack_pub[-1].window > 0 and sent.window_open
+    assert len(sent.weights_pub) == 1  # nothing taken yet: the first weights again
     assert rows == ["learner"]
 
 
 def test_a_lockstep_request_is_answered_only_once_its_steps_are_in_replay_and_learnt(tmp_path):
     st = run(tmp_path, interleave="lockstep")
-    obs = np.zeros(st.spec.joint_obs_dim, np.float32)
-    assert lockstep.take_request(st, ActRequest("r", "a0", seq=1, obs=obs)) is None
-    assert lockstep.answers(st) == []  # step 0 is not in replay
-    st.ingested_pos["a0"], st.ingested = 1, 4  # step 0 of a0 in; one update owed (warm-up 3)
+    obs, dim = np.zeros(st.spec.joint_obs_dim, np.float32), st.spec.joint_obs_dim
+    g, runs = alone(st, lockstep.Asks("a0", print)), {"r": st}
+    assert lockstep.take_request(g, dim, ActRequest("r", "a0", seq=1, obs=obs)) is None
+    assert lockstep.answer(g, runs) is None  # step 0 is not in replay
+    it = st.intake
+    it.received.take("a0", 0, 1)
+    it.ingested_pos["a0"], it.ingested = 1, 4  # step 0 of a0 in; one update owed (warm-up 3)
     b = batch(st, "a0", 0)
-    st.buffer.add(b.obs, b.act, b.rew, b.next_obs, b.done)  # (rows to sample from)
-    assert lockstep.answers(st) == []  # its update is not done
-    updates.update_run(st, 1)
-    [(actor, payload)] = lockstep.answers(st)
-    assert actor == "a0" and decode(payload, Action).seq == 1
-    again = lockstep.take_request(st, ActRequest("r", "a0", seq=1, obs=obs))
+    it.buffer.add(b.obs, b.act, b.rew, b.next_obs, b.done)  # (rows to sample from)
+    assert lockstep.answer(g, runs) is None  # its update is not done
+    update_run(st, 1)
+    payload = lockstep.answer(g, runs)
+    assert payload is not None and decode(payload, Action).seq == 1
+    again = lockstep.take_request(g, dim, ActRequest("r", "a0", seq=1, obs=obs))
     assert again == payload  # the answer was lost: the same one again
     with pytest.raises(WireError, match="obs"):
-        lockstep.take_request(st, ActRequest("r", "a0", seq=2, obs=obs[:3]))
+        lockstep.take_request(g, dim, ActRequest("r", "a0", seq=2, obs=obs[:3]))
 
 
 def test_a_group_resumes_from_the_newest_update_every_run_has_a_cut_of(tmp_path):
@@ -156,14 +171,14 @@ def test_a_group_resumes_from_the_newest_update_every_run_has_a_cut_of(tmp_path)
             if u == 4 and r == 1:
                 continue  # killed between the two runs' files
             st.learner.updates = u
-            st.episodes = u
+            st.intake.episodes = u
             ckpt.write(st)
             written[r].append(u)
     loaded = []
     group = types.SimpleNamespace(load_run_state_dicts=loaded.extend)
     fresh = [run(tmp_path / str(r)) for r in range(2)]
-    assert ckpt.restore_group(group, fresh, print) == [2, 2]
-    assert len(loaded) == 2 and [st.episodes for st in fresh] == [2, 2]
+    assert ckpt.restore(group, fresh, print) == [2, 2]
+    assert len(loaded) == 2 and [st.intake.episodes for st in fresh] == [2, 2]
 
 
 def test_an_evaluators_row_names_its_point_or_is_refused():

@@ -193,7 +193,7 @@ def test_a_lockstep_cluster_group_is_the_group_trainers_runs(cluster, bus, tmp_p
     """A group of 3 runs served by one learner (GroupMADDPG), one actor (a VecTask of
     their worlds, one act request per step) and one evaluator: each run's rows and final
     learner state are those the one-process group gives it (and so `macb train`'s)."""
-    from cli.group_trainer import train_group
+    from cli.trainer import train_group
     from shared.net.control import start_group
 
     configs = [make_config(c) for c in GROUP]
@@ -221,7 +221,7 @@ def test_a_lockstep_cluster_group_is_the_group_trainers_runs(cluster, bus, tmp_p
 def test_a_late_count_or_message_changes_no_run_of_a_group(cluster, bus, tmp_path, paused):
     """As for a run alone: one service of a group paused 3 s mid-run (its acks, answers,
     steps or rows come late) and every run is still the one-process group's."""
-    from cli.group_trainer import train_group
+    from cli.trainer import train_group
     from shared.net.control import start_group
 
     configs = [make_config({**c, "episodes": 24}) for c in GROUP]

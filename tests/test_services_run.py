@@ -9,7 +9,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from services.learner.bonus import BonusClient
+from services.learner.bonus import BonusClient, bus_query
 from services.learner.evaluations import EvaluationsInFlight
 from shared.config import make_config
 from shared.core.replay import Batch
@@ -208,11 +208,11 @@ def test_bonus_client_prices_a_ticks_batches_in_one_query_and_splits_the_answer(
         for _ in range(6)
     ]
     answer = np.repeat(np.arange(6, dtype=np.float32), 4)[:, None] * np.ones(2, np.float32)
-    svc = type("Svc", (), {"bus": _FakeBus([answer, None]), "reject": lambda *a: None})()
-    client = BonusClient(svc, "r1", "cen-macb", 0.8, 2)
+    bus = _FakeBus([answer, None])
+    client = BonusClient(bus_query(bus, keys.k_bonus("r1")), print, "r1", "cen-macb", 0.8, 2)
     got = client.bonus_for(batches)
-    assert len(svc.bus.asked) == 1  # one query for the whole tick
-    sent = decode(svc.bus.asked[0], BonusQuery).obs
+    assert len(bus.asked) == 1  # one query for the whole tick
+    sent = decode(bus.asked[0], BonusQuery).obs
     assert np.array_equal(sent, np.concatenate([b.obs for b in batches]))
     assert [g.shape for g in got] == [(4, 2)] * 6
     assert [float(g[0, 0]) for g in got] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]  # in order

@@ -18,7 +18,8 @@ A run group's points (docs/architecture.md, "Run groups in the cluster") are eva
 as one batched rollout once every run of the group has its point (`evaluate_group`:
 one act call for every run's worlds per step; run r's result is what `evaluate` gives
 it alone). A point only some runs have (an evaluator restarted between rows) waits at
-most GROUP_WAIT_S, then goes alone.
+most GROUP_WAIT_S, then goes alone. A run alone is served as a group of one, by the
+same code: its points go as soon as they are next.
 
 It also keeps every row it published for its recent runs (the last `HISTORY_RUNS`)
 and answers `macb/run/{run}/history/eval` with them, so a watcher that was away (the
@@ -32,6 +33,7 @@ This module is the shell: the bus, the timers and the dispatch. The parts hold n
 
 from __future__ import annotations
 
+import itertools
 import os
 import time
 from pathlib import Path
@@ -52,7 +54,7 @@ from shared.config import TrainConfig
 from shared.net import bus as keys
 from shared.net.messages import Assignment, History, Weights
 from shared.net.wire import encode
-from shared.run.rollout import EvalResult, evaluate, evaluate_group
+from shared.run.rollout import EvalResult
 from shared.settings import settings
 
 
@@ -70,14 +72,9 @@ class EvaluatorService(ServiceBase):
         if nice := settings().evaluator_nice:
             os.nice(nice)
         self.runs: dict[str, EvaluatorRun] = {}  # the run served, or a group's runs
-        self.group: GroupEval | None = None
+        self.group: GroupEval | None = None  # those runs as one (a run alone: of one)
         self.history = RowHistory()
         self.bus.queryable(keys.k_history("*", "eval"), self._history_reply)
-
-    @property
-    def st(self) -> EvaluatorRun | None:
-        """The (first) run served."""
-        return next(iter(self.runs.values()), None)
 
     def _history_reply(self, key: str, payload: bytes) -> bytes | None:
         run = keys.run_of(key)
@@ -92,18 +89,20 @@ class EvaluatorService(ServiceBase):
         self.runs[run] = EvaluatorRun.open(run, config)
         self.history.start(run)
         self.publish_status(run, "running")
-        group = assign.group
-        if not group:
-            self.group = None  # (whatever group ended before this run)
-        if group and set(group) <= set(self.runs) and config.interleave == "lockstep":
-            sts = [self.runs[r] for r in group]
-            self.group = GroupEval.open(sts, [self.active[r] for r in group])
+        # The runs served as one: a run alone is a group of one; a start replaces
+        # whatever group ended before it.
+        self.group = GroupEval.open(list(assign.group or [run]), self.runs, self.active)
 
     def on_stop(self, run: str, reason: str) -> None:
         self.history.remember(run, "stopped")
+        self.end(run)
+
+    def end(self, run: str) -> None:
+        """The run's evaluation is over (completed or stopped): its group goes with its
+        last run, alike for a run alone and a group's runs."""
         self.runs.pop(run, None)
-        if self.group is not None and run in self.group.runs:
-            self.group = None  # (its other runs are stopped too, or go on alone)
+        if self.group is not None and not any(r in self.runs for r in self.group.runs):
+            self.group = None
 
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag != "weights":
@@ -130,51 +129,31 @@ class EvaluatorService(ServiceBase):
         return msg
 
     def tick(self) -> bool:
-        """One point of one run, or a group's point of all its runs; True while more
-        wait."""
-        if self.group is not None and self.group_tick(self.group):
-            return any(s.pending for s in self.runs.values())
-        if self.group is not None:
-            return False
-        for st in list(self.runs.values()):
-            msg = self.next_point(st)
-            if msg is not None:
-                self.evaluate_point(st, msg)
-                return any(s.pending for s in self.runs.values())
-        return False
-
-    def group_tick(self, g: GroupEval) -> bool:
-        """The group's earliest point, evaluated for every run at once when every run
-        has it (and nothing earlier to wait for); after GROUP_WAIT_S without that, a
-        run's point alone. True if a point was evaluated."""
-        sts = [self.runs[r] for r in g.runs if r in self.runs]
-        if not any(st.pending for st in sts):
-            g.waiting_since = None
+        """The earliest point of the runs served, evaluated for every run at once when
+        every run has it (and nothing earlier to wait for; a run alone: when it has
+        one); after GROUP_WAIT_S without that, one run's point alone. True while more
+        points wait."""
+        g = self.group
+        sts = [self.runs[r] for r in g.runs if r in self.runs] if g is not None else []
+        if g is None or not any(st.pending for st in sts):
+            if g is not None:
+                g.waiting_since = None
             return False
         ready = g.take_together(sts)
         if ready:
-            g.waiting_since = None
-            for r, (_, msg) in enumerate(ready):
-                g.policy.load(r, msg.actors)
-            cfg = self.active[g.runs[0]]
-            results = evaluate_group(g.policy, g.venv, len(g.runs), cfg.eval_episodes)
-            for (st, msg), ev in zip(ready, results):
-                self.publish_row(st, msg, ev)
-            return True
-        if not g.waited_out(time.monotonic()):
+            results = g.evaluate(ready)
+        elif not g.waited_out(time.monotonic()):
             return False
-        for st in sts:  # the point goes alone (same worlds, same streams)
-            msg = self.next_point(st)
-            if msg is not None:
-                g.waiting_since = None
-                self.evaluate_point(st, msg)
-                return True
-        return False
-
-    def evaluate_point(self, st: EvaluatorRun, msg: Weights) -> None:
-        cfg = self.active[st.run]
-        st.policy.load(msg.actors)
-        self.publish_row(st, msg, evaluate(st.policy, st.envs, cfg.eval_episodes))
+        else:  # one run's point alone (its own worlds, the same streams)
+            alone = ((st, m) for st in sts if (m := self.next_point(st)) is not None)
+            ready = list(itertools.islice(alone, 1))  # (the runs after it are not asked)
+            if not ready:
+                return False
+            results = [st.evaluate(msg) for st, msg in ready]
+        g.waiting_since = None
+        for (st, msg), ev in zip(ready, results):
+            self.publish_row(st, msg, ev)
+        return any(s.pending for s in self.runs.values())
 
     def publish_row(self, st: EvaluatorRun, msg: Weights, ev: EvalResult) -> None:
         row = eval_row(msg, ev)
@@ -192,15 +171,13 @@ class EvaluatorService(ServiceBase):
             return
         # (none left: the learner waited for their rows)
         for msg in sorted(st.pending, key=lambda m: m.eval_point):
-            self.evaluate_point(st, msg)
+            self.publish_row(st, msg, st.evaluate(msg))
         st.pending.clear()
         self.history.remember(run, "completed")
         self.publish_status(run, "completed", points=st.points)
         self.log.info("run %s: %d evaluation points", run, st.points)
-        del self.runs[run]
+        self.end(run)
         self.free(run)
-        if self.group is not None and not any(r in self.runs for r in self.group.runs):
-            self.group = None  # the group is over: the next run is evaluated alone
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> EvaluatorService:

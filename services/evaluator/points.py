@@ -2,9 +2,9 @@
 
 A point may come twice (the learner resends what it has no row of), out of order (a
 restarted evaluator gets the newest point before the resends of those it missed), or
-for only some runs of a group. The rules deciding what to take, hold, publish again or
-evaluate together are here on the clock they are given, so they are tested without a
-bus; the service evaluates and publishes.
+for only some runs of a group (a run alone is a group of one). The rules deciding what
+to take, hold, publish again or evaluate together are here on the clock they are
+given, so they are tested without a bus; the service evaluates and publishes.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from shared.core.networks import JointPolicy
 from shared.envs.tasks import TaskEnv, make_task_for
 from shared.envs.vectask import vectorize
 from shared.net.messages import Weights
-from shared.run.rollout import EvalResult, derive_seed
+from shared.run.rollout import EvalResult, derive_seed, evaluate, evaluate_group
 
 REPUBLISH_AFTER_S = 5.0  # a row is published again for a resend only this long after
 # A point is held back at most this long for an earlier one the learner has not had a
@@ -57,6 +57,7 @@ class EvaluatorRun:
     published: dict[int, float] = field(default_factory=dict)  # point -> when its row went
     held_since: float | None = None  # the next point waits for an earlier one since then
     t0: float = field(default_factory=time.perf_counter)
+    eval_episodes: int = 0
 
     @classmethod
     def open(cls, run: str, config: TrainConfig) -> EvaluatorRun:
@@ -70,7 +71,12 @@ class EvaluatorRun:
             policy = LearnerPolicy(config, envs[0].spec)
         else:
             policy = JointPolicy.for_task(envs[0].spec, config.hidden)
-        return cls(run, envs, policy)
+        return cls(run, envs, policy, eval_episodes=config.eval_episodes)
+
+    def evaluate(self, msg: Weights) -> EvalResult:
+        """A point on the run's own worlds."""
+        self.policy.load(msg.actors)
+        return evaluate(self.policy, self.envs, self.eval_episodes)
 
     def receive(self, msg: Weights, now: float) -> bool:
         """A point's weights arrive: kept to evaluate unless already pending or evaluated
@@ -111,19 +117,28 @@ def take_next(st: EvaluatorRun, now: float) -> tuple[Weights | None, list[int]]:
 
 @dataclass
 class GroupEval:
-    """A run group's evaluation: its runs in order, their worlds as one VecTask (run r's
-    are r*m .. r*m+m-1: its own evaluation envs) and one policy for all."""
+    """The runs served as one, in order: a lockstep group's, or a run alone (a group of
+    one). A lockstep group's worlds, once every run has its start, are one VecTask (run
+    r's are r*m .. r*m+m-1: its own evaluation envs) with one policy for all; without
+    them (a run alone, a group still forming) each run is evaluated on its own worlds."""
 
     runs: list[str]
-    venv: Any
-    policy: GroupPolicy
+    venv: Any = None
+    policy: GroupPolicy | None = None
     waiting_since: float | None = None
 
     @classmethod
-    def open(cls, sts: list[EvaluatorRun], configs: list[TrainConfig]) -> GroupEval:
-        """Every run of the group has its start (`sts` in the group's order)."""
-        envs = [env for st in sts for env in st.envs]
-        return cls([st.run for st in sts], vectorize(envs), GroupPolicy(configs, envs[0].spec))
+    def open(
+        cls, runs: list[str], sts: dict[str, EvaluatorRun], configs: dict[str, TrainConfig]
+    ) -> GroupEval:
+        """The group `runs` (of which `sts` have their start so far)."""
+        together = len(runs) > 1 and all(r in sts for r in runs)
+        if not together or configs[runs[0]].interleave != "lockstep":
+            return cls(list(runs))
+        envs = [env for r in runs for env in sts[r].envs]
+        return cls(
+            list(runs), vectorize(envs), GroupPolicy([configs[r] for r in runs], envs[0].spec)
+        )
 
     def take_together(self, sts: list[EvaluatorRun]) -> list[tuple[EvaluatorRun, Weights]]:
         """The group's earliest point, taken from every run, when every run of the group
@@ -137,14 +152,26 @@ class GroupEval:
             return []
         for st, msg in ready:
             st.pending.remove(msg)
+            st.held_since = None
         return ready
+
+    def evaluate(self, ready: list[tuple[EvaluatorRun, Weights]]) -> list[EvalResult]:
+        """The point `take_together` took: one act call per step for every run when the
+        group's worlds are one (run r's result is what its own worlds give it alone),
+        else on its own worlds."""
+        if self.policy is None:
+            return [st.evaluate(msg) for st, msg in ready]
+        for r, (_, msg) in enumerate(ready):
+            self.policy.load(r, msg.actors)
+        episodes = ready[0][0].eval_episodes
+        return evaluate_group(self.policy, self.venv, len(self.runs), episodes)
 
     def waited_out(self, now: float) -> bool:
         """A point not every run has yet has waited GROUP_WAIT_S (the clock starts now
-        if it was not running): it goes alone."""
+        if it was not running): it goes alone. A group of one waits for no one."""
         if self.waiting_since is None:
             self.waiting_since = now
-        return now - self.waiting_since >= GROUP_WAIT_S
+        return len(self.runs) == 1 or now - self.waiting_since >= GROUP_WAIT_S
 
 
 def eval_row(msg: Weights, ev: EvalResult) -> dict[str, Any]:

@@ -3,28 +3,48 @@ trip (sample time: the counts then), or locally for the arms that count nothing.
 
 A run group's runs `ask` at once and then take their `answer`s, so their round trips
 overlap. A query the counter does not answer is kept (`PendingBonus`) and priced again,
-never redrawn: the sampler's stream stays the one per-update sampling gives.
+never redrawn: the sampler's stream stays the one per-update sampling gives. The client
+holds no service: it is given the query to send (`bus_query` makes one on a bus) and
+where a malformed reply is reported.
 """
 
 from __future__ import annotations
 
 import collections
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from shared.net import bus as keys
 from shared.net.messages import BonusQuery, BonusReply
 from shared.net.wire import WireError, decode, encode
 
+# Sends a query's payload to the run's counter; returns the wait for its replies.
+Query = Callable[[bytes], Callable[[], list[bytes]]]
+QUERY_TIMEOUT_S = 2.0
+
+
+def bus_query(bus: Any, key: str, timeout: float = QUERY_TIMEOUT_S) -> Query:
+    """A query on `bus` (`get_async`, then `collect` its replies) at `key`."""
+
+    def query(payload: bytes) -> Callable[[], list[bytes]]:
+        replies = bus.get_async(key, payload, timeout=timeout)
+        return lambda: bus.collect(replies)
+
+    return query
+
 
 class BonusClient:
-    """Bonus queries to the counter for sampled batches (local for none/constant)."""
+    """Bonus queries to the counter for sampled batches (local for none/constant).
+    `query` sends one (`bus_query`), `reject(why)` reports a malformed reply."""
 
-    def __init__(self, svc: Any, run: str, mode: str, beta: float, n: int) -> None:
-        self.svc, self.run, self.mode, self.beta, self.n = svc, run, mode, beta, n
+    def __init__(
+        self, query: Query, reject: Callable[[str], None], run: str, mode: str, beta: float, n: int
+    ) -> None:
+        self.query, self.reject = query, reject
+        self.run, self.mode, self.beta, self.n = run, mode, beta, n
         self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
         self.wait_s = 0.0  # all time spent in queries (the learner waits for each)
         self.failures = 0
@@ -55,8 +75,7 @@ class BonusClient:
         act = np.concatenate([b.act for b in batches])
         payload = encode(BonusQuery(self.run, obs=obs, act=act))
         t0 = time.perf_counter()
-        replies = self.svc.bus.get_async(keys.k_bonus(self.run), payload, timeout=2.0)
-        return PendingBonus(sizes, None, replies, t0)
+        return PendingBonus(sizes, None, self.query(payload), t0)
 
     def answer(self, query: PendingBonus) -> list[np.ndarray] | None:
         """The bonuses a query asked for (waiting for its reply); None if the counter
@@ -65,14 +84,14 @@ class BonusClient:
             return query.priced
         sizes, rows = query.sizes, sum(query.sizes)
         try:
-            replies = self.svc.bus.collect(query.replies)
+            replies = query.replies()
         finally:
             self.wait_s += time.perf_counter() - query.t0
         for raw in replies:
             try:
                 msg = decode(raw, BonusReply)
             except WireError as err:
-                self.svc.reject(keys.k_bonus(self.run), str(err))
+                self.reject(str(err))
                 continue
             if msg.bonus.shape == (rows, self.n):
                 self.latencies.append(time.perf_counter() - query.t0)
@@ -96,7 +115,7 @@ class PendingBonus:
 
     sizes: list[int]
     priced: list[np.ndarray] | None
-    replies: Any = None
+    replies: Callable[[], list[bytes]] = list  # waits for the counter's replies
     t0: float = 0.0
 
 

@@ -4,95 +4,87 @@ every earlier step has been counted, taken into replay and learnt (its update do
 the weights of an episode's end out). That is the thesis's step-by-step loop, so a
 run's updates, counts and weights are those of `macb train` with the same config.
 
-Pure over the run state: `take_*` records a request (or returns the answer to send
-again when a request repeats, its answer lost), `answers`/`group_answer` return the
-answers that are ready, noted as given. The service publishes them.
+`Asks` (the open request and the last answer of the runs served: a run alone, or a
+group's runs, whose one actor asks for every run's action at once) is the lockstep
+state, and this module its one writer: `take_request` records a request (or returns
+the answer to send again when a request repeats, its answer lost), `answer` returns
+the answer once it is ready, noted as given. The service publishes it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from services.learner.state import LearnerRun, LockstepGroup
 from shared.net.messages import Action, ActRequest
 from shared.net.wire import WireError, encode
+
+if TYPE_CHECKING:
+    from services.learner.state import LearnerRun, RunGroup
+
+
+@dataclass
+class Asks:
+    """The runs' one lockstep actor: its open request (every run's observation, (R,
+    obs)) and the last answer, for a repeated request. A group's requests and answers
+    carry one row per run; a run alone's its own (obs,) and (act,)."""
+
+    actor: str
+    action_pub: Callable[[bytes], None]  # on the lead run's keys (run 0)
+    wanted: tuple[int, np.ndarray] | None = None
+    answered: tuple[int, bytes] | None = None
 
 
 def learnt_up_to(st: LearnerRun) -> bool:
     """Every update the run owes is done and every episode end's weights are out."""
-    return st.learner.updates >= st.owed_total and not st.boundaries
+    return st.learner.updates >= st.owed_total and not st.intake.boundaries
 
 
-def in_replay(st: LearnerRun, actor: str, seq: int) -> bool:
-    """Every step of `actor` before `seq` is counted and in replay, and no later one."""
-    return st.ingested_pos.get(actor, 0) == seq and not st.held[actor]
-
-
-def take_request(st: LearnerRun, msg: ActRequest) -> bytes | None:
-    """A lone run's request, kept until it can be answered; the answer given before if
-    this request was answered already (the answer was lost). WireError for an
-    observation the run cannot act on."""
-    dim = st.spec.joint_obs_dim
-    if msg.obs.shape != (dim,) or not np.isfinite(msg.obs).all():
-        raise WireError(f"act_request: obs {msg.obs.shape}, run has ({dim},)")
-    last = st.answered.get(msg.actor)
-    if last is not None and last[0] == msg.seq:
-        return last[1]
-    st.wanted[msg.actor] = (msg.seq, np.array(msg.obs, np.float32))
+def take_request(g: RunGroup, obs_dim: int, msg: ActRequest) -> bytes | None:
+    """The runs' request (a group's: one observation per run), kept until it can be
+    answered; the answer given before if this request was answered already (the
+    answer was lost). WireError for an observation the runs cannot act on."""
+    asks = g.asks
+    assert asks is not None
+    want = (len(g.runs), obs_dim) if g.grouped else (obs_dim,)
+    if msg.obs.shape != want or not np.isfinite(msg.obs).all():
+        raise WireError(f"act_request: obs {msg.obs.shape}, the runs have {want}")
+    if asks.answered is not None and asks.answered[0] == msg.seq:
+        return asks.answered[1]
+    obs = np.array(msg.obs, np.float32)
+    asks.wanted = (msg.seq, obs if g.grouped else obs[None])
     return None
 
 
-def answers(st: LearnerRun) -> list[tuple[str, bytes]]:
-    """(actor, action message) for each request whose earlier steps are all in replay
-    and learnt: the thesis's `act` with the weights after the last step's update."""
-    out = []
-    for actor, (seq, obs) in list(st.wanted.items()):
-        if not in_replay(st, actor, seq):
-            continue  # a step before it is not in replay yet (or not counted)
-        if not learnt_up_to(st):
-            break  # its updates (and the weights of an episode's end) come first
-        act = st.learner.act(obs[None])[0].astype(np.float32)
-        payload = encode(Action(st.run, seq=seq, act=act))
-        del st.wanted[actor]
-        st.answered[actor] = (seq, payload)
-        out.append((actor, payload))
-    return out
-
-
-def take_group_request(g: LockstepGroup, obs_dim: int, msg: ActRequest) -> bytes | None:
-    """A group's request (one observation per run), as `take_request` does a run's."""
-    obs = msg.obs
-    if obs.shape != (len(g.runs), obs_dim) or not np.isfinite(obs).all():
-        raise WireError(f"act_request: obs {obs.shape}, the group has ({len(g.runs)}, {obs_dim})")
-    if g.answered is not None and g.answered[0] == msg.seq:
-        return g.answered[1]
-    g.wanted = (msg.seq, np.array(obs, np.float32))
-    return None
-
-
-def group_ready(g: LockstepGroup, runs: dict[str, LearnerRun], seq: int) -> bool:
-    """Every run of the group has its steps before `seq` in replay and learnt. A run
-    already past `seq` (an actor restarted between publishing one run's step and
-    another's) does not hold the answer: that step comes again as a duplicate."""
+def ready(g: RunGroup, runs: dict[str, LearnerRun], seq: int) -> bool:
+    """Every run has its steps before `seq` in replay and learnt. A run already past
+    `seq` (a group's actor restarted between publishing one run's step and another's)
+    does not hold the answer: that step comes again as a duplicate."""
+    assert g.asks is not None
+    actor = g.asks.actor
     for run in g.runs:
         st = runs.get(run)
         if st is None:
             return False
-        taken = st.received.expected(g.actor)
+        taken = st.intake.received.expected(actor)
         if taken > seq:
             continue
-        if taken < seq or not in_replay(st, g.actor, seq) or not learnt_up_to(st):
+        if taken < seq or not st.intake.in_replay(actor, seq) or not learnt_up_to(st):
             return False
     return True
 
 
-def group_answer(g: LockstepGroup, runs: dict[str, LearnerRun]) -> bytes | None:
-    """The answer to the group's open request once it is ready: one `act` of the
-    group's current weights for every run."""
-    if g.wanted is None or not group_ready(g, runs, g.wanted[0]):
+def answer(g: RunGroup, runs: dict[str, LearnerRun]) -> bytes | None:
+    """The answer to the open request once it is ready: one `act` of the current
+    weights for every run (the thesis's `act` after the last step's update)."""
+    asks = g.asks
+    if asks is None or asks.wanted is None or not ready(g, runs, asks.wanted[0]):
         return None
-    seq, obs = g.wanted
+    seq, obs = asks.wanted
     act = g.learner.act(obs[:, None])[:, 0].astype(np.float32)
-    payload = encode(Action(g.runs[0], seq=seq, act=act))
-    g.wanted, g.answered = None, (seq, payload)
+    payload = encode(Action(g.runs[0], seq=seq, act=act if g.grouped else act[0]))
+    asks.wanted, asks.answered = None, (seq, payload)
     return payload

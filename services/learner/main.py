@@ -52,13 +52,15 @@ import torch
 from services.common import ServiceBase
 from services.learner import checkpoint as ckpt
 from services.learner import intake
-from services.learner.bonus import BonusClient
+from services.learner.bonus import BonusClient, bus_query
 from services.learner.evaluations import EvaluationsInFlight, reported_point
+from services.learner.lockstep import Asks
 from services.learner.outbound import Outbound
 from services.learner.serving import Serving
-from services.learner.state import LearnerRun, LockstepGroup, MemberLearner, new_run, open_error
+from services.learner.state import LearnerRun, MemberLearner, RunGroup, new_run, open_error
 from shared.config import TrainConfig
 from shared.core.learners.group import GroupMADDPG
+from shared.core.learners.runs import RunsLearner, SoloRuns
 from shared.envs.tasks import task_spec_for
 from shared.groups import group_error
 from shared.net import bus as keys
@@ -94,10 +96,6 @@ class LearnerService(ServiceBase):
         self.serving = Serving(self.out, self.log)
         self.runs = self.serving.runs  # the run served, or a group's runs
 
-    @property
-    def st(self) -> LearnerRun | None:
-        return self.serving.st
-
     # ------------------------------------------------------------ run lifecycle
     def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         self._open(run, config, assign, resume=False)
@@ -107,29 +105,29 @@ class LearnerService(ServiceBase):
         self._open(run, config, assign, resume=True)
 
     def _open(self, run: str, config: TrainConfig, assign: Assignment, resume: bool) -> None:
-        """A run alone, or a group once every run of it has its start: one GroupMADDPG
-        for them all (run r of `assign.group` is member r), each run's own intake,
-        replay, sampler, bonus queries, boundaries, evaluation points and cuts; resumed
-        from the newest update every run has a cut of, then each run's log."""
-        group = assign.group
-        if group and not self.serving.gathered(run, config, assign):
+        """The runs served as one, once every run has its start (a run alone at once, a
+        group's last run): one learner for them all (a group's GroupMADDPG, run r of
+        `assign.group` member r; a run alone's own, as a group of one), each run's own
+        intake, replay, sampler, bonus queries, boundaries, evaluation points and cuts;
+        resumed from the newest update every run has a cut of, then each run's log."""
+        if not self.serving.gathered(run, config, assign):
             return
-        t0, runs = time.perf_counter(), list(group or [run])
+        t0, runs, grouped = time.perf_counter(), list(assign.group or [run]), bool(assign.group)
         try:
-            configs = [self.serving.gathering.pop(r) for r in runs] if group else [config]
-            if group and (why := group_error(configs, len(assign.actors))):
+            configs = [self.serving.gathering.pop(r) for r in runs]
+            if grouped and (why := group_error(configs, len(assign.actors))):
                 raise ValueError(why)
             for r in runs if not resume else []:
                 ckpt.wipe(self.data_dir / "learner" / r)
-            sts = self._open_group(runs, configs, assign) if group else [
-                self._open_run(run, config, assign)]  # fmt: skip
+            sts = self._open_runs(runs, configs, assign)
             logs = [ckpt.open_log(st) for st in sts]
             cuts: list[int | None] = [None] * len(sts)
-            if resume:
-                learner = self.serving.group.learner if self.serving.group else None
-                cuts = ckpt.restore_all(learner, sts, self.log.warning)
-            for st, records, cut in zip(sts, logs, cuts):
-                for batch in intake.replay(st, records, cut):
+            if resume and self.serving.group is not None:
+                cuts = ckpt.restore(self.serving.group.learner, sts, self.log.warning)
+            for st, records in zip(sts, logs):
+                skipped, newest = intake.replay(st, records)
+                st.outgoing.version_at_least(newest)
+                for batch in skipped:
                     self.log.warning("run %s: logged batch %s out of order: skipped", run, batch)
         except Exception as err:
             self.log.exception("runs %s failed to %s", runs, "resume" if resume else "start")
@@ -137,14 +135,14 @@ class LearnerService(ServiceBase):
             return
         infos = [ckpt.resumed(st, cut, time.perf_counter() - t0) for st, cut in zip(sts, cuts)]
         if resume:
-            self.resumed = {**infos[0], "group": runs} if group else infos[0]
+            self.resumed = {**infos[0], "group": runs} if grouped else infos[0]
         for info in infos if resume else []:
             self.log.info("run %s resumed: %s", info["run"], json.dumps(info))
         self.log.info("runs %s %s", runs, "resumed" if resume else "started")
         for st, info in zip(sts, infos):
-            if not group:  # version 0: every actor starts from these (a group's acts by request)
+            if not grouped:  # version 0: every actor starts from these (a group's acts by request)
                 self.out.weights(st, eval_point=-1)
-            detail = {"group": runs} if group else {}
+            detail: dict[str, Any] = {"group": runs} if grouped else {}
             if resume:
                 detail["resumed"] = info
             self.publish_status(st.run, "running", actors=st.actors, **detail)
@@ -152,32 +150,46 @@ class LearnerService(ServiceBase):
             if resume:
                 self.out.ack(st)  # the actors go on from what the log holds
 
-    def _open_group(
+    def _open_runs(
         self, runs: list[str], configs: list[TrainConfig], assign: Assignment
     ) -> list[LearnerRun]:
-        spec, c0 = task_spec_for(configs[0]), configs[0]
+        """The runs' states and their one learner; in lockstep, their one actor's act
+        requests, on the lead run's keys (run 0)."""
+        for config in configs:
+            if why := open_error(config, len(assign.actors)):
+                raise ValueError(why)  # the run fails, saying so (not a silent change)
+        spec, c0, grouped = task_spec_for(configs[0]), configs[0], bool(assign.group)
         torch.set_num_threads(c0.threads)
-        specs = [learner_spec(c) for c in configs]
-        learner = GroupMADDPG(agent_dims(spec), specs, precision=c0.precision, device=c0.device)
-        actor, lead = assign.actors[0], runs[0]
-        pub = self.bus.publisher(keys.k_action(lead, actor))
-        self.serving.group = LockstepGroup(runs, learner, actor, pub)
-        self.listen(keys.k_act(lead, "*"), "act_request", lead)
+        evaluations = [EvaluationsInFlight() for _ in runs]
+        learner: RunsLearner
+        if grouped:
+            specs = [learner_spec(c) for c in configs]
+            learner = GroupMADDPG(agent_dims(spec), specs, precision=c0.precision, device=c0.device)
+        else:
+            learner = SoloRuns(build_learner(c0, spec, contended=evaluations[0].busy))
+        asks = None
+        if c0.interleave == "lockstep":
+            actor, lead = assign.actors[0], runs[0]
+            asks = Asks(actor, self.bus.publisher(keys.k_action(lead, actor)))
+            self.listen(keys.k_act(lead, "*"), "act_request", lead)
+        self.serving.group = RunGroup(runs, learner, grouped, asks)
         return [
-            self._open_run(run, config, assign, MemberLearner(learner, r))
+            self._open_run(run, config, assign, MemberLearner(learner, r), evaluations[r], grouped)
             for r, (run, config) in enumerate(zip(runs, configs))
         ]
 
     def _open_run(
-        self, run: str, config: TrainConfig, assign: Assignment, member: Any = None
+        self,
+        run: str,
+        config: TrainConfig,
+        assign: Assignment,
+        learner: MemberLearner,
+        evaluations: EvaluationsInFlight,
+        grouped: bool,
     ) -> LearnerRun:
-        actors = list(assign.actors)
-        if why := open_error(config, len(actors)):
-            raise ValueError(why)  # the run fails, saying so (not a silent change)
         torch.set_num_threads(config.threads)
         for kind in ("transitions", "ack", "status"):
             self.listen(getattr(keys, f"k_{kind}")(run, "*"), kind, run)
-        evaluations = EvaluationsInFlight()
         on_row = lambda key, payload: self.on_eval_row(evaluations, key, payload)  # noqa: E731
         self.subscribe(keys.k_metrics(run, "eval"), on_row, run)
         spec = task_spec_for(config)
@@ -188,17 +200,16 @@ class LearnerService(ServiceBase):
             "eval": self.bus.publisher(keys.k_weights(run, "eval")),
             "ack": self.bus.publisher(keys.k_ack(run, self.id)),
         }
-        st = self.runs[run] = new_run(
-            run, config, spec, actors,
-            learner=member or build_learner(config, spec, contended=evaluations.busy),
-            bonus=BonusClient(self, run, config.explore, config.beta, spec.n_agents),
-            evaluations=evaluations, pubs=pubs, counter=assign.counter, folder=folder,
-            incarnation=f"{self.id}:{os.getpid()}:{time.time_ns()}",
-            member=-1 if member is None else member.r,
+        bonus_key = keys.k_bonus(run)
+        bonus = BonusClient(
+            bus_query(self.bus, bonus_key), lambda why: self.reject(bonus_key, why),
+            run, config.explore, config.beta, spec.n_agents,
         )  # fmt: skip
-        if st.lockstep and member is None:  # (a group's requests come on its first run's keys)
-            self.listen(keys.k_act(run, "*"), "act_request", run)
-            st.action_pubs = {a: self.bus.publisher(keys.k_action(run, a)) for a in actors}
+        st = self.runs[run] = new_run(
+            run, config, spec, list(assign.actors), learner=learner, bonus=bonus,
+            evaluations=evaluations, pubs=pubs, counter=assign.counter, folder=folder,
+            incarnation=f"{self.id}:{os.getpid()}:{time.time_ns()}", grouped=grouped,
+        )  # fmt: skip
         return st
 
     def publish_provenance(self, st: LearnerRun) -> None:
@@ -206,7 +217,7 @@ class LearnerService(ServiceBase):
         keeps it as the run's `live.provenance`, and `macb up --out` writes it beside the
         rows."""
         start = provenance.entry(st.config.precision, st.learner.stats(), "learner")
-        if self.serving.group is not None:
+        if self.serving.group is not None and self.serving.group.grouped:
             start["group"] = {"runs": len(self.serving.group.runs)}
         self.publish_metrics(st.run, start, source="provenance")
 
@@ -240,11 +251,11 @@ class LearnerService(ServiceBase):
         try:
             self._handle(st, key, msg)
         finally:
-            st.time["inbound"] += time.perf_counter() - t0
+            st.time.add("inbound", time.perf_counter() - t0)
 
     def _handle(self, st: LearnerRun, key: str, msg: Message) -> None:
         if isinstance(msg, Transitions):
-            if not st.received.knows(msg.actor):
+            if not st.intake.received.knows(msg.actor):
                 self.reject(key, f"unknown actor: {msg.actor}")
                 return
             # A duplicate (a resend) or a gap is not taken; either way the ack tells the
@@ -256,9 +267,7 @@ class LearnerService(ServiceBase):
                 self.reject(key, why)
         elif isinstance(msg, Ack):
             if msg.service == st.counter:
-                for actor, seq in msg.acked.items():
-                    st.counted.ack(actor, seq)
-                intake.release_counted(st)
+                intake.counter_acked(st, msg.acked)
         elif isinstance(msg, Status) and msg.service in st.actors:
             if msg.state == "completed":
                 st.final[msg.service] = int(msg.detail.get("final_seq", 0))

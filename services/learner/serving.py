@@ -1,6 +1,7 @@
-"""The runs a learner serves, one alone or a lockstep group's, and what a tick and each
-inbound event do to them: updates (updates.py), weights and acks (outbound.py), cuts
-(checkpoint.py), action answers (lockstep.py).
+"""The runs a learner serves as one (a `RunGroup`: a run alone is a group of one, a
+lockstep group's runs share one learner), and what a tick and each inbound event do
+to them: updates (updates.py), weights and acks (outbound.py), cuts (checkpoint.py),
+action answers (lockstep.py).
 
 Bus-free: it sends only through the runs' publishers and its `Outbound`, so the service
 (main.py) is the shell that opens runs on the bus, dispatches messages here and ends
@@ -15,35 +16,32 @@ import time
 from services.learner import checkpoint as ckpt
 from services.learner import lockstep, updates
 from services.learner.outbound import Outbound
-from services.learner.state import LearnerRun, LockstepGroup
+from services.learner.state import LearnerRun, RunGroup
 from shared.config import TrainConfig
 from shared.net import bus as keys
 from shared.net.messages import ActRequest, Assignment
 
 
 class Serving:
-    """The learner's runs: `runs` (the run served, or a group's runs), `group`."""
+    """The learner's runs: `runs` (the run served, or a group's runs), `group` (them as
+    one, with their learner)."""
 
     def __init__(self, out: Outbound, log: logging.Logger) -> None:
         self.out, self.log = out, log
         self.runs: dict[str, LearnerRun] = {}
-        self.group: LockstepGroup | None = None
-        self.gathering: dict[str, TrainConfig] = {}  # a group's runs whose start came
-
-    @property
-    def st(self) -> LearnerRun | None:
-        """The run served alone (None when free or serving a group)."""
-        return None if self.group is not None else next(iter(self.runs.values()), None)
+        self.group: RunGroup | None = None
+        self.gathering: dict[str, TrainConfig] = {}  # runs whose start came, before all
 
     def gathered(self, run: str, config: TrainConfig, assign: Assignment) -> bool:
-        """A group's run noted; True once every run of the group has its start."""
-        if assign.group:
-            self.gathering[run] = config
-            return set(self.gathering) == set(assign.group)
-        return False
+        """A run's start noted; True once every run served with it has its start (a run
+        alone at once, a group's last run)."""
+        runs = assign.group or [run]
+        self.gathering = {r: c for r, c in self.gathering.items() if r in runs}  # (not others')
+        self.gathering[run] = config
+        return set(self.gathering) == set(runs)
 
     def group_of(self, run: str) -> list[str]:
-        """The runs that end with `run`: its group's, or itself."""
+        """The runs that end with `run`: its group's (a run alone's: itself)."""
         g = self.group
         return list(g.runs) if g is not None and run in g.runs else [run]
 
@@ -59,68 +57,47 @@ class Serving:
 
     # ------------------------------------------------------------ ticks
     def tick(self) -> bool:
-        """One tick of updates and what goes out after them; True if updates are owed
-        at once (the service checks its inbox and comes back)."""
-        if self.group is not None:
-            self.group_tick(self.group)
+        """The trainer's step over the bus (cli/trainer.py, cli/trainer.py): once
+        every run has taken (and counted) its transitions, the updates they owe (each run
+        samples and prices its own minibatches, one learner update updates them all, at
+        most to the next episode boundary), what goes out after them, a cut when due
+        (every run's at once: a group resumes from one update), then the open act
+        request answered. True if updates are owed at once (the service checks its
+        inbox and comes back)."""
+        g = self.group
+        members = [self.runs[r] for r in g.runs if r in self.runs] if g is not None else []
+        if g is None or not members:
             return False
-        st = self.st
-        return False if st is None else self.run_tick(st)
-
-    def run_tick(self, st: LearnerRun) -> bool:
-        updates.update_run(st, updates.updates_due(st))
-        owed = st.owed_total - st.learner.updates
-        self.out.boundaries(st)
-        self.out.housekeep(st, owed)
-        if ckpt.due(st) and not st.unpriced:
-            self.checkpoint(st)  # (not with minibatches in hand: a cut holds the sampler)
-        if st.lockstep and owed == 0:
-            for actor, payload in lockstep.answers(st):
-                st.action_pubs[actor](payload)
-        return owed > 0 and not st.done
-
-    def group_tick(self, g: LockstepGroup) -> None:
-        """The group trainer's step (cli/group_trainer.py) over the bus: once every
-        run has taken (and counted) this step, each samples and prices its own
-        minibatches and one GroupMADDPG update updates them all; then the group's next
-        request is answered with one `act` for every run."""
-        members = [self.runs[r] for r in g.runs if r in self.runs]
-        if (
-            len(members) == len(g.runs)
-            and all(st.owed_total > g.learner.updates for st in members)
-            and not updates.update_group(g, members)
-        ):
-            members = []  # the counter is silent: nothing more this tick
+        whole = len(members) == len(g.runs)
+        updates.update(g, members, min(map(updates.updates_due, members)) if whole else 0)
         for st in members:
             self.out.boundaries(st)
-            self.out.housekeep(st, st.owed_total - g.learner.updates)
-        if members and ckpt.due(members[0]) and not g.unpriced:
-            for st in members:  # together: a group resumes from one update
+            self.out.housekeep(st, st.owed_total - st.learner.updates)
+        if ckpt.due(members[0]) and not any(st.sampling.unpriced for st in members):
+            for st in members:  # (not with minibatches in hand: a cut holds the sampler)
                 self.checkpoint(st)
-        if (payload := lockstep.group_answer(g, self.runs)) is not None:
-            g.action_pub(payload)
+        if g.asks is not None and (payload := lockstep.answer(g, self.runs)) is not None:
+            g.asks.action_pub(payload)
+        # (not while a group's run waits for another's step: nothing would be done)
+        return whole and min(map(updates.updates_due, members)) > 0
 
     def checkpoint(self, st: LearnerRun) -> None:
         """A cut of the run (checkpoint.py)."""
-        if st.folder is not None:
+        if st.cuts.folder is not None:
             spent = ckpt.write(st)
             self.log.debug("run %s: cut at episode %d (%d bytes, %.1f ms)",
-                           st.run, st.episodes, st.cut_bytes, 1e3 * spent)  # fmt: skip
+                           st.run, st.intake.episodes, st.cuts.size, 1e3 * spent)  # fmt: skip
 
     # ------------------------------------------------------------ events
     def act_request(self, st: LearnerRun, key: str, msg: ActRequest) -> str | None:
         """A step's request for actions, kept until it can be answered (the answer sent
         again if it was lost); the reason it is refused, if it is."""
         g = self.group
-        if g is not None:
-            if msg.actor != g.actor or keys.run_of(key) != g.runs[0]:
-                return f"act_request from {msg.actor}: not this group's actor"
-            if again := lockstep.take_group_request(g, st.spec.joint_obs_dim, msg):
-                g.action_pub(again)  # the answer was lost: the same actions again
-        elif not st.lockstep or msg.actor not in st.action_pubs:
-            return f"act_request from {msg.actor}: not a lockstep actor of this run"
-        elif again := lockstep.take_request(st, msg):
-            st.action_pubs[msg.actor](again)  # the answer was lost: the same action again
+        asks = g.asks if g is not None else None
+        if g is None or asks is None or msg.actor != asks.actor or keys.run_of(key) != g.runs[0]:
+            return f"act_request from {msg.actor}: not the lockstep actor of these runs"
+        if again := lockstep.take_request(g, st.spec.joint_obs_dim, msg):
+            asks.action_pub(again)  # the answer was lost: the same actions again
         return None
 
     def peer_found(self, role: str, peer: str, evaluator: str | None) -> None:

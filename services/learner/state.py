@@ -1,31 +1,38 @@
-"""What the learner service holds for a run it serves (`LearnerRun`: its `done` rule and
-`run_stats`), and for a run group served in lockstep (`LockstepGroup`, each run reading
-its share of the one `GroupMADDPG` through a `MemberLearner`); `new_run` builds a
-run's state from its config and assignment."""
+"""What the learner service holds for a run it serves (`LearnerRun`), and `new_run`,
+which builds it from a run's config and assignment.
+
+A run's state is split by owner: `Intake` (intake.py: replay, what was taken and
+counted, the episode boundaries, the log), `Sampling` (updates.py: the sampler, the
+minibatches awaiting prices, the bonuses learnt from), `Outgoing` (outbound.py: the
+publishers, the weights version, the credit window) and `Cuts` (checkpoint.py). Each
+module is the one writer of its part; the others read it or call its methods.
+`LearnerRun` holds the parts and what the run is (config, actors, learner, bonus
+client). The runs served are a `RunGroup`: a run alone is a group of one (its learner
+a `SoloRuns`), a lockstep group's runs share one `GroupMADDPG`; each run reads its
+share of the group's learner through a `MemberLearner`.
+"""
 
 from __future__ import annotations
 
-import collections
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from services.learner.bonus import BonusClient
+from services.learner.checkpoint import Cuts
 from services.learner.evaluations import EvaluationsInFlight
+from services.learner.intake import Intake
+from services.learner.lockstep import Asks
+from services.learner.outbound import Outgoing
+from services.learner.updates import Sampling
 from shared.config import TrainConfig, actors_error
-from shared.core.exploration import BonusDiagnostics
 from shared.core.learners import Learner
-from shared.core.learners.group import GroupMADDPG
-from shared.core.replay import ReplayBuffer
+from shared.core.learners.runs import RunsLearner
 from shared.envs.tasks import TaskSpec
-from shared.net.messages import Transitions
-from shared.net.protocol import AckTracker, ReceiveCursor, episode_share
-from shared.persist.wal import WriteAheadLog
+from shared.net.protocol import episode_share
 from shared.run.factories import minibatches_per_update
 from shared.run.rollout import derive_seed
 
@@ -35,20 +42,34 @@ from shared.run.rollout import derive_seed
 TIME_PHASES = ("sample", "update", "publish", "inbound")
 
 
-class Boundary(NamedTuple):
-    """An ingested episode's end: weights go out once `updates` updates are done."""
+class PhaseTimes:
+    """Wall time by phase (s): where the learner's time per update goes. Each part adds
+    its own phase (updates.py sample and update, outbound.py publish, main.py inbound)."""
 
-    episode: int
-    updates: int
-    env_steps: int
-    collisions_cum: int
+    def __init__(self) -> None:
+        self.spent = dict.fromkeys(TIME_PHASES, 0.0)
+
+    def add(self, phase: str, seconds: float) -> None:
+        self.spent[phase] += seconds
+
+
+@dataclass
+class RunGroup:
+    """The runs a learner serves as one (run r of `runs` is member r): a run alone, a
+    group of one, or a lockstep group's runs; one learner for all of them and, in
+    lockstep, their one actor's requests."""
+
+    runs: list[str]
+    learner: RunsLearner
+    grouped: bool = False  # a group's runs (`Assignment.group`), not a run alone
+    asks: Asks | None = None  # lockstep
 
 
 class MemberLearner:
     """Run r's view of its group's learner: what the service reads and writes per run
     (the update and the acting are the group's, one call for every run)."""
 
-    def __init__(self, group: GroupMADDPG, r: int) -> None:
+    def __init__(self, group: RunsLearner, r: int) -> None:
         self.group, self.r = group, r
 
     @property
@@ -66,84 +87,37 @@ class MemberLearner:
 
 
 @dataclass
-class LockstepGroup:
-    """A run group served in lockstep: one learner for its runs (run r of `runs` is
-    member r), one actor stepping their worlds, one act request per step for all."""
-
-    runs: list[str]
-    learner: GroupMADDPG
-    actor: str
-    action_pub: Callable[[bytes], None]
-    wanted: tuple[int, np.ndarray] | None = None  # the open request: (seq, (R, obs))
-    answered: tuple[int, bytes] | None = None  # the last answer, for a repeated request
-    unpriced: list = field(default_factory=list)  # per run, minibatches awaiting prices
-
-
-@dataclass
 class LearnerRun:
-    """Everything the learner holds for a run it serves."""
+    """A run the learner serves: what it is, and its parts (each written by its module)."""
 
     run: str
     config: TrainConfig
     spec: TaskSpec
-    learner: Learner | MemberLearner
-    buffer: ReplayBuffer
-    rng: np.random.Generator
     actors: list[str]
     counter: str | None
+    learner: Learner | MemberLearner
     bonus: BonusClient
     evaluations: EvaluationsInFlight
-    weights_pub: Callable[[bytes], None]
-    eval_pub: Callable[[bytes], None]
-    ack_pub: Callable[[bytes], None]
-    received: ReceiveCursor  # what has been taken from each actor (whole episodes only)
-    counted: AckTracker  # how far the counter has acknowledged each actor
-    held: dict[str, collections.deque[Transitions]]  # received, not yet counted
+    intake: Intake
+    sampling: Sampling
+    outgoing: Outgoing
+    cuts: Cuts = field(default_factory=Cuts)
     final: dict[str, int] = field(default_factory=dict)  # actor -> transitions it published
-    ingested: int = 0
-    episodes: int = 0
-    collisions_cum: int = 0
-    boundaries: collections.deque[Boundary] = field(default_factory=collections.deque)
-    version: int = 0
-    lags: collections.deque[int] = field(default_factory=lambda: collections.deque(maxlen=200))
-    window_open: bool = True
-    last_ack: float = 0.0
-    last_weights: float = 0.0  # when weights last went to the actors
-    last_stats: float = 0.0
-    last_ckpt: float = field(default_factory=time.monotonic)
-    t0: float = field(default_factory=time.perf_counter)
-    bonus_means: collections.deque[float] = field(
-        default_factory=lambda: collections.deque(maxlen=100)
-    )
-    # Wall time by phase (s): where the learner's time per update goes.
-    time: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_PHASES, 0.0))
-    contended_updates: int = 0
-    diagnostics: BonusDiagnostics = field(default_factory=BonusDiagnostics)
-    minibatches_per_update: int = 1  # 1, or one per agent (`minibatch: per-agent`)
-    log: WriteAheadLog | None = None  # every batch taken, before it is acknowledged
-    folder: Path | None = None  # DATA_DIR/learner/RUN
-    ingested_pos: dict[str, int] = field(default_factory=dict)  # per actor, in replay
-    shares: dict[str, int] = field(default_factory=dict)  # transitions each actor owes
-    incarnation: str = ""  # this process's weights are newer than any before a restart
-    resumed_from: int | None = None  # the cut's episode, when resumed
-    cuts: int = 0
-    cut_s: float = 0.0  # wall time spent writing cuts (the log's fsync included)
-    cut_bytes: int = 0  # size of the last cut file
-    unpriced: list = field(default_factory=list)  # minibatches drawn, bonus query unanswered
-    lockstep: bool = False  # interleave lockstep: actions are computed here, per step
-    wanted: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)  # open requests
-    answered: dict[str, tuple[int, bytes]] = field(default_factory=dict)  # last answers
-    action_pubs: dict[str, Callable[[bytes], None]] = field(default_factory=dict)
-    member: int = -1  # the run's place in its group (-1: a run alone)
+    time: PhaseTimes = field(default_factory=PhaseTimes)
 
     @property
     def counting(self) -> bool:
         return self.config.explore in ("dis-macb", "cen-macb")
 
     @property
+    def lockstep(self) -> bool:
+        """interleave lockstep: actions are computed here, per step."""
+        return self.config.interleave == "lockstep"
+
+    @property
     def owed_total(self) -> int:
         """Updates the replay ratio asks for so far: one per transition after the warm-up."""
-        return max(0, self.ingested - self.config.learning_starts)
+        return max(0, self.intake.ingested - self.config.learning_starts)
 
     @property
     def done(self) -> bool:
@@ -151,53 +125,11 @@ class LearnerRun:
         evaluation point out: the run can complete. (Whether or not an actor's
         "completed" came: a learner resumed after it may never see it.)"""
         return (
-            all(self.received.expected(a) >= self.shares[a] for a in self.actors)
-            and not any(self.held[a] for a in self.actors)
-            and not self.boundaries
+            self.intake.all_in()
+            and not self.intake.boundaries
             and self.learner.updates >= self.owed_total
             and not self.evaluations.unreported  # every point's row is out (or sent again)
         )
-
-
-def run_stats(st: LearnerRun, rejects_total: int) -> dict[str, Any]:
-    """The run's learner stats: progress, replay ratio and lag, where the time per update
-    goes, the bonus queries, the cuts, and the learner's own."""
-    updates = st.learner.updates
-    owed_total = st.owed_total
-    wall = time.perf_counter() - st.t0
-    lat = sorted(st.bonus.latencies)
-    per_update = 1e3 / updates if updates else 0.0
-    phases = {**st.time, "bonus_wait": st.bonus.wait_s}
-    spent = {f"ms_per_update_{k}": v * per_update for k, v in phases.items()}
-    spent["ms_per_update_other"] = (wall - sum(phases.values())) * per_update
-    return {
-        "updates": updates,
-        "ingested": st.ingested,
-        "episodes_ingested": st.episodes,
-        "replay_ratio": updates / owed_total if owed_total else 0.0,
-        "policy_lag": float(np.mean(st.lags)) if st.lags else 0.0,
-        "policy_version": st.version,
-        "wall_s": wall,
-        "steps_per_sec": st.ingested / wall if wall > 0 else 0.0,
-        "updates_per_sec": updates / wall if wall > 0 else 0.0,
-        "backlog": owed_total - updates,
-        "window_open": st.window_open,
-        "bonus_p50_ms": 1e3 * lat[len(lat) // 2] if lat else 0.0,
-        "bonus_p99_ms": 1e3 * lat[int(len(lat) * 0.99)] if lat else 0.0,
-        "bonus_wait_ms_per_update": spent["ms_per_update_bonus_wait"],
-        "bonus_queries": st.bonus.queries,
-        "bonus_rows_per_query": st.bonus.rows / max(1, st.bonus.queries),
-        "bonus_failures": st.bonus.failures,
-        "bonus_mean": float(np.mean(st.bonus_means)) if st.bonus_means else 0.0,
-        "rejects_total": rejects_total,
-        "contended_updates": st.contended_updates,
-        "eval_rows_seen": st.evaluations.reported_rows,
-        "cuts": st.cuts,
-        "cut_ms_mean": 1e3 * st.cut_s / st.cuts if st.cuts else 0.0,
-        "cut_bytes": st.cut_bytes,
-        **spent,
-        **st.learner.stats(),
-    }
 
 
 def open_error(config: TrainConfig, actors: int) -> str | None:
@@ -223,39 +155,33 @@ def new_run(
     counter: str | None = None,
     folder: Path | None = None,
     incarnation: str = "",
-    member: int = -1,
+    grouped: bool = False,
 ) -> LearnerRun:
     """A run's state as it starts: an empty replay buffer (no larger than the run),
     the sampler seeded from the run's seed, nothing received, each actor's share of
-    the episodes. `pubs` are the run's publishers: weights, eval, ack."""
+    the episodes. `pubs` are the run's publishers: weights, eval, ack (a `grouped`
+    run's actor acts by request: no weights go to it)."""
+    shares = {
+        a: episode_share(config.episodes, len(actors), r) * config.episode_len
+        for r, a in enumerate(actors)
+    }
+    capacity = min(config.buffer_size, config.episodes * config.episode_len)
     return LearnerRun(
         run=run,
         config=config,
         spec=spec,
-        learner=learner,
-        buffer=ReplayBuffer(
-            min(config.buffer_size, config.episodes * config.episode_len),
-            spec.joint_obs_dim,
-            spec.joint_act_dim,
-        ),
-        rng=np.random.default_rng(derive_seed(config.seed, "sampler")),
         actors=actors,
         counter=counter,
+        learner=learner,
         bonus=bonus,
         evaluations=evaluations,
-        weights_pub=pubs["weights"],
-        eval_pub=pubs["eval"],
-        ack_pub=pubs["ack"],
-        received=ReceiveCursor(actors=actors, partial=False),
-        counted=AckTracker(actors),
-        held={a: collections.deque() for a in actors},
-        minibatches_per_update=minibatches_per_update(config),
-        folder=folder,
-        shares={
-            a: episode_share(config.episodes, len(actors), r) * config.episode_len
-            for r, a in enumerate(actors)
-        },
-        incarnation=incarnation,
-        lockstep=config.interleave == "lockstep",
-        member=member,
+        intake=Intake.open(capacity, spec.joint_obs_dim, spec.joint_act_dim, shares),
+        sampling=Sampling(
+            rng=np.random.default_rng(derive_seed(config.seed, "sampler")),
+            per_update=minibatches_per_update(config),
+        ),
+        outgoing=Outgoing(
+            pubs["weights"], pubs["eval"], pubs["ack"], incarnation, to_actors=not grouped
+        ),
+        cuts=Cuts(folder),
     )

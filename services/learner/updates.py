@@ -2,98 +2,112 @@
 `learning_starts`, each on minibatches sampled from the run's replay and priced by its
 `BonusClient` at sample time.
 
-`update_run` does a tick's updates for a run served alone, `update_group` one update
-of every run of a lockstep group (one `GroupMADDPG` call). Minibatches drawn for a
-query the counter did not answer are kept and priced again, never redrawn, so the
+`Sampling` is a run's sampling state (the sampler's RNG, minibatches drawn and not yet
+priced, what the bonuses were) and this module its one writer. `update` does a tick's
+updates of the runs served, a run alone or a lockstep group's (one learner call per
+update for every run: a run alone's learner is a group of one). Minibatches drawn for
+a query the counter did not answer are kept and priced again, never redrawn, so the
 sampler's stream is the one per-update sampling gives. No bus here beyond the bonus
 client's query.
 """
 
 from __future__ import annotations
 
+import collections
 import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from services.learner.state import LearnerRun, LockstepGroup
+from shared.core.exploration import BonusDiagnostics
 from shared.core.replay import update_arrays
 
+if TYPE_CHECKING:
+    from services.learner.state import LearnerRun, RunGroup
+
 UPDATES_PER_TICK = 20  # bound on work between inbox checks; one bonus query each
+
+
+@dataclass
+class Sampling:
+    """A run's minibatches: drawn with `rng`, priced, learnt from."""
+
+    rng: np.random.Generator
+    per_update: int = 1  # minibatches per update: 1, or one per agent (`minibatch: per-agent`)
+    unpriced: list = field(default_factory=list)  # drawn, bonus query unanswered
+    contended_updates: int = 0
+    bonus_means: collections.deque[float] = field(
+        default_factory=lambda: collections.deque(maxlen=100)
+    )
+    diagnostics: BonusDiagnostics = field(default_factory=BonusDiagnostics)
+
+    def load_rng(self, state: dict[str, Any]) -> None:
+        """The sampler where a cut left it."""
+        self.rng.bit_generator.state = state
+
+    def learnt(self, bonuses: list[np.ndarray], counts: list | None) -> None:
+        """What the bonuses of minibatches learnt from were (the stats and diagnostics)."""
+        for j, bonus in enumerate(bonuses):
+            self.bonus_means.append(float(bonus.mean()))
+            self.diagnostics.record(bonus, counts[j] if counts is not None else [])
 
 
 def updates_due(st: LearnerRun) -> int:
     """This tick's updates: what the replay ratio owes, at most UPDATES_PER_TICK, and
     never past the next episode boundary (its weights go out first)."""
     todo = min(st.owed_total - st.learner.updates, UPDATES_PER_TICK)
-    if st.boundaries:
-        todo = min(todo, max(0, st.boundaries[0].updates - st.learner.updates))
+    if st.intake.boundaries:
+        todo = min(todo, max(0, st.intake.boundaries[0].updates - st.learner.updates))
     return todo
 
 
-def update_run(st: LearnerRun, todo: int) -> int:
-    """Up to `todo` updates of a run served alone, their minibatches priced in one
-    bonus query; the number done (0 while the counter is silent)."""
-    spent, per = st.time, st.minibatches_per_update  # 1, or one per agent
+def update(g: RunGroup, members: list[LearnerRun], todo: int) -> int:
+    """Up to `todo` updates of the runs served (a run alone, or every run of a group
+    with one learner call per update), each run's minibatches priced in one bonus query
+    (a group's queries sent at once, so their round trips overlap); the number done (0
+    while a counter is silent: the same minibatches wait for its answer, so the
+    sampler's streams stay the ones per-update sampling gives)."""
     t0 = time.perf_counter()
-    if st.unpriced:  # drawn before the counter fell silent: priced now, not redrawn
-        batches, st.unpriced = st.unpriced, []
-    else:
-        batches = [st.buffer.sample(st.config.batch_size, st.rng) for _ in range(todo * per)]
-    spent["sample"] += time.perf_counter() - t0
-    st.bonus.fresh = False
-    bonuses = st.bonus.bonus_for(batches) if batches else []
-    if bonuses is None:
-        # The counter is silent (paused, restarting): the same minibatches wait for
-        # its answer, so the sampler's stream stays the one per-update sampling gives.
-        st.unpriced = batches
-        return 0
-    t0 = time.perf_counter()
-    evaluating = st.evaluations.busy
-    counts = st.bonus.counts if len(st.bonus.counts) == len(bonuses) else None
-    done = len(batches) // per
-    for u in range(done):
-        mine = slice(u * per, (u + 1) * per)
-        # Counted here for every kind of learner; a tuned one polls the same signal
-        # for its tuners and its own count (in its stats(), which take precedence).
-        contended = evaluating()
-        st.contended_updates += contended
-        st.learner.update(*update_arrays(batches[mine], bonuses[mine]))
-        for j in range(mine.start, mine.stop):
-            st.bonus_means.append(float(bonuses[j].mean()))
-            st.diagnostics.record(bonuses[j], counts[j] if counts is not None else [])
-    spent["update"] += time.perf_counter() - t0
-    return done
-
-
-def update_group(g: LockstepGroup, members: list[LearnerRun]) -> bool:
-    """One update of every run of the group; False if a bonus query went
-    unanswered (the same minibatches wait for the counter, as a run's do)."""
-    t0 = time.perf_counter()
-    batch = members[0].config.batch_size
-    drawn = g.unpriced or [
-        [st.buffer.sample(batch, st.rng) for _ in range(st.minibatches_per_update)]
-        for st in members
-    ]
-    t1 = time.perf_counter()
+    drawn = [st.sampling.unpriced for st in members]
+    if not any(drawn):  # else drawn before a counter fell silent: priced now, not redrawn
+        drawn = [
+            [st.intake.buffer.sample(st.config.batch_size, st.sampling.rng) for _ in range(n)]
+            for st in members
+            for n in [todo * st.sampling.per_update]
+        ]
     for st in members:
+        st.sampling.unpriced = []
         st.bonus.fresh = False
+    t1 = time.perf_counter()
+    if not any(drawn):
+        return 0
     queries = [st.bonus.ask(batches) for st, batches in zip(members, drawn)]
     priced = []
     for st, query in zip(members, queries):
         bonuses = st.bonus.answer(query)
         if bonuses is None:
-            g.unpriced = drawn
-            return False
-        priced.append((bonuses, list(st.bonus.counts)))
-    g.unpriced = []
+            for m, batches in zip(members, drawn):
+                m.sampling.unpriced = batches
+            return 0
+        counts = st.bonus.counts
+        priced.append((bonuses, list(counts) if len(counts) == len(bonuses) else None))
     t2 = time.perf_counter()
-    parts = [update_arrays(b, p[0]) for b, p in zip(drawn, priced)]
-    g.learner.update(*[np.stack(cols) for cols in zip(*parts)])
+    per = members[0].sampling.per_update  # 1, or one per agent
+    done = len(drawn[0]) // per
+    for u in range(done):
+        mine = slice(u * per, (u + 1) * per)
+        parts = []
+        for st, batches, (bonuses, _) in zip(members, drawn, priced):
+            # Counted here for every kind of learner; a tuned one polls the same signal
+            # for its tuners and its own count (in its stats(), which take precedence).
+            st.sampling.contended_updates += st.evaluations.busy()
+            parts.append(update_arrays(batches[mine], bonuses[mine]))
+        g.learner.update(*[np.stack(cols) for cols in zip(*parts)])
+        for st, (bonuses, counts) in zip(members, priced):
+            st.sampling.learnt(bonuses[mine], counts[mine] if counts is not None else None)
     spent = time.perf_counter() - t2
-    for st, (bonuses, counts) in zip(members, priced):
-        st.time["sample"] += (t1 - t0) / len(members)
-        st.time["update"] += spent / len(members)
-        for j, bonus in enumerate(bonuses):
-            st.bonus_means.append(float(bonus.mean()))
-            st.diagnostics.record(bonus, counts[j] if len(counts) == len(bonuses) else [])
-    return True
+    for st in members:
+        st.time.add("sample", (t1 - t0) / len(members))
+        st.time.add("update", spent / len(members))
+    return done

@@ -2,7 +2,12 @@
 
 * reference.py: `MADDPG`, one plain PyTorch update per agent (the definition);
 * batched.py: `BatchedMADDPG`, the same update with all agents in stacked products
-  (layers.py) and its minibatch optionally split over threads (lanes.py);
+  (layers.py, the update itself in `StackedMADDPG`) and its minibatch optionally split
+  over threads (lanes.py);
+* group.py: `GroupMADDPG`, R runs' batched updates as one (the same `StackedMADDPG`
+  over R x N stack entries);
+* runs.py: `RunsLearner`, what the trainer needs of R runs' learners, and `SoloRuns`,
+  any one `Learner` as a group of one;
 * tuning.py: `TunedMADDPG`, a `BatchedMADDPG` whose threads a tuner picks per block
   of updates (`learner_lanes: auto`);
 * checkpoint.py: the batched storage in the reference's checkpoint format;
@@ -24,6 +29,7 @@ from shared.core.learners.batched import BatchedMADDPG
 from shared.core.learners.lanes import Lanes, LaneTuner
 from shared.core.learners.precision import PRECISIONS
 from shared.core.learners.reference import MADDPG
+from shared.core.learners.runs import RunsLearner, SoloRuns
 from shared.core.learners.tuning import AUTO_MODES, TunedMADDPG
 
 __all__ = [
@@ -31,6 +37,8 @@ __all__ = [
     "AUTO_MODES",
     "MADDPG",
     "PRECISIONS",
+    "RunsLearner",
+    "SoloRuns",
     "AgentDims",
     "BatchedMADDPG",
     "LaneTuner",

@@ -42,10 +42,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+import shared.core.learners.fused as fused_kernel
 from shared.core.joint import offsets
-from shared.core.learners import checkpoint
-from shared.core.learners import fused as fused_kernel
 from shared.core.learners.base import AgentDims, LearnerSpec, check_agents, denormals_flushed
+from shared.core.learners.checkpoint import actor_state, export_state, import_state
 from shared.core.learners.lanes import Lanes
 from shared.core.learners.layers import Stack, mlp_backward, mlp_forward
 from shared.core.learners.precision import DTYPES, resolve, resolve_device
@@ -54,17 +54,16 @@ if TYPE_CHECKING:  # annotations only
     from shared.core.learners.reference import MADDPG
 
 
-class BatchedMADDPG:
-    """Drop-in for the reference `MADDPG`: same constructor, results and checkpoints.
+class StackedMADDPG:
+    """The batched MADDPG update over stacks of networks, in a layout its subclass gives.
 
-    The per-agent methods of the reference (`target_q(i, ...)`, `critic_step(i, ...)`,
-    `actor_step(i, ...)`) are here for all agents at once and return (N, ...) tensors.
-    `lanes` row blocks of each minibatch run in that many threads (`update`); a tuner
-    may run an update on one of them instead (`update_on`, see tuning.py). `precision`
-    is what the matrix products run in, fp32 or bf16 (`self.precision` says what they
-    run in here: fp32 on a CPU without native bf16). `fused` (bf16 only): None runs the
-    master-weight work in fused.py's kernel where it builds, True insists on it (an error
-    if it cannot be built), False keeps torch's ops; the results are the same.
+    Everything an update computes lives here: the stacks and their initial weights,
+    Adam over the stacked tensors, the targets, the critic and actor steps (in lanes or
+    not), the soft update and the bf16 copies. How a batch maps onto the stack entries
+    (`_per_agent`, `_joint_act`, `_critic_input`, `_target_q`) and which tensors the
+    elementwise kernels take whole (`_parts`) is the layout: one run's N agents here and
+    in `BatchedMADDPG`, R runs' R x N in `GroupMADDPG` (group.py). What a caller holds
+    (acting, the per-run or per-learner state) is each subclass's own.
     """
 
     def __init__(
@@ -264,8 +263,7 @@ class BatchedMADDPG:
                     init(stack, i, ins[i], outs[i])
 
     # ------------------------------------------------------------------ acting
-    @staticmethod
-    def _per_agent(joint: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    def _per_agent(self, joint: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """(B, joint) -> (N, B, pad): each agent's block, zero-padded. From one minibatch
         per agent, (N, B, joint), agent i's block of batch i."""
         padded = torch.nn.functional.pad(joint, (0, 1))
@@ -282,14 +280,6 @@ class BatchedMADDPG:
     def _squash(self, out: torch.Tensor) -> torch.Tensor:
         """The actor's tanh output rescaled into each agent's box [low, high]."""
         return torch.addcmul(self.center, self.scale, out)
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        """Deterministic joint actions for joint observations (B, joint_obs) -> (B, joint_act)."""
-        o = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-        lead = o.shape[:-1]
-        o_pad = self._per_agent(o.reshape(-1, self.joint_obs), self._obs_idx)
-        mu = self._squash(torch.tanh(mlp_forward(self.actor.params, o_pad)[-1]))
-        return self._joint_act(mu).reshape(*lead, self.joint_act).cpu().numpy()
 
     # ----------------------------------------------------------------- learning
     def tensors(self, *arrays: np.ndarray) -> list[torch.Tensor]:
@@ -515,21 +505,6 @@ class BatchedMADDPG:
             maximize=False,
         )
 
-    def update(
-        self,
-        obs: np.ndarray,
-        act: np.ndarray,
-        rew: np.ndarray,
-        next_obs: np.ndarray,
-        done: np.ndarray,
-    ) -> dict[str, float]:
-        """One critic and one actor step for every agent, then soft target updates, on
-        all of this learner's lanes.
-
-        rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
-        """
-        return self.update_on(self.lanes.n, obs, act, rew, next_obs, done)
-
     def update_on(
         self,
         lanes: int,
@@ -639,14 +614,51 @@ class BatchedMADDPG:
         )
         self._current.difference_update((id(actor.targets), id(critic.targets)))
 
+
+class BatchedMADDPG(StackedMADDPG):
+    """Drop-in for the reference `MADDPG`: same constructor, results and checkpoints.
+
+    The per-agent methods of the reference (`target_q(i, ...)`, `critic_step(i, ...)`,
+    `actor_step(i, ...)`) are here for all agents at once and return (N, ...) tensors.
+    `lanes` row blocks of each minibatch run in that many threads (`update`); a tuner
+    may run an update on one of them instead (`update_on`, see tuning.py). `precision`
+    is what the matrix products run in, fp32 or bf16 (`self.precision` says what they
+    run in here: fp32 on a CPU without native bf16). `fused` (bf16 only): None runs the
+    master-weight work in fused.py's kernel where it builds, True insists on it (an error
+    if it cannot be built), False keeps torch's ops; the results are the same.
+    """
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Deterministic joint actions for joint observations (B, joint_obs) -> (B, joint_act)."""
+        o = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+        lead = o.shape[:-1]
+        o_pad = self._per_agent(o.reshape(-1, self.joint_obs), self._obs_idx)
+        mu = self._squash(torch.tanh(mlp_forward(self.actor.params, o_pad)[-1]))
+        return self._joint_act(mu).reshape(*lead, self.joint_act).cpu().numpy()
+
+    def update(
+        self,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: np.ndarray,
+        next_obs: np.ndarray,
+        done: np.ndarray,
+    ) -> dict[str, float]:
+        """One critic and one actor step for every agent, then soft target updates, on
+        all of this learner's lanes.
+
+        rew is (B, N): the extrinsic reward plus agent i's bonus in column i.
+        """
+        return self.update_on(self.lanes.n, obs, act, rew, next_obs, done)
+
     # ----------------------------------------------------------------- state
     def state_dict(self) -> dict:
         """The reference's format, tensors and primitives only: loads with
         torch.load(weights_only=True) into either MADDPG or BatchedMADDPG."""
-        return checkpoint.export_state(self)
+        return export_state(self)
 
     def load_state_dict(self, state: dict) -> None:
-        checkpoint.import_state(self, state)
+        import_state(self, state)
         self.weights_changed()
 
     @classmethod
@@ -658,7 +670,7 @@ class BatchedMADDPG:
 
     def actor_weights(self) -> list[dict[str, torch.Tensor]]:
         """Per agent, a state dict for shared.core.networks.Actor (fresh tensors, safe to ship)."""
-        return [checkpoint.actor_state(self, self.actor.params, i) for i in range(self.n)]
+        return [actor_state(self, self.actor.params, i) for i in range(self.n)]
 
     def load_actor_weights(self, weights: Sequence[dict[str, Any]]) -> None:
         for i, sd in enumerate(weights):

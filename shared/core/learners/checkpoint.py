@@ -12,18 +12,33 @@ never produces (load_optim refuses them).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 
+from shared.core.learners.base import AgentDims, LearnerSpec
 from shared.core.learners.layers import Stack
 
-if TYPE_CHECKING:  # annotations only
-    from shared.core.learners.batched import BatchedMADDPG
+
+class StackedState(Protocol):
+    """What the checkpoint functions read and write of a batched learner (its stacks,
+    constants, optimizers and counter): named here so that this module does not import
+    the learner that imports it."""
+
+    agents: list[AgentDims]
+    spec: LearnerSpec
+    n: int
+    updates: int
+    scale: torch.Tensor
+    center: torch.Tensor
+    actor: Stack
+    critic: Stack
+    actor_optim: torch.optim.Adam
+    critic_optim: torch.optim.Adam
 
 
 def actor_state(
-    learner: BatchedMADDPG, tensors: Sequence[torch.Tensor], i: int
+    learner: StackedState, tensors: Sequence[torch.Tensor], i: int
 ) -> dict[str, torch.Tensor]:
     """Agent i's actor in shared.core.networks.Actor's state_dict layout (fresh tensors), from
     the learner's actor params or targets."""
@@ -79,7 +94,7 @@ def load_optim(optim: torch.optim.Adam, stack: Stack, sds: Sequence[dict]) -> No
             optim.state[p][k] = m
 
 
-def export_state(learner: BatchedMADDPG) -> dict:
+def export_state(learner: StackedState) -> dict:
     """The learner's state in the reference's format, tensors and primitives only: loads
     with torch.load(weights_only=True) into either MADDPG or BatchedMADDPG."""
     n = range(learner.n)
@@ -109,7 +124,7 @@ def _on_cpu(tree):
     return tree
 
 
-def import_state(learner: BatchedMADDPG, state: dict) -> None:
+def import_state(learner: StackedState, state: dict) -> None:
     """Load a checkpoint written by either learner (same algo and number of agents)."""
     if state["algo"] != learner.spec.algo:
         raise ValueError(f"checkpoint is for {state['algo']}, learner is {learner.spec.algo}")

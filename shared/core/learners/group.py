@@ -1,15 +1,15 @@
 """R runs of one task and network shape in one learner: a figure's seeds and arms
 updated by one call.
 
-`GroupMADDPG` is `BatchedMADDPG` with a run axis: its stacks hold R x N networks (run
-r's agent i at entry r * N + i), so one layer of every agent of every run is one
-`baddbmm`, one Adam pass steps every run's weights, one `lerp` soft-updates every
-target. Each run keeps its own initial weights (its own `LearnerSpec` seed), its own
-Adam moments (elementwise, so stacking them changes nothing), and reads only its own
-batch: run r's critics read run r's joint rows, never another run's. The products are
-per stack entry and independent of how many entries there are, so run r's update is
-the one `BatchedMADDPG` alone does on the same batch (tests/test_group_learner.py,
-bit for bit in fp32 and in bf16).
+`GroupMADDPG` is the batched update (`StackedMADDPG`, batched.py) with a run axis: its
+stacks hold R x N networks (run r's agent i at entry r * N + i), so one layer of every
+agent of every run is one `baddbmm`, one Adam pass steps every run's weights, one `lerp`
+soft-updates every target. Each run keeps its own initial weights (its own `LearnerSpec`
+seed), its own Adam moments (elementwise, so stacking them changes nothing), and reads
+only its own batch: run r's critics read run r's joint rows, never another run's. The
+products are per stack entry and independent of how many entries there are, so run r's
+update is the one `BatchedMADDPG` alone does on the same batch
+(tests/test_group_learner.py, bit for bit in fp32 and in bf16).
 
 Inputs carry the run axis first: obs (R, B, joint) with one minibatch per run shared
 by its agents, or (R, N, B, joint) with one per agent (`minibatch: per-agent`); rew
@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from shared.core.learners.base import AgentDims, LearnerSpec
-from shared.core.learners.batched import BatchedMADDPG
+from shared.core.learners.batched import BatchedMADDPG, StackedMADDPG
 from shared.core.learners.layers import Stack, mlp_forward
 
 #: LearnerSpec fields every run of a group must share.
@@ -37,8 +37,10 @@ VECTOR_SPAN = 64
 SHARED_FIELDS = ("algo", "hidden", "lr_actor", "lr_critic", "gamma", "tau", "flush_denormals")
 
 
-class GroupMADDPG(BatchedMADDPG):
-    """R runs' learners as one (see the module docstring); lanes are not used."""
+class GroupMADDPG(StackedMADDPG):
+    """R runs' learners as one (see the module docstring); lanes are not used. A run's
+    own learner, state and actors are `BatchedMADDPG`'s (`run_learner`, `run_state_dict`,
+    `run_actor_weights`): the group holds no state of its own to save."""
 
     def __init__(
         self,
@@ -119,7 +121,7 @@ class GroupMADDPG(BatchedMADDPG):
         return Stack(n * runs, sizes, ins, outs)
 
     # ------------------------------------------------------------- layout
-    def _per_agent(self, joint: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def _per_agent(self, joint: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """Each entry's agent block, zero-padded, (R*N, rows, pad): in an update on one
         minibatch per entry, of (R*N, rows, joint), else of (R, rows, joint) per run."""
         if self._per_entry:
@@ -170,7 +172,13 @@ class GroupMADDPG(BatchedMADDPG):
         return self._joint_act(mu).reshape(self.runs, *lead, self.joint_act).cpu().numpy()
 
     # ------------------------------------------------------------- learning
-    def _target_q(self, weights, rew, next_obs, done):  # type: ignore[override]
+    def _target_q(
+        self,
+        weights: tuple[list[torch.Tensor], list[torch.Tensor]],
+        rew: torch.Tensor,
+        next_obs: torch.Tensor,
+        done: torch.Tensor,
+    ) -> torch.Tensor:
         actor, critic = weights
         r, n = self.runs, self.n
         gamma = self.spec.gamma
@@ -200,7 +208,14 @@ class GroupMADDPG(BatchedMADDPG):
         not_done = (1.0 - done.reshape(r, 1, rows)).expand(r, n, rows).reshape(r * n, rows)
         return y_rew + gamma * not_done * q
 
-    def update(self, obs, act, rew, next_obs, done) -> dict[str, float]:  # type: ignore[override]
+    def update(
+        self,
+        obs: np.ndarray,
+        act: np.ndarray,
+        rew: np.ndarray,
+        next_obs: np.ndarray,
+        done: np.ndarray,
+    ) -> dict[str, float]:
         """One critic and one actor step for every agent of every run, then the soft
         updates: run r's from its own batch (shapes in the module docstring)."""
         obs = np.asarray(obs)
@@ -311,11 +326,7 @@ class GroupMADDPG(BatchedMADDPG):
         self.updates = updates.pop()
         self.weights_changed()
 
-    def state_dict(self) -> dict:  # type: ignore[override]
+    def state_dict(self) -> dict:
+        """Refused with the per-run method's name, for a caller that takes a group for
+        one learner (a group's state is its runs' states)."""
         raise TypeError("a group has one state per run: run_state_dict(run)")
-
-    def load_state_dict(self, state: dict) -> None:  # type: ignore[override]
-        raise TypeError("a group loads one state per run: load_run_state_dicts(states)")
-
-    def actor_weights(self):  # type: ignore[override]
-        raise TypeError("a group's actors are per run: run_learner(run).actor_weights()")

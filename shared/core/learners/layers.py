@@ -47,7 +47,15 @@ def linear_grad_weight(
     grad: torch.Tensor, x: torch.Tensor, dtype: torch.dtype | None = None
 ) -> torch.Tensor:
     """dL/dW = grad^T x: grad (N, B, out), x (N, B, in) -> (N, out, in), contiguous, in
-    `dtype` (default the inputs'; a bf16 product's gradient goes to fp32 master weights)."""
+    `dtype` (default the inputs'; a bf16 product's gradient goes to fp32 master weights).
+
+    A stack of one network with one output (DDPG's critic head) goes through the batched
+    kernel as a stack of two, as in `linear_forward`: alone, grad^T is one row and some
+    CPUs (AVX-512 Xeons) take a vector path that sums the batch in another order."""
+    if grad.shape[0] == 1 and grad.shape[2] == 1:
+        two = (2, -1, -1)
+        out = torch.bmm(grad.expand(two).mT, x.expand(two))[:1]
+        return out if dtype is None else out.to(dtype)
     if x.shape[2] < grad.shape[2] and x.dtype != torch.bfloat16:  # narrow input (MKL)
         out = torch.bmm(x.mT, grad).mT.contiguous()  # (x^T grad)^T is faster
     else:
