@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test test-slow test-compose soak lint bench clean
+.PHONY: setup run test test-slow test-compose test-slurm soak lint bench clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH"; exit 1; }
@@ -31,7 +31,7 @@ test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q -rs -m "not slow and not soak"
+	$(BIN)/python -m pytest -q -rs -m "not slow and not soak and not slurm"
 
 # The long checks: learning (DDPG learns sparse simple; bf16 learns like fp32; the
 # cluster learns like the trainer), the fault matrix, `macb reproduce` end to end:
@@ -51,6 +51,13 @@ soak: $(STAMP)
 # cluster on the host network's loopback, removes its containers and volumes.
 test-compose: $(STAMP)
 	MACB_COMPOSE_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m compose tests/test_compose.py
+
+# `macb reproduce --local --launcher slurm` on a real Slurm (tests/test_slurm.py): installs
+# Debian's munge and slurm-wlm when missing (as root; else it skips, saying why), starts
+# munged, slurmctld and slurmd with a one-node slurm.conf in a temp folder (ports, socket
+# and key of their own: tests/slurm_node.py) and stops them after: 4-6 minutes here.
+test-slurm: $(STAMP)
+	MACB_SLURM_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m slurm tests/test_slurm.py
 
 # mypy checks shared/, services/ and cli/ (pyproject.toml's [tool.mypy]): zero errors.
 lint: $(STAMP)

@@ -141,20 +141,7 @@ def run_groups(
         )
     if conflicts:
         return 2
-    states = [run_state(out / r.name, r.config) for r in runs]
-    todo = [i for i, s in enumerate(states) if s != "done"]
-    if len(todo) < len(runs):
-        print(f"{len(runs) - len(todo)} of {len(runs)} runs complete, skipped", file=sys.stderr)
-    by_state: dict[str, list[int]] = {}
-    for i in todo:
-        by_state.setdefault(states[i], []).append(i)
-    from shared.groups import form_groups
-
-    groups = []
-    for state, idx in by_state.items():
-        for g in form_groups([runs[i].config for i in idx]):
-            size = max_runs or -(-len(g) // jobs)
-            groups += [(state, [idx[j] for j in g[k : k + size]]) for k in range(0, len(g), size)]
+    groups = plan_groups(runs, out, max_runs, jobs)
     tasks = []
     for n, (state, members) in enumerate(groups, 1):
         chosen = [runs[i] for i in members]
@@ -183,6 +170,29 @@ def run_groups(
     for err in failed:
         print(err, file=sys.stderr)
     return 2 if failed else 0
+
+
+def plan_groups(
+    runs: list[LocalRun], out: Path, max_runs: int | None = None, jobs: int = 1
+) -> list[tuple[str, list[int]]]:
+    """The groups `run_groups` trains (and `--launcher slurm` submits, one task each):
+    (the state they start from, 'new' or 'cut-<episode>'; the indices in `runs` of
+    their members). Complete runs are left out, and said so."""
+    states = [run_state(out / r.name, r.config) for r in runs]
+    todo = [i for i, s in enumerate(states) if s != "done"]
+    if len(todo) < len(runs):
+        print(f"{len(runs) - len(todo)} of {len(runs)} runs complete, skipped", file=sys.stderr)
+    by_state: dict[str, list[int]] = {}
+    for i in todo:
+        by_state.setdefault(states[i], []).append(i)
+    from shared.groups import form_groups
+
+    groups = []
+    for state, idx in by_state.items():
+        for g in form_groups([runs[i].config for i in idx]):
+            size = max_runs or -(-len(g) // jobs)
+            groups += [(state, [idx[j] for j in g[k : k + size]]) for k in range(0, len(g), size)]
+    return groups
 
 
 def _train_group_job(

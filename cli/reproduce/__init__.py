@@ -8,6 +8,8 @@ each part does:
 - controls.py: each counting arm against its control, and why (count-1, bonus paid);
 - render.py, plot.py: the page (FIGURE.md, .csv, -claims.json) and FIGURE.png;
 - status.py: how far a `--local` campaign got, read from its runs' folders;
+- page.py: a `--local` campaign's page from its runs' folders;
+- slurm.py: `--local --launcher slurm`, the run groups as the tasks of a Slurm array job;
 - command.py, session.py: the command, in this process or through the API.
 """
 

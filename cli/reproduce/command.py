@@ -22,6 +22,7 @@ from cli.local import add_group_flags, group_flag_error
 from cli.reproduce.defs import FigureDef
 from cli.reproduce.experiments import experiment_body, experiment_name, file_seeds, select_arms
 from cli.reproduce.figures import FIGURES, PROFILES
+from cli.reproduce.page import write_page
 from cli.reproduce.session import Session, answers_at, with_local_cluster
 from shared.persist.files import data_dir_help
 from shared.settings import settings
@@ -39,7 +40,13 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "the runs that did not complete run again.",
         formatter_class=HelpFormatter,
     )
-    rp.add_argument("figure", metavar="FIGURE", choices=list(FIGURES), help=", ".join(FIGURES))
+    rp.add_argument(
+        "figure",
+        metavar="FIGURE",
+        choices=[*FIGURES, "all"],
+        help=", ".join(FIGURES) + "; or all (with --local --launcher slurm: every figure's "
+        "groups in one submission, each in OUT/FIGURE-PROFILE, OUT default runs/reproduce)",
+    )
     rp.add_argument(
         "--seeds", type=int, nargs="+", metavar="SEED", help="default: the files' (0 1 2)"
     )
@@ -125,6 +132,37 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "--local reproduce stores in OUT/runs/ (or --runs; give the same --profile, "
         "--arms, --episodes as the run). Reads the folders only: safe while it trains",
     )
+    rp.add_argument(
+        "--launcher",
+        choices=("local", "slurm"),
+        default="local",
+        help="--local: where the run groups train: in this process tree (local) or as the "
+        "tasks of one Slurm array job, one group each, writing to the runs folder on a "
+        "filesystem the nodes share (slurm; followed to the end unless --detach, the same "
+        "command again reports, submits again what ended unfinished, and builds the page "
+        "when all are complete: docs/deploy.md, 'On a Slurm cluster')",
+    )
+    slurm = rp.add_argument_group("--launcher slurm")
+    slurm.add_argument("--partition", help="the tasks' partition (sbatch --partition)")
+    slurm.add_argument("--time", metavar="LIMIT", help="each task's time limit (sbatch --time)")
+    slurm.add_argument("--account", help="the account charged (sbatch --account)")
+    slurm.add_argument(
+        "--sbatch-args",
+        metavar="ARGS",
+        help="more sbatch arguments, as one string (e.g. '--qos=long --mem=4G')",
+    )
+    slurm.add_argument(
+        "--detach",
+        action="store_true",
+        help="submit and return at once; the same command later says where each group stands",
+    )
+    rp.add_argument(
+        "--group-runs",
+        nargs="+",
+        metavar="RUN",
+        help="--local: train only these runs (their folder names) as one group and write no "
+        "page: the command each Slurm task runs; run again, it resumes them from their cuts",
+    )
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     rp.add_argument("--quiet-services", action="store_true", help="service logs to files only")
     rp.set_defaults(func=cmd_reproduce)
@@ -134,30 +172,23 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from services.api.client import DEFAULT_URL, ApiClient
-    from services.api.schemas import ExperimentCreate
 
-    fig = FIGURES[args.figure]
     if args.episodes is not None and args.episodes < 1:
         return _refuse(f"--episodes {args.episodes}: give a number of episodes >= 1")
     if args.slots < 1:
         return _refuse(f"--slots {args.slots}: give a number of runs at once >= 1")
     if error := group_flag_error(args, "--threads"):
         return _refuse(error)
+    if error := launcher_error(args):
+        return _refuse(error)
+    if args.figure == "all":
+        return reproduce_all(args)
+    fig = FIGURES[args.figure]
     try:
-        seeds = args.seeds or file_seeds(fig)
-        body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
-        if args.arms:
-            body = select_arms(fig, body, args.arms)
-        if args.threads is not None:
-            body["threads"] = args.threads
-        if not (args.local or args.report_only or args.status):  # groups: the thesis's loop
-            body["interleave"] = args.interleave
-        body["name"] = experiment_name(fig, body)
-        ExperimentCreate.model_validate(body)  # refused here, before any process starts
+        body = figure_body(fig, args)
     except (ValueError, OSError, ValidationError) as err:
         return _refuse(str(err))
-    suffix = f"-{args.precision}" if args.precision not in (None, "fp32") else ""
-    out = Path(args.out or f"runs/reproduce/{fig.name}-{args.profile}{suffix}")
+    out = Path(args.out or f"runs/reproduce/{out_name(fig, args)}")
     if args.status:
         from cli.local import expand_body
         from cli.reproduce.status import print_status
@@ -165,6 +196,11 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         _, _, runs = expand_body(body)
         runs_dir = Path(args.runs) if args.runs else out / "runs"
         return print_status(f"{fig.name}, profile {args.profile}", runs, runs_dir, fig.episodes)
+    if args.launcher == "slurm" and not (args.report_only or args.group_runs):
+        from cli.reproduce.slurm import campaign, reproduce_slurm
+
+        runs_at = Path(args.runs) if args.runs else None
+        return reproduce_slurm([campaign(fig, body, args.profile, out, runs_at)], args)
     if args.local or args.report_only:
         return reproduce_local(fig, body, args.profile, out, args)
     url = (args.api or _env_url() or DEFAULT_URL).rstrip("/")
@@ -184,23 +220,52 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     return with_local_cluster(args, url, fig, body, out)
 
 
-#: A figure's CSV over this size is written gzipped (FIGURE.csv.gz).
-CSV_GZIP_BYTES = 4 * 1024 * 1024
+def figure_body(fig: FigureDef, args: argparse.Namespace) -> dict[str, Any]:
+    """The experiment body of FIGURE under the flags (profile, seeds, episodes, arms,
+    precision, threads), validated as the API would: ValueError / ValidationError."""
+    from services.api.schemas import ExperimentCreate
+
+    seeds = args.seeds or file_seeds(fig)
+    body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
+    if args.arms:
+        body = select_arms(fig, body, args.arms)
+    if args.threads is not None:
+        body["threads"] = args.threads
+    if not (args.local or args.report_only or args.status):  # groups: the thesis's loop
+        body["interleave"] = args.interleave
+    body["name"] = experiment_name(fig, body)
+    ExperimentCreate.model_validate(body)  # refused here, before any process starts
+    return body
 
 
-def write_runs_record(exp: dict[str, Any], path: Path) -> Path:
-    """Every run of a local reproduce: id, arm, seed, status, config and the provenance
-    of its latest start (code, machine, libraries, the precision as run)."""
-    import json
+def out_name(fig: FigureDef, args: argparse.Namespace) -> str:
+    """FIGURE-PROFILE (-bf16 in bf16): a figure's folder under runs/reproduce."""
+    suffix = f"-{args.precision}" if args.precision not in (None, "fp32") else ""
+    return f"{fig.name}-{args.profile}{suffix}"
 
-    keep = ("id", "arm", "seed", "status", "config")
-    runs = [
-        {**{k: r[k] for k in keep}, "provenance": (r.get("live") or {}).get("provenance")}
-        for r in exp["runs"]
-    ]
-    record = {"experiment": exp["name"], "wall_s": exp.get("wall_s"), "runs": runs}
-    path.write_text(json.dumps(record, indent=1) + "\n")
-    return path
+
+def reproduce_all(args: argparse.Namespace) -> int:
+    """`macb reproduce all --local --launcher slurm`: every figure's groups in one Slurm
+    submission, each figure in OUT/FIGURE-PROFILE (OUT: --out, default runs/reproduce),
+    each page built as its figure completes."""
+    from pydantic import ValidationError
+
+    from cli.reproduce.slurm import campaign, reproduce_slurm
+
+    if not (args.local and args.launcher == "slurm") or args.status or args.report_only:
+        return _refuse("all: give --local --launcher slurm (or name one figure)")
+    for flag in ("arms", "runs", "group_runs"):
+        if getattr(args, flag):
+            return _refuse(f"all: --{flag.replace('_', '-')} is for one figure")
+    parent = Path(args.out or "runs/reproduce")
+    campaigns = []
+    for fig in FIGURES.values():
+        try:
+            body = figure_body(fig, args)
+        except (ValueError, OSError, ValidationError) as err:
+            return _refuse(f"{fig.name}: {err}")
+        campaigns.append(campaign(fig, body, args.profile, parent / out_name(fig, args), None))
+    return reproduce_slurm(campaigns, args, parent.resolve() / ".slurm")
 
 
 def reproduce_local(
@@ -208,12 +273,16 @@ def reproduce_local(
 ) -> int:
     """The figure's runs as run groups in this process (or, with --report-only, none),
     then the report from the runs' folders."""
-    from cli.local import expand_body, local_experiment, local_points, run_groups
-    from cli.reproduce.analysis import analyse, claim_verdicts, columns
-    from cli.reproduce.render import write_report
+    from cli.local import expand_body, run_groups
 
-    name, seeds, runs = expand_body(body)
+    _, _, runs = expand_body(body)
     runs_dir = Path(args.runs) if args.runs else out / "runs"
+    if args.group_runs:  # one group of the figure (a Slurm task's): no page
+        chosen = [r for r in runs if r.name in set(args.group_runs)]
+        unknown = sorted(set(args.group_runs) - {r.name for r in chosen})
+        if unknown:
+            return _refuse(f"--group-runs: no run {', '.join(unknown)} in this figure's runs")
+        return run_groups(chosen, runs_dir, len(chosen), args.quiet, jobs=1)
     code = 0
     if not args.report_only:
         t0 = time.monotonic()
@@ -221,32 +290,23 @@ def reproduce_local(
         print(f"trained in {time.monotonic() - t0:,.0f} s", file=sys.stderr)
     elif not runs_dir.exists():
         return _refuse(f"--report-only: no runs stored in {runs_dir}")
-    exp = local_experiment(name, seeds, runs, runs_dir)
-    points = {k: columns(v) for k, v in local_points(runs, runs_dir).items()}
-    analysis = analyse(fig, exp, points)
-    import shlex
+    page = write_page(fig, body, profile, out, runs_dir, not args.report_only)
+    return code or page
 
-    trained = "" if args.report_only else shlex.join(["macb", *sys.argv[1:]])
-    command = trained or f"macb reproduce {fig.name} --local --profile {profile}"
-    paths = write_report(analysis, points, profile, out, command)
-    paths.append(write_runs_record(exp, out / f"{fig.name}-runs.json"))
-    csv_path = out / f"{fig.name}.csv"
-    if csv_path.stat().st_size > CSV_GZIP_BYTES:  # a full-length figure's points
-        import gzip
-        import shutil
 
-        with csv_path.open("rb") as src, gzip.open(f"{csv_path}.gz", "wb") as dst:
-            shutil.copyfileobj(src, dst)
-        csv_path.unlink()
-        paths = [Path(f"{csv_path}.gz") if p == csv_path else p for p in paths]
-    verdicts = [v for *_, v in claim_verdicts(analysis)]
-    tally = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
-    counts = ", ".join(f"{v} {k}" for k, v in exp["counts"].items())
-    print(
-        f"{fig.name}: {counts}; claims: {tally}; wrote " + ", ".join(str(p) for p in paths),
-        file=sys.stderr,
-    )
-    return code or (0 if exp["status"] == "completed" else 1)
+def launcher_error(args: argparse.Namespace) -> str | None:
+    """Why the launcher flags do not fit together, or None."""
+    if args.launcher == "slurm" and not (args.local or args.report_only or args.status):
+        return "--launcher slurm: give --local (the figure's run groups are the Slurm tasks)"
+    if args.launcher != "slurm":
+        for flag in ("partition", "time", "account", "sbatch_args"):
+            if getattr(args, flag):
+                return f"--{flag.replace('_', '-')} is for --launcher slurm"
+        if args.detach:
+            return "--detach is for --launcher slurm"
+    if args.group_runs and not args.local:
+        return "--group-runs trains with --local"
+    return None
 
 
 def _refuse(msg: str) -> int:

@@ -1,0 +1,179 @@
+"""`macb reproduce --local --launcher slurm` on a real Slurm (`make test-slurm`): a
+one-node Slurm of Debian's slurm-wlm and munge started for these tests
+(tests/slurm_node.py), the figure's groups submitted as an array job, Slurm's own
+`scontrol requeue` and `scancel` on its tasks, and input refused before submission.
+
+Without Slurm installed the tests skip, saying why; `make test-slurm` sets
+MACB_SLURM_SETUP=1, which lets them install munge and slurm-wlm (as root).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests import slurm_node
+from tests.harness import macb, spawn, wait_for
+
+pytestmark = [pytest.mark.slurm, pytest.mark.timeout(900)]
+
+SETUP = os.environ.get("MACB_SLURM_SETUP") == "1"
+TIMING = ("steps_per_sec", "train_steps_per_sec", "wall_s")
+
+
+@pytest.fixture(scope="module")
+def node(tmp_path_factory) -> Iterator[slurm_node.Node]:
+    t0 = time.monotonic()
+    try:
+        n = slurm_node.start(tmp_path_factory.mktemp("slurm"), may_set_up=SETUP)
+    except slurm_node.Unavailable as err:
+        pytest.skip(f"no Slurm for these tests: {err}")
+    print(f"\none-node Slurm up in {time.monotonic() - t0:.1f} s ({n.env['SLURM_CONF']})")
+    try:
+        yield n
+    finally:
+        n.stop()
+
+
+def on(node: slurm_node.Node, *args: str, **env: str) -> subprocess.CompletedProcess:
+    """`macb ARGS` talking to this Slurm."""
+    return macb(*args, env={"SLURM_CONF": node.env["SLURM_CONF"], **env}, timeout=600)
+
+
+def table(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return [{k: v for k, v in r.items() if k not in TIMING} for r in csv.DictReader(f)]
+
+
+def rows(folder: Path) -> list[dict]:
+    lines = (folder / "metrics.jsonl").read_text().splitlines()
+    return [{k: v for k, v in json.loads(x).items() if k not in TIMING} for x in lines]
+
+
+def jobs(node: slurm_node.Node) -> list[str]:
+    got = node.run("squeue", "-h", "-r", "-t", "all", "-o", "%i")
+    assert got.returncode == 0, got.stderr
+    return sorted(got.stdout.split())
+
+
+def test_fig3_on_slurm_writes_the_csv_of_the_local_launcher(node, tmp_path):
+    fig3 = ["reproduce", "fig3", "--episodes", "6", "--local", "--quiet"]
+    got = on(node, *fig3, "--launcher", "slurm", "--out", str(tmp_path / "slurm"))
+    assert got.returncode == 0, got.stderr + node.logs()
+    assert "2 task(s)" in got.stderr and "33 completed" in got.stderr, got.stderr
+    record = json.loads((tmp_path / "slurm" / "runs" / ".slurm" / "jobs.json").read_text())
+    (sub,) = record["submissions"]
+    assert sorted(r for t in sub["tasks"] for r in t["runs"]) == sorted(
+        p.name for p in (tmp_path / "slurm" / "runs").iterdir() if not p.name.startswith(".")
+    )
+    for t in sub["tasks"]:  # each task ran on Slurm, its log in the runs folder
+        log = tmp_path / "slurm" / "runs" / ".slurm" / f"{sub['job']}_{t['index']}.log"
+        assert f"task {t['index']} on " in log.read_text()
+    local = on(node, *fig3, "--out", str(tmp_path / "local"))
+    assert local.returncode == 0, local.stderr
+    assert table(tmp_path / "slurm" / "fig3.csv") == table(tmp_path / "local" / "fig3.csv")
+    assert "--launcher slurm" in (tmp_path / "slurm" / "fig3.md").read_text()
+
+
+def test_a_requeued_task_resumes_from_its_cut_and_a_cancelled_one_is_named_then_completed(
+    node, tmp_path
+):
+    out = tmp_path / "slurm"
+    # Two runs (an arm and its control), two groups of one: two tasks side by side.
+    args = ["reproduce", "fig3", "--episodes", "80", "--seeds", "0", "--local", "--quiet",
+            "--arms", "beta=0.8", "CONSTANT beta=0.8*", "--jobs", "2"]  # fmt: skip
+    names = ["beta_0.8-s0", "constant_beta_0.8_control-s0"]
+    log = tmp_path / "follow.log"
+    proc = spawn(*args, "--launcher", "slurm", "--out", str(out), log=log, env=node.env)
+    try:
+        # Both runs past their first cut (each run cuts its first point), mid-run.
+        def cut_and_rows() -> bool:
+            return all(
+                list((out / "runs" / n / "cuts").glob("cut-*.pt"))
+                and len((out / "runs" / n / "metrics.jsonl").read_text().splitlines()) >= 3
+                for n in names
+            )
+
+        wait_for(cut_and_rows, timeout=240, interval=0.2, what="both runs past a cut")
+        (sub,) = json.loads((out / "runs" / ".slurm" / "jobs.json").read_text())["submissions"]
+        task = {t["runs"][0]: f"{sub['job']}_{t['index']}" for t in sub["tasks"]}
+        requeue = node.run("scontrol", "requeue", task[names[0]])
+        assert requeue.returncode == 0, requeue.stderr
+        cancel = node.run("scancel", task[names[1]])
+        assert cancel.returncode == 0, cancel.stderr
+        mid = [len(rows(out / "runs" / n)) for n in names]
+        assert max(mid) < 80, f"requeued too late to test anything: {mid}"
+        # Slurm holds a requeued batch job for two minutes (its begin time); let it go now.
+        wait_for(
+            lambda: node.run("scontrol", "update", f"JobId={task[names[0]]}", "StartTime=now")
+            .returncode == 0,
+            timeout=30, interval=0.5, what="the requeued task pending again",
+        )  # fmt: skip
+        assert proc.wait(timeout=400) == 1
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    followed = log.read_text()
+    first_log = (out / "runs" / ".slurm" / f"{task[names[0]]}.log").read_text()
+    assert "restart 1" in first_log and "resuming from cut-" in first_log, first_log
+    assert len(rows(out / "runs" / names[0])) == 80
+    # The cancelled group: reported incomplete, by name, with what Slurm says.
+    assert f"[job {task[names[1]]}]: incomplete (CANCELLED)" in followed, followed
+    assert f"runs: {names[1]}" in followed and "1 group(s) incomplete" in followed
+    assert not (out / "fig3.md").exists()
+    again = on(node, *args, "--launcher", "slurm", "--out", str(out))
+    assert again.returncode == 0, again.stderr
+    assert f"[job {task[names[1]]}]: incomplete (CANCELLED)" in again.stderr
+    assert "submitting its runs again" in again.stderr
+    assert "resumes from cut-" in again.stderr and "2 completed" in again.stderr, again.stderr
+    # Both runs' rows equal those of the same runs trained straight through, without Slurm.
+    straight = on(node, *args, "--out", str(tmp_path / "straight"))
+    assert straight.returncode == 0, straight.stderr
+    for n in names:
+        assert rows(out / "runs" / n) == rows(tmp_path / "straight" / "runs" / n), n
+
+
+@pytest.fixture
+def unwritable(tmp_path) -> Iterator[Path]:
+    """A folder this process cannot write in: read-only mounted for root (whom
+    permissions do not stop), mode 0555 for anyone else."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        yield folder
+        folder.chmod(0o755)
+        return
+    got = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(folder)],
+                         capture_output=True, text=True)  # fmt: skip
+    if got.returncode:
+        pytest.skip(f"cannot mount a read-only folder here: {got.stderr.strip()}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+def test_bad_input_is_refused_before_anything_is_submitted(node, tmp_path, unwritable):
+    before = jobs(node)
+    fig3 = ["reproduce", "fig3", "--episodes", "2", "--local", "--launcher", "slurm"]
+    cases = [
+        ({"PATH": "/nonexistent"}, [], "sbatch, squeue, sinfo not found on PATH"),
+        ({}, ["--partition", "gpu"], "--partition gpu: no such partition (sinfo lists: macbtest)"),
+        ({}, ["--runs", str(unwritable / "runs")],
+         f"the runs folder {unwritable / 'runs'} is not writable"),
+    ]  # fmt: skip
+    for i, (env, flags, message) in enumerate(cases):
+        out = tmp_path / f"out{i}"
+        got = on(node, *fig3, "--out", str(out), *flags, **env)
+        assert got.returncode == 2 and message in got.stderr, (flags, got.stderr)
+        assert not out.exists(), flags
+    assert jobs(node) == before

@@ -1,0 +1,245 @@
+"""`--launcher slurm`'s logic without a Slurm (tests/test_slurm.py runs it on a real
+one): the batch script, what squeue and sbatch print read back, where each group
+stands, the checks before anything is submitted, and each task's command naming the
+same runs as the user's."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from cli.reproduce import slurm
+from cli.reproduce.slurm import SlurmOptions, Task, TaskState
+
+
+@pytest.fixture(scope="module")
+def reproduce_parser() -> argparse.ArgumentParser:
+    saved = dict(os.environ)  # importing cli sets thread variables; keep them out
+    try:
+        from cli.main import build_parser
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    (sub,) = (a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices["reproduce"]
+
+
+def test_the_script_runs_each_task_s_own_command_with_its_words_intact(tmp_path):
+    tasks = [
+        Task("group 1/2", ("a-s0",), ("printf", "%s|", "one", "it's a b")),
+        Task("group 2/2", ("b-s0", "c-s0"), ("printf", "%s|", "two", "*", "$HOME")),
+    ]
+    opts = SlurmOptions("short", "02:00:00", "lab")
+    text = slurm.render_script("macb-fig3", tasks, tmp_path / "logs", tmp_path, 2, opts)
+    for line in ("--array=0-1", "--cpus-per-task=2", "--requeue", "--open-mode=append",
+                 "--partition=short", "--time=02:00:00", "--account=lab",
+                 f"--output={tmp_path}/logs/%A_%a.log"):  # fmt: skip
+        assert f"#SBATCH {line}\n" in text, line
+    script = tmp_path / "job.sh"
+    script.write_text(text)
+    for index, words in [("0", "one|it's a b|"), ("1", "two|*|$HOME|")]:
+        env = {"PATH": os.environ["PATH"], "SLURM_ARRAY_TASK_ID": index, "HOME": "/h"}
+        got = subprocess.run(["bash", str(script)], capture_output=True, text=True, env=env)
+        assert got.returncode == 0, got.stderr
+        assert got.stdout.splitlines()[-1] == words
+    env = {"PATH": os.environ["PATH"], "SLURM_ARRAY_TASK_ID": "7"}
+    assert subprocess.run(["bash", str(script)], env=env, capture_output=True).returncode == 2
+    bare = slurm.render_script("j", tasks[:1], tmp_path, tmp_path, 1, SlurmOptions())
+    assert "--partition" not in bare and "--time" not in bare and "--array=0-0" in bare
+
+
+def test_what_sbatch_and_squeue_print_is_read_back():
+    assert slurm.parse_job_id("4711\n") == "4711"
+    assert slurm.parse_job_id("4711;cluster2\n") == "4711"
+    with pytest.raises(ValueError, match="no job id"):
+        slurm.parse_job_id("sbatch: error: Batch job submission failed\n")
+    assert slurm.sbatch_argv(SlurmOptions(extra=("--qos=long", "--mem", "4G")), Path("s.sh")) == [
+        "sbatch", "--parsable", "--qos=long", "--mem", "4G", "s.sh",
+    ]  # fmt: skip
+    text = ("12_0|RUNNING|None|macb-fig3\n12_1|PENDING|BeginTime|macb-fig3\n"
+            "13|COMPLETED|None|a|b\n\n12_2|CANCELLED|None|macb-fig3\n14|RUNNING\n")  # fmt: skip
+    assert slurm.parse_squeue(text) == {
+        "12_0": TaskState("RUNNING", "", "macb-fig3"),
+        "12_1": TaskState("PENDING", "BeginTime", "macb-fig3"),
+        "13": TaskState("COMPLETED", "", "a|b"),
+        "12_2": TaskState("CANCELLED", "", "macb-fig3"),
+        "14": TaskState("RUNNING"),
+    }
+
+
+def _submission(job: str, *groups: tuple[str, ...]) -> dict:
+    tasks = [{"index": i, "label": f"g{job}.{i}", "runs": list(g)} for i, g in enumerate(groups)]
+    return {"job": job, "tasks": tasks}
+
+
+def test_each_group_stands_where_slurm_and_its_runs_folders_say():
+    subs = [_submission("7", ("a", "b"), ("c",), ("d",), ("e",), ("f",))]
+    states = {
+        "7_0": TaskState("CANCELLED"),  # but its runs completed: complete
+        "7_1": TaskState("RUNNING"),
+        "7_2": TaskState("PENDING", "BeginTime"),  # requeued, waiting to start again
+        "7_3": TaskState("TIMEOUT"),
+        # 7_4: forgotten by the controller, its run unfinished
+    }
+    done = {"a", "b"}
+    s = slurm.standing(subs, states, done.__contains__, lambda r: (3, 10))
+    got = {g.task: g.status for g in s.groups}
+    assert got == {"7_0": "complete", "7_1": "running", "7_2": "pending",
+                   "7_3": "incomplete", "7_4": "incomplete"}  # fmt: skip
+    assert s.active and s.summary() == "1 running, 1 pending, 2 incomplete, 1 complete"
+    lines = {g.task: g.line() for g in s.groups}
+    assert lines["7_2"] == "g7.2 [job 7_2]: pending (BeginTime), episode 3 of 10"
+    assert lines["7_3"] == "g7.3 [job 7_3]: incomplete (TIMEOUT), episode 3 of 10; runs: e"
+    assert "no longer known to Slurm" in lines["7_4"] and lines["7_4"].endswith("runs: f")
+    # A later submission of a run supersedes the earlier task; `wanted` keeps one figure's.
+    subs.append(_submission("9", ("e", "f")))
+    s = slurm.standing(subs, {**states, "9_0": TaskState("RUNNING")}, done.__contains__,
+                       lambda r: (0, 10), wanted={"c", "d", "e", "f"})  # fmt: skip
+    assert {g.task: (g.status, g.runs) for g in s.groups} == {
+        "7_1": ("running", ["c"]),
+        "7_2": ("pending", ["d"]),
+        "9_0": ("running", ["e", "f"]),
+    }
+    ended = slurm.standing(subs[:1], {}, lambda r: True, lambda r: (10, 10))
+    assert not ended.active and ended.summary() == "5 complete"
+    # A task of another job that has the recorded id (ids started again) is not ours.
+    named = [{**subs[1], "name": "macb-fig3"}]
+    other = {"9_0": TaskState("RUNNING", "", "someone-else")}
+    (g,) = slurm.standing(named, other, done.__contains__, lambda r: (0, 10)).groups
+    assert g.status == "incomplete" and "no longer known to Slurm" in g.line()
+    requeued = {"9_0": TaskState("REQUEUE_HOLD", "JobHeldAdmin", "macb-fig3")}
+    (g,) = slurm.standing(named, requeued, done.__contains__, lambda r: (0, 10)).groups
+    assert g.line() == "g9.0 [job 9_0]: pending (REQUEUE_HOLD, JobHeldAdmin), episode 0 of 10"
+
+
+class FakeSlurm:
+    def __init__(self, partitions: str = "short\nlong\n", rc: int = 0) -> None:
+        self.partitions, self.rc, self.calls = partitions, rc, []
+
+    def __call__(self, argv):
+        self.calls.append(list(argv))
+        err = "slurm_load_partitions: Unable to contact slurm controller" if self.rc else ""
+        return subprocess.CompletedProcess(argv, self.rc, self.partitions, err)
+
+
+def test_nothing_is_submitted_on_bad_input(tmp_path, monkeypatch):
+    runs = tmp_path / "out" / "runs"
+    monkeypatch.setattr(slurm.shutil, "which", lambda c: None if c == "sbatch" else "/bin/" + c)
+    fake = FakeSlurm()
+    assert "sbatch not found on PATH" in slurm.preflight(SlurmOptions(), [runs], fake)
+    assert fake.calls == [] and not runs.exists()
+    monkeypatch.setattr(slurm.shutil, "which", lambda c: "/bin/" + c)
+    why = slurm.preflight(SlurmOptions(partition="gpu"), [runs], fake)
+    assert why == "--partition gpu: no such partition (sinfo lists: long, short)"
+    assert not runs.exists()  # refused before the runs folder is made
+    why = slurm.preflight(SlurmOptions(), [runs], FakeSlurm(rc=1))
+    assert why.startswith("--launcher slurm: Slurm does not answer (sinfo: slurm_load_partitions")
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    why = slurm.preflight(SlurmOptions(), [blocker / "runs"], fake)
+    assert why.startswith(f"--launcher slurm: the runs folder {blocker / 'runs'} is not writable")
+    assert slurm.preflight(SlurmOptions(partition="long"), [runs], fake) is None
+    assert runs.is_dir() and list(runs.iterdir()) == []  # made; the probe file removed
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [
+        [],
+        ["--seeds", "4", "5", "--episodes", "9", "--precision", "bf16", "--threads", "2"],
+        ["--arms", "beta=0.8", "CONSTANT beta=0.8*", "--profile", "thesis"],
+    ],
+)
+def test_each_task_s_command_names_the_runs_and_configs_of_the_user_s(
+    reproduce_parser, tmp_path, flags
+):
+    from cli.local import expand_body
+    from cli.reproduce.experiments import experiment_body, select_arms
+    from cli.reproduce.figures import FIGURES
+
+    def runs_of(args):
+        fig = FIGURES[args.figure]
+        body = experiment_body(fig, args.profile, args.seeds or [0, 1, 2], args.episodes,
+                               args.precision)  # fmt: skip
+        body = select_arms(fig, body, args.arms) if args.arms else body
+        if args.threads is not None:
+            body["threads"] = args.threads
+        return {r.name: r.config for r in expand_body(body)[2]}
+
+    user = reproduce_parser.parse_args(["fig3", "--local", "--launcher", "slurm", *flags])
+    mine = runs_of(user)
+    names = sorted(mine)[:2]
+    argv = slurm.group_command("fig3", user.profile, user, tmp_path, tmp_path / "r", names)
+    words = shlex.split(shlex.join(argv))  # through the script's shell quoting
+    task = reproduce_parser.parse_args(words[words.index("reproduce") + 1 :])
+    assert task.local and task.launcher == "local" and task.group_runs == names
+    assert Path(task.runs) == tmp_path / "r" and Path(task.out) == tmp_path
+    assert runs_of(task) == mine
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--launcher", "slurm"], "--launcher slurm: give --local"),
+        (["--local", "--partition", "short"], "--partition is for --launcher slurm"),
+        (["--local", "--detach"], "--detach is for --launcher slurm"),
+        (["--group-runs", "x-s0"], "--group-runs trains with --local"),
+        (["--local", "--group-runs", "nosuch-s0"], "--group-runs: no run nosuch-s0 in"),
+    ],
+)
+def test_launcher_flags_that_do_not_fit_are_refused(
+    reproduce_parser, tmp_path, flags, message, capsys
+):
+    args = reproduce_parser.parse_args(["fig3", "--episodes", "2", "--out", str(tmp_path), *flags])
+    assert args.func(args) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--local"], "all: give --local --launcher slurm (or name one figure)"),
+        (["--local", "--launcher", "slurm", "--arms", "x*"], "all: --arms is for one figure"),
+        (["--local", "--launcher", "slurm", "--runs", "r"], "all: --runs is for one figure"),
+    ],
+)
+def test_all_is_every_figure_on_slurm_and_refuses_one_figure_s_flags(
+    reproduce_parser, tmp_path, flags, message, capsys
+):
+    args = reproduce_parser.parse_args(["all", "--out", str(tmp_path / "o"), *flags])
+    assert args.func(args) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_following_says_each_change_once_survives_a_silent_controller_and_ends(capsys):
+    from cli.reproduce.slurm import GroupState, Standing
+
+    def at(status: str) -> Standing:
+        return Standing([GroupState("fig3 group 1/1", "5_0", ["a-s0"], status, "", (0, 6))])
+
+    seen = iter([at("pending"), at("pending"), RuntimeError("squeue failed: timeout"),
+                 at("running"), at("complete")])  # fmt: skip
+
+    def look() -> Standing:
+        item = next(seen)
+        if isinstance(item, Exception):
+            raise item
+        return item
+
+    pages = lambda now: ["page built"] if not now.active else []  # noqa: E731
+    last = slurm.follow(look, lambda: (0, 6), quiet=True, each=pages, poll_s=0)
+    assert last.of("complete") and not last.active
+    assert capsys.readouterr().err.splitlines() == [
+        "fig3 group 1/1 [job 5_0]: pending, episode 0 of 6",
+        "squeue failed: timeout; asking again in 0 s",
+        "fig3 group 1/1 [job 5_0]: running, episode 0 of 6",
+        "fig3 group 1/1 [job 5_0]: complete, episode 0 of 6",
+        "page built",
+    ]
