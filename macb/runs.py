@@ -50,7 +50,11 @@ def load_runs(path: str | Path) -> pd.DataFrame:
             f"{root}: no runs (no folder holding {' or '.join(METRIC_FILES)}, here or one "
             "level down, nor under runs/)"
         )
-    frames = [_run_frame(f, arms.get(f.name)) for f in folders]
+    return joined([_run_frame(f, arms.get(f.name)) for f in folders])
+
+
+def joined(frames: list[pd.DataFrame]) -> pd.DataFrame:
+    """Runs' frames as one: run, arm, seed, the metrics, then the config keys sorted."""
     frame = pd.concat(frames, ignore_index=True, sort=False)
     config = sorted(c for c in frame.columns if c.startswith(CONFIG_PREFIX))
     metrics = [c for c in frame.columns if c not in LEADING and c not in config]
@@ -58,7 +62,12 @@ def load_runs(path: str | Path) -> pd.DataFrame:
 
 
 def is_run_folder(folder: Path) -> bool:
-    return any((folder / name).is_file() for name in METRIC_FILES)
+    """A run's folder: its metrics.jsonl, or its metrics.csv beside its config.json (a
+    `macb run --out` folder of several runs has the experiment's metrics.csv and no
+    config)."""
+    if (folder / "metrics.jsonl").is_file():
+        return True
+    return (folder / "metrics.csv").is_file() and (folder / "config.json").is_file()
 
 
 def _run_folders(root: Path) -> tuple[list[Path], dict[str, str]]:
@@ -71,8 +80,15 @@ def _run_folders(root: Path) -> tuple[list[Path], dict[str, str]]:
 
 
 def _recorded_arms(root: Path) -> dict[str, str]:
-    """id -> arm from a reproduce's FIGURE-runs.json (cli/reproduce/page.py), if any."""
+    """id -> arm from a reproduce's FIGURE-runs.json (cli/reproduce/page.py), or from the
+    experiment's metrics.csv `macb run --out` writes beside its runs' folders."""
     arms: dict[str, str] = {}
+    table = root / "metrics.csv"
+    if table.is_file():
+        with table.open(newline="") as f:
+            for r in csv.DictReader(f):
+                if r.get("run") and r.get("arm") is not None:
+                    arms.setdefault(r["run"], r["arm"])
     for record in sorted(root.glob("*-runs.json")):
         try:
             runs = json.loads(record.read_text()).get("runs") or []
@@ -145,10 +161,17 @@ def _cell(text: str) -> Any:
 def _run_frame(folder: Path, recorded_arm: str | None) -> pd.DataFrame:
     config = read_config(folder)
     seed = config.get("seed")
-    rows = read_rows(folder)
+    arm = recorded_arm or arm_of(folder, seed)
+    return run_frame(folder.name, arm, seed, read_rows(folder), config)
+
+
+def run_frame(
+    run: str, arm: str, seed: Any, rows: list[dict[str, Any]], config: dict[str, Any]
+) -> pd.DataFrame:
+    """One run's rows with its name, arm, seed and config as columns."""
     frame = pd.DataFrame.from_records(rows) if rows else pd.DataFrame({"episode": []})
-    frame.insert(0, "run", folder.name)
-    frame.insert(1, "arm", recorded_arm or arm_of(folder, seed))
+    frame.insert(0, "run", run)
+    frame.insert(1, "arm", arm)
     frame.insert(2, "seed", seed)
     flat = _flatten(config)
     extra = pd.DataFrame({k: [v] * len(frame) for k, v in flat.items()}, index=frame.index)

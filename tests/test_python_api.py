@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import re
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,8 @@ from cli.main import main
 from cli.reproduce.analysis import analyse, columns
 from cli.reproduce.experiments import experiment_body, select_arms
 from cli.reproduce.figures import FIGURES
+from services.api.store import Store
+from tests.harness import TINY, row, start_api
 from tests.test_fig8_page import _rows
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -116,6 +120,21 @@ def test_train_runs_one_folder_seeds_and_a_csv_only_run(tmp_path):
     assert single["run"].unique().tolist() == ["seed-4"] and len(single) == 2
 
 
+def test_a_macb_run_out_folder_names_each_runs_arm(tmp_path):
+    """`macb run --out DIR` of several runs: DIR/<run id>/ each, and the experiment's
+    metrics.csv (arm, seed, run columns) in DIR, which is not a run."""
+    for run, seed in (("r1", 0), ("r2", 1)):
+        folder = tmp_path / run
+        folder.mkdir()
+        (folder / "config.json").write_text(json.dumps({"seed": seed}))
+        (folder / "metrics.jsonl").write_text(json.dumps({"episode": 4}) + "\n")
+    (tmp_path / "metrics.csv").write_text(
+        "arm,seed,run,episode\nno bonus,0,r1,4\nCen-MACB,1,r2,4\n"
+    )
+    frame = macb.load_runs(tmp_path)
+    assert frame[["run", "arm"]].values.tolist() == [["r1", "no bonus"], ["r2", "Cen-MACB"]]
+
+
 def _table(md: str, section: str, first: str) -> list[list[str]]:
     body = md.split(f"## {section}")[1].split("\n## ")[0]
     rows = [r for r in body.splitlines() if r.startswith("| ") and not r.startswith(first)]
@@ -180,7 +199,7 @@ def _code_blocks(doc: Path) -> list[str]:
 def test_the_docs_example_runs_against_a_runs_folder(out, capsys):
     main(["reproduce", *ARGS, "--report-only", "--out", str(out)])
     capsys.readouterr()
-    blocks = _code_blocks(ROOT / "docs" / "python.md")
+    blocks = [b for b in _code_blocks(ROOT / "docs" / "python.md") if "macb.Client" not in b]
     assert len(blocks) >= 3
     scope: dict = {}
     for block in blocks:
@@ -188,3 +207,84 @@ def test_the_docs_example_runs_against_a_runs_folder(out, capsys):
     assert isinstance(scope["frame"], pd.DataFrame) and isinstance(scope["s"], macb.FigureSummary)
     printed = capsys.readouterr().out
     assert "Sparse + Dis-MACB" in printed and "not run to that length" in printed
+
+
+# ---------------------------------------------------------------- the API
+@pytest.fixture
+def api(tmp_path):
+    """The API over real HTTP on 127.0.0.1 with a token, on no bus: its runs stay queued
+    and their points are written into its store as the scheduler writes them."""
+    server = start_api(tmp_path, None, token="s3cret")
+    yield server
+    server.stop()
+
+
+@pytest.mark.timeout(60)
+def test_start_follow_stop_and_frame_over_the_api_with_the_clis_token_rules(api, monkeypatch):
+    with macb.Client(api.url, token="wrong") as bad, pytest.raises(macb.ApiError) as err:
+        bad.start(TINY)
+    assert err.value.status == 401 and "bearer token" in str(err.value)
+    monkeypatch.setenv("MACB_API_TOKEN", "s3cret")  # no token given: the CLI's variable
+    client = macb.Client(api.url)
+    with pytest.raises(macb.ApiError, match="HTTP 404"):
+        client.experiment_frame("nosuch")
+    with pytest.raises(macb.ApiError, match="HTTP 422: beta"):
+        client.start({**TINY, "beta": -1})
+    exp = client.start({**TINY, "seeds": [0, 1], "grid": {"beta": [0.2, 0.8]}})
+    (a, b, c, d) = (r["id"] for r in exp["runs"])
+    store = Store(api.settings.db_path)  # a second connection, as the scheduler has
+    store.add_points(a, [row(4), row(8)])
+    store.add_points(d, [row(4, success_rate=0.75)])
+    follow = client.follow(exp["id"], poll_s=0.05)
+    first = [next(follow) for _ in range(3)]
+    assert [(x["run"], x["episode"]) for x in first] == [(a, 4), (a, 8), (d, 4)]
+    assert first[2]["success_rate"] == 0.75 and first[2]["seed"] == 1 and "seq" not in first[2]
+    arm = {r["id"]: r["arm"] for r in exp["runs"]}
+    assert first[0]["arm"] == arm[a] and arm[a] != arm[d]
+    later = threading.Timer(0.3, lambda: store.add_points(a, [row(12)]))
+    later.start()
+    t0 = time.monotonic()
+    assert (next(follow)["run"], time.monotonic() - t0 >= 0.25) == (a, True)  # as it arrives
+    assert client.stop(exp["id"])["changed"] is True
+    assert list(follow) == [], "every run ended, every point given: the generator ends"
+    frame = client.experiment_frame(exp["id"])
+    assert list(frame.columns[:4]) == ["run", "arm", "seed", "episode"]
+    assert frame[["run", "episode"]].values.tolist() == [[a, 4], [a, 8], [a, 12], [d, 4]]
+    assert frame["config.beta"].tolist() == [0.2, 0.2, 0.2, 0.8]
+    assert frame["success_rate"].tolist() == [0.04, 0.08, 0.12, 0.75]
+    store.close()
+    client.close()
+
+
+@pytest.mark.timeout(60)
+def test_the_docs_api_example_runs_against_the_api(api, capsys):
+    (block,) = [b for b in _code_blocks(ROOT / "docs" / "python.md") if "macb.Client" in b]
+    done = threading.Event()
+
+    def evaluator() -> None:
+        """Points for the experiment the example starts, as its runs would store them."""
+        store = Store(api.settings.db_path)
+        try:
+            while not done.is_set():
+                exps = store.experiments()
+                if exps:
+                    for r in store.runs_of([exps[0]["id"]])[exps[0]["id"]]:
+                        store.add_points(r["id"], [row(e) for e in range(10, 201, 10)])
+                    return
+                time.sleep(0.05)
+        finally:
+            store.close()
+
+    thread = threading.Thread(target=evaluator)
+    thread.start()
+    scope: dict = {"macb": macb}
+    try:
+        exec(block.replace("http://127.0.0.1:8000", api.url), scope)  # noqa: S102
+    finally:
+        done.set()
+        thread.join()
+    printed = capsys.readouterr().out.splitlines()
+    run = scope["exp"]["runs"][0]["id"]
+    points = [line.split()[1:] for line in printed if line.startswith(run)]
+    assert points[-1] == ["100", "1.0"] and len(points) == 10  # then the break
+    assert scope["live"]["episode"].max() == 200 and len(scope["live"]) == 40
