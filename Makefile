@@ -59,7 +59,7 @@ test-compose: $(STAMP)
 test-slurm: $(STAMP)
 	MACB_SLURM_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m slurm tests/test_slurm.py
 
-# mypy checks shared/, services/ and cli/ (pyproject.toml's [tool.mypy]): zero errors.
+# mypy checks shared/, services/, cli/ and macb/ (pyproject.toml's [tool.mypy]): zero errors.
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .

@@ -91,6 +91,21 @@ def _commit(code: dict[str, Any]) -> str:
     return f"{str(commit)[:12]}{' (dirty)' if code.get('dirty') else ''}"
 
 
+def measured(a: Analysis, name: str, config: dict[str, Any]) -> str:
+    """The arms table's "measured" cell for arm `name` (its run config `config`): a
+    curve's plateau and convergence (collisions: the final count), a table figure's
+    success and count-1 % at its length."""
+    fig, arm = a.fig, a.arm(name)
+    if fig.kind != "table":
+        return arm.describe() if fig.metric != "collisions_cum" else summary(a, arm)
+    v, _ = arm.value_at(fig.episodes)
+    c1 = count1(a, name, config)
+    text = "-" if v is None else f"{v:.0%}, " + ("-" if c1 is None else f"{c1:.0f}%")
+    if v is not None and arm.length < fig.episodes:
+        text += f" (at {arm.length:,})"
+    return text
+
+
 def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None = None) -> str:
     """FIGURE.md: what ran, the definitions, each arm beside what the thesis reports for
     it, a verdict per claim, and each MACB arm against its control."""
@@ -151,20 +166,12 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
     for arm_def in fig.arms:
         arm = a.arm(arm_def.name)
         thesis = arm_def.thesis or "not in the thesis (control)"
-        if fig.kind == "table":
-            v, _ = arm.value_at(fig.episodes)
-            c1 = count1(a, arm_def.name, configs[arm_def.name])
-            measured = "-" if v is None else f"{v:.0%}, " + ("-" if c1 is None else f"{c1:.0f}%")
-            if v is not None and arm.length < fig.episodes:
-                measured += f" (at {arm.length:,})"
-        else:
-            measured = arm.describe() if fig.metric != "collisions_cum" else summary(a, arm)
         row = [
             arm_def.name,
             _fmt_point(sets[arm_def.name]),
             str(len(arm.runs)),
             thesis,
-            measured,
+            measured(a, arm_def.name, configs[arm_def.name]),
             *(_milestone(arm, e, fig.metric) for e in fig.milestones),
         ]
         lines.append("| " + " | ".join(row) + " |")

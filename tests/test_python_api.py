@@ -1,0 +1,290 @@
+"""The Python API (macb/, docs/python.md): a runs folder as a DataFrame, and a figure's
+summary from it equal to what the report writes for the same runs, on synthetic run
+folders as `macb reproduce --local` writes them (tests/test_fig8_page.py's rows).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import macb
+from cli.local import expand_body, local_experiment, local_points
+from cli.main import main
+from cli.reproduce.analysis import analyse, columns
+from cli.reproduce.experiments import experiment_body, select_arms
+from cli.reproduce.figures import FIGURES
+from services.api.store import Store
+from tests.harness import TINY, row, start_api
+from tests.test_fig8_page import _rows
+
+ROOT = Path(__file__).resolve().parent.parent
+FIG8 = FIGURES["fig8"]
+ARGS = ("fig8", "--profile", "thesis", "--arms", "sparse*", "--seeds", "0", "1")
+
+
+def _body() -> dict:
+    return select_arms(FIG8, experiment_body(FIG8, "thesis", [0, 1], None), ["sparse*"])
+
+
+@pytest.fixture
+def out(tmp_path: Path) -> Path:
+    """A reproduce OUT: its runs/ as --local writes them (no page yet)."""
+    _, _, runs = expand_body(_body())
+    for r in runs:
+        folder = tmp_path / "fig8-thesis" / "runs" / r.name
+        folder.mkdir(parents=True)
+        (folder / "config.json").write_text(json.dumps(r.config.model_dump(mode="json")))
+        lines = [json.dumps(row) for row in _rows(r.arm or "", r.seed)]
+        (folder / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    return tmp_path / "fig8-thesis"
+
+
+def test_a_runs_folder_is_one_row_per_point_with_its_run_arm_seed_and_config(out):
+    frame = macb.load_runs(out)
+    assert list(frame.columns[:4]) == ["run", "arm", "seed", "episode"]
+    assert sorted(frame["run"].unique()) == [
+        "Sparse-s0",
+        "Sparse-s1",
+        "Sparse_Cen-MACB-s0",
+        "Sparse_Cen-MACB-s1",
+        "Sparse_Dis-MACB-s0",
+        "Sparse_Dis-MACB-s1",
+        "Sparse_constant_beta_0.8_control-s0",
+        "Sparse_constant_beta_0.8_control-s1",
+    ]
+    assert len(frame) == 4 * 2000 + 4 * 1500  # every row of every run, none twice
+    one = frame[frame["run"] == "Sparse_Dis-MACB-s1"]
+    assert one["arm"].unique().tolist() == ["Sparse_Dis-MACB"]  # no page yet: the folder's
+    assert one["seed"].unique().tolist() == [1] and one["config.seed"].unique().tolist() == [1]
+    assert one["episode"].tolist() == list(range(1, 2001))
+    assert one["success_rate"].iloc[0] == pytest.approx(0.92)
+    assert one["config.episodes"].unique().tolist() == [40_000]
+    # config keys never shadow a metric: episodes (config) beside episode (row)
+    assert all(
+        c.startswith("config.") for c in frame.columns[frame.columns.get_loc("wall_s") + 1 :]
+    )
+
+
+def test_a_torn_last_line_is_skipped_and_bad_files_are_refused_by_name(out):
+    runs = out / "runs"
+    with (runs / "Sparse-s0" / "metrics.jsonl").open("a") as f:
+        f.write('{"episode": 2001, "wall')  # a row being written
+    frame = macb.load_runs(runs)
+    assert frame[frame["run"] == "Sparse-s0"]["episode"].max() == 2000
+    bad = runs / "Sparse-s1" / "metrics.jsonl"
+    lines = bad.read_text().splitlines()
+    bad.write_text("\n".join([lines[0], "{not json", *lines[1:]]) + "\n")
+    with pytest.raises(macb.RunsError, match=r"Sparse-s1/metrics.jsonl: line 2 is not a JSON row"):
+        macb.load_runs(runs)
+    bad.write_text("\n".join(lines) + "\n")
+    (runs / "Sparse-s1" / "config.json").write_text('{"seed": 1,')
+    with pytest.raises(macb.RunsError, match=r"Sparse-s1/config.json: unreadable"):
+        macb.load_runs(out)
+    (runs / "Sparse-s1" / "config.json").unlink()
+    with pytest.raises(macb.RunsError, match=r"Sparse-s1/config.json: missing"):
+        macb.load_runs(out)
+
+
+def test_no_runs_is_a_clear_error(tmp_path):
+    with pytest.raises(macb.RunsError, match="no such folder"):
+        macb.load_runs(tmp_path / "absent")
+    (tmp_path / "empty" / "x").mkdir(parents=True)
+    with pytest.raises(macb.RunsError, match=r"empty: no runs"):
+        macb.load_runs(tmp_path / "empty")
+
+
+def test_train_runs_one_folder_seeds_and_a_csv_only_run(tmp_path):
+    """`macb train --out DIR` (DIR is the run) and `--seeds` (DIR/seed-S, one arm named
+    by DIR); metrics.csv is read when there is no metrics.jsonl."""
+    for seed in (3, 4):
+        folder = tmp_path / "beta06" / f"seed-{seed}"
+        folder.mkdir(parents=True)
+        (folder / "config.json").write_text(json.dumps({"seed": seed, "beta": 0.6}))
+        (folder / "metrics.csv").write_text(
+            "episode,success_rate,eval_return\n10,0.5,-3\n20,,-2.5\n30,0.7"
+        )  # the last line is being written: fewer cells than the header
+    frame = macb.load_runs(tmp_path / "beta06")
+    assert frame["arm"].unique().tolist() == ["beta06"]
+    assert frame["seed"].tolist() == [3, 3, 4, 4]
+    assert frame["episode"].tolist() == [10, 20, 10, 20]
+    assert np.isnan(frame["success_rate"].iloc[1]) and frame["config.beta"].iloc[0] == 0.6
+    single = macb.load_runs(tmp_path / "beta06" / "seed-4")
+    assert single["run"].unique().tolist() == ["seed-4"] and len(single) == 2
+
+
+def test_a_macb_run_out_folder_names_each_runs_arm(tmp_path):
+    """`macb run --out DIR` of several runs: DIR/<run id>/ each, and the experiment's
+    metrics.csv (arm, seed, run columns) in DIR, which is not a run."""
+    for run, seed in (("r1", 0), ("r2", 1)):
+        folder = tmp_path / run
+        folder.mkdir()
+        (folder / "config.json").write_text(json.dumps({"seed": seed}))
+        (folder / "metrics.jsonl").write_text(json.dumps({"episode": 4}) + "\n")
+    (tmp_path / "metrics.csv").write_text(
+        "arm,seed,run,episode\nno bonus,0,r1,4\nCen-MACB,1,r2,4\n"
+    )
+    frame = macb.load_runs(tmp_path)
+    assert frame[["run", "arm"]].values.tolist() == [["r1", "no bonus"], ["r2", "Cen-MACB"]]
+
+
+def _table(md: str, section: str, first: str) -> list[list[str]]:
+    body = md.split(f"## {section}")[1].split("\n## ")[0]
+    rows = [r for r in body.splitlines() if r.startswith("| ") and not r.startswith(first)]
+    return [[c.strip() for c in r.strip().strip("|").split(" | ")] for r in rows]
+
+
+def test_the_summary_of_a_frame_is_what_the_report_writes_for_the_same_runs(out):
+    code = main(["reproduce", *ARGS, "--report-only", "--out", str(out)])
+    assert code == 1  # incomplete runs: the page is written, the exit says so
+    md = (out / "fig8.md").read_text()
+    record = json.loads((out / "fig8-claims.json").read_text())
+    frame = macb.load_runs(out)  # the page's fig8-runs.json names the arms now
+    assert "Sparse + Dis-MACB" in set(frame["arm"])
+    s = macb.summary(frame, "fig8")
+    by_folder = macb.summary(macb.load_runs(out / "runs"), "fig8")  # arms from folder names
+    for got in (s, by_folder):
+        claims = got.claims[["measured", "verdict"]].to_dict("records")
+        assert claims == [
+            {"measured": c["measured"], "verdict": c["verdict"]} for c in record["claims"]
+        ]
+        controls = [
+            [r.arm, r.control or "-", r.arm_measured, r.control_measured, f"**{r.verdict}**"]
+            for r in got.controls.itertuples()
+        ]
+        assert controls == _table(md, "Against the control", "| MACB arm")
+        why = [[*r[:5], f"**{r[5]}**"] for r in got.why.itertuples(index=False)]
+        assert why == _table(md, "Why", "| counting arm")
+        arms = {r[0]: r[4] for r in _table(md, "Arms", "| arm |") if r[0] in got.arms.index}
+        assert got.arms["measured"].dropna().to_dict() == arms
+    assert s.controls["verdict"].iloc[-1] == "no points"  # an arm not run, as on the page
+    dis = s.why.set_index("arm").loc["Sparse + Dis-MACB"]
+    assert "distinguishable: above the control" in dis["verdict"]
+    assert s.arms.loc["Sparse + Dis-MACB", "episodes"] == 2000
+    # the curves are the report's own numbers, bit for bit
+    _, _, runs = expand_body(_body())
+    exp = local_experiment("x", [0, 1], runs, out / "runs")
+    report = analyse(
+        FIG8, exp, {k: columns(v) for k, v in local_points(runs, out / "runs").items()}
+    )
+    for name, arm in report.arms.items():
+        mine = s.curves[s.curves["arm"] == name]
+        assert np.array_equal(mine["episode"].to_numpy(), arm.episodes)
+        assert np.array_equal(mine["mean"].to_numpy(), arm.curve())
+        low, high = arm.band()
+        assert np.array_equal(mine["low"].to_numpy(), low)
+        assert np.array_equal(mine["high"].to_numpy(), high)
+        assert s.arms.loc[name, "plateau"] == arm.plateau or np.isnan(arm.plateau)
+
+
+def test_a_frame_of_another_figure_or_an_unknown_figure_is_refused(out):
+    frame = macb.load_runs(out)
+    with pytest.raises(ValueError, match="no figure 'fig99'"):
+        macb.summary(frame, "fig99")
+    with pytest.raises(macb.RunsError, match=r"no run of the frame is an arm of fig3"):
+        macb.summary(frame, "fig3")
+
+
+def _code_blocks(doc: Path) -> list[str]:
+    return re.findall(r"```python\n(.*?)```", doc.read_text(), flags=re.S)
+
+
+def test_the_docs_example_runs_against_a_runs_folder(out, capsys):
+    main(["reproduce", *ARGS, "--report-only", "--out", str(out)])
+    capsys.readouterr()
+    blocks = [b for b in _code_blocks(ROOT / "docs" / "python.md") if "macb.Client" not in b]
+    assert len(blocks) >= 3
+    scope: dict = {}
+    for block in blocks:
+        exec(block.replace("runs/reproduce/fig8-thesis", str(out)), scope)  # noqa: S102
+    assert isinstance(scope["frame"], pd.DataFrame) and isinstance(scope["s"], macb.FigureSummary)
+    printed = capsys.readouterr().out
+    assert "Sparse + Dis-MACB" in printed and "not run to that length" in printed
+
+
+# ---------------------------------------------------------------- the API
+@pytest.fixture
+def api(tmp_path):
+    """The API over real HTTP on 127.0.0.1 with a token, on no bus: its runs stay queued
+    and their points are written into its store as the scheduler writes them."""
+    server = start_api(tmp_path, None, token="s3cret")
+    yield server
+    server.stop()
+
+
+@pytest.mark.timeout(60)
+def test_start_follow_stop_and_frame_over_the_api_with_the_clis_token_rules(api, monkeypatch):
+    with macb.Client(api.url, token="wrong") as bad, pytest.raises(macb.ApiError) as err:
+        bad.start(TINY)
+    assert err.value.status == 401 and "bearer token" in str(err.value)
+    monkeypatch.setenv("MACB_API_TOKEN", "s3cret")  # no token given: the CLI's variable
+    client = macb.Client(api.url)
+    with pytest.raises(macb.ApiError, match="HTTP 404"):
+        client.experiment_frame("nosuch")
+    with pytest.raises(macb.ApiError, match="HTTP 422: beta"):
+        client.start({**TINY, "beta": -1})
+    exp = client.start({**TINY, "seeds": [0, 1], "grid": {"beta": [0.2, 0.8]}})
+    (a, b, c, d) = (r["id"] for r in exp["runs"])
+    store = Store(api.settings.db_path)  # a second connection, as the scheduler has
+    store.add_points(a, [row(4), row(8)])
+    store.add_points(d, [row(4, success_rate=0.75)])
+    follow = client.follow(exp["id"], poll_s=0.05)
+    first = [next(follow) for _ in range(3)]
+    assert [(x["run"], x["episode"]) for x in first] == [(a, 4), (a, 8), (d, 4)]
+    assert first[2]["success_rate"] == 0.75 and first[2]["seed"] == 1 and "seq" not in first[2]
+    arm = {r["id"]: r["arm"] for r in exp["runs"]}
+    assert first[0]["arm"] == arm[a] and arm[a] != arm[d]
+    later = threading.Timer(0.3, lambda: store.add_points(a, [row(12)]))
+    later.start()
+    t0 = time.monotonic()
+    assert (next(follow)["run"], time.monotonic() - t0 >= 0.25) == (a, True)  # as it arrives
+    assert client.stop(exp["id"])["changed"] is True
+    assert list(follow) == [], "every run ended, every point given: the generator ends"
+    frame = client.experiment_frame(exp["id"])
+    assert list(frame.columns[:4]) == ["run", "arm", "seed", "episode"]
+    assert frame[["run", "episode"]].values.tolist() == [[a, 4], [a, 8], [a, 12], [d, 4]]
+    assert frame["config.beta"].tolist() == [0.2, 0.2, 0.2, 0.8]
+    assert frame["success_rate"].tolist() == [0.04, 0.08, 0.12, 0.75]
+    store.close()
+    client.close()
+
+
+@pytest.mark.timeout(60)
+def test_the_docs_api_example_runs_against_the_api(api, capsys):
+    (block,) = [b for b in _code_blocks(ROOT / "docs" / "python.md") if "macb.Client" in b]
+    done = threading.Event()
+
+    def evaluator() -> None:
+        """Points for the experiment the example starts, as its runs would store them."""
+        store = Store(api.settings.db_path)
+        try:
+            while not done.is_set():
+                exps = store.experiments()
+                if exps:
+                    for r in store.runs_of([exps[0]["id"]])[exps[0]["id"]]:
+                        store.add_points(r["id"], [row(e) for e in range(10, 201, 10)])
+                    return
+                time.sleep(0.05)
+        finally:
+            store.close()
+
+    thread = threading.Thread(target=evaluator)
+    thread.start()
+    scope: dict = {"macb": macb}
+    try:
+        exec(block.replace("http://127.0.0.1:8000", api.url), scope)  # noqa: S102
+    finally:
+        done.set()
+        thread.join()
+    printed = capsys.readouterr().out.splitlines()
+    run = scope["exp"]["runs"][0]["id"]
+    points = [line.split()[1:] for line in printed if line.startswith(run)]
+    assert points[-1] == ["100", "1.0"] and len(points) == 10  # then the break
+    assert scope["live"]["episode"].max() == 200 and len(scope["live"]) == 40
