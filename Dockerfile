@@ -28,6 +28,7 @@ COPY pyproject.toml README.md /src/
 COPY shared /src/shared
 COPY services /src/services
 COPY cli /src/cli
+COPY macb /src/macb
 COPY examples /src/examples
 # PIP_CERT (not --cert) so that pip's isolated build of the project trusts it too.
 RUN if [ -n "$PIP_CA" ]; then export PIP_CERT="/tmp/local/$PIP_CA"; fi \

@@ -72,10 +72,15 @@ def folder_name(text: str) -> str:
 
 
 def _rows(folder: Path) -> list[dict[str, Any]]:
+    """A run's rows as written so far: a last line without its newline is a row being
+    written by a run that is still going (a page built during a campaign), not yet one."""
     path = folder / "metrics.jsonl"
     if not path.exists():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    text = path.read_text()
+    if not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
 
 
 def _same_config(folder: Path, cfg: TrainConfig) -> bool:

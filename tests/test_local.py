@@ -141,3 +141,14 @@ def test_reproduce_arms_runs_only_the_arms_named_and_refuses_a_pattern_of_none(t
 def test_reproduce_refuses_bad_counts(flag, tmp_path):
     got = macb("reproduce", "fig3", "--local", flag, "0", "--out", str(tmp_path))
     assert got.returncode == 2 and flag in got.stderr
+
+
+def test_a_row_being_written_is_not_read_yet(tmp_path):
+    """A page built while a campaign runs reads each run's rows as they stand: a last
+    line without its newline (a row half written) is left for the next read."""
+    from cli.local import _rows
+
+    (tmp_path / "metrics.jsonl").write_text('{"episode": 10}\n{"episode": 20}\n{"epis')
+    assert [r["episode"] for r in _rows(tmp_path)] == [10, 20]
+    (tmp_path / "metrics.jsonl").write_text('{"episode": 10}\n{"episode": 20}\n')
+    assert [r["episode"] for r in _rows(tmp_path)] == [10, 20]
