@@ -24,16 +24,11 @@ MAX_UNCOUNTED_BATCHES = 8  # episodes in flight that the counter has not acknowl
 RESEND_AFTER_S = 1.0
 
 
-def counts(config: TrainConfig) -> bool:
-    """The run counts its transitions: its counter confirms them too."""
-    return config.explore in ("dis-macb", "cen-macb")
-
-
 def run_sender(config: TrainConfig, assign: Assignment) -> Sender:
     """A run's numbering, resends and credit: confirmed by its learner and, when it
     counts, its counter (which also bounds what may be in flight uncounted)."""
     learner = assign.learner
-    counter = assign.counter if counts(config) else None
+    counter = assign.counter if config.counts else None  # its counter confirms them too
     return Sender(
         confirm=(learner,) if counter is None else (learner, counter),
         credit_from=learner,
@@ -47,7 +42,7 @@ def run_sender(config: TrainConfig, assign: Assignment) -> Sender:
 def rejoin_from(assign: Assignment, cfgs: Sequence[TrainConfig], now: float) -> Rejoin:
     """A restarted actor's wait for where to go on: the learner's ack and, when any of
     its runs counts, the counter's (`shared.net.protocol.Rejoin`)."""
-    counter = assign.counter if any(counts(c) for c in cfgs) else None
+    counter = assign.counter if any(c.counts for c in cfgs) else None
     return Rejoin(assign.learner, counter, since=now)
 
 

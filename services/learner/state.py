@@ -107,7 +107,7 @@ class LearnerRun:
 
     @property
     def counting(self) -> bool:
-        return self.config.explore in ("dis-macb", "cen-macb")
+        return self.config.counts
 
     @property
     def lockstep(self) -> bool:
