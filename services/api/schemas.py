@@ -466,6 +466,7 @@ class Worker(BaseModel):
     runs: list[str] = []
     rejects_total: int = 0
     restarts: int = 0  # times `macb up`'s supervisor restarted it
+    node: str | None = Field(None, description="the node it runs on (its counter serves its runs)")
     answers: bool = Field(description="false: alive (liveliness token) but not answering info")
 
 
