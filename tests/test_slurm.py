@@ -237,3 +237,26 @@ def test_the_service_cluster_job_runs_an_experiment_posted_to_its_api_then_scanc
         lambda: not processes_with(str(data)) and not processes_with(f"127.0.0.1:{port}"),
         timeout=60, interval=0.5, what="every process of the job ended",
     )  # fmt: skip
+
+
+def test_the_throughput_benchmark_runs_both_launchers_and_sees_the_tasks_run_at_once(
+    node, tmp_path
+):
+    """benchmarks/bench_slurm.py with a tiny setting on this Slurm (timings not asserted):
+    one round of A B, both rates and ratios written, the Slurm side's two tasks at once."""
+    import sys
+
+    from tests.harness import ROOT
+
+    out = tmp_path / "slurm.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_slurm.py"), "--episodes", "3",
+            "--arms", "sparse", "sparse + cen-macb", "--rounds", "1", "--out", str(out)]  # fmt: skip
+    got = subprocess.run(argv, env=node.env, capture_output=True, text=True, timeout=600)
+    assert got.returncode == 0, got.stderr[-3000:]
+    assert "the Slurm this environment reaches" in got.stderr, got.stderr
+    result = json.loads(out.read_text())
+    (local,), (slurm,) = result["rounds"]["local"], result["rounds"]["slurm"]
+    assert local["runs"] == slurm["runs"] == 6 and local["env_steps"] == slurm["env_steps"]
+    assert slurm["tasks"] == 2 and slurm["concurrent"], slurm
+    assert set(result["ratio"]) == {"command", "train"} and result["cpu"]
+    assert "| command |" in got.stdout and "slurm / local" in got.stdout
