@@ -56,7 +56,7 @@ test-compose: $(STAMP)
 # --launcher slurm`) on a real Slurm (tests/test_slurm.py): installs Debian's munge and
 # slurm-wlm when missing (as root; else it skips, saying why), starts munged, slurmctld
 # and slurmd with a one-node slurm.conf in a temp folder (ports, socket and key of their
-# own: tests/slurm_node.py) and stops them after: 5-7 minutes here.
+# own: tests/slurm_node.py) and stops them after: 6-8 minutes here.
 test-slurm: $(STAMP)
 	MACB_SLURM_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m slurm tests/test_slurm.py
 

@@ -120,7 +120,8 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         default=1,
         metavar="N",
         help="runs at once: N learners and evaluators, N x --actors actors, one counter "
-        "(queued runs start on whichever are free)",
+        "(queued runs start on whichever are free); with --launcher slurm, N per node, "
+        "each slot a Slurm task",
     )
     up.add_argument(
         "--group-size",
