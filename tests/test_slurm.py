@@ -249,8 +249,9 @@ def test_the_throughput_benchmark_runs_both_launchers_and_sees_the_tasks_run_at_
     from tests.harness import ROOT
 
     out = tmp_path / "slurm.json"
-    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_slurm.py"), "--episodes", "3",
-            "--arms", "sparse", "sparse + cen-macb", "--rounds", "1", "--out", str(out)]  # fmt: skip
+    bench = str(ROOT / "benchmarks" / "bench_slurm.py")
+    argv = [sys.executable, bench, "--episodes", "3", "--arms", "sparse", "sparse + cen-macb",
+            "--rounds", "1", "--out", str(out)]  # fmt: skip
     got = subprocess.run(argv, env=node.env, capture_output=True, text=True, timeout=600)
     assert got.returncode == 0, got.stderr[-3000:]
     assert "the Slurm this environment reaches" in got.stderr, got.stderr
