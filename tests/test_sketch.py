@@ -61,22 +61,24 @@ def test_a_sketch_never_counts_below_the_truth_and_conservative_never_above_plai
 
 
 @pytest.mark.parametrize("conservative", [True, False])
-def test_how_rows_are_batched_changes_nothing(conservative):
+@pytest.mark.parametrize(("width", "distinct"), [(53, 500), (4099, 2500)])
+def test_how_rows_are_batched_changes_nothing(conservative, width, distinct):
     """Bursts of any size (the counter's) give the sketch of one row at a time (macb
-    train's), cells, estimated keys and count-1 keys alike."""
-    keys = stream(3000, 500, key_bytes=7)  # an odd key width is padded
-    one = CountSketch(7, 53, 4, seed=5, conservative=conservative)
+    train's), cells, estimated keys and count-1 keys alike: narrow (most rows share
+    cells: row by row) and wide (waves of independent rows counted at once)."""
+    keys = stream(3000, distinct, key_bytes=7)  # an odd key width is padded
+    one = CountSketch(7, width, 4, seed=5, conservative=conservative)
     for i in range(len(keys)):
         one.increment(keys[i : i + 1])
     rng = np.random.default_rng(1)
-    for _ in range(3):
-        bursts = CountSketch(7, 53, 4, seed=5, conservative=conservative)
-        cuts = np.sort(rng.choice(np.arange(1, len(keys)), size=40, replace=False))
+    for parts in (40, 5):
+        bursts = CountSketch(7, width, 4, seed=5, conservative=conservative)
+        cuts = np.sort(rng.choice(np.arange(1, len(keys)), size=parts, replace=False))
         for part in np.split(keys, cuts):
             bursts.increment(part)
         assert np.array_equal(bursts.cells, one.cells)
         assert (len(bursts), bursts.count1, bursts.total) == (len(one), one.count1, one.total)
-    whole = CountSketch(7, 53, 4, seed=5, conservative=conservative)
+    whole = CountSketch(7, width, 4, seed=5, conservative=conservative)
     whole.increment(keys)
     assert np.array_equal(whole.cells, one.cells) and whole.count1 == one.count1
 

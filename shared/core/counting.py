@@ -110,7 +110,7 @@ SKETCH_MAX_WIDTH = 1 << 30  # width <= P / 2: the mod-width step keeps collision
 SKETCH_MAX_DEPTH = 32
 SKETCH_MAX_CELLS = 1 << 31  # 8 GiB of uint32 cells per table
 _WORDS_PER_SUM = 1 << 15  # 2^15 * (2^16 - 1) * (2^31 - 2) < 2^63: no uint64 overflow
-# Below this many conflict-free leading rows a batch's update goes row by row.
+# A wave of fewer independent rows than this: the next rows go one by one instead.
 _SEQUENTIAL_ROWS = 16
 
 
@@ -190,19 +190,21 @@ class CountSketch:
         return (h % np.uint64(self.width)).astype(np.int64)
 
     def increment(self, keys: np.ndarray) -> None:
-        """Count each row once, in order (a batch of collected transitions)."""
-        cols = self.cells_of(keys)
-        start, n = 0, len(cols)
-        while start < n:
-            free = _conflict_free_prefix(cols[start:], self.width)
-            if free >= _SEQUENTIAL_ROWS:
-                self._apply(cols[start : start + free])
-                start += free
+        """Count each row once, as if one by one in order (a batch of collected
+        transitions). Rows that touch no cell an earlier pending row touches do not depend
+        on one another: they are counted at once, in waves; a short wave (a key repeated,
+        cells shared) goes row by row instead."""
+        pending = self.cells_of(keys)
+        while len(pending):
+            free = _first_touches(pending, self.width)
+            if free.all() or np.count_nonzero(free) >= _SEQUENTIAL_ROWS:
+                self._apply(pending[free])
+                pending = pending[~free]
             else:
-                for i in range(start, min(n, start + _SEQUENTIAL_ROWS)):
-                    self._apply(cols[i : i + 1])
-                start = min(n, start + _SEQUENTIAL_ROWS)
-        self.total += n
+                for i in range(min(_SEQUENTIAL_ROWS, len(pending))):
+                    self._apply(pending[i : i + 1])
+                pending = pending[_SEQUENTIAL_ROWS:]
+        self.total += len(keys)
 
     def _apply(self, cols: np.ndarray) -> None:
         """Count rows none of which shares a cell with another (so at once = in order)."""
@@ -269,15 +271,14 @@ class CountSketch:
         self._distinct = int(state["distinct"])
 
 
-def _conflict_free_prefix(cols: np.ndarray, width: int) -> int:
-    """How many leading rows touch no cell an earlier row of `cols` touches (>= 1)."""
+def _first_touches(cols: np.ndarray, width: int) -> np.ndarray:
+    """Which rows of `cols` touch no cell an earlier row touches (the first row always)."""
     depth = cols.shape[1]
     flat = (cols + np.arange(depth, dtype=np.int64) * width).reshape(-1)
     _, first = np.unique(flat, return_index=True)
     is_first = np.zeros(flat.size, dtype=bool)
     is_first[first] = True
-    clash = ~is_first.reshape(-1, depth).all(axis=1)
-    return int(np.argmax(clash)) if clash.any() else len(cols)
+    return is_first.reshape(-1, depth).all(axis=1)
 
 
 Counts = CountTable | CountSketch
