@@ -78,7 +78,8 @@ def child(keys: int, store: str, source: str, sketch: dict[str, Any]) -> dict[st
         return explorer.keys(obs, act)[0]
 
     chunks = -(-keys // CHUNK)
-    per_chunk = max(1, min(CHUNK, SAMPLE // chunks))
+    last = keys - (chunks - 1) * CHUNK  # the last chunk's rows, the fewest
+    per_chunk = max(1, min(last, SAMPLE // chunks))
     sample = np.ones((chunks * per_chunk, table.key_bytes), np.uint8)  # touched: resident
     chunk(CHUNK)  # the allocator's arenas at their working size before measuring
     before = rss_bytes()
