@@ -278,7 +278,7 @@ def _first_touches(cols: np.ndarray, width: int) -> np.ndarray:
     _, first = np.unique(flat, return_index=True)
     is_first = np.zeros(flat.size, dtype=bool)
     is_first[first] = True
-    return is_first.reshape(-1, depth).all(axis=1)
+    return np.all(is_first.reshape(-1, depth), axis=1, keepdims=False).reshape(-1)
 
 
 Counts = CountTable | CountSketch
