@@ -65,6 +65,15 @@ class Settings(BaseSettings):
     kernel_cache: Path | None = Field(
         None, description="where the fused kernel is built (default ~/.cache/macb/kernels)"
     )
+    # ---------------------------------------------------------------- run groups
+    steady_heap: bool = Field(
+        True, description="0: a training process leaves malloc's thresholds at glibc's"
+    )
+    group_timing: str | None = Field(
+        None,
+        description="a folder: each run group writes its time split at every point there "
+        "(benchmarks/bench_fig8.py)",
+    )
     # ---------------------------------------------------------------- the API's clients
     api_url: str | None = Field(None, description="the API `macb run/ls/stop/reproduce` call")
     api_token: str | None = Field(
