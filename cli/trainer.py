@@ -70,6 +70,11 @@ DEFAULT_CUT_EVERY_S = 60.0
 
 METRIC_FIELDS = TRAIN_FIELDS
 
+# A cut waits at least this many times the last cut's seconds after it, beyond the
+# cut interval: late in a long run the count tables make a cut take seconds, and cuts
+# then take at most about 1/CUT_SPACING of the loop's time.
+CUT_SPACING = 50.0
+
 # What GroupRun.timing sums, in seconds (the rest of a group's wall time is its loop's own).
 TIMING_KEYS = ("act_env", "store_count", "sample", "price", "update", "eval", "rows", "cut")
 
@@ -492,7 +497,7 @@ class GroupRun:
                         self.timing_log.append(self.timing_snapshot(episode))
                     if self.members[0].cuts is not None and (
                         len(self.members[0].rows) == 1  # killed in its first minute: resumes too
-                        or time.monotonic() - self.last_cut >= self.cut_every_s
+                        or self.cut_due()
                         or episode == c0.episodes
                     ):
                         self.cut(episode)  # timed in `cut`
@@ -530,6 +535,15 @@ class GroupRun:
             save_checkpoint(m.out / "checkpoint.pt", one, m.explorer, counters, m.cfg)
             log.info("wrote %s", m.out)
         return [m.rows for m in self.members]
+
+    def cut_due(self) -> bool:
+        """`cut_every_s` since the last cut, and CUT_SPACING times its length (0: every
+        point). Which points cut changes no row: a resume from any of them is exact."""
+        waited = time.monotonic() - self.last_cut
+        if self.cut_every_s <= 0:
+            return True
+        last = self.cut_log[-1][1] if self.cut_log else 0.0
+        return waited >= max(self.cut_every_s, CUT_SPACING * last)
 
     def timing_snapshot(self, episode: int) -> dict[str, float]:
         """`timing` at this point, beside the loop's wall time and the process's CPU

@@ -66,8 +66,9 @@ class Settings(BaseSettings):
         None, description="where the fused kernel is built (default ~/.cache/macb/kernels)"
     )
     # ---------------------------------------------------------------- run groups
-    steady_heap: bool = Field(
-        True, description="0: a training process leaves malloc's thresholds at glibc's"
+    # shared/run/heap.py reads this one itself (shared.run does not import settings).
+    steady_heap: str = Field(
+        "", description="0, off, false or no: a training process leaves glibc's malloc thresholds"
     )
     group_timing: str | None = Field(
         None,

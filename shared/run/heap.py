@@ -16,11 +16,14 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+import os
 import platform
 
-from shared.settings import settings
-
 log = logging.getLogger("macb.heap")
+
+# "0", "off", "false" or "no" leave glibc's thresholds (read here, not through
+# shared.settings, which this layer does not import; documented there).
+ENV_SWITCH = "MACB_STEADY_HEAP"
 
 # mallopt's parameters (malloc.h).
 M_TRIM_THRESHOLD = -1
@@ -44,7 +47,7 @@ def steady_heap() -> bool:
     global _done
     if _done:
         return True
-    if not settings().steady_heap:
+    if os.environ.get(ENV_SWITCH, "").strip().lower() in ("0", "off", "false", "no"):
         return False
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return False
