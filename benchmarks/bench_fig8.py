@@ -26,7 +26,7 @@ the same round. The probes set up their process as a group's (one torch thread, 
 thread, `shared.run.heap.steady_heap`).
 
     .venv/bin/python benchmarks/bench_fig8.py [--episodes 120] [--from 60] [--rounds 3]
-        [--probe-seconds 30] [--variants figure floor update] [--py-spy]
+        [--probe-seconds 30] [--variants figure floor update] [--py-spy] [--quick]
 """
 
 from __future__ import annotations
@@ -352,8 +352,15 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="record the figure with py-spy (on PATH) and report its samples' split",
     )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="a smoke run: --episodes 7 --from 5 --rounds 1 --probe-seconds 1",
+    )
     parser.add_argument("--out", type=Path, default=RESULTS / "fig8_speed.json")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.episodes, args.start, args.rounds, args.probe_seconds = 7, 5, 1, 1.0
     args.start = args.episodes // 2 if args.start is None else args.start
     learning_starts = figure_configs()[0].learning_starts // figure_configs()[0].episode_len
     if not learning_starts <= args.start < args.episodes:
