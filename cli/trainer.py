@@ -330,11 +330,6 @@ class Member:
         self.env_steps += 1
         self.collisions_cum += collisions
 
-    def minibatches(self, batch_size: int, count: int) -> tuple[np.ndarray, ...]:
-        """This run's `count` minibatches and their bonuses, as one update's arrays."""
-        batches = self.sample(batch_size, count)
-        return update_arrays(batches, self.price(batches))
-
     def sample(self, batch_size: int, count: int) -> list[Batch]:
         """This run's `count` minibatches for one update (its own sampler's draws)."""
         return [self.buffer.sample(batch_size, self.sample_rng) for _ in range(count)]
