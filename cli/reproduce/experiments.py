@@ -21,7 +21,10 @@ EXPERIMENT_KEYS = ("seeds",)
 
 
 def arm_file(arm: ArmDef) -> dict[str, Any]:
-    """The arm's config file as written, without the experiment's keys (seeds)."""
+    """The arm's config file as written, without the experiment's keys (seeds); an arm
+    read from its runs gives its runs' config."""
+    if arm.config is not None:
+        return {k: v for k, v in arm.config.items() if k not in EXPERIMENT_KEYS}
     data = read_config_file(CONFIGS / arm.file)
     return {k: v for k, v in data.items() if k not in EXPERIMENT_KEYS}
 
