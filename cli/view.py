@@ -19,6 +19,7 @@ control found among the arms as for a figure (the same config with explore: cons
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import re
 import sys
@@ -274,18 +275,15 @@ class FolderView:
         """(version, the page's data), computed again only when the version changed."""
         with self._lock:
             name, seeds, runs, local = self._runs()
-            version = "-".join(f"{s}.{t}" for s, t in (self._stamp(r.folder) for r in runs))
+            stamps = ";".join(f"{r.id}:{self._stamp(r.folder)}" for r in runs)
+            version = hashlib.sha256(stamps.encode()).hexdigest()[:16]
             if self._data is not None and self._data[0] == version:
                 return self._data
-            exp = {
-                "id": f"folder:{self.root}",
-                "name": name,
-                "seeds": seeds,
-                "runs": [
-                    {"id": r.id, "arm": r.arm, "seed": r.seed, "config": r.config} for r in runs
-                ],
-            }
-            fig = self.fig or runs_figure(name, exp["runs"])
+            described: list[dict[str, Any]] = [
+                {"id": r.id, "arm": r.arm, "seed": r.seed, "config": r.config} for r in runs
+            ]
+            exp = {"id": f"folder:{self.root}", "name": name, "seeds": seeds, "runs": described}
+            fig = self.fig or runs_figure(name, described)
             points = {r.id: self._columns(r) for r in runs}
             a = analyse(fig, exp, points)
             if local:
