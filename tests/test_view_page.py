@@ -16,7 +16,7 @@ import httpx
 import numpy as np
 import pytest
 
-from cli.reproduce.analysis import analyse, columns
+from cli.reproduce.analysis import analyse, claim_verdicts, columns
 from cli.supervisor import free_port
 from cli.view import runs_figure
 from shared import procs
@@ -171,6 +171,7 @@ def test_the_dashboards_figure_view_follows_a_run_through_the_api(tmp_path):
     points as the event stream brings them, the values the report computes from the
     stored points."""
     body = {**TINY, "episodes": 40, "eval_every": 4, "seeds": [0], "name": "figure view"}
+    (tmp_path / "cluster").mkdir()
     with api_cluster(tmp_path / "cluster") as cluster, Browser(tmp_path / "chromium") as page:
         url = cluster.url
         exp = httpx.post(f"{url}/experiments", json=body).json()
@@ -213,3 +214,67 @@ def test_the_dashboards_figure_view_follows_a_run_through_the_api(tmp_path):
         assert drawn[0] == arm.episodes.tolist()
         assert drawn[1] == _six(arm.curve())
         page.screenshot(tmp_path / "api-view.png")
+
+
+@pytest.mark.slow
+def test_macb_view_of_a_reproduce_local_campaign_while_it_trains(tmp_path):
+    """`macb reproduce fig8 --local` (its sparse arms, two seeds, cut short) training into
+    a folder while `macb view --figure fig8` with the same flags serves it: the page
+    draws points as they come, says every claim is "not run to that length", and at the
+    end draws the values the report computes from the folder."""
+    flags = ["--profile", "thesis", "--arms", "sparse*", "--seeds", "0", "1", "--episodes", "12"]
+    out = tmp_path / "fig8"
+    port = free_port()
+    train = spawn("reproduce", "fig8", "--local", *flags, "--out", str(out), "--quiet",
+                  log=tmp_path / "reproduce.log")  # fmt: skip
+    view = None
+    try:
+        wait_for(lambda: (out / "runs").is_dir(), timeout=120, interval=0.3, what="runs/")
+        view = spawn("view", str(out), "--figure", "fig8", *flags, "--port", str(port),
+                     log=tmp_path / "view.log")  # fmt: skip
+        url = f"http://127.0.0.1:{port}/"
+        wait_for(lambda: _answers(url), timeout=60, interval=0.3, what="macb view answering")
+        with Browser(tmp_path / "chromium") as page:
+            page.goto(url)
+            page.wait("document.body.dataset.ready === '1'", what="the page drew its data")
+            first = page.wait(
+                "(document.querySelector('#main-chart path.curve-mean') || {dataset: {}})"
+                ".dataset.episodes",
+                timeout=300,
+                what="a first point drawn",
+            )
+            page.wait(
+                "document.querySelector('#main-chart path.curve-mean').dataset.episodes"
+                f" !== {json.dumps(first)}",
+                timeout=300,
+                what="a new point drawn",
+            )
+            verdicts = page.js(
+                "[...document.querySelectorAll('tr.claim')].map(r => r.dataset.verdict)"
+            )
+            assert verdicts and set(verdicts) == {"not run to that length"}
+            assert train.wait(timeout=900) in (0, 1)  # 1: the page says the runs are short
+            page.wait("document.getElementById('progress-line').textContent"
+                      ".startsWith('complete')", timeout=30)  # fmt: skip
+            drawn = page.js(DRAWN)
+        data = httpx.get(url + "figure.json").json()
+    finally:
+        procs.end(train, 5, group=True)
+        if view is not None:
+            procs.end(view, 5, group=True)
+    from cli.local import expand_body, local_experiment, local_points
+    from cli.reproduce.experiments import experiment_body, select_arms
+    from cli.reproduce.figures import FIGURES
+
+    fig = FIGURES["fig8"]
+    body = select_arms(fig, experiment_body(fig, "thesis", [0, 1], 12), ["sparse*"])
+    name, seeds, runs = expand_body(body)
+    exp = local_experiment(name, seeds, runs, out / "runs")
+    points = {k: columns(v) for k, v in local_points(runs, out / "runs").items()}
+    a = analyse(fig, exp, points)
+    assert sorted(drawn) == sorted(n for n, arm in a.arms.items() if len(arm.episodes))
+    for name, (episodes, values) in drawn.items():
+        assert episodes == a.arm(name).episodes.tolist() and episodes[-1] == 12
+        assert values == _six(a.arm(name).curve()), name
+    claims = [c["verdict"] for c in data["claims"]]
+    assert claims == [v for *_, v in claim_verdicts(a)]
