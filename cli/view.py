@@ -43,7 +43,7 @@ from cli.reproduce.analysis import (
 )
 from cli.reproduce.controls import control_verdicts
 from cli.reproduce.defs import ArmDef, FigureDef
-from cli.reproduce.experiments import arm_configs, control_of, counts
+from cli.reproduce.experiments import arm_configs, control_of, counts, figure_body
 from cli.reproduce.figures import FIGURES, PROFILES
 from cli.reproduce.status import FigureProgress, from_points, read_folders
 from cli.runs_folder import RunsError, arm_of, read_config, read_rows, runs_in
@@ -324,8 +324,6 @@ def folder_view(args: argparse.Namespace) -> FolderView:
     root = Path(args.runs_dir)
     if args.figure is None:
         return FolderView(root)
-    from cli.reproduce.command import figure_body
-
     fig = FIGURES[args.figure]
     flags = argparse.Namespace(
         **{**vars(args), "threads": None, "local": True, "report_only": False, "status": False}

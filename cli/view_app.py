@@ -5,15 +5,22 @@
 
 from __future__ import annotations
 
+from typing import Any, Protocol
+
 from fastapi import FastAPI, Request, Response
 from fastapi.responses import HTMLResponse, JSONResponse
 
 from cli.runs_folder import RunsError
-from cli.view import FolderView
 from services.api.pages import page
 
 
-def page_app(view: FolderView) -> FastAPI:
+class Source(Protocol):
+    """What the app serves: cli/view.py's FolderView."""
+
+    def data(self) -> tuple[str, dict[str, Any]]: ...
+
+
+def page_app(view: Source) -> FastAPI:
     """The read-only app: GET / (the page), GET /figure.json (its data; ETag, 304 when
     unchanged: the page polls it)."""
     app = FastAPI(title="macb view", docs_url=None, redoc_url=None, openapi_url=None)
