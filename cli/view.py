@@ -197,6 +197,7 @@ def learned(exp: dict[str, Any], points: dict[str, list[dict[str, Any]]]) -> lis
     a = analyse(fig, exp, {run: columns(p) for run, p in points.items()})
     lines = []
     for name, arm in a.arms.items():
+        evals = (fig.arm(name).config or {}).get("eval_episodes", "the")
         raw = arm.raw.get("success_rate")
         if raw is None or not len(raw):
             lines.append(f"what was learned ({name}): nothing yet, no evaluation point")
@@ -204,7 +205,7 @@ def learned(exp: dict[str, Any], points: dict[str, list[dict[str, Any]]]) -> lis
         first, last = int(arm.episodes[0]), int(arm.episodes[-1])
         lines.append(
             f"what was learned ({name}): success {raw[0]:.0%} at episode {first:,} -> "
-            f"{raw[-1]:.0%} at episode {last:,} (noise-free evaluation episodes"
+            f"{raw[-1]:.0%} at episode {last:,} (of {evals} noise-free evaluation episodes"
             f"{', mean over seeds' if len(arm.seeds) > 1 else ''}); {arm.describe()}"
         )
     return lines
