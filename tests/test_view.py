@@ -201,3 +201,25 @@ def test_the_apis_figure_of_an_experiment_is_the_reports(tmp_path):
         assert httpx.get(f"{bare.url}/experiments/{exp['id']}/figure").status_code == 501
     finally:
         bare.stop()
+
+
+def test_what_was_learned_is_said_in_the_reports_words():
+    """`make run`'s last line: the first and last success (mean over seeds), then the
+    plateau and convergence as the report defines them; an arm without points says so."""
+    from cli.view import learned
+
+    config = {"episodes": 40, "eval_episodes": 10}
+    runs = [{"id": f"r{s}", "arm": "a", "seed": s, "config": config} for s in (0, 1)]
+    runs.append({"id": "q", "arm": "none yet", "seed": 0, "config": config})
+    success = {"r0": [0.0, 0.2, 1.0, 1.0], "r1": [0.2, 0.4, 0.8, 1.0], "q": []}
+    points = {
+        r: [{"episode": 10 * (i + 1), "success_rate": v} for i, v in enumerate(vs)]
+        for r, vs in success.items()
+    }
+    exp = {"id": "e", "name": "e", "seeds": [0, 1], "runs": runs}
+    assert learned(exp, points) == [
+        "what was learned (a): success 10% at episode 10 -> 100% at episode 40 (of 10 "
+        "noise-free evaluation episodes, mean over seeds); plateau 100%, converged at 30 of "
+        "40 episodes",
+        "what was learned (none yet): nothing yet, no evaluation point",
+    ]
