@@ -315,7 +315,12 @@ def add_view_parser(sub: argparse._SubParsersAction) -> None:
     vp.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="with --figure")
     vp.add_argument("--episodes", type=int, metavar="N", help="with --figure: the runs' length")
     vp.add_argument("--precision", choices=("fp32", "bf16"), help="with --figure")
-    vp.add_argument("--host", default="127.0.0.1", help="address to listen on")
+    vp.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on; there is no token: whoever reaches it reads the runs "
+        "(from elsewhere, prefer an SSH tunnel to loopback)",
+    )
     vp.add_argument("--port", type=int, default=8100, help="port (0: any free one)")
     vp.set_defaults(func=cmd_view)
 
