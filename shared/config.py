@@ -209,7 +209,8 @@ class TrainConfig(BaseModel):
         description="one minibatch for all agents per update, or one per agent (the "
         "thesis code; Algorithm 1's 'each agent samples')",
     )
-    hash_round: int | None = Field(
+    # Strict: `false` is no number of decimals (lax int would read it as 0).
+    hash_round: Annotated[int, Field(strict=True)] | None = Field(
         None,
         ge=0,
         le=8,
