@@ -263,3 +263,31 @@ def test_device_count_spreads_a_bare_gpu_name_only():
     assert device_count("cpu") == 0
     assert device_count("cuda:1") == 1
     assert device_count("cuda") == (torch.cuda.device_count() if torch.cuda.is_available() else 0)
+
+
+def test_reproduce_takes_a_device_for_every_run(tmp_path):
+    """`macb reproduce --device`: every run's config, the experiment's name and its
+    default folder say the device; a name torch does not know is refused before any
+    run starts, and a device this machine lacks fails each group with the reason."""
+    import argparse
+
+    from cli.reproduce.command import figure_body, out_name
+    from cli.reproduce.figures import FIGURES
+
+    fig = FIGURES["fig3"]
+    args = argparse.Namespace(
+        seeds=[0], profile="mpe2", episodes=2, precision=None, arms=None, threads=None,
+        local=True, report_only=False, status=False, device="cuda:1",
+    )  # fmt: skip
+    body = figure_body(fig, args)
+    assert body["device"] == "cuda:1" and "device=cuda:1" in body["name"]
+    assert out_name(fig, args) == "fig3-mpe2-cuda1"
+    args.device = "cpu"
+    assert "device" not in figure_body(fig, args) and out_name(fig, args) == "fig3-mpe2"
+    base = ("reproduce", "fig3", "--local", "--seeds", "0", "--episodes", "2", "--arms",
+            "beta=0.0", "--quiet", "--out", str(tmp_path))  # fmt: skip
+    bad = macb(*base, "--device", "gpu0", timeout=120)
+    assert bad.returncode == 2 and "device" in bad.stderr and not (tmp_path / "runs").exists()
+    if not torch.cuda.is_available():
+        got = macb(*base, "--device", "cuda", timeout=300)
+        assert got.returncode == 2 and "device cuda: not available here" in got.stderr

@@ -111,10 +111,12 @@ def experiment_name(fig: FigureDef, body: dict[str, Any]) -> str:
     digest = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()[:8]
     length = body.get("episodes") or "full"
     seeds = ",".join(map(str, body["seeds"]))
-    precision = f" precision={body['precision']}" if body.get("precision", "fp32") != "fp32" else ""
+    ran = f" precision={body['precision']}" if body.get("precision", "fp32") != "fp32" else ""
+    if body.get("device", "cpu") != "cpu":
+        ran += f" device={body['device']}"
     return (
         f"reproduce {fig.name} profile={body['profile']} episodes={length} seeds={seeds}"
-        f"{precision} [{digest}]"
+        f"{ran} [{digest}]"
     )
 
 

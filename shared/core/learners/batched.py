@@ -68,7 +68,10 @@ def stage(arrays: Sequence[Any], device: torch.device) -> list[torch.Tensor]:
     """Host arrays as fp32 tensors on an accelerator, in one non-blocking copy: written
     into one host buffer (pinned on CUDA, so the copy runs asynchronously and the
     caching host allocator keeps the buffer until it is done), sent at once, split into
-    views. One transfer per step, and nothing waits for it but the device's own queue."""
+    views. One transfer per step, and nothing waits for it but the device's own queue.
+    Tensors on the device already (a graph-captured update's inputs) are taken as they are."""
+    if all(isinstance(a, torch.Tensor) and a.device.type == device.type for a in arrays):
+        return [a.float() for a in arrays]
     host = [np.asarray(a, dtype=np.float32) for a in arrays]
     starts, end = [], 0
     for a in host:

@@ -229,13 +229,17 @@ class GroupMADDPG(StackedMADDPG):
         done: np.ndarray,
     ) -> Mapping[str, float]:
         """One critic and one actor step for every agent of every run, then the soft
-        updates: run r's from its own batch (shapes in the module docstring)."""
-        obs = np.asarray(obs)
+        updates: run r's from its own batch (shapes in the module docstring). The
+        arrays may be tensors on the learner's device already (a graph-captured update)."""
+        obs, act, rew, next_obs, done = (
+            x if isinstance(x, torch.Tensor) else np.asarray(x)
+            for x in (obs, act, rew, next_obs, done)
+        )
         if obs.shape[0] != self.runs:
             raise ValueError(f"obs has {obs.shape[0]} runs, the group {self.runs}")
         self._per_entry = obs.ndim == 4
         if self._per_entry:  # (R, N, B, ...) -> (R*N, B, ...)
-            flat = lambda x: np.asarray(x).reshape(self.runs * self.n, *np.shape(x)[2:])  # noqa: E731
+            flat = lambda x: x.reshape(self.runs * self.n, *x.shape[2:])  # noqa: E731
             obs, act, rew, next_obs, done = map(flat, (obs, act, rew, next_obs, done))
         try:
             return self.update_on(1, obs, act, rew, next_obs, done)
