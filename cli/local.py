@@ -68,6 +68,22 @@ def default_jobs(configs: list[TrainConfig]) -> int:
     return sum(max(1, device_count(d)) for d in devices)
 
 
+def device_error(configs: list[TrainConfig]) -> str | None:
+    """Why a device the runs name cannot be used here, or None: said once, before any
+    group starts, instead of by every group as it builds its learner."""
+    devices = sorted({c.device for c in configs} - {"cpu"})
+    if not devices:
+        return None
+    from shared.core.learners.precision import DeviceError, resolve_device
+
+    for device in devices:
+        try:
+            resolve_device(device)
+        except DeviceError as err:
+            return str(err)
+    return None
+
+
 def _spread_devices(configs: list[TrainConfig], jobs: int) -> str | None:
     """The bare accelerator name (`cuda`, `xpu`) whose devices the `jobs` processes take
     in turn (one each when there are as many processes as devices), or None: every run
@@ -178,6 +194,9 @@ def run_groups(
             file=sys.stderr,
         )
     if conflicts:
+        return 2
+    if why := device_error([r.config for r in runs]):
+        print(f"{why}: nothing was run", file=sys.stderr)
         return 2
     jobs = jobs or default_jobs([r.config for r in runs])
     groups = plan_groups(runs, out, max_runs, jobs)

@@ -267,8 +267,8 @@ def test_device_count_spreads_a_bare_gpu_name_only():
 
 def test_reproduce_takes_a_device_for_every_run(tmp_path):
     """`macb reproduce --device`: every run's config, the experiment's name and its
-    default folder say the device; a name torch does not know is refused before any
-    run starts, and a device this machine lacks fails each group with the reason."""
+    default folder say the device; a name torch does not know, or a device this
+    machine lacks, is refused with the reason before any run starts."""
     import argparse
 
     from cli.reproduce.command import figure_body, out_name
@@ -291,3 +291,4 @@ def test_reproduce_takes_a_device_for_every_run(tmp_path):
     if not torch.cuda.is_available():
         got = macb(*base, "--device", "cuda", timeout=300)
         assert got.returncode == 2 and "device cuda: not available here" in got.stderr
+        assert "nothing was run" in got.stderr and not (tmp_path / "runs").exists()
