@@ -68,7 +68,17 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "(docs/performance.md, 'bf16: learning parity')",
     )
     rp.add_argument(
-        "--out", metavar="DIR", help="default: runs/reproduce/FIGURE-PROFILE (-bf16 in bf16)"
+        "--device",
+        metavar="DEVICE",
+        help="every run's learner device: cpu (the default), cuda, cuda:N, xpu, mps. With "
+        "--local, --jobs defaults to one group per GPU, and a bare `cuda` gives each "
+        "group's process a GPU of its own. Acting, replay and counting stay on the CPU; "
+        "a run's rows on a GPU are not the CPU's bit for bit (docs/performance.md, 'On a GPU')",
+    )
+    rp.add_argument(
+        "--out",
+        metavar="DIR",
+        help="default: runs/reproduce/FIGURE-PROFILE (-bf16 in bf16, -DEVICE off the CPU)",
     )
     rp.add_argument(
         "--api",
@@ -221,8 +231,12 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def out_name(fig: FigureDef, args: argparse.Namespace) -> str:
-    """FIGURE-PROFILE (-bf16 in bf16): a figure's folder under runs/reproduce."""
+    """FIGURE-PROFILE (-bf16 in bf16, -DEVICE off the CPU): a figure's folder under
+    runs/reproduce. A run's rows depend on its precision and device, and its folder
+    refuses another config's: each combination has its own."""
     suffix = f"-{args.precision}" if args.precision not in (None, "fp32") else ""
+    if args.device not in (None, "cpu"):
+        suffix += "-" + args.device.replace(":", "")
     return f"{fig.name}-{args.profile}{suffix}"
 
 

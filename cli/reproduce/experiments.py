@@ -115,10 +115,12 @@ def experiment_name(fig: FigureDef, body: dict[str, Any]) -> str:
     digest = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()[:8]
     length = body.get("episodes") or "full"
     seeds = ",".join(map(str, body["seeds"]))
-    precision = f" precision={body['precision']}" if body.get("precision", "fp32") != "fp32" else ""
+    ran = f" precision={body['precision']}" if body.get("precision", "fp32") != "fp32" else ""
+    if body.get("device", "cpu") != "cpu":
+        ran += f" device={body['device']}"
     return (
         f"reproduce {fig.name} profile={body['profile']} episodes={length} seeds={seeds}"
-        f"{precision} [{digest}]"
+        f"{ran} [{digest}]"
     )
 
 
@@ -133,6 +135,8 @@ def figure_body(fig: FigureDef, args: argparse.Namespace) -> dict[str, Any]:
         body = select_arms(fig, body, args.arms)
     if args.threads is not None:
         body["threads"] = args.threads
+    if getattr(args, "device", None) not in (None, "cpu"):
+        body["device"] = args.device
     if not (args.local or args.report_only or args.status):  # groups: the thesis's loop
         body["interleave"] = args.interleave
     body["name"] = experiment_name(fig, body)
