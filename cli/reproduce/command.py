@@ -290,8 +290,18 @@ def reproduce_local(
         print(f"trained in {time.monotonic() - t0:,.0f} s", file=sys.stderr)
     elif not runs_dir.exists():
         return _refuse(f"--report-only: no runs stored in {runs_dir}")
-    page = write_page(fig, body, profile, out, runs_dir, not args.report_only)
+    page = write_page(fig, body, profile, out, runs_dir, not args.report_only, figure_flags(args))
     return code or page
+
+
+def figure_flags(args: argparse.Namespace) -> list[str]:
+    """The flags that select a figure's runs and configs (seeds, episodes, precision,
+    threads, arms): what a command that resumes the same runs must repeat."""
+    argv = ["--seeds", *map(str, args.seeds)] if args.seeds else []
+    for flag in ("episodes", "precision", "threads"):
+        if getattr(args, flag) is not None:
+            argv += [f"--{flag}", str(getattr(args, flag))]
+    return argv + (["--arms", *args.arms] if args.arms else [])
 
 
 def launcher_error(args: argparse.Namespace) -> str | None:
