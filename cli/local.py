@@ -77,6 +77,14 @@ class MetricsError(ValueError):
     one of a killed process: left out)."""
 
 
+class Refused(SystemExit):
+    """`run_groups` refused before anything ran (another process trains a run, a run's
+    rows do not read), the reason printed: the command exits 2, writing nothing."""
+
+    def __init__(self) -> None:
+        super().__init__(2)
+
+
 def _rows(folder: Path) -> list[dict[str, Any]]:
     """A run's rows as written so far. A last line without its newline is a row being
     written by a run that is still going (a page built during a campaign), not yet one;
@@ -165,9 +173,12 @@ def run_groups(
     one per process: on a CPU the products of one thread per group keep the cores busier
     than two threads on one.
 
-    SIGTERM, SIGINT or SIGHUP while it trains ends every group process and raises
-    `Stopped` (a SystemExit, 128 + the signal), one line printed; the group processes
-    die with this one however it ends (cli/group_procs.py)."""
+    A run another process trains, or whose rows cannot be read, ends the command before
+    anything is trained or written: `Refused` (a SystemExit, 2), the reason printed; the
+    caller writes no page or plot either. SIGTERM, SIGINT or SIGHUP while it trains
+    ends every group process and raises `Stopped` (a SystemExit, 128 + the signal), one
+    line printed; the group processes die with this one however it ends
+    (cli/group_procs.py)."""
     from cli.group_procs import Stopped, StopSignals, run_in_processes, say_stopped
     from shared.persist import runlock
 
@@ -188,12 +199,12 @@ def run_groups(
     for r, pid in held:
         print(runlock.RunLocked(out / r.name, pid or None), file=sys.stderr)
     if held:
-        return 2
+        raise Refused()
     try:
         groups = plan_groups(runs, out, max_runs, jobs)
     except MetricsError as err:
         print(err, file=sys.stderr)
-        return 2
+        raise Refused() from None
     tasks = []
     for n, (state, members) in enumerate(groups, 1):
         chosen = [runs[i] for i in members]
