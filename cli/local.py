@@ -358,7 +358,7 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
                 "config": r.config.model_dump(mode="json"),
                 "status": "completed" if state == "done" else "incomplete",
                 "live": {"provenance": starts[-1] if starts else None},
-                "resumes": [_resume(s) for s in starts[1:]],
+                "resumes": [_resume(s) for s in starts[1:]] if starts else None,
             }
         )
     counts: dict[str, int] = {}

@@ -229,17 +229,19 @@ def restarts(runs: list[dict[str, Any]]) -> list[str]:
     n = max(map(len, lists), default=0)
     if not n:
         return ["- Restarts: none (each run trained in one start)."]
-    parts = []
+    parts, unknown = [], False
     for i in range(n):
         these = [x[i] for x in lists if len(x) > i]
         eps = sorted({e for x in these if isinstance(e := x.get("episode"), int)})
-        where = " and ".join(f"{e:,}" for e in eps) or "an episode not recorded"
-        if len(eps) < len(these) and eps:
-            where += " (and where not recorded)"
+        missing = any(not isinstance(x.get("episode"), int) for x in these)
+        unknown |= missing
+        where = " and ".join([*(f"{e:,}" for e in eps), *["?"] * missing])
         commits = sorted({_commit(x.get("code") or {}) for x in these})
         when = min((str(x.get("started") or "") for x in these), default="")
         parts.append(f"{where} (code {', '.join(commits)}{', ' + when if when else ''})")
-    return [f"- Restarts: resumed {n} time{'s' * (n != 1)} (at episodes {'; '.join(parts)})."]
+    note = "; ?: a resume written before its episode was recorded" if unknown else ""
+    times = f"{n} time{'s' * (n != 1)}"
+    return [f"- Restarts: resumed {times} (at episodes {'; '.join(parts)}){note}."]
 
 
 def write_csv(exp: dict[str, Any], points: Mapping[str, Columns | list], path: Path) -> Path:
