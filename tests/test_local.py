@@ -6,7 +6,6 @@ stored runs, its numbers those of its CSV."""
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import signal
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from cli.results import read_points
 from tests.harness import macb, spawn
 
 TIMING = ("steps_per_sec", "train_steps_per_sec", "wall_s")
@@ -96,8 +96,7 @@ def test_reproduce_local_and_report_only(tmp_path):
     record = json.loads((out / "fig3-runs.json").read_text())
     assert len(record["runs"]) == 11 and all(r["provenance"]["machine"] for r in record["runs"])
     assert "- Wall time: " in md and "macb reproduce fig3 --local --episodes 6" in md
-    with open(out / "fig3.csv", newline="") as f:
-        table = list(csv.DictReader(f))
+    table = read_points(out / "fig3.csv.gz")
     # every stored row is in the CSV, with the same numbers
     for run in (out / "runs").iterdir():
         mine = [r for r in table if r["run"] == run.name]

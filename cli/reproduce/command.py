@@ -1,5 +1,5 @@
 """`macb reproduce FIGURE`: one of the thesis's figures, every arm and seed, as one
-experiment through the API, then FIGURE.png / FIGURE.md / FIGURE.csv beside the thesis.
+experiment through the API, then FIGURE.png / FIGURE.md / FIGURE.csv.gz beside the thesis.
 
 When no API answers at --api, it starts the local cluster the way `macb up --run` does
 (cli.cluster.local_cluster) and stops it at the end; one learner, so runs go one after
@@ -36,7 +36,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "seeds as one experiment through the API (starting the local cluster when no API "
         "answers), then write OUT/FIGURE.png (the arms overlaid, smoothed, mean over seeds, "
         "a std band), OUT/FIGURE.md (the thesis's claims beside the measured numbers, a "
-        "verdict each) and OUT/FIGURE.csv. Running the same command again resumes: only "
+        "verdict each) and OUT/FIGURE.csv.gz. Running the same command again resumes: only "
         "the runs that did not complete run again.",
         formatter_class=HelpFormatter,
     )
@@ -121,7 +121,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
     rp.add_argument(
         "--report-only",
         action="store_true",
-        help="train nothing: rebuild OUT/FIGURE.png/.md/.csv from the runs a --local "
+        help="train nothing: rebuild OUT/FIGURE.png/.md/.csv.gz from the runs a --local "
         "reproduce stored in OUT/runs/",
     )
     rp.add_argument(
