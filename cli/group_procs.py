@@ -53,7 +53,10 @@ class StopSignals:
         self.before: dict[int, Any] = {}
 
     def __enter__(self) -> StopSignals:
-        self.before = {s: signal.signal(s, self.on_signal) for s in STOP_SIGNALS}
+        import threading
+
+        if threading.current_thread() is threading.main_thread():  # else: Python's own
+            self.before = {s: signal.signal(s, self.on_signal) for s in STOP_SIGNALS}
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -224,14 +224,14 @@ def run_groups(
     if jobs <= 1 or len(tasks) <= 1:
         try:
             with StopSignals():
-                failed = [err for _, t in tasks if (err := _train_group_job(*t)) is not None]
+                failed = [m for _, t in tasks if (m := _train_group_job(*t)) is not None]
         except Stopped as stop:
             say_stopped(stop, [])
             raise
     else:
         failed = run_in_processes(_train_group_job, tasks, jobs)
-    for err in failed:
-        print(err, file=sys.stderr)
+    for message in failed:
+        print(message, file=sys.stderr)
     return 2 if failed else 0
 
 
