@@ -197,10 +197,14 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         runs_dir = Path(args.runs) if args.runs else out / "runs"
         return print_status(f"{fig.name}, profile {args.profile}", runs, runs_dir, fig.episodes)
     if args.launcher == "slurm" and not (args.report_only or args.group_runs):
+        from cli.local import MetricsError
         from cli.reproduce.slurm import campaign, reproduce_slurm
 
         runs_at = Path(args.runs) if args.runs else None
-        return reproduce_slurm([campaign(fig, body, args.profile, out, runs_at)], args)
+        try:
+            return reproduce_slurm([campaign(fig, body, args.profile, out, runs_at)], args)
+        except MetricsError as err:  # a run's rows do not read: refused before submitting
+            return _refuse(str(err))
     if args.local or args.report_only:
         return reproduce_local(fig, body, args.profile, out, args)
     url = (args.api or _env_url() or DEFAULT_URL).rstrip("/")

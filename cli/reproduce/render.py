@@ -220,7 +220,8 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
 def restarts(runs: list[dict[str, Any]]) -> list[str]:
     """The header's line on a campaign's restarts, from each run's resumes (`resumes`:
     the starts after its first in its provenance.json, as `cli.local.local_experiment`
-    reads them; [] where the runs carry none, a cluster's). The i-th resume of every
+    reads them; no line where no run has a provenance.json, or for a cluster's runs,
+    which carry none). The i-th resume of every
     run is one restart: the runs of a campaign start together and resume together, at
     their groups' cuts (one episode per group)."""
     lists = [r["resumes"] for r in runs if isinstance(r.get("resumes"), list)]
@@ -247,9 +248,9 @@ def restarts(runs: list[dict[str, Any]]) -> list[str]:
 def write_csv(exp: dict[str, Any], points: Mapping[str, Columns | list], path: Path) -> Path:
     """FIGURE.csv.gz: every point of every run, only the columns the report reads,
     gzipped with no time in its header, so the same points give the same bytes and a
-    page rebuilt at every stop of a campaign commits only what changed (text: 5-6x the
-    size). An older page's plain FIGURE.csv in the same folder is removed: one file of
-    points per page (`cli.results.points_file` still reads either)."""
+    page rebuilt at every stop of a campaign commits only what changed. An older page's
+    plain FIGURE.csv in the same folder is removed: one file of points per page
+    (`cli.results.points_file` still reads either)."""
     import gzip
     import io
 
