@@ -20,7 +20,8 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 # The local cluster with its API; configs/default.yaml goes in through the API and is
-# followed to the end. Results: runs/default/ (metrics.csv, plot.png, checkpoint.pt);
+# followed to the end, in lockstep: the same rows every time, `macb train`'s (tests/test_up.py),
+# and a line saying what was learned. Results: runs/default/ (metrics.csv, plot.png, checkpoint.pt);
 # every point stays in runs/cluster/api.sqlite3; the dashboard is on
 # http://127.0.0.1:8000/ while it runs (`macb up --data-dir runs/cluster` serves it again).
 run: $(STAMP)
@@ -52,10 +53,11 @@ soak: $(STAMP)
 test-compose: $(STAMP)
 	MACB_COMPOSE_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m compose tests/test_compose.py
 
-# `macb reproduce --local --launcher slurm` on a real Slurm (tests/test_slurm.py): installs
-# Debian's munge and slurm-wlm when missing (as root; else it skips, saying why), starts
-# munged, slurmctld and slurmd with a one-node slurm.conf in a temp folder (ports, socket
-# and key of their own: tests/slurm_node.py) and stops them after: 4-6 minutes here.
+# `macb reproduce --local --launcher slurm` and the service cluster job (`macb up
+# --launcher slurm`) on a real Slurm (tests/test_slurm.py): installs Debian's munge and
+# slurm-wlm when missing (as root; else it skips, saying why), starts munged, slurmctld
+# and slurmd with a one-node slurm.conf in a temp folder (ports, socket and key of their
+# own: tests/slurm_node.py) and stops them after: 6-8 minutes here.
 test-slurm: $(STAMP)
 	MACB_SLURM_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m slurm tests/test_slurm.py
 

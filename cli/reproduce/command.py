@@ -20,7 +20,7 @@ from typing import Any
 from cli.config_flags import HelpFormatter
 from cli.local import add_group_flags, group_flag_error
 from cli.reproduce.defs import FigureDef
-from cli.reproduce.experiments import experiment_body, experiment_name, file_seeds, select_arms
+from cli.reproduce.experiments import figure_body
 from cli.reproduce.figures import FIGURES, PROFILES
 from cli.reproduce.page import write_page
 from cli.reproduce.session import Session, answers_at, with_local_cluster
@@ -222,24 +222,6 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
             except KeyboardInterrupt:
                 return session.interrupted()
     return with_local_cluster(args, url, fig, body, out)
-
-
-def figure_body(fig: FigureDef, args: argparse.Namespace) -> dict[str, Any]:
-    """The experiment body of FIGURE under the flags (profile, seeds, episodes, arms,
-    precision, threads), validated as the API would: ValueError / ValidationError."""
-    from services.api.schemas import ExperimentCreate
-
-    seeds = args.seeds or file_seeds(fig)
-    body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
-    if args.arms:
-        body = select_arms(fig, body, args.arms)
-    if args.threads is not None:
-        body["threads"] = args.threads
-    if not (args.local or args.report_only or args.status):  # groups: the thesis's loop
-        body["interleave"] = args.interleave
-    body["name"] = experiment_name(fig, body)
-    ExperimentCreate.model_validate(body)  # refused here, before any process starts
-    return body
 
 
 def out_name(fig: FigureDef, args: argparse.Namespace) -> str:
