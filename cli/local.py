@@ -18,6 +18,7 @@ import os
 import re
 import sys
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -97,12 +98,14 @@ def _spread_devices(configs: list[TrainConfig], jobs: int) -> str | None:
     return device if ":" not in device and device_count(device) > 1 else None
 
 
-def _take_device(kind: str, indices: Any) -> None:
-    """A pool process's start: it takes the next free device of `kind` as its own, so
-    the runs' `device: cuda` means that GPU in it (their configs stay as given)."""
+def _take_device(kind: str, slot: int) -> None:
+    """A group process's start: it takes the device of `kind` its slot names as its own,
+    so the runs' `device: cuda` means that GPU in it (their configs stay as given)."""
     import torch
 
-    getattr(torch, kind).set_device(indices.get())
+    from shared.core.learners.precision import device_count
+
+    getattr(torch, kind).set_device(slot % device_count(kind))
 
 
 @dataclass
@@ -120,16 +123,52 @@ def folder_name(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_") or "run"
 
 
+class MetricsError(ValueError):
+    """A run's metrics.jsonl with a line that is not a row before its last one: refused,
+    naming the file and the line (a torn last line is a row being written, or the last
+    one of a killed process: left out)."""
+
+
+class Refused(SystemExit):
+    """`run_groups` refused before anything ran (another process trains a run, a run's
+    rows do not read), the reason printed: the command exits 2, writing nothing."""
+
+    def __init__(self) -> None:
+        super().__init__(2)
+
+
 def _rows(folder: Path) -> list[dict[str, Any]]:
-    """A run's rows as written so far: a last line without its newline is a row being
-    written by a run that is still going (a page built during a campaign), not yet one."""
+    """A run's rows as written so far. A last line without its newline is a row being
+    written by a run that is still going (a page built during a campaign), not yet one;
+    a last line that does not parse is one a killed process left torn: both are left
+    out (a resume rewrites the rows from its cut anyway). A line before the last that
+    does not parse (NUL bytes where two processes wrote the file at once) is refused:
+    `MetricsError`, naming the file and the line."""
     path = folder / "metrics.jsonl"
     if not path.exists():
         return []
-    text = path.read_text()
+    text = path.read_bytes().decode(errors="replace")
     if not text.endswith("\n"):
         text = text[: text.rfind("\n") + 1]
-    return [json.loads(line) for line in text.splitlines() if line.strip()]
+    lines = text.splitlines()
+    rows = []
+    for i, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+            if not isinstance(row, dict):
+                raise ValueError(f"a {type(row).__name__}, not an object")
+        except ValueError as err:
+            if i == len(lines):
+                break
+            raise MetricsError(
+                f"{path}, line {i}: not a metric row ({str(err)[:80]}); only a torn last "
+                "line is left out. Were two processes writing this run? Its rows cannot "
+                "be read: move the folder away (the same command then trains it afresh)"
+            ) from None
+        rows.append(row)
+    return rows
 
 
 def _same_config(folder: Path, cfg: TrainConfig) -> bool:
@@ -176,14 +215,26 @@ def run_groups(
 ) -> int:
     """Train `runs` as groups under `out`, `jobs` groups at a time in processes of their
     own (None: `default_jobs`), continuing what an earlier call left; 0 when every run
-    completed, 2 when a group could not resume (the reason printed).
+    completed, 2 when a group could not resume or a run's folder is another process's
+    (the reason printed).
 
     Complete runs are skipped one by one; the others are grouped by what they share and
     by where they stopped (runs that stopped together, at one cut, resume together;
     runs never started start together), so adding arms to a figure later neither
-    restarts nor holds back the runs already under way. Without `max_runs`, runs that
-    could share one group are split into `jobs` groups, one per process: on a CPU the
-    products of one thread per group keep the cores busier than two threads on one."""
+    restarts nor holds back the runs already under way. Without `max_runs`, the groups
+    are split further until there are `jobs` of them where the runs allow (`split_groups`),
+    one per process: on a CPU the products of one thread per group keep the cores busier
+    than two threads on one.
+
+    A run another process trains, or whose rows cannot be read, ends the command before
+    anything is trained or written: `Refused` (a SystemExit, 2), the reason printed; the
+    caller writes no page or plot either. SIGTERM, SIGINT or SIGHUP while it trains
+    ends every group process and raises `Stopped` (a SystemExit, 128 + the signal), one
+    line printed; the group processes die with this one however it ends
+    (cli/group_procs.py)."""
+    from cli.group_procs import Stopped, StopSignals, run_in_processes, say_stopped
+    from shared.persist import runlock
+
     # A folder holding another config's run is refused, not overwritten: its results
     # may be all someone has (another --episodes, --threads, an edited file, ...).
     conflicts = [(r, why) for r in runs if (why := config_conflict(out / r.name, r.config))]
@@ -199,7 +250,18 @@ def run_groups(
         print(f"{why}: nothing was run", file=sys.stderr)
         return 2
     jobs = jobs or default_jobs([r.config for r in runs])
-    groups = plan_groups(runs, out, max_runs, jobs)
+    # One writer per run folder: a run another process trains is refused before any
+    # group starts (each group takes its folders' locks too, for a race with this look).
+    held = [(r, pid) for r in runs if (pid := runlock.is_locked(out / r.name)) is not None]
+    for r, pid in held:
+        print(runlock.RunLocked(out / r.name, pid or None), file=sys.stderr)
+    if held:
+        raise Refused()
+    try:
+        groups = plan_groups(runs, out, max_runs, jobs)
+    except MetricsError as err:
+        print(err, file=sys.stderr)
+        raise Refused() from None
     tasks = []
     for n, (state, members) in enumerate(groups, 1):
         chosen = [runs[i] for i in members]
@@ -215,27 +277,20 @@ def run_groups(
             what,
             (n - 1) % max(jobs, 1) if jobs > 1 else None,
         )
-        tasks.append(args)
+        tasks.append((what, args))
     if jobs <= 1 or len(tasks) <= 1:
-        failed = [err for t in tasks if (err := _train_group_job(*t)) is not None]
+        try:
+            with StopSignals():
+                failed = [m for _, t in tasks if (m := _train_group_job(*t)) is not None]
+        except Stopped as stop:
+            say_stopped(stop, [])
+            raise
     else:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        ctx = multiprocessing.get_context("spawn")
         spread = _spread_devices([r.config for r in runs], jobs)
-        init: dict[str, Any] = {}
-        if spread is not None:  # the processes take the GPUs in turn, one each
-            from shared.core.learners.precision import device_count
-
-            indices = ctx.Queue()
-            for i in range(jobs):
-                indices.put(i % device_count(spread))
-            init = {"initializer": _take_device, "initargs": (spread, indices)}
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, **init) as pool:
-            failed = [err for err in pool.map(_train_group_job, *zip(*tasks)) if err]
-    for err in failed:
-        print(err, file=sys.stderr)
+        start = None if spread is None else partial(_take_device, spread)
+        failed = run_in_processes(_train_group_job, tasks, jobs, start)
+    for message in failed:
+        print(message, file=sys.stderr)
     return 2 if failed else 0
 
 
@@ -244,7 +299,8 @@ def plan_groups(
 ) -> list[tuple[str, list[int]]]:
     """The groups `run_groups` trains (and `--launcher slurm` submits, one task each):
     (the state they start from, 'new' or 'cut-<episode>'; the indices in `runs` of
-    their members). Complete runs are left out, and said so. `jobs` None: `default_jobs`."""
+    their members). Complete runs are left out, and said so. `jobs` None: `default_jobs`.
+    `MetricsError` for a run whose rows cannot be read."""
     jobs = jobs or default_jobs([r.config for r in runs])
     states = [run_state(out / r.name, r.config) for r in runs]
     todo = [i for i, s in enumerate(states) if s != "done"]
@@ -255,12 +311,49 @@ def plan_groups(
         by_state.setdefault(states[i], []).append(i)
     from shared.groups import form_groups
 
-    groups = []
-    for state, idx in by_state.items():
-        for g in form_groups([runs[i].config for i in idx]):
-            size = max_runs or -(-len(g) // jobs)
-            groups += [(state, [idx[j] for j in g[k : k + size]]) for k in range(0, len(g), size)]
-    return groups
+    shared = [
+        (state, [idx[j] for j in g])
+        for state, idx in by_state.items()
+        for g in form_groups([runs[i].config for i in idx])
+    ]
+    return split_groups(shared, jobs, max_runs)
+
+
+def split_groups(
+    shared: list[tuple[str, list[int]]], jobs: int, max_runs: int | None = None
+) -> list[tuple[str, list[int]]]:
+    """Groups of runs that must train apart (another cut, another task or network) split
+    into the groups trained: with `max_runs`, into pieces of at most that many; else
+    only while there are fewer groups than `jobs`, the group with the most runs per
+    piece split once more each time, into pieces that differ by one run at most.
+
+    So the groups at a time are `jobs` where the runs allow it: 12 fresh runs and 2 jobs
+    give 2 groups of 6, as do 12 runs resumed from two cuts (6 at each), which split
+    per cut into `jobs` each would give 4 groups of 3, two of them waiting for the
+    others' hours. Each group's rows are its runs' alone, so how runs are grouped never
+    changes a result, only how long the figure takes."""
+    if max_runs:
+        return [
+            (state, members[k : k + max_runs])
+            for state, members in shared
+            for k in range(0, len(members), max_runs)
+        ]
+    pieces = [1] * len(shared)
+    while sum(pieces) < jobs:
+        room = [i for i, (_, m) in enumerate(shared) if len(m) > pieces[i]]
+        if not room:
+            break
+        widest = max(room, key=lambda i: (-(-len(shared[i][1]) // pieces[i]), -i))
+        pieces[widest] += 1
+    out = []
+    for (state, members), n in zip(shared, pieces, strict=True):
+        size, extra = divmod(len(members), n)
+        start = 0
+        for k in range(n):
+            end = start + size + (k < extra)
+            out.append((state, members[start:end]))
+            start = end
+    return out
 
 
 def _train_group_job(
@@ -277,6 +370,7 @@ def _train_group_job(
     from shared.config import make_config
     from shared.core.learners.precision import DeviceError
     from shared.persist.cuts import CutError
+    from shared.persist.runlock import RunLocked
 
     try:
         train_group(
@@ -290,6 +384,8 @@ def _train_group_job(
         )
     except CutError as err:
         return f"{what}: cannot resume: {err}"
+    except RunLocked as err:
+        return f"{what}: {err}"
     except DeviceError as err:
         return f"{what}: {err}"
     except Exception as err:  # any other failure of one group: said, the others go on
@@ -301,7 +397,8 @@ def _train_group_job(
 
 def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Path) -> dict:
     """The runs under `out` as the API would describe their experiment (what the
-    report reads): each run's status, config and latest provenance."""
+    report reads): each run's status, config, latest provenance and resumes (the page's
+    restarts). `MetricsError` for a run whose rows cannot be read."""
     from shared.persist import provenance
 
     described: list[dict[str, Any]] = []
@@ -321,6 +418,7 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
                 "config": r.config.model_dump(mode="json"),
                 "status": "completed" if state == "done" else "incomplete",
                 "live": {"provenance": starts[-1] if starts else None},
+                "resumes": [_resume(s) for s in starts[1:]] if starts else None,
             }
         )
     counts: dict[str, int] = {}
@@ -336,6 +434,17 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
         "counts": counts,
         "seeds": seeds,
         "runs": described,
+    }
+
+
+def _resume(start: dict[str, Any]) -> dict[str, Any]:
+    """A start after a run's first, as the page's header names it: the episode it went on
+    from (None before starts recorded it), its code and when."""
+    episode = start.get("resumed_at")
+    return {
+        "episode": episode if isinstance(episode, int) else None,
+        "code": start.get("code"),
+        "started": start.get("started"),
     }
 
 

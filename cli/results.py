@@ -2,11 +2,12 @@
 
 Each figure's page (`macb reproduce FIGURE`, written by cli/reproduce/render.py) keeps its
 verdicts in `FIGURE-claims.json`. This command reads every page under a results folder
-and writes one row per claim of cli/reproduce/figures.py (every claim of the thesis's sections
-6.1-6.4): what the thesis reports, what each profile measured and how long its runs
-were, and the verdicts; a claim with no page says `not run`. The README's prose stays
-as written: only the part between the two markers is generated, so the table can never
-disagree with the pages (`--check` fails when it does).
+and writes one row per page (its length, a link to its points: FIGURE.csv.gz, or an
+older page's FIGURE.csv) and one row per claim of cli/reproduce/figures.py (every claim
+of the thesis's sections 6.1-6.4): what the thesis reports, what each profile measured
+and how long its runs were, and the verdicts; a claim with no page says `not run`. The
+README's prose stays as written: only the part between the two markers is generated, so
+the table can never disagree with the pages (`--check` fails when it does).
 """
 
 from __future__ import annotations
@@ -60,6 +61,27 @@ def read_pages(root: Path) -> dict[tuple[str, str], tuple[Path, dict[str, Any]]]
     return pages
 
 
+def points_file(folder: Path, figure: str) -> Path | None:
+    """A page's file of points: FIGURE.csv.gz, or an older page's FIGURE.csv (written
+    plain up to 4 MB); None when it has neither."""
+    for name in (f"{figure}.csv.gz", f"{figure}.csv"):
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def read_points(path: Path) -> list[dict[str, str]]:
+    """A page's points as text rows (the CSV's header the keys), gzipped or not."""
+    import csv
+    import gzip
+    import io
+
+    raw = path.read_bytes()
+    if path.suffix == ".gz":
+        raw = gzip.decompress(raw)
+    return list(csv.DictReader(io.StringIO(raw.decode("utf-8"), newline="")))
+
+
 def _ours(page: tuple[Path, dict[str, Any]] | None, claim: str, root: Path) -> tuple[str, str]:
     """(the measured cell, the verdict) of one claim on one page."""
     if page is None:
@@ -81,12 +103,14 @@ def _length(record: dict[str, Any]) -> str:
 def table(root: Path) -> str:
     """The generated part of the README: the pages, then one row per claim."""
     pages = read_pages(root)
-    lines = ["| page | figure | profile | length |", "|---|---|---|---|"]
+    lines = ["| page | figure | profile | length | points |", "|---|---|---|---|---|"]
     for (figure, profile), (path, record) in sorted(pages.items()):
         link = f"[{path.parent.name}]({path.parent.name}/{figure}.md)"
-        lines.append(f"| {link} | {figure} | {profile} | {_length(record)} |")
+        found = points_file(path.parent, figure)
+        points = f"[{found.name}]({path.parent.name}/{found.name})" if found else "none"
+        lines.append(f"| {link} | {figure} | {profile} | {_length(record)} | {points} |")
     if not pages:
-        lines.append("| (none yet) | | | |")
+        lines.append("| (none yet) | | | | |")
     lines += [
         "",
         "| figure | the thesis says | where | the thesis | ours, profile thesis "

@@ -95,6 +95,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from cli.trainer import train
     from shared.core.learners.precision import DeviceError
     from shared.persist.cuts import CutError
+    from shared.persist.runlock import RunLocked
 
     if args.resume:
         given = sorted(config_overrides(args))
@@ -136,7 +137,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     except CutError as err:
         print(f"macb train: cannot resume {out}: {err}", file=sys.stderr)
         return 2
-    except DeviceError as err:
+    except (DeviceError, RunLocked) as err:
         print(f"macb train: {err}", file=sys.stderr)
         return 2
     finally:

@@ -45,7 +45,7 @@ from shared.envs.tasks import TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
 from shared.groups import check_group
 from shared.metrics import TRAIN_FIELDS
-from shared.persist import checkpoint, provenance
+from shared.persist import checkpoint, provenance, runlock
 from shared.persist.checkpoint import CutError, config_difference, load_tables
 from shared.persist.cuts import ReplayLog, latest_cut, read_cut, write_cut
 from shared.persist.cuts import clear as clear_cuts
@@ -255,7 +255,8 @@ def train_group(
     `on_metrics(r, row)` sees run r's rows as they come (after the point's cut);
     `stop_when(rows)` returning True ends every run after that point. With `resume`,
     every run continues from its newest cut that all runs have (one episode), keeping
-    its rows up to it.
+    its rows up to it. Each run's folder is locked while it trains (`runlock.hold`):
+    another process training it already is named in the `RunLocked` raised.
 
     numpy's BLAS (the SimHash projections) runs on one thread while it trains, as in
     `macb train` and the services, which set it before numpy loads: from Python, numpy
@@ -266,7 +267,12 @@ def train_group(
     if resume and any(o is None for o in outs):
         raise ValueError("resume needs every run's output folder")
     steady_heap()
-    with threadpool_limits(limits=1, user_api="blas"):
+    # One writer per run folder, before anything in it is read or written: a second
+    # process is refused (runlock.RunLocked) having touched nothing.
+    with (
+        runlock.hold([o for o in outs if o is not None]),
+        threadpool_limits(limits=1, user_api="blas"),
+    ):
         group = GroupRun(cfgs, outs, cut_every_s, own_learner)
         if resume:
             group.restore()
@@ -577,7 +583,8 @@ class GroupRun:
             start = provenance.entry(m.cfg.precision, stats, "trainer" if self.own else "group")
             if not self.own:
                 start["group"] = {"runs": self.runs}
-            if self.resumed:
+            if self.resumed:  # where the run went on from: a campaign's restarts, on its page
+                start["resumed_at"] = self.first_episode - 1
                 provenance.append(m.out / provenance.FILE, start)
             else:
                 provenance.write(m.out / provenance.FILE, [start])
@@ -725,11 +732,18 @@ def check_resumable(out: Path, config: dict) -> None:
 
 
 def _read_rows(path: Path, n: int, where: Path) -> list[dict]:
-    """The first n metric rows written (a run killed after its last cut wrote more)."""
+    """The first n metric rows written (a run killed after its last cut wrote more); a
+    line among them that is not a row (two writers at once) is refused, naming it."""
     try:
         lines = path.read_text().splitlines()
     except OSError as err:
         raise CutError(f"{where}: cannot read the run's {path.name}: {err}") from None
     if len(lines) < n:
         raise CutError(f"{where}: needs {n} metric rows, {path} holds {len(lines)}")
-    return [json.loads(line) for line in lines[:n]]
+    rows = []
+    for i, line in enumerate(lines[:n], 1):
+        try:
+            rows.append(json.loads(line))
+        except ValueError as err:
+            raise CutError(f"{path}, line {i}: not a metric row ({err})") from None
+    return rows

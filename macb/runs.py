@@ -44,6 +44,23 @@ def load_runs(path: str | Path) -> pd.DataFrame:
     return joined([_run_frame(f, arms.get(f.name)) for f in folders])
 
 
+def load_page(path: str | Path) -> pd.DataFrame:
+    """A figure page's points (`macb reproduce` writes FIGURE.csv.gz; older pages hold a
+    plain FIGURE.csv): `path` is the page's folder (docs/results/fig8-thesis) or the
+    file. One row per point: arm, seed, run, episode, env_steps, the metrics the report
+    reads; a cell left empty (no value) is NaN. RunsError when there is none."""
+    from cli.results import points_file
+
+    page = Path(path)
+    found: Path | None = page if page.is_file() else None
+    if page.is_dir():
+        for claims in sorted(page.glob("*-claims.json")):
+            found = found or points_file(page, claims.name.removesuffix("-claims.json"))
+    if found is None:
+        raise RunsError(f"{page}: no page's points (FIGURE.csv.gz or FIGURE.csv) there")
+    return pd.read_csv(found)  # gzip inferred from the name
+
+
 def joined(frames: list[pd.DataFrame]) -> pd.DataFrame:
     """Runs' frames as one: run, arm, seed, the metrics, then the config keys sorted."""
     frame = pd.concat(frames, ignore_index=True, sort=False)

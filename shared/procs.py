@@ -126,3 +126,41 @@ def alive(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
     except OSError:
         return False
+
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def die_with_parent(parent: int, poll_s: float = 1.0) -> str:
+    """End this process with SIGKILL as soon as `parent` (its parent's PID when it
+    started) ends, however it ends: SIGKILL included, when no handler of the parent's
+    can end its children. Returns how: "prctl" or "watchdog".
+
+    On Linux the kernel does it (prctl PR_SET_PDEATHSIG): nothing in this process has to
+    run for it, so it holds while this process is busy in a long C call, holds the GIL or
+    is stopped, which a watchdog thread cannot promise. Elsewhere (no prctl) a daemon
+    thread polls the parent's PID every `poll_s` seconds. The death signal fires when
+    the thread that started this process ends, so start such children from the
+    parent's main thread. A parent gone before this call is caught by the check after
+    arming (this process is re-parented then)."""
+    import ctypes
+
+    how = "watchdog"
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0:
+            how = "prctl"
+    except (OSError, AttributeError):  # not Linux: no prctl in the C library
+        pass
+    if how == "watchdog":
+        import threading
+
+        def watch() -> None:
+            while os.getppid() == parent:
+                time.sleep(poll_s)
+            os.kill(os.getpid(), signal.SIGKILL)
+
+        threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
+    if os.getppid() != parent:  # it ended before the signal was armed
+        os.kill(os.getpid(), signal.SIGKILL)
+    return how

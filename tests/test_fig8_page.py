@@ -5,6 +5,7 @@ synthetic run folders (rows as `--local` writes them) and synthetic points.
 
 from __future__ import annotations
 
+import gzip
 import itertools
 import json
 import math
@@ -18,7 +19,7 @@ import pytest
 from cli.local import expand_body
 from cli.main import main
 from cli.reproduce import analysis, render
-from cli.reproduce.controls import against_control, bonus_paid
+from cli.reproduce.controls import against_control, bonus_paid, control_verdicts
 from cli.reproduce.experiments import experiment_body, select_arms
 from cli.reproduce.figures import FIGURES
 from cli.reproduce.status import measure, tail_rows
@@ -137,6 +138,44 @@ def test_the_page_says_how_far_why_and_each_seed(runs_dir, tmp_path):
     assert "s0: 90% at 2,000; s1: 92% at 2,000" in dis_claim
     assert dis_claim.endswith("| **not run to that length** |")
     assert "**beats the control" not in md.split("## Against the control")[1]
+    # only the arms selected ('sparse*'): no 0 for the dense arms without runs
+    assert "these runs reached 1,500, 2,000 episodes." in header
+    # the command that rebuilds and resumes these runs names their selection
+    assert "`macb reproduce fig8 --local --profile thesis --seeds 0 1 --arms 'sparse*'`" in md
+    assert "- Restarts:" not in header, "no provenance, nothing said"
+    assert not (out / "fig8.csv").exists()
+    with gzip.open(out / "fig8.csv.gz", "rt") as f:
+        assert sum(1 for _ in f) == 1 + 2 * (2000 + 2000 + 1500 + 1500)
+    first = (out / "fig8.csv.gz").read_bytes()
+    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
+    assert (out / "fig8.csv.gz").read_bytes() == first, "the same points, the same bytes"
+
+
+def _start(commit: str, started: str, resumed_at: int | None = None) -> dict:
+    start = {"started": started, "role": "group", "code": {"commit": commit, "dirty": False}}
+    return start if resumed_at is None else {**start, "resumed_at": resumed_at}
+
+
+def test_the_page_header_says_how_often_and_where_the_campaign_resumed(runs_dir, tmp_path):
+    """Each run's provenance.json holds a start per resume with the episode it went on
+    from: the i-th resume of every run is the campaign's i-th restart (its groups at
+    their own cuts). Starts written before `resumed_at` say so."""
+    for folder in runs_dir.iterdir():
+        at = 1000 if folder.name.startswith(("Sparse-", "Sparse_Dis")) else 1200
+        starts = [
+            _start("a" * 40, "2026-12-04T08:00:00Z"),
+            _start("b" * 40, "2026-12-04T20:00:00Z"),  # before resumes were recorded
+            _start("c" * 40, "2026-12-05T09:00:00Z", at),
+        ]
+        (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
+    out = tmp_path / "page"
+    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
+    header = (out / "fig8.md").read_text().split("## Arms")[0]
+    assert (
+        "- Restarts: resumed 2 times (at episodes ? (code bbbbbbbbbbbb, 2026-12-04T20:00:00Z); "
+        "1,000 and 1,200 (code cccccccccccc, 2026-12-05T09:00:00Z)); ?: a resume written "
+        "before its episode was recorded."
+    ) in header
 
 
 def test_fig8_draws_the_bootstrap_75_percent_band_and_seeds_average_to_the_mean():
@@ -167,6 +206,15 @@ def test_fig8_draws_the_bootstrap_75_percent_band_and_seeds_average_to_the_mean(
     b = analysis.analyse(FIG8, exp, points)
     verdict = against_control(b, b.arm(arm.name), b.arm(control.name))
     assert verdict.startswith("not distinguishable: the spreads overlap")
+    # the Against the control section by the same rule, though the control ends higher
+    controls = {c[0]: c[4] for c in control_verdicts(b)}
+    assert controls[arm.name] == "not distinguishable from the control"
+    short = {k: v[:100] for k, v in points.items()}  # 20,000 of 40,000 episodes
+    c = analysis.analyse(FIG8, exp, short)
+    assert {x[0]: x[4] for x in control_verdicts(c)}[arm.name] == (
+        "not run to that length (20,000 of 40,000 episodes); not distinguishable so far"
+    )
+    assert "so far: not distinguishable" in against_control(c, c.arm(arm.name), c.arm(control.name))
 
 
 def test_bonus_paid_is_none_before_updates_and_pools_the_rows():

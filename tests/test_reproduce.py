@@ -8,7 +8,6 @@ temporary data dir; the store file is read with `Store` between the commands.
 
 from __future__ import annotations
 
-import csv
 import json
 import signal
 import time
@@ -18,6 +17,7 @@ import pytest
 from PIL import Image
 
 from cli.reproduce.figures import FIGURES
+from cli.results import read_points
 from services.api.store import Store
 from tests.harness import cluster_processes, free_port, macb, spawn, wait_for
 
@@ -106,7 +106,7 @@ def test_reproduce_fig3_runs_resumes_and_then_reruns_nothing(tmp_path):
     assert "| beta=0.8 | constant beta=0.8 (control) |" in md
     assert "0 reproduced, 0 not reproduced, 3 not run to that length." in md
     assert f"learner precision fp32 on {len(after)} run(s); CPU" in md  # each learner's report
-    assert (out / "fig3.csv").read_text().count("\n") == 1 + len(after) * EPISODES
+    assert len(read_points(out / "fig3.csv.gz")) == len(after) * EPISODES
     took = time.monotonic() - t0
 
     # 3. Once more: nothing runs again, nothing is added.
@@ -157,12 +157,12 @@ def test_reproduce_through_the_cluster_runs_the_thesis_loop_by_default(tmp_path)
     timing = {"steps_per_sec", "train_steps_per_sec", "wall_s", "run", "run_id"}
 
     def table(path) -> list[dict]:
-        rows = list(csv.DictReader(path.open()))
+        rows = read_points(path)
         return sorted(
             ({k: v for k, v in r.items() if k not in timing} for r in rows),
             key=lambda r: (r["arm"], r["seed"], int(r["episode"])),
         )
 
-    cluster_rows, local_rows = table(out / "fig3.csv"), table(local / "fig3.csv")
+    cluster_rows, local_rows = table(out / "fig3.csv.gz"), table(local / "fig3.csv.gz")
     assert len(cluster_rows) == len(local_rows) == len(runs) * 6
     assert cluster_rows == local_rows

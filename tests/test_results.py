@@ -35,7 +35,7 @@ def _results(tmp_path: Path) -> Path:
     return root
 
 
-def macb(*args: str) -> subprocess.CompletedProcess:
+def macb_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "cli", *args], cwd=ROOT, capture_output=True,
                           text=True, timeout=120, check=False)  # fmt: skip
 
@@ -45,7 +45,7 @@ def test_each_claim_shows_each_profiles_page_and_claims_without_one_say_not_run(
     _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced")
     _page(root, "fig3-thesis", "thesis", 1200, "not run to that length")
     text = table(root)
-    assert "| [fig3-mpe2](fig3-mpe2/fig3.md) | fig3 | mpe2 | full length, 3 seeds |" in text
+    assert "| [fig3-mpe2](fig3-mpe2/fig3.md) | fig3 | mpe2 | full length, 3 seeds | none |" in text
     assert "| fig3 | thesis | 1,200 of 5,000 episodes, 3 seeds |" in text
     rows = [line for line in text.splitlines() if line.startswith("| fig3 | ")]
     assert len(rows) == len(FIG3.claims)
@@ -59,14 +59,14 @@ def test_each_claim_shows_each_profiles_page_and_claims_without_one_say_not_run(
 def test_the_readme_keeps_its_prose_and_check_says_when_it_is_stale(tmp_path):
     root = _results(tmp_path)
     _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced")
-    stale = macb("results", "--dir", str(root), "--check")
+    stale = macb_cli("results", "--dir", str(root), "--check")
     assert stale.returncode == 1 and "is not what its pages say" in stale.stderr
-    wrote = macb("results", "--dir", str(root))
+    wrote = macb_cli("results", "--dir", str(root))
     assert wrote.returncode == 0, wrote.stderr
     readme = (root / "README.md").read_text()
     assert readme.startswith("# Results\n\nprose\n\n") and readme.endswith(f"{END}\n\nafter\n")
     assert "old" not in readme and readme == render(readme, table(root))
-    assert macb("results", "--dir", str(root), "--check").returncode == 0
+    assert macb_cli("results", "--dir", str(root), "--check").returncode == 0
 
 
 @pytest.mark.parametrize("content", ["{not json", '{"format": 1, "figure": "fig99"}'])
@@ -74,11 +74,40 @@ def test_a_bad_claims_file_is_refused_naming_it(tmp_path, content):
     root = _results(tmp_path)
     path = _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced")
     path.write_text(content)
-    got = macb("results", "--dir", str(root))
+    got = macb_cli("results", "--dir", str(root))
     assert got.returncode != 0 and str(path) in got.stderr and "not a claims file" in got.stderr
     assert "old" in (root / "README.md").read_text()  # nothing written
 
 
 def test_the_repositorys_results_readme_is_what_its_pages_say():
-    got = macb("results", "--check")
+    got = macb_cli("results", "--check")
     assert got.returncode == 0, got.stderr
+
+
+def test_a_page_s_points_are_its_csv_gz_and_an_older_page_s_plain_csv_still_reads(tmp_path):
+    """A page writes FIGURE.csv.gz; a page written before holds FIGURE.csv: both are
+    linked from the table and read by macb.load_page, gzipped first; --check sees a
+    page whose points moved from one to the other."""
+    import gzip
+
+    import macb
+    from cli.results import points_file, read_points
+
+    root = _results(tmp_path)
+    folder = _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced").parent
+    text = "arm,seed,run,episode,success_rate\nbeta=0.0,0,b-s0,10,0.5\nbeta=0.0,0,b-s0,20,\n"
+    (folder / "fig3.csv").write_text(text)
+    assert points_file(folder, "fig3") == folder / "fig3.csv"
+    assert "| full length, 3 seeds | [fig3.csv](fig3-mpe2/fig3.csv) |" in table(root)
+    assert macb_cli("results", "--dir", str(root)).returncode == 0
+    old = macb.load_page(folder)
+    assert list(old["episode"]) == [10, 20] and old["success_rate"].isna().tolist() == [0, 1]
+    (folder / "fig3.csv.gz").write_bytes(gzip.compress(text.replace("0.5", "0.25").encode()))
+    assert points_file(folder, "fig3") == folder / "fig3.csv.gz"
+    assert read_points(folder / "fig3.csv.gz")[0]["success_rate"] == "0.25"
+    assert macb.load_page(folder)["success_rate"][0] == 0.25
+    assert macb.load_page(folder / "fig3.csv")["success_rate"][0] == 0.5
+    stale = macb_cli("results", "--dir", str(root), "--check")
+    assert stale.returncode == 1, "the table links the page's .csv.gz now"
+    with pytest.raises(macb.RunsError, match="no page's points"):
+        macb.load_page(tmp_path)

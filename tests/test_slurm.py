@@ -9,7 +9,6 @@ MACB_SLURM_SETUP=1, which lets them install munge and slurm-wlm (as root).
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import subprocess
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from cli.results import read_points
 from tests import slurm_node
 from tests.harness import macb, spawn, wait_for
 
@@ -48,8 +48,7 @@ def on(node: slurm_node.Node, *args: str, **env: str) -> subprocess.CompletedPro
 
 
 def table(path: Path) -> list[dict[str, str]]:
-    with path.open(newline="") as f:
-        return [{k: v for k, v in r.items() if k not in TIMING} for r in csv.DictReader(f)]
+    return [{k: v for k, v in r.items() if k not in TIMING} for r in read_points(path)]
 
 
 def rows(folder: Path) -> list[dict]:
@@ -78,7 +77,7 @@ def test_fig3_on_slurm_writes_the_csv_of_the_local_launcher(node, tmp_path):
         assert f"task {t['index']} on " in log.read_text()
     local = on(node, *fig3, "--out", str(tmp_path / "local"))
     assert local.returncode == 0, local.stderr
-    assert table(tmp_path / "slurm" / "fig3.csv") == table(tmp_path / "local" / "fig3.csv")
+    assert table(tmp_path / "slurm" / "fig3.csv.gz") == table(tmp_path / "local" / "fig3.csv.gz")
     assert "--launcher slurm" in (tmp_path / "slurm" / "fig3.md").read_text()
 
 

@@ -1,5 +1,5 @@
 """`macb reproduce FIGURE`: one of the thesis's figures, every arm and seed, as one
-experiment through the API, then FIGURE.png / FIGURE.md / FIGURE.csv beside the thesis.
+experiment through the API, then FIGURE.png / FIGURE.md / FIGURE.csv.gz beside the thesis.
 
 When no API answers at --api, it starts the local cluster the way `macb up --run` does
 (cli.cluster.local_cluster) and stops it at the end; one learner, so runs go one after
@@ -36,7 +36,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "seeds as one experiment through the API (starting the local cluster when no API "
         "answers), then write OUT/FIGURE.png (the arms overlaid, smoothed, mean over seeds, "
         "a std band), OUT/FIGURE.md (the thesis's claims beside the measured numbers, a "
-        "verdict each) and OUT/FIGURE.csv. Running the same command again resumes: only "
+        "verdict each) and OUT/FIGURE.csv.gz. Running the same command again resumes: only "
         "the runs that did not complete run again.",
         formatter_class=HelpFormatter,
     )
@@ -131,7 +131,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
     rp.add_argument(
         "--report-only",
         action="store_true",
-        help="train nothing: rebuild OUT/FIGURE.png/.md/.csv from the runs a --local "
+        help="train nothing: rebuild OUT/FIGURE.png/.md/.csv.gz from the runs a --local "
         "reproduce stored in OUT/runs/",
     )
     rp.add_argument(
@@ -207,10 +207,14 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         runs_dir = Path(args.runs) if args.runs else out / "runs"
         return print_status(f"{fig.name}, profile {args.profile}", runs, runs_dir, fig.episodes)
     if args.launcher == "slurm" and not (args.report_only or args.group_runs):
+        from cli.local import MetricsError
         from cli.reproduce.slurm import campaign, reproduce_slurm
 
         runs_at = Path(args.runs) if args.runs else None
-        return reproduce_slurm([campaign(fig, body, args.profile, out, runs_at)], args)
+        try:
+            return reproduce_slurm([campaign(fig, body, args.profile, out, runs_at)], args)
+        except MetricsError as err:  # a run's rows do not read: refused before submitting
+            return _refuse(str(err))
     if args.local or args.report_only:
         return reproduce_local(fig, body, args.profile, out, args)
     url = (args.api or _env_url() or DEFAULT_URL).rstrip("/")
@@ -286,8 +290,18 @@ def reproduce_local(
         print(f"trained in {time.monotonic() - t0:,.0f} s", file=sys.stderr)
     elif not runs_dir.exists():
         return _refuse(f"--report-only: no runs stored in {runs_dir}")
-    page = write_page(fig, body, profile, out, runs_dir, not args.report_only)
+    page = write_page(fig, body, profile, out, runs_dir, not args.report_only, figure_flags(args))
     return code or page
+
+
+def figure_flags(args: argparse.Namespace) -> list[str]:
+    """The flags that select a figure's runs and configs (seeds, episodes, precision,
+    threads, arms): what a command that resumes the same runs must repeat."""
+    argv = ["--seeds", *map(str, args.seeds)] if args.seeds else []
+    for flag in ("episodes", "precision", "threads"):
+        if getattr(args, flag) is not None:
+            argv += [f"--{flag}", str(getattr(args, flag))]
+    return argv + (["--arms", *args.arms] if args.arms else [])
 
 
 def launcher_error(args: argparse.Namespace) -> str | None:

@@ -1,5 +1,6 @@
 """Each counting arm against its constant control, and why it ends where it does:
-whether it beats the control (`control_verdicts`), how many of its keys were seen once
+whether it beats the control (`control_verdicts`, by the rule that tells its curve
+from the control's: `distinguish`), how many of its keys were seen once
 (count-1 %), the bonus it actually paid, and whether its curve can be told from its
 control's (`why_rows`), each per seed beside the mean; and each claim per seed.
 
@@ -29,17 +30,6 @@ from cli.reproduce.analysis import (
 from cli.reproduce.experiments import arm_configs, control_of, counts
 
 
-def _score(a: Analysis, arm: ArmCurve) -> tuple[float, float]:
-    """Smaller is better: (episodes to convergence or inf, -final success); for
-    collisions the final count."""
-    if a.fig.metric == "collisions_cum":
-        return (arm.final, 0.0)
-    if a.fig.kind == "table":
-        return (-arm.final, 0.0)
-    conv = arm.converged
-    return (float(conv) if conv is not None else math.inf, -arm.final)
-
-
 def summary(a: Analysis, arm: ArmCurve) -> str:
     if not len(arm.episodes):
         return "no points"
@@ -56,9 +46,14 @@ SAME_RUNS = "counting gave every reward the constant's bonus"
 
 def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]:
     """(MACB arm, its control, MACB measured, control measured, verdict) per MACB arm:
-    does counting beat the constant bonus of the same beta (the control's point)?"""
+    does counting beat the constant bonus of the same beta (the control's point)? By
+    the Why table's rule (`distinguish`), so the two sections never disagree: beats it
+    when its spread is apart from the control's on the better side (above; below for
+    collisions), does not beat it on the other side, and is not distinguishable from it
+    while the spreads overlap."""
     configs = arm_configs(a.fig)
     out: list[tuple[str, str | None, str, str, str]] = []
+    better = "below" if a.fig.metric == "collisions_cum" else "above"
     for arm_def in a.fig.arms:
         if not counts(configs[arm_def.name]):
             continue
@@ -68,21 +63,25 @@ def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]
             out.append((arm_def.name, None, summary(a, mine), "-", "no control at its beta"))
             continue
         theirs = a.arm(control)
-        if not len(mine.episodes) or not len(theirs.episodes):
+        d = distinguish(mine, theirs)
+        if d is None:
             out.append((arm_def.name, control, summary(a, mine), summary(a, theirs), "no points"))
             continue
-        length = min(mine.length, theirs.length)
-        if same_runs(mine, theirs):  # a fact as far as both went, at any length
+        short = d.length < a.fig.episodes
+        if d.side == "same":  # a fact as far as both went, at any length
             verdict = f"the same runs as the control, point for point: {SAME_RUNS}"
-            if length < a.fig.episodes:
-                verdict += f" (at {length:,} of {a.fig.episodes:,} episodes)"
+            if short:
+                verdict += f" (at {d.length:,} of {a.fig.episodes:,} episodes)"
+        elif d.side == "overlap":
+            verdict = "not distinguishable from the control"
+            if short:
+                verdict = f"{TOO_SHORT} ({d.length:,} of {a.fig.episodes:,} episodes); not "
+                verdict += "distinguishable so far"
         else:
-            verdict = "beats the control"
-            if _score(a, mine) >= _score(a, theirs):
-                verdict = "does not beat the control"
-            if length < a.fig.episodes:  # a verdict about the figure's length: not yet
+            verdict = "beats the control" if d.side == better else "does not beat the control"
+            if short:  # a verdict about the figure's length: not yet
                 verdict = (
-                    f"{TOO_SHORT} ({length:,} of {a.fig.episodes:,} episodes); so far {verdict}"
+                    f"{TOO_SHORT} ({d.length:,} of {a.fig.episodes:,} episodes); so far {verdict}"
                 )
         out.append((arm_def.name, control, summary(a, mine), summary(a, theirs), verdict))
     return out
@@ -135,20 +134,33 @@ def per_seed(a: Analysis, values: dict[int, str]) -> str:
     return ", ".join(f"s{s} {values[s]}" for s in a.seeds if s in values)
 
 
-def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
-    """Can the arm's curve be told from its control's: the same runs (`same_runs`),
-    else whether their spreads (mean +- one std over seeds) stay apart over the last
-    PLATEAU_SHARE of the episodes both reached, which before the figure's length is
-    'not run to that length'. The spread, not a confidence band: with 3 seeds a band of
-    the mean is narrow enough to part two runs of the same method by chance."""
+@dataclass(frozen=True)
+class Distinction:
+    """An arm's curve against its control's: `side` "same" (the same runs, point for
+    point), "above" or "below" (their spreads apart on that side over at least
+    DISTINGUISHED of the last PLATEAU_SHARE of the episodes both ran) or "overlap";
+    `length` the episodes both ran; the shares of those last points (`up`, `down`) and
+    of all common points (`above`, `below`) with the spreads apart."""
+
+    side: str
+    length: int
+    up: float = 0.0
+    down: float = 0.0
+    above: float = 0.0
+    below: float = 0.0
+
+
+def distinguish(mine: ArmCurve, theirs: ArmCurve) -> Distinction | None:
+    """Can the arm's curve be told from its control's (None: one has no points): the
+    same runs (`same_runs`), else whether their spreads (mean +- one std over seeds)
+    stay apart over the last PLATEAU_SHARE of the episodes both reached. The spread,
+    not a confidence band: with 3 seeds a band of the mean is narrow enough to part two
+    runs of the same method by chance."""
     if not len(mine.episodes) or not len(theirs.episodes):
-        return "no points"
+        return None
     length = min(mine.length, theirs.length)
-    if same_runs(mine, theirs):  # a fact as far as both went, at any length
-        text = "the same runs as the control, point for point"
-        if length < a.fig.episodes:
-            text += f" (as far as both went: {length:,} of {a.fig.episodes:,} episodes)"
-        return text
+    if same_runs(mine, theirs):
+        return Distinction("same", length)
     common = np.intersect1d(mine.episodes, theirs.episodes)
     (lo_m, hi_m), (lo_t, hi_t) = _spread(mine), _spread(theirs)
     im, it = np.isin(mine.episodes, common), np.isin(theirs.episodes, common)
@@ -156,19 +168,33 @@ def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
     below = hi_m[im] < lo_t[it]
     tail = slice(-max(1, round(PLATEAU_SHARE * len(common))), None)
     up, down = float(above[tail].mean()), float(below[tail].mean())
-    if up >= DISTINGUISHED:
-        text = "distinguishable: above the control"
-    elif down >= DISTINGUISHED:
-        text = "distinguishable: below the control"
-    else:
-        text = "not distinguishable: the spreads overlap"
+    side = "above" if up >= DISTINGUISHED else "below" if down >= DISTINGUISHED else "overlap"
+    return Distinction(side, length, up, down, float(above.mean()), float(below.mean()))
+
+
+def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
+    """The Why table's words for `distinguish`, which before the figure's length are
+    'not run to that length' (the same runs are a fact at any length)."""
+    d = distinguish(mine, theirs)
+    if d is None:
+        return "no points"
+    if d.side == "same":
+        text = "the same runs as the control, point for point"
+        if d.length < a.fig.episodes:
+            text += f" (as far as both went: {d.length:,} of {a.fig.episodes:,} episodes)"
+        return text
+    text = {
+        "above": "distinguishable: above the control",
+        "below": "distinguishable: below the control",
+        "overlap": "not distinguishable: the spreads overlap",
+    }[d.side]
     text += (
-        f" (spreads apart at {up + down:.0%} of the last {PLATEAU_SHARE:.0%} of the "
-        f"episodes both ran; above at {above.mean():.0%}, below at {below.mean():.0%} "
+        f" (spreads apart at {d.up + d.down:.0%} of the last {PLATEAU_SHARE:.0%} of the "
+        f"episodes both ran; above at {d.above:.0%}, below at {d.below:.0%} "
         "of all of them)"
     )
-    if length < a.fig.episodes:
-        return f"{TOO_SHORT} ({length:,} of {a.fig.episodes:,} episodes); so far: {text}"
+    if d.length < a.fig.episodes:
+        return f"{TOO_SHORT} ({d.length:,} of {a.fig.episodes:,} episodes); so far: {text}"
     return text
 
 

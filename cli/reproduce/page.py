@@ -1,4 +1,4 @@
-"""A `--local` campaign's page from its runs' folders: FIGURE.png/.md/.csv and
+"""A `--local` campaign's page from its runs' folders: FIGURE.png/.md/.csv.gz and
 FIGURE-runs.json, written by `macb reproduce --local` (and --report-only) after training
 in this process, and by `--launcher slurm` once every task's runs are complete.
 """
@@ -6,13 +6,11 @@ in this process, and by `--launcher slurm` once every task's runs are complete.
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from cli.reproduce.defs import FigureDef
-
-#: A figure's CSV over this size is written gzipped (FIGURE.csv.gz).
-CSV_GZIP_BYTES = 4 * 1024 * 1024
 
 
 def write_runs_record(exp: dict[str, Any], path: Path) -> Path:
@@ -31,34 +29,38 @@ def write_runs_record(exp: dict[str, Any], path: Path) -> Path:
 
 
 def write_page(
-    fig: FigureDef, body: dict[str, Any], profile: str, out: Path, runs_dir: Path, trained: bool
+    fig: FigureDef,
+    body: dict[str, Any],
+    profile: str,
+    out: Path,
+    runs_dir: Path,
+    trained: bool,
+    flags: Sequence[str] = (),
 ) -> int:
-    """The page (FIGURE.png/.md/.csv, FIGURE-runs.json) from the runs in `runs_dir`: 0
-    when every run completed, else 1. `trained`: this command trained them (the page
-    names it), else it names the --local command that would."""
-    from cli.local import expand_body, local_experiment, local_points
+    """The page (FIGURE.png/.md/.csv.gz, FIGURE-runs.json) from the runs in `runs_dir`:
+    0 when every run completed, 1 when some did not, 2 when a run's rows cannot be read
+    (named). `trained`: this command trained them (the page names it), else it names
+    the --local command that would, with `flags`, the runs' selection (--arms, --seeds,
+    --episodes, ...: without them that command would train other runs)."""
+    import shlex
+
+    from cli.local import MetricsError, expand_body, local_experiment, local_points
     from cli.reproduce.analysis import analyse, claim_verdicts, columns
     from cli.reproduce.render import write_report
 
     name, seeds, runs = expand_body(body)
-    exp = local_experiment(name, seeds, runs, runs_dir)
-    points = {k: columns(v) for k, v in local_points(runs, runs_dir).items()}
+    try:
+        exp = local_experiment(name, seeds, runs, runs_dir)
+        points = {k: columns(v) for k, v in local_points(runs, runs_dir).items()}
+    except MetricsError as err:
+        print(f"macb reproduce: {err}", file=sys.stderr)
+        return 2
     analysis = analyse(fig, exp, points)
-    import shlex
-
     command = shlex.join(["macb", *sys.argv[1:]]) if trained else ""
-    command = command or f"macb reproduce {fig.name} --local --profile {profile}"
+    rebuild = ["macb", "reproduce", fig.name, "--local", "--profile", profile, *flags]
+    command = command or shlex.join(rebuild)
     paths = write_report(analysis, points, profile, out, command)
     paths.append(write_runs_record(exp, out / f"{fig.name}-runs.json"))
-    csv_path = out / f"{fig.name}.csv"
-    if csv_path.stat().st_size > CSV_GZIP_BYTES:  # a full-length figure's points
-        import gzip
-        import shutil
-
-        with csv_path.open("rb") as src, gzip.open(f"{csv_path}.gz", "wb") as dst:
-            shutil.copyfileobj(src, dst)
-        csv_path.unlink()
-        paths = [Path(f"{csv_path}.gz") if p == csv_path else p for p in paths]
     verdicts = [v for *_, v in claim_verdicts(analysis)]
     tally = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
     counts = ", ".join(f"{v} {k}" for k, v in exp["counts"].items())

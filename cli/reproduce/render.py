@@ -1,5 +1,5 @@
 """A reproduced figure's page: FIGURE.md (what ran, the definitions, each arm beside
-the thesis, a verdict per claim, each counting arm against its control), FIGURE.csv
+the thesis, a verdict per claim, each counting arm against its control), FIGURE.csv.gz
 (every point the curves read) and FIGURE-claims.json (for `macb results`), with
 FIGURE.png from cli/reproduce/plot.py.
 """
@@ -117,7 +117,7 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         base["episodes"] = runs[0]["config"]["episodes"]
     base["profile"] = profile
     counts = ", ".join(f"{v} {k}" for k, v in (exp.get("counts") or {}).items())
-    lengths = {arm.length for arm in a.arms.values()}
+    lengths = {arm.length for arm in a.arms.values() if arm.runs}  # the arms selected
     window = sorted({arm.window for arm in a.arms.values()})
     lines = [
         f"# {fig.title}",
@@ -130,8 +130,9 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         f"{exp.get('status', '?')} ({counts or 'no runs'}).",
         f"- Profile `{profile}`; seeds {exp.get('seeds', [])}; the thesis ran 3 seeds of "
         f"{fig.episodes:,} episodes; these runs reached "
-        f"{', '.join(f'{n:,}' for n in sorted(lengths))} episodes.",
+        f"{', '.join(f'{n:,}' for n in sorted(lengths)) or 'no'} episodes.",
         page_line(from_points(exp, a.points, fig.episodes), time.time()),
+        *restarts(runs),
         f"- Base config (every arm): {_fmt_point(base)}.",
         f"- Smoothing: centred moving average over {SMOOTH_SHARE:.0%} of each seed's "
         f"evaluation points (W = {', '.join(map(str, window))} point(s); the window shrinks "
@@ -202,8 +203,11 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         "",
         "The control is the constant bonus with the same beta and reward, no counting: a "
         "count-bonus arm that does not beat it owes its effect to the reward shift, not "
-        "to counting. Better: fewer episodes to convergence (then a higher final "
-        "success)" + ("; fewer collisions" if fig.metric == "collisions_cum" else "") + ".",
+        "to counting. The verdict is the Why table's rule: beats the control when their "
+        "spreads are apart on the better side ("
+        + ("fewer collisions" if fig.metric == "collisions_cum" else "higher")
+        + "), does not beat it when apart on the other, not distinguishable while they "
+        "overlap; the measured columns give each arm's convergence and final value.",
         "",
         "| MACB arm | control | MACB measured | control measured | verdict |",
         "|---|---|---|---|---|",
@@ -213,9 +217,49 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
     return "\n".join(lines) + "\n"
 
 
+def restarts(runs: list[dict[str, Any]]) -> list[str]:
+    """The header's line on a campaign's restarts, from each run's resumes (`resumes`:
+    the starts after its first in its provenance.json, as `cli.local.local_experiment`
+    reads them; no line where no run has a provenance.json, or for a cluster's runs,
+    which carry none). The i-th resume of every
+    run is one restart: the runs of a campaign start together and resume together, at
+    their groups' cuts (one episode per group)."""
+    lists = [r["resumes"] for r in runs if isinstance(r.get("resumes"), list)]
+    if not lists:
+        return []
+    n = max(map(len, lists), default=0)
+    if not n:
+        return ["- Restarts: none (each run trained in one start)."]
+    parts, unknown = [], False
+    for i in range(n):
+        these = [x[i] for x in lists if len(x) > i]
+        eps = sorted({e for x in these if isinstance(e := x.get("episode"), int)})
+        missing = any(not isinstance(x.get("episode"), int) for x in these)
+        unknown |= missing
+        where = " and ".join([*(f"{e:,}" for e in eps), *["?"] * missing])
+        commits = sorted({_commit(x.get("code") or {}) for x in these})
+        when = min((str(x.get("started") or "") for x in these), default="")
+        parts.append(f"{where} (code {', '.join(commits)}{', ' + when if when else ''})")
+    note = "; ?: a resume written before its episode was recorded" if unknown else ""
+    times = f"{n} time{'s' * (n != 1)}"
+    return [f"- Restarts: resumed {times} (at episodes {'; '.join(parts)}){note}."]
+
+
 def write_csv(exp: dict[str, Any], points: Mapping[str, Columns | list], path: Path) -> Path:
-    """FIGURE.csv: every point of every run, only the columns the report reads."""
-    with path.open("w", newline="") as f:
+    """FIGURE.csv.gz: every point of every run, only the columns the report reads,
+    gzipped with no time in its header, so the same points give the same bytes and a
+    page rebuilt at every stop of a campaign commits only what changed. An older page's
+    plain FIGURE.csv in the same folder is removed: one file of points per page
+    (`cli.results.points_file` still reads either)."""
+    import gzip
+    import io
+
+    path.with_suffix("").unlink(missing_ok=True)  # FIGURE.csv
+    with (
+        path.open("wb") as raw,
+        gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as zipped,
+        io.TextIOWrapper(zipped, newline="", encoding="utf-8") as f,
+    ):
         w = csv.writer(f)
         w.writerow(CSV_COLUMNS)
         for r in exp["runs"]:
@@ -241,7 +285,8 @@ def write_report(
     out: Path,
     command: str | None = None,
 ) -> list[Path]:
-    """FIGURE.png, FIGURE.md, FIGURE.csv and FIGURE-claims.json (for `macb results`) in out/."""
+    """FIGURE.png, FIGURE.md, FIGURE.csv.gz and FIGURE-claims.json (for `macb results`) in
+    out/."""
     out.mkdir(parents=True, exist_ok=True)
     name = a.fig.name
     png = write_png(a, profile, out / f"{name}.png")
@@ -254,4 +299,4 @@ def write_report(
     )  # fmt: skip
     claims = out / f"{name}-claims.json"
     claims.write_text(json.dumps(record, indent=1) + "\n")
-    return [png, md, write_csv(a.experiment, points, out / f"{name}.csv"), claims]
+    return [png, md, write_csv(a.experiment, points, out / f"{name}.csv.gz"), claims]
