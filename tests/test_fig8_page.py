@@ -19,7 +19,7 @@ import pytest
 from cli.local import expand_body
 from cli.main import main
 from cli.reproduce import analysis, render
-from cli.reproduce.controls import against_control, bonus_paid, control_verdicts
+from cli.reproduce.controls import against_control, bonus_paid, control_verdicts, distinguish
 from cli.reproduce.experiments import experiment_body, select_arms
 from cli.reproduce.figures import FIGURES
 from cli.reproduce.status import measure, tail_rows
@@ -235,3 +235,35 @@ def test_the_last_hour_is_read_from_the_end_of_a_long_file(tmp_path):
     short = tmp_path / "short.jsonl"
     short.write_text("".join(json.dumps({"episode": e, "wall_s": e * 10.0}) + "\n" for e in (1, 2)))
     assert [r["episode"] for r in tail_rows(short)] == [1, 2]  # under an hour: all of it
+
+
+def test_an_arm_that_learns_sooner_to_the_same_end_is_told_apart_by_its_area():
+    """Both end at 100%, so their last points overlap; the counting arm gets there at
+    8,000 episodes and its control at 25,000: the whole run parts them (each seed's mean
+    over the episodes both ran), and both sections say so by the one rule."""
+    shapes = {
+        "Sparse + Cen-MACB": (8000, 1.0),
+        "Sparse + constant beta=0.8 (control)": (25000, 1.0),
+    }
+    exp, points = synthetic(FIG8, shapes, 40000, seeds=(0, 1, 2), step=200)
+    for rows in points.values():  # both at the plateau from 30,000 on, to the last bit
+        for p in rows:
+            if p["episode"] >= 30000 and p["success_rate"] > 0.99:
+                p["success_rate"] = 1.0
+    a = analysis.analyse(FIG8, exp, points)
+    arm, control = a.arm("Sparse + Cen-MACB"), a.arm("Sparse + constant beta=0.8 (control)")
+    d = distinguish(arm, control)
+    assert d is not None and (d.side, d.by) == ("above", "area") and d.up == 0.0
+    assert against_control(a, arm, control).startswith(
+        "distinguishable: above the control over the run"
+    )
+    assert {c[0]: c[4] for c in control_verdicts(a)}["Sparse + Cen-MACB"] == "beats the control"
+    # the control's seeds learning as the arm's do (its seeds' curves, in another order):
+    # one spread over the run, and at the end
+    run_of = {(r["arm"], r["seed"]): r["id"] for r in exp["runs"]}
+    for s in (0, 1, 2):
+        mine = points[run_of[("Sparse + Cen-MACB", (s + 1) % 3)]]
+        points[run_of[(control.name, s)]] = [{**p, "eval_return": 0.0} for p in mine]
+    b = analysis.analyse(FIG8, exp, points)
+    d = distinguish(b.arm(arm.name), b.arm(control.name))
+    assert d is not None and (d.side, d.by) == ("overlap", "end")

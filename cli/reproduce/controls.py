@@ -140,7 +140,9 @@ class Distinction:
     point), "above" or "below" (their spreads apart on that side over at least
     DISTINGUISHED of the last PLATEAU_SHARE of the episodes both ran) or "overlap";
     `length` the episodes both ran; the shares of those last points (`up`, `down`) and
-    of all common points (`above`, `below`) with the spreads apart."""
+    of all common points (`above`, `below`) with the spreads apart; `by` "end" when the
+    last points part them, "area" when only the whole run does (one arm learns faster:
+    each seed's mean over the episodes both ran, spreads apart)."""
 
     side: str
     length: int
@@ -148,6 +150,7 @@ class Distinction:
     down: float = 0.0
     above: float = 0.0
     below: float = 0.0
+    by: str = "end"  # what parted them: "end" (the last points) or "area" (the whole run)
 
 
 def distinguish(mine: ArmCurve, theirs: ArmCurve) -> Distinction | None:
@@ -169,7 +172,27 @@ def distinguish(mine: ArmCurve, theirs: ArmCurve) -> Distinction | None:
     tail = slice(-max(1, round(PLATEAU_SHARE * len(common))), None)
     up, down = float(above[tail].mean()), float(below[tail].mean())
     side = "above" if up >= DISTINGUISHED else "below" if down >= DISTINGUISHED else "overlap"
-    return Distinction(side, length, up, down, float(above.mean()), float(below.mean()))
+    by = "end"
+    if side == "overlap":  # the same end, reached sooner or later: the area says which
+        side = _area_side(mine, theirs, common)
+        by = "area" if side != "overlap" else "end"
+    return Distinction(side, length, up, down, float(above.mean()), float(below.mean()), by)
+
+
+def _area_side(mine: ArmCurve, theirs: ArmCurve, common: np.ndarray) -> str:
+    """'above' / 'below' when each seed's mean of its smoothed curve over the `common`
+    episodes (the area under it: how soon and how high it learned) has its spread
+    (mean +- one std over seeds) apart from the control's, else 'overlap'."""
+    metric = mine.metric
+    if metric not in mine.smoothed or metric not in theirs.smoothed or not len(common):
+        return "overlap"
+    a = mine.smoothed[metric][:, np.isin(mine.episodes, common)].mean(axis=1)
+    b = theirs.smoothed[metric][:, np.isin(theirs.episodes, common)].mean(axis=1)
+    if a.mean() - a.std() > b.mean() + b.std():
+        return "above"
+    if a.mean() + a.std() < b.mean() - b.std():
+        return "below"
+    return "overlap"
 
 
 def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
@@ -188,6 +211,8 @@ def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
         "below": "distinguishable: below the control",
         "overlap": "not distinguishable: the spreads overlap",
     }[d.side]
+    if d.by == "area":
+        text += " over the run (each seed's mean over the episodes both ran), not at the end"
     text += (
         f" (spreads apart at {d.up + d.down:.0%} of the last {PLATEAU_SHARE:.0%} of the "
         f"episodes both ran; above at {d.above:.0%}, below at {d.below:.0%} "

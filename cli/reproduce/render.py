@@ -206,8 +206,10 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         "to counting. The verdict is the Why table's rule: beats the control when their "
         "spreads are apart on the better side ("
         + ("fewer collisions" if fig.metric == "collisions_cum" else "higher")
-        + "), does not beat it when apart on the other, not distinguishable while they "
-        "overlap; the measured columns give each arm's convergence and final value.",
+        + "), at the end or else over the whole run (each seed's mean over the episodes "
+        "both ran: an arm that learns sooner), does not beat it when apart on the other, "
+        "not distinguishable while they overlap; the measured columns give each arm's "
+        "convergence and final value.",
         "",
         "| MACB arm | control | MACB measured | control measured | verdict |",
         "|---|---|---|---|---|",
