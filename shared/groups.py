@@ -21,6 +21,8 @@ PER_RUN_FIELDS = frozenset(
         "seed",
         "explore",
         "beta",
+        "beta_schedule",
+        "early_stop",
         "k",
         "hash",
         "bonus_at",

@@ -1,6 +1,14 @@
 """The fields of a metric row, in one place: the trainer's CSV, the services' rows and
-the API's store and CSV all use these names, in this order. (No numpy or torch here:
-the API imports it.)"""
+the API's store and CSV all use these names, in this order, and the early-stopping rule
+read on them. (No numpy or torch here: the API imports it.)"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from shared.config import EarlyStop
 
 TRAIN_FIELDS = (
     "episode",
@@ -14,11 +22,54 @@ TRAIN_FIELDS = (
     "bonus_mean",
     "bonus_std",
     "sampled_count1_pct",
+    "beta",
     "steps_per_sec",
     "train_steps_per_sec",
     "updates",
     "wall_s",
+    "stop_reason",
 )
 # What a distributed run adds to each row.
 SERVICE_FIELDS = ("replay_ratio", "policy_lag", "policy_version")
 ALL_FIELDS = TRAIN_FIELDS + SERVICE_FIELDS
+
+
+def smoothed(values: Sequence[float], window: int) -> list[float]:
+    """The trailing mean of the last `window` values at each point (fewer at the start):
+    what the rule reads, known at each point without the points after it."""
+    out, total = [], 0.0
+    for i, v in enumerate(values):
+        total += v
+        if i >= window:
+            total -= values[i - window]
+        out.append(total / min(i + 1, window))
+    return out
+
+
+def early_stop_reason(rule: EarlyStop | None, rows: Sequence[dict]) -> str | None:
+    """Why the run ends at its last row by `rule` (config `early_stop`), or None: a pure
+    function of the rows so far, so a resumed run and every place that reads rows (the
+    trainer, a group's members, the reports) decide alike."""
+    if rule is None or not rows:
+        return None
+    sm = smoothed([float(r["success_rate"]) for r in rows], rule.smooth)
+    what = "success rate" if rule.smooth == 1 else f"success rate (mean of {rule.smooth} points)"
+    if rule.rule == "success_at_least":
+        assert rule.threshold is not None
+        tail = sm[-rule.patience :]
+        if len(tail) == rule.patience and all(v >= rule.threshold for v in tail):
+            return (
+                f"early_stop success_at_least: {what} >= {rule.threshold:g} at "
+                f"{rule.patience} point(s) in a row"
+            )
+        return None
+    best, at = sm[0], 0
+    for i, v in enumerate(sm[1:], 1):
+        if v > best + rule.min_delta:
+            best, at = v, i
+    if len(sm) - 1 - at >= rule.patience:
+        return (
+            f"early_stop no_improvement: {what} not above {best:.3g} (episode "
+            f"{rows[at]['episode']}) for {rule.patience} point(s)"
+        )
+    return None

@@ -52,6 +52,23 @@ CASES = {
         "k": 16,
     },
     "spread-dis-macb": {"task": "spread", "algo": "dis-maddpg", "explore": "dis-macb", "k": 8},
+    # beta schedules (beyond the thesis): the learner prices the counter's counts at the
+    # beta of the transition each update is owed for, as macb train does
+    "speaker_listener-cen-macb-linear-beta": {
+        "task": "speaker_listener",
+        "algo": "cen-maddpg",
+        "explore": "cen-macb",
+        "profile": "thesis",
+        "k": 16,
+        "beta_schedule": {"kind": "linear", "end": 0.1, "horizon": 8},
+    },
+    "simple-ddpg-constant-exponential-beta": {
+        "task": "simple",
+        "algo": "ddpg",
+        "explore": "constant",
+        "reward": "dense",
+        "beta_schedule": {"kind": "exponential", "end": 0.05, "horizon": 90, "unit": "steps"},
+    },
 }
 
 

@@ -156,7 +156,8 @@ class EvaluatorService(ServiceBase):
         return any(s.pending for s in self.runs.values())
 
     def publish_row(self, st: EvaluatorRun, msg: Weights, ev: EvalResult) -> None:
-        row = eval_row(msg, ev)
+        cfg = st.config
+        row = eval_row(msg, ev, None if cfg is None else cfg.beta_at(msg.env_steps))
         self.history.remember(st.run, "running", row)
         self.publish_metrics(st.run, row, source="eval")
         st.row_out(msg.eval_point, time.monotonic())

@@ -59,6 +59,7 @@ class EvaluatorRun:
     held_since: float | None = None  # the next point waits for an earlier one since then
     t0: float = field(default_factory=time.perf_counter)
     eval_episodes: int = 0
+    config: TrainConfig | None = None  # (the beta its rows record)
 
     @classmethod
     def open(cls, run: str, config: TrainConfig) -> EvaluatorRun:
@@ -72,7 +73,7 @@ class EvaluatorRun:
             policy = LearnerPolicy(config, envs[0].spec)
         else:
             policy = JointPolicy.for_task(envs[0].spec, config.hidden)
-        return cls(run, envs, policy, eval_episodes=config.eval_episodes)
+        return cls(run, envs, policy, eval_episodes=config.eval_episodes, config=config)
 
     def evaluate(self, msg: Weights) -> EvalResult:
         """A point on the run's own worlds."""
@@ -175,9 +176,10 @@ class GroupEval:
         return len(self.runs) == 1 or now - self.waiting_since >= GROUP_WAIT_S
 
 
-def eval_row(msg: Weights, ev: EvalResult) -> dict[str, Any]:
+def eval_row(msg: Weights, ev: EvalResult, beta: float | None = None) -> dict[str, Any]:
     """A point's metric row: the trainer's fields, the evaluation's and the learner's
-    statistics at that point (the counter's and the bonus's ride in its weights)."""
+    statistics at that point (the counter's and the bonus's ride in its weights), and
+    `beta`, the one in force at the point's last transition (its config's `beta_at`)."""
     info = LearnerStats.from_wire(msg.stats)
     counts = info.tables  # the counter's stats at this boundary
     return {
@@ -193,6 +195,7 @@ def eval_row(msg: Weights, ev: EvalResult) -> dict[str, Any]:
         "bonus_mean": info.bonus_stat("bonus_mean"),
         "bonus_std": info.bonus_stat("bonus_std"),
         "sampled_count1_pct": info.bonus_stat("sampled_count1_pct"),
+        "beta": beta,
         "steps_per_sec": info.steps_per_sec,
         "train_steps_per_sec": info.steps_per_sec,
         "updates": msg.updates,
