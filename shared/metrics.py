@@ -59,8 +59,8 @@ def early_stop_reason(rule: EarlyStop | None, rows: Sequence[dict]) -> str | Non
         tail = sm[-rule.patience :]
         if len(tail) == rule.patience and all(v >= rule.threshold for v in tail):
             return (
-                f"early_stop success_at_least: {what} >= {rule.threshold:g} at "
-                f"{rule.patience} point(s) in a row"
+                f"early_stop success_at_least at episode {rows[-1]['episode']}: {what} >= "
+                f"{rule.threshold:g} at {rule.patience} point(s) in a row"
             )
         return None
     best, at = sm[0], 0
@@ -69,7 +69,7 @@ def early_stop_reason(rule: EarlyStop | None, rows: Sequence[dict]) -> str | Non
             best, at = v, i
     if len(sm) - 1 - at >= rule.patience:
         return (
-            f"early_stop no_improvement: {what} not above {best:.3g} (episode "
-            f"{rows[at]['episode']}) for {rule.patience} point(s)"
+            f"early_stop no_improvement at episode {rows[-1]['episode']}: {what} not "
+            f"above {best:.3g} (episode {rows[at]['episode']}) for {rule.patience} point(s)"
         )
     return None

@@ -143,6 +143,47 @@ def test_the_comparison_sees_one_changed_value():
 
 
 @pytest.mark.parametrize(
+    "rule",
+    [
+        {"rule": "success_at_least", "threshold": 0.0, "patience": 2},  # at episode 6
+        {"rule": "no_improvement", "patience": 2, "min_delta": 1.0},  # at episode 9
+    ],
+)
+def test_a_lockstep_run_stopped_by_its_rule_is_the_trainers_run(cluster, bus, tmp_path, rule):
+    """`early_stop` (beyond the thesis): the learner holds each step after a point until
+    the point's row is in; the evaluator reads the rule on its rows, and the run ends
+    completed where `macb train` ends it, its rows (the reason on the last) and final
+    learner state the trainer's, its actor and counter at that episode."""
+    case = {**CASES["speaker_listener-cen-macb-linear-beta"], "early_stop": rule}
+    config = make_config({**BASE, **case})
+    cluster.services(1)
+    wait_services(bus, 4)
+    watch = start_run(bus, config, actors=1)
+    assert watch.wait(timeout=300) == "completed", watch.states
+    assert_exact(watch, config)
+    cluster_state, local_state, local = learner_states(cluster.data, watch.run, config, tmp_path)
+    rows = sorted(watch.rows, key=lambda r: r["episode"])
+    assert rows[-1]["episode"] == local[-1]["episode"] < config.episodes
+    assert rows[-1]["stop_reason"] == local[-1]["stop_reason"]
+    assert rows[-1]["stop_reason"].startswith(f"early_stop {rule['rule']}")
+    assert watch.decision().reason == rows[-1]["stop_reason"]
+    diffs = compare(rows, local)
+    assert not diffs, "\n".join(diffs[:20])
+    diffs = state_differences(cluster_state, local_state)
+    assert not diffs, diffs[:20]
+
+
+def test_early_stop_in_a_cluster_group_or_async_is_refused_saying_where_it_runs():
+    from services.learner.state import open_error
+
+    config = make_config({**BASE, "early_stop": {"rule": "no_improvement"}})
+    assert open_error(config, 1) is None
+    assert "not a run of a group" in (open_error(config, 1, grouped=True) or "")
+    run_async = config.model_copy(update={"interleave": "async"})
+    assert "not interleave async" in (open_error(run_async, 2) or "")
+
+
+@pytest.mark.parametrize(
     ("paused", "seconds"), [("counter", 1.2), ("counter", 3.0), ("learner", 1.2), ("actor0", 1.2)]
 )
 def test_a_late_count_or_a_late_message_changes_nothing(cluster, bus, tmp_path, paused, seconds):
