@@ -211,13 +211,13 @@ def _metrics_writer(cfg: TrainConfig, out: Path | None) -> Any:
     import json
 
     from cli.trainer import MetricsWriter
-    from shared.metrics import ALL_FIELDS
+    from shared.metrics import ALL_FIELDS, run_fields
 
     if out is None:
         return None
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2) + "\n")
-    return MetricsWriter(out, ALL_FIELDS)
+    return MetricsWriter(out, run_fields(cfg, ALL_FIELDS))
 
 
 def follow_run(bus: Bus, cfg: TrainConfig, actors: int, out: Path | None, quiet: bool) -> int:

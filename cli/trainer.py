@@ -42,7 +42,7 @@ from shared.core.replay import ReplayBuffer, update_arrays
 from shared.envs.tasks import TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
 from shared.groups import check_group
-from shared.metrics import TRAIN_FIELDS, early_stop_reason
+from shared.metrics import TRAIN_FIELDS, early_stop_reason, run_fields
 from shared.persist import checkpoint, provenance
 from shared.persist.checkpoint import CutError, config_difference, load_tables
 from shared.persist.cuts import ReplayLog, latest_cut, read_cut, write_cut
@@ -162,12 +162,24 @@ def metric_row(episode: int, ev: EvalResult, run: Member, updates: int, wall: fl
         "collisions_cum": run.collisions_cum,
         **run.explorer.stats(),
         **run.diagnostics.take(),
-        "beta": run.cfg.beta_at(run.env_steps),
         "steps_per_sec": run.env_steps / wall,
         "train_steps_per_sec": run.env_steps / max(wall - run.eval_s, 1e-9),
         "updates": updates,
         "wall_s": wall,
+        **option_columns(run.cfg, run.env_steps),
     }
+
+
+def option_columns(cfg: TrainConfig, env_steps: int) -> dict:
+    """The row's columns of the options the run sets (shared.metrics.OPTION_FIELDS):
+    the beta in force at its last transition, and `stop_reason` (set where the rule
+    ends the run)."""
+    out: dict = {}
+    if cfg.beta_schedule is not None:
+        out["beta"] = cfg.beta_at(env_steps)
+    if cfg.early_stop is not None:
+        out["stop_reason"] = None
+    return out
 
 
 def price_at_collection(
@@ -608,7 +620,7 @@ class GroupRun:
                 provenance.write(m.out / provenance.FILE, [start])
             config = json.dumps(m.cfg.model_dump(mode="json"), indent=2) + "\n"
             (m.out / "config.json").write_text(config)
-            m.writer = MetricsWriter(m.out, rows=m.rows)
+            m.writer = MetricsWriter(m.out, run_fields(m.cfg), rows=m.rows)
 
     def episode(self) -> None:
         c0, members, timing = self.cfg, self.members, self.timing

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from shared.config import EarlyStop
+    from shared.config import EarlyStop, TrainConfig
 
 TRAIN_FIELDS = (
     "episode",
@@ -22,16 +22,26 @@ TRAIN_FIELDS = (
     "bonus_mean",
     "bonus_std",
     "sampled_count1_pct",
-    "beta",
     "steps_per_sec",
     "train_steps_per_sec",
     "updates",
     "wall_s",
-    "stop_reason",
 )
 # What a distributed run adds to each row.
 SERVICE_FIELDS = ("replay_ratio", "policy_lag", "policy_version")
 ALL_FIELDS = TRAIN_FIELDS + SERVICE_FIELDS
+# What a run's rows add when it sets the option (beyond the thesis): `beta`, the beta in
+# force at the point's last transition (`beta_schedule`), and `stop_reason`, set on the
+# point its `early_stop` rule ends it at. A run without them writes the rows it always did.
+OPTION_FIELDS = ("beta", "stop_reason")
+
+
+def run_fields(cfg: TrainConfig, base: tuple[str, ...] = TRAIN_FIELDS) -> tuple[str, ...]:
+    """The columns of `cfg`'s rows: `base` and the options it sets."""
+    extra = (("beta",) if cfg.beta_schedule is not None else ()) + (
+        ("stop_reason",) if cfg.early_stop is not None else ()
+    )
+    return base + extra
 
 
 def smoothed(values: Sequence[float], window: int) -> list[float]:

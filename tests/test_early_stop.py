@@ -87,7 +87,7 @@ def test_a_run_stops_by_its_rule_completed_keeping_its_best_and_last(tmp_path):
     rows = train(cfg, tmp_path / "stop", progress=False)
     assert [r["episode"] for r in rows] == [2, 4]
     assert strip(rows) == strip(full[:2])  # the rule ends the run, changing nothing before
-    assert "stop_reason" not in rows[0] and rows[1]["stop_reason"].startswith(
+    assert rows[0]["stop_reason"] is None and rows[1]["stop_reason"].startswith(
         "early_stop success_at_least"
     )
     written = [
@@ -112,8 +112,13 @@ def test_a_run_stops_by_its_rule_completed_keeping_its_best_and_last(tmp_path):
 
 
 def test_without_the_key_nothing_is_written_beside(tmp_path):
-    train(make_config({**BASE, "episodes": 4}), tmp_path, progress=False)
-    assert not (tmp_path / "best.pt").exists()
+    rows = train(make_config({**BASE, "episodes": 4}), tmp_path, progress=False)
+    assert not (tmp_path / "best.pt").exists() and "stop_reason" not in rows[0]
+    header = (tmp_path / "metrics.csv").read_text().splitlines()[0]
+    assert "stop_reason" not in header
+    stopped = make_config({**BASE, "early_stop": AT_4})
+    train(stopped, tmp_path / "s", progress=False)
+    assert (tmp_path / "s" / "metrics.csv").read_text().splitlines()[0].endswith(",stop_reason")
 
 
 GROUP = [

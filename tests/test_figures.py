@@ -313,6 +313,8 @@ def test_runs_ended_by_their_early_stop_rule_are_finished_and_the_page_says_so()
     assert "ended by their rule, finished, not cut short (" in md
     assert "ended by their early_stop rule (finished)" in md  # the progress line
     assert "complete, 3,000 of 5,000 episodes" in md
+    controls = {c[0]: c[4] for c in control_verdicts(a)}
+    assert controls["beta=0.8"].startswith("beats the control (runs ended by their early_stop")
     first = next(iter(points))
     del points[first][-1]["stop_reason"]  # one run of an arm was cut short
     short = analysis.claim_verdicts(analysis.analyse(fig, exp, points))

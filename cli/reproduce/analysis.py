@@ -330,6 +330,20 @@ def analyse(
 REPRODUCED, NOT_REPRODUCED, TOO_SHORT = "reproduced", "not reproduced", "not run to that length"
 
 
+def ended_short(arms: list[ArmCurve], needs: int) -> str | None:
+    """What to say when every run of `arms` that stops short of `needs` episodes was
+    ended there by its `early_stop` rule: finished, so a verdict about `needs` is given
+    on what they ran (None: some run was merely cut short, or none was ended)."""
+    short = [arm for arm in arms if arm.length < needs]
+    if not short or not all(arm.ended_by_rule(needs) for arm in short):
+        return None
+    ends = sorted({e for arm in arms for e in arm.stopped.values()})
+    return (
+        f"runs ended by their early_stop rule at episode(s) "
+        f"{', '.join(f'{e:,}' for e in ends)}, short of {needs:,}: finished"
+    )
+
+
 def claim_verdicts(a: Analysis) -> list[tuple[Any, str, str]]:
     """(claim, measured text, verdict) per claim of the figure."""
     out = []
@@ -340,16 +354,10 @@ def claim_verdicts(a: Analysis) -> list[tuple[Any, str, str]]:
             out.append((claim, "no points", TOO_SHORT))
             continue
         text, ok = check.measure(a)
-        arms = [a.arm(n) for n in check.arms()]
-        if length < check.needs and all(arm.ended_by_rule(check.needs) for arm in arms
-                                        if arm.length < check.needs):  # fmt: skip
-            # finished: a run its early_stop rule ended is measured on what it ran
+        finished = ended_short([a.arm(n) for n in check.arms()], check.needs)
+        if length < check.needs and finished:
             verdict = REPRODUCED if ok else NOT_REPRODUCED
-            ends = sorted({e for arm in arms for e in arm.stopped.values()})
-            text += (
-                f" (runs ended by their early_stop rule at episode(s) "
-                f"{', '.join(f'{e:,}' for e in ends)}, short of {check.needs:,}: finished)"
-            )
+            text += f" ({finished})"
         elif length < check.needs:
             verdict = TOO_SHORT
             text += f" (runs reached {length:,} of {check.needs:,} episodes)"

@@ -24,6 +24,7 @@ from cli.reproduce.analysis import (
     ArmCurve,
     Columns,
     count1,
+    ended_short,
     same_runs,
 )
 from cli.reproduce.experiments import arm_configs, control_of, counts
@@ -80,7 +81,10 @@ def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]
             verdict = "beats the control"
             if _score(a, mine) >= _score(a, theirs):
                 verdict = "does not beat the control"
-            if length < a.fig.episodes:  # a verdict about the figure's length: not yet
+            finished = ended_short([mine, theirs], a.fig.episodes)
+            if length < a.fig.episodes and finished:
+                verdict += f" ({finished})"
+            elif length < a.fig.episodes:  # a verdict about the figure's length: not yet
                 verdict = (
                     f"{TOO_SHORT} ({length:,} of {a.fig.episodes:,} episodes); so far {verdict}"
                 )
@@ -167,6 +171,8 @@ def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
         f"episodes both ran; above at {above.mean():.0%}, below at {below.mean():.0%} "
         "of all of them)"
     )
+    if length < a.fig.episodes and (finished := ended_short([mine, theirs], a.fig.episodes)):
+        return f"{text} ({finished})"
     if length < a.fig.episodes:
         return f"{TOO_SHORT} ({length:,} of {a.fig.episodes:,} episodes); so far: {text}"
     return text

@@ -158,7 +158,7 @@ class EvaluatorService(ServiceBase):
 
     def publish_row(self, st: EvaluatorRun, msg: Weights, ev: EvalResult) -> None:
         cfg = st.config
-        row = eval_row(msg, ev, None if cfg is None else cfg.beta_at(msg.env_steps))
+        row = eval_row(msg, ev, cfg)
         if cfg is not None and cfg.early_stop is not None:  # read on the rows so far
             entry = self.history.get(st.run)
             kept = {r["episode"]: r for r in (entry[1] if entry else [])}  # (once each)

@@ -176,11 +176,18 @@ class GroupEval:
         return len(self.runs) == 1 or now - self.waiting_since >= GROUP_WAIT_S
 
 
-def eval_row(msg: Weights, ev: EvalResult, beta: float | None = None) -> dict[str, Any]:
+def eval_row(msg: Weights, ev: EvalResult, config: TrainConfig | None = None) -> dict[str, Any]:
     """A point's metric row: the trainer's fields, the evaluation's and the learner's
     statistics at that point (the counter's and the bonus's ride in its weights), and
-    `beta`, the one in force at the point's last transition (its config's `beta_at`)."""
+    the columns of the options its `config` sets: `beta`, the one in force at the
+    point's last transition (`beta_at`), and `stop_reason` (the service sets it where
+    the run's `early_stop` rule holds)."""
     info = LearnerStats.from_wire(msg.stats)
+    options: dict[str, Any] = {}
+    if config is not None and config.beta_schedule is not None:
+        options["beta"] = config.beta_at(msg.env_steps)
+    if config is not None and config.early_stop is not None:
+        options["stop_reason"] = None
     counts = info.tables  # the counter's stats at this boundary
     return {
         "episode": msg.eval_point,
@@ -195,7 +202,6 @@ def eval_row(msg: Weights, ev: EvalResult, beta: float | None = None) -> dict[st
         "bonus_mean": info.bonus_stat("bonus_mean"),
         "bonus_std": info.bonus_stat("bonus_std"),
         "sampled_count1_pct": info.bonus_stat("sampled_count1_pct"),
-        "beta": beta,
         "steps_per_sec": info.steps_per_sec,
         "train_steps_per_sec": info.steps_per_sec,
         "updates": msg.updates,
@@ -203,4 +209,5 @@ def eval_row(msg: Weights, ev: EvalResult, beta: float | None = None) -> dict[st
         "replay_ratio": info.replay_ratio,
         "policy_lag": info.policy_lag,
         "policy_version": msg.version,
+        **options,
     }
