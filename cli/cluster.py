@@ -265,6 +265,8 @@ def _report_run_end(watch: Any, state: str, out: Path | None) -> int:
     )
     if state == "failed":
         print(f"failure: {watch.failure()}", file=sys.stderr)
+    if state == "completed" and last.get("stop_reason"):
+        print(f"ended by its rule: {last['stop_reason']}", file=sys.stderr)
     return 0 if state == "completed" else 1
 
 

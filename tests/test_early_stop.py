@@ -163,3 +163,23 @@ def test_a_group_resumed_after_a_run_stopped_gives_the_same_rows(tmp_path):
     last = checkpoint.load(outs[0] / "checkpoint.pt", "final")
     theirs = checkpoint.load(tmp_path / "s0" / "checkpoint.pt", "final")
     assert not state_differences(last["learner"], theirs["learner"])
+
+
+def test_both_keys_take_yaml_maps_as_flags():
+    import argparse
+
+    from cli.config_flags import add_config_flags, config_overrides
+
+    p = argparse.ArgumentParser()
+    add_config_flags(p)
+    args = p.parse_args(
+        [
+            "--early-stop",
+            "{rule: no_improvement, patience: 3}",
+            "--beta-schedule",
+            "{kind: linear, end: 0.1, horizon: 50}",
+        ]
+    )
+    cfg = make_config({**BASE, **config_overrides(args)})
+    assert cfg.early_stop is not None and cfg.early_stop.patience == 3
+    assert cfg.beta_schedule is not None and cfg.beta_schedule.horizon == 50
