@@ -181,6 +181,10 @@ def test_early_stop_in_a_cluster_group_or_async_is_refused_saying_where_it_runs(
     assert "not a run of a group" in (open_error(config, 1, grouped=True) or "")
     run_async = config.model_copy(update={"interleave": "async"})
     assert "not interleave async" in (open_error(run_async, 2) or "")
+    # the API's planner and start_group form no cluster group of such runs: each runs alone
+    from shared.groups import group_error
+
+    assert "run 0: early_stop: a cluster group" in (group_error([config, config], 1) or "")
 
 
 @pytest.mark.parametrize(
@@ -266,6 +270,42 @@ def test_a_lockstep_cluster_group_is_the_group_trainers_runs(cluster, bus, tmp_p
         learner = assert_exact(watch, config).learner
         assert learner["policy_lag"] == 0.0
         diffs = compare(sorted(watch.rows, key=lambda row: row["episode"]), local[r])
+        assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
+        theirs = torch.load(
+            cluster.data / "learner" / watch.run / "checkpoint.pt", weights_only=True
+        )
+        mine = torch.load(outs[r] / "checkpoint.pt", weights_only=True)
+        diffs = state_differences(theirs["learner"], mine["learner"])
+        assert not diffs, (r, diffs[:20])
+
+
+def test_a_lockstep_cluster_group_with_scheduled_betas_is_the_group_trainers_runs(
+    cluster, bus, tmp_path
+):
+    """`beta_schedule` in a cluster group: each run prices at its own schedule's beta
+    (the control too), and its rows, `beta` column included, and final learner state are
+    the one-process group's."""
+    from cli.trainer import train_group
+    from shared.net.control import start_group
+
+    linear = {"kind": "linear", "end": 0.1, "horizon": 8}
+    steps = {"kind": "exponential", "end": 0.05, "horizon": 90, "unit": "steps"}
+    configs = [
+        make_config({**GROUP[0], "beta_schedule": linear}),
+        make_config({**GROUP[2], "beta_schedule": steps}),
+    ]
+    cluster.services(1)
+    wait_services(bus, 4)
+    watches = start_group(bus, configs, runs=["b0", "b1"])
+    for watch in watches:
+        assert watch.wait(timeout=300) == "completed", watch.states
+    outs = [tmp_path / f"local{r}" for r in range(2)]
+    local = train_group(configs, outs, progress=False)
+    for r, watch in enumerate(watches):
+        rows = sorted(watch.rows, key=lambda row: row["episode"])
+        assert [row["beta"] for row in rows] == [row["beta"] for row in local[r]]
+        assert rows[-1]["beta"] < rows[0]["beta"]
+        diffs = compare(rows, local[r])
         assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
         theirs = torch.load(
             cluster.data / "learner" / watch.run / "checkpoint.pt", weights_only=True
