@@ -52,10 +52,11 @@ soak: $(STAMP)
 test-compose: $(STAMP)
 	MACB_COMPOSE_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m compose tests/test_compose.py
 
-# `macb reproduce --local --launcher slurm` on a real Slurm (tests/test_slurm.py): installs
-# Debian's munge and slurm-wlm when missing (as root; else it skips, saying why), starts
-# munged, slurmctld and slurmd with a one-node slurm.conf in a temp folder (ports, socket
-# and key of their own: tests/slurm_node.py) and stops them after: 4-6 minutes here.
+# `macb reproduce --local --launcher slurm` and the service cluster job (`macb up
+# --launcher slurm`) on a real Slurm (tests/test_slurm.py): installs Debian's munge and
+# slurm-wlm when missing (as root; else it skips, saying why), starts munged, slurmctld
+# and slurmd with a one-node slurm.conf in a temp folder (ports, socket and key of their
+# own: tests/slurm_node.py) and stops them after: 6-8 minutes here.
 test-slurm: $(STAMP)
 	MACB_SLURM_SETUP=1 $(BIN)/python -m pytest -q -rs -s -m slurm tests/test_slurm.py
 

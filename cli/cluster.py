@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from services.api.client import ApiClient
     from shared.net.bus import Bus
 
-SERVICES = ("router", "counter", "learner", "actor", "evaluator", "api")
+SERVICES = ("router", "counter", "learner", "actor", "evaluator", "api", "slot")
 
 
 # ---------------------------------------------------------------- parsers
@@ -40,7 +40,9 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
         help="run one service of the cluster (router, counter, learner, actor, evaluator, api)",
         description="Run one service in the foreground. Services connect as Zenoh clients to "
         "the router (MACB_ZENOH_CONNECT or --connect, default tcp/127.0.0.1:7447), announce "
-        "themselves with a liveliness token and wait for runs on macb/control/start.",
+        "themselves with a liveliness token and wait for runs on macb/control/start. "
+        "`slot` is a worker slot: a learner, an evaluator and --actors actors with ids "
+        "ROLE-ID, restarted when they die (what the Slurm cluster job runs per task).",
     )
     s.add_argument("role", choices=SERVICES)
     s.add_argument("--id", help="service id (default: role-host-pid); actors need distinct ids")
@@ -70,6 +72,7 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument(
         "--db", metavar="FILE", help="api only: SQLite store (default DATA_DIR/api.sqlite3)"
     )
+    s.add_argument("--actors", type=int, default=1, help="slot only: its actors")
     add_security_flags(s)
     s.set_defaults(func=cmd_serve)
 
@@ -117,7 +120,8 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         default=1,
         metavar="N",
         help="runs at once: N learners and evaluators, N x --actors actors, one counter "
-        "(queued runs start on whichever are free)",
+        "(queued runs start on whichever are free); with --launcher slurm, N per node, "
+        "each slot a Slurm task",
     )
     up.add_argument(
         "--group-size",
@@ -140,7 +144,31 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--quiet-services", action="store_true", help="service logs to files only")
     add_config_flags(up)
     add_security_flags(up)  # --secrets DIR: TLS, each service signed in as its id
+    add_up_slurm_flags(up)
     up.set_defaults(func=cmd_up)
+
+
+def add_up_slurm_flags(up: argparse.ArgumentParser) -> None:
+    up.add_argument(
+        "--launcher",
+        choices=("local", "slurm"),
+        default="local",
+        help="where the cluster runs: local processes (local), or one Slurm job (slurm): "
+        "router and API on the first node, a counter on every node, --slots worker slots "
+        "per node, each a Slurm task of --cpus-per-slot CPUs; submitted, then followed "
+        "until its API answers (docs/deploy.md, 'On a Slurm cluster')",
+    )
+    slurm = up.add_argument_group("--launcher slurm")
+    slurm.add_argument("--nodes", type=int, default=1, help="the job's nodes")
+    slurm.add_argument("--cpus-per-slot", type=int, default=1, help="CPUs of each slot's task")
+    slurm.add_argument("--partition", help="the job's partition (sbatch --partition)")
+    slurm.add_argument("--time", metavar="LIMIT", help="the job's time limit (sbatch --time)")
+    slurm.add_argument("--account", help="the account charged (sbatch --account)")
+    slurm.add_argument("--sbatch-args", metavar="ARGS", help="more sbatch arguments, as one string")
+    slurm.add_argument("--detach", action="store_true", help="submit and return at once")
+    slurm.add_argument(
+        "--wait", type=float, default=600.0, metavar="S", help="how long to wait for its API"
+    )
 
 
 # ---------------------------------------------------------------- serve
@@ -154,7 +182,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     try:  # every file and setting checked before any session opens: nothing half-starts
         sec = Security.from_env()
-        sec.for_router().check("router") if args.role == "router" else sec.check("client")
+        if args.role == "router":
+            sec.for_router().check("router")
+        elif args.role != "slot":  # (a slot's services sign in as their own ids)
+            sec.check("client")
     except SecurityError as err:
         print(f"macb serve {args.role}: {err}", file=sys.stderr)
         return 2
@@ -170,6 +201,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return 0
     if args.role == "api":
         return serve_api(args)
+    if args.role == "slot":
+        return serve_slot(args)
     import importlib
 
     module = importlib.import_module(f"services.{args.role}.main")
@@ -181,6 +214,27 @@ def cmd_serve(args: argparse.Namespace) -> int:
     stop_on_signals(service)
     service.serve_forever()
     return 0
+
+
+def serve_slot(args: argparse.Namespace) -> int:
+    """`macb serve slot --id ID`: a learner, an evaluator and actors as children,
+    restarted when they die (as `macb up` does), all stopped by PID on SIGTERM."""
+    from cli.supervisor import slot_plan
+
+    if not args.id or args.actors < 1:
+        print("macb serve slot: give --id (the slot's name) and --actors >= 1", file=sys.stderr)
+        return 2
+    data_dir = Path(args.data_dir or default_data_dir())
+    signed_in = bool(settings().zenoh_secrets)
+    plan = slot_plan(args.id, args.actors, str(data_dir), signed_in)
+    cluster = Cluster(plan, data_dir / "logs", echo=False)  # each its log file
+    stop = _stop_on_signals()
+    try:
+        cluster.start()
+        print(f"slot {args.id}: {', '.join(s.name for s in cluster.plan)}", file=sys.stderr)
+        return _serve_until_stopped(cluster, stop, quiet=True)
+    finally:
+        cluster.stop()
 
 
 def serve_api(args: argparse.Namespace) -> int:
@@ -333,6 +387,14 @@ def cmd_up(args: argparse.Namespace) -> int:
         if value < 1:
             print(f"macb up: {flag} must be at least 1, not {value}", file=sys.stderr)
             return 2
+    if args.launcher == "slurm":
+        from cli.slurm_cluster import cmd_up_slurm
+
+        return cmd_up_slurm(args)
+    slurm_only = [f for f in ("partition", "time", "account", "sbatch_args") if getattr(args, f)]
+    if slurm_only or args.nodes != 1 or args.cpus_per_slot != 1 or args.detach:
+        print("macb up: --nodes, --partition, ... are for --launcher slurm", file=sys.stderr)
+        return 2
     try:
         cfg, body = _up_experiment(args)
     except (ConfigError, OSError) as err:
@@ -556,14 +618,15 @@ def _print_where_results_stay(api: ApiClient, data_dir: Path) -> None:
     )
 
 
-def _serve_until_stopped(cluster: Cluster, stop: threading.Event) -> int:
+def _serve_until_stopped(cluster: Cluster, stop: threading.Event, quiet: bool = False) -> int:
     """No --run: keep the cluster up, restarting services that die, until a signal (0)
     or until one keeps dying (1)."""
-    print(
-        "waiting for runs (macb run CONFIG, or macb start CONFIG on the bus); "
-        "Ctrl-C stops the cluster",
-        file=sys.stderr,
-    )
+    if not quiet:
+        print(
+            "waiting for runs (macb run CONFIG, or macb start CONFIG on the bus); "
+            "Ctrl-C stops the cluster",
+            file=sys.stderr,
+        )
     while not stop.wait(0.5):
         if (gone := cluster.supervise()) is not None:
             print(f"{gone} keeps dying: stopping the cluster", file=sys.stderr)

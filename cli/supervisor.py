@@ -101,6 +101,22 @@ def cluster_plan(
     return plan
 
 
+def slot_plan(slot: str, actors: int, data_dir: str, signed_in: bool) -> list[ServiceSpec]:
+    """One worker slot as `macb serve slot --id SLOT` runs it: a learner, an evaluator and
+    `actors` actors (`learner-SLOT`, `evaluator-SLOT`, `actor-SLOT`, `actor-SLOT-1`, ...),
+    connecting where MACB_ZENOH_CONNECT says. The Slurm cluster job starts one per task on
+    every node (cli/slurm_cluster.py); `signed_in`: each signs in as its id (a secure bus,
+    MACB_ZENOH_SECRETS set)."""
+    ids = [f"learner-{slot}", f"evaluator-{slot}"]
+    ids += [f"actor-{slot}" + (f"-{r}" if r else "") for r in range(actors)]
+    plan = []
+    for sid in ids:
+        env = (*THREAD_ENV.items(), *((("MACB_ZENOH_USER", sid),) if signed_in else ()))
+        role = sid.split("-", 1)[0]
+        plan.append(ServiceSpec(sid, (role, "--id", sid, "--data-dir", data_dir), env))
+    return plan
+
+
 def _pump(name: str, stream: IO[bytes], log_file: IO[bytes], echo: bool) -> None:
     """Copy a child's output to its log file and, prefixed with its name, to our stdout."""
     prefix = f"{name:>10} | ".encode()

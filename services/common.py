@@ -47,7 +47,7 @@ from shared.net.info import ServiceInfo
 from shared.net.messages import MESSAGES, Assignment, Message, Start, Status, Stop
 from shared.net.monitor import peer_grace_s
 from shared.net.wire import WireError, decode
-from shared.settings import settings
+from shared.settings import node_name, settings
 
 M = TypeVar("M", bound=Message)
 
@@ -202,6 +202,7 @@ class ServiceBase(ServiceHooks):
             rejects_total=total,
             restarts=restarts(),
             resumed=self.resumed,
+            node=node_name(),
         )
 
     def _info_reply(self, key: str, payload: bytes) -> bytes:

@@ -13,6 +13,8 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from shared.core.counting import SKETCH_MAX_CELLS, SKETCH_MAX_DEPTH, SKETCH_MAX_WIDTH
+
 MULTI_AGENT_TASKS = ("spread", "speaker_listener")
 BUILTIN_TASKS = ("simple", *MULTI_AGENT_TASKS)
 # Options that only the built-in particle tasks have (their worlds' sizes, rewards,
@@ -103,6 +105,58 @@ class EarlyStop(BaseModel):
         return self
 
 
+class CountSketchConfig(BaseModel):
+    """`count_sketch`: count in a count-min sketch of fixed size instead of the exact
+    table (shared/core/counting.py, CountSketch). Its size is `width` x `depth` cells,
+    or what fits in `memory_mb` at `depth`; each table of the run gets one that size."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    width: int | None = Field(
+        None,
+        ge=1,
+        le=SKETCH_MAX_WIDTH,
+        description="cells per row: estimate <= true + (e / width) * N with probability "
+        ">= 1 - exp(-depth) (N: transitions counted); give width or memory_mb",
+    )
+    depth: int = Field(4, ge=1, le=SKETCH_MAX_DEPTH, description="rows (hash functions)")
+    memory_mb: float | None = Field(
+        None,
+        gt=0.0,
+        le=8192.0,
+        description="MiB of 4-byte cells per table: width = memory_mb * 2^20 / (4 * depth)",
+    )
+    conservative: bool = Field(
+        True,
+        description="conservative update (raise a key's cells only to its new estimate): "
+        "the same bound, smaller overestimates; false: every cell + 1 (the plain sketch)",
+    )
+
+    @model_validator(mode="after")
+    def _one_size(self) -> CountSketchConfig:
+        if (self.width is None) == (self.memory_mb is None):
+            raise ValueError("give width or memory_mb (one of them) for the sketch's size")
+        if self.columns < 1:
+            raise ValueError(
+                f"memory_mb {self.memory_mb} holds not one column of {self.depth} 4-byte cells"
+            )
+        if self.columns > SKETCH_MAX_WIDTH:
+            raise ValueError(f"memory_mb {self.memory_mb} gives a width over {SKETCH_MAX_WIDTH}")
+        if self.columns * self.depth > SKETCH_MAX_CELLS:
+            raise ValueError(
+                f"width {self.columns} x depth {self.depth} is over {SKETCH_MAX_CELLS} cells"
+            )
+        return self
+
+    @property
+    def columns(self) -> int:
+        """The width in force: given, or what memory_mb holds at this depth."""
+        if self.width is not None:
+            return self.width
+        assert self.memory_mb is not None
+        return int(self.memory_mb * 2**20) // (4 * self.depth)
+
+
 class TrainConfig(BaseModel):
     """One training run. Field docs appear in `macb train --help` and the API schema."""
 
@@ -150,6 +204,13 @@ class TrainConfig(BaseModel):
     )
     key: Literal["state-action", "state"] = Field(
         "state-action", description="count s||a (state-action) or s only (state)"
+    )
+    count_sketch: CountSketchConfig | None = Field(
+        None,
+        description="keep each table's counts in a count-min sketch of fixed memory instead "
+        "of the exact table (default: exact), e.g. {width: 1048576, depth: 4} or "
+        "{memory_mb: 16}: counts never below the true ones, above by at most (e / width) "
+        "x transitions with probability 1 - exp(-depth) (docs/fidelity.md)",
     )
     bonus_at: Literal["sample", "collection"] = Field(
         "sample",
@@ -474,9 +535,9 @@ def actors_error(config: TrainConfig, actors: int) -> str | None:
     return None
 
 
-# Keys whose value is a mapping of its own keys: an error names the inner key too
+# Fields that are a model of their own: an error's second part names their own field
 # (`beta_schedule.end: ...`).
-NESTED_FIELDS = ("beta_schedule", "early_stop")
+NESTED_FIELDS = frozenset({"count_sketch", "beta_schedule", "early_stop"})
 
 
 class ConfigError(ValueError):

@@ -28,6 +28,7 @@ PER_RUN_FIELDS = frozenset(
         "bonus_at",
         "key",
         "hash_round",
+        "count_sketch",
         "reward",
         "noise_sigma",
         "time_limit_terminal",

@@ -48,6 +48,9 @@ class Settings(BaseSettings):
     )
     # ---------------------------------------------------------------- services
     restarts: int = Field(0, description="set by `macb up`'s supervisor: this service's restarts")
+    node: str | None = Field(
+        None, description="the node this service runs on (default SLURMD_NODENAME, else the host)"
+    )
     learner_cut_s: float = Field(30.0, description="a learner's cut every this many seconds")
     counter_snapshot_s: float = Field(
         5.0, description="a counter's snapshot every this many seconds"
@@ -87,6 +90,20 @@ class Settings(BaseSettings):
             raw = env.get(cls.env_name(name))
             values[name] = raw if raw is not None else info.get_default(call_default_factory=True)
         return cls(**values)
+
+
+def node_name() -> str:
+    """The node a service says it runs on: MACB_NODE, else Slurm's name for the node
+    (SLURMD_NODENAME, set in every Slurm task), else the host name. The scheduler gives
+    a run the counter (and actors, evaluator) on its learner's node by this name."""
+    import os
+    import socket
+
+    try:
+        explicit = settings().node
+    except ValueError:
+        explicit = None
+    return explicit or os.environ.get("SLURMD_NODENAME") or socket.gethostname().split(".")[0]
 
 
 def settings() -> Settings:

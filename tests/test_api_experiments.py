@@ -170,6 +170,8 @@ def _grid_values(name: str) -> list:
         "task_kwargs": {"max_cycles": 25},  # over a custom task's base (CUSTOM_BASE)
         "success_key": "at_goal",
         "device": "cuda",  # a name the config takes; the learner checks it is there
+        # optional: None (the exact table) and a sketch, written whole as a run stores it
+        "count_sketch": {"width": 1024, "depth": 4, "memory_mb": None, "conservative": True},
     }.get(name, value + 1 if isinstance(value, int) else value)
     return [value, other]
 
@@ -550,3 +552,19 @@ def test_bad_input_gets_the_right_status_names_the_field_and_changes_nothing(api
     assert client.delete(f"/runs/{run}").status_code == 405
     assert store.snapshot() == before, "a refused request changed stored state"
     store.close()
+
+
+def test_an_arm_may_count_in_a_sketch_and_an_invalid_one_is_refused_naming_it(client):
+    """`count_sketch` is a map: an arm sets it whole, each run stores it whole."""
+    sketch = {"width": None, "depth": 2, "memory_mb": 1.0, "conservative": False}
+    arms = [{"name": "exact"}, {"name": "sketch", "count_sketch": sketch}]
+    r = post(client, {**TINY, "arms": arms})
+    assert r.status_code == 201, r.text
+    assert [run["config"]["count_sketch"] for run in r.json()["runs"]] == [None, sketch]
+    bad = [{"name": "bad", "count_sketch": {"width": 64, "memory_mb": 1}}]
+    r = post(client, {**TINY, "arms": bad})
+    assert r.status_code == 422, r.text
+    (err,) = r.json()["detail"]
+    assert err["field"] == "arms.0.count_sketch" and err["msg"].startswith(
+        "give width or memory_mb"
+    )

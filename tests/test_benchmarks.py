@@ -196,3 +196,20 @@ def test_lockstep_probe_times_both_designs_and_names_the_cpu() -> None:
     assert int(rows["central inference"].replace(",", "")) < 1_000
     assert int(rows["weights every step"].replace(",", "")) > 500_000
     assert "weights every step / central inference:" in proc.stdout
+
+
+def test_bench_sketch_measures_both_stores_and_the_sketch_stays_its_size(tmp_path: Path) -> None:
+    out = tmp_path / "sketch.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_sketch.py"), "--keys", "2000"]
+    argv += ["20000", "--random-from", "20000", "--steps", "300", "--out", str(out)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    memory = {(r["store"], r["keys"]): r for r in result["memory"]}
+    assert (
+        memory["exact", 20000]["source"] == "random" and memory["exact", 2000]["distinct"] == 2000
+    )
+    assert memory["exact", 20000]["memory_bytes"] > 5 * memory["exact", 2000]["memory_bytes"]
+    assert memory["sketch", 20000]["memory_bytes"] == memory["sketch", 2000]["memory_bytes"]
+    assert all(e["under_true"] == 0 for e in result["real_stream"])
+    assert "| 20,000 | random | sketch |" in proc.stdout

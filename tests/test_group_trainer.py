@@ -5,7 +5,8 @@ group_trainer.py); each run's rows are compared with `train` of the same config 
 (fp32, one torch thread, `learner_lanes: 1`), every column but the timing ones, over
 several evaluation points, in profile mpe2 and profile thesis (one minibatch per
 agent, success as a terminal, random warm-up) and with arms that differ in exploration,
-beta, k, reward and seed. A group stopped between cuts resumes to the same rows."""
+beta, k, reward, seed and count store (a count-min sketch or the exact table). A group
+stopped between cuts resumes to the same rows."""
 
 from __future__ import annotations
 
@@ -89,6 +90,14 @@ GROUPS = {
                 "seed": 2,
             },
             {"seed": 3},
+        ],
+    ),
+    "speaker_listener-sketch": (  # count_sketch (tests/test_sketch.py) beside an exact table
+        {"task": "speaker_listener", "algo": "cen-maddpg", "k": 16},
+        [
+            {"explore": "cen-macb", "seed": 0, "count_sketch": {"width": 64, "depth": 3}},
+            {"explore": "dis-macb", "seed": 1, "count_sketch": {"memory_mb": 0.001}},
+            {"explore": "cen-macb", "seed": 2},
         ],
     ),
     "spread-thesis": (

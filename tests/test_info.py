@@ -16,6 +16,7 @@ def test_a_services_info_is_the_map_it_was_and_reads_back():
     info = ServiceInfo(**{**info.__dict__, "resumed": RESUMED.to_wire()})
     wire = json.loads(json.dumps(info.to_json()))
     keys = ["id", "role", "run", "runs", "rejects", "rejects_total", "restarts", "resumed"]
+    keys.append("node")
     assert list(wire) == keys and wire["resumed"]["from_episode"] == 4
     assert ServiceInfo.from_json(wire) == info
 

@@ -159,6 +159,10 @@ def test_images_commands_and_settings_are_docker_compose_s(rendered):
         if "MACB_API_TOKEN" in svc["environment"]:
             token = refs.pop("MACB_API_TOKEN")
             assert token == {"secretKeyRef": {"name": "macb-api", "key": "token"}}
+        if c["command"][2] in ("counter", "learner", "evaluator", "actor"):
+            # the node it runs on (a pod's host name is its own): the scheduler gives a
+            # run the counter on its learner's node
+            assert refs.pop("MACB_NODE") == {"fieldRef": {"fieldPath": "spec.nodeName"}}, name
         assert refs == {}, name
         # nothing else in the environment: no service links (*_SERVICE_HOST, *_PORT)
         assert pod.get("enableServiceLinks") is False, name

@@ -69,6 +69,15 @@ CASES = {
         "reward": "dense",
         "beta_schedule": {"kind": "exponential", "end": 0.05, "horizon": 90, "unit": "steps"},
     },
+    # counts in a count-min sketch small enough to collide (shared/core/counting.py)
+    "speaker_listener-cen-macb-thesis-sketch": {
+        "task": "speaker_listener",
+        "algo": "cen-maddpg",
+        "explore": "cen-macb",
+        "profile": "thesis",
+        "k": 16,
+        "count_sketch": {"width": 64, "depth": 3},
+    },
 }
 
 
@@ -249,22 +258,25 @@ GROUP = [  # one group: seeds and the exploration differ, task and networks are 
     {**BASE, **CASES["speaker_listener-cen-macb-thesis"], "seed": 4, "beta": 0.4},
     {**BASE, **CASES["speaker_listener-cen-macb-thesis"], "seed": 5, "explore": "constant"},
 ]
+# and a run counting in a count-min sketch, in the group test below
+SKETCH_RUN = {**BASE, **CASES["speaker_listener-cen-macb-thesis-sketch"], "seed": 6}
 
 
 def test_a_lockstep_cluster_group_is_the_group_trainers_runs(cluster, bus, tmp_path):
-    """A group of 3 runs served by one learner (GroupMADDPG), one actor (a VecTask of
-    their worlds, one act request per step) and one evaluator: each run's rows and final
-    learner state are those the one-process group gives it (and so `macb train`'s)."""
+    """A group of 4 runs (one counting in a count-min sketch) served by one learner
+    (GroupMADDPG), one actor (a VecTask of their worlds, one act request per step) and one
+    evaluator: each run's rows and final learner state are those the one-process group
+    gives it (and so `macb train`'s)."""
     from cli.trainer import train_group
     from shared.net.control import start_group
 
-    configs = [make_config(c) for c in GROUP]
+    configs = [make_config(c) for c in [*GROUP, SKETCH_RUN]]
     cluster.services(1)
     wait_services(bus, 4)
-    watches = start_group(bus, configs, runs=[f"g{r}" for r in range(3)])
+    watches = start_group(bus, configs, runs=[f"g{r}" for r in range(len(configs))])
     for watch in watches:
         assert watch.wait(timeout=300) == "completed", watch.states
-    outs = [tmp_path / f"local{r}" for r in range(3)]
+    outs = [tmp_path / f"local{r}" for r in range(len(configs))]
     local = train_group(configs, outs, progress=False)
     for r, (watch, config) in enumerate(zip(watches, configs)):
         learner = assert_exact(watch, config).learner

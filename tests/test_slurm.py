@@ -177,3 +177,87 @@ def test_bad_input_is_refused_before_anything_is_submitted(node, tmp_path, unwri
         assert got.returncode == 2 and message in got.stderr, (flags, got.stderr)
         assert not out.exists(), flags
     assert jobs(node) == before
+
+
+def test_the_service_cluster_job_runs_an_experiment_posted_to_its_api_then_scancel_ends_it(
+    node, tmp_path
+):
+    """`macb up --launcher slurm`: one job, the router, a counter and the API on its node
+    and a worker slot per task (srun); a two-seed experiment posted over REST runs on
+    both slots, counted by the node's counter, exactly; scancel leaves nothing running."""
+    import httpx
+
+    from cli.supervisor import free_port
+    from tests.harness import TINY, processes_with
+
+    data, port, api_port = tmp_path / "cluster", free_port(), free_port()
+    where = ["--endpoint", f"tcp/127.0.0.1:{port}", "--api-port", str(api_port)]
+    up = on(node, "up", "--launcher", "slurm", "--slots", "2", "--data-dir", str(data), *where)
+    assert "cluster job " in up.stderr, up.stderr
+    job = up.stderr.split("cluster job ", 1)[1].split()[0]
+    try:
+        assert up.returncode == 0, up.stderr + node.logs()
+        url = up.stdout.strip().splitlines()[-1]
+        assert url == f"http://127.0.0.1:{api_port}" and f"scancel {job}" in up.stderr
+        workers = httpx.get(f"{url}/workers").json()["workers"]
+        host = subprocess.check_output(["hostname", "-s"], text=True).strip()
+        assert sorted((w["id"], w["node"]) for w in workers if w["answers"]) == sorted(
+            (sid, host)
+            for sid in ("api", "counter-n0", "learner-s0", "learner-s1", "evaluator-s0",
+                        "evaluator-s1", "actor-s0", "actor-s1")
+        ), workers  # fmt: skip
+        exp = httpx.post(f"{url}/experiments", json={**TINY, "seeds": [0, 1]}).json()
+        runs = [r["id"] for r in exp["runs"]]
+
+        def ended() -> dict | None:
+            got = httpx.get(f"{url}/experiments/{exp['id']}").json()
+            return got if got["status"] not in ("queued", "running") else None
+
+        final = wait_for(ended, timeout=300, interval=1, what="the experiment's end")
+        assert final["status"] == "completed", final
+        records = [httpx.get(f"{url}/runs/{r}").json() for r in runs]
+        assert {r["assign"]["learner"] for r in records} == {"learner-s0", "learner-s1"}
+        for r in records:  # exact: counted == collected == ingested, by the node's counter
+            assert r["assign"]["counter"] == "counter-n0", r["assign"]
+            collected = TINY["episodes"] * 20
+            assert r["services"]["counter-n0"]["counted_transitions"] == collected
+            assert r["services"][r["assign"]["learner"]]["ingested"] == collected
+            actor = r["assign"]["actors"][0]
+            assert r["services"][actor]["final_seq"] == collected and r["points"] == 3
+    finally:
+        cancel = node.run("scancel", job)
+    assert cancel.returncode == 0, cancel.stderr
+    wait_for(
+        lambda: node.run("squeue", "-h", "-j", job, "-t", "all", "-o", "%T").stdout.strip()
+        == "CANCELLED",
+        timeout=60, interval=0.5, what="the job cancelled",
+    )  # fmt: skip
+    # Nothing of it left: no process with its data dir or its router's port.
+    wait_for(
+        lambda: not processes_with(str(data)) and not processes_with(f"127.0.0.1:{port}"),
+        timeout=60, interval=0.5, what="every process of the job ended",
+    )  # fmt: skip
+
+
+def test_the_throughput_benchmark_runs_both_launchers_and_sees_the_tasks_run_at_once(
+    node, tmp_path
+):
+    """benchmarks/bench_slurm.py with a tiny setting on this Slurm (timings not asserted):
+    one round of A B, both rates and ratios written, the Slurm side's two tasks at once."""
+    import sys
+
+    from tests.harness import ROOT
+
+    out = tmp_path / "slurm.json"
+    bench = str(ROOT / "benchmarks" / "bench_slurm.py")
+    argv = [sys.executable, bench, "--episodes", "3", "--arms", "sparse", "sparse + cen-macb",
+            "--rounds", "1", "--out", str(out)]  # fmt: skip
+    got = subprocess.run(argv, env=node.env, capture_output=True, text=True, timeout=600)
+    assert got.returncode == 0, got.stderr[-3000:]
+    assert "the Slurm this environment reaches" in got.stderr, got.stderr
+    result = json.loads(out.read_text())
+    (local,), (slurm,) = result["rounds"]["local"], result["rounds"]["slurm"]
+    assert local["runs"] == slurm["runs"] == 6 and local["env_steps"] == slurm["env_steps"]
+    assert slurm["tasks"] == 2 and slurm["concurrent"], slurm
+    assert set(result["ratio"]) == {"command", "train"} and result["cpu"]
+    assert "| command |" in got.stdout and "slurm / local" in got.stdout

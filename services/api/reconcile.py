@@ -90,6 +90,7 @@ def worker_rows(tokens: Iterable[str], infos: Iterable[dict[str, Any]]) -> list[
                 "runs": list(info.get("runs") or []) if info else [],
                 "rejects_total": int(info.get("rejects_total", 0)) if info else 0,
                 "restarts": int(info.get("restarts", 0)) if info else 0,
+                "node": info.get("node") if info and isinstance(info.get("node"), str) else None,
                 "answers": info is not None,
             }
         )

@@ -55,6 +55,7 @@ from shared.net.control import discover, history_rows, send_start, send_stop
 from shared.net.info import ApiInfo
 from shared.net.monitor import Graces
 from shared.net.monitor import peer_grace_s as peer_grace
+from shared.settings import node_name
 
 from .planner import Invalid, QueuePass
 from .reconcile import reconcile_run, stale_runs, worker_rows
@@ -165,7 +166,13 @@ class Scheduler:
             self._check_runs()
 
     def _info_reply(self, key: str, payload: bytes) -> bytes:
-        info = ApiInfo(id=self.service_id, role="api", restarts=restarts(), http=self.http_url)
+        info = ApiInfo(
+            id=self.service_id,
+            role="api",
+            restarts=restarts(),
+            node=node_name(),
+            http=self.http_url,
+        )
         return json.dumps(info.to_json()).encode()
 
     # ------------------------------------------------------------ events

@@ -55,6 +55,11 @@ def _value_type(name: str) -> Any:
     return Annotated[field.annotation, *field.metadata] if field.metadata else field.annotation
 
 
+def _plain(value: Any) -> Any:
+    """A key's value as JSON has it: a nested config model (count_sketch) as its map."""
+    return value.model_dump(mode="json") if isinstance(value, BaseModel) else value
+
+
 def _varied_keys() -> list[str]:
     return [name for name in TrainConfig.model_fields if name not in SEED_KEYS]
 
@@ -73,7 +78,11 @@ class _GridBase(BaseModel):
 
     def axes(self) -> list[tuple[str, list[Any]]]:
         """(key, values) of every key swept, in config-field order."""
-        return [(name, v) for name in type(self).model_fields if (v := getattr(self, name))]
+        return [
+            (name, [_plain(x) for x in v])
+            for name in type(self).model_fields
+            if (v := getattr(self, name))
+        ]
 
     def size(self) -> int:
         """How many points, without building them (a large product must not be built)."""
@@ -123,7 +132,7 @@ class _ArmBase(BaseModel):
     def overrides(self) -> dict[str, Any]:
         """The keys this arm sets (in config-field order), with their values."""
         fields = [n for n in type(self).model_fields if n != "name"]
-        return {n: getattr(self, n) for n in fields if n in self.model_fields_set}
+        return {n: _plain(getattr(self, n)) for n in fields if n in self.model_fields_set}
 
 
 _ARM_FIELDS: dict[str, Any] = {
@@ -466,6 +475,7 @@ class Worker(BaseModel):
     runs: list[str] = []
     rejects_total: int = 0
     restarts: int = 0  # times `macb up`'s supervisor restarted it
+    node: str | None = Field(None, description="the node it runs on (its counter serves its runs)")
     answers: bool = Field(description="false: alive (liveliness token) but not answering info")
 
 

@@ -161,8 +161,9 @@ def replay(run: str, st: RunState, records: list[WalRecord], log: logging.Logger
 
 
 def size(st: RunState) -> int:
-    """About what a snapshot of the run writes: keys plus an int64 count per key."""
-    return sum(len(t) * (t.key_bytes + 8) for t in st.explorer.tables)
+    """About what a snapshot of the run writes: keys plus an int64 count per key, or a
+    sketch's cells."""
+    return sum(t.state_bytes() for t in st.explorer.tables)
 
 
 def due(st: RunState) -> bool:

@@ -8,7 +8,9 @@ at sample time makes the bonus vanish).
 
 from __future__ import annotations
 
+import math
 from itertools import islice
+from typing import Any
 
 import numpy as np
 
@@ -55,6 +57,10 @@ class CountTable:
         """Share of keys seen exactly once, in percent (the thesis's count-1 percentage)."""
         return 100.0 * self.count1 / len(self._counts) if self._counts else 0.0
 
+    def state_bytes(self) -> int:
+        """About what a snapshot of the table writes: the keys and an int64 count each."""
+        return len(self._counts) * (self.key_bytes + 8)
+
     def memory_bytes(self) -> int:
         """Approximate resident size: dict slots plus the key and int objects."""
         import sys
@@ -95,6 +101,187 @@ class CountTable:
         table.count1 = int(np.sum(counts == 1))
         table.total = int(total)
         return table
+
+
+# The Carter-Wegman prime: a row's hash is (a . x + b) mod P over 16-bit words x of the
+# key, then mod the width. a, b uniform in [0, P) make it pairwise independent.
+SKETCH_PRIME = (1 << 31) - 1
+SKETCH_MAX_WIDTH = 1 << 30  # width <= P / 2: the mod-width step keeps collisions <= 1/w + 1/P
+SKETCH_MAX_DEPTH = 32
+SKETCH_MAX_CELLS = 1 << 31  # 8 GiB of uint32 cells per table
+_WORDS_PER_SUM = 1 << 15  # 2^15 * (2^16 - 1) * (2^31 - 2) < 2^63: no uint64 overflow
+# A wave of fewer independent rows than this: the next rows go one by one instead.
+_SEQUENTIAL_ROWS = 16
+
+
+def sketch_shape(eps: float, delta: float) -> tuple[int, int]:
+    """(width, depth) for count-min's bound: estimate <= true + eps * N with probability
+    >= 1 - delta per key, width = ceil(e / eps), depth = ceil(ln(1 / delta))."""
+    return math.ceil(math.e / eps), max(1, math.ceil(math.log(1.0 / delta)))
+
+
+def sketch_bound(width: int, depth: int) -> tuple[float, float]:
+    """(eps, delta) that a width x depth sketch guarantees: eps = e / width, delta =
+    exp(-depth)."""
+    return math.e / width, math.exp(-depth)
+
+
+class CountSketch:
+    """A count-min sketch in place of a `CountTable`: `depth` rows of `width` uint32
+    cells, a key counted in one cell per row, its count the least of its cells.
+
+    Memory is width x depth x 4 bytes whatever the number of keys. The estimate is never
+    below the true count, and exceeds it by more than eps * N (N: transitions counted,
+    eps = e / width) with probability at most delta = exp(-depth) per key.
+
+    Conservative update (default): a key's cells are raised only to its new estimate
+    (min + 1), not each by one. Every cell of a key stays >= its true count (so the
+    lower bound holds) and no cell exceeds the plain sketch's (so the upper bound holds),
+    and collisions inflate counts less. It is order-dependent: rows are applied in the
+    order given, one by one in effect, so how they are batched never matters; the
+    counter logs and replays them in the order it counted them.
+
+    Hashes are Carter-Wegman over the key's 16-bit words (mod the prime 2^31 - 1,
+    parameters from a numpy SeedSequence of `seed`): pairwise independent, the same in
+    every process and on every platform (no Python `hash`). `__len__` and `count1` are
+    estimates: a row whose estimate was 0 before it was counted is a new key, one whose
+    estimate was 1 leaves the count-1 keys; a new key whose cells all collide is missed,
+    so `len` never exceeds the true number of keys.
+    """
+
+    def __init__(
+        self, key_bytes: int, width: int, depth: int, seed: int, conservative: bool = True
+    ) -> None:
+        if not 1 <= width <= SKETCH_MAX_WIDTH:
+            raise ValueError(f"width: must be in [1, {SKETCH_MAX_WIDTH}], got {width}")
+        if not 1 <= depth <= SKETCH_MAX_DEPTH:
+            raise ValueError(f"depth: must be in [1, {SKETCH_MAX_DEPTH}], got {depth}")
+        self.key_bytes = key_bytes
+        self.width = width
+        self.depth = depth
+        self.seed = seed
+        self.conservative = conservative
+        self.cells = np.zeros((depth, width), dtype=np.uint32)
+        words = (key_bytes + 1) // 2
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5EC7C4]))
+        self._a = rng.integers(0, SKETCH_PRIME, size=(words, depth), dtype=np.uint64)
+        self._b = rng.integers(0, SKETCH_PRIME, size=depth, dtype=np.uint64)
+        self._rows = np.arange(depth, dtype=np.int64)
+        self.total = 0  # transitions counted
+        self._count1 = 0  # new keys less keys whose estimate left 1 (may run below 0)
+        self._distinct = 0  # estimated keys (a lower bound)
+
+    def __len__(self) -> int:
+        return self._distinct
+
+    def cells_of(self, keys: np.ndarray) -> np.ndarray:
+        """Each key's column in each row: int64 (B, depth)."""
+        keys = np.ascontiguousarray(keys, dtype=np.uint8)
+        if keys.ndim != 2 or keys.shape[1] != self.key_bytes:
+            raise ValueError(f"expected (B, {self.key_bytes}) uint8 keys, got {keys.shape}")
+        if self.key_bytes % 2:
+            keys = np.concatenate([keys, np.zeros((len(keys), 1), np.uint8)], axis=1)
+        words = keys.view("<u2").astype(np.uint64)
+        h = np.zeros((len(keys), self.depth), dtype=np.uint64)
+        for s in range(0, words.shape[1], _WORDS_PER_SUM):
+            part = words[:, s : s + _WORDS_PER_SUM] @ self._a[s : s + _WORDS_PER_SUM]
+            h = (h + part % np.uint64(SKETCH_PRIME)) % np.uint64(SKETCH_PRIME)
+        h = (h + self._b) % np.uint64(SKETCH_PRIME)
+        return (h % np.uint64(self.width)).astype(np.int64)
+
+    def increment(self, keys: np.ndarray) -> None:
+        """Count each row once, as if one by one in order (a batch of collected
+        transitions). Rows that touch no cell an earlier pending row touches do not depend
+        on one another: they are counted at once, in waves; a short wave (a key repeated,
+        cells shared) goes row by row instead."""
+        pending = self.cells_of(keys)
+        while len(pending):
+            free = _first_touches(pending, self.width)
+            if free.all() or np.count_nonzero(free) >= _SEQUENTIAL_ROWS:
+                self._apply(pending[free])
+                pending = pending[~free]
+            else:
+                for i in range(min(_SEQUENTIAL_ROWS, len(pending))):
+                    self._apply(pending[i : i + 1])
+                pending = pending[_SEQUENTIAL_ROWS:]
+        self.total += len(keys)
+
+    def _apply(self, cols: np.ndarray) -> None:
+        """Count rows none of which shares a cell with another (so at once = in order)."""
+        cur = self.cells[self._rows, cols]  # (m, depth)
+        before = cur.min(axis=1)
+        # conservative: raised to the new estimate; plain: each cell one more
+        up = np.maximum(cur, (before + 1)[:, None]) if self.conservative else cur + np.uint32(1)
+        self.cells[self._rows, cols] = up
+        new = int(np.count_nonzero(before == 0))
+        self._distinct += new
+        self._count1 += new - int(np.count_nonzero(before == 1))
+
+    def counts(self, keys: np.ndarray) -> np.ndarray:
+        """The estimate n(key) >= the true count for each row; never modifies the sketch."""
+        cols = self.cells_of(keys)
+        return self.cells[self._rows, cols].min(axis=1).astype(np.int64)
+
+    @property
+    def count1(self) -> int:
+        """Estimated keys seen exactly once (clamped here, never while counting, so that
+        how rows are batched cannot change it)."""
+        return min(max(self._count1, 0), self._distinct)
+
+    @property
+    def count1_pct(self) -> float:
+        """Estimated share of keys seen exactly once, in percent."""
+        return 100.0 * self.count1 / self._distinct if self._distinct else 0.0
+
+    def state_bytes(self) -> int:
+        """What a snapshot of the sketch writes: its cells."""
+        return int(self.cells.nbytes)
+
+    def memory_bytes(self) -> int:
+        """Resident size: the cells and the hash parameters, whatever the keys."""
+        return int(self.cells.nbytes + self._a.nbytes + self._b.nbytes)
+
+    def state(self) -> dict[str, Any]:
+        """The sketch as plain numbers and one int32 array (uint32 cells' bits)."""
+        return {
+            "cells": self.cells.view(np.int32).copy(),
+            "total": self.total,
+            "count1": self._count1,
+            "distinct": self._distinct,
+            "width": self.width,
+            "depth": self.depth,
+            "conservative": self.conservative,
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """`state()`'s output back in place; ValueError naming what does not fit."""
+        for name in ("width", "depth", "conservative"):
+            if state[name] != getattr(self, name):
+                raise ValueError(
+                    f"{name} {state[name]} in the snapshot, {getattr(self, name)} here"
+                )
+        cells = np.asarray(state["cells"])
+        if cells.shape != self.cells.shape or cells.dtype != np.int32:
+            raise ValueError(
+                f"cells {cells.dtype} {cells.shape}, expected int32 {self.cells.shape}"
+            )
+        self.cells = cells.view(np.uint32).copy()
+        self.total = int(state["total"])
+        self._count1 = int(state["count1"])
+        self._distinct = int(state["distinct"])
+
+
+def _first_touches(cols: np.ndarray, width: int) -> np.ndarray:
+    """Which rows of `cols` touch no cell an earlier row touches (the first row always)."""
+    depth = cols.shape[1]
+    flat = (cols + np.arange(depth, dtype=np.int64) * width).reshape(-1)
+    _, first = np.unique(flat, return_index=True)
+    is_first = np.zeros(flat.size, dtype=bool)
+    is_first[first] = True
+    return np.all(is_first.reshape(-1, depth), axis=1, keepdims=False).reshape(-1)
+
+
+Counts = CountTable | CountSketch
 
 
 def count_bonus(counts: np.ndarray, beta: float) -> np.ndarray:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.core.counting import CountTable, count_bonus
+from shared.core.counting import Counts, CountSketch, CountTable, count_bonus
 from shared.core.joint import offsets
 from shared.core.simhash import RawKey, RoundKey, SimHash
 
@@ -36,6 +36,8 @@ class ExploreSpec:
     # Decimals the counted vector is rounded to before SimHash (None: not rounded); the
     # thesis code rounds Cen-MACB's joint vector to 2.
     round: int | None = None
+    # (width, depth, conservative) of a count-min sketch per table; None: exact tables.
+    sketch: tuple[int, int, bool] | None = None
 
 
 class CountExploration:
@@ -65,7 +67,18 @@ class CountExploration:
             else RoundKey(d)
             for t, d in enumerate(self.table_dims)
         ]
-        self.tables = [CountTable(h.key_bytes) for h in self.hashers]
+        self.tables: list[Counts] = [
+            self._table(h.key_bytes, t) for t, h in enumerate(self.hashers)
+        ]
+
+    def _table(self, key_bytes: int, t: int) -> Counts:
+        """Table t's counts: exact, or a sketch hashed with a seed of its own."""
+        if self.spec.sketch is None:
+            return CountTable(key_bytes)
+        width, depth, conservative = self.spec.sketch
+        return CountSketch(
+            key_bytes, width, depth, seed=self.spec.seed + t, conservative=conservative
+        )
 
     @property
     def counting(self) -> bool:

@@ -3,7 +3,8 @@
 Used by `macb start` / `macb stop` and by the API service. Services are found by
 querying `macb/info/**` (each service answers with its id, role and current run);
 a run is assigned one free learner, one counter (the counter serves many runs), one
-free evaluator and `actors` free actors.
+free evaluator and `actors` free actors, on the learner's node where they can be
+(`assign_services`: each service's info names its node).
 """
 
 from __future__ import annotations
@@ -48,13 +49,26 @@ def discover(bus: Bus, timeout: float = 1.0) -> list[dict[str, Any]]:
 
 
 def assign_services(infos: list[dict[str, Any]], actors: int) -> Assignment:
-    """The first free learner, evaluator and `actors` actors of `infos`, and the first
-    counter (busy or not); NoFreeServices says what is missing."""
+    """A free learner, evaluator and `actors` actors of `infos`, and a counter (busy or
+    not), kept on one node where they can be; NoFreeServices says what is missing.
 
-    def free(role: str) -> list[str]:
-        return [i["id"] for i in infos if i["role"] == role and not i.get("run")]
+    The rule (`node`: the node a service's info names, `shared.settings.node_name`):
+    the learner is the first free one whose node also has a free evaluator and enough
+    free actors (else the first free one); the counter is the first on the learner's
+    node (else the first); the evaluator and the actors are the first free ones on the
+    learner's node, then the others. So a run's lockstep round trips (act requests, the
+    counter's acks, bonus queries) stay on one node, and one counter still serves every
+    run of a one-node cluster. Services that name no node (older ones) are on no node:
+    with none named, or all on one, the first of each is taken, as before the rule.
+    """
 
-    counters = [i["id"] for i in infos if i["role"] == "counter"]
+    def node(i: dict[str, Any]) -> str | None:
+        return n if isinstance(n := i.get("node"), str) else None
+
+    def free(role: str) -> list[dict[str, Any]]:
+        return [i for i in infos if i["role"] == role and not i.get("run")]
+
+    counters = [i for i in infos if i["role"] == "counter"]
     learners, evaluators, free_actors = free("learner"), free("evaluator"), free("actor")
     missing = []
     if not counters:
@@ -67,11 +81,24 @@ def assign_services(infos: list[dict[str, Any]], actors: int) -> Assignment:
         missing.append(f"{actors - len(free_actors)} actor(s)")
     if missing:
         raise NoFreeServices("no free " + ", ".join(missing))
+
+    def near(pool: list[dict[str, Any]], where: str | None) -> list[str]:
+        """`pool`'s ids, those on `where` first (each side in its order)."""
+        return [i["id"] for i in sorted(pool, key=lambda i: node(i) != where)]
+
+    def whole(learner: dict[str, Any]) -> bool:
+        where = node(learner)
+        return any(node(e) == where for e in evaluators) and (
+            sum(node(a) == where for a in free_actors) >= actors
+        )
+
+    learner = next((i for i in learners if whole(i)), learners[0])
+    where = node(learner)
     return Assignment(
-        learner=learners[0],
-        actors=tuple(free_actors[:actors]),
-        counter=counters[0],
-        evaluator=evaluators[0],
+        learner=learner["id"],
+        actors=tuple(near(free_actors, where)[:actors]),
+        counter=near(counters, where)[0],
+        evaluator=near(evaluators, where)[0],
     )
 
 

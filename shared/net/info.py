@@ -3,7 +3,8 @@
 Every service answers with its id and role, the run(s) it serves, its malformed-message
 counts, its restarts and what its last start resumed; the counter adds each run's
 stats (under `runs`, where the others list their runs), whether it is ready and its
-snapshot interval; the API its HTTP address. The reply is JSON: `to_json` gives the
+snapshot interval; the API its HTTP address. `node` is the machine it runs on, by which
+the scheduler keeps a run's services together. The reply is JSON: `to_json` gives the
 map it always was (same keys, same order), `from_json` reads one for a reader (None
 for a reply that is not a service's info: it is skipped, as it always was).
 """
@@ -28,6 +29,7 @@ class ServiceInfo:
     rejects_total: int = 0
     restarts: int = 0
     resumed: dict[str, Any] | None = None
+    node: str | None = None  # the node it runs on (shared.settings.node_name)
 
     def to_json(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(ServiceInfo)}
@@ -51,6 +53,7 @@ class ServiceInfo:
             rejects_total=total if isinstance(total, int) else 0,
             restarts=restarts if isinstance(restarts, int) else 0,
             resumed=resumed if isinstance(resumed, dict) else None,
+            node=node if isinstance(node := value.get("node"), str) else None,
         )
 
 

@@ -15,7 +15,9 @@ Its fields:
 - `counters`: the kind's step, episode and update counters (plain numbers);
 - `rng`: the random states as JSON (`sampler` always; a cut also `collector`, `eval_envs`);
 - `tables`: the count tables as {"table0": {keys, counts, total, key_bytes}, ...}, where
-  the kind keeps them (the service's are the counter's);
+  the kind keeps them (the service's are the counter's); a count-min sketch's
+  (`count_sketch`) as {"table0": {sketch: {cells, total, count1, distinct, width, depth,
+  conservative}, key_bytes}, ...};
 - the kind's own fields: a cut's `episode`, `replay_rows`, `torch_rng`; the service's
   `ingested_pos` (each actor's next transition) and `boundaries` (episode ends owed).
 
@@ -33,7 +35,7 @@ from typing import Any
 
 import torch
 
-from shared.core.counting import CountTable
+from shared.core.counting import Counts, CountSketch, CountTable
 from shared.persist.files import atomic_write
 
 CHECKPOINT_FORMAT = 2  # 1: the same fields, before `kind` (still read)
@@ -56,7 +58,7 @@ def save(
     learner: dict[str, Any],
     counters: dict[str, Any],
     rng: dict[str, Any] | None = None,
-    tables: Sequence[CountTable] | None = None,
+    tables: Sequence[Counts] | None = None,
     previous: Path | None = None,
     **own: Any,
 ) -> None:
@@ -110,10 +112,15 @@ def load(
     return state
 
 
-def tables_state(tables: Sequence[CountTable]) -> dict[str, dict[str, Any]]:
+def tables_state(tables: Sequence[Counts]) -> dict[str, dict[str, Any]]:
     """Count tables as a checkpoint holds them."""
-    out = {}
+    out: dict[str, dict[str, Any]] = {}
     for t, table in enumerate(tables):
+        if isinstance(table, CountSketch):
+            sketch = table.state()
+            sketch["cells"] = torch.from_numpy(sketch["cells"])
+            out[f"table{t}"] = {"sketch": sketch, "key_bytes": table.key_bytes}
+            continue
         keys, counts = table.to_arrays()
         out[f"table{t}"] = {
             "keys": torch.from_numpy(keys.copy()),
@@ -124,15 +131,30 @@ def tables_state(tables: Sequence[CountTable]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def load_tables(tables: list[CountTable], state: Any, where: Path) -> None:
+def load_tables(tables: list[Counts], state: Any, where: Path) -> None:
     """A checkpoint's count tables into `tables` (in place), refused naming `where`
-    if they are not the run's; the list form of earlier cuts is read too."""
+    if they are not the run's (exact tables for a sketch or the other way round, another
+    sketch shape); the list form of earlier cuts is read too."""
     saved = [state[f"table{t}"] for t in range(len(state))] if isinstance(state, dict) else state
     if len(saved) != len(tables):
         raise CutError(f"{where}: {len(saved)} count tables, the run has {len(tables)}")
     for t, one in enumerate(saved):
         if int(one["key_bytes"]) != tables[t].key_bytes:
             raise CutError(f"{where}: table {t} has {one['key_bytes']}-byte keys")
+        table = tables[t]
+        if ("sketch" in one) != isinstance(table, CountSketch):
+            kinds = ("an exact table", "a count-min sketch")
+            raise CutError(
+                f"{where}: table {t} is {kinds['sketch' in one]}, the run has "
+                f"{kinds[isinstance(table, CountSketch)]} (count_sketch)"
+            )
+        if isinstance(table, CountSketch):
+            sketch = {**one["sketch"], "cells": one["sketch"]["cells"].numpy()}
+            try:
+                table.load_state(sketch)
+            except ValueError as err:
+                raise CutError(f"{where}: table {t}: {err}") from None
+            continue
         keys, counts = one["keys"].numpy(), one["counts"].numpy()
         tables[t] = CountTable.from_arrays(keys, counts, int(one["total"]))
 

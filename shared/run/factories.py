@@ -77,6 +77,9 @@ def build_exploration(cfg: TrainConfig, spec: TaskSpec) -> CountExploration:
         key=cfg.key,
         seed=derive_seed(cfg.seed, "simhash"),
         round=cfg.hash_round,
+        sketch=None
+        if (sk := cfg.count_sketch) is None
+        else (sk.columns, sk.depth, sk.conservative),
     )
     return CountExploration(espec, spec.obs_dims, spec.act_dims)
 

@@ -76,7 +76,7 @@ def create_experiment(body: ExperimentCreate, store: StoreDep, scheduler: Schedu
     spec = {
         "config": body.base_config(),
         "seeds": body.seed_list(),
-        "grid": body.grid.model_dump(mode="json", exclude_none=True) if body.grid else None,
+        "grid": dict(body.grid.axes()) if body.grid else None,  # nested nulls kept
         "arms": body.arms_spec(),
         "actors": body.actors,
     }

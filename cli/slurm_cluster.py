@@ -1,0 +1,283 @@
+"""`macb up --launcher slurm`: the service cluster as one Slurm job, on one bus.
+
+The batch script (written to DATA_DIR/.slurm/, then submitted) runs, in one allocation
+of `--nodes` nodes with `--slots` tasks of `--cpus-per-slot` CPUs on each:
+
+- on the first node (the batch step): the router and the API;
+- on every node, one `srun` step task: a counter, `counter-nI` (I: Slurm's node index),
+  its data in DATA_DIR/counter-nI;
+- on every node, one `srun` step task per slot: `macb serve slot --id sK` (K: the task's
+  rank), a learner, an evaluator and `--actors` actors restarted when they die.
+
+Every service names its node (Slurm's SLURMD_NODENAME, `shared.settings.node_name`), so
+the API's scheduler gives a run the counter, evaluator and actors on its learner's node
+and its lockstep round trips stay there; an experiment posted to the API spreads its runs
+over the slots. On one node the bus is plain TCP on loopback (or TLS with --secrets); on
+several it must be the secure bus of docs/deploy.md (--secrets): the router listens on
+`tls/0.0.0.0:PORT`, every service signs in as its id, the users all known before the job
+starts. The job runs until its time limit or `scancel`, which ends every process of it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from cli.reproduce.slurm import (
+    Runner,
+    SlurmOptions,
+    macb_argv,
+    parse_job_id,
+    preflight,
+    run_command,
+    sbatch_argv,
+)
+from cli.supervisor import THREAD_ENV
+
+JOB_NAME = "macb-cluster"
+
+
+@dataclass(frozen=True)
+class ClusterJob:
+    """What the job runs: `slots` slots of `cpus` CPUs on each of `nodes` nodes."""
+
+    nodes: int
+    slots: int  # per node
+    cpus: int  # per slot
+    actors: int  # per slot
+    data_dir: Path
+    router_port: int = 7447
+    api_port: int = 8000
+    secrets: Path | None = None
+    api_public: bool = False  # the API on all interfaces (MACB_API_TOKEN set)
+    group_size: int = 1
+
+    @property
+    def log_dir(self) -> Path:
+        return self.data_dir / ".slurm"
+
+    def users(self) -> list[str]:
+        """Every bus user the job signs in as (each must be in the secrets' users.txt)."""
+        out = ["router", "api"] + [f"counter-n{i}" for i in range(self.nodes)]
+        for k in range(self.nodes * self.slots):
+            out += [f"learner-s{k}", f"evaluator-s{k}"]
+            out += [f"actor-s{k}" + (f"-{r}" if r else "") for r in range(self.actors)]
+        return out
+
+    @property
+    def services(self) -> int:
+        """The services that announce themselves once it is up (the router does not)."""
+        return len(self.users()) - 1
+
+    def error(self) -> str | None:
+        """Why this job cannot be submitted, or None."""
+        for name, value in (("--nodes", self.nodes), ("--slots", self.slots)):
+            if value < 1:
+                return f"{name} must be at least 1, not {value}"
+        if self.cpus < 1 or self.actors < 1:
+            return "--cpus-per-slot and --actors must be at least 1"
+        if self.nodes > 1 and self.secrets is None:
+            return (
+                f"--nodes {self.nodes}: off one node the bus must be the secure one "
+                "(docs/deploy.md): give --secrets DIR, a folder `macb certs` wrote"
+            )
+        if self.secrets is not None:
+            users = self.secrets / "users.txt"
+            try:
+                known = {line.split(":", 1)[0] for line in users.read_text().splitlines()}
+            except OSError as err:
+                return f"--secrets: cannot read {users} ({err.strerror or err})"
+            if missing := [u for u in self.users() if u not in known]:
+                return (
+                    f"--secrets: {users} lacks the job's users {', '.join(missing)}; add them: "
+                    f"macb certs {self.secrets} " + " ".join(f"--user {u}" for u in missing)
+                )
+        return None
+
+
+def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: SlurmOptions) -> str:
+    """The batch script of `job` (see the module)."""
+    n, per_node = job.nodes, job.slots
+    secure = job.secrets is not None
+    listen = f"tls/0.0.0.0:{job.router_port}" if n > 1 else f"tcp/127.0.0.1:{job.router_port}"
+    connect = "tls/$HEAD:$PORT" if n > 1 else "tcp/127.0.0.1:$PORT"
+    if secure and n == 1:
+        listen, connect = f"tls/127.0.0.1:{job.router_port}", "tls/127.0.0.1:$PORT"
+    http = "0.0.0.0" if job.api_public else "127.0.0.1"
+    url = "http://$HEAD:$API_PORT" if job.api_public else "http://127.0.0.1:$API_PORT"
+    user = (lambda u: f"MACB_ZENOH_USER={u} ") if secure else (lambda u: "")
+    counter_user = 'export MACB_ZENOH_USER="$id"; ' if secure else ""
+    lines = [
+        "#!/bin/bash",
+        f"#SBATCH --job-name={JOB_NAME}",
+        f"#SBATCH --nodes={n}",
+        f"#SBATCH --ntasks-per-node={per_node}",
+        f"#SBATCH --cpus-per-task={job.cpus}",
+        f"#SBATCH --output={job.log_dir}/cluster-%j.log",
+        f"#SBATCH --chdir={cwd}",
+    ]
+    for flag, value in (("partition", opts.partition), ("time", opts.time)):
+        if value:
+            lines.append(f"#SBATCH --{flag}={value}")
+    if opts.account:
+        lines.append(f"#SBATCH --account={opts.account}")
+    thread_env = " ".join(f"{k}={v}" for k, v in THREAD_ENV.items())
+    lines += [
+        "# Written by `macb up --launcher slurm` (docs/deploy.md, 'On a Slurm cluster'): the",
+        "# service cluster in one allocation. The first node (this batch step) runs the router",
+        "# and the API; an srun step runs a counter on every node, another one worker slot",
+        "# (learner, evaluator, actors) per task. scancel ends them all.",
+        "set -uo pipefail",
+        f"MACB=({shlex.join(macb)})",
+        f"DATA={shlex.quote(str(job.data_dir))}",
+        f"LOGS={shlex.quote(str(job.log_dir))}",
+        f"PORT={job.router_port}",
+        f"API_PORT={job.api_port}",
+        "HEAD=$(hostname -s)",
+        f"export {thread_env} PYTHONUNBUFFERED=1",
+        f"export MACB_ZENOH_CONNECT={connect}",
+    ]
+    if secure:
+        lines.append(f"export MACB_ZENOH_SECRETS={shlex.quote(str(job.secrets))}")
+    lines += [
+        'mkdir -p "$DATA"',
+        'echo "macb cluster job $SLURM_JOB_ID on $SLURM_JOB_NODELIST: router and API on $HEAD,'
+        ' $SLURM_NTASKS slot(s), bus $MACB_ZENOH_CONNECT"',
+        f'{user("router")}"${{MACB[@]}}" serve router --listen {listen} &',
+        "for _ in $(seq 300); do (exec 3<>/dev/tcp/127.0.0.1/$PORT) 2>/dev/null && break;"
+        " sleep 0.2; done",
+        "# a counter on every node, its data its own",
+        f"srun --overlap --nodes={n} --ntasks={n} --ntasks-per-node=1 --cpus-per-task=1 \\",
+        f"    bash -c 'd=$1; shift; id=counter-n$SLURM_NODEID; {counter_user}"
+        'exec "$@" --id "$id" --data-dir "$d/$id"\' counter "$DATA" "${MACB[@]}" serve counter &',
+        "# one worker slot per task: learner-sK, evaluator-sK, actor-sK (K: the task's rank)",
+        f"srun --overlap --nodes={n} --ntasks={n * per_node} --ntasks-per-node={per_node} "
+        f"--cpus-per-task={job.cpus} \\",
+        "    bash -c 'd=$1; shift; id=s$SLURM_PROCID; "
+        'exec "$@" --id "$id" --data-dir "$d/slot-$id"\' slot "$DATA" "${MACB[@]}" serve slot '
+        f"--actors {job.actors} &",
+        f"{user('api')}"
+        + (f"MACB_API_GROUP_SIZE={job.group_size} " if job.group_size > 1 else "")
+        + f'"${{MACB[@]}}" serve api --id api --listen-http {http}:$API_PORT '
+        '--data-dir "$DATA/api" &',
+        f'echo "{url}" > "$LOGS/$SLURM_JOB_ID.api"',
+        "wait -n",
+        'echo "macb cluster job $SLURM_JOB_ID: a part of it ended (exit $?); ending the job" >&2',
+        "exit 1",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def job_state(job_id: str, run: Runner = run_command) -> tuple[str, str] | None:
+    """Slurm's state and reason of the job, or None once it no longer knows it."""
+    got = run(["squeue", "-h", "-j", job_id, "-t", "all", "-o", "%T|%r"])
+    if got.returncode or not got.stdout.strip():
+        return None
+    state, _, reason = got.stdout.strip().splitlines()[0].partition("|")
+    return state.strip(), "" if reason.strip() == "None" else reason.strip()
+
+
+def services_answering(url: str) -> int | None:
+    """How many services answer on the API's /workers (None: the API does not answer)."""
+    import httpx
+
+    try:
+        workers = httpx.get(f"{url}/workers", timeout=3).json()["workers"]
+    except (httpx.HTTPError, ValueError, KeyError):
+        return None
+    return sum(1 for w in workers if w.get("answers"))
+
+
+def cmd_up_slurm(args: argparse.Namespace) -> int:
+    """Write the cluster job's script, submit it and (unless --detach) wait until its API
+    answers; say where it is and how to stop it."""
+    import os
+
+    from shared.persist.files import default_data_dir
+    from shared.settings import settings
+
+    if args.run:
+        print("macb up --launcher slurm: submit runs to the job's API (macb run)", file=sys.stderr)
+        return 2
+    secrets = settings().zenoh_secrets
+    data_dir = Path(args.data_dir or default_data_dir() / "slurm-cluster").resolve()
+    job = ClusterJob(
+        nodes=args.nodes,
+        slots=args.slots,
+        cpus=args.cpus_per_slot,
+        actors=args.actors,
+        data_dir=data_dir,
+        router_port=int(args.endpoint.rsplit(":", 1)[1]),
+        api_port=args.api_port,
+        secrets=Path(secrets).resolve() if secrets else None,
+        api_public=bool(os.environ.get("MACB_API_TOKEN")),
+        group_size=args.group_size,
+    )
+    opts = SlurmOptions(
+        args.partition, args.time, args.account, tuple(shlex.split(args.sbatch_args or ""))
+    )
+    if why := job.error() or preflight(opts, [data_dir]):
+        print(f"macb up --launcher slurm: {why}", file=sys.stderr)
+        return 2
+    job.log_dir.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
+    script = job.log_dir / f"cluster-{stamp}.sh"
+    script.write_text(render_cluster_script(job, macb_argv(), Path.cwd(), opts))
+    argv = sbatch_argv(opts, script)
+    got = run_command(argv)
+    if got.returncode:
+        print(f"{shlex.join(argv)} failed: {got.stderr.strip()}", file=sys.stderr)
+        return 1
+    job_id = parse_job_id(got.stdout)
+    log = job.log_dir / f"cluster-{job_id}.log"
+    print(
+        f"cluster job {job_id} submitted ({job.nodes} node(s) x {job.slots} slot(s)); "
+        f"script {script}, log {log}",
+        file=sys.stderr,
+    )
+    if args.detach:
+        print(f"its API's address will be in {job.log_dir}/{job_id}.api", file=sys.stderr)
+        return 0
+    return wait_until_up(job_id, job, log, args.wait)
+
+
+def wait_until_up(job_id: str, job: ClusterJob, log: Path, timeout: float) -> int:
+    """Follow the job until its API and every service answer (0), or until it ends or
+    `timeout` passes (1)."""
+    said: list[object] = [None, None]  # the last state and count of services told
+    deadline = time.monotonic() + timeout
+    url_file = job.log_dir / f"{job_id}.api"
+    while time.monotonic() < deadline:
+        state = job_state(job_id)
+        if state is None or state[0] not in ("PENDING", "CONFIGURING", "RUNNING"):
+            print(f"cluster job {job_id} ended ({state[0] if state else 'gone'})", file=sys.stderr)
+            if log.exists():
+                print("\n".join(log.read_text().splitlines()[-20:]), file=sys.stderr)
+            return 1
+        if state != said[0]:
+            said[0] = state
+            print(f"cluster job {job_id}: {' '.join(w for w in state if w)}", file=sys.stderr)
+        url = url_file.read_text().strip() if url_file.exists() else None
+        answering = services_answering(url) if url else None
+        if answering is not None and answering != said[1]:
+            said[1] = answering
+            print(f"cluster job {job_id}: {answering} of {job.services} services answer",
+                  file=sys.stderr)  # fmt: skip
+        if url and answering is not None and answering >= job.services:
+            print(
+                f"cluster job {job_id} up: API {url} (dashboard {url}/)\n"
+                f"  MACB_API_URL={url} macb run CONFIG     # experiments, spread over the slots\n"
+                f"  scancel {job_id}                         # stop the cluster",
+                file=sys.stderr,
+            )
+            print(url)
+            return 0
+        time.sleep(2)
+    print(f"cluster job {job_id}: not up within {timeout:.0f} s", file=sys.stderr)
+    return 1

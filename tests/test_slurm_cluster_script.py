@@ -1,0 +1,154 @@
+"""`macb up --launcher slurm`'s job without a Slurm (tests/test_slurm.py runs it on a real
+one): the batch script run by bash with `srun` and `macb` stubbed, so every process it
+would start is recorded with its arguments, user and environment; and what is refused
+before anything is submitted."""
+
+from __future__ import annotations
+
+import os
+import socket
+import stat
+import subprocess
+from pathlib import Path
+
+from cli.reproduce.slurm import SlurmOptions
+from cli.slurm_cluster import ClusterJob, render_cluster_script
+
+# srun: one copy of the command per task, with Slurm's task variables.
+SRUN = """#!/bin/bash
+n=1; per=1
+while [[ $1 == --* ]]; do
+  case $1 in --ntasks=*) n=${1#*=} ;; --ntasks-per-node=*) per=${1#*=} ;; esac
+  shift
+done
+for ((i = 0; i < n; i++)); do
+  SLURM_PROCID=$i SLURM_NODEID=$((i / per)) "$@" &
+done
+wait
+"""
+# macb: records "user|node id|args" a line; the router listens for a moment.
+MACB = """#!/bin/bash
+echo "${MACB_ZENOH_USER:-}|${MACB_ZENOH_CONNECT}|${MACB_ZENOH_SECRETS:-}|$*" >> "$RECORD"
+if [[ $2 == router ]]; then
+  exec python3 -c "import socket,time; s=socket.socket(); s.bind(('127.0.0.1', $PORT)); \
+s.listen(); time.sleep(4)"
+fi
+"""
+
+
+def executable(path: Path, text: str) -> Path:
+    path.write_text(text)
+    path.chmod(path.stat().st_mode | stat.S_IXUSR)
+    return path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run_script(tmp_path: Path, job: ClusterJob) -> tuple[list[list[str]], str, int]:
+    """The rendered script run by bash with the stubs: the recorded lines (user,
+    connect, secrets, args), the job's own output and its exit code."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    executable(bin_dir / "srun", SRUN)
+    macb = executable(bin_dir / "macb stub", MACB)  # (a space: the path stays one word)
+    text = render_cluster_script(job, [str(macb)], tmp_path, SlurmOptions("short", "1:00:00"))
+    script = tmp_path / "job.sh"
+    script.write_text(text)
+    record = tmp_path / "record.txt"
+    env = {
+        **os.environ,
+        "PATH": f"{bin_dir}:{os.environ['PATH']}",
+        "RECORD": str(record),
+        "PORT": str(job.router_port),
+        "SLURM_JOB_ID": "77",
+        "SLURM_JOB_NODELIST": "cn[1-2]",
+        "SLURM_NTASKS": str(job.nodes * job.slots),
+    }
+    job.log_dir.mkdir(parents=True, exist_ok=True)
+    got = subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, timeout=60)
+    lines = [line.split("|", 3) for line in record.read_text().splitlines()]
+    return lines, got.stdout + got.stderr, got.returncode
+
+
+def test_one_node_the_router_api_a_counter_and_a_slot_per_task_on_loopback(tmp_path):
+    port = free_port()
+    job = ClusterJob(1, 2, 1, 1, tmp_path / "data", router_port=port, api_port=8123)
+    text = render_cluster_script(job, ["macb"], tmp_path, SlurmOptions("short", "1:00:00"))
+    log = f"--output={tmp_path / 'data' / '.slurm'}/cluster-%j.log"
+    for line in ("--nodes=1", "--ntasks-per-node=2", "--cpus-per-task=1", "--partition=short",
+                 "--time=1:00:00", log):  # fmt: skip
+        assert f"#SBATCH {line}\n" in text, line
+    lines, out, code = run_script(tmp_path, job)
+    args = sorted(line[3] for line in lines)
+    data = tmp_path / "data"
+    assert args == sorted(
+        [
+            f"serve router --listen tcp/127.0.0.1:{port}",
+            f"serve counter --id counter-n0 --data-dir {data}/counter-n0",
+            f"serve slot --actors 1 --id s0 --data-dir {data}/slot-s0",
+            f"serve slot --actors 1 --id s1 --data-dir {data}/slot-s1",
+            f"serve api --id api --listen-http 127.0.0.1:8123 --data-dir {data}/api",
+        ]
+    ), out
+    assert {line[1] for line in lines} == {f"tcp/127.0.0.1:{port}"}  # one bus, loopback
+    assert {line[0] for line in lines} == {""} and {line[2] for line in lines} == {""}
+    assert (data / ".slurm" / "77.api").read_text() == "http://127.0.0.1:8123\n"
+    # a part that ends ends the job (Slurm then stops the rest)
+    assert code == 1 and "a part of it ended" in out, out
+
+
+def test_several_nodes_go_on_the_secure_bus_each_service_signed_in_as_its_id(tmp_path):
+    port = free_port()
+    secrets = tmp_path / "secrets"
+    job = ClusterJob(2, 2, 3, 2, tmp_path / "data", port, 8123, secrets, api_public=True)
+    lines, out, _ = run_script(tmp_path, job)
+    host = socket.gethostname().split(".")[0]  # the batch step's node, `hostname -s`
+    by_user = {line[0]: line[3] for line in lines}
+    assert by_user["router"] == f"serve router --listen tls/0.0.0.0:{port}"
+    assert by_user["api"].startswith("serve api --id api --listen-http 0.0.0.0:8123")
+    assert by_user["counter-n0"].startswith("serve counter --id counter-n0")
+    assert by_user["counter-n1"].startswith("serve counter --id counter-n1")
+    slots = sorted(line[3].split(" --data-dir")[0] for line in lines if line[0] == "")
+    assert slots == [f"serve slot --actors 2 --id s{k}" for k in range(4)]  # signs in per child
+    assert {line[1] for line in lines} == {f"tls/{host}:{port}"}
+    assert {line[2] for line in lines} == {str(secrets)}
+    assert job.users()[:4] == ["router", "api", "counter-n0", "counter-n1"]
+    assert "actor-s3-1" in job.users() and job.services == len(job.users()) - 1
+    assert "#SBATCH --cpus-per-task=3" in render_cluster_script(
+        job, ["macb"], tmp_path, SlurmOptions()
+    )
+
+
+def test_what_is_refused_before_submission(tmp_path):
+    data = tmp_path / "data"
+    assert "give --secrets DIR" in ClusterJob(2, 1, 1, 1, data).error()
+    assert ClusterJob(1, 0, 1, 1, data).error() == "--slots must be at least 1, not 0"
+    secrets = tmp_path / "secrets"
+    assert "cannot read" in ClusterJob(1, 1, 1, 1, data, secrets=secrets).error()
+    secrets.mkdir()
+    job = ClusterJob(2, 1, 1, 1, data, secrets=secrets)
+    (secrets / "users.txt").write_text(
+        "\n".join(f"{u}:pw" for u in job.users() if u != "actor-s1") + "\n"
+    )
+    why = job.error()
+    assert "lacks the job's users actor-s1" in why and "--user actor-s1" in why, why
+    (secrets / "users.txt").write_text("\n".join(f"{u}:pw" for u in job.users()) + "\n")
+    assert job.error() is None
+    assert ClusterJob(1, 2, 1, 1, data).error() is None  # one node: loopback, no secrets
+
+
+def test_macb_up_on_slurm_submits_nothing_without_sbatch(tmp_path):
+    from tests.harness import macb
+
+    got = macb(
+        "up", "--launcher", "slurm", "--data-dir", str(tmp_path / "d"),
+        env={"PATH": "/nonexistent"}, check=False,
+    )  # fmt: skip
+    assert got.returncode == 2 and "sbatch, squeue, sinfo not found on PATH" in got.stderr
+    assert not (tmp_path / "d").exists()
+    got = macb("up", "--nodes", "2", check=False)
+    assert got.returncode == 2 and "are for --launcher slurm" in got.stderr
