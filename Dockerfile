@@ -12,7 +12,9 @@ ARG BASE_IMAGE=python:3.11-slim
 
 FROM ${BASE_IMAGE} AS build
 # Where the pinned torch comes from, as pip options: the CPU wheel index by default
-# (the CUDA build on PyPI is several GB); offline, a wheel put in docker/local/.
+# (the CUDA build on PyPI is several GB); offline, a wheel put in docker/local/. For a
+# GPU, a CUDA index (the pin matches its build, e.g. 2.13.0+cu128):
+#   --build-arg TORCH_SOURCE="--index-url https://download.pytorch.org/whl/cu128"
 ARG TORCH_SOURCE="--index-url https://download.pytorch.org/whl/cpu"
 # A CA bundle in docker/local/ for pip (for a TLS-inspecting proxy in front of the
 # package index); empty: pip's own bundle.

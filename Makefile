@@ -20,7 +20,8 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 # The local cluster with its API; configs/default.yaml goes in through the API and is
-# followed to the end. Results: runs/default/ (metrics.csv, plot.png, checkpoint.pt);
+# followed to the end, in lockstep: the same rows every time, `macb train`'s (tests/test_up.py),
+# and a line saying what was learned. Results: runs/default/ (metrics.csv, plot.png, checkpoint.pt);
 # every point stays in runs/cluster/api.sqlite3; the dashboard is on
 # http://127.0.0.1:8000/ while it runs (`macb up --data-dir runs/cluster` serves it again).
 run: $(STAMP)

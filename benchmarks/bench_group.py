@@ -91,8 +91,10 @@ def group_and_alone(runs: int, precision: str):
     return group, alone, batch((runs,)), batch(())
 
 
-def group_floor(group) -> tuple[Any, Any]:
-    """(the group update's products, one pass over its state) as two callables."""
+def group_floor(group, target_rows: int = 100) -> tuple[Any, Any]:
+    """(the group update's products, one pass over its state) as two callables;
+    `target_rows`: the rows each target actor reads (a run's N minibatches with
+    `minibatch: per-agent`, N x 100)."""
     import torch
 
     from shared.core.learners.layers import linear_forward, linear_grad_input, linear_grad_weight
@@ -100,7 +102,7 @@ def group_floor(group) -> tuple[Any, Any]:
     dt, rows = group.dtype, 100
     entries = group.runs * group.n
 
-    def layers(params):
+    def layers(params, rows=rows):
         out = []
         for w in params[0::2]:
             w = torch.randn_like(w.detach(), dtype=dt)
@@ -112,6 +114,7 @@ def group_floor(group) -> tuple[Any, Any]:
         return out
 
     actor, critic = layers(group.actor.params), layers(group.critic.params)
+    target_actor = actor if target_rows == rows else layers(group.actor.params, target_rows)
     critic2 = layers(group.critic.params)  # the actor step's critic pass, other inputs
 
     def forward(ls):
@@ -128,7 +131,7 @@ def group_floor(group) -> tuple[Any, Any]:
 
     def products() -> None:
         with torch.no_grad():
-            forward(actor)
+            forward(target_actor)
             forward(critic)
             forward(critic)
             backward(critic, True, False)

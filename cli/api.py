@@ -300,6 +300,11 @@ def run_via_api(
         exp = api.experiment(exp["id"])
         print(f"experiment {exp['id']} stopped", file=sys.stderr)
     _print_runs(exp)
+    from cli.view import learned
+
+    points = {r["id"]: api.all_points(r["id"]) for r in exp["runs"]}
+    for line in learned(exp, points):
+        print(line, file=sys.stderr)
     if out is not None:
         write_results(api, exp, out, data_dir=data_dir)
         print(f"results in {out}/ (metrics.csv, plot.png)", file=sys.stderr)

@@ -256,7 +256,9 @@ def serve_api(args: argparse.Namespace) -> int:
         overrides["connect"] = args.connect
     if args.id:
         overrides["service_id"] = args.id
-    return serve(Settings(**overrides))
+    from cli.view import experiment_view
+
+    return serve(Settings(**overrides), figure_view=experiment_view)
 
 
 # ---------------------------------------------------------------- runs on the bus

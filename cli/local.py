@@ -37,10 +37,10 @@ def add_group_flags(parser: argparse.ArgumentParser, cluster: str = "") -> None:
     parser.add_argument(
         "--jobs",
         type=int,
-        default=os.cpu_count() or 1,
         metavar="N",
         help="--local: groups at a time, each in a process of its own (default: one per "
-        "CPU; each group's update runs on the runs' `threads`, 1 by default)",
+        "CPU, each group's update on the runs' `threads`, 1 by default; one per GPU when "
+        "the runs' device is one, `cuda` giving each process a GPU of its own)",
     )
 
 
@@ -54,6 +54,55 @@ def group_flag_error(args: argparse.Namespace, *flags: str) -> str | None:
 
 
 log = logging.getLogger("macb.local")
+
+
+def default_jobs(configs: list[TrainConfig]) -> int:
+    """Groups at a time when --jobs is not given: one per CPU on the CPU; on a GPU one
+    per GPU the runs' device names (every GPU for a bare `cuda`, one for `cuda:N`): a
+    group's update keeps its GPU busy, and several groups on one GPU only take turns."""
+    from shared.core.learners.precision import device_count
+
+    devices = {c.device for c in configs if c.device != "cpu"}
+    if not devices:
+        return os.cpu_count() or 1
+    return sum(max(1, device_count(d)) for d in devices)
+
+
+def device_error(configs: list[TrainConfig]) -> str | None:
+    """Why a device the runs name cannot be used here, or None: said once, before any
+    group starts, instead of by every group as it builds its learner."""
+    devices = sorted({c.device for c in configs} - {"cpu"})
+    if not devices:
+        return None
+    from shared.core.learners.precision import DeviceError, resolve_device
+
+    for device in devices:
+        try:
+            resolve_device(device)
+        except DeviceError as err:
+            return str(err)
+    return None
+
+
+def _spread_devices(configs: list[TrainConfig], jobs: int) -> str | None:
+    """The bare accelerator name (`cuda`, `xpu`) whose devices the `jobs` processes take
+    in turn (one each when there are as many processes as devices), or None: every run
+    on the CPU, on one device, or on a device named by its number."""
+    from shared.core.learners.precision import device_count
+
+    devices = {c.device for c in configs}
+    if len(devices) != 1 or jobs < 2:
+        return None
+    device = devices.pop()
+    return device if ":" not in device and device_count(device) > 1 else None
+
+
+def _take_device(kind: str, indices: Any) -> None:
+    """A pool process's start: it takes the next free device of `kind` as its own, so
+    the runs' `device: cuda` means that GPU in it (their configs stay as given)."""
+    import torch
+
+    getattr(torch, kind).set_device(indices.get())
 
 
 @dataclass
@@ -125,11 +174,11 @@ def run_groups(
     max_runs: int | None = None,
     quiet: bool = False,
     cut_every_s: float = 60.0,
-    jobs: int = 1,
+    jobs: int | None = 1,
 ) -> int:
     """Train `runs` as groups under `out`, `jobs` groups at a time in processes of their
-    own, continuing what an earlier call left; 0 when every run completed, 2 when a
-    group could not resume (the reason printed).
+    own (None: `default_jobs`), continuing what an earlier call left; 0 when every run
+    completed, 2 when a group could not resume (the reason printed).
 
     Complete runs are skipped one by one; the others are grouped by what they share and
     by where they stopped (runs that stopped together, at one cut, resume together;
@@ -148,6 +197,10 @@ def run_groups(
         )
     if conflicts:
         return 2
+    if why := device_error([r.config for r in runs]):
+        print(f"{why}: nothing was run", file=sys.stderr)
+        return 2
+    jobs = jobs or default_jobs([r.config for r in runs])
     groups = plan_groups(runs, out, max_runs, jobs)
     tasks = []
     for n, (state, members) in enumerate(groups, 1):
@@ -172,7 +225,16 @@ def run_groups(
         from concurrent.futures import ProcessPoolExecutor
 
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+        spread = _spread_devices([r.config for r in runs], jobs)
+        init: dict[str, Any] = {}
+        if spread is not None:  # the processes take the GPUs in turn, one each
+            from shared.core.learners.precision import device_count
+
+            indices = ctx.Queue()
+            for i in range(jobs):
+                indices.put(i % device_count(spread))
+            init = {"initializer": _take_device, "initargs": (spread, indices)}
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, **init) as pool:
             failed = [err for err in pool.map(_train_group_job, *zip(*tasks)) if err]
     for err in failed:
         print(err, file=sys.stderr)
@@ -180,11 +242,12 @@ def run_groups(
 
 
 def plan_groups(
-    runs: list[LocalRun], out: Path, max_runs: int | None = None, jobs: int = 1
+    runs: list[LocalRun], out: Path, max_runs: int | None = None, jobs: int | None = 1
 ) -> list[tuple[str, list[int]]]:
     """The groups `run_groups` trains (and `--launcher slurm` submits, one task each):
     (the state they start from, 'new' or 'cut-<episode>'; the indices in `runs` of
-    their members). Complete runs are left out, and said so."""
+    their members). Complete runs are left out, and said so. `jobs` None: `default_jobs`."""
+    jobs = jobs or default_jobs([r.config for r in runs])
     states = [run_state(out / r.name, r.config) for r in runs]
     todo = [i for i, s in enumerate(states) if s != "done"]
     if len(todo) < len(runs):

@@ -11,7 +11,7 @@ import logging
 import sys
 from collections.abc import Callable
 
-from cli import api, cluster, export, reproduce, results, security, train
+from cli import api, cluster, export, reproduce, results, security, train, view
 from shared.net.security import SecurityError
 
 # In the order `macb --help` lists them.
@@ -28,6 +28,7 @@ COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     cluster.add_up_parser,
     reproduce.add_reproduce_parser,
     results.add_results_parser,
+    view.add_view_parser,
     security.add_certs_parser,
 )
 

@@ -47,7 +47,8 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=60.0,
         help="write a cut (everything needed to resume) at the first evaluation point "
-        "after this many seconds since the last one, and at the end",
+        "after this many seconds since the last one (and 50 times the last cut's own "
+        "length), and at the end",
     )
     p.add_argument(
         "--tensorboard",

@@ -25,6 +25,8 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import os
+import resource
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -32,13 +34,13 @@ from typing import Any
 
 import numpy as np
 import torch
-from threadpoolctl import threadpool_limits
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from shared.config import TrainConfig
 from shared.core.exploration import BonusDiagnostics, CountExploration, constant_shift
 from shared.core.learners import Learner, RunsLearner, SoloRuns
 from shared.core.learners.group import GroupMADDPG
-from shared.core.replay import ReplayBuffer, update_arrays
+from shared.core.replay import Batch, ReplayBuffer, update_arrays
 from shared.envs.tasks import TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
 from shared.groups import check_group
@@ -55,7 +57,9 @@ from shared.run.factories import (
     learner_spec,
     minibatches_per_update,
 )
+from shared.run.heap import steady_heap
 from shared.run.rollout import EvalResult, derive_seed, evaluate_group, make_vec_collector
+from shared.settings import settings
 
 log = logging.getLogger("macb.trainer")
 
@@ -65,6 +69,14 @@ log = logging.getLogger("macb.trainer")
 DEFAULT_CUT_EVERY_S = 60.0
 
 METRIC_FIELDS = TRAIN_FIELDS
+
+# A cut waits at least this many times the last cut's seconds after it, beyond the
+# cut interval: late in a long run the count tables make a cut take seconds, and cuts
+# then take at most about 1/CUT_SPACING of the loop's time.
+CUT_SPACING = 50.0
+
+# What GroupRun.timing sums, in seconds (the rest of a group's wall time is its loop's own).
+TIMING_KEYS = ("act_env", "store_count", "sample", "price", "update", "eval", "rows", "cut")
 
 
 class MetricsWriter:
@@ -281,9 +293,11 @@ def train_group(
     `macb train` and the services, which set it before numpy loads: from Python, numpy
     is usually loaded already with a thread per core, and the k=512 projections of a
     100-row batch then kept a second core busy beside torch's own threads
-    (bench_scaling). The caller's setting is restored after."""
+    (bench_scaling). The caller's setting is restored after. The process's C heap keeps
+    the update's temporaries' pages (`steady_heap`), so they do not fault anew each step."""
     if resume and any(o is None for o in outs):
         raise ValueError("resume needs every run's output folder")
+    steady_heap()
     with threadpool_limits(limits=1, user_api="blas"):
         group = GroupRun(cfgs, outs, cut_every_s, own_learner)
         if resume:
@@ -357,11 +371,15 @@ class Member:
         self.env_steps += 1
         self.collisions_cum += collisions
 
-    def minibatches(self, batch_size: int, count: int) -> tuple[np.ndarray, ...]:
-        """This run's `count` minibatches and their bonuses, as one update's arrays."""
-        batches = [self.buffer.sample(batch_size, self.sample_rng) for _ in range(count)]
-        beta = self.cfg.beta_at(self.env_steps)  # the update of the last transition's
-        return update_arrays(batches, price_batches(self.explorer, batches, self.diagnostics, beta))
+    def sample(self, batch_size: int, count: int) -> list[Batch]:
+        """This run's `count` minibatches for one update (its own sampler's draws)."""
+        return [self.buffer.sample(batch_size, self.sample_rng) for _ in range(count)]
+
+    def price(self, batches: list[Batch]) -> list[np.ndarray]:
+        """Their bonuses, from this run's counts now at the beta of its last transition
+        (the update it owes; `beta_schedule`), recorded in its diagnostics."""
+        beta = self.cfg.beta_at(self.env_steps)
+        return price_batches(self.explorer, batches, self.diagnostics, beta)
 
     def append_pending(self) -> int:
         """The transitions collected since the last cut, onto the replay log; bytes."""
@@ -470,11 +488,13 @@ class GroupRun:
         # (episode, seconds, replay bytes appended, cut file bytes) of each cut written,
         # summed over the runs.
         self.cut_log: list[tuple[int, float, int, int]] = []
-        # Seconds spent acting and stepping the worlds, storing and counting, sampling
-        # and pricing, updating, evaluating (what benchmarks/bench_group.py reports).
-        self.timing = dict.fromkeys(
-            ("act_env", "store_count", "sample_price", "update", "eval"), 0.0
-        )
+        # Seconds spent acting and stepping the worlds, storing and counting, sampling,
+        # pricing, updating, evaluating, writing rows and cuts (what
+        # benchmarks/bench_group.py and bench_fig8.py report).
+        self.timing = dict.fromkeys(TIMING_KEYS, 0.0)
+        # With MACB_GROUP_TIMING=DIR, `timing` at every point, written there at the end.
+        self.timing_dir = settings().group_timing
+        self.timing_log: list[dict[str, float]] = []
 
     # ------------------------------------------------------------------ the loop
     def go(
@@ -507,19 +527,24 @@ class GroupRun:
                 if episode % c0.eval_every == 0 or episode == c0.episodes:
                     points = self.point(episode)
                     stopping = self.early_stops(points)
+                    t0 = time.perf_counter()
                     for m, row in zip(self.members, points):
                         if m.writer and row is not None:
                             m.writer.write(row)
+                    self.timing["rows"] += time.perf_counter() - t0
+                    if self.timing_dir:  # before the cut: a window's last cut is its next's
+                        self.timing_log.append(self.timing_snapshot(episode))
                     for r in stopping:  # (its checkpoint before its cut: a resume from
                         self.stop_member(r)  # an earlier cut stops it here again)
                     if self.members[0].cuts is not None and (
                         max(len(m.rows) for m in self.members) == 1  # killed in its first minute
-                        or time.monotonic() - self.last_cut >= self.cut_every_s
+                        or self.cut_due()
                         or episode == c0.episodes
                         or stopping
                     ):
-                        self.cut(episode)
+                        self.cut(episode)  # timed in `cut`
                     rows = [row for row in points if row is not None]
+                    t0 = time.perf_counter()
                     for r, row in enumerate(points):
                         if on_metrics and row is not None:
                             on_metrics(r, row)
@@ -527,6 +552,7 @@ class GroupRun:
                         mean = np.mean([row["success_rate"] for row in rows])
                         sps = sum(row["steps_per_sec"] for row in rows)
                         bar.set_postfix(success=f"{mean:.2f}", sps=f"{sps:.0f}")
+                    self.timing["rows"] += time.perf_counter() - t0
                     if stop_when and rows and stop_when(rows):
                         break
                     if all(m.stopped is not None for m in self.members):
@@ -539,6 +565,8 @@ class GroupRun:
             for m in self.members:
                 if m.writer:
                     m.writer.close()
+            if self.timing_dir:
+                self.write_timing(Path(self.timing_dir))
         for r, m in enumerate(self.members):
             if m.stopped is None:
                 self.final_checkpoint(r)
@@ -603,6 +631,41 @@ class GroupRun:
             m.frozen_arrays = update_arrays(batches, zero)
         return m.frozen_arrays
 
+    def cut_due(self) -> bool:
+        """`cut_every_s` since the last cut, and CUT_SPACING times its length (0: every
+        point). Which points cut changes no row: a resume from any of them is exact."""
+        waited = time.monotonic() - self.last_cut
+        if self.cut_every_s <= 0:
+            return True
+        last = self.cut_log[-1][1] if self.cut_log else 0.0
+        return waited >= max(self.cut_every_s, CUT_SPACING * last)
+
+    def timing_snapshot(self, episode: int) -> dict[str, float]:
+        """`timing` at this point, beside the loop's wall time and the process's CPU
+        seconds and page faults so far (what bench_fig8.py takes differences of)."""
+        use = resource.getrusage(resource.RUSAGE_SELF)
+        return {
+            "episode": episode,
+            "wall": time.perf_counter() - self.start,
+            **self.timing,
+            "user_s": use.ru_utime,
+            "sys_s": use.ru_stime,
+            "minor_faults": use.ru_minflt,
+        }
+
+    def write_timing(self, folder: Path) -> None:
+        """The snapshots as one JSON file per group in `folder`, named by its first run."""
+        folder.mkdir(parents=True, exist_ok=True)
+        first = self.members[0].out
+        name = first.name if first is not None else f"pid{os.getpid()}"
+        data = {
+            "runs": [m.out.name if m.out else None for m in self.members],
+            "torch_threads": torch.get_num_threads(),
+            "blas": [(i["internal_api"], i["num_threads"]) for i in threadpool_info()],
+            "points": self.timing_log,
+        }
+        (folder / f"timing-{name}.json").write_text(json.dumps(data) + "\n")
+
     def start_files(self) -> None:
         """Each run's provenance entry for this start (a resume adds its own: it may run
         elsewhere), its config.json, and its metrics files with the rows kept so far."""
@@ -645,15 +708,23 @@ class GroupRun:
             timing["store_count"] += t2 - t1
             if max(m.env_steps for m in members) > c0.learning_starts:
                 k = self.minibatches_per_update
+                # (a run its early_stop rule ended: a fixed minibatch, nothing drawn or priced)
+                batches = [
+                    m.sample(c0.batch_size, k) if m.stopped is None else None for m in members
+                ]
+                t3 = clock()
+                bonuses = [None if b is None else m.price(b) for m, b in zip(members, batches)]
+                t4 = clock()
                 parts = [
-                    m.minibatches(c0.batch_size, k) if m.stopped is None else self.frozen_arrays(m)
-                    for m in members
+                    self.frozen_arrays(m) if b is None or p is None else update_arrays(b, p)
+                    for m, b, p in zip(members, batches, bonuses)
                 ]
                 arrays = [np.stack(cols) for cols in zip(*parts)]
-                t3 = clock()
+                t5 = clock()
                 self.learner.update(*arrays)
-                timing["sample_price"] += t3 - t2
-                timing["update"] += clock() - t3
+                timing["sample"] += (t3 - t2) + (t5 - t4)
+                timing["price"] += t4 - t3
+                timing["update"] += clock() - t5
 
     def point(self, episode: int) -> list[dict | None]:
         """Each run's row at this point (None for a run stopped by its rule)."""
@@ -707,6 +778,7 @@ class GroupRun:
         self.last_cut = time.monotonic()
         spent = time.perf_counter() - t0
         self.cut_log.append((episode, spent, replay_bytes, file_bytes))
+        self.timing["cut"] += spent
         log.debug("cut at episode %d in %.3f s", episode, spent)
 
     def restore(self) -> None:

@@ -16,22 +16,21 @@ silently change every mean taken from it.
 
 from __future__ import annotations
 
-import csv
-import json
-import math
-import re
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
+from cli.runs_folder import (
+    RunsError,
+    arm_of,
+    read_config,
+    read_rows,
+    runs_in,
+)
+
 CONFIG_PREFIX = "config."
-METRIC_FILES = ("metrics.jsonl", "metrics.csv")
 LEADING = ("run", "arm", "seed")
-
-
-class RunsError(ValueError):
-    """A runs folder that cannot be read as runs: the message names the path and why."""
 
 
 def load_runs(path: str | Path) -> pd.DataFrame:
@@ -41,15 +40,7 @@ def load_runs(path: str | Path) -> pd.DataFrame:
     folders (`macb train --seeds --out`, a reproduce's OUT/runs), or a reproduce's OUT
     (its runs/ is read, and its FIGURE-runs.json, when written, names each run's arm).
     Runs are in folder-name order, each run's rows in the order written."""
-    root = Path(path)
-    if not root.is_dir():
-        raise RunsError(f"{root}: no such folder")
-    folders, arms = _run_folders(root)
-    if not folders:
-        raise RunsError(
-            f"{root}: no runs (no folder holding {' or '.join(METRIC_FILES)}, here or one "
-            "level down, nor under runs/)"
-        )
+    folders, arms = runs_in(Path(path))
     return joined([_run_frame(f, arms.get(f.name)) for f in folders])
 
 
@@ -59,103 +50,6 @@ def joined(frames: list[pd.DataFrame]) -> pd.DataFrame:
     config = sorted(c for c in frame.columns if c.startswith(CONFIG_PREFIX))
     metrics = [c for c in frame.columns if c not in LEADING and c not in config]
     return frame[[*LEADING, *metrics, *config]]
-
-
-def is_run_folder(folder: Path) -> bool:
-    """A run's folder: its metrics.jsonl, or its metrics.csv beside its config.json (a
-    `macb run --out` folder of several runs has the experiment's metrics.csv and no
-    config)."""
-    if (folder / "metrics.jsonl").is_file():
-        return True
-    return (folder / "metrics.csv").is_file() and (folder / "config.json").is_file()
-
-
-def _run_folders(root: Path) -> tuple[list[Path], dict[str, str]]:
-    """The run folders under root, and the arm of each run a reproduce record names."""
-    if is_run_folder(root):
-        return [root], {}
-    base = root / "runs" if (root / "runs").is_dir() else root
-    folders = sorted(p for p in base.iterdir() if p.is_dir() and is_run_folder(p))
-    return folders, _recorded_arms(root)
-
-
-def _recorded_arms(root: Path) -> dict[str, str]:
-    """id -> arm from a reproduce's FIGURE-runs.json (cli/reproduce/page.py), or from the
-    experiment's metrics.csv `macb run --out` writes beside its runs' folders."""
-    arms: dict[str, str] = {}
-    table = root / "metrics.csv"
-    if table.is_file():
-        with table.open(newline="") as f:
-            for r in csv.DictReader(f):
-                if r.get("run") and r.get("arm") is not None:
-                    arms.setdefault(r["run"], r["arm"])
-    for record in sorted(root.glob("*-runs.json")):
-        try:
-            runs = json.loads(record.read_text()).get("runs") or []
-        except (OSError, ValueError, AttributeError) as err:
-            raise RunsError(f"{record}: not a reproduce runs record ({err})") from err
-        arms.update({str(r["id"]): str(r["arm"]) for r in runs if "id" in r and "arm" in r})
-    return arms
-
-
-def read_config(folder: Path) -> dict[str, Any]:
-    path = folder / "config.json"
-    if not path.is_file():
-        raise RunsError(f"{path}: missing (every run folder holds its config)")
-    try:
-        config = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise RunsError(f"{path}: unreadable ({err})") from err
-    if not isinstance(config, dict):
-        raise RunsError(f"{path}: not a JSON object")
-    return config
-
-
-def read_rows(folder: Path) -> list[dict[str, Any]]:
-    """The run's metric rows; a torn last line of metrics.jsonl is skipped."""
-    path = folder / "metrics.jsonl"
-    if not path.is_file():
-        return _csv_rows(folder / "metrics.csv")
-    lines = [x for x in path.read_text().splitlines() if x.strip()]
-    rows = []
-    for i, line in enumerate(lines, 1):
-        try:
-            row = json.loads(line)
-        except ValueError as err:
-            if i == len(lines):  # a row being written
-                break
-            raise RunsError(f"{path}: line {i} is not a JSON row ({err})") from err
-        if not isinstance(row, dict):
-            raise RunsError(f"{path}: line {i} is not a JSON object")
-        rows.append(row)
-    return rows
-
-
-def _csv_rows(path: Path) -> list[dict[str, Any]]:
-    with path.open(newline="") as f:
-        lines = list(csv.reader(f))
-    if not lines:
-        return []
-    head, body = lines[0], lines[1:]
-    if body and len(body[-1]) != len(head):  # a row being written
-        body = body[:-1]
-    for i, cells in enumerate(body, 2):
-        if len(cells) != len(head):
-            raise RunsError(f"{path}: line {i} has {len(cells)} cells, the header {len(head)}")
-    return [{k: _cell(v) for k, v in zip(head, cells, strict=True)} for cells in body]
-
-
-def _cell(text: str) -> Any:
-    if text == "":
-        return math.nan
-    try:
-        return int(text)
-    except ValueError:
-        pass
-    try:
-        return float(text)
-    except ValueError:
-        return text
 
 
 def _run_frame(folder: Path, recorded_arm: str | None) -> pd.DataFrame:
@@ -178,18 +72,6 @@ def run_frame(
     return pd.concat([frame, extra], axis=1)
 
 
-def arm_of(folder: Path, seed: Any) -> str:
-    """A run's arm from its folder's name: `<arm>-s<seed>` (a reproduce's runs), `seed-<seed>`
-    (`macb train --seeds`: the seeds of one config, named by their parent folder), else
-    the folder's name (one `macb train` run)."""
-    name = folder.name
-    if m := re.fullmatch(rf"(.+)-s{seed}", name):
-        return m.group(1)
-    if name == f"seed-{seed}":
-        return folder.resolve().parent.name
-    return name
-
-
 def _flatten(config: dict[str, Any], prefix: str = CONFIG_PREFIX) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in config.items():
@@ -198,3 +80,15 @@ def _flatten(config: dict[str, Any], prefix: str = CONFIG_PREFIX) -> dict[str, A
         else:
             out[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
     return out
+
+
+__all__ = [
+    "CONFIG_PREFIX",
+    "RunsError",
+    "arm_of",
+    "joined",
+    "load_runs",
+    "read_config",
+    "read_rows",
+    "run_frame",
+]

@@ -300,7 +300,8 @@ class TrainConfig(BaseModel):
         description="one minibatch for all agents per update, or one per agent (the "
         "thesis code; Algorithm 1's 'each agent samples')",
     )
-    hash_round: int | None = Field(
+    # Strict: `false` is no number of decimals (lax int would read it as 0).
+    hash_round: Annotated[int, Field(strict=True)] | None = Field(
         None,
         ge=0,
         le=8,
@@ -324,11 +325,11 @@ class TrainConfig(BaseModel):
     threads: int = Field(1, ge=1, le=64, description="torch intra-op threads")
     learner_lanes: Literal["auto"] | Annotated[int, Field(ge=1, le=16)] = Field(
         "auto",
-        description="batched learner: split each minibatch into this many row blocks "
-        "computed in parallel threads (1 torch thread each); auto: whichever of one "
-        "thread, two lanes or two torch threads measures fastest on this machine now "
-        "(reruns then equal up to float rounding; a fixed number gives bit-identical "
-        "reruns)",
+        description="batched learner on the CPU (on a GPU it runs one lane): split each "
+        "minibatch into this many row blocks computed in parallel threads (1 torch thread "
+        "each); auto: whichever of one thread, two lanes or two torch threads measures "
+        "fastest on this machine now (reruns then equal up to float rounding; a fixed "
+        "number gives bit-identical reruns)",
     )
     learner_impl: Literal["batched", "reference"] = Field(
         "batched",
@@ -337,10 +338,11 @@ class TrainConfig(BaseModel):
     )
     flush_denormals: bool = Field(
         True,
-        description="the learner's updates read and make subnormal floats (below 1.2e-38) as "
-        "0 (x86 DAZ/FTZ): Adam's first moments of weights with zero gradient otherwise "
-        "stay subnormal and slow every update 1.4-1.7x on Intel CPUs (docs/performance.md, "
-        "'Subnormal Adam moments'); false keeps IEEE subnormals, as the thesis code",
+        description="the learner's updates on the CPU read and make subnormal floats (below "
+        "1.2e-38) as 0 (x86 DAZ/FTZ): Adam's first moments of weights with zero gradient "
+        "otherwise stay subnormal and slow every update 1.4-1.7x on Intel CPUs "
+        "(docs/performance.md, 'Subnormal Adam moments'); false keeps IEEE subnormals, as "
+        "the thesis code",
     )
     precision: Literal["fp32", "bf16"] = Field(
         "fp32",

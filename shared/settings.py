@@ -68,6 +68,16 @@ class Settings(BaseSettings):
     kernel_cache: Path | None = Field(
         None, description="where the fused kernel is built (default ~/.cache/macb/kernels)"
     )
+    # ---------------------------------------------------------------- run groups
+    # shared/run/heap.py reads this one itself (shared.run does not import settings).
+    steady_heap: str = Field(
+        "", description="0, off, false or no: a training process leaves glibc's malloc thresholds"
+    )
+    group_timing: str | None = Field(
+        None,
+        description="a folder: each run group writes its time split at every point there "
+        "(benchmarks/bench_fig8.py)",
+    )
     # ---------------------------------------------------------------- the API's clients
     api_url: str | None = Field(None, description="the API `macb run/ls/stop/reproduce` call")
     api_token: str | None = Field(

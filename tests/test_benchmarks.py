@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from shared.core.learners.precision import native_bf16
 
@@ -213,3 +214,36 @@ def test_bench_sketch_measures_both_stores_and_the_sketch_stays_its_size(tmp_pat
     assert memory["sketch", 20000]["memory_bytes"] == memory["sketch", 2000]["memory_bytes"]
     assert all(e["under_true"] == 0 for e in result["real_stream"])
     assert "| 20,000 | random | sketch |" in proc.stdout
+
+
+def test_gpu_probe_runs_on_the_cpu_and_skips_without_a_gpu(tmp_path: Path) -> None:
+    """benchmarks/gpu_probe.py, ready for a GPU window: a quick run on the CPU writes its
+    row; asked for CUDA where there is none it says it skipped and writes that. Its
+    hard-coded agents are figure 8's speaker_listener in profile thesis."""
+    import importlib.util
+
+    from shared.config import make_config
+    from shared.envs.tasks import task_spec_for
+
+    out = tmp_path / "probe.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "gpu_probe.py"), "--out", str(out)]
+    proc = subprocess.run([*argv, "--device", "cpu", "--quick"], capture_output=True,
+                          text=True, timeout=300, check=False)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["runs"] == 2 and row["update_ms"] > 0 and row["act_ms"] > 0
+    assert row["ops_per_update"] > 0 and row["syncs_per_update"] is None
+    if not torch.cuda.is_available():
+        proc = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
+        assert proc.returncode == 0 and "gpu_probe: skipped: no CUDA device" in proc.stdout
+        assert "skipped" in json.loads(out.read_text())
+    spec = importlib.util.spec_from_file_location("gpu_probe", ROOT / "benchmarks/gpu_probe.py")
+    assert spec is not None and spec.loader is not None
+    probe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(probe)
+    cfg = make_config({"task": "speaker_listener", "algo": "cen-maddpg", "profile": "thesis"})
+    task = task_spec_for(cfg)
+    assert [(a.obs_dim, a.act_low, a.act_high) for a in task.agents] == [
+        (a.obs_dim, a.act_low, a.act_high) for a in probe.AGENTS
+    ]
+    assert (cfg.batch_size, cfg.hidden, cfg.minibatch) == (probe.BATCH, (400, 300), "per-agent")

@@ -54,7 +54,7 @@ def _parse(subparsers, command: str, *flags: str) -> argparse.Namespace:
 def test_commands_and_their_order(subparsers):
     assert list(subparsers) == [
         *("train", "serve", "start", "stop", "run", "ls", "plot", "export", "ps", "up"),
-        *("reproduce", "results", "certs"),
+        *("reproduce", "results", "view", "certs"),
     ]
 
 

@@ -319,7 +319,17 @@ def test_the_form_creates_an_experiment_that_runs_and_the_buttons_stop_it(tmp_pa
         page.wait("document.getElementById('create-form').dataset.ready === '1'")
         page.choose("#f-preset", "default")  # configs/default.yaml
         keys = page.js("[...document.querySelectorAll('#f-rows input')].map(i => i.dataset.key)")
-        assert keys == ["task", "algo", "explore", "beta", "k", "episodes", "eval_every"]
+        assert keys == [
+            "task",
+            "algo",
+            "explore",
+            "beta",
+            "k",
+            "episodes",
+            "eval_every",
+            "interleave",
+            "learner_lanes",
+        ]
         assert page.js("document.getElementById('f-seeds').value") == "0"
         page.type('#f-rows input[data-key="beta"]', "1000")
         page.type("#f-grid", "gama=0.9,0.99")

@@ -152,3 +152,38 @@ def test_a_row_being_written_is_not_read_yet(tmp_path):
     assert [r["episode"] for r in _rows(tmp_path)] == [10, 20]
     (tmp_path / "metrics.jsonl").write_text('{"episode": 10}\n{"episode": 20}\n')
     assert [r["episode"] for r in _rows(tmp_path)] == [10, 20]
+
+
+def test_jobs_default_to_one_group_per_cpu_or_per_gpu(monkeypatch):
+    """Without --jobs: one group per CPU for runs on the CPU; on a GPU one per GPU the
+    runs' device names (every one of a bare `cuda`, one of `cuda:N`)."""
+    import cli.local as local
+    import shared.core.learners.precision as precision
+    from shared.config import make_config
+
+    def four_gpus(device: str) -> int:
+        return 0 if device == "cpu" else 1 if ":" in device else 4
+
+    monkeypatch.setattr(precision, "device_count", four_gpus)
+    monkeypatch.setattr(os, "cpu_count", lambda: 16)
+    base = {"task": "simple", "algo": "ddpg"}
+    cpu = make_config(base)
+    cuda, cuda1 = (make_config({**base, "device": d}) for d in ("cuda", "cuda:1"))
+    assert local.default_jobs([cpu, cpu]) == 16
+    assert local.default_jobs([cuda, cuda]) == 4
+    assert local.default_jobs([cuda1]) == 1
+    # The processes of a bare `cuda` take the GPUs in turn; a numbered one is the run's own.
+    assert local._spread_devices([cuda, cuda], 4) == "cuda"
+    assert local._spread_devices([cuda1, cuda1], 4) is None
+    assert local._spread_devices([cpu], 4) is None and local._spread_devices([cuda], 1) is None
+    import queue
+
+    import torch
+
+    taken: list[int] = []
+    monkeypatch.setattr(torch.cuda, "set_device", taken.append)
+    indices: queue.SimpleQueue[int] = queue.SimpleQueue()
+    for i in (2, 3):
+        indices.put(i)
+    local._take_device("cuda", indices)
+    assert taken == [2]  # a process's start takes the next free GPU

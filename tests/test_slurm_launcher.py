@@ -152,6 +152,7 @@ def test_nothing_is_submitted_on_bad_input(tmp_path, monkeypatch):
     [
         [],
         ["--seeds", "4", "5", "--episodes", "9", "--precision", "bf16", "--threads", "2"],
+        ["--device", "cuda", "--episodes", "9"],
         ["--arms", "beta=0.8", "CONSTANT beta=0.8*", "--profile", "thesis"],
     ],
 )
@@ -169,6 +170,8 @@ def test_each_task_s_command_names_the_runs_and_configs_of_the_user_s(
         body = select_arms(fig, body, args.arms) if args.arms else body
         if args.threads is not None:
             body["threads"] = args.threads
+        if args.device is not None:
+            body["device"] = args.device
         return {r.name: r.config for r in expand_body(body)[2]}
 
     user = reproduce_parser.parse_args(["fig3", "--local", "--launcher", "slurm", *flags])

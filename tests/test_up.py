@@ -6,10 +6,13 @@ import csv
 import json
 import signal
 import time
+from pathlib import Path
+
+import pytest
 
 from shared.core.learners.precision import native_bf16
 from shared.persist import provenance
-from tests.harness import TINY, Cluster, wait_port, wait_services, write_config
+from tests.harness import ROOT, TINY, Cluster, macb, wait_port, wait_services, write_config
 
 
 def test_up_runs_an_experiment_and_leaves_nothing_running(tmp_path):
@@ -89,3 +92,63 @@ def _client(endpoint):
     from shared.net.bus import Bus
 
     return Bus([endpoint])
+
+
+# ---------------------------------------------------------------- `make run`
+TIMING = {"steps_per_sec", "train_steps_per_sec", "wall_s"}
+
+
+def make_run_args() -> list[str]:
+    """`make run`'s `macb up` arguments, read from the Makefile (so this tests what a
+    newcomer runs), without the folders the test gives its own."""
+    recipe = (ROOT / "Makefile").read_text().split("\nrun: ", 1)[1].splitlines()[1]
+    args = recipe.split("macb up ", 1)[1].split()
+    for flag in ("--out", "--data-dir"):
+        i = args.index(flag)
+        del args[i : i + 2]
+    return args
+
+
+def rows_of(path: Path) -> list[dict]:
+    rows = [json.loads(line) for line in path.read_text().splitlines()]
+    return [{k: v for k, v in r.items() if k not in TIMING} for r in rows]
+
+
+def test_make_run_gives_the_same_rows_every_time_and_macb_trains(tmp_path):
+    """`make run`'s experiment (configs/default.yaml through the API of `macb up`), cut
+    to 30 episodes: two runs give the same rows, `macb train`'s with the same config, and
+    its output says what was learned."""
+    args = make_run_args()
+    assert args == ["--run", "configs/default.yaml", "--quiet-services"], args
+    outs = []
+    for n in range(2):
+        tmp = tmp_path / f"make-run-{n}"
+        tmp.mkdir()
+        with Cluster(tmp) as cluster:
+            cluster.up(*args, "--episodes", "30", "--out", str(tmp / "default"))
+            code, out = cluster.wait(timeout=300)
+            assert code == 0, out
+            assert cluster.leftovers() == []
+        line = [x for x in out.splitlines() if x.startswith("what was learned")]
+        assert len(line) == 1 and "at episode 30" in line[0], out
+        outs.append(rows_of(tmp / "default" / "metrics.jsonl"))
+    assert [r["episode"] for r in outs[0]] == [10, 20, 30]
+    assert outs[0] == outs[1], "two runs of make run's experiment differ"
+    macb("train", "--config", str(ROOT / "configs/default.yaml"), "--episodes", "30",
+         "--out", str(tmp_path / "train"), "--quiet", check=True)  # fmt: skip
+    trained = rows_of(tmp_path / "train" / "metrics.jsonl")
+    assert [{k: c[k] for k in t if k in c} for c, t in zip(outs[0], trained)] == trained, (
+        "make run's rows are not macb train's"
+    )
+
+
+@pytest.mark.slow
+def test_make_runs_experiment_learns(tmp_path):
+    """configs/default.yaml whole, as `macb train` runs it (the rows `make run` gives, by
+    the test above): no success in its first 100 episodes, every one at its end."""
+    macb("train", "--config", str(ROOT / "configs/default.yaml"), "--out", str(tmp_path),
+         "--quiet", check=True, timeout=900)  # fmt: skip
+    rows = rows_of(tmp_path / "metrics.jsonl")
+    assert [r["episode"] for r in rows] == list(range(10, 401, 10))
+    assert max(r["success_rate"] for r in rows[:10]) <= 0.2
+    assert [r["success_rate"] for r in rows[-5:]] == [1.0] * 5

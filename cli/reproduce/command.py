@@ -20,7 +20,7 @@ from typing import Any
 from cli.config_flags import HelpFormatter
 from cli.local import add_group_flags, group_flag_error
 from cli.reproduce.defs import FigureDef
-from cli.reproduce.experiments import experiment_body, experiment_name, file_seeds, select_arms
+from cli.reproduce.experiments import figure_body
 from cli.reproduce.figures import FIGURES, PROFILES
 from cli.reproduce.page import write_page
 from cli.reproduce.session import Session, answers_at, with_local_cluster
@@ -68,7 +68,17 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "(docs/performance.md, 'bf16: learning parity')",
     )
     rp.add_argument(
-        "--out", metavar="DIR", help="default: runs/reproduce/FIGURE-PROFILE (-bf16 in bf16)"
+        "--device",
+        metavar="DEVICE",
+        help="every run's learner device: cpu (the default), cuda, cuda:N, xpu, mps. With "
+        "--local, --jobs defaults to one group per GPU, and a bare `cuda` gives each "
+        "group's process a GPU of its own. Acting, replay and counting stay on the CPU; "
+        "a run's rows on a GPU are not the CPU's bit for bit (docs/performance.md, 'On a GPU')",
+    )
+    rp.add_argument(
+        "--out",
+        metavar="DIR",
+        help="default: runs/reproduce/FIGURE-PROFILE (-bf16 in bf16, -DEVICE off the CPU)",
     )
     rp.add_argument(
         "--api",
@@ -220,27 +230,13 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     return with_local_cluster(args, url, fig, body, out)
 
 
-def figure_body(fig: FigureDef, args: argparse.Namespace) -> dict[str, Any]:
-    """The experiment body of FIGURE under the flags (profile, seeds, episodes, arms,
-    precision, threads), validated as the API would: ValueError / ValidationError."""
-    from services.api.schemas import ExperimentCreate
-
-    seeds = args.seeds or file_seeds(fig)
-    body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
-    if args.arms:
-        body = select_arms(fig, body, args.arms)
-    if args.threads is not None:
-        body["threads"] = args.threads
-    if not (args.local or args.report_only or args.status):  # groups: the thesis's loop
-        body["interleave"] = args.interleave
-    body["name"] = experiment_name(fig, body)
-    ExperimentCreate.model_validate(body)  # refused here, before any process starts
-    return body
-
-
 def out_name(fig: FigureDef, args: argparse.Namespace) -> str:
-    """FIGURE-PROFILE (-bf16 in bf16): a figure's folder under runs/reproduce."""
+    """FIGURE-PROFILE (-bf16 in bf16, -DEVICE off the CPU): a figure's folder under
+    runs/reproduce. A run's rows depend on its precision and device, and its folder
+    refuses another config's: each combination has its own."""
     suffix = f"-{args.precision}" if args.precision not in (None, "fp32") else ""
+    if args.device not in (None, "cpu"):
+        suffix += "-" + args.device.replace(":", "")
     return f"{fig.name}-{args.profile}{suffix}"
 
 

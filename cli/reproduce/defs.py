@@ -8,7 +8,7 @@ are in cli/reproduce/figures.py, the checks their claims use in cli/reproduce/cl
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 PROFILES = ("mpe2", "thesis")
@@ -21,6 +21,9 @@ class ArmDef:
     thesis: str = ""  # what the thesis reports for it ("" : not in the thesis)
     row: str = ""  # table figures: the cell it fills
     col: str = ""
+    # An arm read from its runs rather than a file (the figure view of any runs folder
+    # or experiment, cli/view.py): its config keys; None for an arm of configs/.
+    config: dict[str, Any] | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)

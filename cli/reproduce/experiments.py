@@ -5,6 +5,7 @@ profile, the body POST /experiments takes (or `--local` expands), its name, the 
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 from pathlib import Path
@@ -21,7 +22,10 @@ EXPERIMENT_KEYS = ("seeds",)
 
 
 def arm_file(arm: ArmDef) -> dict[str, Any]:
-    """The arm's config file as written, without the experiment's keys (seeds)."""
+    """The arm's config file as written, without the experiment's keys (seeds); an arm
+    read from its runs gives its runs' config."""
+    if arm.config is not None:
+        return {k: v for k, v in arm.config.items() if k not in EXPERIMENT_KEYS}
     data = read_config_file(CONFIGS / arm.file)
     return {k: v for k, v in data.items() if k not in EXPERIMENT_KEYS}
 
@@ -111,11 +115,33 @@ def experiment_name(fig: FigureDef, body: dict[str, Any]) -> str:
     digest = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()[:8]
     length = body.get("episodes") or "full"
     seeds = ",".join(map(str, body["seeds"]))
-    precision = f" precision={body['precision']}" if body.get("precision", "fp32") != "fp32" else ""
+    ran = f" precision={body['precision']}" if body.get("precision", "fp32") != "fp32" else ""
+    if body.get("device", "cpu") != "cpu":
+        ran += f" device={body['device']}"
     return (
         f"reproduce {fig.name} profile={body['profile']} episodes={length} seeds={seeds}"
-        f"{precision} [{digest}]"
+        f"{ran} [{digest}]"
     )
+
+
+def figure_body(fig: FigureDef, args: argparse.Namespace) -> dict[str, Any]:
+    """The experiment body of FIGURE under the flags (profile, seeds, episodes, arms,
+    precision, threads), validated as the API would: ValueError / ValidationError."""
+    from services.api.schemas import ExperimentCreate
+
+    seeds = args.seeds or file_seeds(fig)
+    body = experiment_body(fig, args.profile, seeds, args.episodes, args.precision)
+    if args.arms:
+        body = select_arms(fig, body, args.arms)
+    if args.threads is not None:
+        body["threads"] = args.threads
+    if getattr(args, "device", None) not in (None, "cpu"):
+        body["device"] = args.device
+    if not (args.local or args.report_only or args.status):  # groups: the thesis's loop
+        body["interleave"] = args.interleave
+    body["name"] = experiment_name(fig, body)
+    ExperimentCreate.model_validate(body)  # refused here, before any process starts
+    return body
 
 
 # ---------------------------------------------------------------- controls

@@ -422,12 +422,12 @@ def group_command(
 ) -> list[str]:
     """The `macb reproduce` that trains one group, `names`, of the figure the user's
     command describes (the same runs and configs: seeds, episodes, arms, precision,
-    threads), resuming them when run again."""
+    device, threads), resuming them when run again."""
     argv = [*macb_argv(), "reproduce", fig, "--local", "--profile", profile]
     if args.seeds:
         argv += ["--seeds", *map(str, args.seeds)]
-    for flag in ("episodes", "precision", "threads"):
-        if getattr(args, flag) is not None:
+    for flag in ("episodes", "precision", "device", "threads"):
+        if getattr(args, flag, None) is not None:
             argv += [f"--{flag}", str(getattr(args, flag))]
     if args.arms:
         argv += ["--arms", *args.arms]

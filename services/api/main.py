@@ -18,7 +18,7 @@ import ipaddress
 import json
 import logging
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs
@@ -36,13 +36,12 @@ from starlette.routing import Match
 from shared.net.bus import default_connect
 from shared.persist.files import DATA_DIR_RULE, default_data_dir
 
+from .pages import page
 from .routes import experiments, presets, runs, workers
 from .scheduler import Scheduler
 from .store import Store
 
 log = logging.getLogger("macb.api")
-
-DASHBOARD = Path(__file__).with_name("dashboard.html")
 
 
 class Settings(BaseSettings):
@@ -186,6 +185,7 @@ class TokenAuth:
     """With a token: `Authorization: Bearer <token>` on every call but /health."""
 
     OPEN = ("/health",)
+    PAGES = ("/", "/view")  # may take the token as ?token= (a link, a browser's address)
 
     def __init__(self, app, token: str) -> None:
         self.app = app
@@ -198,7 +198,7 @@ class TokenAuth:
         header = dict(scope["headers"]).get(b"authorization", b"")
         if hmac.compare_digest(header, self.expected):
             return True
-        if scope["path"] == "/" and scope["method"] in ("GET", "HEAD"):
+        if scope["path"] in self.PAGES and scope["method"] in ("GET", "HEAD"):
             query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
             given = (query.get("token") or [""])[0].encode()
             return hmac.compare_digest(given, self.token)
@@ -255,7 +255,13 @@ async def _http_error(request: Request, exc: Exception) -> Response:
     return await http_exception_handler(request, exc)
 
 
-def make_app(settings: Settings | None = None) -> FastAPI:
+# The figure view's data for an experiment, computed by the report's functions: given by
+# the command that starts the API (cli/view.py's experiment_view), since services/ does
+# not import cli/. It takes the experiment (as GET /experiments/{id}) and each run's points.
+FigureView = Callable[[dict[str, Any], dict[str, list[dict[str, Any]]]], dict[str, Any]]
+
+
+def make_app(settings: Settings | None = None, figure_view: FigureView | None = None) -> FastAPI:
     settings = settings or Settings()
     store = Store(settings.db_path)
     scheduler = None
@@ -292,6 +298,7 @@ def make_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.store = store
     app.state.scheduler = scheduler
+    app.state.figure_view = figure_view
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.include_router(experiments.router)
@@ -301,7 +308,12 @@ def make_app(settings: Settings | None = None) -> FastAPI:
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def dashboard() -> HTMLResponse:
-        return HTMLResponse(DASHBOARD.read_text(), headers={"Cache-Control": "no-cache"})
+        return HTMLResponse(page("dashboard.html"), headers={"Cache-Control": "no-cache"})
+
+    @app.get("/view", response_class=HTMLResponse, include_in_schema=False)
+    def figure_page() -> HTMLResponse:
+        """The figure view of ?experiment=ID (its data: GET /experiments/{id}/figure)."""
+        return HTMLResponse(page("figure.html"), headers={"Cache-Control": "no-cache"})
 
     app.add_middleware(BodyLimit, max_body=settings.max_body)
     if settings.token is not None:
@@ -324,7 +336,7 @@ def _uvicorn_config(app: FastAPI, settings: Settings):
     )
 
 
-def serve(settings: Settings) -> int:
+def serve(settings: Settings, figure_view: FigureView | None = None) -> int:
     """Run the API in the foreground until SIGTERM / Ctrl-C; exit code."""
     import uvicorn
 
@@ -334,7 +346,7 @@ def serve(settings: Settings) -> int:
         log.error("%s", err)
         print(f"macb serve api: {err}", flush=True)
         return 2
-    app = make_app(settings)
+    app = make_app(settings, figure_view)
     print(f"API on {settings.url}/ (docs at /docs), store {settings.db_path}", flush=True)
     server = uvicorn.Server(_uvicorn_config(app, settings))
     server.run()
@@ -344,8 +356,9 @@ def serve(settings: Settings) -> int:
 class ApiServer:
     """The API in a thread of this process on a loopback port (tests, benchmarks)."""
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, figure_view: FigureView | None = None) -> None:
         self.settings = settings
+        self.figure_view = figure_view
         self.app: FastAPI | None = None
         self.server: Any = None
         self.thread: threading.Thread | None = None
@@ -367,7 +380,7 @@ class ApiServer:
                 s.bind((self.settings.host, 0))
                 port = s.getsockname()[1]
             self.settings = self.settings.model_copy(update={"port": port})
-        self.app = make_app(self.settings)
+        self.app = make_app(self.settings, self.figure_view)
         self.server = uvicorn.Server(_uvicorn_config(self.app, self.settings))
         self.thread = threading.Thread(target=self.server.run, name="macb-api-http", daemon=True)
         self.thread.start()

@@ -123,7 +123,7 @@ def tables_state(tables: Sequence[Counts]) -> dict[str, dict[str, Any]]:
             continue
         keys, counts = table.to_arrays()
         out[f"table{t}"] = {
-            "keys": torch.from_numpy(keys.copy()),
+            "keys": torch.from_numpy(keys),  # to_arrays' own new arrays: no copy
             "counts": torch.from_numpy(counts),
             "total": table.total,
             "key_bytes": table.key_bytes,

@@ -49,7 +49,8 @@ def build_learner(
 ) -> Learner:
     """`cfg.learner_impl`'s learner; with `learner_lanes: auto` the batched one tuned; the
     batched one's products in `cfg.precision` (the config refuses bf16 for the reference,
-    which stays the fp32 definition).
+    which stays the fp32 definition). On a device other than the CPU the batched one
+    runs on one lane, untuned: lanes and torch's thread count are CPU threads.
 
     `contended()`, polled before each tuned update, says whether other work known to
     the caller runs beside it (ignored by the untuned learners)."""
@@ -57,6 +58,8 @@ def build_learner(
     lspec = learner_spec(cfg)
     if cfg.learner_impl != "batched":
         return MADDPG(agents, lspec)
+    if cfg.device != "cpu":  # lanes and the tuner's torch threads are the CPU's
+        return BatchedMADDPG(agents, lspec, precision=cfg.precision, device=cfg.device)
     if cfg.learner_lanes == "auto":
         lanes = max(n for n, _ in AUTO_MODES)  # the most lanes a mode runs on
         learner = BatchedMADDPG(

@@ -10,8 +10,8 @@ import time
 import uuid
 from typing import Annotated
 
-from fastapi import APIRouter, Query
-from fastapi.responses import Response
+from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi.responses import JSONResponse, Response
 
 from ..deps import (
     AllowedTasks,
@@ -163,6 +163,22 @@ def get_curves(
     if out is None:
         raise not_found("experiment", exp_id)
     return out
+
+
+@router.get("/{exp_id}/figure", responses=NOT_FOUND)
+def get_figure(exp: ExperimentRowDep, store: StoreDep, request: Request) -> Response:
+    """The figure view's data: the experiment as the report draws it (each arm's smoothed
+    mean, band and seeds, controls, claims and their verdicts so far, progress), computed
+    by the report's functions (cli/view.py). ETag: 304 while no point was added."""
+    view = request.app.state.figure_view
+    if view is None:
+        raise HTTPException(501, "no figure view in this API (start it with `macb serve api`)")
+    public = load_experiments(store, [exp])[0]
+    etag = '"' + "-".join(f"{r['points']}.{r['status']}" for r in public["runs"]) + '"'
+    if request.headers.get("if-none-match") == etag:
+        return Response(status_code=304, headers={"ETag": etag})
+    points = {r["id"]: store.points(r["id"]) for r in public["runs"]}
+    return JSONResponse(view(public, points), headers={"ETag": etag, "Cache-Control": "no-cache"})
 
 
 @router.get(

@@ -10,7 +10,7 @@ per-agent steps) is for tests and benchmarks, which know which one they built.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
@@ -93,6 +93,36 @@ def denormals_flushed(on: bool) -> Iterator[None]:
 _flushing = threading.local()  # whether this thread is inside denormals_flushed
 
 
+class Losses(Mapping[str, float]):
+    """An update's mean `critic_loss` and `actor_loss`, read from the learner's device
+    only when a caller reads one (as floats, both at once, then kept).
+
+    Why: reading them at the end of every update is a host read that waits for the
+    device to finish the update, and no caller uses them at every update; kept as a
+    tensor, the next update is queued behind this one without a wait. On the CPU the
+    values read are those an eager read gives."""
+
+    KEYS = ("critic_loss", "actor_loss")
+
+    def __init__(self, values: torch.Tensor) -> None:
+        self.tensor = values  # (2,): the losses in KEYS' order, where the update ran
+        self._read: dict[str, float] | None = None
+
+    def __getitem__(self, key: str) -> float:
+        if self._read is None:
+            self._read = dict(zip(self.KEYS, self.tensor.tolist()))
+        return self._read[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.KEYS)
+
+    def __len__(self) -> int:
+        return len(self.KEYS)
+
+    def __repr__(self) -> str:
+        return f"Losses({dict(self) if self._read is not None else 'unread'})"
+
+
 def check_agents(agents: Sequence[AgentDims], spec: LearnerSpec) -> None:
     """Refuse an unknown algorithm, and DDPG with other than one agent (every learner
     refuses the same, so a config fails the same way whichever one it picks)."""
@@ -130,10 +160,11 @@ class Learner(Protocol):
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
-    ) -> dict[str, float]:
+    ) -> Mapping[str, float]:
         """One critic and one actor step for every agent, then soft target updates.
         rew is (B, N): the extrinsic reward plus agent i's bonus in column i. Returns
-        the mean `critic_loss` and `actor_loss` over agents."""
+        the mean `critic_loss` and `actor_loss` over agents (the batched learner's read
+        from its device only when read: `Losses`)."""
         ...
 
     def act(self, obs: np.ndarray) -> np.ndarray:

@@ -36,7 +36,7 @@ write to the weights (`load_state_dict`, `load_actor_weights`) marks them stale.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -44,7 +44,13 @@ import torch
 
 import shared.core.learners.fused as fused_kernel
 from shared.core.joint import offsets
-from shared.core.learners.base import AgentDims, LearnerSpec, check_agents, denormals_flushed
+from shared.core.learners.base import (
+    AgentDims,
+    LearnerSpec,
+    Losses,
+    check_agents,
+    denormals_flushed,
+)
 from shared.core.learners.checkpoint import actor_state, export_state, import_state
 from shared.core.learners.lanes import Lanes
 from shared.core.learners.layers import Stack, mlp_backward, mlp_forward
@@ -52,6 +58,37 @@ from shared.core.learners.precision import DTYPES, resolve, resolve_device
 
 if TYPE_CHECKING:  # annotations only
     from shared.core.learners.reference import MADDPG
+
+#: Elements each input starts at a multiple of in `stage`'s one buffer (256 bytes of
+#: fp32, the alignment of a tensor of its own on an accelerator).
+STAGE_ALIGN = 64
+
+
+def stage(arrays: Sequence[Any], device: torch.device) -> list[torch.Tensor]:
+    """Host arrays as fp32 tensors on an accelerator, in one non-blocking copy: written
+    into one host buffer (pinned on CUDA, so the copy runs asynchronously and the
+    caching host allocator keeps the buffer until it is done), sent at once, split into
+    views. One transfer per step, and nothing waits for it but the device's own queue.
+    Tensors on the device already (a graph-captured update's inputs) are taken as they are."""
+    if all(isinstance(a, torch.Tensor) and a.device.type == device.type for a in arrays):
+        return [a.float() for a in arrays]
+    host = [np.asarray(a, dtype=np.float32) for a in arrays]
+    starts, end = [], 0
+    for a in host:
+        starts.append(end)
+        end += -(-a.size // STAGE_ALIGN) * STAGE_ALIGN
+    buf = torch.empty(max(end, 1), dtype=torch.float32, pin_memory=device.type == "cuda")
+    flat = buf.numpy()
+    for a, at in zip(host, starts):
+        flat[at : at + a.size] = a.reshape(-1)
+    sent = buf.to(device, non_blocking=True)
+    return [sent[at : at + a.size].view(a.shape) for a, at in zip(host, starts)]
+
+
+def host_array(t: torch.Tensor) -> np.ndarray:
+    """A result the caller reads on the host (`act`'s actions): on the CPU the tensor's
+    own memory; from an accelerator one copy, the one wait for the device `act` has."""
+    return t.numpy() if t.is_cpu else t.cpu().numpy()
 
 
 class StackedMADDPG:
@@ -139,7 +176,8 @@ class StackedMADDPG:
         self.center = (high + low) / 2
 
         self._init_like_reference([len(c) for c in critic_in])
-        self._place(self.device)
+        self._stack_runs()
+        self._place(self.device)  # built on the CPU, moved once
         self._make_optimizers()
         self.updates = 0
         if not isinstance(lanes, int):
@@ -147,7 +185,8 @@ class StackedMADDPG:
                 f"lanes must be a positive int (for 'auto' wrap the learner in TunedMADDPG), "
                 f"got {lanes!r}"
             )
-        self.lanes = Lanes(lanes)
+        # Lanes are CPU threads: on an accelerator the device runs the rows in parallel.
+        self.lanes = Lanes(lanes if self.device.type == "cpu" else 1)
         # The fused kernel (bf16 only) and the weight lists whose copies it has kept
         # current since they were last cast; any other write to the weights empties it.
         if fused and (self.dtype != torch.bfloat16 or self.device.type != "cpu"):
@@ -158,6 +197,10 @@ class StackedMADDPG:
         on_cpu_bf16 = self.dtype == torch.bfloat16 and self.device.type == "cpu"
         self._kernel = self._fused_kernel(fused) if on_cpu_bf16 else None
         self._current: set[int] = set()
+
+    def _stack_runs(self) -> None:
+        """Called once the stacks hold their initial weights, on the CPU, before they
+        move to the device: a group lays its runs' stacks out here (group.py)."""
 
     def _place(self, device: torch.device) -> None:
         """Every tensor the update reads, on `device` (built on the CPU; a no-op there)."""
@@ -170,6 +213,12 @@ class StackedMADDPG:
         ):  # fmt: skip
             if hasattr(self, name):
                 setattr(self, name, getattr(self, name).to(device))
+
+    @property
+    def _flush(self) -> bool:
+        """Whether an update flushes subnormals: a CPU setting (x86 DAZ/FTZ), so only
+        there."""
+        return self.spec.flush_denormals and self.device.type == "cpu"
 
     def _parts(self, tensors: Sequence[torch.Tensor]) -> list[torch.Tensor]:
         """The tensors as the elementwise passes take them: whole here. (A group gives
@@ -283,6 +332,10 @@ class StackedMADDPG:
 
     # ----------------------------------------------------------------- learning
     def tensors(self, *arrays: np.ndarray) -> list[torch.Tensor]:
+        """The arrays as fp32 tensors on the device: on the CPU the arrays themselves
+        where they are fp32 already; elsewhere `stage`d, in one non-blocking copy."""
+        if self.device.type != "cpu":
+            return stage(arrays, self.device)
         return [torch.as_tensor(a, dtype=torch.float32, device=self.device) for a in arrays]
 
     def _critic_input(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
@@ -351,7 +404,7 @@ class StackedMADDPG:
             own = self._per_agent(next_obs, self._obs_idx)
             q_in = torch.cat([own, self._mu(actor, own)], -1)
         qf_next_target = self._q(critic, q_in)
-        agents = torch.arange(n)
+        agents = torch.arange(n, device=rew.device)
         return rew[agents, :, agents] + self.spec.gamma * (1.0 - done) * qf_next_target
 
     def _critic_grads(
@@ -516,14 +569,15 @@ class StackedMADDPG:
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
-    ) -> dict[str, float]:
+    ) -> Mapping[str, float]:
         """`update` on one lane or on all of them (`lanes` is 1 or `self.lanes.n`): what
         a tuner picks from update to update. The result is the same up to the order of
-        floating-point additions."""
+        floating-point additions. Nothing in it reads the device from the host: the
+        inputs go in one non-blocking copy, the losses come back unread (`Losses`)."""
         if lanes not in (1, self.lanes.n):
             raise ValueError(f"lanes must be 1 or {self.lanes.n}, got {lanes!r}")
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
-        with denormals_flushed(self.spec.flush_denormals):
+        with denormals_flushed(self._flush):
             if lanes > 1 and obs_t.shape[-2] > 1:
                 critic_losses, actor_losses = self._update_in_lanes(
                     obs_t, act_t, rew_t, next_t, done_t
@@ -534,8 +588,7 @@ class StackedMADDPG:
                 actor_losses = self.actor_step(obs_t, act_t)
             self.soft_update()
         self.updates += 1
-        critic_loss, actor_loss = torch.stack([critic_losses.mean(), actor_losses.mean()]).tolist()
-        return {"critic_loss": critic_loss, "actor_loss": actor_loss}
+        return Losses(torch.stack([critic_losses.mean(), actor_losses.mean()]))
 
     def stats(self) -> dict[str, float]:
         """The fixed lane count (a tuner reports its own picks, see tuning.py), and `bf16`:
@@ -571,7 +624,7 @@ class StackedMADDPG:
         # The weights' bf16 copies are cast here, once, and read by every lane.
         targets, critic = self._target_weights(), self._weights(self.critic.params)
 
-        flush = self.spec.flush_denormals  # in the lanes' threads too
+        flush = self._flush  # in the lanes' threads too
 
         def critic_part(b: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, list[torch.Tensor]]:
             o, a, r, o2, d = b
@@ -633,11 +686,15 @@ class BatchedMADDPG(StackedMADDPG):
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """Deterministic joint actions for joint observations (B, joint_obs) -> (B, joint_act)."""
-        o = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+        return host_array(self.act_on_device(obs))
+
+    def act_on_device(self, obs: np.ndarray) -> torch.Tensor:
+        """`act`'s actions as a tensor on the learner's device, not read from it."""
+        (o,) = self.tensors(obs)
         lead = o.shape[:-1]
         o_pad = self._per_agent(o.reshape(-1, self.joint_obs), self._obs_idx)
         mu = self._squash(torch.tanh(mlp_forward(self.actor.params, o_pad)[-1]))
-        return self._joint_act(mu).reshape(*lead, self.joint_act).cpu().numpy()
+        return self._joint_act(mu).reshape(*lead, self.joint_act)
 
     def update(
         self,
@@ -646,7 +703,7 @@ class BatchedMADDPG(StackedMADDPG):
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
-    ) -> dict[str, float]:
+    ) -> Mapping[str, float]:
         """One critic and one actor step for every agent, then soft target updates, on
         all of this learner's lanes.
 

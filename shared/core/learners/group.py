@@ -20,14 +20,14 @@ tau and the subnormal flushing (`group_key`); seeds and `same_init` may differ.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
 from shared.core.learners.base import AgentDims, LearnerSpec
-from shared.core.learners.batched import BatchedMADDPG, StackedMADDPG
+from shared.core.learners.batched import BatchedMADDPG, StackedMADDPG, host_array
 from shared.core.learners.layers import Stack, mlp_forward
 
 #: LearnerSpec fields every run of a group must share.
@@ -57,24 +57,12 @@ class GroupMADDPG(StackedMADDPG):
             values = {getattr(s, field) for s in specs}
             if len(values) > 1:
                 raise ValueError(f"the runs of a group must share {field}; got {sorted(values)}")
-        super().__init__(agents, specs[0], lanes=1, precision=precision, fused=fused, device=device)
         self.specs = specs
         self.runs = r = len(specs)
-        n = self.n
         self._per_entry = False
-        # One run's stacks, then R copies of their layout, each run's from its own seed.
-        one = (self.actor, self.critic)
-        self.actor, self.critic = (self._widen(s, r) for s in one)
-        for run, spec in enumerate(specs):
-            other = None if run == 0 else BatchedMADDPG(agents, spec, device=self.device)
-            init = one if other is None else (other.actor, other.critic)
-            for wide, single in zip((self.actor, self.critic), init):
-                for dst, src in ((wide.params, single.params), (wide.targets, single.targets)):
-                    for d, s in zip(dst, src):
-                        d[run * n : (run + 1) * n] = s
-        self._place(self.device)
-        self._make_optimizers()
-        self._current.clear()
+        # Built on the CPU, R runs' stacks (`_stack_runs`), then moved to the device once.
+        super().__init__(agents, specs[0], lanes=1, precision=precision, fused=fused, device=device)
+        n = self.n
         # Per-agent constants, tiled per run.
         tile = lambda t: t.repeat(r, *([1] * (t.dim() - 1)))  # noqa: E731
         self.scale, self.center = tile(self.scale), tile(self.center)
@@ -84,13 +72,31 @@ class GroupMADDPG(StackedMADDPG):
         self._tiled = {id(i): tile(i) for i in (self._obs_idx, self._act_idx)}
         self._agent_of = torch.arange(n, device=self.device).repeat(r)  # entry -> its agent
 
+    def _stack_runs(self) -> None:
+        """One run's stacks (the first spec's, just built on the CPU) widened to R copies
+        of their layout, each run's from its own seed, before they move to the device."""
+        r, n = self.runs, self.n
+        one = (self.actor, self.critic)
+        self.actor, self.critic = (self._widen(s, r) for s in one)
+        for run, spec in enumerate(self.specs):
+            other = None if run == 0 else BatchedMADDPG(self.agents, spec)  # on the CPU
+            init = one if other is None else (other.actor, other.critic)
+            for wide, single in zip((self.actor, self.critic), init):
+                for dst, src in ((wide.params, single.params), (wide.targets, single.targets)):
+                    for d, s in zip(dst, src):
+                        d[run * n : (run + 1) * n] = s
+
     def _parts(self, tensors: Sequence[torch.Tensor]) -> list[torch.Tensor]:
         """Each stacked tensor whole, or as R views run by run: the elementwise kernels
         (Adam, the soft update) take vectors of a tensor from its start and its last
         elements one by one, with other rounding (fused multiply-adds). Where a run's
         part is a whole number of vectors (of 64 elements, any kernel's width or more)
         its elements fall on vectors as they do in its tensor alone; any other tensor is
-        given run by run, so that they fall where they fall alone."""
+        given run by run, so that they fall where they fall alone. That is the CPU's
+        rule (its rows equal a run's alone, bit for bit); on an accelerator every tensor
+        goes whole, one kernel for all runs."""
+        if self.device.type != "cpu":
+            return list(tensors)
         n, runs = self.n, self.runs
         # On several threads torch splits a large tensor at its own boundaries: per run.
         whole_ok = torch.get_num_threads() == 1
@@ -104,6 +110,8 @@ class GroupMADDPG(StackedMADDPG):
 
     def _part_counts(self, tensors: Sequence[torch.Tensor]) -> list[int]:
         """How many parts `_parts` gives each tensor."""
+        if self.device.type != "cpu":
+            return [1] * len(tensors)
         whole_ok = torch.get_num_threads() == 1
         return [
             1 if whole_ok and (t.numel() // self.runs) % VECTOR_SPAN == 0 else self.runs
@@ -163,13 +171,17 @@ class GroupMADDPG(StackedMADDPG):
     # ------------------------------------------------------------- acting
     def act(self, obs: np.ndarray) -> np.ndarray:
         """Deterministic joint actions of every run: (R, ..., joint_obs) -> (R, ..., joint_act)."""
-        o = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
-        if o.shape[0] != self.runs:
-            raise ValueError(f"obs has {o.shape[0]} runs, the group {self.runs}")
+        return host_array(self.act_on_device(obs))
+
+    def act_on_device(self, obs: np.ndarray) -> torch.Tensor:
+        """`act`'s actions as a tensor on the learner's device, not read from it."""
+        if len(obs) != self.runs:
+            raise ValueError(f"obs has {len(obs)} runs, the group {self.runs}")
+        (o,) = self.tensors(obs)
         lead = o.shape[1:-1]
         o_pad = self._split_runs(o.reshape(self.runs, -1, self.joint_obs), self._obs_idx)
         mu = self._squash(torch.tanh(mlp_forward(self.actor.params, o_pad)[-1]))
-        return self._joint_act(mu).reshape(self.runs, *lead, self.joint_act).cpu().numpy()
+        return self._joint_act(mu).reshape(self.runs, *lead, self.joint_act)
 
     # ------------------------------------------------------------- learning
     def _target_q(
@@ -215,15 +227,19 @@ class GroupMADDPG(StackedMADDPG):
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
-    ) -> dict[str, float]:
+    ) -> Mapping[str, float]:
         """One critic and one actor step for every agent of every run, then the soft
-        updates: run r's from its own batch (shapes in the module docstring)."""
-        obs = np.asarray(obs)
+        updates: run r's from its own batch (shapes in the module docstring). The
+        arrays may be tensors on the learner's device already (a graph-captured update)."""
+        obs, act, rew, next_obs, done = (
+            x if isinstance(x, torch.Tensor) else np.asarray(x)
+            for x in (obs, act, rew, next_obs, done)
+        )
         if obs.shape[0] != self.runs:
             raise ValueError(f"obs has {obs.shape[0]} runs, the group {self.runs}")
         self._per_entry = obs.ndim == 4
         if self._per_entry:  # (R, N, B, ...) -> (R*N, B, ...)
-            flat = lambda x: np.asarray(x).reshape(self.runs * self.n, *np.shape(x)[2:])  # noqa: E731
+            flat = lambda x: x.reshape(self.runs * self.n, *x.shape[2:])  # noqa: E731
             obs, act, rew, next_obs, done = map(flat, (obs, act, rew, next_obs, done))
         try:
             return self.update_on(1, obs, act, rew, next_obs, done)

@@ -22,7 +22,8 @@ import torch
 # in some layouts, e.g. the ones `bmm`'s autograd picks; these pick the fast one. bf16
 # products run in oneDNN, whose kernels are fastest in the plain layouts, so the layout
 # trick is for fp32 only. The floor in benchmarks/bench_learner.py times these same
-# functions.
+# functions. Both tricks, the layout and the stack of two below, are for the CPU's
+# kernels and its bit-for-bit rule: on an accelerator every product takes the plain form.
 def linear_forward(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """x W^T + b: x (N, B, in), W (N, out, in), b (N, 1, out) -> (N, B, out).
 
@@ -30,7 +31,7 @@ def linear_forward(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.T
     batched kernel as a stack of two (the same entry twice, not copied): alone, torch
     takes a matrix-vector path whose rounding differs, and a network's output would then
     depend on how many networks share its stack (a run alone vs. in a group)."""
-    if w.shape[0] == 1 and w.shape[1] == 1:
+    if w.shape[0] == 1 and w.shape[1] == 1 and w.is_cpu:
         two = (2, -1, -1)
         return torch.baddbmm(b.expand(two), x.expand(two), w.expand(two).mT)[:1]
     return torch.baddbmm(b, x, w.mT)
@@ -38,7 +39,7 @@ def linear_forward(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.T
 
 def linear_grad_input(grad: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """dL/dx = grad W: grad (N, B, out), W (N, out, in) -> (N, B, in)."""
-    if w.shape[2] < w.shape[1] and w.dtype != torch.bfloat16:  # narrow input (MKL)
+    if w.shape[2] < w.shape[1] and w.dtype != torch.bfloat16 and w.is_cpu:  # narrow (MKL)
         return torch.bmm(w.mT, grad.mT).mT  # (W^T grad^T)^T is faster
     return torch.bmm(grad, w)
 
@@ -52,6 +53,9 @@ def linear_grad_weight(
     A stack of one network with one output (DDPG's critic head) goes through the batched
     kernel as a stack of two, as in `linear_forward`: alone, grad^T is one row and some
     CPUs (AVX-512 Xeons) take a vector path that sums the batch in another order."""
+    if not grad.is_cpu:
+        out = torch.bmm(grad.mT, x)
+        return out if dtype is None else out.to(dtype)
     if grad.shape[0] == 1 and grad.shape[2] == 1:
         two = (2, -1, -1)
         out = torch.bmm(grad.expand(two).mT, x.expand(two))[:1]
@@ -67,10 +71,11 @@ def linear_grad_weight(
 # more than a whole first-layer product; bf16's int16 view does the same work in integer
 # kernels. bf16 is sign and magnitude: a value is below +0 exactly when its bits as an
 # int16 are, so clamping those at 0 is ReLU for every value but a NaN with the sign bit
-# set (which becomes 0 instead of staying NaN).
+# set (which becomes 0 instead of staying NaN). CPU only: an accelerator's bf16 ReLU is
+# its own fast kernel.
 def relu_(h: torch.Tensor) -> torch.Tensor:
-    """h.relu_(), in place; bf16 through its int16 view."""
-    if h.dtype == torch.bfloat16:
+    """h.relu_(), in place; bf16 on the CPU through its int16 view."""
+    if h.dtype == torch.bfloat16 and h.is_cpu:
         h.view(torch.int16).clamp_min_(0)
         return h
     return h.relu_()
@@ -82,7 +87,7 @@ def relu_backward(grad: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     bf16: x's int16 bits are >= 0, and 0 only for +0, so clamped at 1 they are the 0/1
     mask, and the int16 product keeps or zeroes grad's bits (a positive NaN in x passes
     grad, where threshold_backward would zero it)."""
-    if grad.dtype == torch.bfloat16 and x.dtype == torch.bfloat16:
+    if grad.dtype == torch.bfloat16 and x.dtype == torch.bfloat16 and grad.is_cpu:
         mask = x.view(torch.int16).clamp_max(1)
         return torch.mul(grad.view(torch.int16), mask).view(torch.bfloat16)
     return torch.ops.aten.threshold_backward(grad, x, 0.0)

@@ -68,12 +68,14 @@ class DeviceError(ValueError):
 
 
 def resolve_device(device: str | torch.device) -> torch.device:
-    """The learner's torch device, refused with the reason when it cannot be used here."""
+    """The learner's torch device, refused with the reason when it cannot be used here.
+    `meta` (tensors with shapes and no data, so any read of a value fails) is taken for
+    the tests that show an update and `act` never read the device from the host."""
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError) as err:
         raise DeviceError(f"device {device!r}: not a torch device ({err})") from None
-    if dev.type == "cpu":
+    if dev.type in ("cpu", "meta"):
         return dev
     module = getattr(torch, dev.type, None)
     available = getattr(module, "is_available", None)
@@ -86,3 +88,19 @@ def resolve_device(device: str | torch.device) -> torch.device:
     if dev.index is not None and dev.index >= count:
         raise DeviceError(f"device {device}: this machine has {count} {dev.type} device(s)")
     return dev
+
+
+def device_count(device: str) -> int:
+    """How many devices a config's `device` can spread groups over: every GPU of its
+    kind for a bare `cuda` or `xpu` (0 where there is none), one for a numbered one or
+    `mps`, 0 for the CPU."""
+    dev = torch.device(device)
+    if dev.type == "cpu":
+        return 0
+    if dev.index is not None:
+        return 1
+    module = getattr(torch, dev.type, None)
+    available = getattr(module, "is_available", None)
+    if available is None or not available():
+        return 0
+    return int(getattr(module, "device_count", lambda: 1)())

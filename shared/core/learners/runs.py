@@ -10,7 +10,7 @@ else: the learner computes what it computes without the wrapper, bit for bit.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -46,7 +46,7 @@ class RunsLearner(Protocol):
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
-    ) -> dict[str, float]:
+    ) -> Mapping[str, float]:
         """One update of every run, run r's from its own batch (index r of each array)."""
         ...
 
@@ -101,7 +101,7 @@ class SoloRuns:
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
-    ) -> dict[str, float]:
+    ) -> Mapping[str, float]:
         self._check(obs)
         return self.learner.update(obs[0], act[0], rew[0], next_obs[0], done[0])
 

@@ -15,7 +15,7 @@ not bit for bit. A bf16 learner is tuned the same way: its modes only take other
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -65,7 +65,7 @@ class TunedMADDPG:
         rew: np.ndarray,
         next_obs: np.ndarray,
         done: np.ndarray,
-    ) -> dict[str, float]:
+    ) -> Mapping[str, float]:
         """The learner's update in the mode the (ordinary or contended) tuner picks."""
         contended = self.contended is not None and self.contended()
         self.contended_updates += contended

@@ -1,0 +1,147 @@
+"""A runs folder's runs as written: which folders are runs, each one's config, arm,
+seed and metric rows (metrics.jsonl, else metrics.csv). One reader for the Python API
+(macb/runs.py, its DataFrame) and the figure view of a folder (cli/view.py), so both see
+the same runs, arms and rows.
+
+A run being written may end in a torn line: that last line is skipped. Anything else
+that does not read is refused with RunsError naming the file: a half-read run would
+silently change every mean taken from it.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+METRIC_FILES = ("metrics.jsonl", "metrics.csv")
+
+
+class RunsError(ValueError):
+    """A runs folder that cannot be read as runs: the message names the path and why."""
+
+
+def runs_in(root: Path) -> tuple[list[Path], dict[str, str]]:
+    """The run folders under `root` (see run_folders) and each recorded arm; RunsError
+    when `root` is no folder or holds no run."""
+    if not root.is_dir():
+        raise RunsError(f"{root}: no such folder")
+    folders, arms = run_folders(root)
+    if not folders:
+        raise RunsError(
+            f"{root}: no runs (no folder holding {' or '.join(METRIC_FILES)}, here or one "
+            "level down, nor under runs/)"
+        )
+    return folders, arms
+
+
+def is_run_folder(folder: Path) -> bool:
+    """A run's folder: its metrics.jsonl, or its metrics.csv beside its config.json (a
+    `macb run --out` folder of several runs has the experiment's metrics.csv and no
+    config)."""
+    if (folder / "metrics.jsonl").is_file():
+        return True
+    return (folder / "metrics.csv").is_file() and (folder / "config.json").is_file()
+
+
+def run_folders(root: Path) -> tuple[list[Path], dict[str, str]]:
+    """The run folders under root, and the arm of each run a reproduce record names."""
+    if is_run_folder(root):
+        return [root], {}
+    base = root / "runs" if (root / "runs").is_dir() else root
+    folders = sorted(p for p in base.iterdir() if p.is_dir() and is_run_folder(p))
+    return folders, _recorded_arms(root)
+
+
+def _recorded_arms(root: Path) -> dict[str, str]:
+    """id -> arm from a reproduce's FIGURE-runs.json (cli/reproduce/page.py), or from the
+    experiment's metrics.csv `macb run --out` writes beside its runs' folders."""
+    arms: dict[str, str] = {}
+    table = root / "metrics.csv"
+    if table.is_file():
+        with table.open(newline="") as f:
+            for r in csv.DictReader(f):
+                if r.get("run") and r.get("arm") is not None:
+                    arms.setdefault(r["run"], r["arm"])
+    for record in sorted(root.glob("*-runs.json")):
+        try:
+            runs = json.loads(record.read_text()).get("runs") or []
+        except (OSError, ValueError, AttributeError) as err:
+            raise RunsError(f"{record}: not a reproduce runs record ({err})") from err
+        arms.update({str(r["id"]): str(r["arm"]) for r in runs if "id" in r and "arm" in r})
+    return arms
+
+
+def read_config(folder: Path) -> dict[str, Any]:
+    path = folder / "config.json"
+    if not path.is_file():
+        raise RunsError(f"{path}: missing (every run folder holds its config)")
+    try:
+        config = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise RunsError(f"{path}: unreadable ({err})") from err
+    if not isinstance(config, dict):
+        raise RunsError(f"{path}: not a JSON object")
+    return config
+
+
+def read_rows(folder: Path) -> list[dict[str, Any]]:
+    """The run's metric rows; a torn last line of metrics.jsonl is skipped."""
+    path = folder / "metrics.jsonl"
+    if not path.is_file():
+        return _csv_rows(folder / "metrics.csv")
+    lines = [x for x in path.read_text().splitlines() if x.strip()]
+    rows = []
+    for i, line in enumerate(lines, 1):
+        try:
+            row = json.loads(line)
+        except ValueError as err:
+            if i == len(lines):  # a row being written
+                break
+            raise RunsError(f"{path}: line {i} is not a JSON row ({err})") from err
+        if not isinstance(row, dict):
+            raise RunsError(f"{path}: line {i} is not a JSON object")
+        rows.append(row)
+    return rows
+
+
+def _csv_rows(path: Path) -> list[dict[str, Any]]:
+    with path.open(newline="") as f:
+        lines = list(csv.reader(f))
+    if not lines:
+        return []
+    head, body = lines[0], lines[1:]
+    if body and len(body[-1]) != len(head):  # a row being written
+        body = body[:-1]
+    for i, cells in enumerate(body, 2):
+        if len(cells) != len(head):
+            raise RunsError(f"{path}: line {i} has {len(cells)} cells, the header {len(head)}")
+    return [{k: _cell(v) for k, v in zip(head, cells, strict=True)} for cells in body]
+
+
+def _cell(text: str) -> Any:
+    if text == "":
+        return math.nan
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def arm_of(folder: Path, seed: Any) -> str:
+    """A run's arm from its folder's name: `<arm>-s<seed>` (a reproduce's runs), `seed-<seed>`
+    (`macb train --seeds`: the seeds of one config, named by their parent folder), else
+    the folder's name (one `macb train` run)."""
+    name = folder.name
+    if m := re.fullmatch(rf"(.+)-s{seed}", name):
+        return m.group(1)
+    if name == f"seed-{seed}":
+        return folder.resolve().parent.name
+    return name

@@ -1,0 +1,93 @@
+// The charts of the dashboard and the figure view (services/api/pages.py inlines this
+// file into both pages): SVG drawn from curves the API or `macb view` computed.
+"use strict";
+const COLORS = ["#2563eb", "#dc2626", "#16a34a", "#9333ea", "#d97706", "#0891b2", "#db2777",
+                "#4b5563", "#65a30d", "#7c3aed"];
+function el(tag, attrs, ...children) {
+  const ns = ["svg", "path", "line", "text", "g", "rect", "polygon", "circle"].includes(tag)
+    ? "http://www.w3.org/2000/svg" : null;
+  const e = ns ? document.createElementNS(ns, tag) : document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs || {})) {
+    if (k === "text") e.textContent = v; else e.setAttribute(k, v);
+  }
+  for (const c of children) if (c) e.appendChild(c);
+  return e;
+}
+
+function niceMax(v) {
+  if (!(v > 0)) return 1;
+  const p = Math.pow(10, Math.floor(Math.log10(v)));
+  for (const m of [1, 2, 2.5, 5, 10]) if (m * p >= v) return m * p;
+  return 10 * p;
+}
+
+function fmt(v) {
+  if (Math.abs(v) >= 1000) return (v / 1000).toFixed(v >= 10000 ? 0 : 1) + "k";
+  return Number.isInteger(v) ? String(v) : v.toFixed(2);
+}
+
+// A curve's arm name (`label` from an API older than arms).
+const armName = c => c.name ?? c.label;
+
+// One chart: per curve (episode, mean, lo, hi; `n` seeds per point, optional) a band and
+// its mean. `opts` (the figure view's): `color(c, i)`, `dashed(c)` (a control arm's
+// line), and `seeds`: also each seed's line (c.seeds: [{seed, values}]).
+function chart(expId, metric, title, fixed, curves, episodes, opts = {}) {
+  const W = 360, H = 204, L = 40, R = 10, T = 8, B = 30;
+  const svg = el("svg", { viewBox: `0 0 ${W} ${H}`, "data-metric": metric, role: "img",
+                          "aria-label": title });
+  let xmax = Math.max(1, episodes || 0), ymax = 0, ymin = 0;  // the runs' whole length
+  for (const c of curves) {
+    for (const e of c.episode) xmax = Math.max(xmax, e);
+    for (const v of c.hi) ymax = Math.max(ymax, v);
+  }
+  if (fixed) { ymin = fixed[0]; ymax = fixed[1]; } else { ymax = niceMax(ymax * 1.05); }
+  const x = e => L + (W - L - R) * e / xmax;
+  const y = v => T + (H - T - B) * (1 - (Math.min(Math.max(v, ymin), ymax) - ymin) / (ymax - ymin || 1));
+  const axes = el("g", { class: "axes" });
+  for (let i = 0; i <= 4; i++) {
+    const v = ymin + (ymax - ymin) * i / 4;
+    axes.appendChild(el("line", { x1: L, x2: W - R, y1: y(v), y2: y(v), stroke: "#eef0f3" }));
+    axes.appendChild(el("text", { x: L - 4, y: y(v) + 3, "text-anchor": "end", text: fmt(v) }));
+  }
+  for (let i = 0; i <= 4; i++) {
+    const e = xmax * i / 4;
+    axes.appendChild(el("text", { x: x(e), y: H - B + 14, "text-anchor": "middle",
+                                  text: fmt(Math.round(e)) }));
+  }
+  axes.appendChild(el("text", { x: (L + W - R) / 2, y: H - 2, "text-anchor": "middle",
+                                text: "training episodes" }));
+  axes.appendChild(el("line", { x1: L, x2: L, y1: T, y2: H - B, stroke: "#9ca3af" }));
+  axes.appendChild(el("line", { x1: L, x2: W - R, y1: H - B, y2: H - B, stroke: "#9ca3af" }));
+  svg.appendChild(axes);
+  curves.forEach((c, i) => {
+    if (!c.episode.length) return;
+    const color = opts.color ? opts.color(c, i) : COLORS[i % COLORS.length];
+    const upper = c.episode.map((e, j) => `${x(e).toFixed(1)},${y(c.hi[j]).toFixed(1)}`);
+    const lower = c.episode.map((e, j) => `${x(e).toFixed(1)},${y(c.lo[j]).toFixed(1)}`).reverse();
+    svg.appendChild(el("polygon", { class: "curve-band", points: upper.concat(lower).join(" "),
+                                    fill: color, "fill-opacity": 0.15, stroke: "none",
+                                    "data-label": armName(c) }));
+    const line = vs => c.episode.map((e, j) => `${j ? "L" : "M"}${x(e).toFixed(1)},${y(vs[j]).toFixed(1)}`);
+    for (const s of (opts.seeds && c.seeds) || []) {
+      svg.appendChild(el("path", {
+        class: "curve-seed", d: line(s.values).join(" "), fill: "none", stroke: color,
+        "stroke-width": 0.7, "stroke-opacity": 0.55, "data-label": armName(c), "data-seed": s.seed,
+        "data-values": s.values.map(v => +v.toPrecision(6)).join(","),
+      }));
+    }
+    const d = line(c.mean);
+    svg.appendChild(el("path", {
+      class: "curve-mean", d: d.join(" "), fill: "none", stroke: color, "stroke-width": 1.8,
+      ...(opts.dashed && opts.dashed(c) ? { "stroke-dasharray": "5,3" } : {}),
+      "data-experiment": expId, "data-metric": metric, "data-label": armName(c),
+      "data-episodes": c.episode.join(","), "data-values": c.mean.map(v => +v.toPrecision(6)).join(","),
+      "data-seeds": (c.n || []).join(","),
+    }));
+    if (c.episode.length === 1) {
+      svg.appendChild(el("circle", { cx: x(c.episode[0]), cy: y(c.mean[0]), r: 2.5, fill: color }));
+    }
+  });
+  return el("div", { class: "chart" }, el("h3", { text: title }), svg);
+}
+
