@@ -267,13 +267,13 @@ def _metrics_writer(cfg: TrainConfig, out: Path | None) -> Any:
     import json
 
     from cli.trainer import MetricsWriter
-    from shared.metrics import ALL_FIELDS
+    from shared.metrics import ALL_FIELDS, run_fields
 
     if out is None:
         return None
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2) + "\n")
-    return MetricsWriter(out, ALL_FIELDS)
+    return MetricsWriter(out, run_fields(cfg, ALL_FIELDS))
 
 
 def follow_run(bus: Bus, cfg: TrainConfig, actors: int, out: Path | None, quiet: bool) -> int:
@@ -321,6 +321,8 @@ def _report_run_end(watch: Any, state: str, out: Path | None) -> int:
     )
     if state == "failed":
         print(f"failure: {watch.failure()}", file=sys.stderr)
+    if state == "completed" and last.get("stop_reason"):
+        print(f"ended by its rule: {last['stop_reason']}", file=sys.stderr)
     return 0 if state == "completed" else 1
 
 

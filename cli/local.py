@@ -192,12 +192,14 @@ def config_conflict(folder: Path, cfg: TrainConfig) -> str | None:
 
 
 def run_state(folder: Path, cfg: TrainConfig) -> str:
-    """'done' (every episode run, checkpoint written), 'cut-<episode>' (can resume from
-    its newest cut, of that episode) or 'new'."""
+    """'done' (every episode run, or ended by its `early_stop` rule, checkpoint
+    written), 'cut-<episode>' (can resume from its newest cut, of that episode) or
+    'new'."""
     if not _same_config(folder, cfg):
         return "new"
     rows = _rows(folder)
-    if rows and rows[-1].get("episode") == cfg.episodes and (folder / "checkpoint.pt").exists():
+    ended = rows and (rows[-1].get("episode") == cfg.episodes or rows[-1].get("stop_reason"))
+    if ended and (folder / "checkpoint.pt").exists():
         return "done"
     cuts = sorted((folder / "cuts").glob("cut-*.pt"))
     if cuts:
@@ -410,6 +412,8 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
             starts = provenance.read(folder / provenance.FILE)
         except provenance.ProvenanceError as err:
             log.warning("%s", err)
+        rows = _rows(folder) if state == "done" else []
+        why = rows[-1].get("stop_reason") if rows else None
         described.append(
             {
                 "id": r.name,
@@ -417,6 +421,9 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
                 "seed": r.seed,
                 "config": r.config.model_dump(mode="json"),
                 "status": "completed" if state == "done" else "incomplete",
+                # ended by its early_stop rule: why, and at which episode
+                "reason": why,
+                "stopped_at": int(rows[-1]["episode"]) if why else None,
                 "live": {"provenance": starts[-1] if starts else None},
                 "resumes": [_resume(s) for s in starts[1:]] if starts else None,
             }

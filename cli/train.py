@@ -144,8 +144,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         if tb is not None:
             tb.close()
     last = rows[-1] if rows else {}
+    if last.get("stop_reason"):  # early_stop: completed where its rule held
+        print(f"ended by its rule: {last['stop_reason']} (best point in {out}/best.pt)")
     print(
-        f"done: {cfg.episodes} episodes, final success {last.get('success_rate', 0):.2f}, "
+        f"done: {last.get('episode', 0)} episodes, final success "
+        f"{last.get('success_rate', 0):.2f}, "
         f"{last.get('steps_per_sec', 0):.1f} env steps/s "
         f"({last.get('train_steps_per_sec', 0):.1f} without evaluation); results in {out}/"
         + (f", TensorBoard events in {tb.folder}/" if tb is not None else "")
@@ -168,5 +171,11 @@ def _train_seeds(args: argparse.Namespace, cfg, out: Path) -> int:
     for r in runs:
         rows = (out / r.name / "metrics.jsonl").read_text().splitlines()
         last = json.loads(rows[-1]) if rows else {}
-        print(f"seed {r.seed}: final success {last.get('success_rate', 0):.2f}; {out / r.name}/")
+        ended = (
+            f" (ended by its rule at episode {last['episode']})" if last.get("stop_reason") else ""
+        )
+        print(
+            f"seed {r.seed}: final success {last.get('success_rate', 0):.2f}{ended}; "
+            f"{out / r.name}/"
+        )
     return code

@@ -44,7 +44,7 @@ from shared.core.replay import Batch, ReplayBuffer, update_arrays
 from shared.envs.tasks import TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
 from shared.groups import check_group
-from shared.metrics import TRAIN_FIELDS
+from shared.metrics import TRAIN_FIELDS, early_stop_reason, run_fields
 from shared.persist import checkpoint, provenance, runlock
 from shared.persist.checkpoint import CutError, config_difference, load_tables
 from shared.persist.cuts import ReplayLog, latest_cut, read_cut, write_cut
@@ -118,6 +118,19 @@ def save_checkpoint(
     checkpoint.save(path, "final", config, learner.state_dict(), counters, tables=explorer.tables)
 
 
+def save_best(path: Path, learner: Learner, cfg: TrainConfig, row: dict) -> None:
+    """The best evaluation point's learner (`early_stop`), as a checkpoint of kind
+    `best`: networks and optimizers, the point's episode and success, no tables (the
+    last weights and the tables are checkpoint.pt's)."""
+    counters = {
+        "episode": int(row["episode"]),
+        "env_steps": int(row["env_steps"]),
+        "success_rate": float(row["success_rate"]),
+    }
+    config = cfg.model_dump(mode="json")
+    checkpoint.save(path, "best", config, learner.state_dict(), counters)
+
+
 def load_checkpoint(path: Path) -> dict:
     """A run's final checkpoint.pt (torch.load with weights_only=True inside): the
     trainer's, or the learner service's that `macb start --out` copies beside its rows."""
@@ -165,7 +178,20 @@ def metric_row(episode: int, ev: EvalResult, run: Member, updates: int, wall: fl
         "train_steps_per_sec": run.env_steps / max(wall - run.eval_s, 1e-9),
         "updates": updates,
         "wall_s": wall,
+        **option_columns(run.cfg, run.env_steps),
     }
+
+
+def option_columns(cfg: TrainConfig, env_steps: int) -> dict:
+    """The row's columns of the options the run sets (shared.metrics.OPTION_FIELDS):
+    the beta in force at its last transition, and `stop_reason` (set where the rule
+    ends the run)."""
+    out: dict = {}
+    if cfg.beta_schedule is not None:
+        out["beta"] = cfg.beta_at(env_steps)
+    if cfg.early_stop is not None:
+        out["stop_reason"] = None
+    return out
 
 
 def price_at_collection(
@@ -174,30 +200,36 @@ def price_at_collection(
     act: np.ndarray,
     diagnostics: BonusDiagnostics,
     on: bool,
+    beta: float | None = None,
 ) -> np.ndarray | None:
     """`bonus_at: collection`: the just-counted transition's per-agent bonus (N,), from
-    its count including itself, to store with it (the diagnostics then describe the
-    collected transitions); None when bonuses are priced at sample time."""
+    its count including itself, at `beta` (the schedule's now; None: the config's), to
+    store with it (the diagnostics then describe the collected transitions); None when
+    bonuses are priced at sample time."""
     if not on:
         return None
     counts = explorer.counts(obs[None], act[None])
-    bonus = explorer.bonus_from_counts(counts, 1)
+    bonus = explorer.bonus_from_counts(counts, 1, beta)
     diagnostics.record(bonus, counts)
     return bonus[0]
 
 
 def price_batches(
-    explorer: CountExploration, batches: list, diagnostics: BonusDiagnostics
+    explorer: CountExploration,
+    batches: list,
+    diagnostics: BonusDiagnostics,
+    beta: float | None = None,
 ) -> list[np.ndarray]:
     """Each sampled minibatch's per-agent bonus: the stored one (`bonus_at: collection`),
-    or priced now from the current counts (recorded in the diagnostics)."""
+    or priced now from the current counts at `beta` (the schedule's now; None: the
+    config's), recorded in the diagnostics."""
     bonuses = []
     for b in batches:
         if b.bonus is not None:
             bonuses.append(b.bonus)
             continue
         counts = explorer.counts(b.obs, b.act)
-        bonuses.append(explorer.bonus_from_counts(counts, len(b.rew)))
+        bonuses.append(explorer.bonus_from_counts(counts, len(b.rew), beta))
         diagnostics.record(bonuses[-1], counts)
     return bonuses
 
@@ -312,6 +344,12 @@ class Member:
         # Every transition collected, kept since the last cut for the replay log.
         self.pending: list[tuple[Any, ...]] = []
         self.writer: MetricsWriter | None = None
+        # early_stop: the episode and reason it stopped at (its rows end there, its world
+        # steps on in the group, unread), the fixed minibatch its update entry runs on
+        # after, the best success so far.
+        self.stopped: tuple[int, str] | None = None
+        self.frozen_arrays: tuple[np.ndarray, ...] | None = None
+        self.best = -1.0
         if out is not None:
             self.cuts = out / "cuts"
             self.replay = ReplayLog(self.cuts)
@@ -328,7 +366,10 @@ class Member:
         """Count one transition of this run's, store it (with its bonus when priced at
         collection) and keep it for the replay log."""
         self.explorer.observe(obs[None], act[None])
-        stored = price_at_collection(self.explorer, obs, act, self.diagnostics, self.collection)
+        beta = self.cfg.beta_at(self.env_steps + 1)  # this transition's
+        stored = price_at_collection(
+            self.explorer, obs, act, self.diagnostics, self.collection, beta
+        )
         self.buffer.add(obs, act, rew, next_obs, done, stored)
         if self.replay is not None:
             row = (obs, act, rew, next_obs, done)
@@ -341,8 +382,10 @@ class Member:
         return [self.buffer.sample(batch_size, self.sample_rng) for _ in range(count)]
 
     def price(self, batches: list[Batch]) -> list[np.ndarray]:
-        """Their bonuses, from this run's counts now (recorded in its diagnostics)."""
-        return price_batches(self.explorer, batches, self.diagnostics)
+        """Their bonuses, from this run's counts now at the beta of its last transition
+        (the update it owes; `beta_schedule`), recorded in its diagnostics."""
+        beta = self.cfg.beta_at(self.env_steps)
+        return price_batches(self.explorer, batches, self.diagnostics, beta)
 
     def append_pending(self) -> int:
         """The transitions collected since the last cut, onto the replay log; bytes."""
@@ -488,31 +531,38 @@ class GroupRun:
             for episode in range(self.first_episode, c0.episodes + 1):
                 self.episode()
                 if episode % c0.eval_every == 0 or episode == c0.episodes:
-                    rows = self.point(episode)
+                    points = self.point(episode)
+                    stopping = self.early_stops(points)
                     t0 = time.perf_counter()
-                    for m, row in zip(self.members, rows):
-                        if m.writer:
+                    for m, row in zip(self.members, points):
+                        if m.writer and row is not None:
                             m.writer.write(row)
                     self.timing["rows"] += time.perf_counter() - t0
                     if self.timing_dir:  # before the cut: a window's last cut is its next's
                         self.timing_log.append(self.timing_snapshot(episode))
+                    for r in stopping:  # (its checkpoint before its cut: a resume from
+                        self.stop_member(r)  # an earlier cut stops it here again)
                     if self.members[0].cuts is not None and (
-                        len(self.members[0].rows) == 1  # killed in its first minute: resumes too
+                        max(len(m.rows) for m in self.members) == 1  # killed in its first minute
                         or self.cut_due()
                         or episode == c0.episodes
+                        or stopping
                     ):
                         self.cut(episode)  # timed in `cut`
+                    rows = [row for row in points if row is not None]
                     t0 = time.perf_counter()
-                    for r, row in enumerate(rows):
-                        if on_metrics:
+                    for r, row in enumerate(points):
+                        if on_metrics and row is not None:
                             on_metrics(r, row)
-                    if bar:
+                    if bar and rows:
                         mean = np.mean([row["success_rate"] for row in rows])
                         sps = sum(row["steps_per_sec"] for row in rows)
                         bar.set_postfix(success=f"{mean:.2f}", sps=f"{sps:.0f}")
                     self.timing["rows"] += time.perf_counter() - t0
-                    if stop_when and stop_when(rows):
+                    if stop_when and rows and stop_when(rows):
                         break
+                    if all(m.stopped is not None for m in self.members):
+                        break  # every run ended by its early_stop rule
                 if bar:
                     bar.update(1)
         finally:
@@ -524,18 +574,68 @@ class GroupRun:
             if self.timing_dir:
                 self.write_timing(Path(self.timing_dir))
         for r, m in enumerate(self.members):
-            if m.out is None:
-                continue
-            episodes = m.rows[-1]["episode"] if m.rows else 0
-            counters = {
-                "env_steps": m.env_steps,
-                "episodes": episodes,
-                "updates": self.learner.updates,
-            }
-            one = self.learner.run_learner(r)
-            save_checkpoint(m.out / "checkpoint.pt", one, m.explorer, counters, m.cfg)
-            log.info("wrote %s", m.out)
+            if m.stopped is None:
+                self.final_checkpoint(r)
         return [m.rows for m in self.members]
+
+    def final_checkpoint(self, r: int) -> None:
+        """Run r's checkpoint.pt: its learner, counters and count tables now (a run
+        stopped by its rule: as it stopped)."""
+        m = self.members[r]
+        if m.out is None:
+            return
+        episodes = m.rows[-1]["episode"] if m.rows else 0
+        counters = {
+            "env_steps": m.env_steps,
+            "episodes": episodes,
+            "updates": self.learner.updates,
+        }
+        one = self.learner.run_learner(r)
+        save_checkpoint(m.out / "checkpoint.pt", one, m.explorer, counters, m.cfg)
+        log.info("wrote %s", m.out)
+
+    # ------------------------------------------------------------------ early stopping
+    def early_stops(self, points: list[dict | None]) -> list[int]:
+        """The runs whose `early_stop` rule holds at this point (their row gets the
+        reason); each run's best point so far goes to its best.pt first."""
+        stopping = []
+        for r, (m, row) in enumerate(zip(self.members, points)):
+            rule = m.cfg.early_stop
+            if rule is None or row is None:
+                continue
+            if row["success_rate"] > m.best:  # the earliest of equal points is kept
+                m.best = float(row["success_rate"])
+                if m.out is not None:
+                    save_best(m.out / "best.pt", self.learner.run_learner(r), m.cfg, row)
+            if (why := early_stop_reason(rule, m.rows)) is not None:
+                row["stop_reason"] = why
+                stopping.append(r)
+        return stopping
+
+    def stop_member(self, r: int) -> None:
+        """Run r ends here, completed by its rule: its checkpoint.pt now. In a group the
+        others go on: its world still steps and its update entry still runs (on one
+        fixed minibatch of its own, so the shared update keeps its shape and its cuts
+        the group's update count), but nothing of it is counted, stored, priced or
+        written again but its cuts, and the stack entries do not mix, so the others'
+        rows are what they give alone."""
+        m = self.members[r]
+        episode = int(m.rows[-1]["episode"])
+        m.stopped = (episode, str(m.rows[-1]["stop_reason"]))
+        self.final_checkpoint(r)
+        log.info("run %s: %s, at episode %d", m.out or r, m.stopped[1], episode)
+
+    def frozen_arrays(self, m: Member) -> tuple[np.ndarray, ...]:
+        """A stopped run's update arrays: one fixed draw from its replay (its own sampler
+        untouched), no bonus."""
+        if m.frozen_arrays is None:
+            rng = np.random.default_rng(0)
+            k = self.minibatches_per_update
+            batches = [m.buffer.sample(self.cfg.batch_size, rng) for _ in range(k)]
+            n = self.spec.n_agents
+            zero = [np.zeros((len(b.rew), n), np.float32) for b in batches]
+            m.frozen_arrays = update_arrays(batches, zero)
+        return m.frozen_arrays
 
     def cut_due(self) -> bool:
         """`cut_every_s` since the last cut, and CUT_SPACING times its length (0: every
@@ -590,7 +690,7 @@ class GroupRun:
                 provenance.write(m.out / provenance.FILE, [start])
             config = json.dumps(m.cfg.model_dump(mode="json"), indent=2) + "\n"
             (m.out / "config.json").write_text(config)
-            m.writer = MetricsWriter(m.out, rows=m.rows)
+            m.writer = MetricsWriter(m.out, run_fields(m.cfg), rows=m.rows)
 
     def episode(self) -> None:
         c0, members, timing = self.cfg, self.members, self.timing
@@ -601,6 +701,8 @@ class GroupRun:
             t1 = clock()
             timing["act_env"] += t1 - t0
             for r, m in enumerate(members):
+                if m.stopped is not None:
+                    continue  # (stopped by its rule: its world steps unread)
                 m.collect(
                     tr.obs[r],
                     tr.act[r],
@@ -611,13 +713,19 @@ class GroupRun:
                 )
             t2 = clock()
             timing["store_count"] += t2 - t1
-            if members[0].env_steps > c0.learning_starts:
+            if max(m.env_steps for m in members) > c0.learning_starts:
                 k = self.minibatches_per_update
-                batches = [m.sample(c0.batch_size, k) for m in members]
+                # (a run its early_stop rule ended: a fixed minibatch, nothing drawn or priced)
+                batches = [
+                    m.sample(c0.batch_size, k) if m.stopped is None else None for m in members
+                ]
                 t3 = clock()
-                bonuses = [m.price(b) for m, b in zip(members, batches)]
+                bonuses = [None if b is None else m.price(b) for m, b in zip(members, batches)]
                 t4 = clock()
-                parts = [update_arrays(b, p) for b, p in zip(batches, bonuses)]
+                parts = [
+                    self.frozen_arrays(m) if b is None or p is None else update_arrays(b, p)
+                    for m, b, p in zip(members, batches, bonuses)
+                ]
                 arrays = [np.stack(cols) for cols in zip(*parts)]
                 t5 = clock()
                 self.learner.update(*arrays)
@@ -625,15 +733,19 @@ class GroupRun:
                 timing["price"] += t4 - t3
                 timing["update"] += clock() - t5
 
-    def point(self, episode: int) -> list[dict]:
+    def point(self, episode: int) -> list[dict | None]:
+        """Each run's row at this point (None for a run stopped by its rule)."""
         t0 = time.perf_counter()
         results = evaluate_group(
             self.learner.act, self.eval_venv, self.runs, self.cfg.eval_episodes
         )
         spent = time.perf_counter() - t0
         self.timing["eval"] += spent
-        rows = []
+        rows: list[dict | None] = []
         for m, ev in zip(self.members, results):
+            if m.stopped is not None:
+                rows.append(None)
+                continue
             m.eval_s += spent
             wall = m.wall_before + time.perf_counter() - self.start
             row = metric_row(episode, ev, m, self.learner.updates, wall)
@@ -707,6 +819,10 @@ class GroupRun:
             for j, state in enumerate(rng["eval_envs"]):
                 self.eval_venv.set_rng_state(r * self.m_eval + j, state)
             m.load_counters(st["counters"], cut.path)
+            if m.cfg.early_stop is not None and m.rows:  # what the rows decided, again
+                m.best = max(float(row["success_rate"]) for row in m.rows)
+                if m.rows[-1].get("stop_reason"):  # (its checkpoint.pt written as it stopped)
+                    m.stopped = (int(m.rows[-1]["episode"]), str(m.rows[-1]["stop_reason"]))
         torch.set_rng_state(cuts[0].state["torch_rng"])
         self.resumed = True
         self.first_episode = episode + 1

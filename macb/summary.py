@@ -87,7 +87,7 @@ def experiment(frame: pd.DataFrame, fig: FigureDef) -> tuple[dict[str, Any], dic
     names = {a.name: a.name for a in fig.arms} | {folder_name(a.name): a.name for a in fig.arms}
     runs: list[dict[str, Any]] = []
     points: dict[str, Columns] = {}
-    fields = [f for f in ("episode", *LOADED) if f in frame.columns]
+    fields = [f for f in ("episode", *LOADED, "stop_reason") if f in frame.columns]
     for run, rows in frame.groupby("run", sort=True):
         arm = names.get(str(rows["arm"].iloc[0]))
         if arm is None:

@@ -25,6 +25,86 @@ WORLD_OPTIONS = ("cover", "landmark_size", "pad_obs", "comm_obs", "integrator")
 COUNTING_EXPLORE = ("dis-macb", "cen-macb")
 
 
+class BetaSchedule(BaseModel):
+    """How the bonus scale moves from `beta` to `end` over `horizon` episodes or steps
+    (beyond the thesis: its §7 suggests a decaying beta for Cen-MACB's fall after it
+    converges). `constant` keeps `beta` throughout: the thesis's method, bit for bit."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["constant", "linear", "exponential"] = Field(
+        "constant",
+        description="constant (beta throughout), linear or exponential (geometric) from "
+        "beta to end over horizon, end after it",
+    )
+    end: float | None = Field(None, ge=0.0, le=100.0, description="beta at the horizon and after")
+    horizon: int | None = Field(None, ge=1, description="episodes or steps to reach end")
+    unit: Literal["episodes", "steps"] = Field(
+        "episodes", description="what horizon counts: training episodes or transitions"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> BetaSchedule:
+        if self.kind == "constant":
+            for name in ("end", "horizon"):
+                if getattr(self, name) is not None:
+                    raise ValueError(f"{name}: a constant schedule keeps beta; give kind "
+                                     "linear or exponential to move it")  # fmt: skip
+        else:
+            for name in ("end", "horizon"):
+                if getattr(self, name) is None:
+                    raise ValueError(f"{name}: kind {self.kind} needs end and horizon")
+            if self.kind == "exponential" and self.end == 0:
+                raise ValueError("end: an exponential schedule never reaches 0; give end > 0 "
+                                 "or kind linear")  # fmt: skip
+        return self
+
+    def at(self, beta: float, progress: int) -> float:
+        """The beta in force `progress` episodes or steps into the run."""
+        if self.kind == "constant" or self.horizon is None or self.end is None:
+            return beta
+        if progress >= self.horizon:
+            return self.end
+        f = max(progress, 0) / self.horizon
+        if self.kind == "linear":
+            return beta + (self.end - beta) * f
+        return float(beta * (self.end / beta) ** f)
+
+
+class EarlyStop(BaseModel):
+    """When a run ends before its episodes, read on its evaluation points (beyond the
+    thesis: its §6.3 and §7 suggest early stopping for Cen-MACB's fall after it
+    converges). The best point's weights are kept beside the last (best.pt)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    rule: Literal["success_at_least", "no_improvement"] = Field(
+        ...,
+        description="success_at_least: the (smoothed) success rate >= threshold at "
+        "patience points in a row; no_improvement: the smoothed success rate has not "
+        "beaten its best for patience points",
+    )
+    threshold: float | None = Field(
+        None, ge=0.0, le=1.0, description="success_at_least: the success rate to reach"
+    )
+    patience: int = Field(1, ge=1, le=100_000, description="evaluation points the rule needs")
+    smooth: int = Field(
+        1, ge=1, le=10_000, description="points in the moving mean of the success rate (1: raw)"
+    )
+    min_delta: float = Field(
+        0.0, ge=0.0, le=1.0, description="no_improvement: how much above its best counts"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> EarlyStop:
+        if self.rule == "success_at_least" and self.threshold is None:
+            raise ValueError("threshold: rule success_at_least needs a threshold")
+        if self.rule == "no_improvement" and self.threshold is not None:
+            raise ValueError("threshold: rule no_improvement has none (min_delta says how "
+                             "much is better)")  # fmt: skip
+        return self
+
+
 class CountSketchConfig(BaseModel):
     """`count_sketch`: count in a count-min sketch of fixed size instead of the exact
     table (shared/core/counting.py, CountSketch). Its size is `width` x `depth` cells,
@@ -111,6 +191,11 @@ class TrainConfig(BaseModel):
         "constant (control arm: bonus beta on every reward, no counting)",
     )
     beta: float = Field(0.8, ge=0.0, le=100.0, description="bonus scale: r' = r + beta / sqrt(n)")
+    beta_schedule: BetaSchedule | None = Field(
+        None,
+        description="beta moving over the run (beyond the thesis), e.g. {kind: linear, "
+        "end: 0.1, horizon: 20000, unit: episodes}; none: beta throughout (docs/config.md)",
+    )
     k: int = Field(512, ge=1, le=4096, description="SimHash code length in bits")
     hash: Literal["simhash", "none", "raw"] = Field(
         "simhash",
@@ -142,6 +227,12 @@ class TrainConfig(BaseModel):
     seed: int = Field(0, ge=0, lt=2**31, description="run seed")
     eval_every: int = Field(1, ge=1, description="evaluate after every M training episodes")
     eval_episodes: int = Field(10, ge=1, le=1000, description="noise-free episodes per evaluation")
+    early_stop: EarlyStop | None = Field(
+        None,
+        description="end the run when a rule holds on its evaluation points (beyond the "
+        "thesis), e.g. {rule: success_at_least, threshold: 0.9, patience: 5}; the best "
+        "point's weights go to best.pt (docs/config.md)",
+    )
     batch_size: int = Field(100, ge=1, le=100_000)
     buffer_size: int = Field(1_000_000, ge=1)
     learning_starts: int = Field(100, ge=0, description="transitions collected before updates")
@@ -344,12 +435,30 @@ class TrainConfig(BaseModel):
                 f"device {self.device} needs learner_impl batched; learner_impl reference "
                 "is the CPU definition the batched learner is checked against"
             )
+        s = self.beta_schedule
+        if s is not None and s.kind == "exponential" and self.beta == 0:
+            raise ValueError(
+                "beta_schedule: an exponential schedule from beta 0 stays 0; give beta > 0 "
+                "or kind linear"
+            )
+        if s is not None and s.kind != "constant" and self.explore == "none":
+            raise ValueError("beta_schedule: explore none pays no bonus to schedule")
         if self.precision == "bf16" and self.learner_impl == "reference":
             raise ValueError(
                 "precision bf16 needs learner_impl batched; learner_impl reference is the "
                 "fp32 definition the batched learner is checked against"
             )
         return self
+
+    def beta_at(self, env_steps: int) -> float:
+        """The beta in force for the run's `env_steps`-th transition (1-based: the one
+        just collected, and the updates it owes): every place that prices the bonus
+        asks this. Episodes are the ones completed before that transition's."""
+        s = self.beta_schedule
+        if s is None or s.kind == "constant":
+            return self.beta
+        progress = env_steps if s.unit == "steps" else max(env_steps - 1, 0) // self.episode_len
+        return s.at(self.beta, progress)
 
     @property
     def counts(self) -> bool:
@@ -428,8 +537,9 @@ def actors_error(config: TrainConfig, actors: int) -> str | None:
     return None
 
 
-# Fields that are a model of their own: an error's second part names their own field.
-NESTED_FIELDS = frozenset({"count_sketch"})
+# Fields that are a model of their own: an error's second part names their own field
+# (`beta_schedule.end: ...`).
+NESTED_FIELDS = frozenset({"count_sketch", "beta_schedule", "early_stop"})
 
 
 class ConfigError(ValueError):
@@ -438,18 +548,20 @@ class ConfigError(ValueError):
 
 def format_errors(err: ValidationError) -> str:
     """'field: reason; ...'. A field that may take one of several types (learner_lanes:
-    'auto' or an int) fails once per type; those reasons are joined with 'or'."""
+    'auto' or an int) fails once per type; those reasons are joined with 'or'. A nested
+    key is named with its parent (`early_stop.patience`)."""
     reasons: dict[str, list[str]] = {}
     for e in err.errors():
         loc = list(e["loc"])
         if len(loc) == 2 and isinstance(loc[1], str) and loc[0] not in NESTED_FIELDS:
-            # a union branch tag, not a field
-            loc = loc[:1]
+            loc = loc[:1]  # a union branch tag, not a field
         field = ".".join(str(p) for p in loc) or "config"
         msg = e["msg"].removeprefix("Value error, ")
         named, _, rest = msg.partition(": ")
         if not loc and rest and named in TrainConfig.model_fields:  # "beta: ..." names it
             field, msg = named, rest
+        elif len(loc) == 1 and loc[0] in NESTED_FIELDS and rest and named.isidentifier():
+            field, msg = f"{loc[0]}.{named}", rest  # a nested model's own check names its key
         if e["type"] == "extra_forbidden":
             msg = "unknown key (misspelt?)"
         reasons.setdefault(field, []).append(msg)

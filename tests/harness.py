@@ -446,7 +446,11 @@ def assert_exact(run, config=None, *, faults: str | None = None) -> Finished:
     run = run if isinstance(run, Finished) else Finished.of_watch(run, config)
     config = run.config
     assert run.status == "completed", run.said
-    collected = config.episodes * config.episode_len
+    ran = config.episodes  # (a run its early_stop rule ended: the episode of its last row)
+    last = max(run.rows, key=lambda r: r["episode"]) if run.rows else {}
+    if last.get("stop_reason"):
+        ran = last["episode"]
+    collected = ran * config.episode_len
     learner, counter = run.learner, run.counter
     # The counter's final report (a completed run has it), not its last periodic stats,
     # which may come after it.
@@ -455,7 +459,7 @@ def assert_exact(run, config=None, *, faults: str | None = None) -> Finished:
     assert learner["updates"] == collected - config.learning_starts, learner
     assert learner["replay_ratio"] == 1.0, learner
     points = [r["episode"] for r in run.rows]
-    assert points == list(range(config.eval_every, config.episodes + 1, config.eval_every))
+    assert points == list(range(config.eval_every, ran + 1, config.eval_every))
     if faults == "restarted":
         return run
     actors = [run.states[a] for a in run.assign["actors"]]

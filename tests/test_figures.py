@@ -298,6 +298,33 @@ def test_a_short_run_says_so_and_a_wrong_curve_is_not_reproduced():
     assert "**beats the control" not in md, "no verdict on the figure's length before it"
 
 
+def test_runs_ended_by_their_early_stop_rule_are_finished_and_the_page_says_so():
+    """A run `early_stop` ended (its last row's stop_reason) is finished: a claim about
+    episodes past it gets its verdict on what ran, not "not run to that length"; one run
+    ended and another merely cut short is still short."""
+    fig = FIGURES["fig3"]
+    exp, points = synthetic(fig, FIG3_AS_THESIS, 3000)
+    for rows in points.values():
+        rows[-1]["stop_reason"] = "early_stop success_at_least at episode 3000: ..."
+    a = analysis.analyse(fig, exp, points)
+    result = analysis.claim_verdicts(a)
+    assert "not run to that length" not in [v for *_, v in result]
+    assert (
+        "ended by their early_stop rule at episode(s) 3,000, short of 5,000: finished"
+        in (result[0][1])
+    )
+    md = render.markdown(a, "mpe2")
+    assert "ended by their rule, finished, not cut short (" in md
+    assert "ended by their early_stop rule (finished)" in md  # the progress line
+    assert "complete, 3,000 of 5,000 episodes" in md
+    controls = {c[0]: c[4] for c in control_verdicts(a)}
+    assert controls["beta=0.8"].startswith("beats the control (runs ended by their early_stop")
+    first = next(iter(points))
+    del points[first][-1]["stop_reason"]  # one run of an arm was cut short
+    short = analysis.claim_verdicts(analysis.analyse(fig, exp, points))
+    assert "not run to that length" in [v for *_, v in short]
+
+
 def test_an_arm_whose_runs_are_its_controls_runs_is_said_to_be_them():
     """Counting that gives every reward the constant's bonus (every key new: profile
     thesis's fig3 arms) makes the control's runs again; the verdict says so rather than

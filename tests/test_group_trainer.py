@@ -68,6 +68,30 @@ GROUPS = {
             {"bonus_at": "collection", "hash": "none", "seed": 8},
         ],
     ),
+    # beta schedules (beyond the thesis): priced per run at its own transitions' beta
+    "simple-scheduled-beta": (
+        {"task": "simple", "algo": "ddpg", "explore": "dis-macb", "k": 8},
+        [
+            {"beta_schedule": {"kind": "linear", "end": 0.1, "horizon": 4}, "seed": 0},
+            {
+                "explore": "constant",
+                "beta_schedule": {
+                    "kind": "exponential",
+                    "end": 0.05,
+                    "horizon": 90,
+                    "unit": "steps",
+                },
+                "seed": 1,
+            },
+            {
+                "bonus_at": "collection",
+                "hash": "raw",
+                "beta_schedule": {"kind": "linear", "end": 2.0, "horizon": 70, "unit": "steps"},
+                "seed": 2,
+            },
+            {"seed": 3},
+        ],
+    ),
     "speaker_listener-sketch": (  # count_sketch (tests/test_sketch.py) beside an exact table
         {"task": "speaker_listener", "algo": "cen-maddpg", "k": 16},
         [

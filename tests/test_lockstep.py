@@ -52,6 +52,23 @@ CASES = {
         "k": 16,
     },
     "spread-dis-macb": {"task": "spread", "algo": "dis-maddpg", "explore": "dis-macb", "k": 8},
+    # beta schedules (beyond the thesis): the learner prices the counter's counts at the
+    # beta of the transition each update is owed for, as macb train does
+    "speaker_listener-cen-macb-linear-beta": {
+        "task": "speaker_listener",
+        "algo": "cen-maddpg",
+        "explore": "cen-macb",
+        "profile": "thesis",
+        "k": 16,
+        "beta_schedule": {"kind": "linear", "end": 0.1, "horizon": 8},
+    },
+    "simple-ddpg-constant-exponential-beta": {
+        "task": "simple",
+        "algo": "ddpg",
+        "explore": "constant",
+        "reward": "dense",
+        "beta_schedule": {"kind": "exponential", "end": 0.05, "horizon": 90, "unit": "steps"},
+    },
     # counts in a count-min sketch small enough to collide (shared/core/counting.py)
     "speaker_listener-cen-macb-thesis-sketch": {
         "task": "speaker_listener",
@@ -132,6 +149,51 @@ def test_the_comparison_sees_one_changed_value():
     assert compare(rows, [{**rows[0], "wall_s": 2.0}]) == []  # timing aside
     assert compare(rows, [{**rows[0], "bonus_mean": 0.25000001}])
     assert compare([{"episode": 3, "wall_s": 1.0}], rows)  # a column missing
+
+
+@pytest.mark.parametrize(
+    "rule",
+    [
+        {"rule": "success_at_least", "threshold": 0.0, "patience": 2},  # at episode 6
+        {"rule": "no_improvement", "patience": 2, "min_delta": 1.0},  # at episode 9
+    ],
+)
+def test_a_lockstep_run_stopped_by_its_rule_is_the_trainers_run(cluster, bus, tmp_path, rule):
+    """`early_stop` (beyond the thesis): the learner holds each step after a point until
+    the point's row is in; the evaluator reads the rule on its rows, and the run ends
+    completed where `macb train` ends it, its rows (the reason on the last) and final
+    learner state the trainer's, its actor and counter at that episode."""
+    case = {**CASES["speaker_listener-cen-macb-linear-beta"], "early_stop": rule}
+    config = make_config({**BASE, **case})
+    cluster.services(1)
+    wait_services(bus, 4)
+    watch = start_run(bus, config, actors=1)
+    assert watch.wait(timeout=300) == "completed", watch.states
+    assert_exact(watch, config)
+    cluster_state, local_state, local = learner_states(cluster.data, watch.run, config, tmp_path)
+    rows = sorted(watch.rows, key=lambda r: r["episode"])
+    assert rows[-1]["episode"] == local[-1]["episode"] < config.episodes
+    assert rows[-1]["stop_reason"] == local[-1]["stop_reason"]
+    assert rows[-1]["stop_reason"].startswith(f"early_stop {rule['rule']}")
+    assert watch.decision().reason == rows[-1]["stop_reason"]
+    diffs = compare(rows, local)
+    assert not diffs, "\n".join(diffs[:20])
+    diffs = state_differences(cluster_state, local_state)
+    assert not diffs, diffs[:20]
+
+
+def test_early_stop_in_a_cluster_group_or_async_is_refused_saying_where_it_runs():
+    from services.learner.state import open_error
+
+    config = make_config({**BASE, "early_stop": {"rule": "no_improvement"}})
+    assert open_error(config, 1) is None
+    assert "not a run of a group" in (open_error(config, 1, grouped=True) or "")
+    run_async = config.model_copy(update={"interleave": "async"})
+    assert "not interleave async" in (open_error(run_async, 2) or "")
+    # the API's planner and start_group form no cluster group of such runs: each runs alone
+    from shared.groups import group_error
+
+    assert "run 0: early_stop: a cluster group" in (group_error([config, config], 1) or "")
 
 
 @pytest.mark.parametrize(
@@ -220,6 +282,42 @@ def test_a_lockstep_cluster_group_is_the_group_trainers_runs(cluster, bus, tmp_p
         learner = assert_exact(watch, config).learner
         assert learner["policy_lag"] == 0.0
         diffs = compare(sorted(watch.rows, key=lambda row: row["episode"]), local[r])
+        assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
+        theirs = torch.load(
+            cluster.data / "learner" / watch.run / "checkpoint.pt", weights_only=True
+        )
+        mine = torch.load(outs[r] / "checkpoint.pt", weights_only=True)
+        diffs = state_differences(theirs["learner"], mine["learner"])
+        assert not diffs, (r, diffs[:20])
+
+
+def test_a_lockstep_cluster_group_with_scheduled_betas_is_the_group_trainers_runs(
+    cluster, bus, tmp_path
+):
+    """`beta_schedule` in a cluster group: each run prices at its own schedule's beta
+    (the control too), and its rows, `beta` column included, and final learner state are
+    the one-process group's."""
+    from cli.trainer import train_group
+    from shared.net.control import start_group
+
+    linear = {"kind": "linear", "end": 0.1, "horizon": 8}
+    steps = {"kind": "exponential", "end": 0.05, "horizon": 90, "unit": "steps"}
+    configs = [
+        make_config({**GROUP[0], "beta_schedule": linear}),
+        make_config({**GROUP[2], "beta_schedule": steps}),
+    ]
+    cluster.services(1)
+    wait_services(bus, 4)
+    watches = start_group(bus, configs, runs=["b0", "b1"])
+    for watch in watches:
+        assert watch.wait(timeout=300) == "completed", watch.states
+    outs = [tmp_path / f"local{r}" for r in range(2)]
+    local = train_group(configs, outs, progress=False)
+    for r, watch in enumerate(watches):
+        rows = sorted(watch.rows, key=lambda row: row["episode"])
+        assert [row["beta"] for row in rows] == [row["beta"] for row in local[r]]
+        assert rows[-1]["beta"] < rows[0]["beta"]
+        diffs = compare(rows, local[r])
         assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
         theirs = torch.load(
             cluster.data / "learner" / watch.run / "checkpoint.pt", weights_only=True

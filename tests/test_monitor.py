@@ -69,6 +69,27 @@ def test_what_never_comes_is_given_up_after_the_completion_grace_and_named():
     assert "1 of 4 metric points" in late.reason and "counter's final report" in late.reason
 
 
+def test_a_run_its_early_stop_rule_ended_completes_with_the_learners_reason():
+    """The learner completes a run where its `early_stop` rule held, saying why: the
+    run is completed (not stopped, not failed) and its reason is the learner's, which
+    the API stores as the run's and the dashboard shows; a late point adds its note."""
+    why = "early_stop success_at_least at episode 6: success rate >= 0.9 at 2 point(s) in a row"
+    m = running(monitor())
+    m.status("L", "completed", {"reason": why, "stopped_at": 6}, 10.0)
+    m.status("E", "completed", {"points": 2}, 10.0)
+    m.status("C", "completed", {}, 10.0)
+    m.points_seen(2)
+    assert m.decide(10.5) == Decision("completed", why)
+    late = running(monitor())
+    late.status("L", "completed", {"reason": why}, 10.0)
+    late.status("E", "completed", {"points": 3}, 10.0)
+    late.status("C", "completed", {}, 10.0)
+    late.points_seen(2)
+    late.decide(11.0)  # (asks the history once)
+    end = late.decide(15.1)
+    assert end.state == "completed" and end.reason.startswith(why + "; 1 of 3 metric points")
+
+
 def test_a_lost_service_is_waited_for_then_given_up_naming_it():
     m = running(monitor())
     m.peer("actor", "A1", False, 100.0)

@@ -88,6 +88,13 @@ class ArmCurve:
     traces: dict[int, np.ndarray] = field(default_factory=dict)
     smoothed: dict[str, np.ndarray] = field(default_factory=dict)  # (seeds, points) each
     band_kind: str = "std"  # the band drawn around the mean: a key of BANDS
+    stopped: dict[int, int] = field(default_factory=dict)  # seed -> where early_stop ended it
+
+    def ended_by_rule(self, needs: int) -> bool:
+        """Every seed that stops short of `needs` episodes was ended by its `early_stop`
+        rule (a finished run, not one cut short)."""
+        short = [seed for seed, t in self.traces.items() if int(t[-1, 0]) < needs]
+        return all(seed in self.stopped for seed in short) and bool(self.stopped)
 
     def band(self, metric: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) of the band drawn around the mean curve, at each episode."""
@@ -169,6 +176,9 @@ def columns(points: list[dict[str, Any]]) -> Columns:
     out = {"episode": np.array([e for e, _ in rows], dtype=np.int64)}
     for f in LOADED:
         out[f] = np.array([_num(p.get(f)) for _, p in rows], dtype=float)
+    # the episode whose row says the run's early_stop rule ended it there (none or one)
+    stops = [e for e, p in rows if isinstance(p.get("stop_reason"), str) and p["stop_reason"]]
+    out["stop"] = np.array(stops, dtype=np.int64)
     return out
 
 
@@ -241,6 +251,7 @@ def arm_curve(
         traces={r["seed"]: _trace(s) for r, s in zip(runs, series) if len(s["episode"])},
         smoothed=stacks,
         band_kind=band,
+        stopped={r["seed"]: int(s["stop"][0]) for r, s in zip(runs, series) if len(s["stop"])},
     )
 
 
@@ -319,6 +330,20 @@ def analyse(
 REPRODUCED, NOT_REPRODUCED, TOO_SHORT = "reproduced", "not reproduced", "not run to that length"
 
 
+def ended_short(arms: list[ArmCurve], needs: int) -> str | None:
+    """What to say when every run of `arms` that stops short of `needs` episodes was
+    ended there by its `early_stop` rule: finished, so a verdict about `needs` is given
+    on what they ran (None: some run was merely cut short, or none was ended)."""
+    short = [arm for arm in arms if arm.length < needs]
+    if not short or not all(arm.ended_by_rule(needs) for arm in short):
+        return None
+    ends = sorted({e for arm in arms for e in arm.stopped.values()})
+    return (
+        f"runs ended by their early_stop rule at episode(s) "
+        f"{', '.join(f'{e:,}' for e in ends)}, short of {needs:,}: finished"
+    )
+
+
 def claim_verdicts(a: Analysis) -> list[tuple[Any, str, str]]:
     """(claim, measured text, verdict) per claim of the figure."""
     out = []
@@ -329,7 +354,11 @@ def claim_verdicts(a: Analysis) -> list[tuple[Any, str, str]]:
             out.append((claim, "no points", TOO_SHORT))
             continue
         text, ok = check.measure(a)
-        if length < check.needs:
+        finished = ended_short([a.arm(n) for n in check.arms()], check.needs)
+        if length < check.needs and finished:
+            verdict = REPRODUCED if ok else NOT_REPRODUCED
+            text += f" ({finished})"
+        elif length < check.needs:
             verdict = TOO_SHORT
             text += f" (runs reached {length:,} of {check.needs:,} episodes)"
         else:

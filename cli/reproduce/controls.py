@@ -25,6 +25,7 @@ from cli.reproduce.analysis import (
     ArmCurve,
     Columns,
     count1,
+    ended_short,
     same_runs,
 )
 from cli.reproduce.experiments import arm_configs, control_of, counts
@@ -68,18 +69,23 @@ def control_verdicts(a: Analysis) -> list[tuple[str, str | None, str, str, str]]
             out.append((arm_def.name, control, summary(a, mine), summary(a, theirs), "no points"))
             continue
         short = d.length < a.fig.episodes
+        finished = ended_short([mine, theirs], a.fig.episodes) if short else None
         if d.side == "same":  # a fact as far as both went, at any length
             verdict = f"the same runs as the control, point for point: {SAME_RUNS}"
             if short:
                 verdict += f" (at {d.length:,} of {a.fig.episodes:,} episodes)"
         elif d.side == "overlap":
             verdict = "not distinguishable from the control"
-            if short:
+            if finished:  # every run ended by its early-stop rule: a verdict all the same
+                verdict += f" ({finished})"
+            elif short:
                 verdict = f"{TOO_SHORT} ({d.length:,} of {a.fig.episodes:,} episodes); not "
                 verdict += "distinguishable so far"
         else:
             verdict = "beats the control" if d.side == better else "does not beat the control"
-            if short:  # a verdict about the figure's length: not yet
+            if finished:
+                verdict += f" ({finished})"
+            elif short:  # a verdict about the figure's length: not yet
                 verdict = (
                     f"{TOO_SHORT} ({d.length:,} of {a.fig.episodes:,} episodes); so far {verdict}"
                 )
@@ -218,6 +224,8 @@ def against_control(a: Analysis, mine: ArmCurve, theirs: ArmCurve) -> str:
         f"episodes both ran; above at {d.above:.0%}, below at {d.below:.0%} "
         "of all of them)"
     )
+    if d.length < a.fig.episodes and (finished := ended_short([mine, theirs], a.fig.episodes)):
+        return f"{text} ({finished})"
     if d.length < a.fig.episodes:
         return f"{TOO_SHORT} ({d.length:,} of {a.fig.episodes:,} episodes); so far: {text}"
     return text

@@ -148,6 +148,19 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         "length when a run stopped short of the episodes the claim is about (the measured "
         "number is still given).",
     ]
+    stopped = sorted(
+        f"{arm.name} seed {seed} at {e:,}"
+        for arm in a.arms.values()
+        for seed, e in arm.stopped.items()
+    )
+    if stopped:
+        lines += [
+            "- Early stopping (`early_stop`, beyond the thesis): "
+            f"{len(stopped)} run(s) ended by their rule, finished, not cut short ("
+            + "; ".join(stopped)
+            + "): a claim beyond where they ended is judged on the episodes they ran, "
+            "and says so."
+        ]
     lines += [what_ran(runs)]
     if exp.get("wall_s"):  # local runs: their own clocks, over every start
         lines += [

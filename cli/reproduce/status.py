@@ -17,7 +17,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -39,10 +39,11 @@ class RunProgress:
     span_h: float = 0.0  # the clock hours that speed is measured over (at most ~1)
     written: float | None = None  # when its last row was written (epoch s; folders only)
     note: str = ""  # why it has no rows to read, if so
+    stopped: bool = False  # ended by its `early_stop` rule at `episode`: finished
 
     @property
     def left(self) -> int:
-        return max(0, self.target - self.episode)
+        return 0 if self.stopped else max(0, self.target - self.episode)
 
     @property
     def hours_left(self) -> float | None:
@@ -97,12 +98,18 @@ class FigureProgress:
         return out
 
     def reached(self) -> str:
-        """'N of T episodes', with each arm's when they differ."""
+        """'N of T episodes', with each arm's when they differ, and the runs their
+        `early_stop` rule ended (finished short of T)."""
         arms = self.by_arm()
         low = min(arms.values(), default=0)
         text = f"{low:,} of {self.target:,} episodes"
         if len(set(arms.values())) > 1:
             text += " (per arm: " + "; ".join(f"{a} {e:,}" for a, e in arms.items()) + ")"
+        stopped = [r for r in self.runs if r.stopped]
+        if stopped:
+            text += f"; {len(stopped)} run(s) ended by their early_stop rule (finished): " + (
+                ", ".join(f"{r.run} at {r.episode:,}" for r in stopped)
+            )
         return text
 
     def speeds(self) -> str:
@@ -139,7 +146,8 @@ def from_points(
         episodes = cols.get("episode", np.zeros(0))
         wall = cols.get("wall_s", np.full(len(episodes), math.nan))
         run_target = int((r.get("config") or {}).get("episodes") or target)
-        runs.append(measure(r["id"], r["arm"], r["seed"], run_target, episodes, wall))
+        p = measure(r["id"], r["arm"], r["seed"], run_target, episodes, wall)
+        runs.append(replace(p, stopped=bool(len(cols.get("stop", ())))))
     return FigureProgress(runs, _target(runs, target))
 
 
@@ -223,7 +231,8 @@ def read_folders(runs: list[Any], runs_dir: Path, target: int) -> FigureProgress
         p = measure(r.name, r.arm, r.seed, r.config.episodes, episodes, wall)
         written = path.stat().st_mtime if path.exists() else None
         note = "" if rows else "not started"
-        out.append(RunProgress(**{**p.__dict__, "written": written, "note": note}))
+        stopped = bool(rows and rows[-1].get("stop_reason"))
+        out.append(replace(p, written=written, note=note, stopped=stopped))
     return FigureProgress(out, _target(out, target))
 
 
@@ -251,6 +260,8 @@ def status_text(name: str, progress: FigureProgress, runs_dir: Path, now: float)
         if r.speed is not None and r.span_h < 0.99:
             speed += f" ({r.span_h:.2f} h)"
         last = r.note or (_ago(now - r.written) if r.written else "-")
+        if r.stopped:
+            last += "; ended by its early_stop rule (finished)"
         lines.append(f"{r.run:<{width}}  {share:>24}  {speed:>16}  {last}")
     lines.append(
         "speed: episodes per hour of each run's own clock (its rows' wall_s, summed over "

@@ -210,6 +210,24 @@ class ActorService(ServiceBase):
             return True
         return False
 
+    def on_learner_completed(self, run: str) -> None:
+        """The learner completed before this actor published its episodes: the run's
+        `early_stop` rule held at a point (a learner completes otherwise only once every
+        share is in). In lockstep it holds each step after a point until the point's
+        row is in, so everything published is taken: the run completes here."""
+        st = self.st
+        if st is None or run not in st.runs or st.finished:
+            return
+        for r in st.runs:
+            stats = st.stats(r, sum(self.rejects.values())).to_wire()
+            self.publish_metrics(r, stats)
+            seq = st.outboxes[r].sender.seq
+            self.publish_status(r, "completed", final_seq=seq, stopped_early=True, **stats)
+            self.free(r)
+        self.log.info("runs %s: the learner ended them by their rule after %d episodes",
+                      st.runs, st.done)  # fmt: skip
+        self.st = None
+
     def finish_if_settled(self, st: ActorRuns) -> bool:
         if st.settled:
             for run in st.runs:

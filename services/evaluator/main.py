@@ -51,6 +51,7 @@ from services.evaluator.points import (
     take_next,
 )
 from shared.config import TrainConfig
+from shared.metrics import early_stop_reason
 from shared.net import bus as keys
 from shared.net.messages import Assignment, History, Weights
 from shared.net.wire import encode
@@ -156,7 +157,14 @@ class EvaluatorService(ServiceBase):
         return any(s.pending for s in self.runs.values())
 
     def publish_row(self, st: EvaluatorRun, msg: Weights, ev: EvalResult) -> None:
-        row = eval_row(msg, ev)
+        cfg = st.config
+        row = eval_row(msg, ev, cfg)
+        if cfg is not None and cfg.early_stop is not None:  # read on the rows so far
+            entry = self.history.get(st.run)
+            kept = {r["episode"]: r for r in (entry[1] if entry else [])}  # (once each)
+            earlier = [kept[e] for e in sorted(kept) if e < msg.eval_point]
+            if why := early_stop_reason(cfg.early_stop, [*earlier, row]):
+                row["stop_reason"] = why  # the learner ends the run at this point
         self.history.remember(st.run, "running", row)
         self.publish_metrics(st.run, row, source="eval")
         st.row_out(msg.eval_point, time.monotonic())

@@ -59,6 +59,7 @@ class EvaluatorRun:
     held_since: float | None = None  # the next point waits for an earlier one since then
     t0: float = field(default_factory=time.perf_counter)
     eval_episodes: int = 0
+    config: TrainConfig | None = None  # (the beta its rows record)
 
     @classmethod
     def open(cls, run: str, config: TrainConfig) -> EvaluatorRun:
@@ -72,7 +73,7 @@ class EvaluatorRun:
             policy = LearnerPolicy(config, envs[0].spec)
         else:
             policy = JointPolicy.for_task(envs[0].spec, config.hidden)
-        return cls(run, envs, policy, eval_episodes=config.eval_episodes)
+        return cls(run, envs, policy, eval_episodes=config.eval_episodes, config=config)
 
     def evaluate(self, msg: Weights) -> EvalResult:
         """A point on the run's own worlds."""
@@ -175,10 +176,18 @@ class GroupEval:
         return len(self.runs) == 1 or now - self.waiting_since >= GROUP_WAIT_S
 
 
-def eval_row(msg: Weights, ev: EvalResult) -> dict[str, Any]:
+def eval_row(msg: Weights, ev: EvalResult, config: TrainConfig | None = None) -> dict[str, Any]:
     """A point's metric row: the trainer's fields, the evaluation's and the learner's
-    statistics at that point (the counter's and the bonus's ride in its weights)."""
+    statistics at that point (the counter's and the bonus's ride in its weights), and
+    the columns of the options its `config` sets: `beta`, the one in force at the
+    point's last transition (`beta_at`), and `stop_reason` (the service sets it where
+    the run's `early_stop` rule holds)."""
     info = LearnerStats.from_wire(msg.stats)
+    options: dict[str, Any] = {}
+    if config is not None and config.beta_schedule is not None:
+        options["beta"] = config.beta_at(msg.env_steps)
+    if config is not None and config.early_stop is not None:
+        options["stop_reason"] = None
     counts = info.tables  # the counter's stats at this boundary
     return {
         "episode": msg.eval_point,
@@ -200,4 +209,5 @@ def eval_row(msg: Weights, ev: EvalResult) -> dict[str, Any]:
         "replay_ratio": info.replay_ratio,
         "policy_lag": info.policy_lag,
         "policy_version": msg.version,
+        **options,
     }

@@ -37,11 +37,19 @@ def with_unreported(payload: bytes, unreported: list[int]) -> bytes:
 def reported_point(payload: bytes) -> int:
     """The point an evaluator's metrics row reports (only the point is read: the API is
     the rows' consumer of record); WireError if the row is malformed."""
+    return reported_row(payload)[0]
+
+
+def reported_row(payload: bytes) -> tuple[int, str | None]:
+    """The point an evaluator's metrics row reports and its `stop_reason` (the evaluator
+    read the run's `early_stop` rule on its rows: the run ends there), None without
+    one; WireError if malformed."""
     msg = decode(payload, Metrics)
     point = msg.data.get("episode") if isinstance(msg.data, dict) else None
     if not isinstance(point, int) or isinstance(point, bool):
         raise WireError(f"metrics: eval row episode is not an int: {point!r}")
-    return point
+    why = msg.data.get("stop_reason")
+    return point, why if isinstance(why, str) and why else None
 
 
 class EvaluationsInFlight:
@@ -60,11 +68,15 @@ class EvaluationsInFlight:
         # Points sent and not reported yet: point -> (when sent, the weights message).
         self.unreported: dict[int, tuple[float, bytes]] = {}
         self.reported_at = time.monotonic()
+        # Points whose row says the run's `early_stop` rule held there, and why.
+        self.stops: dict[int, str] = {}
 
     def sent(self, point: int) -> None:
         self.last_sent, self.sent_at = point, time.monotonic()
 
-    def reported(self, point: int) -> None:
+    def reported(self, point: int, stop_reason: str | None = None) -> None:
+        if stop_reason is not None:
+            self.stops[point] = stop_reason
         self.last_reported = max(self.last_reported, point)
         self.reported_rows += 1
         self.unreported.pop(point, None)

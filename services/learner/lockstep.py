@@ -74,6 +74,8 @@ def ready(g: RunGroup, runs: dict[str, LearnerRun], seq: int) -> bool:
             continue
         if taken < seq or not st.intake.in_replay(actor, seq) or not learnt_up_to(st):
             return False
+        if st.config.early_stop is not None and (st.evaluations.unreported or st.stopped):
+            return False  # the point's row decides whether the run goes on (macb train's)
     return True
 
 

@@ -53,7 +53,7 @@ from services.common import ServiceBase
 from services.learner import checkpoint as ckpt
 from services.learner import intake
 from services.learner.bonus import BonusClient, bus_query
-from services.learner.evaluations import EvaluationsInFlight, reported_point
+from services.learner.evaluations import EvaluationsInFlight, reported_row
 from services.learner.lockstep import Asks
 from services.learner.outbound import Outbound
 from services.learner.serving import Serving
@@ -159,7 +159,7 @@ class LearnerService(ServiceBase):
         """The runs' states and their one learner; in lockstep, their one actor's act
         requests, on the lead run's keys (run 0)."""
         for config in configs:
-            if why := open_error(config, len(assign.actors)):
+            if why := open_error(config, len(assign.actors), bool(assign.group)):
                 raise ValueError(why)  # the run fails, saying so (not a silent change)
         spec, c0, grouped = task_spec_for(configs[0]), configs[0], bool(assign.group)
         torch.set_num_threads(c0.threads)
@@ -282,7 +282,7 @@ class LearnerService(ServiceBase):
         A malformed row is counted and logged on the service's thread (via the inbox),
         which owns the reject counts that stats() reads."""
         try:
-            evaluations.reported(reported_point(payload))
+            evaluations.reported(*reported_row(payload))
         except WireError as err:
             self.inbox.put(("reject", key, str(err).encode()))
 
@@ -302,13 +302,20 @@ class LearnerService(ServiceBase):
             self.fail(st, reason)
 
     def finish(self, st: LearnerRun) -> None:
-        """Every share in replay and learnt, every point out: the run completes."""
+        """Every share in replay and learnt, every point out: the run completes (or its
+        `early_stop` rule held at a point: it completes there, saying why; its actor
+        and counter follow)."""
         self.serving.checkpoint(st)
         ckpt.retire(st)
         stats = self.out.stats(st).to_wire()
         self.publish_metrics(st.run, stats, source="learner")
-        self.publish_status(st.run, "completed", resumed=self.resume, **stats)
-        self.log.info("run %s completed: %s", st.run, json.dumps(stats))
+        why, at = (
+            (None, {}) if st.stopped is None else (st.stopped[1], {"stopped_at": st.stopped[0]})
+        )
+        self.publish_status(st.run, "completed", reason=why, resumed=self.resume, **at, **stats)
+        self.log.info(
+            "run %s completed%s: %s", st.run, f" ({why})" if why else "", json.dumps(stats)
+        )
         self.serving.drop(st.run)
         self.free(st.run)
 

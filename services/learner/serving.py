@@ -69,6 +69,8 @@ class Serving:
         if g is None or not members:
             return False
         whole = len(members) == len(g.runs)
+        for st in members:
+            early_stop(st)
         updates.update(g, members, min(map(updates.updates_due, members)) if whole else 0)
         for st in members:
             self.out.boundaries(st)
@@ -125,3 +127,12 @@ class Serving:
                 why = f"actor {peer} died before it finished its episodes"
                 out.append((st, f"{why} (not back within {grace_s:g} s)"))
         return out
+
+
+def early_stop(st: LearnerRun) -> None:
+    """`early_stop` (lockstep, alone: open_error): a row whose evaluator found the rule
+    holding there stops the run at that point (lockstep holds the next step until each
+    point's row is in, so nothing was taken after it, as in macb train)."""
+    if st.config.early_stop is not None and st.stopped is None and st.evaluations.stops:
+        point = min(st.evaluations.stops)
+        st.stopped = (point, st.evaluations.stops[point])

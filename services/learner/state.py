@@ -104,6 +104,7 @@ class LearnerRun:
     cuts: Cuts = field(default_factory=Cuts)
     final: dict[str, int] = field(default_factory=dict)  # actor -> transitions it published
     time: PhaseTimes = field(default_factory=PhaseTimes)
+    stopped: tuple[int, str] | None = None  # `early_stop`: the point it held at, and why
 
     @property
     def counting(self) -> bool:
@@ -125,19 +126,27 @@ class LearnerRun:
         evaluation point out: the run can complete. (Whether or not an actor's
         "completed" came: a learner resumed after it may never see it.)"""
         return (
-            self.intake.all_in()
+            (self.intake.all_in() or self.stopped is not None)
             and not self.intake.boundaries
             and self.learner.updates >= self.owed_total
             and not self.evaluations.unreported  # every point's row is out (or sent again)
         )
 
 
-def open_error(config: TrainConfig, actors: int) -> str | None:
-    """Why the cluster's learner cannot serve this run with this many actors, if so."""
+def open_error(config: TrainConfig, actors: int, grouped: bool = False) -> str | None:
+    """Why the cluster's learner cannot serve this run with this many actors (in a
+    lockstep group, `grouped`), if so."""
     if config.bonus_at == "collection":
         return (
             "bonus_at collection: the cluster prices bonuses when it samples; run this "
             "config with macb train or as a run group (macb run/reproduce --local)"
+        )
+    if config.early_stop is not None and (config.interleave != "lockstep" or grouped):
+        where = "a run of a group" if grouped else "interleave async"
+        return (
+            f"early_stop: the cluster stops a run by its rule in lockstep, alone (it holds "
+            f"each step after a point until the point's row is in); not {where}: run it "
+            "with macb train or as a run group (macb run/reproduce --local)"
         )
     return actors_error(config, actors)
 

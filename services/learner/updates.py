@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from shared.core.exploration import BonusDiagnostics
+from shared.core.exploration import BonusDiagnostics, price
 from shared.core.replay import update_arrays
 
 if TYPE_CHECKING:
@@ -91,7 +91,10 @@ def update(g: RunGroup, members: list[LearnerRun], todo: int) -> int:
                 m.sampling.unpriced = batches
             return 0
         known = st.bonus.counts
-        priced.append((bonuses, list(known) if len(known) == len(bonuses) else None))
+        counts = list(known) if len(known) == len(bonuses) else None
+        if st.config.beta_schedule is not None:
+            bonuses = scheduled(st, bonuses, counts, g.learner.updates)
+        priced.append((bonuses, counts))
     t2 = time.perf_counter()
     per = members[0].sampling.per_update  # 1, or one per agent
     done = len(drawn[0]) // per
@@ -111,3 +114,24 @@ def update(g: RunGroup, members: list[LearnerRun], todo: int) -> int:
         st.time.add("sample", (t1 - t0) / len(members))
         st.time.add("update", spent / len(members))
     return done
+
+
+def scheduled(
+    st: LearnerRun, bonuses: list[np.ndarray], counts: list | None, updates: int
+) -> list[np.ndarray]:
+    """A tick's bonuses at the schedule's beta (`beta_schedule`): minibatch j belongs to
+    update `updates + j // per + 1`, the one the replay ratio owes for transition
+    `learning_starts` + that, so it is priced at that transition's beta, as `macb train`
+    prices it, from the counts the counter answered with (its own bonus is at the
+    config's beta)."""
+    cfg, per = st.config, st.sampling.per_update
+    out = []
+    for j, bonus in enumerate(bonuses):
+        beta = cfg.beta_at(cfg.learning_starts + updates + j // per + 1)
+        if counts is not None or not cfg.counts:
+            tables = [np.maximum(c, 1) for c in counts[j]] if counts is not None else []
+            out.append(price(cfg.explore, tables, beta, len(bonus), st.spec.n_agents))
+        else:  # (a reply without its counts: the counter's bonus rescaled)
+            scale = beta / cfg.beta if cfg.beta else 0.0
+            out.append((bonus * np.float32(scale)).astype(np.float32))
+    return out

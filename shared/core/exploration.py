@@ -120,17 +120,14 @@ class CountExploration:
         """Per-agent bonus (B, N) for a sampled batch; computed now, never stored."""
         return self.bonus_from_counts(self.counts(obs, act), len(obs))
 
-    def bonus_from_counts(self, counts: list[np.ndarray], batch: int) -> np.ndarray:
-        """Spread table counts onto agents: Dis gives each its own, Cen one for all."""
-        beta = self.spec.beta
-        if self.spec.mode == "none":
-            return np.zeros((batch, self.n_agents), np.float32)
-        if self.spec.mode == "constant":
-            return np.full((batch, self.n_agents), beta, np.float32)
-        per_table = np.stack([count_bonus(c, beta) for c in counts], axis=1)
-        if self.spec.mode == "cen-macb":
-            return np.repeat(per_table, self.n_agents, axis=1)
-        return per_table
+    def bonus_from_counts(
+        self, counts: list[np.ndarray], batch: int, beta: float | None = None
+    ) -> np.ndarray:
+        """Spread table counts onto agents: Dis gives each its own, Cen one for all;
+        at `beta` (a schedule's value now), else the spec's."""
+        return price(
+            self.spec.mode, counts, self.spec.beta if beta is None else beta, batch, self.n_agents
+        )
 
     def stats(self) -> dict[str, float]:
         """Table size, count-1 percentage (over all tables' keys) and transitions counted."""
@@ -141,6 +138,22 @@ class CountExploration:
             "count1_pct": 100.0 * c1 / size if size else 0.0,
             "counted_transitions": self.tables[0].total if self.tables else 0,
         }
+
+
+def price(
+    mode: str, counts: Sequence[np.ndarray], beta: float, batch: int, n_agents: int
+) -> np.ndarray:
+    """The (batch, n_agents) bonus of `mode` at `beta` from each table's (batch,) counts
+    (n >= 1): every pricing site's one formula, so the learner service, pricing a
+    scheduled beta from the counter's counts, gives the trainer's bits."""
+    if mode == "none":
+        return np.zeros((batch, n_agents), np.float32)
+    if mode == "constant":
+        return np.full((batch, n_agents), beta, np.float32)
+    per_table = np.stack([count_bonus(c, beta) for c in counts], axis=1)
+    if mode == "cen-macb":
+        return np.repeat(per_table, n_agents, axis=1)
+    return per_table
 
 
 class BonusDiagnostics:

@@ -86,10 +86,12 @@ def run_verdict(
     missing = max(0, expected - points_seen)  # the evaluator's status may overtake its rows
     counter = assign.counter
     pending = counter is not None and states.get(counter, {}).get("state") != "completed"
+    # a learner's reason for completing: its `early_stop` rule held at a point
+    why = states.get(assign.learner, {}).get("reason")
     if missing == 0 and not pending:
-        return RunVerdict("completed", points_expected=expected)
+        return RunVerdict("completed", why, points_expected=expected)
     return RunVerdict(
-        "finishing", points_expected=expected, missing=missing, counter_pending=pending
+        "finishing", why, points_expected=expected, missing=missing, counter_pending=pending
     )
 
 
@@ -279,14 +281,15 @@ class RunMonitor:
         if v.state in ("failed", "stopped"):
             return Decision(v.state, v.reason or v.state)
         if v.state == "completed":
-            return Decision("completed")
+            return Decision("completed", v.reason)  # (an early stop's, if any)
         if v.state == "finishing":
             if v.missing and not self.history_asked:
                 self.history_asked = True  # points lost on the way: ask for them once
                 return Decision("running", ask_history=True)
             done = self.evaluator_done if self.evaluator_done is not None else now
             if now - done > self.graces.completion_s:
-                return Decision("completed", finishing_note(v, self.watcher))
+                note = finishing_note(v, self.watcher)
+                return Decision("completed", "; ".join(filter(None, (v.reason, note))))
             return Decision("running")
         for role, sid in self.peers.expired(now):
             return Decision(

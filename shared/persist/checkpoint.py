@@ -7,7 +7,8 @@ A checkpoint is a `torch.save` file of tensors and primitives only, read with
 Its fields:
 
 - `format` (CHECKPOINT_FORMAT: an earlier version refuses the file by it, rather
-  than misreading a field) and `kind`: `cut`, `final` or `service`;
+  than misreading a field) and `kind`: `cut`, `final`, `service` or `best` (a run with
+  `early_stop`: its best evaluation point's learner, without tables);
 - `config`: the run's config as JSON (a checkpoint of another config is refused,
   naming the first field that differs);
 - `learner`: the learner's state_dict (networks, optimizers, targets, update count);
@@ -38,7 +39,7 @@ from shared.core.counting import Counts, CountSketch, CountTable
 from shared.persist.files import atomic_write
 
 CHECKPOINT_FORMAT = 2  # 1: the same fields, before `kind` (still read)
-KINDS = ("cut", "final", "service")
+KINDS = ("cut", "final", "service", "best")
 
 
 class CutError(ValueError):
