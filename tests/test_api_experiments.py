@@ -172,6 +172,15 @@ def _grid_values(name: str) -> list:
         "device": "cuda",  # a name the config takes; the learner checks it is there
         # optional: None (the exact table) and a sketch, written whole as a run stores it
         "count_sketch": {"width": 1024, "depth": 4, "memory_mb": None, "conservative": True},
+        # optional: None (beta constant; no early stop) and a rule, written whole
+        "beta_schedule": {"kind": "linear", "end": 0.0, "horizon": 1000, "unit": "episodes"},
+        "early_stop": {
+            "rule": "success_at_least",
+            "threshold": 0.9,
+            "patience": 3,
+            "smooth": 1,
+            "min_delta": 0.0,
+        },
     }.get(name, value + 1 if isinstance(value, int) else value)
     return [value, other]
 

@@ -21,7 +21,7 @@ from cli.supervisor import free_port
 from cli.view import runs_figure
 from shared import procs
 from tests.cdp import CHROMIUM, Browser
-from tests.harness import TINY, api_cluster, macb, spawn, wait_for, write_config
+from tests.harness import TINY, Cluster, macb, spawn, wait_for, write_config
 
 pytestmark = pytest.mark.skipif(
     not CHROMIUM.exists(),
@@ -166,14 +166,27 @@ def _answers(url: str) -> bool:
         return False
 
 
+def _healthy(url: str) -> bool:
+    try:
+        return httpx.get(f"{url}/health", timeout=2).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
 def test_the_dashboards_figure_view_follows_a_run_through_the_api(tmp_path):
     """A real run on the cluster: from the dashboard's link, the figure view draws its
     points as the event stream brings them, the values the report computes from the
     stored points."""
     body = {**TINY, "episodes": 40, "eval_every": 4, "seeds": [0], "name": "figure view"}
     (tmp_path / "cluster").mkdir()
-    with api_cluster(tmp_path / "cluster") as cluster, Browser(tmp_path / "chromium") as page:
+    env = {"MACB_PEER_GRACE_S": "8"}
+    with Cluster(tmp_path / "cluster", env=env) as cluster, Browser(tmp_path / "chromium") as page:
+        # The page is open before any service is: the run, queued until they answer,
+        # cannot end before the page has drawn its first point, however slow Chromium is.
+        cluster.router()
+        cluster.api(answering=None)
         url = cluster.url
+        wait_for(lambda: _healthy(url), timeout=60, interval=0.3, what="the API answering")
         exp = httpx.post(f"{url}/experiments", json=body).json()
         page.goto(f"{url}/")
         link = page.wait(
@@ -181,6 +194,7 @@ def test_the_dashboards_figure_view_follows_a_run_through_the_api(tmp_path):
         )
         page.goto(link)
         page.wait("document.body.dataset.ready === '1'", what="the figure view drew")
+        cluster.services(actors=1)
         first = page.wait(
             "(document.querySelector('#main-chart path.curve-mean') || {dataset: {}})"
             ".dataset.episodes",
