@@ -158,14 +158,17 @@ def _start(commit: str, started: str, resumed_at: int | None = None) -> dict:
 
 def test_the_page_header_says_how_often_and_where_the_campaign_resumed(runs_dir, tmp_path):
     """Each run's provenance.json holds a start per resume with the episode it went on
-    from: the i-th resume of every run is the campaign's i-th restart (its groups at
-    their own cuts). Starts written before `resumed_at` say so."""
+    from: resumes within minutes of each other are one restart of the campaign (its
+    groups at their own cuts, even when one group's first attempt was stopped and
+    given again). Starts written before `resumed_at` say so."""
     for folder in runs_dir.iterdir():
-        at = 1000 if folder.name.startswith(("Sparse-", "Sparse_Dis")) else 1200
+        first = folder.name.startswith(("Sparse-", "Sparse_Dis"))
+        at = 1000 if first else 1200
         starts = [
             _start("a" * 40, "2026-12-04T08:00:00Z"),
             _start("b" * 40, "2026-12-04T20:00:00Z"),  # before resumes were recorded
-            _start("c" * 40, "2026-12-05T09:00:00Z", at),
+            *([_start("c" * 40, "2026-12-05T08:58:00Z", at)] if first else []),  # stopped
+            _start("c" * 40, "2026-12-05T09:00:00Z" if first else "2026-12-05T09:01:00Z", at),
         ]
         (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
     out = tmp_path / "page"
@@ -173,7 +176,7 @@ def test_the_page_header_says_how_often_and_where_the_campaign_resumed(runs_dir,
     header = (out / "fig8.md").read_text().split("## Arms")[0]
     assert (
         "- Restarts: resumed 2 times (at episodes ? (code bbbbbbbbbbbb, 2026-12-04T20:00:00Z); "
-        "1,000 and 1,200 (code cccccccccccc, 2026-12-05T09:00:00Z)); ?: a resume written "
+        "1,000 and 1,200 (code cccccccccccc, 2026-12-05T08:58:00Z)); ?: a resume written "
         "before its episode was recorded."
     ) in header
 

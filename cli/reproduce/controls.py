@@ -297,7 +297,9 @@ def why_section(a: Analysis) -> list[str]:
         "every seed (s0, s1, ...) after the mean, and whether its curve can be told from its "
         "constant control's: the same runs point for point, or else their spreads (mean ± "
         f"one standard deviation over seeds, {band}) apart over at least "
-        f"{DISTINGUISHED:.0%} of the last {PLATEAU_SHARE:.0%} of the episodes both ran.",
+        f"{DISTINGUISHED:.0%} of the last {PLATEAU_SHARE:.0%} of the episodes both ran, or, "
+        "where those overlap, the spreads of each seed's mean over the episodes both ran "
+        "(an arm that reaches the same end sooner).",
         "",
         "| counting arm | at the end | count-1 % | bonus paid | its control "
         "| against the control |",

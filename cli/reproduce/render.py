@@ -232,22 +232,38 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
     return "\n".join(lines) + "\n"
 
 
+RESTART_GAP_S = 600.0  # resumes this close in time are one restart of the command
+
+
 def restarts(runs: list[dict[str, Any]]) -> list[str]:
     """The header's line on a campaign's restarts, from each run's resumes (`resumes`:
     the starts after its first in its provenance.json, as `cli.local.local_experiment`
     reads them; no line where no run has a provenance.json, or for a cluster's runs,
-    which carry none). The i-th resume of every
-    run is one restart: the runs of a campaign start together and resume together, at
-    their groups' cuts (one episode per group)."""
+    which carry none). Resumes started within RESTART_GAP_S of each other are one
+    restart: a command resumes its groups together (each at its cut), and a restart
+    that was stopped and given again at once, or that resumed only some groups, stays
+    one entry."""
     lists = [r["resumes"] for r in runs if isinstance(r.get("resumes"), list)]
     if not lists:
         return []
-    n = max(map(len, lists), default=0)
-    if not n:
+    every = sorted((str(x.get("started") or ""), i, x) for i, xs in enumerate(lists) for x in xs)
+    if not every:
         return ["- Restarts: none (each run trained in one start)."]
+    clusters: list[list[dict[str, Any]]] = []
+    last: datetime | None = None
+    for started, _, x in every:
+        at = _when(started)
+        if (
+            not clusters
+            or at is None
+            or last is None
+            or (at - last).total_seconds() > RESTART_GAP_S
+        ):
+            clusters.append([])
+        clusters[-1].append(x)
+        last = at or last
     parts, unknown = [], False
-    for i in range(n):
-        these = [x[i] for x in lists if len(x) > i]
+    for these in clusters:
         eps = sorted({e for x in these if isinstance(e := x.get("episode"), int)})
         missing = any(not isinstance(x.get("episode"), int) for x in these)
         unknown |= missing
@@ -256,8 +272,16 @@ def restarts(runs: list[dict[str, Any]]) -> list[str]:
         when = min((str(x.get("started") or "") for x in these), default="")
         parts.append(f"{where} (code {', '.join(commits)}{', ' + when if when else ''})")
     note = "; ?: a resume written before its episode was recorded" if unknown else ""
+    n = len(clusters)
     times = f"{n} time{'s' * (n != 1)}"
     return [f"- Restarts: resumed {times} (at episodes {'; '.join(parts)}){note}."]
+
+
+def _when(text: str) -> datetime | None:
+    try:
+        return datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        return None
 
 
 def write_csv(exp: dict[str, Any], points: Mapping[str, Columns | list], path: Path) -> Path:
