@@ -267,8 +267,9 @@ def test_the_docs_api_example_runs_against_the_api(api, capsys):
         try:
             while not done.is_set():
                 exps = store.experiments()
-                if exps:
-                    for r in store.runs_of([exps[0]["id"]])[exps[0]["id"]]:
+                runs = store.runs_of([exps[0]["id"]]).get(exps[0]["id"]) if exps else None
+                if runs:  # the experiment's row can be there a moment before its runs'
+                    for r in runs:
                         store.add_points(r["id"], [row(e) for e in range(10, 201, 10)])
                     return
                 time.sleep(0.05)
