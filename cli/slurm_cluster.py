@@ -33,6 +33,7 @@ from cli.reproduce.slurm import (
     SlurmOptions,
     macb_argv,
     parse_job_id,
+    placement,
     preflight,
     run_command,
     sbatch_argv,
@@ -121,11 +122,7 @@ def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: Slu
         f"#SBATCH --output={job.log_dir}/cluster-%j.log",
         f"#SBATCH --chdir={cwd}",
     ]
-    for flag, value in (("partition", opts.partition), ("time", opts.time)):
-        if value:
-            lines.append(f"#SBATCH --{flag}={value}")
-    if opts.account:
-        lines.append(f"#SBATCH --account={opts.account}")
+    lines += placement(opts)
     thread_env = " ".join(f"{k}={v}" for k, v in THREAD_ENV.items())
     lines += [
         "# Written by `macb up --launcher slurm` (docs/deploy.md, 'On a Slurm cluster'): the",

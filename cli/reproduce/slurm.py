@@ -137,11 +137,7 @@ def render_script(
         f"#SBATCH --output={log_dir}/%A_%a.log",
         f"#SBATCH --chdir={cwd}",
     ]
-    for flag, value in (("partition", opts.partition), ("time", opts.time)):
-        if value:
-            lines.append(f"#SBATCH --{flag}={value}")
-    if opts.account:
-        lines.append(f"#SBATCH --account={opts.account}")
+    lines += placement(opts)
     lines += [
         "# Written by `macb reproduce --launcher slurm`. Each task trains one run group",
         "# into the runs folder and, started again (requeue, preemption, time limit,",
@@ -155,6 +151,12 @@ def render_script(
         lines.append(f"  {i}) exec {shlex.join(t.argv)} ;;  # {t.label}")
     lines += ['  *) echo "no task $SLURM_ARRAY_TASK_ID" >&2; exit 2 ;;', "esac", ""]
     return "\n".join(lines)
+
+
+def placement(opts: SlurmOptions) -> list[str]:
+    """The #SBATCH lines of the user's partition, time limit and account (those given)."""
+    given = (("partition", opts.partition), ("time", opts.time), ("account", opts.account))
+    return [f"#SBATCH --{flag}={value}" for flag, value in given if value]
 
 
 def sbatch_argv(opts: SlurmOptions, script: Path) -> list[str]:
