@@ -71,11 +71,18 @@ def test_shipped_configs_are_valid():
     from pathlib import Path
 
     from cli.config_flags import one_run_config
+    from cli.local import expand_body
     from shared.config import read_config_file
 
     files = sorted(Path(__file__).parent.parent.glob("configs/**/*.yaml"))
     assert len(files) >= 30
     for f in files:
+        if "arms" in read_config_file(f):  # an experiment of several runs: each is valid
+            _, _, runs = expand_body(read_config_file(f))
+            assert len({r.arm for r in runs}) == len(read_config_file(f)["arms"]) > 1, f
+            for run in runs:
+                json.dumps(run.config.model_dump(mode="json"))
+            continue
         cfg, _ = one_run_config(str(f), {})  # an experiment file, as one run takes it
         json.dumps(cfg.model_dump(mode="json"))
         if f.parent.name != "configs":  # the thesis's experiments run 3 seeds, as it did
