@@ -50,11 +50,18 @@ from services.common import ServiceBase
 from shared.config import TrainConfig
 from shared.net import bus as keys
 from shared.net.messages import Ack, Action, Assignment, Weights
+from shared.net.wire import WireError, decode
 
 # Runs whose newest weights an actor keeps (it serves one at a time; the others are
 # runs beside it on the bus, or over).
 NEWEST_RUNS_KEPT = 16
 STATS_EVERY_S = 1.0
+
+
+def group_subs(runs: list[str]) -> str:
+    """What the runs' shared subscription (the answers, on the lead run's keys) is held
+    under: it outlives the lead run when its rule ends it before the others."""
+    return f"group:{runs[0]}"
 
 
 class ActorService(ServiceBase):
@@ -111,9 +118,10 @@ class ActorService(ServiceBase):
         cfgs = [self._members.pop(r) for r in runs]
         outboxes = {r: self.outbox(r, cfg, assign) for r, cfg in zip(runs, cfgs)}
         act_pub = None
-        if config.interleave == "lockstep":  # (a group's: on its lead run's keys)
-            act_pub = self.bus.publisher(keys.k_act(runs[0], self.id))
-            self.listen(keys.k_action(runs[0], self.id), "action", runs[0])
+        if config.interleave == "lockstep":  # (a group's: on its lead run's keys, held by
+            act_pub = self.bus.publisher(keys.k_act(runs[0], self.id))  # the group: its
+            self.listen(keys.k_action(runs[0], self.id), "action", group_subs(runs))  # lead
+            # may end by its rule first)
         actors = list(assign.actors)
         rank, grouped = actors.index(self.id), assign.group is not None
         self.st = st = ActorRuns.open(self.id, cfgs, outboxes, act_pub, rank, len(actors), grouped)
@@ -129,7 +137,13 @@ class ActorService(ServiceBase):
     def on_stop(self, run: str, reason: str) -> None:
         self._members.pop(run, None)
         if self.st is not None and run in self.st.runs:
-            self.st = None  # (each run of a group is stopped: the others follow)
+            self.end_runs()  # (each run of a group is stopped: the others follow)
+
+    def end_runs(self) -> None:
+        """The runs served are over: their group's subscriptions end with them."""
+        if self.st is not None:
+            self.endpoint.drop_run(group_subs(self.st.runs))
+        self.st = None
 
     # ------------------------------------------------------------ inbound
     def handle(self, tag: str, key: str, payload: bytes) -> None:
@@ -149,8 +163,18 @@ class ActorService(ServiceBase):
         st.outboxes[msg.run].sender.on_ack(msg.service, acked, time.monotonic(), window=msg.window)
 
     def on_action(self, key: str, payload: bytes) -> None:
-        msg = self.decode_for_run(key, payload, Action)
         st = self.st
+        if st is not None and st.stopped and st.runs[0] == keys.run_of(key):
+            try:  # (the lead run ended by its rule: its keys still carry the answers)
+                msg: Action | None = decode(payload, Action)
+            except WireError as err:
+                self.reject(key, str(err))
+                return
+            if msg is not None and msg.run != st.runs[0]:
+                self.reject(key, "run mismatch: key and message name different runs")
+                return
+        else:
+            msg = self.decode_for_run(key, payload, Action)
         if msg is None or st is None or not st.exchange.awaits(msg.seq):
             return  # an answer to a request resent earlier, already taken
         if not valid_action(msg.act, st.act_shape):
@@ -199,7 +223,7 @@ class ActorService(ServiceBase):
         st.resend_due(now)
         if now - st.last_stats > STATS_EVERY_S:
             st.last_stats = now
-            for run in st.runs:
+            for run in st.going:
                 self.publish_metrics(run, st.stats(run, sum(self.rejects.values())).to_wire())
         if st.finished:
             return self.finish_if_settled(st)
@@ -216,28 +240,32 @@ class ActorService(ServiceBase):
         share is in). In lockstep it holds each step after a point until the point's
         row is in, so everything published is taken: the run completes here."""
         st = self.st
-        if st is None or run not in st.runs or st.finished:
+        if st is None or run not in st.going or st.finished:
             return
-        for r in st.runs:
+        ending = [run] if len(st.going) > 1 else st.going  # (a group's others go on)
+        for r in ending:
             stats = st.stats(r, sum(self.rejects.values())).to_wire()
             self.publish_metrics(r, stats)
             seq = st.outboxes[r].sender.seq
             self.publish_status(r, "completed", final_seq=seq, stopped_early=True, **stats)
             self.free(r)
         self.log.info("runs %s: the learner ended them by their rule after %d episodes",
-                      st.runs, st.done)  # fmt: skip
-        self.st = None
+                      ending, st.done)  # fmt: skip
+        if ending == st.going:
+            self.end_runs()
+        else:
+            st.stopped.update(ending)
 
     def finish_if_settled(self, st: ActorRuns) -> bool:
         if st.settled:
-            for run in st.runs:
+            for run in st.going:
                 stats = st.stats(run, sum(self.rejects.values())).to_wire()
                 self.publish_metrics(run, stats)
                 seq = st.outboxes[run].sender.seq
                 self.publish_status(run, "completed", final_seq=seq, **stats)
                 self.free(run)
-            self.log.info("runs %s: %d episodes published", st.runs, st.done)
-            self.st = None
+            self.log.info("runs %s: %d episodes published", st.going, st.done)
+            self.end_runs()
         return False
 
 

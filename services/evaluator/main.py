@@ -104,6 +104,8 @@ class EvaluatorService(ServiceBase):
         self.runs.pop(run, None)
         if self.group is not None and not any(r in self.runs for r in self.group.runs):
             self.group = None
+        elif self.group is not None:  # (its rule ended it: the others' points go on together)
+            self.group.ended.add(run)
 
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag != "weights":

@@ -118,9 +118,23 @@ def apply(st: LearnerRun, state: dict[str, Any]) -> int:
 
 
 def wipe(folder: Path) -> None:
-    """An earlier attempt's log and cuts: a start begins afresh."""
-    for old in (LOG, CUT, PREVIOUS):
+    """An earlier attempt's log, cuts and best point: a start begins afresh."""
+    for old in (LOG, CUT, PREVIOUS, checkpoint.BEST):
         (folder / old).unlink(missing_ok=True)
+
+
+def best_so_far(st: LearnerRun) -> float:
+    """The success of the point in the run's best.pt (`early_stop`), -1 without one: a
+    resumed learner replaces it only with a better point, as the rows it reads again
+    from the evaluator are the ones it had read."""
+    path = st.cuts.folder / checkpoint.BEST if st.cuts.folder is not None else None
+    if path is None or not path.exists():
+        return -1.0
+    try:
+        best = checkpoint.load(path, "best", st.config.model_dump(mode="json"))
+    except checkpoint.CutError:  # (unreadable or another config: the next point rewrites it)
+        return -1.0
+    return float(best["counters"]["success_rate"])
 
 
 def retire(st: LearnerRun) -> None:
