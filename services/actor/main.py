@@ -238,7 +238,8 @@ class ActorService(ServiceBase):
         """The learner completed before this actor published its episodes: the run's
         `early_stop` rule held at a point (a learner completes otherwise only once every
         share is in). In lockstep it holds each step after a point until the point's
-        row is in, so everything published is taken: the run completes here."""
+        row is in, so everything published is taken: the run completes here. A group's
+        other runs go on: its world still steps, its steps are no longer published."""
         st = self.st
         if st is None or run not in st.going or st.finished:
             return

@@ -337,7 +337,7 @@ class LearnerService(ServiceBase):
     def finish(self, st: LearnerRun) -> None:
         """Every share in replay and learnt, every point out: the run completes (or its
         `early_stop` rule held at a point: it completes there, saying why; its actor
-        and counter follow)."""
+        and counter follow, and a group's other runs go on without it: `retire`)."""
         self.serving.checkpoint(st)
         ckpt.retire(st)
         stats = self.out.stats(st).to_wire()
