@@ -408,3 +408,40 @@ def test_a_cluster_group_goes_on_when_its_rule_ends_one_run(cluster, bus, tmp_pa
         assert rows[-1]["stop_reason"] == alone[r][-1]["stop_reason"]
         assert watch.decision().reason == rows[-1]["stop_reason"]
         assert_same_best(folder, outs[r], alone[r])
+
+
+@pytest.mark.parametrize("victim", ["learner", "actor0", "evaluator"])
+def test_a_cluster_group_goes_on_after_a_restart_past_one_runs_stop(cluster, bus, tmp_path, victim):
+    """A service of the group killed (SIGKILL) and started again once the lead run's
+    rule has ended it: the restarted learner serves the group with that run retired
+    (its fixed update arrays; the other from its cut and log), the restarted actor steps
+    its world unpublished, the restarted evaluator waits for none of its points. The
+    other run completes exact in its counts (after a fault a lockstep run is not bit
+    for bit `macb train`'s: docs/reliability.md) and the stopped run stays as it ended,
+    its rows `macb train`'s."""
+    from shared.net.control import start_group
+
+    at_least = {"rule": "success_at_least", "threshold": 0.0, "patience": 2}  # at episode 6
+    configs = [
+        make_config({**GROUP[0], "early_stop": at_least, "episodes": 18}),
+        make_config({**GROUP[1], "episodes": 18}),
+    ]
+    cut_each_s = {"MACB_LEARNER_CUT_S": "0.5"}  # (a resume from cuts, the retired run's too)
+    for sid in ("counter", "learner", "evaluator", "actor0"):
+        cluster.service(sid.rstrip("0"), sid, env=cut_each_s)
+    wait_services(bus, 4)
+    watches = start_group(bus, configs, runs=["k0", "k1"])
+    assert watches[0].wait(timeout=300) == "completed", watches[0].states
+    assert len(watches[1].rows) < 6, "the kill lands while the group goes on"
+    cluster.kill(victim)
+    cluster.service(victim.rstrip("0"), victim, name=f"{victim}-again", env=cut_each_s)
+    assert watches[1].wait(timeout=300) == "completed", watches[1].states
+    for watch, config in zip(watches, configs):
+        assert_exact(watch, config, faults="restarted")
+    stopped = sorted(watches[0].rows, key=lambda row: row["episode"])
+    diffs = compare(stopped, train(configs[0], tmp_path / "alone", progress=False))
+    assert not diffs, "\n".join(diffs[:20])
+    assert watches[0].decision().reason == stopped[-1]["stop_reason"]
+    assert [max(row["episode"] for row in w.rows) for w in watches] == [6, 18]
+    if victim == "learner":  # the group resumed whole, the stopped run retired in it
+        assert "runs ['k0', 'k1'] resumed" in cluster.log("learner-again")

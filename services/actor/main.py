@@ -82,6 +82,7 @@ class ActorService(ServiceBase):
         self.bus.subscribe(keys.k_weights("*", "*"), self._on_weights)
         self.st: ActorRuns | None = None  # the runs served: one alone, or a group's
         self._members: dict[str, TrainConfig] = {}  # a group's runs whose start came
+        self._retired: set[str] = set()  # of those, retired by their rule (a restart)
 
     def _on_weights(self, key: str, payload: bytes) -> None:
         run = keys.run_of(key)
@@ -116,6 +117,7 @@ class ActorService(ServiceBase):
         if set(self._members) != set(runs):
             return
         cfgs = [self._members.pop(r) for r in runs]
+        retired, self._retired = self._retired & set(runs), set()
         outboxes = {r: self.outbox(r, cfg, assign) for r, cfg in zip(runs, cfgs)}
         act_pub = None
         if config.interleave == "lockstep":  # (a group's: on its lead run's keys, held by
@@ -125,7 +127,8 @@ class ActorService(ServiceBase):
         actors = list(assign.actors)
         rank, grouped = actors.index(self.id), assign.group is not None
         self.st = st = ActorRuns.open(self.id, cfgs, outboxes, act_pub, rank, len(actors), grouped)
-        for r in runs:
+        st.stopped |= retired  # (their worlds step on, unpublished)
+        for r in st.going:
             self.publish_status(r, "running", **self.running(st))
         if rejoining:
             st.rejoin = rejoin_from(assign, cfgs, time.monotonic())
@@ -133,6 +136,12 @@ class ActorService(ServiceBase):
     def running(self, st: ActorRuns) -> dict[str, Any]:
         """A run's "running" status: where the actor is among the run's actors."""
         return {"rank": st.rank, "episodes": st.todo, **({"group": st.runs} if st.grouped else {})}
+
+    def on_resume_retired(self, run: str, config: TrainConfig, assign: Assignment) -> None:
+        """A run of the group its rule ended before this process restarted: its world
+        steps with the others', its steps unpublished."""
+        self._members[run] = config
+        self._retired.add(run)
 
     def on_stop(self, run: str, reason: str) -> None:
         self._members.pop(run, None)
@@ -143,6 +152,8 @@ class ActorService(ServiceBase):
         """The runs served are over: their group's subscriptions end with them."""
         if self.st is not None:
             self.endpoint.drop_run(group_subs(self.st.runs))
+            for run in self.st.stopped:  # (a retired run's acks, listened to after a restart)
+                self.endpoint.drop_run(run)
         self.st = None
 
     # ------------------------------------------------------------ inbound
@@ -187,7 +198,7 @@ class ActorService(ServiceBase):
         st = self.st
         if st is None or st.rejoin is None:
             return
-        positions = st.rejoin.positions(st.runs, time.monotonic())
+        positions = st.rejoin.positions(st.going, time.monotonic())
         if positions is None:
             return
         position = st.rejoin_at(positions)
@@ -197,7 +208,7 @@ class ActorService(ServiceBase):
             "runs %s: rejoined at transition %d (%d of %d episodes done; %s)",
             st.runs, position, st.done, st.todo, positions,
         )  # fmt: skip
-        for run in st.runs:
+        for run in st.going:
             self.publish_status(run, "running", **self.running(st), rejoined_at=position)
 
     def load_newest_weights(self, st: ActorRuns) -> None:
@@ -249,12 +260,14 @@ class ActorService(ServiceBase):
             self.publish_metrics(r, stats)
             seq = st.outboxes[r].sender.seq
             self.publish_status(r, "completed", final_seq=seq, stopped_early=True, **stats)
-            self.free(r)
         self.log.info("runs %s: the learner ended them by their rule after %d episodes",
                       ending, st.done)  # fmt: skip
         if ending == st.going:
+            for r in ending:
+                self.free(r)
             self.end_runs()
         else:
+            self.retire(run)  # (noted: a restarted actor steps its world with the others')
             st.stopped.update(ending)
 
     def finish_if_settled(self, st: ActorRuns) -> bool:

@@ -44,6 +44,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -102,6 +103,12 @@ class LearnerService(ServiceBase):
     def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         self._open(run, config, assign, resume=False)
 
+    def on_resume_retired(self, run: str, config: TrainConfig, assign: Assignment) -> None:
+        """A run of the group its rule ended before this process restarted: its place in
+        the group (its fixed update arrays), gathered with the others' starts."""
+        self.serving.gathering[run] = config
+        self.serving.retiring.add(run)
+
     def on_resume(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         """Restarted mid-run: the newest good cut, then the log beyond it (module doc)."""
         self._open(run, config, assign, resume=True)
@@ -115,17 +122,20 @@ class LearnerService(ServiceBase):
         if not self.serving.gathered(run, config, assign):
             return
         t0, runs, grouped = time.perf_counter(), list(assign.group or [run]), bool(assign.group)
+        retired = self.serving.retiring & set(runs)  # (resumed with the rest of the group)
+        self.serving.retiring -= retired
         try:
             configs = [self.serving.gathering.pop(r) for r in runs]
             if grouped and (why := group_error(configs, len(assign.actors))):
                 raise ValueError(why)
             for r in runs if not resume else []:
                 ckpt.wipe(self.data_dir / "learner" / r)
-            sts = self._open_runs(runs, configs, assign)
+            sts = self._open_runs(runs, configs, assign, retired)
             logs = [ckpt.open_log(st) for st in sts]
             cuts: list[int | None] = [None] * len(sts)
             if resume and self.serving.group is not None:
-                cuts = ckpt.restore(self.serving.group.learner, sts, self.log.warning)
+                slots = ([runs.index(st.run) for st in sts], len(runs)) if retired else None
+                cuts = ckpt.restore(self.serving.group.learner, sts, self.log.warning, slots)
             for st, records in zip(sts, logs):
                 if resume and st.config.early_stop is not None:
                     st.best = ckpt.best_so_far(st)
@@ -156,10 +166,15 @@ class LearnerService(ServiceBase):
                 self.out.ack(st)  # the actors go on from what the log holds
 
     def _open_runs(
-        self, runs: list[str], configs: list[TrainConfig], assign: Assignment
+        self,
+        runs: list[str],
+        configs: list[TrainConfig],
+        assign: Assignment,
+        retired: Collection[str] = (),
     ) -> list[LearnerRun]:
         """The runs' states and their one learner; in lockstep, their one actor's act
-        requests, on the lead run's keys (run 0)."""
+        requests, on the lead run's keys (run 0). `retired`: runs of the group their rule
+        ended before this learner restarted (their fixed update arrays, no state)."""
         for config in configs:
             if why := open_error(config, len(assign.actors)):
                 raise ValueError(why)  # the run fails, saying so (not a silent change)
@@ -178,9 +193,13 @@ class LearnerService(ServiceBase):
             group.asks = Asks(actor, self.bus.publisher(keys.k_action(lead, actor)))
             self.listen(keys.k_act(lead, "*"), "act_request", group.subs)
         self.serving.group = group
+        for r, run in enumerate(runs):
+            if run in retired:
+                group.retired[r] = ckpt.load_retired(self.data_dir / "learner" / run)
         return [
             self._open_run(run, config, assign, MemberLearner(learner, r), evaluations[r], grouped)
             for r, (run, config) in enumerate(zip(runs, configs))
+            if run not in retired
         ]
 
     def _open_run(
@@ -351,9 +370,10 @@ class LearnerService(ServiceBase):
         )
         if self.serving.goes_on_without(st):  # its group's other runs go on
             self.serving.retire(st)
+            self.retire(st.run)
         else:
             self.forget(st.run)
-        self.free(st.run)
+            self.free(st.run)
 
     def fail(self, st: LearnerRun, reason: str) -> None:
         """A run fails, with its group (its runs step and update together)."""

@@ -33,6 +33,7 @@ class Serving:
         self.runs: dict[str, LearnerRun] = {}
         self.group: RunGroup | None = None
         self.gathering: dict[str, TrainConfig] = {}  # runs whose start came, before all
+        self.retiring: set[str] = set()  # of those, retired by their rule (a restart)
 
     def gathered(self, run: str, config: TrainConfig, assign: Assignment) -> bool:
         """A run's start noted; True once every run served with it has its start (a run
@@ -73,9 +74,12 @@ class Serving:
         g = self.group
         assert g is not None
         cfg = st.config
-        g.retired[g.runs.index(st.run)] = fixed_update_arrays(
+        arrays = fixed_update_arrays(
             st.intake.buffer, cfg.batch_size, st.sampling.per_update, st.spec.n_agents
         )
+        g.retired[g.runs.index(st.run)] = arrays
+        if st.cuts.folder is not None:  # (a restarted learner serves the group with it)
+            ckpt.save_retired(st.cuts.folder, arrays)
         self.runs.pop(st.run, None)
 
     def finished(self) -> list[LearnerRun]:
