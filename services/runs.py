@@ -4,7 +4,9 @@ A service takes a run when the start's assignment names it and it has room (one 
 or the runs of the group it serves; the counter, many). The runs taken are noted in
 `DATA_DIR/services/ID.json` (each with its assignment's `to_wire` map, read back
 through `from_wire`) so that the same service started again rejoins them before it
-announces itself. No bus here: the service calls these and runs its hooks.
+announces itself; so are a group's runs their `early_stop` rule ended while the others
+go on (`retired`: not served, but their worlds and update entries still belong to the
+group). No bus here: the service calls these and runs its hooks.
 """
 
 from __future__ import annotations
