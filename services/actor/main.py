@@ -120,10 +120,10 @@ class ActorService(ServiceBase):
         retired, self._retired = self._retired & set(runs), set()
         outboxes = {r: self.outbox(r, cfg, assign) for r, cfg in zip(runs, cfgs)}
         act_pub = None
-        if config.interleave == "lockstep":  # (a group's: on its lead run's keys, held by
-            act_pub = self.bus.publisher(keys.k_act(runs[0], self.id))  # the group: its
-            self.listen(keys.k_action(runs[0], self.id), "action", group_subs(runs))  # lead
-            # may end by its rule first)
+        if config.interleave == "lockstep":  # (a group's: on its lead run's keys; the
+            # answers' subscription held by the group, as its lead may end before the others)
+            act_pub = self.bus.publisher(keys.k_act(runs[0], self.id))
+            self.listen(keys.k_action(runs[0], self.id), "action", group_subs(runs))
         actors = list(assign.actors)
         rank, grouped = actors.index(self.id), assign.group is not None
         self.st = st = ActorRuns.open(self.id, cfgs, outboxes, act_pub, rank, len(actors), grouped)
