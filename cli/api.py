@@ -229,7 +229,8 @@ def write_results(
 ) -> list[Path]:
     """Each run's metrics.csv, metrics.jsonl, config.json, provenance.json (what its
     learner ran on, as it reported at its latest start) and, with the cluster's data
-    dir, the learner's checkpoint.pt in out/ for one run or out/<run id>/ for several,
+    dir, the learner's checkpoint.pt (and best.pt, the best point's, for a run with
+    `early_stop`) in out/ for one run or out/<run id>/ for several,
     then every run's points in out/metrics.csv (with `arm`, `seed`, `run` columns);
     out/plot.png, every arm overlaid."""
     import json
@@ -251,9 +252,10 @@ def write_results(
         if start := provenance.reported(run):
             provenance.write(d / provenance.FILE, [start])
         written.append(d / "metrics.csv")
-        checkpoint = data_dir / "learner" / run["id"] / "checkpoint.pt" if data_dir else None
-        if checkpoint is not None and checkpoint.exists():
-            shutil.copyfile(checkpoint, d / "checkpoint.pt")
+        for name in ("checkpoint.pt", "best.pt"):  # (best.pt: a run with early_stop)
+            kept = data_dir / "learner" / run["id"] / name if data_dir else None
+            if kept is not None and kept.exists():
+                shutil.copyfile(kept, d / name)
     if len(exp["runs"]) > 1:
         (out / "metrics.csv").write_text(api.experiment_csv(exp["id"]))
         written.append(out / "metrics.csv")

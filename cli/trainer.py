@@ -40,7 +40,7 @@ from shared.config import TrainConfig
 from shared.core.exploration import BonusDiagnostics, CountExploration, constant_shift
 from shared.core.learners import Learner, RunsLearner, SoloRuns
 from shared.core.learners.group import GroupMADDPG
-from shared.core.replay import Batch, ReplayBuffer, update_arrays
+from shared.core.replay import Batch, ReplayBuffer, fixed_update_arrays, update_arrays
 from shared.envs.tasks import TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
 from shared.groups import check_group
@@ -116,19 +116,6 @@ def save_checkpoint(
     a learner checkpoint of kind `final` (shared/persist/checkpoint.py)."""
     config = cfg.model_dump(mode="json")
     checkpoint.save(path, "final", config, learner.state_dict(), counters, tables=explorer.tables)
-
-
-def save_best(path: Path, learner: Learner, cfg: TrainConfig, row: dict) -> None:
-    """The best evaluation point's learner (`early_stop`), as a checkpoint of kind
-    `best`: networks and optimizers, the point's episode and success, no tables (the
-    last weights and the tables are checkpoint.pt's)."""
-    counters = {
-        "episode": int(row["episode"]),
-        "env_steps": int(row["env_steps"]),
-        "success_rate": float(row["success_rate"]),
-    }
-    config = cfg.model_dump(mode="json")
-    checkpoint.save(path, "best", config, learner.state_dict(), counters)
 
 
 def load_checkpoint(path: Path) -> dict:
@@ -606,7 +593,9 @@ class GroupRun:
             if row["success_rate"] > m.best:  # the earliest of equal points is kept
                 m.best = float(row["success_rate"])
                 if m.out is not None:
-                    save_best(m.out / "best.pt", self.learner.run_learner(r), m.cfg, row)
+                    state = self.learner.run_state_dict(r)
+                    config = m.cfg.model_dump(mode="json")
+                    checkpoint.save_best(m.out / checkpoint.BEST, config, state, row)
             if (why := early_stop_reason(rule, m.rows)) is not None:
                 row["stop_reason"] = why
                 stopping.append(r)
@@ -626,15 +615,10 @@ class GroupRun:
         log.info("run %s: %s, at episode %d", m.out or r, m.stopped[1], episode)
 
     def frozen_arrays(self, m: Member) -> tuple[np.ndarray, ...]:
-        """A stopped run's update arrays: one fixed draw from its replay (its own sampler
-        untouched), no bonus."""
+        """A stopped run's update arrays (`fixed_update_arrays`), drawn once."""
         if m.frozen_arrays is None:
-            rng = np.random.default_rng(0)
-            k = self.minibatches_per_update
-            batches = [m.buffer.sample(self.cfg.batch_size, rng) for _ in range(k)]
-            n = self.spec.n_agents
-            zero = [np.zeros((len(b.rew), n), np.float32) for b in batches]
-            m.frozen_arrays = update_arrays(batches, zero)
+            k, n = self.minibatches_per_update, self.spec.n_agents
+            m.frozen_arrays = fixed_update_arrays(m.buffer, self.cfg.batch_size, k, n)
         return m.frozen_arrays
 
     def cut_due(self) -> bool:

@@ -89,6 +89,10 @@ class ServiceHooks:
     def on_learner_completed(self, run: str) -> None:
         """The run's learner completed (a follower that is done by then: nothing to do)."""
 
+    def on_resume_retired(self, run: str, config: TrainConfig, assign: Assignment) -> None:
+        """After a restart, before its other runs: a run of the group served that its
+        `early_stop` rule ended while the others went on (`ServiceBase.retire`)."""
+
     def on_peer_found(self, role: str, peer: str) -> None:
         """A service's liveliness token appeared (it started, or came back)."""
 
@@ -263,9 +267,15 @@ class ServiceBase(ServiceHooks):
 
     def _rejoin(self) -> None:
         """After a restart: rejoin the run (or the group's runs) served when the process died."""
-        for s in self.served.saved():
-            self.log.info("rejoining run %s after a restart (from %s)", s.run, self.served.path)
-            self._join(s.run, s.config, s.assign, s.raw, self.on_resume)
+        saved = self.served.saved()
+        for s in saved:  # (retired runs first: the group is whole once the others come)
+            if s.retired:
+                self.served.retired[s.run] = (s.raw, s.assign)
+                self.on_resume_retired(s.run, s.config, s.assign)
+        for s in saved:
+            if not s.retired:
+                self.log.info("rejoining run %s after a restart (from %s)", s.run, self.served.path)
+                self._join(s.run, s.config, s.assign, s.raw, self.on_resume)
 
     def _on_learner_status(self, key: str, payload: bytes) -> None:
         """The run's learner failed or was stopped: this service's part is over too."""
@@ -296,6 +306,13 @@ class ServiceBase(ServiceHooks):
         if not self.active:
             self.peers.clear()
             self.resumed = None
+
+    def retire(self, run: str) -> None:
+        """A group's run its `early_stop` rule ended while the others go on: no longer
+        served (its subscriptions end), still noted for a restart (`ServedRuns.retire`)."""
+        self.endpoint.drop_run(run)
+        self.served.retire(run)
+        self.served.save()
 
     def _peer_event(self, key: str, alive: bool) -> None:
         seen = self.peers.seen(key, alive, time.monotonic()) if self.active else None

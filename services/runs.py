@@ -4,7 +4,9 @@ A service takes a run when the start's assignment names it and it has room (one 
 or the runs of the group it serves; the counter, many). The runs taken are noted in
 `DATA_DIR/services/ID.json` (each with its assignment's `to_wire` map, read back
 through `from_wire`) so that the same service started again rejoins them before it
-announces itself. No bus here: the service calls these and runs its hooks.
+announces itself; so are a group's runs their `early_stop` rule ended while the others
+go on (`retired`: not served, but their worlds and update entries still belong to the
+group). No bus here: the service calls these and runs its hooks.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ class SavedRun:
     config: TrainConfig
     assign: Assignment
     raw: dict
+    retired: bool = False  # a group's run its `early_stop` rule ended (ServedRuns.retire)
 
 
 class ServedRuns:
@@ -43,6 +46,10 @@ class ServedRuns:
         self.assign: Assignment | None = None  # of the last run taken
         self.finished: collections.deque[str] = collections.deque(maxlen=64)
         self._joined: dict[str, tuple[dict, Assignment]] = {}  # run -> (raw config, assign)
+        # Runs of the group served that their `early_stop` rule ended while the others go
+        # on: no longer served, but noted in the file until the group ends, since a
+        # restarted learner or actor serves the group with them (their worlds still step).
+        self.retired: dict[str, tuple[dict, Assignment]] = {}
 
     def full(self) -> bool:
         return len(self.active) >= self.max_runs
@@ -78,10 +85,26 @@ class ServedRuns:
             self.finished.append(run)
         self.active.pop(run, None)
         self._joined.pop(run, None)
+        self.retired.pop(run, None)
+        if not self.active:
+            self.retired.clear()  # (the group is over)
+
+    def retire(self, run: str) -> None:
+        """A group's run ended by its rule while the others go on: no longer served (its
+        late traffic expected), still noted for a restart while the group goes on."""
+        joined = self._joined.get(run)
+        self.leave(run)
+        if joined is not None and self.active:
+            self.retired[run] = joined
 
     def entries(self) -> list[dict[str, Any]]:
-        """What the runs file holds: the runs served, in order, as they were started."""
-        return [
+        """What the runs file holds: the runs retired from the group served, then the
+        runs served, in order, as they were started."""
+        out: list[dict[str, Any]] = [
+            {"run": run, "config": raw, "assign": assign.to_wire(), "retired": True}
+            for run, (raw, assign) in self.retired.items()
+        ]
+        return out + [
             {"run": run, "config": self._joined[run][0], "assign": self._joined[run][1].to_wire()}
             for run in self.active
         ]
@@ -116,10 +139,11 @@ class ServedRuns:
                     make_config(e["config"]),
                     Assignment.from_wire(e["assign"]),
                     e["config"],
+                    bool(e.get("retired", False)),
                 )
                 for e in entries
             ]
-            if not runs:
+            if all(r.retired for r in runs):
                 raise ValueError("no run in it")
         except (OSError, ValueError, KeyError, TypeError, ConfigError) as err:
             self.log.error("refusing %s (%s): renamed *.refused; not rejoining", self.path, err)

@@ -83,11 +83,6 @@ def group_error(cfgs: Sequence[TrainConfig], actors: int) -> str | None:
             return f"run {r}: interleave {cfg.interleave}: a group in the cluster runs lockstep"
         if cfg.bonus_at == "collection":
             return f"run {r}: bonus_at collection: the cluster prices bonuses when it samples"
-        if cfg.early_stop is not None:
-            return (
-                f"run {r}: early_stop: a cluster group does not end one run and go on with "
-                "the others (a run alone does; so do --local groups)"
-            )
     if actors != 1:
         return f"actors: a group in the cluster has one actor (it steps every world), not {actors}"
     return None

@@ -100,6 +100,16 @@ def test_runs_that_can_share_a_group_start_together_up_to_the_group_size():
     assert [s.ids for s in async_lead.proposals()] == [["s1"], ["s2"]]
 
 
+def test_runs_with_an_early_stop_rule_share_a_group_with_runs_without():
+    """The cluster ends a group's run by its rule and goes on with the others, so the
+    planner groups such runs as any others (per-run field: a rule on some runs only)."""
+    rule = {"rule": "no_improvement", "patience": 2}
+    runs = [queued("e1", early_stop=rule), queued("e22"), queued("e333", early_stop=rule)]
+    plan = QueuePass(runs, infos(), reserved=set(), group_size=3)
+    first = next(iter(plan.proposals()))
+    assert first.ids == ["e1", "e22", "e333"] and list(first.assign.group or ()) == first.ids
+
+
 def test_a_started_runs_rows_are_a_new_attempt_and_the_queued_rows_stay():
     row = {**queued("r1"), "services": {"L0": {"state": "failed"}}, "live": {"eval": {}}}
     plan = QueuePass([row], infos(), reserved=set())

@@ -183,3 +183,32 @@ def test_both_keys_take_yaml_maps_as_flags():
     cfg = make_config({**BASE, **config_overrides(args)})
     assert cfg.early_stop is not None and cfg.early_stop.patience == 3
     assert cfg.beta_schedule is not None and cfg.beta_schedule.horizon == 50
+
+
+def test_macb_up_out_copies_the_learners_best_point_beside_the_last(tmp_path):
+    """`macb up --run CONFIG --out DIR` (`write_results` with the cluster's data dir)
+    copies a run's best.pt from the learner's folder beside its checkpoint.pt; a run
+    without one gets none."""
+    from cli.api import write_results
+
+    class Api:  # the few calls write_results makes, for runs with no points
+        def metrics_csv(self, run: str) -> str:
+            return "episode\n"
+
+        def metrics(self, run: str) -> dict:
+            return {"points": []}
+
+        def experiment_csv(self, exp: str) -> str:
+            return "run,episode\n"
+
+    data = tmp_path / "data"
+    for run, names in (("r1", ("checkpoint.pt", "best.pt")), ("r2", ("checkpoint.pt",))):
+        (data / "learner" / run).mkdir(parents=True)
+        for name in names:
+            (data / "learner" / run / name).write_bytes(f"{run} {name}".encode())
+    runs = [{"id": r, "config": {}, "live": {}} for r in ("r1", "r2")]
+    write_results(Api(), {"id": "e", "runs": runs}, tmp_path / "out", plot=False, data_dir=data)
+    out = tmp_path / "out"
+    assert (out / "r1" / "best.pt").read_bytes() == b"r1 best.pt"
+    assert (out / "r1" / "checkpoint.pt").read_bytes() == b"r1 checkpoint.pt"
+    assert not (out / "r2" / "best.pt").exists() and (out / "r2" / "checkpoint.pt").exists()

@@ -57,3 +57,34 @@ def test_the_api_runs_an_experiments_seeds_as_one_group_bit_for_bit(tmp_path):
         exp = httpx.post(f"{url}/experiments", json={**body, "seeds": [7]}).json()
         done = wait_for(lambda: finished(url, exp["id"]), timeout=120, what="the next run")
         assert done["status"] == "completed", done
+
+
+def test_the_api_groups_runs_with_an_early_stop_rule_and_ends_one_alone(tmp_path):
+    """Arms that differ in `early_stop` share a group; the run its rule ends at episode 6
+    is stored completed with the rule's reason, its last point marked, while the other
+    run of its group goes on to the end: both with `macb train`'s rows."""
+    from cli.trainer import train
+
+    rule = {"rule": "success_at_least", "threshold": 0.0, "patience": 2}
+    with api_cluster(tmp_path, api_env={"MACB_API_GROUP_SIZE": "3"}) as cluster:
+        url = cluster.url
+        body = {k: v for k, v in BODY.items() if k != "seed"}
+        arms = [{"name": "stops", "early_stop": rule}, {"name": "goes on"}]
+        exp = httpx.post(f"{url}/experiments", json={**body, "seeds": [3], "arms": arms}).json()
+        ids = [r["id"] for r in exp["runs"]]
+        done = wait_for(lambda: finished(url, exp["id"]), timeout=300, what="the experiment")
+        assert done["status"] == "completed", done
+        runs = [httpx.get(f"{url}/runs/{i}").json() for i in ids]
+        assert all(run["assign"]["group"] == ids for run in runs), runs
+        assert [run["status"] for run in runs] == ["completed", "completed"]
+        for r, run in enumerate(runs):
+            points = httpx.get(f"{url}/runs/{run['id']}/metrics").json()["points"]
+            rows = [{k: v for k, v in p.items() if k != "seq"} for p in points]
+            local = train(make_config(run["config"]), tmp_path / f"l{r}", progress=False)
+            diffs = compare(rows, local)
+            assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
+            if r == 0:
+                assert rows[-1]["episode"] == 6 and run["reason"] == rows[-1]["stop_reason"]
+                assert run["reason"].startswith("early_stop success_at_least at episode 6")
+            else:
+                assert rows[-1]["episode"] == BODY["episodes"] and not run["reason"], run

@@ -180,20 +180,38 @@ def test_a_lockstep_run_stopped_by_its_rule_is_the_trainers_run(cluster, bus, tm
     assert not diffs, "\n".join(diffs[:20])
     diffs = state_differences(cluster_state, local_state)
     assert not diffs, diffs[:20]
+    assert_same_best(cluster.data / "learner" / watch.run, tmp_path, local)
 
 
-def test_early_stop_in_a_cluster_group_or_async_is_refused_saying_where_it_runs():
+def assert_same_best(cluster_folder: Path, local_folder: Path, rows: list[dict]) -> None:
+    """The cluster learner's best.pt is the trainer's: the point with the highest
+    success (the earliest of equals), every tensor equal; and not the last point's
+    learner when the best point came before it."""
+    theirs = torch.load(cluster_folder / "best.pt", weights_only=True)
+    mine = torch.load(local_folder / "best.pt", weights_only=True)
+    top = max(row["success_rate"] for row in rows)
+    best = next(row for row in rows if row["success_rate"] == top)
+    assert theirs["kind"] == mine["kind"] == "best"
+    assert theirs["counters"] == mine["counters"]
+    assert mine["counters"]["episode"] == best["episode"]
+    diffs = state_differences(theirs["learner"], mine["learner"])
+    assert not diffs, diffs[:20]
+    last = torch.load(cluster_folder / "checkpoint.pt", weights_only=True)["learner"]
+    assert bool(state_differences(theirs["learner"], last)) == (best is not rows[-1])
+
+
+def test_early_stop_under_async_is_refused_and_a_cluster_group_may_hold_it():
     from services.learner.state import open_error
 
     config = make_config({**BASE, "early_stop": {"rule": "no_improvement"}})
     assert open_error(config, 1) is None
-    assert "not a run of a group" in (open_error(config, 1, grouped=True) or "")
     run_async = config.model_copy(update={"interleave": "async"})
     assert "not interleave async" in (open_error(run_async, 2) or "")
-    # the API's planner and start_group form no cluster group of such runs: each runs alone
+    # the API's planner and start_group form cluster groups of such runs (they go on
+    # without a run its rule ended: the group test below)
     from shared.groups import group_error
 
-    assert "run 0: early_stop: a cluster group" in (group_error([config, config], 1) or "")
+    assert group_error([config, config.model_copy(update={"early_stop": None})], 1) is None
 
 
 @pytest.mark.parametrize(
@@ -346,3 +364,84 @@ def test_a_late_count_or_message_changes_no_run_of_a_group(cluster, bus, tmp_pat
     for r, watch in enumerate(watches):
         diffs = compare(sorted(watch.rows, key=lambda row: row["episode"]), local[r])
         assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
+
+
+def test_a_cluster_group_goes_on_when_its_rule_ends_one_run(cluster, bus, tmp_path):
+    """`early_stop` in a cluster group of 3: the lead run's rule ends it at episode 6
+    and the last run's at 9; each completes there with its reason (learner, actor,
+    evaluator and counter follow it) while the others go on, and every run's rows are
+    `macb train`'s for that run (the stopped runs' reasons included), its final learner
+    and best.pt the trainer's, tensor for tensor."""
+    from cli.trainer import train_group
+    from shared.net.control import start_group
+
+    at_least = {"rule": "success_at_least", "threshold": 0.0, "patience": 2}  # at episode 6
+    flat = {"rule": "no_improvement", "patience": 2, "min_delta": 1.0}  # at episode 9
+    configs = [
+        make_config({**GROUP[0], "early_stop": at_least}),
+        make_config(GROUP[1]),
+        make_config({**GROUP[2], "early_stop": flat}),
+    ]
+    cluster.services(1)
+    wait_services(bus, 4)
+    watches = start_group(bus, configs, runs=["s0", "s1", "s2"])
+    for watch in watches:
+        assert watch.wait(timeout=300) == "completed", watch.states
+    outs = [tmp_path / f"alone{r}" for r in range(3)]
+    alone = [train(c, out, progress=False) for c, out in zip(configs, outs)]
+    group = train_group(configs, [tmp_path / f"group{r}" for r in range(3)], progress=False)
+    assert [rows[-1]["episode"] for rows in alone] == [6, 12, 9]
+    for r, (watch, config) in enumerate(zip(watches, configs)):
+        assert_exact(watch, config)
+        rows = sorted(watch.rows, key=lambda row: row["episode"])
+        for local in (alone[r], group[r]):
+            diffs = compare(rows, local)
+            assert not diffs, f"run {r}\n" + "\n".join(diffs[:20])
+        folder = cluster.data / "learner" / watch.run
+        theirs = torch.load(folder / "checkpoint.pt", weights_only=True)
+        mine = torch.load(outs[r] / "checkpoint.pt", weights_only=True)
+        diffs = state_differences(theirs["learner"], mine["learner"])
+        assert not diffs, (r, diffs[:20])
+        if config.early_stop is None:
+            assert "stop_reason" not in rows[-1] and not (folder / "best.pt").exists()
+            continue
+        assert rows[-1]["stop_reason"] == alone[r][-1]["stop_reason"]
+        assert watch.decision().reason == rows[-1]["stop_reason"]
+        assert_same_best(folder, outs[r], alone[r])
+
+
+@pytest.mark.parametrize("victim", ["learner", "actor0", "evaluator"])
+def test_a_cluster_group_goes_on_after_a_restart_past_one_runs_stop(cluster, bus, tmp_path, victim):
+    """A service of the group killed (SIGKILL) and started again once the lead run's
+    rule has ended it: the restarted learner serves the group with that run retired
+    (its fixed update arrays; the other from its cut and log), the restarted actor steps
+    its world unpublished, the restarted evaluator waits for none of its points. The
+    other run completes exact in its counts (after a fault a lockstep run is not bit
+    for bit `macb train`'s: docs/reliability.md) and the stopped run stays as it ended,
+    its rows `macb train`'s."""
+    from shared.net.control import start_group
+
+    at_least = {"rule": "success_at_least", "threshold": 0.0, "patience": 2}  # at episode 6
+    configs = [
+        make_config({**GROUP[0], "early_stop": at_least, "episodes": 18}),
+        make_config({**GROUP[1], "episodes": 18}),
+    ]
+    cut_each_s = {"MACB_LEARNER_CUT_S": "0.5"}  # (a resume from cuts, the retired run's too)
+    for sid in ("counter", "learner", "evaluator", "actor0"):
+        cluster.service(sid.rstrip("0"), sid, env=cut_each_s)
+    wait_services(bus, 4)
+    watches = start_group(bus, configs, runs=["k0", "k1"])
+    assert watches[0].wait(timeout=300) == "completed", watches[0].states
+    assert len(watches[1].rows) < 6, "the kill lands while the group goes on"
+    cluster.kill(victim)
+    cluster.service(victim.rstrip("0"), victim, name=f"{victim}-again", env=cut_each_s)
+    assert watches[1].wait(timeout=300) == "completed", watches[1].states
+    for watch, config in zip(watches, configs):
+        assert_exact(watch, config, faults="restarted")
+    stopped = sorted(watches[0].rows, key=lambda row: row["episode"])
+    diffs = compare(stopped, train(configs[0], tmp_path / "alone", progress=False))
+    assert not diffs, "\n".join(diffs[:20])
+    assert watches[0].decision().reason == stopped[-1]["stop_reason"]
+    assert [max(row["episode"] for row in w.rows) for w in watches] == [6, 18]
+    if victim == "learner":  # the group resumed whole, the stopped run retired in it
+        assert "runs ['k0', 'k1'] resumed" in cluster.log("learner-again")

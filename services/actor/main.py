@@ -50,11 +50,18 @@ from services.common import ServiceBase
 from shared.config import TrainConfig
 from shared.net import bus as keys
 from shared.net.messages import Ack, Action, Assignment, Weights
+from shared.net.wire import WireError, decode
 
 # Runs whose newest weights an actor keeps (it serves one at a time; the others are
 # runs beside it on the bus, or over).
 NEWEST_RUNS_KEPT = 16
 STATS_EVERY_S = 1.0
+
+
+def group_subs(runs: list[str]) -> str:
+    """What the runs' shared subscription (the answers, on the lead run's keys) is held
+    under: it outlives the lead run when its rule ends it before the others."""
+    return f"group:{runs[0]}"
 
 
 class ActorService(ServiceBase):
@@ -75,6 +82,7 @@ class ActorService(ServiceBase):
         self.bus.subscribe(keys.k_weights("*", "*"), self._on_weights)
         self.st: ActorRuns | None = None  # the runs served: one alone, or a group's
         self._members: dict[str, TrainConfig] = {}  # a group's runs whose start came
+        self._retired: set[str] = set()  # of those, retired by their rule (a restart)
 
     def _on_weights(self, key: str, payload: bytes) -> None:
         run = keys.run_of(key)
@@ -109,15 +117,18 @@ class ActorService(ServiceBase):
         if set(self._members) != set(runs):
             return
         cfgs = [self._members.pop(r) for r in runs]
+        retired, self._retired = self._retired & set(runs), set()
         outboxes = {r: self.outbox(r, cfg, assign) for r, cfg in zip(runs, cfgs)}
         act_pub = None
-        if config.interleave == "lockstep":  # (a group's: on its lead run's keys)
+        if config.interleave == "lockstep":  # (a group's: on its lead run's keys; the
+            # answers' subscription held by the group, as its lead may end before the others)
             act_pub = self.bus.publisher(keys.k_act(runs[0], self.id))
-            self.listen(keys.k_action(runs[0], self.id), "action", runs[0])
+            self.listen(keys.k_action(runs[0], self.id), "action", group_subs(runs))
         actors = list(assign.actors)
         rank, grouped = actors.index(self.id), assign.group is not None
         self.st = st = ActorRuns.open(self.id, cfgs, outboxes, act_pub, rank, len(actors), grouped)
-        for r in runs:
+        st.stopped |= retired  # (their worlds step on, unpublished)
+        for r in st.going:
             self.publish_status(r, "running", **self.running(st))
         if rejoining:
             st.rejoin = rejoin_from(assign, cfgs, time.monotonic())
@@ -126,10 +137,24 @@ class ActorService(ServiceBase):
         """A run's "running" status: where the actor is among the run's actors."""
         return {"rank": st.rank, "episodes": st.todo, **({"group": st.runs} if st.grouped else {})}
 
+    def on_resume_retired(self, run: str, config: TrainConfig, assign: Assignment) -> None:
+        """A run of the group its rule ended before this process restarted: its world
+        steps with the others', its steps unpublished."""
+        self._members[run] = config
+        self._retired.add(run)
+
     def on_stop(self, run: str, reason: str) -> None:
         self._members.pop(run, None)
         if self.st is not None and run in self.st.runs:
-            self.st = None  # (each run of a group is stopped: the others follow)
+            self.end_runs()  # (each run of a group is stopped: the others follow)
+
+    def end_runs(self) -> None:
+        """The runs served are over: their group's subscriptions end with them."""
+        if self.st is not None:
+            self.endpoint.drop_run(group_subs(self.st.runs))
+            for run in self.st.stopped:  # (a retired run's acks, listened to after a restart)
+                self.endpoint.drop_run(run)
+        self.st = None
 
     # ------------------------------------------------------------ inbound
     def handle(self, tag: str, key: str, payload: bytes) -> None:
@@ -149,8 +174,18 @@ class ActorService(ServiceBase):
         st.outboxes[msg.run].sender.on_ack(msg.service, acked, time.monotonic(), window=msg.window)
 
     def on_action(self, key: str, payload: bytes) -> None:
-        msg = self.decode_for_run(key, payload, Action)
         st = self.st
+        if st is not None and st.stopped and st.runs[0] == keys.run_of(key):
+            try:  # (the lead run ended by its rule: its keys still carry the answers)
+                msg: Action | None = decode(payload, Action)
+            except WireError as err:
+                self.reject(key, str(err))
+                return
+            if msg is not None and msg.run != st.runs[0]:
+                self.reject(key, "run mismatch: key and message name different runs")
+                return
+        else:
+            msg = self.decode_for_run(key, payload, Action)
         if msg is None or st is None or not st.exchange.awaits(msg.seq):
             return  # an answer to a request resent earlier, already taken
         if not valid_action(msg.act, st.act_shape):
@@ -163,7 +198,7 @@ class ActorService(ServiceBase):
         st = self.st
         if st is None or st.rejoin is None:
             return
-        positions = st.rejoin.positions(st.runs, time.monotonic())
+        positions = st.rejoin.positions(st.going, time.monotonic())
         if positions is None:
             return
         position = st.rejoin_at(positions)
@@ -173,7 +208,7 @@ class ActorService(ServiceBase):
             "runs %s: rejoined at transition %d (%d of %d episodes done; %s)",
             st.runs, position, st.done, st.todo, positions,
         )  # fmt: skip
-        for run in st.runs:
+        for run in st.going:
             self.publish_status(run, "running", **self.running(st), rejoined_at=position)
 
     def load_newest_weights(self, st: ActorRuns) -> None:
@@ -199,7 +234,7 @@ class ActorService(ServiceBase):
         st.resend_due(now)
         if now - st.last_stats > STATS_EVERY_S:
             st.last_stats = now
-            for run in st.runs:
+            for run in st.going:
                 self.publish_metrics(run, st.stats(run, sum(self.rejects.values())).to_wire())
         if st.finished:
             return self.finish_if_settled(st)
@@ -214,30 +249,37 @@ class ActorService(ServiceBase):
         """The learner completed before this actor published its episodes: the run's
         `early_stop` rule held at a point (a learner completes otherwise only once every
         share is in). In lockstep it holds each step after a point until the point's
-        row is in, so everything published is taken: the run completes here."""
+        row is in, so everything published is taken: the run completes here. A group's
+        other runs go on: its world still steps, its steps are no longer published."""
         st = self.st
-        if st is None or run not in st.runs or st.finished:
+        if st is None or run not in st.going or st.finished:
             return
-        for r in st.runs:
+        ending = [run] if len(st.going) > 1 else st.going  # (a group's others go on)
+        for r in ending:
             stats = st.stats(r, sum(self.rejects.values())).to_wire()
             self.publish_metrics(r, stats)
             seq = st.outboxes[r].sender.seq
             self.publish_status(r, "completed", final_seq=seq, stopped_early=True, **stats)
-            self.free(r)
         self.log.info("runs %s: the learner ended them by their rule after %d episodes",
-                      st.runs, st.done)  # fmt: skip
-        self.st = None
+                      ending, st.done)  # fmt: skip
+        if ending == st.going:
+            for r in ending:
+                self.free(r)
+            self.end_runs()
+        else:
+            self.retire(run)  # (noted: a restarted actor steps its world with the others')
+            st.stopped.update(ending)
 
     def finish_if_settled(self, st: ActorRuns) -> bool:
         if st.settled:
-            for run in st.runs:
+            for run in st.going:
                 stats = st.stats(run, sum(self.rejects.values())).to_wire()
                 self.publish_metrics(run, stats)
                 seq = st.outboxes[run].sender.seq
                 self.publish_status(run, "completed", final_seq=seq, **stats)
                 self.free(run)
-            self.log.info("runs %s: %d episodes published", st.runs, st.done)
-            self.st = None
+            self.log.info("runs %s: %d episodes published", st.going, st.done)
+            self.end_runs()
         return False
 
 

@@ -74,6 +74,9 @@ class ActorRuns:
     last_stats: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
     exchange: ActExchange = field(default_factory=ActExchange)  # lockstep
+    # A group's runs their `early_stop` rule ended while the others go on: their worlds
+    # still step (every world steps as one), their transitions are not published.
+    stopped: set[str] = field(default_factory=set)
 
     @classmethod
     def open(
@@ -116,8 +119,15 @@ class ActorRuns:
         return list(self.outboxes)
 
     @property
+    def going(self) -> list[str]:
+        """The runs still served: all of them but those their rule ended."""
+        return [r for r in self.outboxes if r not in self.stopped]
+
+    @property
     def lead(self) -> Outbox:
-        return next(iter(self.outboxes.values()))
+        """The first run still going: its numbering paces the steps (every run's is
+        the same in lockstep)."""
+        return self.outboxes[self.going[0]]
 
     @property
     def lockstep(self) -> bool:
@@ -140,11 +150,11 @@ class ActorRuns:
     @property
     def settled(self) -> bool:
         """Every run's every batch acknowledged."""
-        return all(box.sender.settled for box in self.outboxes.values())
+        return all(self.outboxes[r].sender.settled for r in self.going)
 
     def resend_due(self, now: float) -> None:
-        for box in self.outboxes.values():
-            box.resend_due(now)
+        for r in self.going:
+            self.outboxes[r].resend_due(now)
 
     def load_weights(self, msg: Weights) -> bool:
         """Act with `msg`'s actors if they are newer: a higher version, or any version of
@@ -167,7 +177,9 @@ class ActorRuns:
 
     def publish(self, steps: list[VecTransitions], now: float) -> None:
         """Each run's rows of `steps` as one numbered batch on its keys."""
-        for r, box in enumerate(self.outboxes.values()):
+        for r, (run, box) in enumerate(self.outboxes.items()):
+            if run in self.stopped:
+                continue  # (its world stepped, unread: as in the one-process group)
             obs, act, rew, next_obs, done, collisions = (
                 np.concatenate([getattr(t, k)[r : r + 1] for t in steps])
                 for k in ("obs", "act", "rew", "next_obs", "done", "collisions")
@@ -199,7 +211,7 @@ class ActorRuns:
                 return True
         if self.exchange.ask(seq, now):
             obs = self.collector.next_obs()
-            run, actor = self.lead.run, self.actor
+            run, actor = self.runs[0], self.actor  # (on the lead run's keys, as it began)
             self.act_pub(encode(ActRequest(run, actor=actor, seq=seq, obs=obs)))
         return False
 

@@ -75,6 +75,7 @@ class EvaluatorService(ServiceBase):
         self.runs: dict[str, EvaluatorRun] = {}  # the run served, or a group's runs
         self.group: GroupEval | None = None  # those runs as one (a run alone: of one)
         self.history = RowHistory()
+        self._retired: set[str] = set()  # the group's runs ended by their rule (a restart)
         self.bus.queryable(keys.k_history("*", "eval"), self._history_reply)
 
     def _history_reply(self, key: str, payload: bytes) -> bytes | None:
@@ -93,6 +94,12 @@ class EvaluatorService(ServiceBase):
         # The runs served as one: a run alone is a group of one; a start replaces
         # whatever group ended before it.
         self.group = GroupEval.open(list(assign.group or [run]), self.runs, self.active)
+        self.group.ended |= self._retired & set(self.group.runs)
+
+    def on_resume_retired(self, run: str, config: TrainConfig, assign: Assignment) -> None:
+        """A run of the group its rule ended before this process restarted: no point of
+        it is waited for."""
+        self._retired.add(run)
 
     def on_stop(self, run: str, reason: str) -> None:
         self.history.remember(run, "stopped")
@@ -104,6 +111,8 @@ class EvaluatorService(ServiceBase):
         self.runs.pop(run, None)
         if self.group is not None and not any(r in self.runs for r in self.group.runs):
             self.group = None
+        elif self.group is not None:  # (its rule ended it: the others' points go on together)
+            self.group.ended.add(run)
 
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if tag != "weights":
@@ -185,7 +194,10 @@ class EvaluatorService(ServiceBase):
         self.publish_status(run, "completed", points=st.points)
         self.log.info("run %s: %d evaluation points", run, st.points)
         self.end(run)
-        self.free(run)
+        if self.group is not None and st.config is not None and st.config.early_stop is not None:
+            self.retire(run)  # its rule ended it; the group goes on (noted for a restart)
+        else:
+            self.free(run)
 
 
 def make_service(service_id: str, connect: list[str], data_dir: Path) -> EvaluatorService:

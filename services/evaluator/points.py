@@ -128,6 +128,9 @@ class GroupEval:
     venv: Any = None
     policy: GroupPolicy | None = None
     waiting_since: float | None = None
+    # Runs the learner completed while others of the group go on (`early_stop`): no
+    # point of theirs is waited for; their worlds still step in the batched rollout.
+    ended: set[str] = field(default_factory=set)
 
     @classmethod
     def open(
@@ -150,7 +153,8 @@ class GroupEval:
             return []
         point = min(msg.eval_point for _, msg, _ in heads)
         ready = [(st, msg) for st, msg, missing in heads if msg.eval_point == point]
-        if len(sts) < len(self.runs) or len(ready) < len(sts) or any(m for *_, m in heads):
+        going = len(self.runs) - len(self.ended)
+        if len(sts) < going or len(ready) < len(sts) or any(m for *_, m in heads):
             return []
         for st, msg in ready:
             st.pending.remove(msg)
@@ -163,10 +167,12 @@ class GroupEval:
         else on its own worlds."""
         if self.policy is None:
             return [st.evaluate(msg) for st, msg in ready]
-        for r, (_, msg) in enumerate(ready):
+        at = [self.runs.index(st.run) for st, _ in ready]  # (an ended run's entry: unread)
+        for r, (_, msg) in zip(at, ready):
             self.policy.load(r, msg.actors)
         episodes = ready[0][0].eval_episodes
-        return evaluate_group(self.policy, self.venv, len(self.runs), episodes)
+        results = evaluate_group(self.policy, self.venv, len(self.runs), episodes)
+        return [results[r] for r in at]
 
     def waited_out(self, now: float) -> bool:
         """A point not every run has yet has waited GROUP_WAIT_S (the clock starts now

@@ -20,10 +20,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+import torch
+
 from shared.net.messages import Resumed
 from shared.persist import checkpoint
 from shared.persist.checkpoint import CutError as CutError  # what `good` raises
 from shared.persist.checkpoint import UnreadableCheckpoint
+from shared.persist.files import atomic_write
 from shared.settings import settings
 
 if TYPE_CHECKING:
@@ -33,6 +37,7 @@ if TYPE_CHECKING:
 CHECKPOINT_EVERY_S = settings().learner_cut_s  # read in the learner's own process
 LOG = "transitions.wal"
 CUT, PREVIOUS = "checkpoint.pt", "checkpoint.prev.pt"
+RETIRED = "retired.pt"  # a group's run its rule ended, the others going on
 
 
 @dataclass
@@ -118,9 +123,40 @@ def apply(st: LearnerRun, state: dict[str, Any]) -> int:
 
 
 def wipe(folder: Path) -> None:
-    """An earlier attempt's log and cuts: a start begins afresh."""
-    for old in (LOG, CUT, PREVIOUS):
+    """An earlier attempt's log, cuts and best point: a start begins afresh."""
+    for old in (LOG, CUT, PREVIOUS, checkpoint.BEST, RETIRED):
         (folder / old).unlink(missing_ok=True)
+
+
+def save_retired(folder: Path, arrays: tuple[np.ndarray, ...]) -> None:
+    """A group's run retired by its rule (`Serving.retire`): its fixed update arrays,
+    for a learner restarted while the others go on (its replay log is gone with it).
+    Tensors only, read with torch.load(weights_only=True)."""
+    state = {"arrays": [torch.from_numpy(np.ascontiguousarray(a)) for a in arrays]}
+    atomic_write(folder / RETIRED, lambda f: torch.save(state, f))
+
+
+def load_retired(folder: Path) -> tuple[np.ndarray, ...]:
+    """What `save_retired` wrote; CutError naming the file if it cannot be read."""
+    try:
+        state = torch.load(folder / RETIRED, weights_only=True)
+        return tuple(t.numpy() for t in state["arrays"])
+    except Exception as err:
+        raise CutError(f"{folder / RETIRED}: {type(err).__name__}: {err}") from None
+
+
+def best_so_far(st: LearnerRun) -> float:
+    """The success of the point in the run's best.pt (`early_stop`), -1 without one: a
+    resumed learner replaces it only with a better point, as the rows it reads again
+    from the evaluator are the ones it had read."""
+    path = st.cuts.folder / checkpoint.BEST if st.cuts.folder is not None else None
+    if path is None or not path.exists():
+        return -1.0
+    try:
+        best = checkpoint.load(path, "best", st.config.model_dump(mode="json"))
+    except checkpoint.CutError:  # (unreadable or another config: the next point rewrites it)
+        return -1.0
+    return float(best["counters"]["success_rate"])
 
 
 def retire(st: LearnerRun) -> None:
@@ -142,13 +178,20 @@ def open_log(st: LearnerRun) -> list:
     return st.intake.open_log(st.cuts.folder / LOG)
 
 
-def restore(learner: Any, sts: list[LearnerRun], warn: Callable[[str], None]) -> list[int | None]:
+def restore(
+    learner: Any,
+    sts: list[LearnerRun],
+    warn: Callable[[str], None],
+    slots: tuple[list[int], int] | None = None,
+) -> list[int | None]:
     """The runs served (a run alone, or a group's runs) from their cuts at the newest
     update all of them have a cut of (a group's cuts are written together; a kill
     between two runs' files leaves the one before for some), into `learner` (their one
     learner: `load_run_state_dicts`) and each run's state; each run's cut episode, all
     None if there is no such update (the logs alone, from the initial weights). Of two
-    cuts of one update, the newer is taken."""
+    cuts of one update, the newer is taken. `slots`: the group members `sts` are, and
+    the group's size, when some were retired by their rule (their entries, whose
+    weights nothing reads, take the first run's state: one update count for all)."""
     options = []
     for st in sts:
         cuts: dict[int, dict[str, Any]] = {}
@@ -161,7 +204,11 @@ def restore(learner: Any, sts: list[LearnerRun], warn: Callable[[str], None]) ->
             warn(f"runs {[st.run for st in sts]}: no update all have a cut of: the logs")
         return [None] * len(sts)
     states = [o[max(common)] for o in options]
-    learner.load_run_state_dicts([s["learner"] for s in states])
+    members = [s["learner"] for s in states]
+    if slots is not None:
+        at, size = slots
+        members = [members[at.index(r)] if r in at else members[0] for r in range(size)]
+    learner.load_run_state_dicts(members)
     return [apply(st, state) for st, state in zip(sts, states)]
 
 

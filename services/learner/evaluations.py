@@ -12,8 +12,11 @@ process; the service publishes what it returns.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import time
+from dataclasses import dataclass
+from typing import Any
 
 from shared.net.messages import Metrics, Weights
 from shared.net.wire import WireError, decode, encode
@@ -40,16 +43,42 @@ def reported_point(payload: bytes) -> int:
     return reported_row(payload)[0]
 
 
-def reported_row(payload: bytes) -> tuple[int, str | None]:
-    """The point an evaluator's metrics row reports and its `stop_reason` (the evaluator
-    read the run's `early_stop` rule on its rows: the run ends there), None without
-    one; WireError if malformed."""
+def reported_row(payload: bytes) -> tuple[int, dict[str, Any]]:
+    """The point an evaluator's metrics row reports, and the row; WireError if
+    malformed."""
     msg = decode(payload, Metrics)
     point = msg.data.get("episode") if isinstance(msg.data, dict) else None
     if not isinstance(point, int) or isinstance(point, bool):
         raise WireError(f"metrics: eval row episode is not an int: {point!r}")
-    why = msg.data.get("stop_reason")
-    return point, why if isinstance(why, str) and why else None
+    return point, msg.data
+
+
+@dataclass(frozen=True)
+class PointRow:
+    """What the learner reads of a point's row for `early_stop`: its success (the best
+    point's weights go to best.pt), its steps, and its `stop_reason` (the evaluator read
+    the run's rule on its rows: the run ends there), None without one."""
+
+    episode: int
+    env_steps: int
+    success_rate: float
+    stop_reason: str | None
+
+    @classmethod
+    def of(cls, point: int, data: dict[str, Any]) -> PointRow:
+        why = data.get("stop_reason")
+        try:
+            steps, success = int(data["env_steps"]), float(data["success_rate"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise WireError(f"metrics: eval row of point {point}: {err!r}") from None
+        return cls(point, steps, success, why if isinstance(why, str) and why else None)
+
+    def as_row(self) -> dict[str, Any]:
+        return {
+            "episode": self.episode,
+            "env_steps": self.env_steps,
+            "success_rate": self.success_rate,
+        }
 
 
 class EvaluationsInFlight:
@@ -59,7 +88,7 @@ class EvaluationsInFlight:
     evaluator's metric rows); each writes its own fields. A point unreported after
     `max_s` no longer counts (a slow or absent evaluator must not mark every update)."""
 
-    def __init__(self, max_s: float = 1.0) -> None:
+    def __init__(self, max_s: float = 1.0, early_stop: bool = False) -> None:
         self.max_s = max_s
         self.last_sent = -1
         self.sent_at = 0.0
@@ -68,15 +97,20 @@ class EvaluationsInFlight:
         # Points sent and not reported yet: point -> (when sent, the weights message).
         self.unreported: dict[int, tuple[float, bytes]] = {}
         self.reported_at = time.monotonic()
-        # Points whose row says the run's `early_stop` rule held there, and why.
-        self.stops: dict[int, str] = {}
+        # `early_stop`: each point's row once, in the order they came, until the learner's
+        # thread has read it (appended here before the point leaves `unreported`, so the
+        # learner holds the next step until it has: lockstep.ready).
+        self.early_stop = early_stop
+        self.rows_in: collections.deque[PointRow] = collections.deque()
+        self._rows_seen: set[int] = set()
 
     def sent(self, point: int) -> None:
         self.last_sent, self.sent_at = point, time.monotonic()
 
-    def reported(self, point: int, stop_reason: str | None = None) -> None:
-        if stop_reason is not None:
-            self.stops[point] = stop_reason
+    def reported(self, point: int, data: dict[str, Any] | None = None) -> None:
+        if self.early_stop and data is not None and point not in self._rows_seen:
+            self.rows_in.append(PointRow.of(point, data))  # (a repeated row: once)
+            self._rows_seen.add(point)
         self.last_reported = max(self.last_reported, point)
         self.reported_rows += 1
         self.unreported.pop(point, None)

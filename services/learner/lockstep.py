@@ -65,7 +65,9 @@ def ready(g: RunGroup, runs: dict[str, LearnerRun], seq: int) -> bool:
     does not hold the answer: that step comes again as a duplicate."""
     assert g.asks is not None
     actor = g.asks.actor
-    for run in g.runs:
+    for r, run in enumerate(g.runs):
+        if r in g.retired:
+            continue  # (ended by its rule: its world's steps are not published)
         st = runs.get(run)
         if st is None:
             return False
@@ -74,7 +76,9 @@ def ready(g: RunGroup, runs: dict[str, LearnerRun], seq: int) -> bool:
             continue
         if taken < seq or not st.intake.in_replay(actor, seq) or not learnt_up_to(st):
             return False
-        if st.config.early_stop is not None and (st.evaluations.unreported or st.stopped):
+        if st.config.early_stop is not None and (
+            st.evaluations.unreported or st.evaluations.rows_in or st.stopped
+        ):
             return False  # the point's row decides whether the run goes on (macb train's)
     return True
 

@@ -44,6 +44,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +75,7 @@ from shared.net.messages import (
     Status,
     Transitions,
 )
-from shared.net.wire import WireError
+from shared.net.wire import WireError, decode
 from shared.persist import provenance
 from shared.run.factories import agent_dims, build_learner, learner_spec
 
@@ -102,6 +103,12 @@ class LearnerService(ServiceBase):
     def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         self._open(run, config, assign, resume=False)
 
+    def on_resume_retired(self, run: str, config: TrainConfig, assign: Assignment) -> None:
+        """A run of the group its rule ended before this process restarted: its place in
+        the group (its fixed update arrays), gathered with the others' starts."""
+        self.serving.gathering[run] = config
+        self.serving.retiring.add(run)
+
     def on_resume(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         """Restarted mid-run: the newest good cut, then the log beyond it (module doc)."""
         self._open(run, config, assign, resume=True)
@@ -115,18 +122,23 @@ class LearnerService(ServiceBase):
         if not self.serving.gathered(run, config, assign):
             return
         t0, runs, grouped = time.perf_counter(), list(assign.group or [run]), bool(assign.group)
+        retired = self.serving.retiring & set(runs)  # (resumed with the rest of the group)
+        self.serving.retiring -= retired
         try:
             configs = [self.serving.gathering.pop(r) for r in runs]
             if grouped and (why := group_error(configs, len(assign.actors))):
                 raise ValueError(why)
             for r in runs if not resume else []:
                 ckpt.wipe(self.data_dir / "learner" / r)
-            sts = self._open_runs(runs, configs, assign)
+            sts = self._open_runs(runs, configs, assign, retired)
             logs = [ckpt.open_log(st) for st in sts]
             cuts: list[int | None] = [None] * len(sts)
             if resume and self.serving.group is not None:
-                cuts = ckpt.restore(self.serving.group.learner, sts, self.log.warning)
+                slots = ([runs.index(st.run) for st in sts], len(runs)) if retired else None
+                cuts = ckpt.restore(self.serving.group.learner, sts, self.log.warning, slots)
             for st, records in zip(sts, logs):
+                if resume and st.config.early_stop is not None:
+                    st.best = ckpt.best_so_far(st)
                 skipped, newest = intake.replay(st, records)
                 st.outgoing.version_at_least(newest)
                 for batch in skipped:
@@ -154,31 +166,40 @@ class LearnerService(ServiceBase):
                 self.out.ack(st)  # the actors go on from what the log holds
 
     def _open_runs(
-        self, runs: list[str], configs: list[TrainConfig], assign: Assignment
+        self,
+        runs: list[str],
+        configs: list[TrainConfig],
+        assign: Assignment,
+        retired: Collection[str] = (),
     ) -> list[LearnerRun]:
         """The runs' states and their one learner; in lockstep, their one actor's act
-        requests, on the lead run's keys (run 0)."""
+        requests, on the lead run's keys (run 0). `retired`: runs of the group their rule
+        ended before this learner restarted (their fixed update arrays, no state)."""
         for config in configs:
-            if why := open_error(config, len(assign.actors), bool(assign.group)):
+            if why := open_error(config, len(assign.actors)):
                 raise ValueError(why)  # the run fails, saying so (not a silent change)
         spec, c0, grouped = task_spec_for(configs[0]), configs[0], bool(assign.group)
         torch.set_num_threads(c0.threads)
-        evaluations = [EvaluationsInFlight() for _ in runs]
+        evaluations = [EvaluationsInFlight(early_stop=c.early_stop is not None) for c in configs]
         learner: RunsLearner
         if grouped:
             specs = [learner_spec(c) for c in configs]
             learner = GroupMADDPG(agent_dims(spec), specs, precision=c0.precision, device=c0.device)
         else:
             learner = SoloRuns(build_learner(c0, spec, contended=evaluations[0].busy))
-        asks = None
-        if c0.interleave == "lockstep":
+        group = RunGroup(runs, learner, grouped)
+        if c0.interleave == "lockstep":  # (held by the group: its lead may end first)
             actor, lead = assign.actors[0], runs[0]
-            asks = Asks(actor, self.bus.publisher(keys.k_action(lead, actor)))
-            self.listen(keys.k_act(lead, "*"), "act_request", lead)
-        self.serving.group = RunGroup(runs, learner, grouped, asks)
+            group.asks = Asks(actor, self.bus.publisher(keys.k_action(lead, actor)))
+            self.listen(keys.k_act(lead, "*"), "act_request", group.subs)
+        self.serving.group = group
+        for r, run in enumerate(runs):
+            if run in retired:
+                group.retired[r] = ckpt.load_retired(self.data_dir / "learner" / run)
         return [
             self._open_run(run, config, assign, MemberLearner(learner, r), evaluations[r], grouped)
             for r, (run, config) in enumerate(zip(runs, configs))
+            if run not in retired
         ]
 
     def _open_run(
@@ -232,10 +253,17 @@ class LearnerService(ServiceBase):
             if st is not None:
                 self.serving.checkpoint(st)
                 ckpt.retire(st)
-            self.serving.drop(other)
+            self.forget(other)
             if other != run and self.serves(other):
                 self.publish_status(other, "stopped", reason=f"{reason} (run {run} of its group)")
                 self.free(other)
+
+    def forget(self, run: str) -> None:
+        """A run's state let go; with the group's last run, the group's subscriptions."""
+        g = self.serving.group
+        self.serving.drop(run)
+        if g is not None and self.serving.group is None:
+            self.endpoint.drop_run(g.subs)
 
     def on_shutdown(self) -> None:
         for st in self.runs.values():
@@ -246,6 +274,9 @@ class LearnerService(ServiceBase):
         t0 = time.perf_counter()
         if tag == "reject":  # found malformed on another thread (on_eval_row)
             self.reject(key, payload.decode(errors="replace"))
+            return
+        if tag == "act_request":
+            self.on_act_request(key, payload)
             return
         msg = self.decode_for_run(key, payload, MESSAGES[tag])  # (tags are the types)
         st = self.runs.get(msg.run) if msg is not None else None
@@ -265,9 +296,6 @@ class LearnerService(ServiceBase):
             # actor again where we are, and it resends from there.
             intake.take(st, msg)
             self.out.ack(st)
-        elif isinstance(msg, ActRequest):
-            if why := self.serving.act_request(st, key, msg):
-                self.reject(key, why)
         elif isinstance(msg, Ack):
             if msg.service == st.counter:
                 intake.counter_acked(st, msg.acked)
@@ -276,6 +304,30 @@ class LearnerService(ServiceBase):
                 st.final[msg.service] = msg.final_seq or 0
             elif msg.state == "failed":
                 self.fail(st, f"actor {msg.service} failed: {msg.fields()}")
+
+    def on_act_request(self, key: str, payload: bytes) -> None:
+        """A step's act request, on the lead run's keys: taken while any run of its group
+        goes on (the lead's rule may have ended it first: the others still step)."""
+        try:
+            msg = decode(payload, ActRequest)
+        except WireError as err:
+            self.reject(key, str(err))
+            return
+        g = self.serving.group
+        members = [self.runs[r] for r in g.runs if r in self.runs] if g is not None else []
+        ours = g is not None and bool(members) and msg.run == g.runs[0] == keys.run_of(key)
+        if not ours:
+            why = self.served.refusal(keys.run_of(key), msg.run)
+            if why is not None:  # ("": late traffic of a run let go, dropped silently)
+                if why:
+                    self.reject(key, why)
+                return
+        if not members:
+            return  # (a group's run before the group is complete has no state yet)
+        t0 = time.perf_counter()
+        if why := self.serving.act_request(members[0], key, msg):
+            self.reject(key, why)
+        members[0].time.add("inbound", time.perf_counter() - t0)
 
     def on_eval_row(self, evaluations: EvaluationsInFlight, key: str, payload: bytes) -> None:
         """The evaluator's row for a point (on Zenoh's thread): that evaluation is over.
@@ -304,7 +356,7 @@ class LearnerService(ServiceBase):
     def finish(self, st: LearnerRun) -> None:
         """Every share in replay and learnt, every point out: the run completes (or its
         `early_stop` rule held at a point: it completes there, saying why; its actor
-        and counter follow)."""
+        and counter follow, and a group's other runs go on without it: `retire`)."""
         self.serving.checkpoint(st)
         ckpt.retire(st)
         stats = self.out.stats(st).to_wire()
@@ -316,8 +368,12 @@ class LearnerService(ServiceBase):
         self.log.info(
             "run %s completed%s: %s", st.run, f" ({why})" if why else "", json.dumps(stats)
         )
-        self.serving.drop(st.run)
-        self.free(st.run)
+        if self.serving.goes_on_without(st):  # its group's other runs go on
+            self.serving.retire(st)
+            self.retire(st.run)
+        else:
+            self.forget(st.run)
+            self.free(st.run)
 
     def fail(self, st: LearnerRun, reason: str) -> None:
         """A run fails, with its group (its runs step and update together)."""
@@ -326,7 +382,7 @@ class LearnerService(ServiceBase):
 
     def fail_runs(self, reason: str, runs: list[str]) -> None:
         for run in runs:
-            self.serving.drop(run)
+            self.forget(run)
             if self.serves(run):
                 self.log.error("run %s failed: %s", run, reason)
                 self.publish_status(run, "failed", reason=reason)

@@ -18,8 +18,10 @@ from services.learner import lockstep, updates
 from services.learner.outbound import Outbound
 from services.learner.state import LearnerRun, RunGroup
 from shared.config import TrainConfig
+from shared.core.replay import fixed_update_arrays
 from shared.net import bus as keys
 from shared.net.messages import ActRequest, Assignment
+from shared.persist import checkpoint
 
 
 class Serving:
@@ -31,6 +33,7 @@ class Serving:
         self.runs: dict[str, LearnerRun] = {}
         self.group: RunGroup | None = None
         self.gathering: dict[str, TrainConfig] = {}  # runs whose start came, before all
+        self.retiring: set[str] = set()  # of those, retired by their rule (a restart)
 
     def gathered(self, run: str, config: TrainConfig, assign: Assignment) -> bool:
         """A run's start noted; True once every run served with it has its start (a run
@@ -52,6 +55,33 @@ class Serving:
         if self.group is not None and not any(r in self.runs for r in self.group.runs):
             self.group = None
 
+    def goes_on_without(self, st: LearnerRun) -> bool:
+        """`st` ends by its `early_stop` rule while other runs of its group go on."""
+        g = self.group
+        return (
+            g is not None
+            and g.grouped
+            and st.stopped is not None
+            and any(r != st.run and r in self.runs for r in g.runs)
+        )
+
+    def retire(self, st: LearnerRun) -> None:
+        """A group's run ended by its rule, the others going on (as the one-process
+        group does, cli/trainer.py `stop_member`): its state is let go, its stack entry
+        runs on one fixed minibatch of its own (the update keeps its shape; entries do
+        not mix, so the others' rows are what they give alone) and its world's steps are
+        no longer asked for (lockstep.ready)."""
+        g = self.group
+        assert g is not None
+        cfg = st.config
+        arrays = fixed_update_arrays(
+            st.intake.buffer, cfg.batch_size, st.sampling.per_update, st.spec.n_agents
+        )
+        g.retired[g.runs.index(st.run)] = arrays
+        if st.cuts.folder is not None:  # (a restarted learner serves the group with it)
+            ckpt.save_retired(st.cuts.folder, arrays)
+        self.runs.pop(st.run, None)
+
     def finished(self) -> list[LearnerRun]:
         return [st for st in self.runs.values() if st.done]
 
@@ -68,7 +98,7 @@ class Serving:
         members = [self.runs[r] for r in g.runs if r in self.runs] if g is not None else []
         if g is None or not members:
             return False
-        whole = len(members) == len(g.runs)
+        whole = len(members) + len(g.retired) == len(g.runs)
         for st in members:
             early_stop(st)
         updates.update(g, members, min(map(updates.updates_due, members)) if whole else 0)
@@ -130,9 +160,18 @@ class Serving:
 
 
 def early_stop(st: LearnerRun) -> None:
-    """`early_stop` (lockstep, alone: open_error): a row whose evaluator found the rule
-    holding there stops the run at that point (lockstep holds the next step until each
-    point's row is in, so nothing was taken after it, as in macb train)."""
-    if st.config.early_stop is not None and st.stopped is None and st.evaluations.stops:
-        point = min(st.evaluations.stops)
-        st.stopped = (point, st.evaluations.stops[point])
+    """`early_stop` (lockstep): each point's row as it comes, in order. A point with a
+    higher success than any before (the earliest of equals) has its learner written to
+    best.pt, as `macb train` writes it; a row whose evaluator found the rule holding
+    there stops the run at that point. Lockstep holds the next step until each point's
+    row is read here, so the learner is the point's and nothing was taken after it."""
+    rows = st.evaluations.rows_in
+    while rows and st.stopped is None:
+        row = rows.popleft()
+        if row.success_rate > st.best and st.cuts.folder is not None:
+            st.best = row.success_rate
+            path = st.cuts.folder / checkpoint.BEST
+            config = st.config.model_dump(mode="json")
+            checkpoint.save_best(path, config, st.learner.state_dict(), row.as_row())
+        if row.stop_reason is not None:
+            st.stopped = (row.episode, row.stop_reason)

@@ -63,6 +63,15 @@ class RunGroup:
     learner: RunsLearner
     grouped: bool = False  # a group's runs (`Assignment.group`), not a run alone
     asks: Asks | None = None  # lockstep
+    # Runs of the group their `early_stop` rule ended while the others go on: member r
+    # -> its fixed update arrays (`fixed_update_arrays`; its stack entry runs on them).
+    retired: dict[int, tuple[np.ndarray, ...]] = field(default_factory=dict)
+
+    @property
+    def subs(self) -> str:
+        """What the group's own subscriptions (the act requests, on the lead run's keys)
+        are held under: they outlive the lead run when its rule ends it first."""
+        return f"group:{self.runs[0]}"
 
 
 class MemberLearner:
@@ -105,6 +114,7 @@ class LearnerRun:
     final: dict[str, int] = field(default_factory=dict)  # actor -> transitions it published
     time: PhaseTimes = field(default_factory=PhaseTimes)
     stopped: tuple[int, str] | None = None  # `early_stop`: the point it held at, and why
+    best: float = -1.0  # `early_stop`: the best success so far (its point is in best.pt)
 
     @property
     def counting(self) -> bool:
@@ -133,20 +143,18 @@ class LearnerRun:
         )
 
 
-def open_error(config: TrainConfig, actors: int, grouped: bool = False) -> str | None:
-    """Why the cluster's learner cannot serve this run with this many actors (in a
-    lockstep group, `grouped`), if so."""
+def open_error(config: TrainConfig, actors: int) -> str | None:
+    """Why the cluster's learner cannot serve this run with this many actors, if so."""
     if config.bonus_at == "collection":
         return (
             "bonus_at collection: the cluster prices bonuses when it samples; run this "
             "config with macb train or as a run group (macb run/reproduce --local)"
         )
-    if config.early_stop is not None and (config.interleave != "lockstep" or grouped):
-        where = "a run of a group" if grouped else "interleave async"
+    if config.early_stop is not None and config.interleave != "lockstep":
         return (
-            f"early_stop: the cluster stops a run by its rule in lockstep, alone (it holds "
-            f"each step after a point until the point's row is in); not {where}: run it "
-            "with macb train or as a run group (macb run/reproduce --local)"
+            "early_stop: the cluster stops a run by its rule in lockstep (it holds each "
+            "step after a point until the point's row is in); not interleave async: run "
+            "it with macb train or as a run group (macb run/reproduce --local)"
         )
     return actors_error(config, actors)
 

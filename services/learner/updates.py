@@ -100,12 +100,14 @@ def update(g: RunGroup, members: list[LearnerRun], todo: int) -> int:
     done = len(drawn[0]) // per
     for u in range(done):
         mine = slice(u * per, (u + 1) * per)
-        parts = []
+        fresh = {}
         for st, batches, (bonuses, _) in zip(members, drawn, priced):
             # Counted here for every kind of learner; a tuned one polls the same signal
             # for its tuners and its own count (in its stats(), which take precedence).
             st.sampling.contended_updates += st.evaluations.busy()
-            parts.append(update_arrays(batches[mine], bonuses[mine]))
+            fresh[st.run] = update_arrays(batches[mine], bonuses[mine])
+        # (a run its early_stop rule ended: its fixed arrays, nothing drawn or priced)
+        parts = [g.retired[r] if r in g.retired else fresh[run] for r, run in enumerate(g.runs)]
         g.learner.update(*[np.stack(cols) for cols in zip(*parts)])
         for st, (bonuses, counts) in zip(members, priced):
             st.sampling.learnt(bonuses[mine], counts[mine] if counts is not None else None)

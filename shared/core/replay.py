@@ -98,3 +98,17 @@ def update_arrays(
         np.stack([b.next_obs for b in batches]),
         np.stack([b.done for b in batches]),
     )
+
+
+def fixed_update_arrays(
+    buffer: ReplayBuffer, batch_size: int, per_update: int, n_agents: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The update arrays of a group's run that its `early_stop` rule ended: one fixed
+    draw of `per_update` minibatches from its replay (a sampler of its own, so the
+    run's stream is untouched), no bonus. Its stack entry keeps running on them, so the
+    group's update keeps its shape, while the entries do not mix: the other runs' rows
+    stay what they give alone. One definition for the trainer and the learner service."""
+    rng = np.random.default_rng(0)
+    batches = [buffer.sample(batch_size, rng) for _ in range(per_update)]
+    zero = [np.zeros((len(b.rew), n_agents), np.float32) for b in batches]
+    return update_arrays(batches, zero)

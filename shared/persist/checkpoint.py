@@ -79,6 +79,23 @@ def save(
     atomic_write(path, lambda f: torch.save(state, f), previous)
 
 
+BEST = "best.pt"
+
+
+def save_best(path: Path, config: dict[str, Any], learner: dict[str, Any], row: dict) -> None:
+    """The best evaluation point's learner (`early_stop`), as a checkpoint of kind
+    `best`: `learner` (networks and optimizers at the point whose metric `row` it is),
+    the point's episode, steps and success, no tables (the last weights and the tables
+    are checkpoint.pt's). The trainer and the learner service both write it here, so
+    a run's best.pt is one file whichever ran it."""
+    counters = {
+        "episode": int(row["episode"]),
+        "env_steps": int(row["env_steps"]),
+        "success_rate": float(row["success_rate"]),
+    }
+    save(path, "best", config, learner, counters)
+
+
 def load(
     path: Path, kind: str | tuple[str, ...], config: dict[str, Any] | None = None
 ) -> dict[str, Any]:
