@@ -53,7 +53,7 @@ from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.control import discover, history_rows, send_start, send_stop
 from shared.net.info import ApiInfo
-from shared.net.monitor import Graces
+from shared.net.monitor import Graces, live_peer
 from shared.net.monitor import peer_grace_s as peer_grace
 from shared.settings import node_name
 
@@ -111,6 +111,12 @@ class Scheduler:
         self._thread = threading.Thread(target=self._main, name="macb-api-scheduler", daemon=True)
         self._last_reconcile = 0.0
         self._last_assign_try = 0.0
+        # Liveliness tokens as the subscription last said, and each service's last info:
+        # GET /workers reads these, so a query that times out on a loaded machine does
+        # not make the cluster look empty for a moment.
+        self._tokens: set[str] = set()
+        self._infos: dict[tuple[str, str], dict[str, Any]] = {}
+        self._lock = threading.Lock()
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -143,6 +149,9 @@ class Scheduler:
             finally:
                 self.connected.clear()
                 self._subs.clear()
+                with self._lock:
+                    self._tokens.clear()
+                    self._infos.clear()
                 self.book.watches.clear()
                 with contextlib.suppress(Exception):
                     self.bus.close()
@@ -153,9 +162,7 @@ class Scheduler:
         assert bus is not None
         bus.token(keys.k_live("api", self.service_id))
         bus.queryable(keys.k_info("api", self.service_id), self._info_reply)
-        bus.watch_liveliness(
-            keys.k_live("*", "*"), lambda key, up: self.events.put(("live", key, up))
-        )
+        bus.watch_liveliness(keys.k_live("*", "*"), self._on_live)
         self.connected.set()
         log.info("scheduler connected to %s", self.connect)
         self._reattach()
@@ -164,6 +171,14 @@ class Scheduler:
             self._send_stops()
             self._assign_queued()
             self._check_runs()
+
+    def _on_live(self, key: str, up: bool) -> None:
+        with self._lock:
+            if up:
+                self._tokens.add(key)
+            else:
+                self._tokens.discard(key)
+        self.events.put(("live", key, up))
 
     def _info_reply(self, key: str, payload: bytes) -> bytes:
         info = ApiInfo(
@@ -317,5 +332,13 @@ class Scheduler:
         bus = self.bus
         if bus is None or not self.connected.is_set():
             return None
-        tokens = bus.alive(keys.k_live("*", "*"), timeout=1.0)
-        return worker_rows(tokens, discover(bus, timeout=1.0))
+        fresh = discover(bus, timeout=1.0)
+        with self._lock:
+            tokens = set(self._tokens)
+            live = {peer for key in tokens if (peer := live_peer(key)) is not None}
+            for info in fresh:
+                self._infos[(info["role"], info["id"])] = info
+            for peer in set(self._infos) - live:
+                del self._infos[peer]
+            infos = list(self._infos.values())
+        return worker_rows(tokens, infos)
