@@ -133,6 +133,7 @@ def test_bench_cluster_bf16_variants_set_precision_and_lanes(tmp_path: Path) -> 
     )
 
 
+@pytest.mark.slow
 def test_stack_probe_two_cores_prints_the_precisions_this_cpu_runs() -> None:
     """fp32 and bf16 rows where the CPU has native bf16; elsewhere fp32 only, and it
     says bf16 was skipped (a bf16 learner there runs fp32: its row would be mislabelled)."""

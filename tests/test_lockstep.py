@@ -410,7 +410,11 @@ def test_a_cluster_group_goes_on_when_its_rule_ends_one_run(cluster, bus, tmp_pa
         assert_same_best(folder, outs[r], alone[r])
 
 
-@pytest.mark.parametrize("victim", ["learner", "actor0", "evaluator"])
+# The learner in `make test`; the actor and the evaluator in test-slow.
+@pytest.mark.parametrize(
+    "victim",
+    ["learner", *(pytest.param(v, marks=pytest.mark.slow) for v in ("actor0", "evaluator"))],
+)
 def test_a_cluster_group_goes_on_after_a_restart_past_one_runs_stop(cluster, bus, tmp_path, victim):
     """A service of the group killed (SIGKILL) and started again once the lead run's
     rule has ended it: the restarted learner serves the group with that run retired

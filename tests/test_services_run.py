@@ -158,7 +158,8 @@ def test_garbage_on_every_key_is_dropped_counted_and_changes_nothing(cluster, bu
         assert p.poll() is None, f"{name} died"
 
 
-@pytest.mark.parametrize("victim", ["learner", "actor0"])
+# The learner in `make test`; the actor, the same failure path, in test-slow.
+@pytest.mark.parametrize("victim", ["learner", pytest.param("actor0", marks=pytest.mark.slow)])
 def test_a_dead_learner_or_actor_fails_the_run_and_frees_the_others(cluster, bus, victim):
     cluster.services(1)
     wait_services(bus, 4)
