@@ -491,12 +491,12 @@ def assert_exact(run, config=None, *, faults: str | None = None) -> Finished:
         assert learner["bonus_queries"] * 5 <= learner["updates"], learner
         assert learner["bonus_failures"] == 0, learner
         assert 0.0 < learner["bonus_wait_ms_per_update"] < 1e3, learner
-    # The learner saw the evaluator's rows (what ends its contended updates), so not
-    # every update was marked contended (how many are depends on timing: with these
-    # small networks an evaluation may end before the next update starts), and it
-    # accounted for its time by phase.
+    # The learner saw the evaluator's rows (what ends its contended updates) and
+    # accounted for its time by phase. How many updates were contended is timing alone
+    # (on a loaded machine every one of a short run can overlap an evaluation), so only
+    # its range is checked; tests/test_batched_equivalence.py tests the marking.
     assert 0 < learner["eval_rows_seen"] <= len(points), learner
-    assert 0 <= learner["contended_updates"] < learner["updates"], learner
+    assert 0 <= learner["contended_updates"] <= learner["updates"], learner
     assert learner["ms_per_update_update"] > 0.0, learner
     return run
 
