@@ -495,8 +495,8 @@ class GroupRun:
             [m.stored for m in members],
             [m.explorer.slot_shapes for m in members],
         )
-        for m, buffer in zip(members, self.replay.buffers):
-            m.buffer = buffer
+        for member, buffer in zip(members, self.replay.buffers):
+            member.buffer = buffer
         self.m_eval = m = min(c0.eval_episodes, 10)  # evaluation worlds per run
         eval_envs = []
         for cfg in cfgs:

@@ -24,8 +24,8 @@ class CountTable:
     counted, its count always 0). `increment` returns each row's slot, so whoever stores
     a row can keep its slot and price it later by `gather`, an array look-up, rather than
     by hashing its key again: the count found is the same, as a row's key never changes.
-    The counts are grown by replacing the array, never resized in place, so a reader on
-    another thread holding the old one reads valid (if stale) counts.
+    The counts are grown by replacing the array, never resized in place, and before any
+    new slot is given out, so a reader on another thread reads valid (if stale) counts.
     """
 
     def __init__(self, key_bytes: int) -> None:
@@ -63,15 +63,16 @@ class CountTable:
         """Count each row once (a batch of collected transitions); each row's slot (B,)
         int32. How rows are batched changes nothing: count-1 is a function of the counts."""
         table = self._slots
+        split = self._split(keys)
+        self._room(len(table) + 1 + len(split))  # (before any new slot can be read)
+        n = self._n
         get = table.get
         out = []
-        for key in self._split(keys):
+        for key in split:
             s = get(key)
             if s is None:
                 s = table[key] = len(table) + 1
             out.append(s)
-        self._room(len(table) + 1)
-        n = self._n
         if len(out) == 1:
             s = out[0]
             c = int(n[s]) + 1

@@ -152,8 +152,10 @@ class GroupReplay:
         self.capacity = cap = max(capacities)
         width = max(stored_bonus)
         shared = replay_fields(obs_dim, act_dim, width, ())
-        self.arrays = {k: np.zeros((runs, cap, *shape), dt) for k, (shape, dt) in shared.items()}
-        self.buffers = []
+        self.arrays: dict[str, np.ndarray] = {
+            k: np.zeros((runs, cap, *shape), dt) for k, (shape, dt) in shared.items()
+        }
+        self.buffers: list[ReplayBuffer] = []
         for r, (c, sb, shapes) in enumerate(zip(capacities, stored_bonus, slot_shapes)):
             store = {k: v[r, :c] for k, v in self.arrays.items()}
             for t, shape in enumerate(shapes):
