@@ -3,9 +3,10 @@ services use. A run alone is a group of one: one loop, one cut and one restore.
 
 Per environment step: one policy call acts (with noise) for every run, the R worlds step
 as arrays (shared/envs/vectask.py; a custom task's world by world), each run stores and
-counts its own transition (collection is the only place counts change), and, after
-`learning_starts` transitions, samples its own minibatch, prices its bonus from its own
-counts, and one learner update updates every run. After every `eval_every` training
+counts its own transition (collection is the only place counts change; the row keeps its
+slot in each of the run's tables), and, after `learning_starts` transitions, draws its
+own minibatch's rows, prices their bonus from its own counts now at their slots, and one
+gather over the group's replay and one learner update serve every run. After every `eval_every` training
 episodes one batched rollout runs every run's `eval_episodes` noise-free episodes and
 each run writes one metrics row.
 
