@@ -6,9 +6,9 @@ as arrays (shared/envs/vectask.py; a custom task's world by world), each run sto
 counts its own transition (collection is the only place counts change; the row keeps its
 slot in each of the run's tables), and, after `learning_starts` transitions, draws its
 own minibatch's rows, prices their bonus from its own counts now at their slots, and one
-gather over the group's replay and one learner update serve every run. After every `eval_every` training
-episodes one batched rollout runs every run's `eval_episodes` noise-free episodes and
-each run writes one metrics row.
+gather over the group's replay and one learner update serve every run. After every
+`eval_every` training episodes one batched rollout runs every run's `eval_episodes`
+noise-free episodes and each run writes one metrics row.
 
 What stays per run (`Member`) is everything that makes it a run: its config (seed,
 exploration, beta, k, reward, noise, ...), replay buffer, count tables, RNG streams,
