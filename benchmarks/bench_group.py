@@ -23,6 +23,15 @@ process (`GroupRun`), against
   what `macb reproduce` runs through the cluster, each run the group's bit for bit. Its
   rate is the runs' env steps at their last point over the learner's clock then.
 
+`price` (in this process, rotating rounds, ratios within a round): pricing plus
+sampling of one group step of figure 8's sparse pair (6 runs, profile thesis: one
+minibatch per agent) after --fill transitions of each run, as `GroupRun` does it (each
+run's rows drawn from its own sampler, one gather per field over the group's replay,
+each row's bonus a gather of the counts at the slots stored when it was counted)
+against the per-run way it replaced (each run's minibatches sampled from its own
+buffer, their keys SimHashed again and looked up, the parts stacked). Both give the
+same arrays, checked bit for bit before timing; the target is <= 1 ms per step.
+
 Each side's rate is run-steps/s: the group's from its own timing, the `cluster`'s total
 over its two runs (steady rates, as bench_slots.py takes them). The group's share of
 wall time in acting and stepping the worlds and in evaluation is reported; from the
@@ -33,6 +42,8 @@ steps) in hours.
         [--precision fp32 bf16] [--threads 1]
     .venv/bin/python benchmarks/bench_group.py e2e [--episodes 60] [--rounds 3]
         [--precision fp32] [--threads 2] [--cluster [cluster] [cluster-group]]
+    .venv/bin/python benchmarks/bench_group.py price [--fill 20000] [--rounds 7]
+        [--quick]
 """
 
 from __future__ import annotations
@@ -212,8 +223,106 @@ def fig8_pair(opts: dict[str, Any]) -> list:
             over = {"seed": seed, "episodes": opts["episodes"], "precision": opts["precision"],
                     "threads": opts["threads"], "interleave": "lockstep",
                     "eval_every": 1}  # fmt: skip
+            if "profile" in opts:  # (its presets then fill what the arm does not set)
+                over["profile"] = opts["profile"]
             cfgs.append(make_config({**data, **over}))
     return cfgs
+
+
+# ---------------------------------------------------------------- price
+def per_run_step(g: Any, rngs: list) -> list:
+    """One group step's update arrays the per-run way (before slots and the group's
+    replay): each run samples its minibatches, hashes their keys and looks them up,
+    prices and records them, and the parts are stacked."""
+    import numpy as np
+
+    from shared.core.replay import update_arrays
+
+    k, size = g.minibatches_per_update, g.cfg.batch_size
+    parts = []
+    for m, rng in zip(g.members, rngs):
+        batches = [m.buffer.sample(size, rng) for _ in range(k)]
+        beta = m.cfg.beta_at(m.env_steps)
+        bonuses = []
+        for b in batches:
+            counts = m.explorer.counts(b.obs, b.act)
+            bonuses.append(m.explorer.bonus_from_counts(counts, len(b.rew), beta))
+            m.diagnostics.record(bonuses[-1], counts)
+        parts.append(update_arrays(batches, bonuses))
+    return [np.stack(cols) for cols in zip(*parts)]
+
+
+def group_step(g: Any, rngs: list) -> list:
+    """One group step's update arrays as `GroupRun.episode` makes them."""
+    k, size = g.minibatches_per_update, g.cfg.batch_size
+    idx = g.replay.draw(size, k, rngs)
+    bonuses = [m.price(idx[r]) for r, m in enumerate(g.members)]
+    return g.update_arrays(idx, bonuses, [True] * len(g.members))
+
+
+def filled_group(fill: int) -> Any:
+    """Figure 8's sparse pair (profile thesis) as a `GroupRun`, each run's replay and
+    tables filled with `fill` transitions of its own (acting with the untrained policy
+    and its noise; no update)."""
+    from cli.trainer import GroupRun
+
+    opts = {"episodes": 40_000, "precision": "fp32", "threads": 1, "profile": "thesis"}
+    cfgs = fig8_pair(opts)
+    g = GroupRun(cfgs, [None] * len(cfgs), 60.0)
+    for _ in range(fill):
+        tr = g.collector.step(g.learner.act)
+        for r, m in enumerate(g.members):
+            m.collect(tr.obs[r], tr.act[r], float(tr.rew[r]), tr.next_obs[r],
+                      float(tr.done[r]), int(tr.collisions[r]))  # fmt: skip
+    return g
+
+
+def bench_price(args: argparse.Namespace) -> dict[str, Any]:
+    import numpy as np
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    torch.set_num_threads(1)
+    with threadpool_limits(limits=1, user_api="blas"):  # as train_group runs
+        progress(f"filling 6 runs' replay with {args.fill} transitions each ...")
+        g = filled_group(args.fill)
+        cfg = g.cfg
+        assert cfg.profile == "thesis"
+
+        def rngs(seed: int) -> list:
+            return [np.random.default_rng([seed, r]) for r in range(g.runs)]
+
+        a, b = per_run_step(g, rngs(0)), group_step(g, rngs(0))
+        same = all(x.dtype == y.dtype and np.array_equal(x, y) for x, y in zip(a, b))
+        if not same:
+            raise SystemExit("bench_group price: the two ways give different arrays")
+        ours, theirs = rngs(1), rngs(1)
+        fns = {
+            "group": lambda: group_step(g, ours),
+            "per_run": lambda: per_run_step(g, theirs),
+        }
+        progress(f"pricing + sampling, {g.runs} runs, {args.rounds} rounds ...")
+        s = measure(fns, args.rounds, 0.05 if args.quick else 0.4)
+    row = {
+        "runs": g.runs,
+        "profile": cfg.profile,
+        "minibatches": g.minibatches_per_update,
+        "batch": cfg.batch_size,
+        "fill": args.fill,
+        "group_ms": 1e3 * statistics.median(s["group"]),
+        "per_run_ms": 1e3 * statistics.median(s["per_run"]),
+        "per_run_over_group": ratio_median(s["per_run"], s["group"]),
+        "same_arrays": same,
+    }
+    row["within_target"] = row["group_ms"] <= 1.0
+    target = "yes" if row["within_target"] else "no"
+    print("\n| runs | profile | minibatches x rows | filled | group step ms | per-run ms "
+          "| per-run / group | <= 1 ms |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
+    print(f"| {row['runs']} | {row['profile']} | {row['minibatches']} x {row['batch']} "
+          f"| {row['fill']:,} | {row['group_ms']:.3f} | {row['per_run_ms']:.3f} "
+          f"| {row['per_run_over_group']:.1f}x | {target} |")  # fmt: skip
+    return {"rows": [row]}
 
 
 def group_child(spec: str) -> None:
@@ -411,11 +520,16 @@ def main(argv: list[str] | None = None) -> None:
         "--jobs", type=int, default=1,
         help="the six runs as this many groups, one process each (each with --threads)",
     )  # fmt: skip
-    for p in (up, e2e):
+    pr = sub.add_parser("price", help="pricing + sampling of one fig8 group step")
+    pr.add_argument("--fill", type=int, default=20_000, help="transitions in each run's replay")
+    pr.add_argument("--rounds", type=int, default=7)
+    pr.add_argument("--quick", action="store_true", help="short rounds (a smoke run)")
+    for p in (up, e2e, pr):
         p.add_argument("--out", type=Path, help="JSON results (default benchmarks/results/)")
     args = parser.parse_args(argv)
     load = os.getloadavg()
-    result = bench_update(args) if args.part == "update" else bench_e2e(args)
+    parts = {"update": bench_update, "e2e": bench_e2e, "price": bench_price}
+    result = parts[args.part](args)
     result.update(command=command(__file__, argv), cpu=cpu_model(), cores=os.cpu_count())
     print(f"CPU: {result['cpu']} ({result['cores']} cores)")
     write_result(args.out or RESULTS / f"group_{args.part}.json", result, load)

@@ -3,11 +3,12 @@ services use. A run alone is a group of one: one loop, one cut and one restore.
 
 Per environment step: one policy call acts (with noise) for every run, the R worlds step
 as arrays (shared/envs/vectask.py; a custom task's world by world), each run stores and
-counts its own transition (collection is the only place counts change), and, after
-`learning_starts` transitions, samples its own minibatch, prices its bonus from its own
-counts, and one learner update updates every run. After every `eval_every` training
-episodes one batched rollout runs every run's `eval_episodes` noise-free episodes and
-each run writes one metrics row.
+counts its own transition (collection is the only place counts change; the row keeps its
+slot in each of the run's tables), and, after `learning_starts` transitions, draws its
+own minibatch's rows, prices their bonus from its own counts now at their slots, and one
+gather over the group's replay and one learner update serve every run. After every
+`eval_every` training episodes one batched rollout runs every run's `eval_episodes`
+noise-free episodes and each run writes one metrics row.
 
 What stays per run (`Member`) is everything that makes it a run: its config (seed,
 exploration, beta, k, reward, noise, ...), replay buffer, count tables, RNG streams,
@@ -40,7 +41,7 @@ from shared.config import TrainConfig
 from shared.core.exploration import BonusDiagnostics, CountExploration, constant_shift
 from shared.core.learners import Learner, RunsLearner, SoloRuns
 from shared.core.learners.group import GroupMADDPG
-from shared.core.replay import Batch, ReplayBuffer, fixed_update_arrays, update_arrays
+from shared.core.replay import GroupReplay, ReplayBuffer, fixed_update_arrays
 from shared.envs.tasks import TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
 from shared.groups import check_group
@@ -183,42 +184,43 @@ def option_columns(cfg: TrainConfig, env_steps: int) -> dict:
 
 def price_at_collection(
     explorer: CountExploration,
-    obs: np.ndarray,
-    act: np.ndarray,
+    slots: list[np.ndarray],
     diagnostics: BonusDiagnostics,
     on: bool,
     beta: float | None = None,
 ) -> np.ndarray | None:
     """`bonus_at: collection`: the just-counted transition's per-agent bonus (N,), from
-    its count including itself, at `beta` (the schedule's now; None: the config's), to
-    store with it (the diagnostics then describe the collected transitions); None when
-    bonuses are priced at sample time."""
+    its count including itself (at its `slots`, what counting it returned), at `beta`
+    (the schedule's now; None: the config's), to store with it (the diagnostics then
+    describe the collected transitions); None when bonuses are priced at sample time."""
     if not on:
         return None
-    counts = explorer.counts(obs[None], act[None])
+    counts = explorer.counts_at(slots)
     bonus = explorer.bonus_from_counts(counts, 1, beta)
     diagnostics.record(bonus, counts)
     return bonus[0]
 
 
-def price_batches(
+def price_rows(
     explorer: CountExploration,
-    batches: list,
+    slots: Sequence[np.ndarray],
+    shape: tuple[int, int],
     diagnostics: BonusDiagnostics,
     beta: float | None = None,
-) -> list[np.ndarray]:
-    """Each sampled minibatch's per-agent bonus: the stored one (`bonus_at: collection`),
-    or priced now from the current counts at `beta` (the schedule's now; None: the
-    config's), recorded in the diagnostics."""
-    bonuses = []
-    for b in batches:
-        if b.bonus is not None:
-            bonuses.append(b.bonus)
-            continue
-        counts = explorer.counts(b.obs, b.act)
-        bonuses.append(explorer.bonus_from_counts(counts, len(b.rew), beta))
-        diagnostics.record(bonuses[-1], counts)
-    return bonuses
+) -> np.ndarray:
+    """`shape` (k, B) sampled minibatches' per-agent bonuses (k, B, N), priced now from
+    the current counts at the rows' `slots` (each table's (k, B, ...): a gather, the
+    counts of the rows' keys without hashing them again; none for an arm that counts
+    nothing) at `beta` (the schedule's now; None: the config's), each minibatch
+    recorded in the diagnostics in turn."""
+    counts = explorer.counts_at(slots)
+    k, batch = shape
+    out = np.empty((k, batch, explorer.n_agents), np.float32)
+    for j in range(k):
+        mine = [c[j] for c in counts]
+        out[j] = explorer.bonus_from_counts(mine, batch, beta)
+        diagnostics.record(out[j], mine)
+    return out
 
 
 def train(
@@ -304,16 +306,17 @@ def train_group(
 
 class Member:
     """One run of a group: its own parts (count tables, replay buffer, sampler),
-    counters, rows and files, and its cut's share of what it writes and reads back."""
+    counters, rows and files, and its cut's share of what it writes and reads back.
+    Its replay buffer is its rows of the group's (`GroupReplay`), given by the group."""
 
     def __init__(self, cfg: TrainConfig, out: Path | None, spec: TaskSpec) -> None:
         self.cfg, self.out = cfg, out
         self.explorer = build_exploration(cfg, spec)
-        capacity = min(cfg.buffer_size, cfg.episodes * cfg.episode_len)
+        self.capacity = min(cfg.buffer_size, cfg.episodes * cfg.episode_len)
         # bonus_at collection: priced once, when collected, and stored with the reward
         self.collection = cfg.bonus_at == "collection"
-        stored = spec.n_agents if self.collection else 0
-        self.buffer = ReplayBuffer(capacity, spec.joint_obs_dim, spec.joint_act_dim, stored)
+        self.stored = spec.n_agents if self.collection else 0
+        self.buffer: ReplayBuffer  # (GroupRun sets it)
         self.sample_rng = np.random.default_rng(derive_seed(cfg.seed, "sampler"))
         self.diagnostics = BonusDiagnostics()
         self.rows: list[dict] = []
@@ -350,29 +353,30 @@ class Member:
         done: float,
         collisions: int,
     ) -> None:
-        """Count one transition of this run's, store it (with its bonus when priced at
-        collection) and keep it for the replay log."""
-        self.explorer.observe(obs[None], act[None])
+        """Count one transition of this run's, store it with its slot in each table
+        (and its bonus when priced at collection) and keep it for the replay log. The
+        key counted is the stored row's (float32, as every task gives), so the slot is
+        the one its key at sample time has."""
+        obs, act = np.asarray(obs, np.float32), np.asarray(act, np.float32)
+        slots = self.explorer.observe(obs[None], act[None])
         beta = self.cfg.beta_at(self.env_steps + 1)  # this transition's
-        stored = price_at_collection(
-            self.explorer, obs, act, self.diagnostics, self.collection, beta
-        )
-        self.buffer.add(obs, act, rew, next_obs, done, stored)
+        stored = price_at_collection(self.explorer, slots, self.diagnostics, self.collection, beta)
+        self.buffer.add(obs, act, rew, next_obs, done, stored, slots)
         if self.replay is not None:
             row = (obs, act, rew, next_obs, done)
             self.pending.append(row if stored is None else (*row, stored))
         self.env_steps += 1
         self.collisions_cum += collisions
 
-    def sample(self, batch_size: int, count: int) -> list[Batch]:
-        """This run's `count` minibatches for one update (its own sampler's draws)."""
-        return [self.buffer.sample(batch_size, self.sample_rng) for _ in range(count)]
-
-    def price(self, batches: list[Batch]) -> list[np.ndarray]:
-        """Their bonuses, from this run's counts now at the beta of its last transition
-        (the update it owes; `beta_schedule`), recorded in its diagnostics."""
+    def price(self, idx: np.ndarray) -> np.ndarray | None:
+        """The bonuses (k, B, N) of its sampled rows `idx` (k, B), from this run's counts
+        now at the beta of its last transition (the update it owes; `beta_schedule`),
+        recorded in its diagnostics; None where they were stored at collection."""
+        if self.collection:
+            return None
         beta = self.cfg.beta_at(self.env_steps)
-        return price_batches(self.explorer, batches, self.diagnostics, beta)
+        slots = [s[idx] for s in self.buffer.slots]
+        return price_rows(self.explorer, slots, idx.shape, self.diagnostics, beta)
 
     def append_pending(self) -> int:
         """The transitions collected since the last cut, onto the replay log; bytes."""
@@ -408,9 +412,23 @@ class Member:
         obs, act, rew, next_obs, done = (
             data[k][first:] for k in ("obs", "act", "rew", "next_obs", "done")
         )
+        slots = self.slots_of(obs, act)
         buffer.add(
-            obs, act, rew, next_obs, done, data["bonus"][first:] if self.collection else None
-        )
+            obs, act, rew, next_obs, done, data["bonus"][first:] if self.collection else None,
+            slots,
+        )  # fmt: skip
+
+    def slots_of(self, obs: np.ndarray, act: np.ndarray, chunk: int = 8192) -> list[np.ndarray]:
+        """Each table's slots of stored rows, counting nothing: what counting them gave
+        (a key's slot never changes). In chunks: a k-bit SimHash projects every row in
+        float64, k values a row."""
+        parts = [self.explorer.slots(obs[i : i + chunk], act[i : i + chunk])
+                 for i in range(0, len(obs), chunk)]  # fmt: skip
+        shapes = self.explorer.slot_shapes
+        return [
+            np.concatenate([p[t] for p in parts]) if parts else np.zeros((0, *shape), np.int32)
+            for t, shape in enumerate(shapes)
+        ]
 
     def counters(self, wall: float) -> dict:
         return {
@@ -457,7 +475,16 @@ class GroupRun:
         self.cut_every_s = cut_every_s
         self.venv = vectorize([make_task_for(cfg) for cfg in cfgs])
         self.spec = spec = self.venv.spec
-        self.members = [Member(cfg, out, spec) for cfg, out in zip(cfgs, outs)]
+        self.members = members = [Member(cfg, out, spec) for cfg, out in zip(cfgs, outs)]
+        self.replay = GroupReplay(
+            [m.capacity for m in members],
+            spec.joint_obs_dim,
+            spec.joint_act_dim,
+            [m.stored for m in members],
+            [m.explorer.slot_shapes for m in members],
+        )
+        for member, buffer in zip(members, self.replay.buffers):
+            member.buffer = buffer
         self.m_eval = m = min(c0.eval_episodes, 10)  # evaluation worlds per run
         eval_envs = []
         for cfg in cfgs:
@@ -614,6 +641,31 @@ class GroupRun:
         self.final_checkpoint(r)
         log.info("run %s: %s, at episode %d", m.out or r, m.stopped[1], episode)
 
+    def update_arrays(
+        self, idx: np.ndarray, bonuses: list[np.ndarray | None], live: list[bool]
+    ) -> list[np.ndarray]:
+        """The group update's (obs, act, rew, next_obs, done), each (R, ...): every run's
+        rows `idx` (R, k, B) in one gather per field, rew plus each run's bonus (priced
+        now, or stored at collection), and a stopped run's fixed minibatch in its place:
+        each run's entry what `update_arrays` of its minibatches gives."""
+        g = self.replay.gather(idx)
+        bonus = np.zeros((*idx.shape, self.spec.n_agents), np.float32)
+        for r, (m, b) in enumerate(zip(self.members, bonuses)):
+            if b is not None:
+                bonus[r] = b
+            elif live[r] and m.collection:
+                bonus[r] = g["bonus"][r]
+        rew = g["rew"][..., None] + bonus
+        cols = [g["obs"], g["act"], rew, g["next_obs"], g["done"]]
+        if idx.shape[1] == 1:  # one shared minibatch: no minibatch axis
+            cols = [c[:, 0] for c in cols]
+        cols = [np.ascontiguousarray(c) for c in cols]
+        for r, m in enumerate(self.members):
+            if not live[r]:
+                for c, frozen in zip(cols, self.frozen_arrays(m)):
+                    c[r] = frozen
+        return cols
+
     def frozen_arrays(self, m: Member) -> tuple[np.ndarray, ...]:
         """A stopped run's update arrays (`fixed_update_arrays`), drawn once."""
         if m.frozen_arrays is None:
@@ -700,17 +752,15 @@ class GroupRun:
             if max(m.env_steps for m in members) > c0.learning_starts:
                 k = self.minibatches_per_update
                 # (a run its early_stop rule ended: a fixed minibatch, nothing drawn or priced)
-                batches = [
-                    m.sample(c0.batch_size, k) if m.stopped is None else None for m in members
-                ]
+                live = [m.stopped is None for m in members]
+                rngs = [m.sample_rng if on else None for m, on in zip(members, live)]
+                idx = self.replay.draw(c0.batch_size, k, rngs)
                 t3 = clock()
-                bonuses = [None if b is None else m.price(b) for m, b in zip(members, batches)]
-                t4 = clock()
-                parts = [
-                    self.frozen_arrays(m) if b is None or p is None else update_arrays(b, p)
-                    for m, b, p in zip(members, batches, bonuses)
+                bonuses = [
+                    m.price(idx[r]) if on else None for r, (m, on) in enumerate(zip(members, live))
                 ]
-                arrays = [np.stack(cols) for cols in zip(*parts)]
+                t4 = clock()
+                arrays = self.update_arrays(idx, bonuses, live)
                 t5 = clock()
                 self.learner.update(*arrays)
                 timing["sample"] += (t3 - t2) + (t5 - t4)

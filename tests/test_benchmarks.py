@@ -248,3 +248,21 @@ def test_gpu_probe_runs_on_the_cpu_and_skips_without_a_gpu(tmp_path: Path) -> No
         (a.obs_dim, a.act_low, a.act_high) for a in probe.AGENTS
     ]
     assert (cfg.batch_size, cfg.hidden, cfg.minibatch) == (probe.BATCH, (400, 300), "per-agent")
+
+
+def test_bench_group_price_checks_both_ways_agree_and_names_the_cpu(tmp_path: Path) -> None:
+    """bench_group.py price, quick: fig8's sparse pair in profile thesis (6 runs, one
+    minibatch per agent), the group's way and the per-run way giving the same arrays
+    (checked inside before timing), both timed in the same rounds."""
+    out = tmp_path / "price.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_group.py"), "price", "--quick"]
+    argv += ["--fill", "300", "--rounds", "2", "--out", str(out)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    (row,) = result["rows"]
+    assert (row["runs"], row["profile"], row["minibatches"], row["batch"]) == (6, "thesis", 2, 100)
+    assert row["same_arrays"] is True and row["fill"] == 300
+    assert row["group_ms"] > 0 and row["per_run_ms"] > 0 and row["per_run_over_group"] > 0
+    assert result["cpu"] and f"CPU: {result['cpu']}" in proc.stdout
+    assert "| 6 | thesis | 2 x 100 | 300 |" in proc.stdout

@@ -16,16 +16,32 @@ import numpy as np
 
 
 class CountTable:
-    """A dictionary from packed keys (bytes) to visit counts, with cheap summary stats."""
+    """A dictionary from packed keys (bytes) to slots, and each slot's visit count in one
+    int64 array, with cheap summary stats.
+
+    A key's slot is given when it is first counted and never changes (slots run 1, 2, ...
+    in the order keys first arrive, the dictionary's order; slot 0 is every key never
+    counted, its count always 0). `increment` returns each row's slot, so whoever stores
+    a row can keep its slot and price it later by `gather`, an array look-up, rather than
+    by hashing its key again: the count found is the same, as a row's key never changes.
+    The counts are grown by replacing the array, never resized in place, and before any
+    new slot is given out, so a reader on another thread reads valid (if stale) counts.
+    """
 
     def __init__(self, key_bytes: int) -> None:
         self.key_bytes = key_bytes
-        self._counts: dict[bytes, int] = {}
+        self._slots: dict[bytes, int] = {}
+        self._n = np.zeros(1024, dtype=np.int64)  # _n[slot]; _n[0] = 0 (never counted)
         self.total = 0  # transitions counted
         self.count1 = 0  # keys seen exactly once
 
     def __len__(self) -> int:
-        return len(self._counts)
+        return len(self._slots)
+
+    @property
+    def slot_shape(self) -> tuple[int, ...]:
+        """One row's slot: one int."""
+        return ()
 
     def _split(self, keys: np.ndarray) -> list[bytes]:
         keys = np.ascontiguousarray(keys, dtype=np.uint8)
@@ -35,61 +51,95 @@ class CountTable:
         raw = keys.tobytes()
         return [raw[i : i + w] for i in range(0, len(raw), w)]
 
-    def increment(self, keys: np.ndarray) -> None:
-        """Count each row once (a batch of collected transitions)."""
-        table = self._counts
-        for key in self._split(keys):
-            n = table.get(key, 0) + 1
-            table[key] = n
-            if n == 1:
-                self.count1 += 1
-            elif n == 2:
-                self.count1 -= 1
-        self.total += len(keys)
+    def _room(self, slots: int) -> None:
+        """Counts for `slots` slots (0 included): a bigger copy when they do not fit."""
+        n = self._n
+        if slots > len(n):
+            grown = np.zeros(max(slots, 2 * len(n)), dtype=np.int64)
+            grown[: len(n)] = n
+            self._n = grown
+
+    def increment(self, keys: np.ndarray) -> np.ndarray:
+        """Count each row once (a batch of collected transitions); each row's slot (B,)
+        int32. How rows are batched changes nothing: count-1 is a function of the counts."""
+        table = self._slots
+        split = self._split(keys)
+        self._room(len(table) + 1 + len(split))  # (before any new slot can be read)
+        n = self._n
+        get = table.get
+        out = []
+        for key in split:
+            s = get(key)
+            if s is None:
+                s = table[key] = len(table) + 1
+            out.append(s)
+        if len(out) == 1:
+            s = out[0]
+            c = int(n[s]) + 1
+            n[s] = c
+            self.count1 += 1 if c == 1 else -1 if c == 2 else 0
+        elif out:
+            slots, times = np.unique(np.asarray(out, np.int64), return_counts=True)
+            before = n[slots]
+            after = before + times
+            n[slots] = after
+            self.count1 += int(np.count_nonzero(after == 1)) - int(np.count_nonzero(before == 1))
+        self.total += len(out)
+        return np.asarray(out, dtype=np.int32)
+
+    def slots(self, keys: np.ndarray) -> np.ndarray:
+        """Each row's slot (B,) int32, 0 for a key never counted; never modifies the table."""
+        get = self._slots.get
+        return np.fromiter((get(k, 0) for k in self._split(keys)), dtype=np.int32, count=len(keys))
+
+    def gather(self, slots: np.ndarray) -> np.ndarray:
+        """n now of the keys at these slots (any shape), int64: `counts` without the keys."""
+        return self._n[slots]
 
     def counts(self, keys: np.ndarray) -> np.ndarray:
         """n(key) for each row, 0 for unseen keys; never modifies the table."""
-        get = self._counts.get
-        return np.fromiter((get(k, 0) for k in self._split(keys)), dtype=np.int64, count=len(keys))
+        return self.gather(self.slots(keys))
 
     @property
     def count1_pct(self) -> float:
         """Share of keys seen exactly once, in percent (the thesis's count-1 percentage)."""
-        return 100.0 * self.count1 / len(self._counts) if self._counts else 0.0
+        return 100.0 * self.count1 / len(self._slots) if self._slots else 0.0
 
     def state_bytes(self) -> int:
         """About what a snapshot of the table writes: the keys and an int64 count each."""
-        return len(self._counts) * (self.key_bytes + 8)
+        return len(self._slots) * (self.key_bytes + 8)
 
     def memory_bytes(self) -> int:
-        """Approximate resident size: dict slots plus the key and int objects."""
+        """Approximate resident size: dict slots plus the key and int objects, and the
+        count array."""
         import sys
 
-        n = len(self._counts)
+        n = len(self._slots)
         if n == 0:
-            return sys.getsizeof(self._counts)
-        some_key = next(iter(self._counts))
-        return sys.getsizeof(self._counts) + n * (sys.getsizeof(some_key) + 28)
+            return sys.getsizeof(self._slots) + self._n.nbytes
+        some_key = next(iter(self._slots))
+        return sys.getsizeof(self._slots) + n * (sys.getsizeof(some_key) + 28) + self._n.nbytes
 
     def to_arrays(self, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:
-        """(keys (n, key_bytes) uint8, counts (n,) int64) for a pickle-free snapshot.
+        """(keys (n, key_bytes) uint8, counts (n,) int64) for a pickle-free snapshot, in
+        slot order (the order keys first arrived).
 
-        Built `chunk` keys at a time: in one piece the join and the fromiter are C
-        calls that hold the GIL for the whole table (~0.17 s for a million 128-byte
-        keys), stalling every other thread of the process (the counter answers bonus
-        queries on another thread while it snapshots). The table must not change
-        meanwhile (its one writer is the caller's thread).
+        Built `chunk` keys at a time: in one piece the join is a C call that holds the
+        GIL for the whole table (~0.17 s for a million 128-byte keys), stalling every
+        other thread of the process (the counter answers bonus queries on another
+        thread while it snapshots). The table must not change meanwhile (its one writer
+        is the caller's thread).
         """
-        n, w = len(self._counts), self.key_bytes
+        n, w = len(self._slots), self.key_bytes
         keys = np.empty((n, w), dtype=np.uint8)
         counts = np.empty(n, dtype=np.int64)
         flat = keys.reshape(-1)
-        key_it, count_it = iter(self._counts), iter(self._counts.values())
+        key_it = iter(self._slots)
         for start in range(0, n, chunk):
             m = min(chunk, n - start)
             raw = b"".join(islice(key_it, m))
             flat[start * w : (start + m) * w] = np.frombuffer(raw, dtype=np.uint8)
-            counts[start : start + m] = np.fromiter(islice(count_it, m), np.int64, count=m)
+            counts[start : start + m] = self._n[1 + start : 1 + start + m]
         return keys, counts
 
     @classmethod
@@ -97,7 +147,11 @@ class CountTable:
         table = cls(int(keys.shape[1]) if keys.ndim == 2 else 0)
         w = table.key_bytes
         raw = np.ascontiguousarray(keys, dtype=np.uint8).tobytes()
-        table._counts = {raw[i * w : (i + 1) * w]: int(c) for i, c in enumerate(counts)}
+        table._slots = {raw[i * w : (i + 1) * w]: i + 1 for i in range(len(counts))}
+        if len(table._slots) != len(counts):
+            raise ValueError("a key appears twice in the snapshot")
+        table._room(len(counts) + 1)
+        table._n[1 : len(counts) + 1] = np.asarray(counts, dtype=np.int64)
         table.count1 = int(np.sum(counts == 1))
         table.total = int(total)
         return table
@@ -174,6 +228,11 @@ class CountSketch:
     def __len__(self) -> int:
         return self._distinct
 
+    @property
+    def slot_shape(self) -> tuple[int, ...]:
+        """One row's slot: its column in each of the `depth` rows."""
+        return (self.depth,)
+
     def cells_of(self, keys: np.ndarray) -> np.ndarray:
         """Each key's column in each row: int64 (B, depth)."""
         keys = np.ascontiguousarray(keys, dtype=np.uint8)
@@ -189,12 +248,13 @@ class CountSketch:
         h = (h + self._b) % np.uint64(SKETCH_PRIME)
         return (h % np.uint64(self.width)).astype(np.int64)
 
-    def increment(self, keys: np.ndarray) -> None:
+    def increment(self, keys: np.ndarray) -> np.ndarray:
         """Count each row once, as if one by one in order (a batch of collected
-        transitions). Rows that touch no cell an earlier pending row touches do not depend
-        on one another: they are counted at once, in waves; a short wave (a key repeated,
-        cells shared) goes row by row instead."""
-        pending = self.cells_of(keys)
+        transitions); each row's slot, its cells (B, depth) int32 (`gather` prices it).
+        Rows that touch no cell an earlier pending row touches do not depend on one
+        another: they are counted at once, in waves; a short wave (a key repeated, cells
+        shared) goes row by row instead."""
+        slots = pending = self.cells_of(keys)
         while len(pending):
             free = _first_touches(pending, self.width)
             if free.all() or np.count_nonzero(free) >= _SEQUENTIAL_ROWS:
@@ -205,6 +265,15 @@ class CountSketch:
                     self._apply(pending[i : i + 1])
                 pending = pending[_SEQUENTIAL_ROWS:]
         self.total += len(keys)
+        return slots.astype(np.int32)
+
+    def slots(self, keys: np.ndarray) -> np.ndarray:
+        """Each row's cells (B, depth) int32: a sketch's slot of a key is its cells."""
+        return self.cells_of(keys).astype(np.int32)
+
+    def gather(self, slots: np.ndarray) -> np.ndarray:
+        """The estimate now of the keys whose cells these are ((..., depth) -> (...))."""
+        return self.cells[self._rows, slots].min(axis=-1).astype(np.int64)
 
     def _apply(self, cols: np.ndarray) -> None:
         """Count rows none of which shares a cell with another (so at once = in order)."""

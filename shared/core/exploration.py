@@ -108,10 +108,25 @@ class CountExploration:
             vectors = [np.round(v, self.spec.round) for v in vectors]
         return [h.keys(v) for h, v in zip(self.hashers, vectors)]
 
-    def observe(self, obs: np.ndarray, act: np.ndarray) -> None:
-        """Count freshly collected training transitions (and nothing else)."""
-        for table, keys in zip(self.tables, self.keys(obs, act)):
-            table.increment(keys)
+    def observe(self, obs: np.ndarray, act: np.ndarray) -> list[np.ndarray]:
+        """Count freshly collected training transitions (and nothing else); each table's
+        slots of the rows (`counts_at` prices them later without hashing again)."""
+        return [table.increment(keys) for table, keys in zip(self.tables, self.keys(obs, act))]
+
+    @property
+    def slot_shapes(self) -> list[tuple[int, ...]]:
+        """One row's slot in each table: () for an exact table, (depth,) for a sketch."""
+        return [t.slot_shape for t in self.tables]
+
+    def slots(self, obs: np.ndarray, act: np.ndarray) -> list[np.ndarray]:
+        """Each table's slots of these rows, counting nothing (a key never counted: a
+        slot whose count is 0)."""
+        return [t.slots(k) for t, k in zip(self.tables, self.keys(obs, act))]
+
+    def counts_at(self, slots: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Each table's counts now at these slots: `counts` of the rows they are the
+        slots of, as a gather (a row's key, so its slot, never changes)."""
+        return [t.gather(s) for t, s in zip(self.tables, slots)]
 
     def counts(self, obs: np.ndarray, act: np.ndarray) -> list[np.ndarray]:
         return [t.counts(k) for t, k in zip(self.tables, self.keys(obs, act))]

@@ -1,11 +1,14 @@
 """A ring replay buffer of joint transitions (s, x, r, s', done) in preallocated arrays.
 
 It stores the extrinsic reward only: the count bonus depends on the counts at the
-time a transition is sampled, so it is added to each sampled batch, never stored.
+time a transition is sampled, so it is added to each sampled batch, never stored
+(`bonus_at: collection` aside). What it may store for the bonus is each row's slot in
+each count table, so pricing a sampled batch gathers the counts now at its slots.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,18 +27,35 @@ class Batch:
 
 class ReplayBuffer:
     """`stored_bonus` N > 0 keeps a per-agent bonus with each transition (`bonus_at:
-    collection`, the thesis code's fig. 3 loop); without it no bonus is stored."""
+    collection`, the thesis code's fig. 3 loop); without it no bonus is stored.
 
-    def __init__(self, capacity: int, obs_dim: int, act_dim: int, stored_bonus: int = 0) -> None:
+    `slot_shapes` (one per count table) keeps each row's slot in each table, given when
+    it was counted (`CountExploration.observe`): its bonus at sample time is then a
+    gather of the counts at its slots rather than a hash of its key. `store` gives the
+    arrays to write in (a `GroupReplay`'s rows of one run) instead of new ones."""
+
+    def __init__(
+        self,
+        capacity: int,
+        obs_dim: int,
+        act_dim: int,
+        stored_bonus: int = 0,
+        slot_shapes: Sequence[tuple[int, ...]] = (),
+        store: dict[str, np.ndarray] | None = None,
+    ) -> None:
         if capacity < 1:
             raise ValueError("capacity must be >= 1")
         self.capacity = capacity
-        self.bonus = np.zeros((capacity, stored_bonus), np.float32) if stored_bonus else None
-        self.obs = np.zeros((capacity, obs_dim), np.float32)
-        self.act = np.zeros((capacity, act_dim), np.float32)
-        self.rew = np.zeros(capacity, np.float32)
-        self.next_obs = np.zeros((capacity, obs_dim), np.float32)
-        self.done = np.zeros(capacity, np.float32)
+        fields = replay_fields(obs_dim, act_dim, stored_bonus, slot_shapes)
+        if store is None:
+            store = {name: np.zeros((capacity, *shape), dt) for name, (shape, dt) in fields.items()}
+        self.bonus = store["bonus"] if stored_bonus else None
+        self.obs = store["obs"]
+        self.act = store["act"]
+        self.rew = store["rew"]
+        self.next_obs = store["next_obs"]
+        self.done = store["done"]
+        self.slots = [store[f"slots{t}"] for t in range(len(slot_shapes))]
         self.pos = 0  # next row to write
         self.added = 0  # transitions ever added
 
@@ -50,9 +70,11 @@ class ReplayBuffer:
         next_obs: np.ndarray,
         done: np.ndarray | float,
         bonus: np.ndarray | None = None,
+        slots: Sequence[np.ndarray] = (),
     ) -> None:
         """Add one transition or a batch of them (leading axis = transitions); `bonus`
-        (N,) or (n, N) where the buffer stores bonuses."""
+        (N,) or (n, N) where the buffer stores bonuses; `slots` each table's (n, ...)
+        where it stores slots."""
         obs = np.atleast_2d(obs)
         n = len(obs)
         rows = (self.pos + np.arange(n)) % self.capacity
@@ -60,6 +82,12 @@ class ReplayBuffer:
             if bonus is None:
                 raise ValueError("this buffer stores a bonus with every transition")
             self.bonus[rows] = np.atleast_2d(bonus)
+        if len(slots) != len(self.slots):
+            raise ValueError(
+                f"this buffer stores {len(self.slots)} slots a row, given {len(slots)}"
+            )
+        for store, s in zip(self.slots, slots):
+            store[rows] = s
         self.obs[rows] = obs
         self.act[rows] = np.atleast_2d(act)
         self.rew[rows] = rew
@@ -68,17 +96,93 @@ class ReplayBuffer:
         self.pos = int((self.pos + n) % self.capacity)
         self.added += n
 
-    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
-        """Uniform sample with replacement, as SB3 and the thesis code do."""
+    def draw(self, batch_size: int, rng: np.random.Generator) -> np.ndarray:
+        """A minibatch's rows: uniform with replacement, as SB3 and the thesis code do."""
         size = len(self)
         if size == 0:
             raise ValueError("cannot sample from an empty buffer")
-        idx = rng.integers(0, size, size=batch_size)
+        return rng.integers(0, size, size=batch_size)
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
+        """Uniform sample with replacement (`draw`'s rows)."""
+        idx = self.draw(batch_size, rng)
         bonus = None if self.bonus is None else self.bonus[idx]
         return Batch(
             self.obs[idx], self.act[idx], self.rew[idx], self.next_obs[idx], self.done[idx], idx,
             bonus,
         )  # fmt: skip
+
+
+def replay_fields(
+    obs_dim: int, act_dim: int, stored_bonus: int, slot_shapes: Sequence[tuple[int, ...]]
+) -> dict[str, tuple[tuple[int, ...], type]]:
+    """Each stored field's row shape and dtype."""
+    fields: dict[str, tuple[tuple[int, ...], type]] = {
+        "obs": ((obs_dim,), np.float32),
+        "act": ((act_dim,), np.float32),
+        "rew": ((), np.float32),
+        "next_obs": ((obs_dim,), np.float32),
+        "done": ((), np.float32),
+    }
+    if stored_bonus:
+        fields["bonus"] = ((stored_bonus,), np.float32)
+    for t, shape in enumerate(slot_shapes):
+        fields[f"slots{t}"] = (tuple(shape), np.int32)
+    return fields
+
+
+class GroupReplay:
+    """R runs' replay buffers as one array per field, (R, capacity, ...): run r's
+    `ReplayBuffer` (`buffers[r]`, its own capacity, position and slots) writes its rows
+    there, and one gather takes every run's minibatches at once.
+
+    Each run's rows are drawn from its own generator in its order (`draw`), so they are
+    the rows it draws alone; only the copying out is shared. Slots stay per run (runs of
+    a group may count in different tables, or none)."""
+
+    def __init__(
+        self,
+        capacities: Sequence[int],
+        obs_dim: int,
+        act_dim: int,
+        stored_bonus: Sequence[int],
+        slot_shapes: Sequence[Sequence[tuple[int, ...]]],
+    ) -> None:
+        self.runs = runs = len(capacities)
+        self.capacity = cap = max(capacities)
+        width = max(stored_bonus)
+        shared = replay_fields(obs_dim, act_dim, width, ())
+        self.arrays: dict[str, np.ndarray] = {
+            k: np.zeros((runs, cap, *shape), dt) for k, (shape, dt) in shared.items()
+        }
+        self.buffers: list[ReplayBuffer] = []
+        for r, (c, sb, shapes) in enumerate(zip(capacities, stored_bonus, slot_shapes)):
+            store = {k: v[r, :c] for k, v in self.arrays.items()}
+            for t, shape in enumerate(shapes):
+                store[f"slots{t}"] = np.zeros((c, *shape), np.int32)
+            self.buffers.append(ReplayBuffer(c, obs_dim, act_dim, sb, shapes, store))
+
+    def draw(
+        self, batch_size: int, count: int, rngs: Sequence[np.random.Generator | None]
+    ) -> np.ndarray:
+        """(R, count, batch_size) rows: run r's `count` minibatches from `rngs[r]`, in
+        order (row 0 for a run given None, drawing nothing)."""
+        idx = np.zeros((self.runs, count, batch_size), np.int64)
+        for r, (buffer, rng) in enumerate(zip(self.buffers, rngs)):
+            if rng is not None:
+                for j in range(count):
+                    idx[r, j] = buffer.draw(batch_size, rng)
+        return idx
+
+    def gather(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """Every field at rows `idx` (R, ...) of each run: (R, ..., field's row shape)."""
+        flat = idx + self.capacity * np.arange(self.runs).reshape(-1, *[1] * (idx.ndim - 1))
+        flat = flat.reshape(-1)
+        out = {}
+        for k, v in self.arrays.items():
+            rows = v.reshape(self.runs * self.capacity, *v.shape[2:]).take(flat, axis=0)
+            out[k] = rows.reshape(*idx.shape, *v.shape[2:])
+        return out
 
 
 def update_arrays(
