@@ -41,7 +41,14 @@ from shared.config import TrainConfig
 from shared.core.exploration import BonusDiagnostics, CountExploration, constant_shift
 from shared.core.learners import Learner, RunsLearner, SoloRuns
 from shared.core.learners.group import GroupMADDPG
-from shared.core.replay import GroupReplay, ReplayBuffer, fixed_update_arrays
+from shared.core.learners.precision import resolve_device
+from shared.core.replay import (
+    GroupReplay,
+    ReplayBuffer,
+    fixed_draws,
+    fixed_update_arrays,
+    send,
+)
 from shared.envs.tasks import TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
 from shared.groups import check_group
@@ -339,6 +346,7 @@ class Member:
         # after, the best success so far.
         self.stopped: tuple[int, str] | None = None
         self.frozen_arrays: tuple[np.ndarray, ...] | None = None
+        self.frozen_draws: np.ndarray | None = None  # (the same, its rows, for a device replay)
         self.best = -1.0
         if out is not None:
             self.cuts = out / "cuts"
@@ -460,6 +468,7 @@ class GroupRun:
         outs: Sequence[Path | None],
         cut_every_s: float,
         own_learner: bool = False,
+        replay_backend: str | None = None,
     ) -> None:
         cfgs = list(cfgs)
         if len(outs) != len(cfgs):
@@ -482,6 +491,8 @@ class GroupRun:
             spec.joint_act_dim,
             [m.stored for m in members],
             [m.explorer.slot_shapes for m in members],
+            device=resolve_device(c0.device),
+            backend=replay_backend,
         )
         for member, buffer in zip(members, self.replay.buffers):
             member.buffer = buffer
@@ -643,11 +654,15 @@ class GroupRun:
 
     def update_arrays(
         self, idx: np.ndarray, bonuses: list[np.ndarray | None], live: list[bool]
-    ) -> list[np.ndarray]:
+    ) -> list[Any]:
         """The group update's (obs, act, rew, next_obs, done), each (R, ...): every run's
         rows `idx` (R, k, B) in one gather per field, rew plus each run's bonus (priced
         now, or stored at collection), and a stopped run's fixed minibatch in its place:
-        each run's entry what `update_arrays` of its minibatches gives."""
+        each run's entry what `update_arrays` of its minibatches gives. With the replay
+        on a device (`GroupReplay`'s torch backend) the same, made there
+        (`device_update_arrays`)."""
+        if self.replay.backend == "torch":
+            return self.device_update_arrays(idx, bonuses, live)
         g = self.replay.gather(idx)
         bonus = np.zeros((*idx.shape, self.spec.n_agents), np.float32)
         for r, (m, b) in enumerate(zip(self.members, bonuses)):
@@ -665,6 +680,39 @@ class GroupRun:
                 for c, frozen in zip(cols, self.frozen_arrays(m)):
                     c[r] = frozen
         return cols
+
+    def device_update_arrays(
+        self, idx: np.ndarray, bonuses: list[np.ndarray | None], live: list[bool]
+    ) -> list[torch.Tensor]:
+        """`update_arrays` with the replay on its device: the rows (a stopped run's its
+        fixed draw, `fixed_draws`) and the bonuses priced on the host go there in one
+        copy (`send`), then one gather per field, the stored bonuses and the sum are
+        made there. Each entry holds the values the host's way gives: the same rows,
+        and the same fp32 sum (0 for a stopped run, as its fixed minibatch has)."""
+        idx = idx.copy()
+        bonus = np.zeros((*idx.shape, self.spec.n_agents), np.float32)
+        for r, (m, b) in enumerate(zip(self.members, bonuses)):
+            if b is not None:
+                bonus[r] = b
+            if not live[r]:
+                idx[r] = self.frozen_draws(m)
+        idx_t, bonus_t = send([idx, bonus], self.replay.device)
+        g = self.replay.gather_on_device(idx_t)
+        for r, m in enumerate(self.members):
+            if live[r] and m.collection:
+                bonus_t[r].copy_(g["bonus"][r])
+        rew = g["rew"][..., None] + bonus_t
+        cols = [g["obs"], g["act"], rew, g["next_obs"], g["done"]]
+        if idx.shape[1] == 1:  # one shared minibatch: no minibatch axis
+            cols = [c[:, 0] for c in cols]
+        return [c.contiguous() for c in cols]
+
+    def frozen_draws(self, m: Member) -> np.ndarray:
+        """A stopped run's fixed rows (`fixed_draws`, what `frozen_arrays` takes), drawn once."""
+        if m.frozen_draws is None:
+            k = self.minibatches_per_update
+            m.frozen_draws = fixed_draws(m.buffer, self.cfg.batch_size, k)
+        return m.frozen_draws
 
     def frozen_arrays(self, m: Member) -> tuple[np.ndarray, ...]:
         """A stopped run's update arrays (`fixed_update_arrays`), drawn once."""
@@ -747,6 +795,7 @@ class GroupRun:
                     float(tr.done[r]),
                     int(tr.collisions[r]),
                 )
+            self.replay.flush()  # (a device's replay: the step's rows in one copy)
             t2 = clock()
             timing["store_count"] += t2 - t1
             if max(m.env_steps for m in members) > c0.learning_starts:

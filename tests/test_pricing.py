@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from cli.trainer import GroupRun
 from shared.config import make_config
@@ -96,13 +97,13 @@ ARMS = [
 ]  # fmt: skip
 
 
-def filled_group(profile: str) -> GroupRun:
+def filled_group(profile: str, replay_backend: str | None = None) -> GroupRun:
     cfgs = [
         make_config({"task": "speaker_listener", "algo": "cen-maddpg", "episodes": 50,
                      "hidden": [16, 16], "seed": r, "profile": profile, **arm})
         for r, arm in enumerate(ARMS)
     ]  # fmt: skip
-    g = GroupRun(cfgs, [None] * len(cfgs), 60.0)
+    g = GroupRun(cfgs, [None] * len(cfgs), 60.0, replay_backend=replay_backend)
     for _ in range(260):  # past the smallest buffer's capacity: it wraps
         tr = g.collector.step(g.learner.act)
         for r, m in enumerate(g.members):
@@ -161,6 +162,53 @@ def test_the_group_step_gives_the_per_run_arrays_bit_for_bit(profile):
         assert got_diag == want_diag
         assert [r.bit_generator.state for r in rngs] == [r.bit_generator.state for r in theirs]
     assert g.members[0].diagnostics.n == 0 and got_diag[0]["bonus_mean"] > 0
+
+
+@pytest.mark.parametrize("profile", ["mpe2", "thesis"])
+def test_the_replay_on_a_device_gathers_the_hosts_arrays_bit_for_bit(profile):
+    """The device backend (`GroupReplay` with torch tensors, forced here on the CPU): the
+    same collection written in one copy per step, the same draws sent and gathered
+    there, the bonuses priced on the host added there, a stopped run's fixed draw in
+    its place: every update array equal to the host's, step after step, and every
+    sampler and diagnostic as the host's leaves it."""
+    host, dev = filled_group(profile), filled_group(profile, replay_backend="torch")
+    assert dev.replay.backend == "torch" and not dev.replay.arrays
+    # (not flushed by the fixture: the first gather writes all 260 steps' rows at once,
+    # the wrapped buffer's rows more than once each, keeping each row's last)
+    assert len(dev.replay.pending) == 260 * dev.runs
+    assert all(isinstance(t, torch.Tensor) for t in dev.replay.tensors.values())
+    with pytest.raises(ValueError, match="on a device"):
+        dev.members[0].buffer.sample(4, np.random.default_rng(0))
+    live = [True, True, True, True, False, True]
+    rngs = {id(g): [np.random.default_rng([7, r]) for r in range(g.runs)] for g in (host, dev)}
+    for g in (host, dev):
+        for m in g.members:
+            m.diagnostics.take()
+    for step in range(3):
+        got = {}
+        for g in (host, dev):
+            own = [r if on else None for r, on in zip(rngs[id(g)], live)]
+            idx = g.replay.draw(g.cfg.batch_size, g.minibatches_per_update, own)
+            bonuses = [m.price(idx[r]) if live[r] else None for r, m in enumerate(g.members)]
+            got[id(g)] = (g.update_arrays(idx, bonuses, live),
+                          [m.diagnostics.take() for m in g.members])  # fmt: skip
+        (want, want_diag), (ours, our_diag) = got[id(host)], got[id(dev)]
+        for name, x, y in zip(("obs", "act", "rew", "next_obs", "done"), ours, want):
+            assert isinstance(x, torch.Tensor) and x.is_contiguous(), (step, name)
+            assert x.numpy().dtype == y.dtype and x.shape == y.shape, (step, name)
+            assert np.array_equal(x.numpy(), y), (step, name)
+        assert our_diag == want_diag
+        states = [[r.bit_generator.state for r in rngs[id(g)]] for g in (host, dev)]
+        assert states[0] == states[1]
+        # one more collected step, written in one copy for the group, between updates
+        for g in (host, dev):
+            tr = g.collector.step(g.learner.act)
+            for r, m in enumerate(g.members):
+                m.collect(tr.obs[r], tr.act[r], float(tr.rew[r]), tr.next_obs[r],
+                          float(tr.done[r]), int(tr.collisions[r]))  # fmt: skip
+            g.replay.flush()
+    for k, v in host.replay.arrays.items():  # every stored row, the wrapped buffer's too
+        assert np.array_equal(dev.replay.tensors[k].numpy().reshape(v.shape), v), k
 
 
 def test_a_refilled_buffer_has_the_slots_counting_gave():

@@ -8,10 +8,13 @@ each count table, so pricing a sampled batch gathers the counts now at its slots
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
+from typing import Any
 
 import numpy as np
+import torch
 
 
 @dataclass
@@ -32,7 +35,16 @@ class ReplayBuffer:
     `slot_shapes` (one per count table) keeps each row's slot in each table, given when
     it was counted (`CountExploration.observe`): its bonus at sample time is then a
     gather of the counts at its slots rather than a hash of its key. `store` gives the
-    arrays to write in (a `GroupReplay`'s rows of one run) instead of new ones."""
+    arrays to write in (a `GroupReplay`'s rows of one run) instead of new ones; `sink`
+    takes each added batch's rows and fields instead of host arrays (a `GroupReplay`
+    whose rows live on a device: the buffer keeps its position, count and slots only,
+    and its rows are read by the group's gather, not by `take`)."""
+
+    obs: np.ndarray
+    act: np.ndarray
+    rew: np.ndarray
+    next_obs: np.ndarray
+    done: np.ndarray
 
     def __init__(
         self,
@@ -42,6 +54,7 @@ class ReplayBuffer:
         stored_bonus: int = 0,
         slot_shapes: Sequence[tuple[int, ...]] = (),
         store: dict[str, np.ndarray] | None = None,
+        sink: Callable[[np.ndarray, dict[str, Any]], None] | None = None,
     ) -> None:
         if capacity < 1:
             raise ValueError("capacity must be >= 1")
@@ -49,12 +62,16 @@ class ReplayBuffer:
         fields = replay_fields(obs_dim, act_dim, stored_bonus, slot_shapes)
         if store is None:
             store = {name: np.zeros((capacity, *shape), dt) for name, (shape, dt) in fields.items()}
-        self.bonus = store["bonus"] if stored_bonus else None
-        self.obs = store["obs"]
-        self.act = store["act"]
-        self.rew = store["rew"]
-        self.next_obs = store["next_obs"]
-        self.done = store["done"]
+        self.sink = sink
+        self.stores_bonus = bool(stored_bonus)
+        self.bonus: np.ndarray | None = None
+        if sink is None:
+            self.bonus = store["bonus"] if stored_bonus else None
+            self.obs = store["obs"]
+            self.act = store["act"]
+            self.rew = store["rew"]
+            self.next_obs = store["next_obs"]
+            self.done = store["done"]
         self.slots = [store[f"slots{t}"] for t in range(len(slot_shapes))]
         self.pos = 0  # next row to write
         self.added = 0  # transitions ever added
@@ -78,21 +95,28 @@ class ReplayBuffer:
         obs = np.atleast_2d(obs)
         n = len(obs)
         rows = (self.pos + np.arange(n)) % self.capacity
-        if self.bonus is not None:
-            if bonus is None:
-                raise ValueError("this buffer stores a bonus with every transition")
-            self.bonus[rows] = np.atleast_2d(bonus)
+        if self.stores_bonus and bonus is None:
+            raise ValueError("this buffer stores a bonus with every transition")
         if len(slots) != len(self.slots):
             raise ValueError(
                 f"this buffer stores {len(self.slots)} slots a row, given {len(slots)}"
             )
         for store, s in zip(self.slots, slots):
             store[rows] = s
-        self.obs[rows] = obs
-        self.act[rows] = np.atleast_2d(act)
-        self.rew[rows] = rew
-        self.next_obs[rows] = np.atleast_2d(next_obs)
-        self.done[rows] = done
+        if self.sink is not None:
+            fields: dict[str, Any] = {"obs": obs, "act": act, "rew": rew,
+                                         "next_obs": next_obs, "done": done}  # fmt: skip
+            if self.stores_bonus:
+                fields["bonus"] = bonus
+            self.sink(rows, fields)
+        else:
+            if self.bonus is not None and bonus is not None:
+                self.bonus[rows] = np.atleast_2d(bonus)
+            self.obs[rows] = obs
+            self.act[rows] = np.atleast_2d(act)
+            self.rew[rows] = rew
+            self.next_obs[rows] = np.atleast_2d(next_obs)
+            self.done[rows] = done
         self.pos = int((self.pos + n) % self.capacity)
         self.added += n
 
@@ -105,7 +129,14 @@ class ReplayBuffer:
 
     def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
         """Uniform sample with replacement (`draw`'s rows)."""
-        idx = self.draw(batch_size, rng)
+        return self.take(self.draw(batch_size, rng))
+
+    def take(self, idx: np.ndarray) -> Batch:
+        """The rows `idx`, from host arrays (a buffer whose rows live on a device has none)."""
+        if self.sink is not None:
+            raise ValueError(
+                "this buffer's rows live on a device: read them with its group's gather"
+            )
         bonus = None if self.bonus is None else self.bonus[idx]
         return Batch(
             self.obs[idx], self.act[idx], self.rew[idx], self.next_obs[idx], self.done[idx], idx,
@@ -138,7 +169,14 @@ class GroupReplay:
 
     Each run's rows are drawn from its own generator in its order (`draw`), so they are
     the rows it draws alone; only the copying out is shared. Slots stay per run (runs of
-    a group may count in different tables, or none)."""
+    a group may count in different tables, or none) and on the host, with the counts.
+
+    On a `device` other than the CPU the fields are tensors there (backend "torch"): a
+    run's `add` leaves its rows pending, `flush` writes every pending row in one copy,
+    and `gather` takes device indices (`send`). The draws stay on the host, each run's
+    from its own generator, so the rows gathered are those the host gathers. `backend`
+    "torch" on the CPU runs that path with CPU tensors (what the CPU's tests check it
+    by); the CPU's default, "numpy", is the host arrays above."""
 
     def __init__(
         self,
@@ -147,20 +185,69 @@ class GroupReplay:
         act_dim: int,
         stored_bonus: Sequence[int],
         slot_shapes: Sequence[Sequence[tuple[int, ...]]],
+        device: str | torch.device = "cpu",
+        backend: str | None = None,
     ) -> None:
         self.runs = runs = len(capacities)
         self.capacity = cap = max(capacities)
+        self.device = torch.device(device)
+        self.backend = backend or ("numpy" if self.device.type == "cpu" else "torch")
+        if self.backend not in ("numpy", "torch"):
+            raise ValueError(f"replay backend must be numpy or torch, got {self.backend!r}")
+        if self.backend == "numpy" and self.device.type != "cpu":
+            raise ValueError(f"a numpy replay lives on the CPU, not {self.device}")
         width = max(stored_bonus)
         shared = replay_fields(obs_dim, act_dim, width, ())
-        self.arrays: dict[str, np.ndarray] = {
-            k: np.zeros((runs, cap, *shape), dt) for k, (shape, dt) in shared.items()
-        }
+        self.row_shapes = {k: shape for k, (shape, _) in shared.items()}
+        self.arrays: dict[str, np.ndarray] = {}
+        self.tensors: dict[str, torch.Tensor] = {}
+        # Rows added since the last `flush` (torch): each batch's flat rows and fields.
+        self.pending: list[tuple[np.ndarray, dict[str, Any]]] = []
+        if self.backend == "numpy":
+            self.arrays = {
+                k: np.zeros((runs, cap, *shape), dt) for k, (shape, dt) in shared.items()
+            }
+        else:
+            self.tensors = {
+                k: torch.zeros((runs * cap, *shape), dtype=torch.float32, device=self.device)
+                for k, shape in self.row_shapes.items()
+            }
+            self.base = torch.arange(runs, device=self.device).view(-1, 1, 1) * cap
         self.buffers: list[ReplayBuffer] = []
         for r, (c, sb, shapes) in enumerate(zip(capacities, stored_bonus, slot_shapes)):
             store = {k: v[r, :c] for k, v in self.arrays.items()}
             for t, shape in enumerate(shapes):
                 store[f"slots{t}"] = np.zeros((c, *shape), np.int32)
-            self.buffers.append(ReplayBuffer(c, obs_dim, act_dim, sb, shapes, store))
+            sink = None if self.backend == "numpy" else partial(self.add_rows, r)
+            self.buffers.append(ReplayBuffer(c, obs_dim, act_dim, sb, shapes, store, sink))
+
+    def add_rows(self, run: int, rows: np.ndarray, fields: dict[str, Any]) -> None:
+        """Run `run`'s rows added (torch): kept for the next `flush`."""
+        self.pending.append((rows + run * self.capacity, fields))
+
+    def flush(self) -> None:
+        """Every pending row onto the device in one copy (`send`), then written in one
+        indexed copy per field. A row added twice since the last flush keeps its last
+        value, as writing in order would (the device's indexed copy has no order)."""
+        if not self.pending:
+            return
+        rows = np.concatenate([r for r, _ in self.pending])
+        n = len(rows)
+        data = {k: np.zeros((n, *shape), np.float32) for k, shape in self.row_shapes.items()}
+        at = 0
+        for r, fields in self.pending:
+            for k, v in fields.items():
+                data[k][at : at + len(r)] = v if v is not None else 0.0
+            at += len(r)
+        self.pending = []
+        _, last = np.unique(rows[::-1], return_index=True)
+        if len(last) < n:  # duplicates: keep each row's last write
+            keep = np.sort(n - 1 - last)
+            rows, data = rows[keep], {k: v[keep] for k, v in data.items()}
+        names = list(data)
+        sent = send([rows.astype(np.int64), *(data[k] for k in names)], self.device)
+        for k, v in zip(names, sent[1:]):
+            self.tensors[k].index_copy_(0, sent[0], v)
 
     def draw(
         self, batch_size: int, count: int, rngs: Sequence[np.random.Generator | None]
@@ -183,6 +270,16 @@ class GroupReplay:
             rows = v.reshape(self.runs * self.capacity, *v.shape[2:]).take(flat, axis=0)
             out[k] = rows.reshape(*idx.shape, *v.shape[2:])
         return out
+
+    def gather_on_device(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        """`gather` on the device (torch): `idx` (R, k, B) a tensor there (`send`); the
+        rows pending are written first."""
+        self.flush()
+        flat = (idx + self.base).reshape(-1)
+        return {
+            k: v.index_select(0, flat).view(*idx.shape, *self.row_shapes[k])
+            for k, v in self.tensors.items()
+        }
 
 
 def update_arrays(
@@ -212,7 +309,41 @@ def fixed_update_arrays(
     run's stream is untouched), no bonus. Its stack entry keeps running on them, so the
     group's update keeps its shape, while the entries do not mix: the other runs' rows
     stay what they give alone. One definition for the trainer and the learner service."""
-    rng = np.random.default_rng(0)
-    batches = [buffer.sample(batch_size, rng) for _ in range(per_update)]
+    batches = [buffer.take(idx) for idx in fixed_draws(buffer, batch_size, per_update)]
     zero = [np.zeros((len(b.rew), n_agents), np.float32) for b in batches]
     return update_arrays(batches, zero)
+
+
+def fixed_draws(buffer: ReplayBuffer, batch_size: int, per_update: int) -> np.ndarray:
+    """The rows (per_update, batch_size) of `fixed_update_arrays`' draw, from a sampler
+    of its own: a group whose rows live on a device gathers them there."""
+    rng = np.random.default_rng(0)
+    return np.stack([buffer.draw(batch_size, rng) for _ in range(per_update)])
+
+
+TORCH_DTYPES = {np.dtype(np.float32): torch.float32, np.dtype(np.int64): torch.int64}
+
+#: Bytes each array starts at a multiple of in `send`'s one buffer (the alignment of a
+#: tensor of its own on an accelerator).
+SEND_ALIGN = 256
+
+
+def send(arrays: Sequence[np.ndarray], device: torch.device) -> list[torch.Tensor]:
+    """Host arrays of any dtypes (indices, rows, bonuses) as tensors on `device`, in one
+    non-blocking copy: written into one byte buffer (pinned on CUDA, kept by the
+    caching host allocator until the copy is done), sent at once and viewed back by
+    dtype and shape. One transfer per call, and nothing waits for it but the device's
+    queue. On the CPU the buffer itself (a fresh one: the caller's arrays stay theirs)."""
+    starts, end = [], 0
+    for a in arrays:
+        starts.append(end)
+        end += -(-a.nbytes // SEND_ALIGN) * SEND_ALIGN
+    buf = torch.empty(max(end, 1), dtype=torch.uint8, pin_memory=device.type == "cuda")
+    flat = buf.numpy()
+    for a, at in zip(arrays, starts):
+        flat[at : at + a.nbytes].view(a.dtype).reshape(a.shape)[...] = a
+    sent = buf.to(device, non_blocking=True)
+    return [
+        sent[at : at + a.nbytes].view(TORCH_DTYPES[a.dtype]).view(a.shape)
+        for a, at in zip(arrays, starts)
+    ]
