@@ -197,3 +197,57 @@ def test_a_group_of_one_shares_the_group_learner_and_train_keeps_its_own():
     assert isinstance(GroupRun([cfg], [None], 60.0).learner, GroupMADDPG)
     own = GroupRun([cfg], [None], 60.0, own_learner=True).learner
     assert isinstance(own, SoloRuns) and isinstance(own.learner, TunedMADDPG)
+
+
+# A group mixing every kind of arm (exact, sketch, priced at collection, scheduled beta,
+# constant, none) and a run its early_stop rule ends after its second point.
+DEVICE_ARMS = [
+    {"explore": "cen-macb", "seed": 0},
+    {"explore": "dis-macb", "seed": 1, "count_sketch": {"width": 64, "depth": 3}},
+    {"explore": "cen-macb", "bonus_at": "collection", "hash": "raw", "seed": 2},
+    {"explore": "cen-macb", "seed": 3,
+     "beta_schedule": {"kind": "linear", "end": 0.1, "horizon": 90, "unit": "steps"}},
+    {"explore": "constant", "seed": 4},
+    {"explore": "none", "seed": 5, "buffer_size": 100},
+    {"explore": "cen-macb", "seed": 6,
+     "early_stop": {"rule": "no_improvement", "patience": 1, "min_delta": 1.0}},
+]  # fmt: skip
+
+
+def train_with(cfgs, outs, backend, resume=False, on_metrics=None, cut_every_s=60.0):
+    """`train_group`'s loop with the replay's backend forced (torch: the device path,
+    on CPU tensors here)."""
+    from cli.trainer import GroupRun
+
+    group = GroupRun(cfgs, outs, cut_every_s, replay_backend=backend)
+    if resume:
+        group.restore()
+    return group, group.go(False, on_metrics)
+
+
+@pytest.mark.parametrize("profile", ["mpe2", "thesis"])
+def test_a_group_with_its_replay_on_a_device_trains_the_hosts_rows(profile, tmp_path):
+    """The replay's device path (tensors, one copy a step in, gathered there) trains
+    every run to the rows the host's arrays give, bit for bit (fp32, CPU), a wrapping
+    buffer and a run stopped by its rule among them; stopped and resumed from a cut,
+    the device path refills its replay to the same rows again."""
+    common = {"task": "speaker_listener", "algo": "cen-maddpg", "k": 16, "profile": profile}
+    cfgs = cfgs_of(common, DEVICE_ARMS)
+    outs = lambda name: [tmp_path / f"{name}{r}" for r in range(len(cfgs))]  # noqa: E731
+    _, host = train_with(cfgs, outs("host"), None)
+    group, dev = train_with(cfgs, outs("dev"), "torch")
+    assert group.replay.backend == "torch" and group.members[-1].stopped is not None
+    assert group.members[-1].frozen_draws is not None  # its fixed draw, gathered there
+    assert [len(rows) for rows in host] == [3, 3, 3, 3, 3, 3, 2]
+    for r in range(len(cfgs)):
+        assert strip(dev[r]) == strip(host[r]), f"run {r} ({DEVICE_ARMS[r]}) differs"
+
+    def stop_at_4(r, row):
+        if row["episode"] == 4:
+            raise Stop
+
+    with pytest.raises(Stop):
+        train_with(cfgs, outs("cut"), "torch", on_metrics=stop_at_4, cut_every_s=0.0)
+    _, resumed = train_with(cfgs, outs("cut"), "torch", resume=True, cut_every_s=0.0)
+    for r in range(len(cfgs)):
+        assert strip(resumed[r]) == strip(host[r]), f"run {r} resumed"
