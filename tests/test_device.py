@@ -292,3 +292,56 @@ def test_reproduce_takes_a_device_for_every_run(tmp_path):
         got = macb(*base, "--device", "cuda", timeout=300)
         assert got.returncode == 2 and "device cuda: not available here" in got.stderr
         assert "nothing was run" in got.stderr and not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("profile", ["mpe2", "thesis"], ids=["per-run", "per-agent"])
+def test_a_12_run_groups_replay_lives_on_meta_and_its_step_reads_nothing_back(profile):
+    """The group's step with its replay on the device (`GroupReplay`'s torch backend),
+    on `meta`: acting, a collection step's rows (one non-blocking copy for the group),
+    the draws (on the host, each run's sampler) and their bonuses (priced on the host)
+    sent in one copy and gathered there, and the update on those tensors (no copy at
+    all) read no device value back; every replay field is a `meta` tensor."""
+    from cli.trainer import GroupRun
+    from tests.test_pricing import ARMS
+
+    arms = [{**arm, "seed": s} for s in range(2) for arm in ARMS]
+    cfgs = [
+        make_config({"task": "speaker_listener", "algo": "cen-maddpg", "episodes": 50,
+                     "hidden": [16, 16], "profile": profile, "learning_starts": 0,
+                     "warmup": "policy", **arm}).model_copy(update={"device": "meta"})
+        for arm in arms
+    ]  # fmt: skip
+    g = GroupRun(cfgs, [None] * len(cfgs), 60.0)
+    assert g.runs == 12 and g.replay.backend == "torch"
+    assert {t.device.type for t in g.replay.tensors.values()} == {"meta"}
+    live = [r != 3 for r in range(g.runs)]  # run 3 stopped by its rule: its fixed draw
+    k = g.minibatches_per_update
+    acted: list[int] = []
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        with OpLog("meta") as log:
+            g.learner.act_on_device(obs)
+        assert log.copies_in() == 1
+        acted.append(len(obs))
+        return np.zeros((*obs.shape[:-1], g.learner.joint_act), np.float32)
+
+    for _ in range(3):
+        tr = g.collector.step(policy)
+        for r, m in enumerate(g.members):
+            m.collect(tr.obs[r], tr.act[r], float(tr.rew[r]), tr.next_obs[r],
+                      float(tr.done[r]), int(tr.collisions[r]))  # fmt: skip
+        with OpLog("meta") as log:
+            g.replay.flush()
+        assert log.copies_in() == 1 and not g.replay.pending
+        rngs = [m.sample_rng if on else None for m, on in zip(g.members, live)]
+        idx = g.replay.draw(g.cfg.batch_size, k, rngs)
+        bonuses = [m.price(idx[r]) if live[r] else None for r, m in enumerate(g.members)]
+        with OpLog("meta") as log:
+            arrays = g.update_arrays(idx, bonuses, live)
+        assert log.copies_in() == 1
+        assert "aten.index_select.default" in log.ops
+        assert all(a.device.type == "meta" for a in arrays)
+        with OpLog("meta") as log:
+            g.learner.update(*arrays)
+        assert log.copies_in() == 0  # its inputs are on the device already
+    assert acted == [g.runs] * 3
