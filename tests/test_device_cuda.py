@@ -109,3 +109,58 @@ def test_one_update_on_the_gpu_agrees_with_the_cpu():
     diff = (wc - wg).abs()
     assert float(diff.max()) <= 2 * LR * (1 + 1e-3)
     assert float((diff <= 1e-5).float().mean()) >= 0.999
+
+
+def test_the_groups_replay_lives_on_the_gpu_and_its_step_never_waits():
+    """A group built for CUDA keeps its replay there (`GroupReplay`'s torch backend).
+    Under sync-debug mode "error", after a first update: storing a collection step's
+    rows (one non-blocking copy from pinned memory), the draws and the bonuses (on the
+    host) sent in one non-blocking copy, the gather, the sum and the update wait for
+    nothing. `act`'s read of its actions, the one documented wait of a step, stays
+    outside the guarded part."""
+    from cli.trainer import GroupRun
+    from shared.config import make_config
+    from tests.test_pricing import ARMS
+
+    cfgs = [
+        make_config({"task": TASK, "algo": ALGO, "episodes": 50, "hidden": [32, 32],
+                     "learning_starts": 0, "warmup": "policy", "device": "cuda", **arm})
+        for arm in ARMS
+    ]  # fmt: skip
+    g = GroupRun(cfgs, [None] * len(cfgs), 60.0)
+    assert g.replay.backend == "torch"
+    assert {t.device.type for t in g.replay.tensors.values()} == {"cuda"}
+    live = [r != 4 for r in range(g.runs)]  # run 4 stopped by its rule: its fixed draw
+
+    def collect() -> None:
+        tr = g.collector.step(g.learner.act)  # (reads the actions: the documented wait)
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            for r, m in enumerate(g.members):
+                m.collect(tr.obs[r], tr.act[r], float(tr.rew[r]), tr.next_obs[r],
+                          float(tr.done[r]), int(tr.collisions[r]))  # fmt: skip
+            g.replay.flush()
+            rngs = [m.sample_rng if on else None for m, on in zip(g.members, live)]
+            idx = g.replay.draw(g.cfg.batch_size, g.minibatches_per_update, rngs)
+            bonuses = [m.price(idx[r]) if live[r] else None for r, m in enumerate(g.members)]
+            arrays = g.update_arrays(idx, bonuses, live)
+            assert all(a.device.type == "cuda" for a in arrays)
+            g.learner.update(*arrays)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+
+    g.learner.update(*g.update_arrays(*first_step(g, live)))  # creates Adam's state
+    torch.cuda.synchronize()
+    for _ in range(3):
+        collect()
+
+
+def first_step(g, live: list[bool]) -> tuple:
+    """One collected step and its draws, outside the guard (the first update's inputs)."""
+    tr = g.collector.step(g.learner.act)
+    for r, m in enumerate(g.members):
+        m.collect(tr.obs[r], tr.act[r], float(tr.rew[r]), tr.next_obs[r],
+                  float(tr.done[r]), int(tr.collisions[r]))  # fmt: skip
+    rngs = [m.sample_rng if on else None for m, on in zip(g.members, live)]
+    idx = g.replay.draw(g.cfg.batch_size, g.minibatches_per_update, rngs)
+    return idx, [m.price(idx[r]) if live[r] else None for r, m in enumerate(g.members)], live
