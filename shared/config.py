@@ -356,7 +356,8 @@ class TrainConfig(BaseModel):
         "cpu",
         pattern=r"^(cpu|cuda(:[0-9]+)?|xpu(:[0-9]+)?|mps)$",
         description="torch device of the batched learner's networks and updates (cpu, "
-        "cuda, cuda:N, xpu, mps); acting, replay and counting stay on the CPU. A device "
+        "cuda, cuda:N, xpu, mps); a group's replay rows live there too, acting, sampling "
+        "and counting stay on the CPU. A device "
         "this torch build or machine lacks is refused when the learner is built",
     )
 
