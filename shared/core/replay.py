@@ -173,10 +173,10 @@ class GroupReplay:
 
     On a `device` other than the CPU the fields are tensors there (backend "torch"): a
     run's `add` leaves its rows pending, `flush` writes every pending row in one copy,
-    and `gather` takes device indices (`send`). The draws stay on the host, each run's
-    from its own generator, so the rows gathered are those the host gathers. `backend`
-    "torch" on the CPU runs that path with CPU tensors (what the CPU's tests check it
-    by); the CPU's default, "numpy", is the host arrays above."""
+    and `gather_on_device` takes the rows as a tensor there (`send`). The draws stay on
+    the host, each run's from its own generator, so the rows gathered are those the host
+    gathers. `backend` "torch" on the CPU runs that path with CPU tensors (what the
+    CPU's tests check it by); the CPU's default, "numpy", is the host arrays above."""
 
     def __init__(
         self,
@@ -222,8 +222,10 @@ class GroupReplay:
             self.buffers.append(ReplayBuffer(c, obs_dim, act_dim, sb, shapes, store, sink))
 
     def add_rows(self, run: int, rows: np.ndarray, fields: dict[str, Any]) -> None:
-        """Run `run`'s rows added (torch): kept for the next `flush`."""
-        self.pending.append((rows + run * self.capacity, fields))
+        """Run `run`'s rows added (torch): kept for the next `flush`, as copies (the
+        caller's arrays may be its own to write again)."""
+        kept = {k: np.array(v, np.float32) for k, v in fields.items() if v is not None}
+        self.pending.append((rows + run * self.capacity, kept))
 
     def flush(self) -> None:
         """Every pending row onto the device in one copy (`send`), then written in one
@@ -237,7 +239,7 @@ class GroupReplay:
         at = 0
         for r, fields in self.pending:
             for k, v in fields.items():
-                data[k][at : at + len(r)] = v if v is not None else 0.0
+                data[k][at : at + len(r)] = v
             at += len(r)
         self.pending = []
         _, last = np.unique(rows[::-1], return_index=True)
