@@ -17,7 +17,7 @@ from shared.net.messages import Assignment, Weights
 def bare_evaluator() -> tuple[EvaluatorService, list[tuple[str, str]]]:
     """Only what starting, evaluating and ending runs use: no bus."""
     ev = EvaluatorService.__new__(EvaluatorService)
-    ev.runs, ev.group, ev.history = {}, None, RowHistory()
+    ev.runs, ev.group, ev.history, ev._retired = {}, None, RowHistory(), set()
     ev.active, ev.log = {}, logging.getLogger("test")
     statuses: list[tuple[str, str]] = []
     ev.listen = lambda *a, **k: None  # type: ignore[method-assign]

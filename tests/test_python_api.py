@@ -287,5 +287,5 @@ def test_the_docs_api_example_runs_against_the_api(api, capsys):
     printed = capsys.readouterr().out.splitlines()
     run = scope["exp"]["runs"][0]["id"]
     points = [line.split()[1:] for line in printed if line.startswith(run)]
-    assert points[-1] == ["100", "1.0"] and len(points) == 10  # then the break
+    assert points and points[-1] == ["100", "1.0"] and len(points) == 10, (run, printed)
     assert scope["live"]["episode"].max() == 200 and len(scope["live"]) == 40
