@@ -42,13 +42,8 @@ from shared.core.exploration import BonusDiagnostics, CountExploration, constant
 from shared.core.learners import Learner, RunsLearner, SoloRuns
 from shared.core.learners.group import GroupMADDPG
 from shared.core.learners.precision import resolve_device
-from shared.core.replay import (
-    GroupReplay,
-    ReplayBuffer,
-    fixed_draws,
-    fixed_update_arrays,
-    send,
-)
+from shared.core.replay import GroupReplay, ReplayBuffer, fixed_draws, fixed_update_arrays
+from shared.core.transfer import send
 from shared.envs.tasks import TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
 from shared.groups import check_group

@@ -288,8 +288,7 @@ class CountSketch:
 
     def counts(self, keys: np.ndarray) -> np.ndarray:
         """The estimate n(key) >= the true count for each row; never modifies the sketch."""
-        cols = self.cells_of(keys)
-        return self.cells[self._rows, cols].min(axis=1).astype(np.int64)
+        return self.gather(self.cells_of(keys))
 
     @property
     def count1(self) -> int:

@@ -55,34 +55,20 @@ from shared.core.learners.checkpoint import actor_state, export_state, import_st
 from shared.core.learners.lanes import Lanes
 from shared.core.learners.layers import Stack, mlp_backward, mlp_forward
 from shared.core.learners.precision import DTYPES, resolve, resolve_device
+from shared.core.transfer import send
 
 if TYPE_CHECKING:  # annotations only
     from shared.core.learners.reference import MADDPG
 
-#: Elements each input starts at a multiple of in `stage`'s one buffer (256 bytes of
-#: fp32, the alignment of a tensor of its own on an accelerator).
-STAGE_ALIGN = 64
-
 
 def stage(arrays: Sequence[Any], device: torch.device) -> list[torch.Tensor]:
-    """Host arrays as fp32 tensors on an accelerator, in one non-blocking copy: written
-    into one host buffer (pinned on CUDA, so the copy runs asynchronously and the
-    caching host allocator keeps the buffer until it is done), sent at once, split into
-    views. One transfer per step, and nothing waits for it but the device's own queue.
-    Tensors on the device already (a graph-captured update's inputs) are taken as they are."""
+    """Host arrays as fp32 tensors on an accelerator, in one non-blocking copy (`send`):
+    one transfer per step, and nothing waits for it but the device's own queue. Tensors
+    on the device already (a graph-captured update's inputs, a device replay's gather)
+    are taken as they are."""
     if all(isinstance(a, torch.Tensor) and a.device.type == device.type for a in arrays):
         return [a.float() for a in arrays]
-    host = [np.asarray(a, dtype=np.float32) for a in arrays]
-    starts, end = [], 0
-    for a in host:
-        starts.append(end)
-        end += -(-a.size // STAGE_ALIGN) * STAGE_ALIGN
-    buf = torch.empty(max(end, 1), dtype=torch.float32, pin_memory=device.type == "cuda")
-    flat = buf.numpy()
-    for a, at in zip(host, starts):
-        flat[at : at + a.size] = a.reshape(-1)
-    sent = buf.to(device, non_blocking=True)
-    return [sent[at : at + a.size].view(a.shape) for a, at in zip(host, starts)]
+    return send([np.asarray(a, dtype=np.float32) for a in arrays], device)
 
 
 def host_array(t: torch.Tensor) -> np.ndarray:
