@@ -42,7 +42,7 @@ from shared.core.exploration import BonusDiagnostics, CountExploration, constant
 from shared.core.learners import Learner, RunsLearner, SoloRuns
 from shared.core.learners.group import GroupMADDPG
 from shared.core.learners.precision import resolve_device
-from shared.core.replay import GroupReplay, ReplayBuffer, fixed_draws, fixed_update_arrays
+from shared.core.replay import GroupReplay, ReplayBuffer, fixed_draws
 from shared.core.transfer import send
 from shared.envs.tasks import TaskSpec, make_task_for
 from shared.envs.vectask import vectorize
@@ -340,8 +340,7 @@ class Member:
         # steps on in the group, unread), the fixed minibatch its update entry runs on
         # after, the best success so far.
         self.stopped: tuple[int, str] | None = None
-        self.frozen_arrays: tuple[np.ndarray, ...] | None = None
-        self.frozen_draws: np.ndarray | None = None  # (the same, its rows, for a device replay)
+        self.frozen_draws: np.ndarray | None = None  # (its fixed draw's rows, once stopped)
         self.best = -1.0
         if out is not None:
             self.cuts = out / "cuts"
@@ -652,38 +651,10 @@ class GroupRun:
     ) -> list[Any]:
         """The group update's (obs, act, rew, next_obs, done), each (R, ...): every run's
         rows `idx` (R, k, B) in one gather per field, rew plus each run's bonus (priced
-        now, or stored at collection), and a stopped run's fixed minibatch in its place:
-        each run's entry what `update_arrays` of its minibatches gives. With the replay
-        on a device (`GroupReplay`'s torch backend) the same, made there
-        (`device_update_arrays`)."""
-        if self.replay.backend == "torch":
-            return self.device_update_arrays(idx, bonuses, live)
-        g = self.replay.gather(idx)
-        bonus = np.zeros((*idx.shape, self.spec.n_agents), np.float32)
-        for r, (m, b) in enumerate(zip(self.members, bonuses)):
-            if b is not None:
-                bonus[r] = b
-            elif live[r] and m.collection:
-                bonus[r] = g["bonus"][r]
-        rew = g["rew"][..., None] + bonus
-        cols = [g["obs"], g["act"], rew, g["next_obs"], g["done"]]
-        if idx.shape[1] == 1:  # one shared minibatch: no minibatch axis
-            cols = [c[:, 0] for c in cols]
-        cols = [np.ascontiguousarray(c) for c in cols]
-        for r, m in enumerate(self.members):
-            if not live[r]:
-                for c, frozen in zip(cols, self.frozen_arrays(m)):
-                    c[r] = frozen
-        return cols
-
-    def device_update_arrays(
-        self, idx: np.ndarray, bonuses: list[np.ndarray | None], live: list[bool]
-    ) -> list[torch.Tensor]:
-        """`update_arrays` with the replay on its device: the rows (a stopped run's its
-        fixed draw, `fixed_draws`) and the bonuses priced on the host go there in one
-        copy (`send`), then one gather per field, the stored bonuses and the sum are
-        made there. Each entry holds the values the host's way gives: the same rows,
-        and the same fp32 sum (0 for a stopped run, as its fixed minibatch has)."""
+        now, or stored at collection), and a stopped run's fixed draw (`fixed_draws`)
+        with no bonus in its place: each run's entry what `update_arrays` of its
+        minibatches gives (a stopped run's, what `fixed_update_arrays` gives). With the
+        replay on a device (`GroupReplay`'s torch backend) the same, made there."""
         idx = idx.copy()
         bonus = np.zeros((*idx.shape, self.spec.n_agents), np.float32)
         for r, (m, b) in enumerate(zip(self.members, bonuses)):
@@ -691,6 +662,24 @@ class GroupRun:
                 bonus[r] = b
             if not live[r]:
                 idx[r] = self.frozen_draws(m)
+        if self.replay.backend == "torch":
+            return self.device_update_arrays(idx, bonus, live)
+        g = self.replay.gather(idx)
+        for r, m in enumerate(self.members):
+            if live[r] and m.collection:
+                bonus[r] = g["bonus"][r]
+        rew = g["rew"][..., None] + bonus
+        cols = [g["obs"], g["act"], rew, g["next_obs"], g["done"]]
+        if idx.shape[1] == 1:  # one shared minibatch: no minibatch axis
+            cols = [c[:, 0] for c in cols]
+        return [np.ascontiguousarray(c) for c in cols]
+
+    def device_update_arrays(
+        self, idx: np.ndarray, bonus: np.ndarray, live: list[bool]
+    ) -> list[torch.Tensor]:
+        """`update_arrays` with the replay on its device: the rows and the bonuses priced
+        on the host go there in one copy (`send`), then one gather per field, the stored
+        bonuses and the sum are made there: the values the host's way gives."""
         idx_t, bonus_t = send([idx, bonus], self.replay.device)
         g = self.replay.gather_on_device(idx_t)
         for r, m in enumerate(self.members):
@@ -703,18 +692,11 @@ class GroupRun:
         return [c.contiguous() for c in cols]
 
     def frozen_draws(self, m: Member) -> np.ndarray:
-        """A stopped run's fixed rows (`fixed_draws`, what `frozen_arrays` takes), drawn once."""
+        """A stopped run's fixed rows (`fixed_draws`), drawn once."""
         if m.frozen_draws is None:
             k = self.minibatches_per_update
             m.frozen_draws = fixed_draws(m.buffer, self.cfg.batch_size, k)
         return m.frozen_draws
-
-    def frozen_arrays(self, m: Member) -> tuple[np.ndarray, ...]:
-        """A stopped run's update arrays (`fixed_update_arrays`), drawn once."""
-        if m.frozen_arrays is None:
-            k, n = self.minibatches_per_update, self.spec.n_agents
-            m.frozen_arrays = fixed_update_arrays(m.buffer, self.cfg.batch_size, k, n)
-        return m.frozen_arrays
 
     def cut_due(self) -> bool:
         """`cut_every_s` since the last cut, and CUT_SPACING times its length (0: every

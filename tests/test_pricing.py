@@ -13,7 +13,7 @@ import torch
 from cli.trainer import GroupRun
 from shared.config import make_config
 from shared.core.counting import CountSketch, CountTable
-from shared.core.replay import update_arrays
+from shared.core.replay import fixed_update_arrays, update_arrays
 
 
 def keys_of(rng: np.random.Generator, n: int, distinct: int, width: int = 4) -> np.ndarray:
@@ -120,7 +120,7 @@ def per_run_arrays(g: GroupRun, rngs: list, live: list[bool]) -> list[np.ndarray
     parts = []
     for m, rng, on in zip(g.members, rngs, live):
         if not on:
-            parts.append(g.frozen_arrays(m))
+            parts.append(fixed_update_arrays(m.buffer, size, k, g.spec.n_agents))
             continue
         batches = [m.buffer.sample(size, rng) for _ in range(k)]
         bonuses = []

@@ -320,6 +320,6 @@ def fixed_update_arrays(
 
 def fixed_draws(buffer: ReplayBuffer, batch_size: int, per_update: int) -> np.ndarray:
     """The rows (per_update, batch_size) of `fixed_update_arrays`' draw, from a sampler
-    of its own: a group whose rows live on a device gathers them there."""
+    of its own: the one-process group gathers them with its other runs' rows."""
     rng = np.random.default_rng(0)
     return np.stack([buffer.draw(batch_size, rng) for _ in range(per_update)])
