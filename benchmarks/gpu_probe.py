@@ -44,7 +44,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from shared.core.learners.base import AgentDims, LearnerSpec  # noqa: E402
-from shared.core.learners.group import GroupMADDPG  # noqa: E402
+from shared.core.learners.group import GroupMADDPG, capture_update  # noqa: E402
 
 # speaker_listener in profile thesis (observations padded to 11; tests/test_device.py
 # checks these against the task's spec): the speaker's 3 in [0, 1], the listener's 2.
@@ -143,15 +143,7 @@ def kernels(g: GroupMADDPG, batch: tuple[torch.Tensor, ...]) -> int | None:
 def graph_ms(g: GroupMADDPG, batch: tuple[torch.Tensor, ...], replays: int) -> dict[str, Any]:
     """The update on fixed device inputs captured as one CUDA graph, replayed."""
     try:
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            for _ in range(3):
-                g.update(*batch)
-        torch.cuda.current_stream().wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            g.update(*batch)
+        graph = capture_update(g, batch)
         ms = timed(lambda _: graph.replay(), list(range(replays)), "cuda")
         return {"graph_ms": ms}
     except Exception as err:  # what stops a capture is what the probe is for

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from shared.core.learners import LearnerSpec
-from shared.core.learners.group import GroupMADDPG
+from shared.core.learners.group import GroupMADDPG, capture_update
 from tests.test_group_learner import agents_of, batch
 
 pytestmark = pytest.mark.skipif(
@@ -73,16 +73,7 @@ def test_the_update_captures_as_one_cuda_graph_and_replays():
     graph; replaying it trains (the weights move and stay finite)."""
     g = make_group("cuda")
     rng = np.random.default_rng(1)
-    inputs = tuple(g.tensors(*step(rng, True)))
-    side = torch.cuda.Stream()
-    side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side):
-        for _ in range(3):
-            g.update(*inputs)
-    torch.cuda.current_stream().wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        g.update(*inputs)
+    graph = capture_update(g, g.tensors(*step(rng, True)))
     before = flat_weights(g)
     for _ in range(3):
         graph.replay()

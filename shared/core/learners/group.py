@@ -346,3 +346,21 @@ class GroupMADDPG(StackedMADDPG):
         """Refused with the per-run method's name, for a caller that takes a group for
         one learner (a group's state is its runs' states)."""
         raise TypeError("a group has one state per run: run_state_dict(run)")
+
+
+def capture_update(
+    learner: GroupMADDPG, inputs: Sequence[Any], warmup: int = 3
+) -> torch.cuda.CUDAGraph:
+    """The update on fixed device `inputs` captured as one CUDA graph: warmed up on a
+    side stream first, as capture needs; each `replay()` updates again from whatever
+    the inputs hold then. CUDA only (what a GPU's step could save: docs/performance.md)."""
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        for _ in range(warmup):
+            learner.update(*inputs)
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        learner.update(*inputs)
+    return graph
