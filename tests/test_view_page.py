@@ -113,10 +113,7 @@ def test_macb_view_follows_a_folder_being_written_toggles_arms_and_draws_the_rep
             version = page.js("document.body.dataset.version")
 
             _copy(finished, live, 4)  # a row more for every run
-            page.wait(
-                f"document.body.dataset.version !== {json.dumps(version)}",
-                what="the page read the new rows",
-            )
+            _read_all(page, url, version)
             drawn = page.js(DRAWN)
             report = _report(live)
             for arm, (episodes, mean, _) in report.items():
@@ -146,10 +143,10 @@ def test_macb_view_follows_a_folder_being_written_toggles_arms_and_draws_the_rep
                 assert values == _six(report[arm][2][seed]), (arm, seed)
             assert len(seeds) == 4
 
+            version = page.js("document.body.dataset.version")
             _copy(finished, live, 8)  # the rest: the runs' ends
-            page.wait(
-                "document.querySelector('tr.run').dataset.episode === '16'", what="the last row"
-            )
+            _read_all(page, url, version)
+            assert page.js("document.querySelector('tr.run').dataset.episode") == "16"
             assert page.js("document.getElementById('progress-line').textContent").startswith(
                 "complete"
             )
@@ -157,6 +154,15 @@ def test_macb_view_follows_a_folder_being_written_toggles_arms_and_draws_the_rep
     finally:
         procs.end(view, 5, group=True)
     print(f"screenshot: {tmp_path / 'view.png'}")
+
+
+def _read_all(page: Browser, url: str, before: str) -> None:
+    """Wait until the page has drawn the folder as it is now, every run's file written.
+    A poll between two of `_copy`'s files gives a new version with some runs' rows
+    only; the server's version of the whole folder is the one to wait for."""
+    now = httpx.get(url + "figure.json", timeout=10).headers["ETag"]
+    assert now != before, "the server did not see the new rows"
+    page.wait(f"document.body.dataset.version === {json.dumps(now)}", what="the new rows read")
 
 
 def _answers(url: str) -> bool:
@@ -226,16 +232,14 @@ def test_the_dashboards_figure_view_follows_a_run_through_the_api(tmp_path):
             )
             return run, figure.arm(run["arm"])
 
-        def drawn_all() -> bool:
+        def drawn_all() -> tuple | None:
             run, arm = analysed()
             drawn = page.js(DRAWN).get(run["arm"])
-            return drawn is not None and drawn[0] == arm.episodes.tolist()
+            return (drawn, arm) if drawn is not None and drawn[0] == arm.episodes.tolist() else None
 
-        # Compared with what is stored each time: a point in flight at the stop may land.
-        wait_for(drawn_all, timeout=30, interval=0.5, what="every stored point drawn")
-        run, arm = analysed()
-        drawn = page.js(DRAWN)[run["arm"]]
-        assert drawn[0] == arm.episodes.tolist()
+        # Compared with what is stored each time: a point in flight at the stop may land,
+        # so the values are checked against the same reading of the store.
+        drawn, arm = wait_for(drawn_all, timeout=30, interval=0.5, what="every stored point drawn")
         assert drawn[1] == _six(arm.curve())
         page.screenshot(tmp_path / "api-view.png")
 
