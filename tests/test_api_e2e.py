@@ -12,7 +12,6 @@ import csv
 import io
 import json
 import threading
-import time
 
 import httpx
 import msgpack
@@ -48,6 +47,11 @@ class BusRows:
             return
         with self.lock:
             self.rows.setdefault(msg.run, []).append(msg.data)
+
+    def wait(self, run: str, n: int) -> None:
+        """Until `n` rows of `run` were heard (they come on this subscriber's own
+        schedule, not the API's: a fixed sleep can be too short on a loaded machine)."""
+        wait_for(lambda: len(self.rows.get(run, [])) >= n, timeout=30, what=f"{n} rows on the bus")
 
     def close(self) -> None:
         self.bus.close()
@@ -112,7 +116,6 @@ def test_two_seeds_queue_run_and_every_point_reaches_events_json_and_csv(cluster
             assert not t.is_alive(), "event stream did not end"
         final = httpx.get(f"{url}/experiments/{exp['id']}").json()
         assert final["status"] == "completed", final
-        time.sleep(0.5)  # let the subscriber see the last rows
         for run_id in run_ids:
             run = httpx.get(f"{url}/runs/{run_id}").json()
             assert run["status"] == "completed" and run["reason"] is None, run
@@ -137,6 +140,8 @@ def test_two_seeds_queue_run_and_every_point_reaches_events_json_and_csv(cluster
             assert [p["episode"] for p in streamed] == [4, 8, 12]
             stored = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
             assert stored == streamed, "the events carry exactly the stored points"
+            # This test's subscriber hears the rows on its own, maybe after the API did.
+            bus_rows.wait(run_id, len(stored))
             assert [without_seq(p) for p in stored] == bus_rows.rows[run_id], (
                 "the store holds every row the evaluator published, as published"
             )
@@ -192,7 +197,7 @@ def test_restarting_the_api_mid_run_loses_no_metric_and_the_run_goes_on(cluster)
         final = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
         assert final[: len(after_restart)] == after_restart, "stored points are kept as they were"
         assert [d for e, d in streamed if e == "metric"] == final
-        time.sleep(0.5)
+        bus_rows.wait(run_id, episodes // 4)
         published = bus_rows.rows[run_id]
         assert len(published) == episodes // 4
         assert [p["episode"] for p in final] == [r["episode"] for r in published]
