@@ -139,16 +139,17 @@ def test_the_inbox_says_once_when_a_burst_has_drained_and_waits_only_when_idle()
     t0 = time.monotonic()
     assert inbox.take(busy=False, wait_s=0.05) is None  # idle: waits for a message
     assert time.monotonic() - t0 >= 0.04
+    # (waits of 60 s where none is due: a stall of a loaded machine is not mistaken for one)
     t0 = time.monotonic()
-    assert inbox.take(busy=True, wait_s=5.0) is None  # work waiting: no wait
-    assert time.monotonic() - t0 < 1.0
+    assert inbox.take(busy=True, wait_s=60.0) is None  # work waiting: no wait
+    assert time.monotonic() - t0 < 30
     q.put(("t", "k1", b"1"))
     q.put(("t", "k2", b"2"))
-    assert inbox.take(False, 5.0) == ("t", "k1", b"1")
-    assert inbox.take(False, 5.0) == ("t", "k2", b"2")
+    assert inbox.take(False, 60.0) == ("t", "k1", b"1")
+    assert inbox.take(False, 60.0) == ("t", "k2", b"2")
     t0 = time.monotonic()
-    assert inbox.take(False, 5.0) == DRAINED  # in a burst: not kept waiting
-    assert time.monotonic() - t0 < 1.0
+    assert inbox.take(False, 60.0) == DRAINED  # in a burst: not kept waiting
+    assert time.monotonic() - t0 < 30
     assert inbox.take(False, 0.01) is None  # once
 
 

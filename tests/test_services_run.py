@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import time
+from types import SimpleNamespace
 
 import msgpack
 import numpy as np
 import pytest
 
+from services.learner import evaluations
 from services.learner.bonus import BonusClient, bus_query
 from services.learner.evaluations import EvaluationsInFlight
 from shared.config import make_config
@@ -221,7 +223,11 @@ def test_bonus_client_prices_a_ticks_batches_in_one_query_and_splits_the_answer(
     assert client.queries == 1 and client.rows == 24 and client.wait_s > 0
 
 
-def test_evaluations_in_flight_from_send_to_the_evaluators_row_or_timeout():
+def test_evaluations_in_flight_from_send_to_the_evaluators_row_or_timeout(monkeypatch):
+    # A clock of the test's: on a loaded machine the real one can pass max_s between two
+    # lines, and `busy` would be False where the test expects True.
+    clock = [100.0]
+    monkeypatch.setattr(evaluations, "time", SimpleNamespace(monotonic=lambda: clock[0]))
     evals = EvaluationsInFlight(max_s=0.2)
     assert not evals.busy()  # nothing sent
     evals.sent(5)
@@ -232,7 +238,9 @@ def test_evaluations_in_flight_from_send_to_the_evaluators_row_or_timeout():
     assert not evals.busy()
     evals.sent(10)
     assert evals.busy()
-    time.sleep(0.25)  # no row within max_s: no longer counted as busy
+    clock[0] += 0.19
+    assert evals.busy()
+    clock[0] += 0.02  # no row within max_s: no longer counted as busy
     assert not evals.busy()
     evals.reported(3)  # late rows never move the mark back
     assert evals.last_reported == 5
