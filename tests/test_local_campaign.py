@@ -96,6 +96,24 @@ def _snapshot(folder: Path) -> dict[str, tuple[int, int]]:
     return {str(p): (p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*")}
 
 
+def _stop(pid: int) -> None:
+    """SIGSTOP `pid` and wait until every thread of it is stopped: a thread in a write or
+    an fsync (a cut going to disk) stops only once that call is done, which on a loaded
+    disk can take longer than any fixed sleep."""
+    os.kill(pid, signal.SIGSTOP)
+
+    def stopped() -> bool:
+        states = []
+        for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+            try:
+                states.append(stat.read_text().rsplit(")", 1)[1].split()[0])
+            except OSError:
+                continue  # a thread that ended meanwhile
+        return bool(states) and all(s in ("T", "t") for s in states)
+
+    wait_for(stopped, timeout=30, what=f"PID {pid} stopped")
+
+
 def test_a_second_process_on_a_run_folder_is_refused_naming_the_holder(tmp_path):
     out = tmp_path / "run"
     base = ["train", "--task", "speaker_listener", "--algo", "cen-maddpg", "--explore",
@@ -107,8 +125,7 @@ def test_a_second_process_on_a_run_folder_is_refused_naming_the_holder(tmp_path)
         wait_for(lambda: (out / "metrics.jsonl").exists() and (out / "cuts").exists()
                  and (out / ".lock").read_text().strip() == str(first.pid),
                  timeout=120, what="the first run's rows")  # fmt: skip
-        os.kill(first.pid, signal.SIGSTOP)  # so that nothing changes but what the second does
-        time.sleep(0.2)
+        _stop(first.pid)  # so that nothing changes but what the second does
         before = _snapshot(out)
         for second in (
             macb(*base, "--episodes", "5000", "--out", str(out)),
@@ -181,8 +198,7 @@ def test_a_signalled_campaign_leaves_no_group_process_and_the_same_command_resum
         assert groups <= children
         if sig == signal.SIGTERM:  # meanwhile a second command on the same runs: refused
             for pid in groups:
-                os.kill(pid, signal.SIGSTOP)
-            time.sleep(0.2)
+                _stop(pid)
             before = _snapshot(out)
             second = macb(*args)
             for pid in groups:
