@@ -80,7 +80,9 @@ def test_secure_run_is_exact_and_an_actor_cannot_stop_it(secure, secrets):
             wait_for(lambda: watch.rows, timeout=60, what="a first point")
             send_stop(rogue, watch.run, "forged")
             rogue.put(keys.k_transitions(watch.run, "actor1"), encode(Stop(watch.run, reason="x")))
-            time.sleep(0.5)
+            # Both at the router before the session closes (a close can drop what is
+            # still queued; a fixed sleep was the guess of how long that takes).
+            wait_for(lambda: router_stats(cli)["denied_total"] >= 2, timeout=30, what="the denials")
         assert watch.wait(timeout=240) == "completed", watch.states
         wait_final_counts(watch, config)
         assert_exact(watch, config)
