@@ -14,6 +14,7 @@ import math
 import statistics
 from typing import Literal, get_args, get_origin
 
+import httpx
 import pytest
 from PIL import Image
 from pydantic import ValidationError
@@ -21,7 +22,7 @@ from pydantic import ValidationError
 from services.api.naming import format_value
 from services.api.store import CSV_FIELDS, Store
 from shared.config import TrainConfig
-from tests.harness import TINY, macb, post, row, wait_for
+from tests.harness import TINY, macb, post, row, start_api, wait_for
 
 
 def test_experiment_expands_into_one_queued_run_per_seed_and_grid_point(client):
@@ -61,7 +62,19 @@ def test_seed_defaults_to_the_config_seed_and_name_is_kept(client):
     assert "seed" not in exp["config"] and exp["config"]["k"] == 64
 
 
-def test_retry_queues_failed_and_stopped_runs_again_under_their_ids(api, client):
+@pytest.fixture
+def busless(tmp_path):
+    """The API on no bus, and a client of it: its scheduler makes no pass, so only the
+    test changes a run. (On a bus each pass, once a second or when the HTTP side wakes
+    it, says what every queued run waits for, replacing a retried run's reason.)"""
+    server = start_api(tmp_path, None)
+    with httpx.Client(base_url=server.url, timeout=20) as c:
+        yield server, c
+    server.stop()
+
+
+def test_retry_queues_failed_and_stopped_runs_again_under_their_ids(busless):
+    api, client = busless
     exp = post(client, {**TINY, "seeds": [0, 1, 2, 3]}).json()
     stopped, failed, done, waiting = (r["id"] for r in exp["runs"])
     store = Store(api.settings.db_path)  # a second connection, as the scheduler has
