@@ -182,11 +182,18 @@ def _child(
     slot: int = 0,
 ) -> None:
     """A group process: dies with `parent`, leaves SIGINT to it, sends back what
-    `target` returns."""
+    `target` returns. Its progress bars lock within the process: tqdm's default lock
+    holds a semaphore, which a SIGTERMed process leaves for the resource tracker to
+    warn of ("leaked semaphore"), and no other process shares a spawned child's lock."""
+    import threading
+
+    from tqdm import tqdm
+
     from shared.procs import die_with_parent
 
     die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    tqdm.set_lock(threading.RLock())
     if start is not None:
         start(slot)
     message = target(*task)

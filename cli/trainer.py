@@ -664,14 +664,7 @@ class GroupRun:
                 idx[r] = self.frozen_draws(m)
         if self.replay.backend == "torch":
             return self.device_update_arrays(idx, bonus, live)
-        g = self.replay.gather(idx)
-        for r, m in enumerate(self.members):
-            if live[r] and m.collection:
-                bonus[r] = g["bonus"][r]
-        rew = g["rew"][..., None] + bonus
-        cols = [g["obs"], g["act"], rew, g["next_obs"], g["done"]]
-        if idx.shape[1] == 1:  # one shared minibatch: no minibatch axis
-            cols = [c[:, 0] for c in cols]
+        cols = self.columns(self.replay.gather(idx), bonus, live)
         return [np.ascontiguousarray(c) for c in cols]
 
     def device_update_arrays(
@@ -681,15 +674,21 @@ class GroupRun:
         on the host go there in one copy (`send`), then one gather per field, the stored
         bonuses and the sum are made there: the values the host's way gives."""
         idx_t, bonus_t = send([idx, bonus], self.replay.device)
-        g = self.replay.gather_on_device(idx_t)
+        cols = self.columns(self.replay.gather_on_device(idx_t), bonus_t, live)
+        return [c.contiguous() for c in cols]
+
+    def columns(self, g: dict[str, Any], bonus: Any, live: list[bool]) -> list[Any]:
+        """The update's five columns from one gather `g` (numpy on the host, torch on a
+        device: the same indexing and sum on either): a live run priced at collection
+        takes its stored bonuses in place of `bonus`, rew gains the bonus per agent, and
+        one shared minibatch loses its minibatch axis."""
         for r, m in enumerate(self.members):
             if live[r] and m.collection:
-                bonus_t[r].copy_(g["bonus"][r])
-        rew = g["rew"][..., None] + bonus_t
-        cols = [g["obs"], g["act"], rew, g["next_obs"], g["done"]]
-        if idx.shape[1] == 1:  # one shared minibatch: no minibatch axis
-            cols = [c[:, 0] for c in cols]
-        return [c.contiguous() for c in cols]
+                bonus[r] = g["bonus"][r]
+        cols = [g["obs"], g["act"], g["rew"][..., None] + bonus, g["next_obs"], g["done"]]
+        if bonus.shape[1] == 1:  # one shared minibatch: no minibatch axis
+            return [c[:, 0] for c in cols]
+        return cols
 
     def frozen_draws(self, m: Member) -> np.ndarray:
         """A stopped run's fixed rows (`fixed_draws`), drawn once."""

@@ -235,7 +235,7 @@ CONFIG = {"task": "speaker_listener", "explore": "dis-macb", "k": 32}
 ASSIGN = Assignment.from_wire({"counter": "c0", "learner": "L", "actors": ["a0"]})
 
 
-def test_a_runs_folder_is_resumed_for_the_same_config_and_archived_otherwise(tmp_path):
+def test_a_runs_folder_is_resumed_for_the_same_config_and_archived_otherwise(tmp_path, caplog):
     runs = Runs(tmp_path, logging.getLogger("t"))
     cfg = make_config(CONFIG)
     with pytest.raises(ValueError, match="safe directory"):
@@ -259,8 +259,18 @@ def test_a_runs_folder_is_resumed_for_the_same_config_and_archived_otherwise(tmp
     assert again.learner is None and again.counted == 5
     runs.close("r")
 
+    # Written before a key existed (here: beta_schedule missing, its default): the same run.
+    saved = json.loads((path / "config.json").read_text())
+    assert saved.pop("beta_schedule") == cfg.model_dump(mode="json")["beta_schedule"]
+    (path / "config.json").write_text(json.dumps(saved))
+    again, replayed = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN))
+    assert again.counted == 5 and not (tmp_path / ".archive").exists()
+    runs.close("r")
+
     other = make_config({**CONFIG, "k": 16})
-    fresh, _ = runs.open("r", other, runs.prepare("r", other, ASSIGN))
+    with caplog.at_level(logging.WARNING):
+        fresh, _ = runs.open("r", other, runs.prepare("r", other, ASSIGN))
+    assert "had another config (k: " in caplog.text
     assert fresh.counted == 0 and len(list((tmp_path / ".archive").iterdir())) == 1
     runs.mark_stopped("r", fresh, "done")
     runs.close("r")

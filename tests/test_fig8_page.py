@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli.local import expand_body
+from cli.local import expand_body, local_experiment, local_points
 from cli.main import main
 from cli.reproduce import analysis, render
 from cli.reproduce.controls import against_control, bonus_paid, control_verdicts, distinguish
@@ -270,3 +270,45 @@ def test_an_arm_that_learns_sooner_to_the_same_end_is_told_apart_by_its_area():
     b = analysis.analyse(FIG8, exp, points)
     d = distinguish(b.arm(arm.name), b.arm(control.name))
     assert d is not None and (d.side, d.by) == ("overlap", "end")
+
+
+def _analysis(runs_dir: Path, episodes: int) -> analysis.Analysis:
+    """The sparse arms of `runs_dir` as the report reads them, their runs started for
+    `episodes` episodes."""
+    body = select_arms(FIG8, experiment_body(FIG8, "thesis", [0, 1], episodes), ["sparse*"])
+    name, seeds, runs = expand_body(body)
+    for r in runs:  # the folders' configs say the same length as the experiment's
+        (runs_dir / r.name / "config.json").write_text(json.dumps(r.config.model_dump(mode="json")))
+    exp = local_experiment(name, seeds, runs, runs_dir)
+    points = {k: analysis.columns(v) for k, v in local_points(runs, runs_dir).items()}
+    return analysis.analyse(FIG8, exp, points)
+
+
+def test_the_plot_marks_each_value_the_thesis_states_where_the_runs_will_reach_it(
+    runs_dir, tmp_path
+):
+    from cli.reproduce import plot
+
+    full = _analysis(runs_dir, 40000)  # a campaign at 2,000 of 40,000 episodes
+    assert [(n, c.arm, c.episode) for n, _, c in plot.thesis_marks(full)] == [
+        (1, "Sparse", 40000),
+        (2, "Sparse + Dis-MACB", 40000),
+        (3, "Sparse + Cen-MACB", 15000),
+    ]
+    fig, _ = plot.draw(full, "thesis")
+    (ax,) = fig.axes
+    assert ax.get_xlim()[1] >= 40000, "the whole length drawn: how far the runs got"
+    drawn = {(t.get_text(), t.xy) for t in ax.texts}
+    assert ("thesis, claim 3: 100% at 1.5e4", (15000, 0.95)) in drawn
+    assert ("thesis, claim 1: just over 40% at 4e4", (40000, 0.45)) in drawn
+    out = tmp_path / "page"
+    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
+    assert "a hollow diamond marks each value a claim states" in (out / "fig8.md").read_text()
+
+    short = _analysis(runs_dir, 1500)  # runs started for 1,500: no claim is within reach
+    assert plot.thesis_marks(short) == []
+    fig, _ = plot.draw(short, "thesis")
+    assert len(fig.axes[0].texts) == 0 and fig.axes[0].get_xlim()[1] < 2500
+    main(["reproduce", *ARGS, "--episodes", "1500", "--report-only", "--runs", str(runs_dir),
+          "--out", str(out)])  # fmt: skip
+    assert "hollow diamond" not in (out / "fig8.md").read_text()

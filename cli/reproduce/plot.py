@@ -1,5 +1,6 @@
 """FIGURE.png: a figure's arms overlaid as the thesis draws them (smoothed, the mean
-over seeds, a band), or for a table figure a grid of cells.
+over seeds, a band), with the values the thesis claims at an episode marked beside
+them, or for a table figure a grid of cells.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from cli.reproduce.analysis import Analysis, ArmCurve, count1
+from cli.reproduce.claims import ValueAt
 from cli.reproduce.experiments import arm_configs
 
 LABELS = {"success_rate": "success rate", "collisions_cum": "cumulative collisions"}
@@ -35,13 +37,19 @@ def draw(a: Analysis, profile: str) -> tuple[Any, list[str]]:
     ax = fig.subplots()
     metric = a.fig.metric
     drawn = [arm for arm in a.arms.values() if len(arm.episodes)]
-    for arm, color in zip(drawn, palette(len(drawn)), strict=True):
+    colors = dict(zip((arm.name for arm in drawn), palette(len(drawn)), strict=True))
+    for arm in drawn:
         m, (lo, hi) = arm.mean[metric], arm.band(metric)
         dashed = "control" in arm.name
+        color = colors[arm.name]
         ax.plot(
             arm.episodes, m, lw=1.5, color=color, ls="--" if dashed else "-", label=legend_text(arm)
         )
         ax.fill_between(arm.episodes, lo, hi, color=color, alpha=0.18, lw=0)
+    planned = planned_episodes(a)
+    if drawn and planned > max(int(arm.episodes[-1]) for arm in drawn):
+        ax.set_xlim(-0.02 * planned, 1.02 * planned)  # the whole length: how far it got
+    _draw_thesis_values(ax, a, colors)
     ax.set_xlabel("training episodes")
     ax.set_ylabel(LABELS.get(metric, metric))
     if metric == "success_rate":
@@ -60,6 +68,51 @@ def draw(a: Analysis, profile: str) -> tuple[Any, list[str]]:
         ax.text(0.5, 0.5, "no metric points stored", ha="center", transform=ax.transAxes)
     fig.tight_layout()
     return fig, legend
+
+
+def planned_episodes(a: Analysis) -> int:
+    """The episodes the runs were started for (their configs'), 0 when unknown."""
+    runs = a.experiment.get("runs") or []
+    return max((int((r.get("config") or {}).get("episodes") or 0) for r in runs), default=0)
+
+
+def thesis_marks(a: Analysis) -> list[tuple[int, Any, ValueAt]]:
+    """The claims the plot marks, numbered as on the page: each value a claim states at
+    an episode (`ValueAt`) of a drawn success-rate arm whose runs were started to reach
+    that episode (a short run's axis is not stretched to the thesis's length)."""
+    if a.fig.kind == "table" or a.fig.metric != "success_rate":
+        return []
+    planned = planned_episodes(a)
+    drawn = {name for name, arm in a.arms.items() if len(arm.episodes)}
+    return [
+        (n, claim, claim.check)
+        for n, claim in enumerate(a.fig.claims, 1)
+        if isinstance(claim.check, ValueAt)
+        and claim.check.arm in drawn
+        and claim.check.episode <= planned
+    ]
+
+
+def _draw_thesis_values(ax: Any, a: Analysis, colors: dict[str, Any]) -> None:
+    """`thesis_marks` as the thesis states them: a hollow diamond with the claim's
+    accepted range as its bar, in its arm's colour."""
+    for n, claim, check in thesis_marks(a):
+        mid, half = (check.lo + check.hi) / 2, (check.hi - check.lo) / 2
+        color = colors[check.arm]
+        ax.errorbar(
+            [check.episode], [mid], yerr=[[half], [half]], fmt="D", mfc="white", mec=color,
+            ecolor=color, ms=6, capsize=3, lw=1.2, zorder=5,
+        )  # fmt: skip
+        ax.annotate(
+            f"thesis, claim {n}: {claim.thesis}",
+            (check.episode, mid),
+            xytext=(-6, 0),
+            textcoords="offset points",
+            ha="right",
+            va="center",
+            fontsize=6.5,
+            color=color,
+        )
 
 
 def _draw_table(a: Analysis, profile: str) -> tuple[Any, list[str]]:

@@ -34,7 +34,7 @@ from cli.reproduce.analysis import (
 )
 from cli.reproduce.controls import claim_per_seed, control_verdicts, summary, why_section
 from cli.reproduce.experiments import arm_configs, split_base
-from cli.reproduce.plot import write_png
+from cli.reproduce.plot import thesis_marks, write_png
 from cli.reproduce.status import from_points, page_line
 from cli.results import claims_record
 
@@ -146,7 +146,13 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         "episode run.",
         "- Verdicts: reproduced / not reproduced by the stated rule; not run to that "
         "length when a run stopped short of the episodes the claim is about (the measured "
-        "number is still given).",
+        "number is still given)."
+        + (
+            " In the plot a hollow diamond marks each value a claim states at an episode, "
+            "its bar the range the verdict accepts."
+            if thesis_marks(a)
+            else ""
+        ),
     ]
     stopped = sorted(
         f"{arm.name} seed {seed} at {e:,}"

@@ -20,6 +20,7 @@ from services.counter.state import RunState
 from shared.config import TrainConfig, make_config
 from shared.envs.tasks import task_spec_for
 from shared.net.messages import Assignment, WireError
+from shared.persist.checkpoint import config_difference
 from shared.persist.files import read_json, write_json
 from shared.persist.wal import WriteAheadLog
 from shared.run.factories import build_exploration
@@ -51,15 +52,23 @@ class Runs:
 
     def prepare(self, run: str, config: TrainConfig, assign: Assignment) -> Path:
         """The run's folder for a start: kept if it holds an unfinished run of the same
-        config (resumed), else what is there is archived; config and assignment (its
-        `to_wire` map) noted."""
+        config (resumed; a key the saved config lacks counts as its default, the rule
+        of every resume: `config_difference`), else what is there is archived; config
+        and assignment (its `to_wire` map) noted."""
         if not _RUN_ID.fullmatch(run):
             raise ValueError(f"run id {run!r} is not a safe directory name")
         path = self.root / run
         if path.exists():
             saved = read_json(path / "config.json")
-            if (path / "stopped").exists() or saved != config.model_dump(mode="json"):
-                why = "was stopped" if (path / "stopped").exists() else "had another config"
+            diff = (
+                "no readable config.json"
+                if not isinstance(saved, dict)
+                else config_difference(saved, config.model_dump(mode="json"))
+            )
+            if (path / "stopped").exists() or diff is not None:
+                why = (
+                    "was stopped" if (path / "stopped").exists() else f"had another config ({diff})"
+                )
                 dest = self.archive(path)
                 self.log.warning("run %s %s: old state moved to %s", run, why, dest)
         path.mkdir(parents=True, exist_ok=True)

@@ -61,13 +61,19 @@ if TYPE_CHECKING:  # annotations only
     from shared.core.learners.reference import MADDPG
 
 
-def stage(arrays: Sequence[Any], device: torch.device) -> list[torch.Tensor]:
+#: An update's input: a host array, or a tensor on the learner's device already (a device
+#: replay's gather, a graph-captured update's fixed inputs).
+Batch = np.ndarray | torch.Tensor
+
+
+def stage(arrays: Sequence[Batch], device: torch.device) -> list[torch.Tensor]:
     """Host arrays as fp32 tensors on an accelerator, in one non-blocking copy (`send`):
     one transfer per step, and nothing waits for it but the device's own queue. Tensors
     on the device already (a graph-captured update's inputs, a device replay's gather)
     are taken as they are."""
-    if all(isinstance(a, torch.Tensor) and a.device.type == device.type for a in arrays):
-        return [a.float() for a in arrays]
+    on_device = [a for a in arrays if isinstance(a, torch.Tensor) and a.device.type == device.type]
+    if len(on_device) == len(arrays):
+        return [a.float() for a in on_device]
     return send([np.asarray(a, dtype=np.float32) for a in arrays], device)
 
 
@@ -317,7 +323,7 @@ class StackedMADDPG:
         return torch.addcmul(self.center, self.scale, out)
 
     # ----------------------------------------------------------------- learning
-    def tensors(self, *arrays: np.ndarray) -> list[torch.Tensor]:
+    def tensors(self, *arrays: Batch) -> list[torch.Tensor]:
         """The arrays as fp32 tensors on the device: on the CPU the arrays themselves
         where they are fp32 already; elsewhere `stage`d, in one non-blocking copy."""
         if self.device.type != "cpu":
@@ -550,11 +556,11 @@ class StackedMADDPG:
     def update_on(
         self,
         lanes: int,
-        obs: np.ndarray,
-        act: np.ndarray,
-        rew: np.ndarray,
-        next_obs: np.ndarray,
-        done: np.ndarray,
+        obs: Batch,
+        act: Batch,
+        rew: Batch,
+        next_obs: Batch,
+        done: Batch,
     ) -> Mapping[str, float]:
         """`update` on one lane or on all of them (`lanes` is 1 or `self.lanes.n`): what
         a tuner picks from update to update. The result is the same up to the order of
@@ -684,11 +690,11 @@ class BatchedMADDPG(StackedMADDPG):
 
     def update(
         self,
-        obs: np.ndarray,
-        act: np.ndarray,
-        rew: np.ndarray,
-        next_obs: np.ndarray,
-        done: np.ndarray,
+        obs: Batch,
+        act: Batch,
+        rew: Batch,
+        next_obs: Batch,
+        done: Batch,
     ) -> Mapping[str, float]:
         """One critic and one actor step for every agent, then soft target updates, on
         all of this learner's lanes.

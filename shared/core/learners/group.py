@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from shared.core.learners.base import AgentDims, LearnerSpec
-from shared.core.learners.batched import BatchedMADDPG, StackedMADDPG, host_array
+from shared.core.learners.batched import Batch, BatchedMADDPG, StackedMADDPG, host_array
 from shared.core.learners.layers import Stack, mlp_forward
 
 #: LearnerSpec fields every run of a group must share.
@@ -222,11 +222,11 @@ class GroupMADDPG(StackedMADDPG):
 
     def update(
         self,
-        obs: np.ndarray,
-        act: np.ndarray,
-        rew: np.ndarray,
-        next_obs: np.ndarray,
-        done: np.ndarray,
+        obs: Batch,
+        act: Batch,
+        rew: Batch,
+        next_obs: Batch,
+        done: Batch,
     ) -> Mapping[str, float]:
         """One critic and one actor step for every agent of every run, then the soft
         updates: run r's from its own batch (shapes in the module docstring). The
@@ -349,7 +349,7 @@ class GroupMADDPG(StackedMADDPG):
 
 
 def capture_update(
-    learner: GroupMADDPG, inputs: Sequence[Any], warmup: int = 3
+    learner: GroupMADDPG, inputs: Sequence[torch.Tensor], warmup: int = 3
 ) -> torch.cuda.CUDAGraph:
     """The update on fixed device `inputs` captured as one CUDA graph: warmed up on a
     side stream first, as capture needs; each `replay()` updates again from whatever
