@@ -82,11 +82,12 @@ def create_experiment(body: ExperimentCreate, store: StoreDep, scheduler: Schedu
     }
     name = body.name or body.default_name()
     store.create_experiment(exp_id, name, spec, runs)
-    if scheduler is not None:
-        scheduler.wake()
     created = store.experiment(exp_id)
     assert created is not None  # (created above)
-    return load_experiments(store, [created])[0]
+    public = load_experiments(store, [created])[0]  # as this request left it
+    if scheduler is not None:
+        scheduler.wake()
+    return public
 
 
 @router.get("", response_model=ExperimentList)
@@ -111,6 +112,7 @@ def get_experiment(exp: ExperimentRowDep, store: StoreDep):
 def stop_experiment(exp: ExperimentRowDep, store: StoreDep, scheduler: SchedulerDep):
     """Stop every queued or running run (idempotent: a second call stops nothing)."""
     stopped = store.stop_experiment(exp["id"], "stopped by user")
+    public = load_experiments(store, [exp])[0]  # as this request left it
     if scheduler is not None and stopped:
         scheduler.wake()
     detail = f"stopped {len(stopped)} run(s)" if stopped else "nothing to stop: every run had ended"
@@ -118,7 +120,7 @@ def stop_experiment(exp: ExperimentRowDep, store: StoreDep, scheduler: Scheduler
         "changed": bool(stopped),
         "detail": detail,
         "stopped": stopped,
-        "experiment": load_experiments(store, [exp])[0],
+        "experiment": public,
     }
 
 
@@ -135,9 +137,11 @@ def retry_experiment(
     if unknown:
         raise not_found(f"run of experiment {exp['id']!r}", ", ".join(unknown))
     retried = store.retry_runs(exp["id"], list(run) if run else None)
+    # The response is the state this request left: read before the scheduler is woken,
+    # whose next pass says what each queued run waits for in its `reason`.
+    public = load_experiments(store, [exp])[0]
     if scheduler is not None and retried:
         scheduler.wake()
-    public = load_experiments(store, [exp])[0]
     if retried:
         detail = f"queued {len(retried)} run(s) again"
     else:

@@ -42,10 +42,10 @@ def stop_run(run: RunDep, store: StoreDep, scheduler: SchedulerDep):
     changed = store.finish(
         run["id"], "stopped", "stopped by user", stop_sent=run["status"] == "queued"
     )
+    fresh = load_run(store, run["id"])  # as this request left it
+    assert fresh is not None  # (runs are never deleted)
     if scheduler is not None:
         scheduler.wake()
-    fresh = load_run(store, run["id"])
-    assert fresh is not None  # (runs are never deleted)
     return {
         "changed": changed,
         "detail": "stopped" if changed else f"run already {fresh['status']}: nothing to stop",
