@@ -45,6 +45,7 @@ from cli.reproduce.controls import control_verdicts
 from cli.reproduce.defs import ArmDef, FigureDef
 from cli.reproduce.experiments import arm_configs, control_of, counts, figure_body
 from cli.reproduce.figures import FIGURES, PROFILES
+from cli.reproduce.plot import thesis_marks
 from cli.reproduce.status import FigureProgress, from_points, read_folders
 from cli.runs_folder import RunsError, arm_of, read_config, read_rows, runs_in
 
@@ -105,6 +106,19 @@ def figure_data(a: Analysis, progress: FigureProgress, now: float) -> dict[str, 
         "claims": [
             {"claim": c.text, "where": c.where, "thesis": c.thesis, "measured": m, "verdict": v}
             for c, m, v in claim_verdicts(a)
+        ],
+        # What the report's plot marks: each value a claim states at an episode the
+        # runs were started to reach (numbered as the claims are).
+        "marks": [
+            {
+                "claim": n,
+                "arm": c.arm,
+                "episode": c.episode,
+                "lo": c.lo,
+                "hi": c.hi,
+                "thesis": claim.thesis,
+            }  # fmt: skip
+            for n, claim, c in thesis_marks(a)
         ],
         "controls": [
             {
@@ -243,7 +257,14 @@ class FolderView:
 
             name, seeds, local = expand_body(self.body)
             runs = [
-                _Run(r.name, r.arm or r.name, r.seed, self.runs_dir / r.name, {}) for r in local
+                _Run(
+                    r.name,
+                    r.arm or r.name,
+                    r.seed,
+                    self.runs_dir / r.name,
+                    r.config.model_dump(mode="json"),
+                )  # fmt: skip
+                for r in local
             ]
             return name, seeds, runs, local
         folders, recorded = runs_in(self.root)

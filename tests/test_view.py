@@ -96,6 +96,12 @@ def test_the_folders_figure_json_is_the_reports_and_follows_appended_rows(tmp_pa
         (c.text, m, v) for c, m, v in claim_verdicts(a)
     ]
     assert {c["verdict"] for c in data["claims"]} == {"not run to that length"}
+    # the values the report's plot marks (the runs were started for 40,000 episodes)
+    assert [(m["claim"], m["arm"], m["episode"], m["lo"], m["hi"]) for m in data["marks"]] == [
+        (1, "Sparse", 40000, 0.35, 0.55),
+        (2, "Sparse + Dis-MACB", 40000, 0.6, 0.8),
+        (3, "Sparse + Cen-MACB", 15000, 0.9, 1.0),
+    ]
     assert [tuple(c.values()) for c in data["controls"]] == [tuple(c) for c in control_verdicts(a)]
     pairs = {x["name"]: x["control"] for x in data["arms"] if x["control"] and x["runs"]}
     assert pairs == {

@@ -306,3 +306,49 @@ def test_macb_view_of_a_reproduce_local_campaign_while_it_trains(tmp_path):
         assert values == _six(a.arm(name).curve()), name
     claims = [c["verdict"] for c in data["claims"]]
     assert claims == [v for *_, v in claim_verdicts(a)]
+
+
+def test_the_page_marks_the_thesis_values_beside_their_arms_and_hides_them_with_them(tmp_path):
+    """fig8's sparse arms started for 40,000 episodes, 1,200 run: the main chart marks
+    the three values the claims state (at 40,000, 40,000 and 15,000), each in its arm's
+    colour; hiding an arm hides its mark, and the arm's pair chart keeps it."""
+    from tests.test_view import _write
+
+    _write(tmp_path, cut=1200)
+    port = free_port()
+    view = spawn("view", str(tmp_path), "--figure", "fig8", "--profile", "thesis", "--arms",
+                 "sparse*", "--seeds", "0", "1", "--port", str(port),
+                 log=tmp_path / "view.log")  # fmt: skip
+    marks = (
+        "[...document.querySelectorAll('#main-chart g.thesis-mark')].map(g => [g.dataset.claim,"
+        " g.dataset.arm, +g.dataset.episode, g.querySelector('polygon').getAttribute('stroke')])"
+    )
+    try:
+        url = f"http://127.0.0.1:{port}/"
+        wait_for(lambda: _answers(url), timeout=60, interval=0.3, what="macb view answering")
+        with Browser(tmp_path / "chromium") as page:
+            page.goto(url)
+            page.wait("document.body.dataset.ready === '1'", what="the page drew its data")
+            drawn = page.js(marks)
+            colors = page.js(
+                "Object.fromEntries([...document.querySelectorAll('#main-chart path.curve-mean')]"
+                ".map(p => [p.dataset.label, p.getAttribute('stroke')]))"
+            )
+            assert [d[:3] for d in drawn] == [
+                ["1", "Sparse", 40000],
+                ["2", "Sparse + Dis-MACB", 40000],
+                ["3", "Sparse + Cen-MACB", 15000],
+            ]
+            assert all(stroke == colors[arm] for _, arm, _, stroke in drawn)
+            assert "Hollow diamonds" in page.js("document.getElementById('how').textContent")
+            page.js(
+                "document.querySelector('input.arm-toggle[data-arm=\"Sparse + Cen-MACB\"]').click()"
+            )
+            assert [d[0] for d in page.js(marks)] == ["1", "2"]
+            pair = page.js(
+                "[...document.querySelectorAll('[data-pair=\"Sparse + Dis-MACB\"] g.thesis-mark')]"
+                ".map(g => g.dataset.claim)"
+            )
+            assert pair == ["2"]
+    finally:
+        procs.end(view, 5, group=True)

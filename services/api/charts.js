@@ -31,12 +31,16 @@ const armName = c => c.name ?? c.label;
 
 // One chart: per curve (episode, mean, lo, hi; `n` seeds per point, optional) a band and
 // its mean. `opts` (the figure view's): `color(c, i)`, `dashed(c)` (a control arm's
-// line), and `seeds`: also each seed's line (c.seeds: [{seed, values}]).
+// line), `seeds`: also each seed's line (c.seeds: [{seed, values}]), and `marks`: the
+// values the thesis states ({claim, arm, episode, lo, hi, thesis}), each drawn beside its
+// arm's curve as the report's plot draws it (a hollow diamond, its bar the accepted range).
 function chart(expId, metric, title, fixed, curves, episodes, opts = {}) {
   const W = 360, H = 204, L = 40, R = 10, T = 8, B = 30;
   const svg = el("svg", { viewBox: `0 0 ${W} ${H}`, "data-metric": metric, role: "img",
                           "aria-label": title });
   let xmax = Math.max(1, episodes || 0), ymax = 0, ymin = 0;  // the runs' whole length
+  const marks = (opts.marks || []).filter(m => curves.some(c => armName(c) === m.arm));
+  for (const m of marks) xmax = Math.max(xmax, m.episode);
   for (const c of curves) {
     for (const e of c.episode) xmax = Math.max(xmax, e);
     for (const v of c.hi) ymax = Math.max(ymax, v);
@@ -88,6 +92,21 @@ function chart(expId, metric, title, fixed, curves, episodes, opts = {}) {
       svg.appendChild(el("circle", { cx: x(c.episode[0]), cy: y(c.mean[0]), r: 2.5, fill: color }));
     }
   });
+  for (const m of marks) {
+    const i = curves.findIndex(c => armName(c) === m.arm);
+    const color = opts.color ? opts.color(curves[i], i) : COLORS[i % COLORS.length];
+    const cx = x(m.episode), mid = y((m.lo + m.hi) / 2), r = 3.5;
+    const g = el("g", { class: "thesis-mark", "data-arm": m.arm, "data-claim": m.claim,
+                        "data-episode": m.episode, "data-lo": m.lo, "data-hi": m.hi,
+                        "aria-label": `thesis, claim ${m.claim}: ${m.thesis}` });
+    g.appendChild(el("line", { x1: cx, x2: cx, y1: y(m.lo), y2: y(m.hi), stroke: color }));
+    for (const v of [m.lo, m.hi]) {
+      g.appendChild(el("line", { x1: cx - 3, x2: cx + 3, y1: y(v), y2: y(v), stroke: color }));
+    }
+    g.appendChild(el("polygon", { points: `${cx},${mid - r} ${cx + r},${mid} ${cx},${mid + r} ${cx - r},${mid}`,
+                                  fill: "white", stroke: color, "stroke-width": 1.3 }));
+    svg.appendChild(g);
+  }
   return el("div", { class: "chart" }, el("h3", { text: title }), svg);
 }
 
