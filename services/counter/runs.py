@@ -59,16 +59,14 @@ class Runs:
             raise ValueError(f"run id {run!r} is not a safe directory name")
         path = self.root / run
         if path.exists():
+            stopped = (path / "stopped").exists()
             saved = read_json(path / "config.json")
-            diff = (
-                "no readable config.json"
-                if not isinstance(saved, dict)
-                else config_difference(saved, config.model_dump(mode="json"))
-            )
-            if (path / "stopped").exists() or diff is not None:
-                why = (
-                    "was stopped" if (path / "stopped").exists() else f"had another config ({diff})"
-                )
+            if isinstance(saved, dict):
+                diff = config_difference(saved, config.model_dump(mode="json"))
+            else:
+                diff = "no readable config.json"
+            if stopped or diff is not None:
+                why = "was stopped" if stopped else f"had another config ({diff})"
                 dest = self.archive(path)
                 self.log.warning("run %s %s: old state moved to %s", run, why, dest)
         path.mkdir(parents=True, exist_ok=True)

@@ -63,10 +63,10 @@ if TYPE_CHECKING:  # annotations only
 
 #: An update's input: a host array, or a tensor on the learner's device already (a device
 #: replay's gather, a graph-captured update's fixed inputs).
-Batch = np.ndarray | torch.Tensor
+UpdateInput = np.ndarray | torch.Tensor  # (not replay.Batch, a sampled minibatch)
 
 
-def stage(arrays: Sequence[Batch], device: torch.device) -> list[torch.Tensor]:
+def stage(arrays: Sequence[UpdateInput], device: torch.device) -> list[torch.Tensor]:
     """Host arrays as fp32 tensors on an accelerator, in one non-blocking copy (`send`):
     one transfer per step, and nothing waits for it but the device's own queue. Tensors
     on the device already (a graph-captured update's inputs, a device replay's gather)
@@ -323,7 +323,7 @@ class StackedMADDPG:
         return torch.addcmul(self.center, self.scale, out)
 
     # ----------------------------------------------------------------- learning
-    def tensors(self, *arrays: Batch) -> list[torch.Tensor]:
+    def tensors(self, *arrays: UpdateInput) -> list[torch.Tensor]:
         """The arrays as fp32 tensors on the device: on the CPU the arrays themselves
         where they are fp32 already; elsewhere `stage`d, in one non-blocking copy."""
         if self.device.type != "cpu":
@@ -556,11 +556,11 @@ class StackedMADDPG:
     def update_on(
         self,
         lanes: int,
-        obs: Batch,
-        act: Batch,
-        rew: Batch,
-        next_obs: Batch,
-        done: Batch,
+        obs: UpdateInput,
+        act: UpdateInput,
+        rew: UpdateInput,
+        next_obs: UpdateInput,
+        done: UpdateInput,
     ) -> Mapping[str, float]:
         """`update` on one lane or on all of them (`lanes` is 1 or `self.lanes.n`): what
         a tuner picks from update to update. The result is the same up to the order of
@@ -690,11 +690,11 @@ class BatchedMADDPG(StackedMADDPG):
 
     def update(
         self,
-        obs: Batch,
-        act: Batch,
-        rew: Batch,
-        next_obs: Batch,
-        done: Batch,
+        obs: UpdateInput,
+        act: UpdateInput,
+        rew: UpdateInput,
+        next_obs: UpdateInput,
+        done: UpdateInput,
     ) -> Mapping[str, float]:
         """One critic and one actor step for every agent, then soft target updates, on
         all of this learner's lanes.

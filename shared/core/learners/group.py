@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from shared.core.learners.base import AgentDims, LearnerSpec
-from shared.core.learners.batched import Batch, BatchedMADDPG, StackedMADDPG, host_array
+from shared.core.learners.batched import BatchedMADDPG, StackedMADDPG, UpdateInput, host_array
 from shared.core.learners.layers import Stack, mlp_forward
 
 #: LearnerSpec fields every run of a group must share.
@@ -222,11 +222,11 @@ class GroupMADDPG(StackedMADDPG):
 
     def update(
         self,
-        obs: Batch,
-        act: Batch,
-        rew: Batch,
-        next_obs: Batch,
-        done: Batch,
+        obs: UpdateInput,
+        act: UpdateInput,
+        rew: UpdateInput,
+        next_obs: UpdateInput,
+        done: UpdateInput,
     ) -> Mapping[str, float]:
         """One critic and one actor step for every agent of every run, then the soft
         updates: run r's from its own batch (shapes in the module docstring). The
