@@ -11,6 +11,7 @@ its thread variables.
 from __future__ import annotations
 
 import io
+import platform
 import pstats
 import statistics
 import time
@@ -83,3 +84,11 @@ def top_tottime(prof: Path, top: int) -> str:
     buf = io.StringIO()
     pstats.Stats(str(prof), stream=buf).sort_stats("tottime").print_stats(top)
     return buf.getvalue()
+
+
+def cpu_model() -> str:
+    """The CPU's model name as `lscpu` shows it (every result names the CPU it ran on)."""
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or "unknown"

@@ -51,7 +51,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -62,16 +61,9 @@ from typing import Any
 
 from _harness import RESULTS, command, progress, write_result
 from _procs import ROOT
-from _stats import measure, ratio_median, rotating_rounds
+from _stats import cpu_model, measure, ratio_median, rotating_rounds
 
 FIG8_PAIR_RUN_STEPS = 2 * 3 * 17_500 * 20
-
-
-def cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown"
 
 
 # ---------------------------------------------------------------- update

@@ -27,7 +27,6 @@ import argparse
 import contextlib
 import json
 import os
-import platform
 import re
 import shutil
 import subprocess
@@ -41,16 +40,9 @@ from typing import Any
 
 from _harness import add_out, bench_parser, command, macb_argv, progress, write_result
 from _procs import ROOT
-from _stats import fmt, median
+from _stats import cpu_model, fmt, median
 
 VARIANTS = ("local", "slurm")  # A, B
-
-
-def cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown"
 
 
 @contextlib.contextmanager

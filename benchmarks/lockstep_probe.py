@@ -20,13 +20,12 @@ prints the CPU, a markdown table and the median ratio.
 from __future__ import annotations
 
 import argparse
-import platform
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
+from _stats import cpu_model  # (benchmarks/ is the script's folder)
 
 from shared.config import make_config
 from shared.core.networks import JointPolicy, weights_as_arrays
@@ -34,13 +33,6 @@ from shared.envs.tasks import task_spec_for
 from shared.net.messages import Action, ActRequest, Weights
 from shared.net.wire import decode, encode
 from shared.run.factories import build_learner
-
-
-def cpu_model() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown"
 
 
 def main(argv: list[str] | None = None) -> None:

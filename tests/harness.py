@@ -463,7 +463,7 @@ def assert_exact(run, config=None, *, faults: str | None = None) -> Finished:
     if faults == "restarted":
         return run
     actors = [run.states[a] for a in run.assign["actors"]]
-    assert sum(a["final_seq"] for a in actors) == collected
+    assert sum(a["final_seq"] for a in actors) == collected, json.dumps(actors)
     # Duplicates are ignored (that is the guarantee); each one must be a batch an actor
     # resent, after a second with no ack moving (a learner stalled on a loaded machine
     # makes that happen), never a second delivery of one publication.

@@ -266,3 +266,19 @@ def test_bench_group_price_checks_both_ways_agree_and_names_the_cpu(tmp_path: Pa
     assert row["group_ms"] > 0 and row["per_run_ms"] > 0 and row["per_run_over_group"] > 0
     assert result["cpu"] and f"CPU: {result['cpu']}" in proc.stdout
     assert "| 6 | thesis | 2 x 100 | 300 |" in proc.stdout
+
+
+def test_bus_order_probe_counts_pairs_and_one_subscription_keeps_its_order() -> None:
+    """The probe behind docs/architecture.md's "Order on the bus": four cases, each
+    counted out of the pairs sent; one subscription's messages come in order (what the
+    services rely on), whatever several subscriptions do."""
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bus_order_probe.py"), "--pairs", "300"]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=300, check=False, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("CPU: ") and "zenoh " in proc.stdout
+    counts = {
+        line[:61].strip(): int(line.split(" of ")[0].split()[-1])
+        for line in proc.stdout.splitlines()[1:]
+    }
+    assert len(counts) == 4 and all(0 <= n <= 300 for n in counts.values()), proc.stdout
+    assert [n for case, n in counts.items() if case.startswith("one subscriber")] == [0, 0]

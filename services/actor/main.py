@@ -186,7 +186,14 @@ class ActorService(ServiceBase):
                 return
         else:
             msg = self.decode_for_run(key, payload, Action)
-        if msg is None or st is None or not st.exchange.awaits(msg.seq):
+        if msg is None or st is None:
+            return
+        if not all(isinstance(r, str) and r in st.runs for r in msg.ended):
+            self.reject(key, f"action: ended runs {msg.ended!r:.200} not of the group {st.runs}")
+            return
+        for run in msg.ended:  # (before stepping: their steps are not to be published)
+            self.on_learner_completed(run)
+        if self.st is not st or not st.exchange.awaits(msg.seq):
             return  # an answer to a request resent earlier, already taken
         if not valid_action(msg.act, st.act_shape):
             self.reject(key, f"action: shape {msg.act.shape} or non-finite values")
@@ -246,7 +253,8 @@ class ActorService(ServiceBase):
         return False
 
     def on_learner_completed(self, run: str) -> None:
-        """The learner completed before this actor published its episodes: the run's
+        """The learner completed before this actor published its episodes (its status
+        said so, or its answer to an act request named the run ended): the run's
         `early_stop` rule held at a point (a learner completes otherwise only once every
         share is in). In lockstep it holds each step after a point until the point's
         row is in, so everything published is taken: the run completes here. A group's

@@ -91,6 +91,7 @@ def answer(g: RunGroup, runs: dict[str, LearnerRun]) -> bytes | None:
         return None
     seq, obs = asks.wanted
     act = g.learner.act(obs[:, None])[:, 0].astype(np.float32)
-    payload = encode(Action(g.runs[0], seq=seq, act=act if g.grouped else act[0]))
+    ended = [g.runs[r] for r in sorted(g.retired)]  # (the actor retires them first)
+    payload = encode(Action(g.runs[0], seq=seq, act=act if g.grouped else act[0], ended=ended))
     asks.wanted, asks.answered = None, (seq, payload)
     return payload

@@ -179,11 +179,16 @@ class ActRequest(Message):
 
 @dataclass(frozen=True)
 class Action(Message):
-    """learner -> that actor: the policy's action(s) for step `seq` (noise is the actor's)."""
+    """learner -> that actor: the policy's action(s) for step `seq` (noise is the actor's).
+    `ended`: the runs of its group the learner has ended by their rule, so that the actor
+    retires them before it steps with these actions. The learner's "completed" status
+    says so too, but on another key: a session's subscriptions are not delivered in
+    order relative to each other, so the status may come after this answer."""
 
     TYPE: ClassVar[str] = "action"
     seq: int
     act: np.ndarray
+    ended: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
