@@ -412,7 +412,7 @@ def test_a_cluster_group_goes_on_when_its_rule_ends_one_run(cluster, bus, tmp_pa
 
 # Long enough that the other run is still going when the test has seen the lead's end
 # (the group steps 100-200 steps a second here; ending the lead takes the watch longer
-# under load than 12 more episodes did: the kill once came after the group's end).
+# under load than 12 more episodes take).
 EPISODES_PAST_STOP = 48
 
 
