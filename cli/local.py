@@ -176,19 +176,11 @@ def _same_config(folder: Path, cfg: TrainConfig) -> bool:
 
 
 def config_conflict(folder: Path, cfg: TrainConfig) -> str | None:
-    """Why `folder` holds another config's run ('field: a in the folder, b here'), or
-    None (no config written there yet, or the same)."""
-    from shared.persist.checkpoint import config_difference
+    """Why `folder` holds another config's run ('field: a in the folder, b in the run', or
+    its config.json does not read), or None (no config written there yet, or the same)."""
+    from shared.persist.checkpoint import folder_config_difference
 
-    path = folder / "config.json"
-    if not path.exists():
-        return None
-    try:
-        written = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        return f"{path} is unreadable ({err})"
-    diff = config_difference(written, cfg.model_dump(mode="json"))
-    return None if diff is None else diff.replace("in the cut", "in the folder")
+    return folder_config_difference(folder, cfg.model_dump(mode="json"))
 
 
 def run_state(folder: Path, cfg: TrainConfig) -> str:

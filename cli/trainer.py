@@ -49,10 +49,9 @@ from shared.envs.vectask import vectorize
 from shared.groups import check_group
 from shared.metrics import TRAIN_FIELDS, early_stop_reason, run_fields
 from shared.persist import checkpoint, provenance, runlock
-from shared.persist.checkpoint import CutError, config_difference, load_tables
+from shared.persist.checkpoint import CutError, folder_config_difference, load_tables
 from shared.persist.cuts import ReplayLog, latest_cut, read_cut, write_cut
 from shared.persist.cuts import clear as clear_cuts
-from shared.persist.files import read_json
 from shared.run.factories import (
     agent_dims,
     build_exploration,
@@ -897,9 +896,8 @@ class GroupRun:
 def check_resumable(out: Path, config: dict) -> None:
     """Refused before anything is loaded (the resume appends to the folder): a folder of
     another config, or a provenance file that does not read."""
-    written = read_json(out / "config.json")
-    if written is not None and (diff := config_difference(written, config)):
-        raise CutError(f"{out / 'config.json'}: another config ({diff})")
+    if why := folder_config_difference(out, config):
+        raise CutError(f"{out}: holds a run of another config ({why})")
     try:
         provenance.read(out / provenance.FILE)
     except provenance.ProvenanceError as err:

@@ -15,6 +15,7 @@ import torch
 from cli.main import main
 from cli.trainer import load_checkpoint, train
 from shared.config import make_config
+from shared.persist.checkpoint import CutError
 from shared.persist.cuts import CUT_FORMAT, cut_files
 from tests.harness import spawn
 
@@ -195,6 +196,38 @@ def test_a_cut_written_before_a_config_key_existed_still_resumes(tmp_path):
     assert config_difference(old, cfg) is None
     assert "device" in config_difference(old, {**cfg, "device": "cuda"})
     assert "beta" in config_difference({**old, "beta": 0.1}, cfg)
+
+
+def test_a_run_folder_of_another_config_or_an_unreadable_one_is_refused_naming_it(tmp_path, capsys):
+    """One rule for a run folder (`folder_config_difference`: the local runner, the
+    trainer's resume and the counter ask it): no config.json yet or the same config goes
+    on; another config names its field; a config.json that does not read, or holds no
+    map, is named, never taken for an empty folder. The resume refuses before it
+    writes anything."""
+    from shared.persist.checkpoint import folder_config_difference
+
+    cfg = make_config(BASE).model_dump(mode="json")
+    assert folder_config_difference(tmp_path, cfg) is None  # (nothing there yet)
+    (tmp_path / "config.json").write_text(json.dumps(cfg))
+    assert folder_config_difference(tmp_path, cfg) is None
+    why = folder_config_difference(tmp_path, {**cfg, "seed": 9})
+    assert why == f"seed: {cfg['seed']!r} in the folder, 9 in the run"
+    (tmp_path / "config.json").write_text('{"task": "simple", ')
+    assert "config.json does not read" in folder_config_difference(tmp_path, cfg)
+    (tmp_path / "config.json").write_text("[1, 2]")
+    assert "config.json holds no config" in folder_config_difference(tmp_path, cfg)
+
+    run = tmp_path / "run"
+    train(
+        make_config(BASE), run, progress=False, cut_every_s=0, stop_when=lambda r: r["episode"] == 3
+    )
+    (run / "config.json").write_text("{not json")
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    with pytest.raises(CutError, match="holds a run of another config .*config.json does not"):
+        train(make_config(BASE), run, progress=False, resume=True)
+    assert main(["train", "--resume", str(run), "--quiet"]) == 2  # (reads it for the config)
+    assert f"{run / 'config.json'}: not valid" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
 
 
 def test_a_run_with_columnar_replay_files_resumes_and_keeps_one_replay_log(tmp_path, straight):

@@ -20,7 +20,7 @@ from services.counter.state import RunState
 from shared.config import TrainConfig, make_config
 from shared.envs.tasks import task_spec_for
 from shared.net.messages import Assignment, WireError
-from shared.persist.checkpoint import config_difference
+from shared.persist.checkpoint import folder_config_difference
 from shared.persist.files import read_json, write_json
 from shared.persist.wal import WriteAheadLog
 from shared.run.factories import build_exploration
@@ -53,18 +53,17 @@ class Runs:
     def prepare(self, run: str, config: TrainConfig, assign: Assignment) -> Path:
         """The run's folder for a start: kept if it holds an unfinished run of the same
         config (resumed; a key the saved config lacks counts as its default, the rule
-        of every resume: `config_difference`), else what is there is archived; config
+        of every run folder: `folder_config_difference`), else what is there is archived; config
         and assignment (its `to_wire` map) noted."""
         if not _RUN_ID.fullmatch(run):
             raise ValueError(f"run id {run!r} is not a safe directory name")
         path = self.root / run
         if path.exists():
             stopped = (path / "stopped").exists()
-            saved = read_json(path / "config.json")
-            if isinstance(saved, dict):
-                diff = config_difference(saved, config.model_dump(mode="json"))
+            if (path / "config.json").exists():
+                diff = folder_config_difference(path, config.model_dump(mode="json"))
             else:
-                diff = "no readable config.json"
+                diff = "no config.json"
             if stopped or diff is not None:
                 why = "was stopped" if stopped else f"had another config ({diff})"
                 dest = self.archive(path)

@@ -176,11 +176,13 @@ def load_tables(tables: list[Counts], state: Any, where: Path) -> None:
         tables[t] = CountTable.from_arrays(keys, counts, int(one["total"]))
 
 
-def config_difference(saved: dict[str, Any], config: dict[str, Any]) -> str | None:
-    """The first field where a checkpoint's config and the run's differ, as 'field: a !=
-    b'. A key the saved config lacks counts as its default (a run written before the key
-    existed ran with what the default does), so adding a config key does not make
-    earlier runs unresumable."""
+def config_difference(
+    saved: dict[str, Any], config: dict[str, Any], where: tuple[str, str] = ("the cut", "the run")
+) -> str | None:
+    """The first field where a checkpoint's config and the run's differ, as 'field: a in
+    the cut, b in the run' (`where` names the two). A key the saved config lacks counts
+    as its default (a run written before the key existed ran with what the default
+    does), so adding a config key does not make earlier runs unresumable."""
     from shared.config import TrainConfig
 
     fields = TrainConfig.model_fields
@@ -188,8 +190,26 @@ def config_difference(saved: dict[str, Any], config: dict[str, Any]) -> str | No
         if key not in saved and key in fields and config.get(key) == _default(fields[key]):
             continue
         if saved.get(key) != config.get(key):
-            return f"{key}: {saved.get(key)!r} in the cut, {config.get(key)!r} in the run"
+            return f"{key}: {saved.get(key)!r} in {where[0]}, {config.get(key)!r} in {where[1]}"
     return None
+
+
+def folder_config_difference(folder: Path, config: dict[str, Any]) -> str | None:
+    """Why run folder `folder` holds a run of another config than `config` (as JSON):
+    the first field that differs ('field: a in the folder, b in the run', by
+    `config_difference`), or that its config.json does not read. None when it has no
+    config.json yet, or the same config. The one rule of going on in a run folder: the
+    local runner, the trainer's resume and the counter service each ask it."""
+    path = folder / "config.json"
+    if not path.exists():
+        return None
+    try:
+        written = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        return f"{path} does not read ({err})"
+    if not isinstance(written, dict):
+        return f"{path} holds no config (not a JSON map)"
+    return config_difference(written, config, ("the folder", "the run"))
 
 
 def _default(field: Any) -> Any:
