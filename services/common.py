@@ -147,8 +147,9 @@ class ServiceBase(ServiceHooks):
         # Subscriptions that enqueue (a run's end with it), statuses and metrics out.
         self.listen, self.subscribe = self.endpoint.listen, self.endpoint.subscribe
         self.publish_status, self.publish_metrics = self.endpoint.status, self.endpoint.metrics
-        self.listen(keys.k_control("start"), "start")
-        self.listen(keys.k_control("stop"), "stop")
+        # One subscription for both: a start and the stop sent after it arrive in that
+        # order (Zenoh orders one subscription's messages, not several: "Order on the bus").
+        self.listen(keys.k_control("*"), "control")
         self.bus.queryable(keys.k_info(self.role, self.id), self._info_reply)
         put = self.inbox.put
         self.bus.watch_liveliness(
@@ -214,6 +215,9 @@ class ServiceBase(ServiceHooks):
 
     # ------------------------------------------------------------ control
     def _on_control(self, tag: str, key: str, payload: bytes) -> None:
+        if tag not in ("start", "stop"):
+            self.reject(key, f"unknown control message: {tag:.40}")
+            return
         try:
             msg = decode(payload, MESSAGES[tag])
         except WireError as err:
@@ -356,8 +360,8 @@ class ServiceBase(ServiceHooks):
 
     def _dispatch(self, tag: str, key: str, payload: bytes) -> None:
         try:
-            if tag in ("start", "stop"):
-                self._on_control(tag, key, payload)
+            if tag == "control":
+                self._on_control(key.rsplit("/", 1)[-1], key, payload)
             elif tag == "learner_status":
                 self._on_learner_status(key, payload)
             elif tag == "live":

@@ -111,6 +111,18 @@ def test_services_of_other_runs_and_finished_ones_do_not_count():
     assert m.waiting() is None and m.decide(500.0).state == "running"
 
 
+def test_a_service_whose_loss_came_before_its_completed_status_is_not_waited_for():
+    """A service that completes and exits: its token's loss may be seen before its
+    status (they come on subscriptions of their own), which then ends the wait."""
+    m = running(monitor())
+    m.peer("actor", "A0", False, 1.0)
+    m.peer("counter", "C", False, 1.0)
+    assert m.waiting() is not None
+    m.status("A0", "completed", {}, 1.1)
+    m.status("C", "completed", {}, 1.1)
+    assert m.waiting() is None and m.decide(500.0).state == "running"
+
+
 def test_the_counter_has_a_grace_of_its_own():
     m = running(monitor())
     m.peer("counter", "C", False, 10.0)

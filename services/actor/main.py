@@ -77,6 +77,11 @@ class ActorService(ServiceBase):
         # published once before any episode (an actor waited for them forever).
         self._newest: dict[str, tuple[str, bytes]] = {}
         self._newest_lock = threading.Lock()
+        # Per run, the learner processes whose weights this actor acted with. A run queued
+        # again under its id (a retry) has a new learner process, whose first weights may
+        # come after its start: the ended attempt's, still the newest kept, are not its.
+        self._acted_with: dict[str, set[str]] = {}
+        self._ended_attempts: dict[str, set[str]] = {}  # of the runs served now
         # Subscribed for the service's lifetime: the learner's first weights may be out
         # before this actor has handled the start message.
         self.bus.subscribe(keys.k_weights("*", "*"), self._on_weights)
@@ -117,6 +122,7 @@ class ActorService(ServiceBase):
         if set(self._members) != set(runs):
             return
         cfgs = [self._members.pop(r) for r in runs]
+        self._ended_attempts = {r: set(self._acted_with.get(r, ())) for r in runs}
         retired, self._retired = self._retired & set(runs), set()
         outboxes = {r: self.outbox(r, cfg, assign) for r, cfg in zip(runs, cfgs)}
         act_pub = None
@@ -219,11 +225,17 @@ class ActorService(ServiceBase):
             self.publish_status(run, "running", **self.running(st), rejoined_at=position)
 
     def load_newest_weights(self, st: ActorRuns) -> None:
-        newest = self._newest.get(st.runs[0])
-        if newest is not None:
-            msg = self.decode_for_run(*newest, Weights)
-            if msg is not None:
-                st.load_weights(msg)
+        run = st.runs[0]
+        newest = self._newest.get(run)
+        if newest is None:
+            return
+        msg = self.decode_for_run(*newest, Weights)
+        if msg is None or msg.incarnation in self._ended_attempts.get(run, ()):
+            return  # (an ended attempt's: the new learner's first weights are to come)
+        if st.load_weights(msg):
+            self._acted_with.setdefault(run, set()).add(msg.incarnation)
+            while len(self._acted_with) > NEWEST_RUNS_KEPT:  # runs long over
+                self._acted_with.pop(next(iter(self._acted_with)))
 
     # ------------------------------------------------------------ work
     def tick(self) -> bool:

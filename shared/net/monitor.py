@@ -236,6 +236,12 @@ class RunMonitor:
     # ------------------------------------------------------------ events
     def status(self, service: str, state: str, detail: Mapping[str, Any], now: float) -> None:
         self.states[service] = {**detail, "state": state}
+        if state == "completed":  # its part is done: its token may go (see `peer`), and
+            # may have gone already, its loss seen first (statuses and liveliness come
+            # on subscriptions of their own, in no order between them)
+            self.peers.back(service)
+            if service == self.assign.counter:
+                self.counter_down = None
         if service == self.assign.evaluator and state == "completed":
             self.evaluator_done = now
 
