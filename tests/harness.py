@@ -489,6 +489,7 @@ def assert_exact(run, config=None, *, faults: str | None = None) -> Finished:
         # (lockstep: a tick is one step's one update)
         assert learner["bonus_rows_per_query"] >= 5 * config.batch_size, learner
         assert learner["bonus_queries"] * 5 <= learner["updates"], learner
+        # (a query unanswered in time is priced again: a loaded machine's, not an error)
         assert learner["bonus_failures"] == 0, learner
         assert 0.0 < learner["bonus_wait_ms_per_update"] < 1e3, learner
     # The learner saw the evaluator's rows (what ends its contended updates) and

@@ -112,6 +112,8 @@ def test_minibatches_a_silent_counter_left_unpriced_are_priced_later_not_redrawn
     after = dict(sp.rng.bit_generator.state)
     assert update_run(st, 2) == 0  # still silent: the same two, nothing drawn
     assert sp.unpriced is drawn and sp.rng.bit_generator.state == after
+    # counted as unanswered, not as failed (a reply that is there and unusable)
+    assert (st.bonus.unanswered, st.bonus.failures) == (2, 0)
     st.bonus.mode = "constant"  # the counter answers (priced here, for the test)
     assert update_run(st, 2) == 2 and not sp.unpriced
     assert sp.rng.bit_generator.state == after  # priced, not redrawn

@@ -236,7 +236,8 @@ def test_a_late_count_or_a_late_message_changes_nothing(cluster, bus, tmp_path, 
     cluster_state, local_state, local = states
     diffs = compare(sorted(watch.rows, key=lambda r: r["episode"]), local)
     learner = watch.states[watch.assign.learner]
-    assert not diffs, "\n".join([f"bonus failures {learner['bonus_failures']}"] + diffs[:20])
+    said = f"bonus failures {learner['bonus_failures']}, unanswered {learner['bonus_unanswered']}"
+    assert not diffs, "\n".join([said] + diffs[:20])
     assert not state_differences(cluster_state, local_state)
 
 

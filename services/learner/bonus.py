@@ -47,7 +47,8 @@ class BonusClient:
         self.run, self.mode, self.beta, self.n = run, mode, beta, n
         self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
         self.wait_s = 0.0  # all time spent in queries (the learner waits for each)
-        self.failures = 0
+        self.failures = 0  # queries answered, but by no reply the learner could use
+        self.unanswered = 0  # queries no counter answered in time (priced again later)
         self.queries = 0
         self.rows = 0
         # The counter's table stats as of the last answered query (its reply carries
@@ -87,6 +88,9 @@ class BonusClient:
             replies = query.replies()
         finally:
             self.wait_s += time.perf_counter() - query.t0
+        if not replies:
+            self.unanswered += 1
+            return None
         for raw in replies:
             try:
                 msg = decode(raw, BonusReply)

@@ -104,7 +104,8 @@ class LearnerStats:
     bonus_wait_ms_per_update: float = 0.0
     bonus_queries: int = 0
     bonus_rows_per_query: float = 0.0
-    bonus_failures: int = 0
+    bonus_failures: int = 0  # answered by no usable reply (malformed, wrong shape)
+    bonus_unanswered: int = 0  # no reply in time: its minibatches priced again later
     bonus_mean: float = 0.0
     rejects_total: int = 0
     contended_updates: int = 0
