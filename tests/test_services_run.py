@@ -211,7 +211,7 @@ def test_bonus_client_prices_a_ticks_batches_in_one_query_and_splits_the_answer(
         for _ in range(6)
     ]
     answer = np.repeat(np.arange(6, dtype=np.float32), 4)[:, None] * np.ones(2, np.float32)
-    bus = _FakeBus([answer, None])
+    bus = _FakeBus([answer, None, answer[:5]])
     client = BonusClient(bus_query(bus, keys.k_bonus("r1")), print, "r1", "cen-macb", 0.8, 2)
     got = client.bonus_for(batches)
     assert len(bus.asked) == 1  # one query for the whole tick
@@ -219,7 +219,10 @@ def test_bonus_client_prices_a_ticks_batches_in_one_query_and_splits_the_answer(
     assert np.array_equal(sent, np.concatenate([b.obs for b in batches]))
     assert [g.shape for g in got] == [(4, 2)] * 6
     assert [float(g[0, 0]) for g in got] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]  # in order
-    assert client.bonus_for(batches) is None and client.failures == 1  # a silent counter
+    assert client.bonus_for(batches) is None  # a silent counter: unanswered, not failed
+    assert (client.unanswered, client.failures) == (1, 0)
+    assert client.bonus_for(batches) is None  # a reply of 5 rows for 24: no use
+    assert (client.unanswered, client.failures) == (1, 1)
     assert client.queries == 1 and client.rows == 24 and client.wait_s > 0
 
 
