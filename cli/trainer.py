@@ -52,6 +52,7 @@ from shared.persist import checkpoint, provenance, runlock
 from shared.persist.checkpoint import CutError, folder_config_difference, load_tables
 from shared.persist.cuts import ReplayLog, latest_cut, read_cut, write_cut
 from shared.persist.cuts import clear as clear_cuts
+from shared.persist.files import atomic_write
 from shared.run.factories import (
     agent_dims,
     build_exploration,
@@ -747,8 +748,8 @@ class GroupRun:
                 provenance.append(m.out / provenance.FILE, start)
             else:
                 provenance.write(m.out / provenance.FILE, [start])
-            config = json.dumps(m.cfg.model_dump(mode="json"), indent=2) + "\n"
-            (m.out / "config.json").write_text(config)
+            # (whole or not at all: a resume refuses a config.json that does not read)
+            write_config_json(m.out / "config.json", m.cfg.model_dump(mode="json"))
             m.writer = MetricsWriter(m.out, run_fields(m.cfg), rows=m.rows)
 
     def episode(self) -> None:
@@ -891,6 +892,12 @@ class GroupRun:
             self.members[0].env_steps,
             self.learner.updates,
         )
+
+
+def write_config_json(path: Path, config: dict) -> None:
+    """The run's config.json, replaced whole (`atomic_write`)."""
+    body = (json.dumps(config, indent=2) + "\n").encode()
+    atomic_write(path, lambda f: f.write(body))
 
 
 def check_resumable(out: Path, config: dict) -> None:

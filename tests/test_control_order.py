@@ -48,6 +48,6 @@ def test_a_stop_sent_after_its_start_is_taken_after_it(cluster, bus):
     # With the stop of some pair taken before its start, that run stays served and
     # the last start is refused (or the run served is that pair's, not the last).
     try:
-        wait_for(lambda: (_info(bus) or {}).get("runs") == ["last"], 20, what="the last run")
+        wait_for(lambda: (_info(bus) or {}).get("runs") == ["last"], 60, what="the last run")
     except TimeoutError:
         pytest.fail(f"a stop overtook its start: serving {(_info(bus) or {}).get('runs')}")
