@@ -146,7 +146,7 @@ class ServiceBase(ServiceHooks):
         self.endpoint = Endpoint(self.bus, self.inbox.put, self.id, self.role)
         # Subscriptions that enqueue (a run's end with it), statuses and metrics out.
         self.listen, self.subscribe = self.endpoint.listen, self.endpoint.subscribe
-        self.publish_status, self.publish_metrics = self.endpoint.status, self.endpoint.metrics
+        self.publish_metrics = self.endpoint.metrics
         # One subscription for both: a start and the stop sent after it arrive in that
         # order (Zenoh orders one subscription's messages, not several: "Order on the bus").
         self.listen(keys.k_control("*"), "control")
@@ -173,7 +173,9 @@ class ServiceBase(ServiceHooks):
             self.log.warning("dropped message on %s: %s (%d dropped so far)", key, reason, total)
 
     def decode_for_run(self, key: str, payload: bytes, expect: type[M]) -> M | None:
-        """Decode a per-run message; None (and a counted reject) unless it is for our run."""
+        """Decode a per-run message; None (and a counted reject) unless it is for our run.
+        A status from another attempt of the run is dropped silently: late traffic of
+        an ended attempt, as of a run let go."""
         try:
             msg = decode(payload, expect)
         except WireError as err:
@@ -182,7 +184,15 @@ class ServiceBase(ServiceHooks):
         why = self.served.refusal(keys.run_of(key), msg.run)
         if why:
             self.reject(key, why)
+        if isinstance(msg, Status) and not msg.from_attempt(self.served.attempts.get(msg.run)):
+            return None
         return msg if why is None else None
+
+    def publish_status(self, run: str, state: str, **fields: Any) -> None:
+        """The service's status in `run`, stamped with the attempt it serves (its start's)
+        unless `attempt` is given."""
+        fields.setdefault("attempt", self.served.attempts.get(run))
+        self.endpoint.status(run, state, **fields)
 
     def serves(self, run: str) -> bool:
         return run in self.active
@@ -241,10 +251,11 @@ class ServiceBase(ServiceHooks):
             config = make_config(msg.config)
         except ConfigError as err:
             self.reject(key, f"bad config: {err}")
-            self.publish_status(run, "failed", reason=f"invalid config: {err}")
+            why = f"invalid config: {err}"
+            self.publish_status(run, "failed", reason=why, attempt=msg.attempt)
             return
         self.log.info("starting run %s", run)
-        self._join(run, config, msg.assign, msg.config, self.on_start)
+        self._join(run, config, msg.assign, msg.config, self.on_start, msg.attempt)
 
     def _join(
         self,
@@ -253,10 +264,12 @@ class ServiceBase(ServiceHooks):
         assign: Assignment,
         raw: dict,
         hook: Callable[[str, TrainConfig, Assignment], None],
+        attempt: int | None = None,
     ) -> None:
-        """Take the run (`hook` is on_start, or on_resume after a restart) and note it
-        in the service's file, so that a restarted process rejoins it."""
-        self.served.join(run, config, assign, raw)
+        """Take the run (`hook` is on_start, or on_resume after a restart) as its
+        `attempt`, and note it in the service's file, so that a restarted process
+        rejoins it."""
+        self.served.join(run, config, assign, raw, attempt)
         if self.follows_learner:
             self.listen(keys.k_status(run, assign.learner), "learner_status", run)
         try:
@@ -275,11 +288,12 @@ class ServiceBase(ServiceHooks):
         for s in saved:  # (retired runs first: the group is whole once the others come)
             if s.retired:
                 self.served.retired[s.run] = (s.raw, s.assign)
+                self.served.attempts[s.run] = s.attempt
                 self.on_resume_retired(s.run, s.config, s.assign)
         for s in saved:
             if not s.retired:
                 self.log.info("rejoining run %s after a restart (from %s)", s.run, self.served.path)
-                self._join(s.run, s.config, s.assign, s.raw, self.on_resume)
+                self._join(s.run, s.config, s.assign, s.raw, self.on_resume, s.attempt)
 
     def _on_learner_status(self, key: str, payload: bytes) -> None:
         """The run's learner failed or was stopped: this service's part is over too."""

@@ -45,10 +45,11 @@ class Endpoint:
         final_seq: int | None = None,
         points: int | None = None,
         resumed: Resumed | None = None,
+        attempt: int | None = None,
         **detail: Any,
     ) -> None:
-        """The service's `Status` in the run: the fields a reader acts on, the rest
-        (where it is, its stats) as its detail."""
+        """The service's `Status` in the run (its `attempt`): the fields a reader acts
+        on, the rest (where it is, its stats) as its detail."""
         msg = Status(
             run,
             service=self.id,
@@ -58,6 +59,7 @@ class Endpoint:
             final_seq=final_seq,
             points=points,
             resumed=resumed,
+            attempt=attempt,
         )
         self.bus.put(keys.k_status(run, self.id), encode(msg))
 

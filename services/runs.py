@@ -32,6 +32,7 @@ class SavedRun:
     assign: Assignment
     raw: dict
     retired: bool = False  # a group's run its `early_stop` rule ended (ServedRuns.retire)
+    attempt: int | None = None  # its start's (Start.attempt)
 
 
 class ServedRuns:
@@ -45,6 +46,9 @@ class ServedRuns:
         self.active: dict[str, TrainConfig] = {}
         self.assign: Assignment | None = None  # of the last run taken
         self.finished: collections.deque[str] = collections.deque(maxlen=64)
+        # The attempt each run was started as (Start.attempt), stamped on the service's
+        # statuses in it: kept for the runs let go too, whose end statuses may follow.
+        self.attempts: dict[str, int | None] = {}
         self._joined: dict[str, tuple[dict, Assignment]] = {}  # run -> (raw config, assign)
         # Runs of the group served that their `early_stop` rule ended while the others go
         # on: no longer served, but noted in the file until the group ends, since a
@@ -75,10 +79,18 @@ class ServedRuns:
             return "" if key_run in self.finished else f"unknown run: {key_run}"
         return None
 
-    def join(self, run: str, config: TrainConfig, assign: Assignment, raw: dict) -> None:
+    def join(
+        self,
+        run: str,
+        config: TrainConfig,
+        assign: Assignment,
+        raw: dict,
+        attempt: int | None = None,
+    ) -> None:
         self.active[run] = config
         self.assign = assign
         self._joined[run] = (raw, assign)
+        self.attempts[run] = attempt
 
     def leave(self, run: str) -> None:
         if run in self.active:
@@ -88,6 +100,9 @@ class ServedRuns:
         self.retired.pop(run, None)
         if not self.active:
             self.retired.clear()  # (the group is over)
+        known = {*self.active, *self.retired, *self.finished}
+        for gone in [r for r in self.attempts if r not in known]:
+            del self.attempts[gone]
 
     def retire(self, run: str) -> None:
         """A group's run ended by its rule while the others go on: no longer served (its
@@ -104,10 +119,14 @@ class ServedRuns:
             {"run": run, "config": raw, "assign": assign.to_wire(), "retired": True}
             for run, (raw, assign) in self.retired.items()
         ]
-        return out + [
+        out += [
             {"run": run, "config": self._joined[run][0], "assign": self._joined[run][1].to_wire()}
             for run in self.active
         ]
+        for e in out:  # (no key for a start that named no attempt, as older files)
+            if (attempt := self.attempts.get(e["run"])) is not None:
+                e["attempt"] = attempt
+        return out
 
     def save(self) -> None:
         """Note the runs served for a restart (the file removed when none)."""
@@ -140,6 +159,7 @@ class ServedRuns:
                     Assignment.from_wire(e["assign"]),
                     e["config"],
                     bool(e.get("retired", False)),
+                    _attempt(e.get("attempt")),
                 )
                 for e in entries
             ]
@@ -150,3 +170,10 @@ class ServedRuns:
             self.path.replace(self.path.with_name(self.path.name + ".refused"))
             return []
         return runs
+
+
+def _attempt(value: Any) -> int | None:
+    """A runs file's `attempt` (absent in older files: None); ValueError otherwise."""
+    if value is None or (isinstance(value, int) and not isinstance(value, bool) and value > 0):
+        return value
+    raise ValueError(f"attempt {value!r} is not a positive integer")

@@ -11,7 +11,11 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
+import signal
 import threading
+import time
+from contextlib import closing
 
 import httpx
 import msgpack
@@ -20,7 +24,7 @@ import pytest
 from services.api.client import parse_sse
 from shared.net import bus as keys
 from shared.net.bus import Bus
-from shared.net.messages import Metrics
+from shared.net.messages import Metrics, Status
 from shared.net.wire import WireError, decode, encode
 from tests.harness import TINY, api_cluster, macb, wait_for, write_config
 
@@ -294,6 +298,74 @@ def test_a_stopped_run_retried_runs_afresh_under_its_id(cluster):
     wait_for(counted, timeout=10, what="the counter's final stats: counted afresh")
     again = httpx.post(f"{url}/experiments/{exp['id']}/retry").json()
     assert again["changed"] is False and again["retried"] == []
+
+
+def test_a_retry_on_another_learner_is_not_stopped_by_the_old_learners_late_answer(cluster):
+    """The old attempt's learner, paused, answers its stop only after the retry started on
+    a second learner, and the counter's answer comes late too: on the same run's status
+    key, neither is the new attempt's (the run's monitor counts the services the run was
+    assigned; a status names its attempt)."""
+    url = cluster.url
+    cluster.service("learner", "learner-b")
+    wait_for(
+        lambda: (
+            sum(w["role"] == "learner" for w in httpx.get(f"{url}/workers").json()["workers"]) >= 2
+        ),
+        timeout=60,
+        what="a second learner",
+    )
+    try:
+        exp = httpx.post(f"{url}/experiments", json={**TINY, "episodes": 120}).json()
+        run_id = exp["runs"][0]["id"]
+        wait_for(
+            lambda: httpx.get(f"{url}/runs/{run_id}").json()["points"] >= 1,
+            timeout=60,
+            what="a point stored",
+        )
+        old = httpx.get(f"{url}/runs/{run_id}").json()["assign"]["learner"]
+        names = [n for n in ("learner-b", "learner2", "learner") if n in cluster.procs]
+        name = (
+            "learner-b"
+            if old == "learner-b"
+            else next(n for n in names if n != "learner-b" and cluster.procs[n].poll() is None)
+        )
+        os.kill(cluster.procs[name].pid, signal.SIGSTOP)
+        try:
+            httpx.post(f"{url}/experiments/{exp['id']}/stop")
+            assert httpx.get(f"{url}/runs/{run_id}").json()["status"] == "stopped"
+            httpx.post(f"{url}/experiments/{exp['id']}/retry")
+            retried = wait_for(
+                lambda: (r := httpx.get(f"{url}/runs/{run_id}").json())["status"] != "queued" and r,
+                timeout=30,
+                what="the retry to start",
+            )
+            assert retried["status"] == "running", retried  # (no late answer stopped it)
+            assert retried["assign"]["learner"] != old
+            # The counter serves both attempts: its answer to the old one's stop may come
+            # as late (a busy inbox); here the test sends what it would say.
+            counter = retried["assign"]["counter"]
+            late = Status(
+                run_id, service=counter, state="stopped", detail={}, reason="late", attempt=1
+            )
+            with closing(Bus([cluster.endpoint])) as bus:
+                bus.put(keys.k_status(run_id, counter), encode(late))
+                time.sleep(1.0)  # (a put is sent on: the session must live till it is out)
+        finally:
+            os.kill(cluster.procs[name].pid, signal.SIGCONT)
+        run = wait_for(
+            lambda: (
+                (r := httpx.get(f"{url}/runs/{run_id}").json())["status"]
+                not in ("queued", "running")
+                and r
+            ),
+            timeout=180,
+            what="the retried run to end",
+        )
+        assert run["status"] == "completed" and run["reason"] is None, run
+        assert old not in run["services"], run["services"]
+        assert run["attempts"] == 2 and run["points"] == 120 // 4
+    finally:
+        cluster.kill("learner-b")
 
 
 def test_cli_run_ls_plot_and_stop_through_the_api(cluster, tmp_path):

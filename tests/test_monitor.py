@@ -111,6 +111,19 @@ def test_services_of_other_runs_and_finished_ones_do_not_count():
     assert m.waiting() is None and m.decide(500.0).state == "running"
 
 
+def test_a_status_from_a_service_the_run_was_not_assigned_is_not_its():
+    """A run queued again may start on learner L while L2, the learner of its ended
+    attempt, still answers that attempt's stop on the same run's key: L2's "stopped"
+    must not stop the new attempt, nor show among its services."""
+    m = running(monitor())
+    m.status("L2", "stopped", {"reason": "stopped by user"}, 2.0)
+    m.status("A9", "failed", {"reason": "an old actor"}, 2.0)
+    assert m.decide(3.0).state == "running"
+    assert set(m.states) == {"L", "C", "E", "A0", "A1"}
+    m.status("L", "stopped", {"reason": "asked"}, 4.0)  # its own learner still counts
+    assert (m.decide(5.0).state, m.decide(5.0).reason) == ("stopped", "L: asked")
+
+
 def test_a_service_whose_loss_came_before_its_completed_status_is_not_waited_for():
     """A service that completes and exits: its token's loss may be seen before its
     status (they come on subscriptions of their own), which then ends the wait."""

@@ -110,7 +110,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         help="no API or cluster: train the figure's runs in this process as run groups "
         "(runs of one task and network train as one, each giving the rows it gives "
         "alone; the thesis's step-by-step loop), each in OUT/runs/<arm>-s<seed>/; the "
-        "same command again continues where it stopped (docs/performance.md, 'Run groups')",
+        "same command again continues from each run's last cut (docs/reliability.md, 'Campaigns')",
     )
     add_group_flags(
         rp,

@@ -262,7 +262,9 @@ class Scheduler:
             for row in start.attempt_rows():
                 self._watch(row, time.monotonic())
             for member, member_config in start.members:
-                send_start(self.bus, member["id"], member_config, start.assign)
+                send_start(
+                    self.bus, member["id"], member_config, start.assign, member.get("attempts")
+                )
             plan.took(start)
             a = start.assign
             log.info("run %s started on %s", start.ids if a.group else start.ids[0], a.to_wire())

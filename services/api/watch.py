@@ -71,6 +71,7 @@ class Watch:
     live_written: float = 0.0
     ended: float | None = None  # monotonic time it reached a final status
     notes: list[str] = field(default_factory=list)  # resumes: kept as the run's reason
+    attempt: int | None = None  # the run's `attempts` when started (Start.attempt)
 
     @classmethod
     def of(
@@ -89,7 +90,13 @@ class Watch:
             episodes=int(run["config"].get("episodes", 0)),
             last_episode=stats[2],
         )
-        return cls(run=run["id"], assign=assign, monitor=monitor, live=dict(run.get("live") or {}))
+        return cls(
+            run=run["id"],
+            assign=assign,
+            monitor=monitor,
+            live=dict(run.get("live") or {}),
+            attempt=run.get("attempts"),
+        )
 
     @property
     def states(self) -> dict[str, dict[str, Any]]:
@@ -140,7 +147,11 @@ class Watch:
 
     def status(self, msg: Status, now: float) -> str | None:
         """A service's status into the monitor; a note when it says its learner resumed
-        (new notes only: a learner reports its resume in every status)."""
+        (new notes only: a learner reports its resume in every status). One of another
+        attempt of the run is not this one's: a service may answer an ended attempt's
+        stop after the retry started (the counter serves both)."""
+        if not msg.from_attempt(self.attempt):
+            return None
         self.monitor.status(msg.service, msg.state, flat_row(msg.fields()), now)
         if msg.service != self.assign.learner or msg.resumed is None:
             return None

@@ -76,6 +76,7 @@ class CounterService(ServiceBase):
         self.listen(k_status("*", "*"), "status")
         for run, config, st in self.runs.restore_all():
             self.active[run] = config
+            self.served.attempts[run] = self.runs.attempt(run)
             self.publish_status(run, "running", restored=True, counted=st.counted)
             self._ack(run, st)
         self.bus.queryable(k_bonus("*"), self._on_bonus)
@@ -87,7 +88,7 @@ class CounterService(ServiceBase):
 
     # ------------------------------------------------------------ run lifecycle
     def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
-        path = self.runs.prepare(run, config, assign)
+        path = self.runs.prepare(run, config, assign, self.served.attempts.get(run))
         st, replayed = self.runs.open(run, config, path)
         if replayed or st.counted:
             self.log.info(

@@ -50,11 +50,13 @@ class Runs:
         with self.lock:
             return list(self.states.items())
 
-    def prepare(self, run: str, config: TrainConfig, assign: Assignment) -> Path:
+    def prepare(
+        self, run: str, config: TrainConfig, assign: Assignment, attempt: int | None = None
+    ) -> Path:
         """The run's folder for a start: kept if it holds an unfinished run of the same
         config (resumed; a key the saved config lacks counts as its default, the rule
-        of every run folder: `folder_config_difference`), else what is there is archived; config
-        and assignment (its `to_wire` map) noted."""
+        of every run folder: `folder_config_difference`), else what is there is archived; config,
+        assignment (its `to_wire` map) and the start's attempt noted."""
         if not _RUN_ID.fullmatch(run):
             raise ValueError(f"run id {run!r} is not a safe directory name")
         path = self.root / run
@@ -71,7 +73,24 @@ class Runs:
         path.mkdir(parents=True, exist_ok=True)
         write_json(path / "config.json", config.model_dump(mode="json"))
         write_json(path / "assign.json", assign.to_wire())
+        write_json(path / "attempt.json", {"attempt": attempt})
         return path
+
+    def attempt(self, run: str) -> int | None:
+        """The attempt a restored run was started as (`prepare`); None if not noted (an
+        older counter's folder, a start that named none) or unreadable (logged)."""
+        path = self.root / run / "attempt.json"
+        if not path.exists():
+            return None
+        try:
+            value = read_json(path).get("attempt")
+            if value is None or (type(value) is int and value > 0):
+                return value
+            raise ValueError(f"attempt {value!r} is not a positive integer")
+        except (OSError, ValueError, AttributeError) as err:
+            why = "run %s: %s does not read (%s): its attempt is not known"
+            self.log.warning(why, run, path, err)
+            return None
 
     def open(self, run: str, config: TrainConfig, path: Path) -> tuple[RunState, int]:
         """Build the run's tables, load its snapshot and log; register it. Returns the

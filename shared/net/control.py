@@ -151,11 +151,12 @@ def history_rows(bus: Bus, run: str, timeout: float = 2.0) -> list[dict[str, Any
     return []
 
 
-def send_start(bus: Bus, run: str, config: TrainConfig, assign: Assignment) -> None:
-    bus.put(
-        keys.k_control("start"),
-        encode(Start(run, config=config.model_dump(mode="json"), assign=assign)),
-    )
+def send_start(
+    bus: Bus, run: str, config: TrainConfig, assign: Assignment, attempt: int | None = None
+) -> None:
+    """Start `run` on `assign` as its `attempt` (None: a starter that never retries)."""
+    start = Start(run, config=config.model_dump(mode="json"), assign=assign, attempt=attempt)
+    bus.put(keys.k_control("start"), encode(start))
 
 
 def send_stop(bus: Bus, run: str, reason: str = "stopped by user") -> None:

@@ -233,11 +233,14 @@ class History(Message):
 @dataclass(frozen=True)
 class Start(Message):
     """control -> services: start (or join) a run; `assign` names the services that
-    serve it (on the wire: its `to_wire` map)."""
+    serve it (on the wire: its `to_wire` map). `attempt`: which attempt of the run this
+    is (the API's `attempts`: 2 once retried), stamped on the services' statuses in it;
+    None from a starter that never starts a run twice."""
 
     TYPE: ClassVar[str] = "start"
     config: dict[str, Any]
     assign: Assignment
+    attempt: int | None = None
 
 
 @dataclass(frozen=True)
@@ -309,7 +312,10 @@ class Status(Message):
     completes once that many rows are stored), a restarted learner's resume
     (`resumed`). `detail` holds the rest, shown and stored but read by no rule: where
     the service is (rank, episodes, its runs) and its stats. An older peer sent all of
-    it in `detail`: shared/net/wire.py reads those keys into the fields.
+    it in `detail`: shared/net/wire.py reads those keys into the fields. `attempt`: the
+    attempt of the run it came from (its start's), so that a reader of a later attempt
+    drops it: a service may answer the stop of an ended attempt after the run's next
+    attempt started (None: its start named none).
     """
 
     TYPE: ClassVar[str] = "status"
@@ -320,6 +326,12 @@ class Status(Message):
     final_seq: int | None = None
     points: int | None = None
     resumed: Resumed | None = None
+    attempt: int | None = None
+
+    def from_attempt(self, attempt: int | None) -> bool:
+        """Whether it may belong to `attempt` of its run: either side naming none (an
+        older peer, a starter that never retries) is taken as the same."""
+        return self.attempt is None or attempt is None or self.attempt == attempt
 
     def fields(self) -> dict[str, Any]:
         """The status as one flat map, as watchers show and store it: `detail` and each

@@ -235,6 +235,11 @@ class RunMonitor:
 
     # ------------------------------------------------------------ events
     def status(self, service: str, state: str, detail: Mapping[str, Any], now: float) -> None:
+        """A service's status in the run. Only the services the run was assigned count:
+        a run queued again (an API retry) may start on another learner while the one of
+        its ended attempt still answers that attempt's stop, on the same run's key."""
+        if service not in {sid for _, sid in self.services()}:
+            return
         self.states[service] = {**detail, "state": state}
         if state == "completed":  # its part is done: its token may go (see `peer`), and
             # may have gone already, its loss seen first (statuses and liveliness come

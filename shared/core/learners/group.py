@@ -353,7 +353,8 @@ def capture_update(
 ) -> torch.cuda.CUDAGraph:
     """The update on fixed device `inputs` captured as one CUDA graph: warmed up on a
     side stream first, as capture needs; each `replay()` updates again from whatever
-    the inputs hold then. CUDA only (what a GPU's step could save: docs/performance.md)."""
+    the inputs hold then. CUDA only; docs/performance.md, 'On a GPU', says how to probe
+    what it saves."""
     side = torch.cuda.Stream()
     side.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(side):

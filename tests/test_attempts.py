@@ -1,0 +1,93 @@
+"""A run's attempts on the bus: a start names which attempt of the run it is (the
+API's `attempts`), every status a service publishes in it says so, and a reader of
+one attempt drops the statuses of another. A service may answer an ended attempt's
+stop after the run's next attempt started (docs/architecture.md, "Order on the bus");
+that late answer must not end the new attempt. An evaluator process on a real router,
+its learner played by the test; the counter's record of the attempt on disk."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+
+from services.counter.runs import Runs
+from shared.config import make_config
+from shared.net import bus as keys
+from shared.net.control import send_start, send_stop
+from shared.net.messages import Assignment, Status
+from shared.net.wire import WireError, decode, encode
+from tests.harness import wait_for, wait_services
+
+EVALUATOR = "evaluator0"
+LEARNER = "learner9"
+CONFIG = {
+    "task": "spread",
+    "episodes": 400,
+    "episode_len": 5,
+    "eval_every": 200,
+    "eval_episodes": 1,
+    "hidden": [16, 16],
+}
+ASSIGN = Assignment(learner=LEARNER, actors=("actor9",), counter="counter9", evaluator=EVALUATOR)
+
+
+class Statuses:
+    """Every status the evaluator publishes, in order."""
+
+    def __init__(self, bus) -> None:
+        self.got: list[Status] = []
+        self.lock = threading.Lock()
+        bus.subscribe(keys.k_status("*", EVALUATOR), self._on)
+
+    def _on(self, key: str, payload: bytes) -> None:
+        try:
+            msg = decode(payload, Status)
+        except WireError:
+            return
+        with self.lock:
+            self.got.append(msg)
+
+    def find(self, state: str, attempt: int | None) -> Status | None:
+        with self.lock:
+            return next((s for s in self.got if (s.state, s.attempt) == (state, attempt)), None)
+
+
+def learner_says(bus, state: str, attempt: int | None, reason: str) -> None:
+    msg = Status("r", service=LEARNER, state=state, detail={}, reason=reason, attempt=attempt)
+    bus.put(keys.k_status("r", LEARNER), encode(msg))
+
+
+def test_a_service_stamps_its_attempt_and_a_late_answer_of_another_does_not_end_it(cluster, bus):
+    statuses = Statuses(bus)
+    cluster.service("evaluator", EVALUATOR)
+    wait_services(bus, 1)
+    config = make_config(CONFIG)
+    send_start(bus, "r", config, ASSIGN, attempt=1)
+    wait_for(lambda: statuses.find("running", 1), 60, what="attempt 1 running")
+    send_stop(bus, "r")
+    wait_for(lambda: statuses.find("stopped", 1), 30, what="attempt 1 stopped, stamped 1")
+    send_start(bus, "r", config, ASSIGN, attempt=2)
+    wait_for(lambda: statuses.find("running", 2), 60, what="attempt 2 running")
+    runs_file = cluster.data / "services" / f"{EVALUATOR}.json"
+    assert json.loads(runs_file.read_text())["runs"][0]["attempt"] == 2  # a restart keeps it
+    # The learner's two answers come on one subscription, in the order sent: attempt
+    # 1's late "failed" first. Taken, it would end attempt 2 with its reason.
+    learner_says(bus, "failed", 1, "the old attempt's")
+    learner_says(bus, "failed", 2, "this attempt's")
+    ended = wait_for(lambda: statuses.find("stopped", 2), 30, what="attempt 2 ended")
+    assert ended.reason == "learner failed: this attempt's", ended
+    assert statuses.find("running", None) is None  # every status named its attempt
+
+
+def test_the_counter_keeps_a_runs_attempt_on_disk_for_its_restart(tmp_path, caplog):
+    runs = Runs(tmp_path, logging.getLogger("t"))
+    config = make_config({"task": "spread", "explore": "cen-macb", "k": 16})
+    runs.prepare("r", config, ASSIGN, 3)
+    runs.prepare("s", config, ASSIGN)  # a starter that names no attempt
+    again = Runs(tmp_path, logging.getLogger("t"))
+    assert (again.attempt("r"), again.attempt("s"), again.attempt("never")) == (3, None, None)
+    (tmp_path / "r" / "attempt.json").write_text('{"attempt": "3"}')
+    with caplog.at_level(logging.WARNING):
+        assert again.attempt("r") is None
+    assert "attempt.json does not read" in caplog.text and "'3'" in caplog.text
