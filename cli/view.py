@@ -45,7 +45,7 @@ from cli.reproduce.controls import control_verdicts
 from cli.reproduce.defs import ArmDef, FigureDef
 from cli.reproduce.experiments import arm_configs, control_of, counts, figure_body
 from cli.reproduce.figures import FIGURES, PROFILES
-from cli.reproduce.plot import thesis_marks
+from cli.reproduce.plot import figure_colors, thesis_marks
 from cli.reproduce.status import FigureProgress, from_points, read_folders
 from cli.runs_folder import RunsError, arm_of, read_config, read_rows, runs_in
 
@@ -61,6 +61,7 @@ def figure_data(a: Analysis, progress: FigureProgress, now: float) -> dict[str, 
     projected finish."""
     fig = a.fig
     configs = arm_configs(fig)
+    colors = figure_colors(a)  # the PNG's
     arms = []
     for arm_def in fig.arms:
         arm = a.arm(arm_def.name)
@@ -75,6 +76,7 @@ def figure_data(a: Analysis, progress: FigureProgress, now: float) -> dict[str, 
         arms.append(
             {
                 "name": arm_def.name,
+                "color": colors.get(arm_def.name),
                 "counts": counts(configs[arm_def.name]),
                 "control": control_of(fig, arm_def.name) if counts(configs[arm_def.name]) else None,
                 "is_control": configs[arm_def.name].get("explore") == "constant",

@@ -24,6 +24,13 @@ def legend_text(arm: ArmCurve) -> str:
     return f"{arm.name} ({n} seed{'' if n == 1 else 's'})"
 
 
+def figure_colors(a: Analysis) -> dict[str, str]:
+    """Each drawn arm's colour (an arm with points), as the PNG and `macb view` draw it."""
+    from services.api.plot import arm_colors
+
+    return arm_colors([arm.name for arm in a.arms.values() if len(arm.episodes)])
+
+
 def draw(a: Analysis, profile: str) -> tuple[Any, list[str]]:
     """The figure (Agg) and its legend texts: curves overlaid, or for a table figure a
     grid of cells (its "legend": an entry per arm drawn as a cell)."""
@@ -31,13 +38,11 @@ def draw(a: Analysis, profile: str) -> tuple[Any, list[str]]:
 
     if a.fig.kind == "table":
         return _draw_table(a, profile)
-    from services.api.plot import palette
-
     fig = Figure(figsize=(7.2, 4.6), dpi=120)
     ax = fig.subplots()
     metric = a.fig.metric
     drawn = [arm for arm in a.arms.values() if len(arm.episodes)]
-    colors = dict(zip((arm.name for arm in drawn), palette(len(drawn)), strict=True))
+    colors = figure_colors(a)
     for arm in drawn:
         m, (lo, hi) = arm.mean[metric], arm.band(metric)
         dashed = "control" in arm.name

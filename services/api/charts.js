@@ -1,8 +1,19 @@
 // The charts of the dashboard and the figure view (services/api/pages.py inlines this
 // file into both pages): SVG drawn from curves the API or `macb view` computed.
 "use strict";
-const COLORS = ["#2563eb", "#dc2626", "#16a34a", "#9333ea", "#d97706", "#0891b2", "#db2777",
-                "#4b5563", "#65a30d", "#7c3aed"];
+// matplotlib's tab10 and tab20, as services/api/plot.py's TAB10 and TAB20: the pages
+// colour an arm as the PNGs do (tests/test_plot_colors.py checks the lists agree).
+const TAB10 = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd",
+               "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"];
+const TAB20 = ["#1f77b4", "#aec7e8", "#ff7f0e", "#ffbb78", "#2ca02c", "#98df8a", "#d62728",
+               "#ff9896", "#9467bd", "#c5b0d5", "#8c564b", "#c49c94", "#e377c2", "#f7b6d2",
+               "#7f7f7f", "#c7c7c7", "#bcbd22", "#dbdb8d", "#17becf", "#9edae5"];
+// Each arm's colour by its place among `names` (plot.py's arm_colors): tab10 up to 10
+// arms, tab20 beyond.
+function armColors(names) {
+  const colors = names.length <= 10 ? TAB10 : TAB20;
+  return Object.fromEntries(names.map((n, i) => [n, colors[i % colors.length]]));
+}
 function el(tag, attrs, ...children) {
   const ns = ["svg", "path", "line", "text", "g", "rect", "polygon", "circle"].includes(tag)
     ? "http://www.w3.org/2000/svg" : null;
@@ -64,9 +75,11 @@ function chart(expId, metric, title, fixed, curves, episodes, opts = {}) {
   axes.appendChild(el("line", { x1: L, x2: L, y1: T, y2: H - B, stroke: "#9ca3af" }));
   axes.appendChild(el("line", { x1: L, x2: W - R, y1: H - B, y2: H - B, stroke: "#9ca3af" }));
   svg.appendChild(axes);
+  const own = armColors(curves.map(armName));  // (unless the page colours the arms)
+  const colorOf = (c, i) => (opts.color ? opts.color(c, i) : own[armName(c)]);
   curves.forEach((c, i) => {
     if (!c.episode.length) return;
-    const color = opts.color ? opts.color(c, i) : COLORS[i % COLORS.length];
+    const color = colorOf(c, i);
     const upper = c.episode.map((e, j) => `${x(e).toFixed(1)},${y(c.hi[j]).toFixed(1)}`);
     const lower = c.episode.map((e, j) => `${x(e).toFixed(1)},${y(c.lo[j]).toFixed(1)}`).reverse();
     svg.appendChild(el("polygon", { class: "curve-band", points: upper.concat(lower).join(" "),
@@ -94,7 +107,7 @@ function chart(expId, metric, title, fixed, curves, episodes, opts = {}) {
   });
   for (const m of marks) {
     const i = curves.findIndex(c => armName(c) === m.arm);
-    const color = opts.color ? opts.color(curves[i], i) : COLORS[i % COLORS.length];
+    const color = colorOf(curves[i], i);
     const cx = x(m.episode), mid = y((m.lo + m.hi) / 2), r = 3.5;
     const g = el("g", { class: "thesis-mark", "data-arm": m.arm, "data-claim": m.claim,
                         "data-episode": m.episode, "data-lo": m.lo, "data-hi": m.hi,

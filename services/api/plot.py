@@ -36,9 +36,11 @@ def draw_curves(curves: dict[str, Any], metric: str) -> Figure:
     groups = curves["metrics"].get(metric, [])
     fig = Figure(figsize=(6.4, 4.2), dpi=120)
     ax = fig.subplots()
-    for g, color in zip(groups, palette(len(groups)), strict=True):
+    colors = arm_colors(arm_order(curves))
+    for g in groups:
         if not g["episode"]:
             continue
+        color = colors[g.get("name") or g["label"]]
         ax.plot(g["episode"], g["mean"], lw=1.6, color=color, label=legend_text(g))
         ax.fill_between(g["episode"], g["lo"], g["hi"], color=color, alpha=0.2, lw=0)
     ax.set_xlabel("training episodes")
@@ -58,12 +60,41 @@ def draw_curves(curves: dict[str, Any], metric: str) -> Figure:
     return fig
 
 
-def palette(n: int) -> list[Any]:
-    """n colours: tab10's up to 10 arms, tab20's (paired shades) beyond, then repeating."""
-    from matplotlib import colormaps
+# matplotlib's tab10 and tab20, as hex: the PNGs and the pages (charts.js holds the same
+# lists; tests/test_plot_colors.py checks all three agree).
+TAB10 = (
+    "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd",
+    "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf",
+)  # fmt: skip
+TAB20 = (
+    "#1f77b4", "#aec7e8", "#ff7f0e", "#ffbb78", "#2ca02c", "#98df8a", "#d62728",
+    "#ff9896", "#9467bd", "#c5b0d5", "#8c564b", "#c49c94", "#e377c2", "#f7b6d2",
+    "#7f7f7f", "#c7c7c7", "#bcbd22", "#dbdb8d", "#17becf", "#9edae5",
+)  # fmt: skip
 
-    cmap = colormaps["tab10" if n <= 10 else "tab20"]
-    return [cmap(i % cmap.N) for i in range(n)]
+
+def palette(n: int) -> list[str]:
+    """n colours: tab10's up to 10 arms, tab20's (paired shades) beyond, then repeating."""
+    colors = TAB10 if n <= 10 else TAB20
+    return [colors[i % len(colors)] for i in range(n)]
+
+
+def arm_colors(names: list[str]) -> dict[str, str]:
+    """Each arm's colour, by its place among `names` (the arms in the experiment's order),
+    the same in every chart of it whichever arms a chart draws."""
+    return dict(zip(names, palette(len(names)), strict=True))
+
+
+def arm_order(curves: dict[str, Any]) -> list[str]:
+    """The experiment's arms in order: the success rate's (every arm has one), then any
+    other metric's arms it lacks."""
+    metrics = curves["metrics"]
+    names: list[str] = []
+    for metric in ("success_rate", *metrics):
+        for g in metrics.get(metric, []):
+            if (name := g.get("name") or g["label"]) not in names:
+                names.append(name)
+    return names
 
 
 def figure_legend(fig: Figure) -> list[str]:
