@@ -11,7 +11,6 @@ import argparse
 import contextlib
 import importlib.metadata
 import queue
-import socket
 import sys
 import time
 from pathlib import Path
@@ -20,15 +19,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _stats import cpu_model  # noqa: E402
 
+from cli.supervisor import free_port  # noqa: E402
 from shared.net.bus import Bus  # noqa: E402
 
 KEY_A, KEY_B = "probe/order/status/learner", "probe/order/action/actor"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def swapped(endpoint: str, pairs: int, one_subscriber: bool, publisher: bool) -> int:

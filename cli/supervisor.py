@@ -128,8 +128,37 @@ def _pump(name: str, stream: IO[bytes], log_file: IO[bytes], echo: bool) -> None
             sys.stdout.buffer.flush()
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on now (tests and benchmarks)."""
+_HANDED: set[int] = set()  # ports free_port gave this process
+
+
+def _ephemeral_range() -> tuple[int, int]:
+    """The ports the kernel hands out as the local end of outgoing connections."""
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return 32768, 60999  # (Linux's default)
+
+
+def free_port(low: int = 20000) -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now, for a process about to
+    listen on it (tests and benchmarks). The port is released before that process binds
+    it, so it is drawn below the kernel's ephemeral range (the ports outgoing
+    connections take meanwhile: the bus and HTTP clients make many), each at most once
+    per process; the kernel's choice only if that range leaves no room."""
+    import random
+
+    first, _ = _ephemeral_range()
+    candidates = [p for p in range(low, first) if p not in _HANDED]
+    random.shuffle(candidates)
+    for port in candidates[:200]:
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _HANDED.add(port)
+        return port
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]

@@ -20,6 +20,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cli.supervisor import free_port
+
 PACKAGES = ("munge", "slurm-wlm")
 DAEMONS = ("/usr/sbin/munged", "/usr/sbin/slurmctld", "/usr/sbin/slurmd")
 PARTITION = "macbtest"
@@ -27,12 +29,6 @@ PARTITION = "macbtest"
 
 class Unavailable(RuntimeError):
     """No Slurm can run here (the reason says why)."""
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def install(may_set_up: bool) -> None:

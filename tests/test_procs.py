@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import sys
 import time
 from pathlib import Path
 
+from cli.supervisor import _ephemeral_range, free_port
 from shared import procs
 
 # A child that ignores SIGTERM and starts a grandchild in its group (which would be
@@ -85,3 +87,16 @@ def test_a_child_that_exited_is_not_alive_and_signalling_it_is_no_error():
     assert not procs.alive(p.pid)
     procs.send(p.pid, signal.SIGTERM)  # still our (zombie) child: its PID is not reused
     assert p.wait(timeout=30) == 0
+
+
+def test_free_port_hands_out_ports_outgoing_connections_do_not_take_each_once():
+    """A free port is released before its process binds it: drawn below the kernel's
+    ephemeral range, an outgoing connection cannot take it meanwhile, and one process
+    never gets the same port twice."""
+    first, _ = _ephemeral_range()
+    ports = [free_port() for _ in range(50)]
+    assert len(set(ports)) == 50 and all(20000 <= p < first for p in ports)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", ports[-1]))  # it is free
+        s.listen()
+        assert free_port() != ports[-1]

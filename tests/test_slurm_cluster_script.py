@@ -13,6 +13,7 @@ from pathlib import Path
 
 from cli.reproduce.slurm import SlurmOptions
 from cli.slurm_cluster import ClusterJob, render_cluster_script
+from cli.supervisor import free_port
 
 # srun: one copy of the command per task, with Slurm's task variables.
 SRUN = """#!/bin/bash
@@ -40,12 +41,6 @@ def executable(path: Path, text: str) -> Path:
     path.write_text(text)
     path.chmod(path.stat().st_mode | stat.S_IXUSR)
     return path
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def run_script(tmp_path: Path, job: ClusterJob) -> tuple[list[list[str]], str, int]:
