@@ -82,13 +82,12 @@ def test_a_run_alone_evaluates_its_next_point_at_once_and_in_order():
     assert st.points == 2 and [p for p in st.published] == [2, 4]
 
 
-def test_a_groups_point_only_some_runs_have_goes_alone_after_the_wait_one_at_a_time(monkeypatch):
-    import services.evaluator.main as ev_main
+def test_a_groups_point_only_some_runs_have_goes_alone_after_the_wait_one_at_a_time():
     from services.evaluator.points import GROUP_WAIT_S
 
     clock = [100.0]
-    monkeypatch.setattr(ev_main.time, "monotonic", lambda: clock[0])
     ev, _ = bare_evaluator()
+    ev.clock = lambda: clock[0]  # type: ignore[method-assign]
     start(ev, ["r0", "r1"])
     for st in ev.runs.values():
         st.policy.load = lambda actors: None  # type: ignore[method-assign]

@@ -44,17 +44,17 @@ def test_a_point_naming_no_unreported_points_is_taken_at_once():
     assert msg.eval_point == 40 and missing == []
 
 
-def _service(pending: list[Weights]) -> types.SimpleNamespace:
+def _service(pending: list[Weights], clock: list[float]) -> types.SimpleNamespace:
+    """What next_point reads of the service, on the test's own clock."""
     st = types.SimpleNamespace(
         run="r", pending=collections.deque(pending), published={}, held_since=None
     )
-    return types.SimpleNamespace(st=st, log=logging.getLogger("test"))
+    return types.SimpleNamespace(st=st, log=logging.getLogger("test"), clock=lambda: clock[0])
 
 
-def test_next_point_holds_then_gives_up_after_the_order_wait(monkeypatch):
+def test_next_point_holds_then_gives_up_after_the_order_wait():
     clock = [1000.0]
-    monkeypatch.setattr(ev.time, "monotonic", lambda: clock[0])
-    svc = _service([_msg(140, [60])])
+    svc = _service([_msg(140, [60])], clock)
     assert ev.EvaluatorService.next_point(svc, svc.st) is None  # held: 60 is on its way
     clock[0] += ev.ORDER_WAIT_S / 2
     assert ev.EvaluatorService.next_point(svc, svc.st) is None
@@ -64,7 +64,7 @@ def test_next_point_holds_then_gives_up_after_the_order_wait(monkeypatch):
     assert ev.EvaluatorService.next_point(svc, svc.st).eval_point == 140
     assert not svc.st.pending
 
-    svc = _service([_msg(140, [60])])  # 60 never comes: 140 is not held for ever
+    svc = _service([_msg(140, [60])], clock)  # 60 never comes: 140 is not held for ever
     assert ev.EvaluatorService.next_point(svc, svc.st) is None
     clock[0] += ev.ORDER_WAIT_S + 0.1
     assert ev.EvaluatorService.next_point(svc, svc.st).eval_point == 140

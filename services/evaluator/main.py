@@ -62,6 +62,8 @@ from shared.settings import settings
 class EvaluatorService(ServiceBase):
     role = "evaluator"
     follows_learner = True
+    # The clock of its waits (the order and group waits): a test's own, not the process's.
+    clock = staticmethod(time.monotonic)
 
     def __init__(self, service_id: str, connect: list[str] | None, data_dir: Path) -> None:
         super().__init__(service_id, connect, data_dir)
@@ -121,16 +123,16 @@ class EvaluatorService(ServiceBase):
         st = self.runs.get(msg.run) if msg is not None else None
         if msg is None or st is None or msg.eval_point < 0:
             return
-        if st.receive(msg, time.monotonic()):  # evaluated: the learner did not see its row
+        if st.receive(msg, self.clock()):  # evaluated: the learner did not see its row
             row = self.history.row(st.run, msg.eval_point)
             if row is not None:
                 self.publish_metrics(st.run, row, source="eval")
-                st.published[msg.eval_point] = time.monotonic()
+                st.published[msg.eval_point] = self.clock()
 
     def next_point(self, st: EvaluatorRun) -> Weights | None:
         """The earliest pending point to evaluate now (`points.take_next`), or None
         while it waits for an earlier one, at most ORDER_WAIT_S."""
-        msg, given_up = take_next(st, time.monotonic())
+        msg, given_up = take_next(st, self.clock())
         if msg is not None and given_up:
             self.log.warning(
                 "run %s: point %d evaluated without %s (not resent within %.0f s)",
@@ -152,7 +154,7 @@ class EvaluatorService(ServiceBase):
         ready = g.take_together(sts)
         if ready:
             results = g.evaluate(ready)
-        elif not g.waited_out(time.monotonic()):
+        elif not g.waited_out(self.clock()):
             return False
         else:  # one run's point alone (its own worlds, the same streams)
             alone = ((st, m) for st in sts if (m := self.next_point(st)) is not None)
@@ -176,7 +178,7 @@ class EvaluatorService(ServiceBase):
                 row["stop_reason"] = why  # the learner ends the run at this point
         self.history.remember(st.run, "running", row)
         self.publish_metrics(st.run, row, source="eval")
-        st.row_out(msg.eval_point, time.monotonic())
+        st.row_out(msg.eval_point, self.clock())
         # The last point is not the end: points lost on the way (weights published
         # before this service had subscribed, a router restart) come again from the
         # learner, which completes only once it has every point's row.
