@@ -242,7 +242,17 @@ class ServiceBase(ServiceHooks):
         assert isinstance(msg, Start)
         if not self.assigned(msg.assign):
             return  # another service's run: not an error
-        if run in self.active and not self.start_replaces(run):
+        if run in self.active and self._other_attempt(run, msg.attempt):
+            # Its stop never came (lost while a router restarted, say): the attempt
+            # served is over, and its end is published as its own (the new one's
+            # watchers drop it). The counter, which a retry may get while still
+            # serving the old attempt, then counts the new one from nothing.
+            old = self.served.attempts.get(run)
+            self.log.warning(
+                "run %s: attempt %s started while serving attempt %s", run, msg.attempt, old
+            )
+            self._end(run, "stopped", f"attempt {msg.attempt} of the run started")
+        elif run in self.active and not self.start_replaces(run):
             return  # repeated start: idempotent
         if self.served.full() and not self.joins_group(run, msg.assign):
             self.log.warning("asked to start %s while serving %s: ignored", run, self.run_id)
@@ -256,6 +266,12 @@ class ServiceBase(ServiceHooks):
             return
         self.log.info("starting run %s", run)
         self._join(run, config, msg.assign, msg.config, self.on_start, msg.attempt)
+
+    def _other_attempt(self, run: str, attempt: int | None) -> bool:
+        """A start of the run served names another attempt than the one served (both
+        named: a starter that names none never starts a run twice)."""
+        served = self.served.attempts.get(run)
+        return served is not None and attempt is not None and served != attempt
 
     def _join(
         self,

@@ -143,6 +143,20 @@ class ServedRuns:
             why = "cannot write %s (%s): a restart will not rejoin %s"
             self.log.error(why, self.path, err, runs)
 
+    def _attempt(self, entry: dict) -> int | None:
+        """An entry's `attempt`: None if absent (an older file) or not a positive integer
+        (logged: the run is still rejoined, its statuses unstamped, as an older peer's)."""
+        value = entry.get("attempt")
+        if value is None or (type(value) is int and value > 0):
+            return value
+        self.log.warning(
+            "%s: run %s: attempt %r is not a positive integer: taken as none",
+            self.path,
+            entry.get("run"),
+            value,
+        )
+        return None
+
     def saved(self) -> list[SavedRun]:
         """The runs noted when the process died; none if there is no file, and none if
         it is unreadable, holds no run, a bad config or a bad assignment (then it is
@@ -159,7 +173,7 @@ class ServedRuns:
                     Assignment.from_wire(e["assign"]),
                     e["config"],
                     bool(e.get("retired", False)),
-                    _attempt(e.get("attempt")),
+                    self._attempt(e),
                 )
                 for e in entries
             ]
@@ -170,10 +184,3 @@ class ServedRuns:
             self.path.replace(self.path.with_name(self.path.name + ".refused"))
             return []
         return runs
-
-
-def _attempt(value: Any) -> int | None:
-    """A runs file's `attempt` (absent in older files: None); ValueError otherwise."""
-    if value is None or (isinstance(value, int) and not isinstance(value, bool) and value > 0):
-        return value
-    raise ValueError(f"attempt {value!r} is not a positive integer")

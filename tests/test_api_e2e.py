@@ -330,6 +330,7 @@ def test_a_retry_on_another_learner_is_not_stopped_by_the_old_learners_late_answ
             else next(n for n in names if n != "learner-b" and cluster.procs[n].poll() is None)
         )
         os.kill(cluster.procs[name].pid, signal.SIGSTOP)
+        paused = time.monotonic()
         try:
             httpx.post(f"{url}/experiments/{exp['id']}/stop")
             assert httpx.get(f"{url}/runs/{run_id}").json()["status"] == "stopped"
@@ -352,6 +353,9 @@ def test_a_retry_on_another_learner_is_not_stopped_by_the_old_learners_late_answ
                 time.sleep(1.0)  # (a put is sent on: the session must live till it is out)
         finally:
             os.kill(cluster.procs[name].pid, signal.SIGCONT)
+        # Longer than Zenoh's lease (10 s) and the router could drop the paused learner's
+        # session, and the stop with it: the late answer would not be the test's case.
+        assert time.monotonic() - paused < 9, "the old learner was paused too long"
         run = wait_for(
             lambda: (
                 (r := httpx.get(f"{url}/runs/{run_id}").json())["status"]

@@ -12,10 +12,11 @@ import logging
 import threading
 
 from services.counter.runs import Runs
+from services.runs import ServedRuns
 from shared.config import make_config
 from shared.net import bus as keys
 from shared.net.control import send_start, send_stop
-from shared.net.messages import Assignment, Status
+from shared.net.messages import Assignment, Start, Status
 from shared.net.wire import WireError, decode, encode
 from tests.harness import wait_for, wait_services
 
@@ -69,15 +70,45 @@ def test_a_service_stamps_its_attempt_and_a_late_answer_of_another_does_not_end_
     wait_for(lambda: statuses.find("stopped", 1), 30, what="attempt 1 stopped, stamped 1")
     send_start(bus, "r", config, ASSIGN, attempt=2)
     wait_for(lambda: statuses.find("running", 2), 60, what="attempt 2 running")
-    runs_file = cluster.data / "services" / f"{EVALUATOR}.json"
-    assert json.loads(runs_file.read_text())["runs"][0]["attempt"] == 2  # a restart keeps it
+    runs_file = cluster.data / "services" / f"{EVALUATOR}.json"  # (written after "running")
+    wait_for(
+        lambda: runs_file.exists() and json.loads(runs_file.read_text())["runs"][0]["attempt"] == 2,
+        10,
+        what="the runs file noting attempt 2 (a restart rejoins it as that attempt)",
+    )
     # The learner's two answers come on one subscription, in the order sent: attempt
     # 1's late "failed" first. Taken, it would end attempt 2 with its reason.
     learner_says(bus, "failed", 1, "the old attempt's")
     learner_says(bus, "failed", 2, "this attempt's")
     ended = wait_for(lambda: statuses.find("stopped", 2), 30, what="attempt 2 ended")
     assert ended.reason == "learner failed: this attempt's", ended
+    # A start it refuses (a bad config) fails as the attempt it named.
+    send_bad_start(bus, attempt=3)
+    failed = wait_for(lambda: statuses.find("failed", 3), 30, what="attempt 3 refused")
+    assert failed.reason.startswith("invalid config")
     assert statuses.find("running", None) is None  # every status named its attempt
+
+
+def send_bad_start(bus, attempt: int) -> None:
+    config = {**make_config(CONFIG).model_dump(mode="json"), "k": -1}
+    start = Start("r", config=config, assign=ASSIGN, attempt=attempt)
+    bus.put(keys.k_control("start"), encode(start))
+
+
+def test_a_runs_file_keeps_each_runs_attempt_and_a_bad_one_is_taken_as_none(tmp_path, caplog):
+    path = tmp_path / "services" / "s.json"
+    served = ServedRuns(1, path, logging.getLogger("t"))
+    served.join("r", make_config(CONFIG), ASSIGN, CONFIG, 4)
+    served.save()
+    (saved,) = ServedRuns(1, path, logging.getLogger("t")).saved()
+    assert (saved.run, saved.attempt) == ("r", 4)
+    data = json.loads(path.read_text())
+    data["runs"][0]["attempt"] = "4"
+    path.write_text(json.dumps(data))
+    with caplog.at_level(logging.WARNING):
+        (saved,) = ServedRuns(1, path, logging.getLogger("t")).saved()
+    assert (saved.run, saved.attempt) == ("r", None) and path.exists()  # rejoined, not refused
+    assert "attempt '4' is not a positive integer" in caplog.text
 
 
 def test_the_counter_keeps_a_runs_attempt_on_disk_for_its_restart(tmp_path, caplog):

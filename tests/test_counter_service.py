@@ -420,6 +420,51 @@ def test_stop_snapshots_and_frees_the_run_and_shutdown_saves_the_rest(counter):
     assert counter.stats(kept)["counted_transitions"] == 10
 
 
+def test_a_retry_whose_stop_never_came_is_counted_afresh_and_freed_by_its_learner(counter):
+    """A retry may get the counter while it still serves the old attempt (its stop lost,
+    a router restarted): the start names attempt 2, so the counter ends attempt 1 (its
+    end stamped 1), counts attempt 2 from nothing, and frees the run on attempt 2's
+    learner's "completed", not on a late one of attempt 1."""
+    counter.launch()
+    run, stream = "r-retry", Stream(11, 10)
+    statuses: list[Status] = []
+    counter.bus.subscribe(k_status(run, "c0"), lambda k, p: statuses.append(decode(p, Status)))
+    start = Start(run, config=BASE, assign=ASSIGN, attempt=1)
+    counter.bus.put(k_control("start"), encode(start))
+    wait_for(lambda: run in (counter.info() or {}).get("runs", {}), 20, what="attempt 1")
+    counter.send(run, "a0", stream, 0, 10)
+    counter.wait_acked(run, {"a0": 10})
+    again = Start(run, config=BASE, assign=ASSIGN, attempt=2)
+    counter.bus.put(k_control("start"), encode(again))
+    wait_for(
+        lambda: any((m.state, m.attempt) == ("running", 2) for m in statuses), 10, what="attempt 2"
+    )
+    ended = next(m for m in statuses if m.state == "stopped")
+    assert (ended.attempt, ended.reason) == (1, "attempt 2 of the run started")
+    assert counter.stats(run)["counted_transitions"] == 0
+    assert len(list((counter.data_dir / "counter" / ".archive").iterdir())) == 1
+    counter.send(run, "a0", stream, 0, 4)  # numbered from 0 again
+    wait_for(lambda: counter.stats(run)["counted_transitions"] == 4, 10, what="counted anew")
+
+    def learner(state: str, attempt: int) -> None:
+        msg = Status(run, service="L", state=state, detail={}, attempt=attempt)
+        counter.bus.put(k_status(run, "L"), encode(msg))
+
+    # The old attempt's learner, late; then garbage on the same key, which the counter
+    # counts as a reject: once counted, the status before it (one subscription, in
+    # order) has been handled, and the run must still be served.
+    before = counter.info()["rejects_total"]
+    learner("completed", 1)
+    counter.bus.put(k_status(run, "L"), b"\x00garbage")
+    wait_for(lambda: counter.info()["rejects_total"] > before, 10, what="the garbage rejected")
+    assert run in counter.info()["runs"] and not any(m.state == "completed" for m in statuses)
+    learner("completed", 2)
+    done = wait_for(
+        lambda: next((m for m in statuses if m.state == "completed"), None), 10, what="freed"
+    )
+    assert done.attempt == 2 and run not in counter.info()["runs"]
+
+
 def test_timed_snapshots_wait_for_the_log_to_reach_a_quarter_of_the_table(counter):
     # k=64: 16-byte keys, 24 snapshot bytes per key, 16 log bytes per row (+30 per record).
     counter.launch(snapshot_s=0.2)

@@ -62,6 +62,7 @@ def test_an_arm_keeps_its_colour_in_a_metric_that_some_arms_lack():
 
 
 def test_the_figure_view_sends_each_arm_the_colour_the_png_draws_it_in(tmp_path):
+    """fig8's sparse arms with points, its dense arms with none."""
     _write(tmp_path, cut=1200)
     data = TestClient(page_app(folder_view(_args(tmp_path)))).get("/figure.json").json()
     a, _ = _report(tmp_path)
@@ -71,7 +72,22 @@ def test_the_figure_view_sends_each_arm_the_colour_the_png_draws_it_in(tmp_path)
         name = line.get_label().rsplit(" (", 1)[0]
         if not name.startswith("_") and line.get_linestyle() in ("-", "--"):
             png.setdefault(name, to_hex(line.get_color()))
-    sent = {arm["name"]: arm["color"] for arm in data["arms"] if arm["episode"]}
-    assert sent and all(sent[name] == png[name] for name in png if name in sent), (sent, png)
-    assert set(sent) <= set(png) and len(set(sent.values())) == len(sent)
-    assert all(arm["color"] is None for arm in data["arms"] if not arm["episode"])
+    sent = {arm["name"]: arm["color"] for arm in data["arms"] if arm["runs"]}
+    drawn = [arm["name"] for arm in data["arms"] if arm["episode"]]
+    assert drawn and set(png) == set(drawn) and all(png[n] == sent[n] for n in drawn), (sent, png)
+    # each arm the experiment runs has its place, points or not: the colours its
+    # dashboard gives them, in order; the arms it does not run (fig8's dense) have none
+    assert list(sent.values()) == palette(len(sent))
+    assert all(arm["color"] is None for arm in data["arms"] if not arm["runs"])
+
+
+def test_an_arm_without_points_yet_keeps_its_place_in_the_palette(tmp_path):
+    """An arm that has not started (queued, or failed at once) does not move the others'
+    colours: they stay what the dashboard shows."""
+    _write(tmp_path, cut=1200)
+    for seed in (0, 1):
+        (tmp_path / "runs" / f"Sparse-s{seed}" / "metrics.jsonl").write_text("")
+    data = TestClient(page_app(folder_view(_args(tmp_path)))).get("/figure.json").json()
+    colors = {arm["name"]: arm["color"] for arm in data["arms"] if arm["runs"]}
+    assert not next(a for a in data["arms"] if a["name"] == "Sparse")["episode"]
+    assert list(colors)[0] == "Sparse" and list(colors.values()) == palette(len(colors))

@@ -25,10 +25,12 @@ def legend_text(arm: ArmCurve) -> str:
 
 
 def figure_colors(a: Analysis) -> dict[str, str]:
-    """Each drawn arm's colour (an arm with points), as the PNG and `macb view` draw it."""
+    """Each arm's colour by its place among the arms the experiment runs, points or not
+    (as the dashboard colours an experiment's arms): the PNG and `macb view` draw it so,
+    and an arm keeps its colour when an earlier one gets its first points."""
     from services.api.plot import arm_colors
 
-    return arm_colors([arm.name for arm in a.arms.values() if len(arm.episodes)])
+    return arm_colors([arm.name for arm in a.arms.values() if arm.runs])
 
 
 def draw(a: Analysis, profile: str) -> tuple[Any, list[str]]:

@@ -158,6 +158,8 @@ class RunBook:
         if got is None or self.superseded(got[0]):
             return
         w, msg = got
+        if not msg.from_attempt(w.attempt):
+            return  # an ended attempt's (a service answered its stop after the retry began)
         note = w.status(msg, self.clock())
         if note is not None:
             log.info("run %s: %s", w.run, note)

@@ -147,11 +147,8 @@ class Watch:
 
     def status(self, msg: Status, now: float) -> str | None:
         """A service's status into the monitor; a note when it says its learner resumed
-        (new notes only: a learner reports its resume in every status). One of another
-        attempt of the run is not this one's: a service may answer an ended attempt's
-        stop after the retry started (the counter serves both)."""
-        if not msg.from_attempt(self.attempt):
-            return None
+        (new notes only: a learner reports its resume in every status). The caller
+        has dropped one of another attempt (`from_attempt`)."""
         self.monitor.status(msg.service, msg.state, flat_row(msg.fields()), now)
         if msg.service != self.assign.learner or msg.resumed is None:
             return None
