@@ -9,15 +9,27 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
 import threading
 
 from services.counter.runs import Runs
 from services.runs import ServedRuns
 from shared.config import make_config
+from shared.core.networks import weights_as_arrays
+from shared.envs.tasks import task_spec_for
 from shared.net import bus as keys
 from shared.net.control import send_start, send_stop
-from shared.net.messages import Assignment, Start, Status
+from shared.net.messages import (
+    Assignment,
+    Metrics,
+    Start,
+    Status,
+    Weights,
+    learner_of,
+    new_incarnation,
+)
 from shared.net.wire import WireError, decode, encode
+from shared.run.factories import build_learner
 from tests.harness import wait_for, wait_services
 
 EVALUATOR = "evaluator0"
@@ -122,3 +134,43 @@ def test_the_counter_keeps_a_runs_attempt_on_disk_for_its_restart(tmp_path, capl
     with caplog.at_level(logging.WARNING):
         assert again.attempt("r") is None
     assert "attempt.json does not read" in caplog.text and "'3'" in caplog.text
+
+
+def eval_weights(incarnation: str, env_steps: int) -> bytes:
+    """Weights for the evaluator's point 2, `env_steps` marking which ones its row is of."""
+    config = make_config(CONFIG)
+    actors = weights_as_arrays(build_learner(config, task_spec_for(config)).actor_weights())
+    msg = Weights("r", 1, 0, env_steps, 2, 2, 0, actors=actors, stats={}, incarnation=incarnation)
+    return encode(msg)
+
+
+def test_the_evaluator_takes_points_only_from_its_attempts_learner(cluster, bus):
+    """After a retry, eval weights of the ended attempt's learner process (late: it was
+    paused before its stop), or of a learner the run was not assigned, are not the new
+    attempt's: its first point is its own learner's. They come on one subscription, in
+    the order sent, the stale ones first."""
+    rows: queue.Queue = queue.Queue()
+    bus.subscribe(keys.k_metrics("r", "eval"), lambda k, p: rows.put(decode(p, Metrics).data))
+    statuses = Statuses(bus)
+    cluster.service("evaluator", EVALUATOR)
+    wait_services(bus, 1)
+    config = make_config(CONFIG)
+    send_start(bus, "r", config, ASSIGN, attempt=1)
+    wait_for(lambda: statuses.find("running", 1), 60, what="attempt 1 running")
+    old = f"{LEARNER}:100:1"
+    bus.put(keys.k_weights("r", "eval"), eval_weights(old, 10))
+    assert rows.get(timeout=60)["env_steps"] == 10  # attempt 1's point, from its learner
+    send_stop(bus, "r")
+    wait_for(lambda: statuses.find("stopped", 1), 30, what="attempt 1 stopped")
+    send_start(bus, "r", config, ASSIGN, attempt=2)
+    wait_for(lambda: statuses.find("running", 2), 60, what="attempt 2 running")
+    for incarnation, marker in ((old, 111), ("learner7:300:3", 333), (f"{LEARNER}:100:2", 222)):
+        bus.put(keys.k_weights("r", "eval"), eval_weights(incarnation, marker))
+    assert rows.get(timeout=60)["env_steps"] == 222
+    assert rows.empty() or all(r["env_steps"] == 222 for r in rows.queue)
+
+
+def test_an_incarnation_names_its_learner_and_an_older_one_names_none():
+    made = new_incarnation("learner-a")
+    assert learner_of(made) == "learner-a" and made != new_incarnation("learner-a")
+    assert learner_of("l") is None and learner_of("") is None  # (an older learner's)

@@ -18,6 +18,7 @@ def bare_evaluator() -> tuple[EvaluatorService, list[tuple[str, str]]]:
     """Only what starting, evaluating and ending runs use: no bus."""
     ev = EvaluatorService.__new__(EvaluatorService)
     ev.runs, ev.group, ev.history, ev._retired = {}, None, RowHistory(), set()
+    ev._seen, ev._ended_attempts = {}, {}
     ev.active, ev.log = {}, logging.getLogger("test")
     statuses: list[tuple[str, str]] = []
     ev.listen = lambda *a, **k: None  # type: ignore[method-assign]

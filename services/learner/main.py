@@ -42,7 +42,6 @@ replay, and the updates owed for those batches are done again.
 from __future__ import annotations
 
 import json
-import os
 import time
 from collections.abc import Collection
 from pathlib import Path
@@ -74,6 +73,7 @@ from shared.net.messages import (
     Resumed,
     Status,
     Transitions,
+    new_incarnation,
 )
 from shared.net.wire import WireError, decode
 from shared.persist import provenance
@@ -232,7 +232,7 @@ class LearnerService(ServiceBase):
         st = self.runs[run] = new_run(
             run, config, spec, list(assign.actors), learner=learner, bonus=bonus,
             evaluations=evaluations, pubs=pubs, counter=assign.counter, folder=folder,
-            incarnation=f"{self.id}:{os.getpid()}:{time.time_ns()}", grouped=grouped,
+            incarnation=new_incarnation(self.id), grouped=grouped,
         )  # fmt: skip
         return st
 

@@ -16,6 +16,8 @@ gives and is read back through its `from_wire`, which refuses anything else.
 from __future__ import annotations
 
 import dataclasses
+import os
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -163,6 +165,19 @@ class Weights(Message):
     incarnation: str  # the learner process that made them: a restart's weights are new
     # earlier evaluation points with no row yet, so the evaluator waits for them first
     unreported: list[int] = field(default_factory=list)
+
+
+def new_incarnation(learner: str) -> str:
+    """A learner's run start's `Weights.incarnation`: its id, process and start time, so
+    a restart's weights, and another attempt's, are told apart from these."""
+    return f"{learner}:{os.getpid()}:{time.time_ns()}"
+
+
+def learner_of(incarnation: str) -> str | None:
+    """The learner id a `new_incarnation` names; None for one it did not make (an older
+    learner's, or empty)."""
+    parts = incarnation.rsplit(":", 2)
+    return parts[0] if len(parts) == 3 and parts[0] else None
 
 
 @dataclass(frozen=True)
