@@ -188,6 +188,13 @@ class ServiceBase(ServiceHooks):
             return None
         return msg if why is None else None
 
+    def of_attempt(self, run: str, attempt: int | None) -> bool:
+        """Whether a message naming `attempt` may be of the attempt of `run` served (either
+        side naming none is taken as the same: an older peer, a starter that never
+        retries)."""
+        served = self.served.attempts.get(run)
+        return served is None or attempt is None or served == attempt
+
     def publish_status(self, run: str, state: str, **fields: Any) -> None:
         """The service's status in `run`, stamped with the attempt it serves (its start's)
         unless `attempt` is given."""

@@ -37,19 +37,30 @@ CONFIG = {
 ASSIGN = Assignment(learner=LEARNER, actors=(ACTOR,), counter="counter9", evaluator=None)
 
 
-def weights(config, version: int, incarnation: str) -> bytes:
+def weights(config, version: int, incarnation: str, attempt: int | None = None) -> bytes:
     learner = build_learner(config, task_spec_for(config))
     actors = weights_as_arrays(learner.actor_weights())
-    return encode(
-        Weights(RUN, version, 0, 0, 0, -1, 0, actors=actors, stats={}, incarnation=incarnation)
-    )
+    msg = Weights(
+        RUN, version, 0, 0, 0, -1, 0, actors=actors, stats={}, incarnation=incarnation,
+        attempt=attempt,
+    )  # fmt: skip
+    return encode(msg)
 
 
-def attempt(bus, inbox: queue.Queue, config, first: bytes | None, later: bytes, wait_s: float):
-    """One attempt of the run: started, `first` weights at once (if any), `later` after
-    `wait_s`; every batch acknowledged with credit. The policy versions of the batches
-    until the actor completes (or stops, after its first batch, when `first` is given)."""
-    send_start(bus, RUN, config, ASSIGN)
+def attempt(
+    bus,
+    inbox: queue.Queue,
+    config,
+    first: bytes | None,
+    later: bytes,
+    wait_s: float,
+    number: int | None = None,
+):
+    """One attempt of the run (`number`: its start's): started, `first` weights at once
+    (if any), `later` after `wait_s`; every batch acknowledged with credit. The policy
+    versions of the batches until the actor completes (or stops, after its first batch,
+    when `first` is given)."""
+    send_start(bus, RUN, config, ASSIGN, number)
     if first is not None:
         bus.put(keys.k_weights(RUN, "latest"), first)
     versions: list[int] = []
@@ -95,3 +106,21 @@ def test_a_retried_run_acts_with_its_new_learners_weights(cluster, bus):
     # The new attempt's learner is slow to open: its first weights come a second late.
     versions = attempt(bus, inbox, config, first=None, later=new, wait_s=1.0)
     assert versions == [0] * EPISODES, "the retried run acted with the ended attempt's weights"
+
+
+def test_an_actor_that_did_not_serve_the_ended_attempt_does_not_take_its_weights(cluster, bus):
+    """A retry given to another actor (`macb up --slots`): it kept the run's newest
+    weights, the ended attempt's, from its subscription to every run's, without ever
+    acting with them. They name attempt 1; it serves attempt 2 and waits for its own."""
+    cluster.service("actor", ACTOR)
+    wait_services(bus, 1)
+    inbox: queue.Queue = queue.Queue()
+    bus.subscribe(f"macb/run/{RUN}/**", lambda key, payload: inbox.put((key, payload)))
+    config = make_config({**CONFIG, "seed": 1})
+    bus.put(keys.k_weights(RUN, "latest"), weights(config, 7, "learner9:1:1", attempt=1))
+    # (Its start comes on another subscription; the new weights a second after it, so
+    # the old ones are the newest it holds when it starts, whichever it heard first.)
+    time.sleep(0.3)
+    new = weights(config, 0, "learner9:2:2", attempt=2)
+    versions = attempt(bus, inbox, config, first=None, later=new, wait_s=1.0, number=2)
+    assert versions == [0] * EPISODES, "the retry acted with the ended attempt's weights"

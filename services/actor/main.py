@@ -230,7 +230,11 @@ class ActorService(ServiceBase):
         if newest is None:
             return
         msg = self.decode_for_run(*newest, Weights)
-        if msg is None or msg.incarnation in self._ended_attempts.get(run, ()):
+        if (
+            msg is None
+            or msg.incarnation in self._ended_attempts.get(run, ())
+            or not self.of_attempt(run, msg.attempt)
+        ):
             return  # (an ended attempt's: the new learner's first weights are to come)
         if st.load_weights(msg):
             self._acted_with.setdefault(run, set()).add(msg.incarnation)

@@ -145,6 +145,8 @@ class EvaluatorService(ServiceBase):
         an older learner's: taken), and from none that served an ended attempt of it."""
         if msg.incarnation in self._ended_attempts.get(msg.run, ()):
             return False
+        if not self.of_attempt(msg.run, msg.attempt):
+            return False
         learner = learner_of(msg.incarnation)
         return learner is None or self.assign is None or learner == self.assign.learner
 

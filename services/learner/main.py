@@ -233,6 +233,7 @@ class LearnerService(ServiceBase):
             run, config, spec, list(assign.actors), learner=learner, bonus=bonus,
             evaluations=evaluations, pubs=pubs, counter=assign.counter, folder=folder,
             incarnation=new_incarnation(self.id), grouped=grouped,
+            attempt=self.served.attempts.get(run),
         )  # fmt: skip
         return st
 

@@ -46,6 +46,7 @@ class Outgoing:
     eval_pub: Callable[[bytes], None]
     ack_pub: Callable[[bytes], None]
     incarnation: str = ""  # this process's weights are newer than any before a restart
+    attempt: int | None = None  # the run's attempt (Start.attempt), on every Weights
     to_actors: bool = True  # False for a group's run: its actor acts by request
     version: int = 0
     window_open: bool = True
@@ -181,6 +182,7 @@ class Outbound:
                 bonus=st.sampling.diagnostics.take() if point else {},
             ).to_wire(),
             incarnation=st.outgoing.incarnation,
+            attempt=st.outgoing.attempt,
             # The points before this one that had no row when it went out: the
             # evaluator evaluates those first, so a run's rows come in episode order
             # even after an evaluator restart (the new point can beat the resends).

@@ -173,6 +173,7 @@ def new_run(
     folder: Path | None = None,
     incarnation: str = "",
     grouped: bool = False,
+    attempt: int | None = None,
 ) -> LearnerRun:
     """A run's state as it starts: an empty replay buffer (no larger than the run),
     the sampler seeded from the run's seed, nothing received, each actor's share of
@@ -198,7 +199,12 @@ def new_run(
             per_update=minibatches_per_update(config),
         ),
         outgoing=Outgoing(
-            pubs["weights"], pubs["eval"], pubs["ack"], incarnation, to_actors=not grouped
+            pubs["weights"],
+            pubs["eval"],
+            pubs["ack"],
+            incarnation,
+            to_actors=not grouped,
+            attempt=attempt,
         ),
         cuts=Cuts(folder),
     )

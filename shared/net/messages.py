@@ -165,6 +165,9 @@ class Weights(Message):
     incarnation: str  # the learner process that made them: a restart's weights are new
     # earlier evaluation points with no row yet, so the evaluator waits for them first
     unreported: list[int] = field(default_factory=list)
+    # the attempt of the run they are of (its start's): an actor or evaluator serving
+    # another attempt drops them, as it may hold them from before its start
+    attempt: int | None = None
 
 
 def new_incarnation(learner: str) -> str:
