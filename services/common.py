@@ -184,7 +184,7 @@ class ServiceBase(ServiceHooks):
         why = self.served.refusal(keys.run_of(key), msg.run)
         if why:
             self.reject(key, why)
-        if isinstance(msg, Status) and not msg.from_attempt(self.served.attempts.get(msg.run)):
+        if isinstance(msg, Status) and not self.of_attempt(msg.run, msg.attempt):
             return None
         return msg if why is None else None
 
@@ -249,7 +249,7 @@ class ServiceBase(ServiceHooks):
         assert isinstance(msg, Start)
         if not self.assigned(msg.assign):
             return  # another service's run: not an error
-        if run in self.active and self._other_attempt(run, msg.attempt):
+        if run in self.active and not self.of_attempt(run, msg.attempt):
             # Its stop never came (lost while a router restarted, say): the attempt
             # served is over, and its end is published as its own (the new one's
             # watchers drop it). The counter, which a retry may get while still
@@ -273,12 +273,6 @@ class ServiceBase(ServiceHooks):
             return
         self.log.info("starting run %s", run)
         self._join(run, config, msg.assign, msg.config, self.on_start, msg.attempt)
-
-    def _other_attempt(self, run: str, attempt: int | None) -> bool:
-        """A start of the run served names another attempt than the one served (both
-        named: a starter that names none never starts a run twice)."""
-        served = self.served.attempts.get(run)
-        return served is not None and attempt is not None and served != attempt
 
     def _join(
         self,
