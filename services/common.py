@@ -44,7 +44,7 @@ from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.info import ServiceInfo
-from shared.net.messages import MESSAGES, Assignment, Message, Start, Status, Stop
+from shared.net.messages import MESSAGES, Assignment, Message, Start, Status, Stop, same_attempt
 from shared.net.monitor import peer_grace_s
 from shared.net.wire import WireError, decode
 from shared.settings import node_name, settings
@@ -189,11 +189,8 @@ class ServiceBase(ServiceHooks):
         return msg if why is None else None
 
     def of_attempt(self, run: str, attempt: int | None) -> bool:
-        """Whether a message naming `attempt` may be of the attempt of `run` served (either
-        side naming none is taken as the same: an older peer, a starter that never
-        retries)."""
-        served = self.served.attempts.get(run)
-        return served is None or attempt is None or served == attempt
+        """Whether a message naming `attempt` may be of the attempt of `run` served."""
+        return same_attempt(self.served.attempts.get(run), attempt)
 
     def publish_status(self, run: str, state: str, **fields: Any) -> None:
         """The service's status in `run`, stamped with the attempt it serves (its start's)

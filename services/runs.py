@@ -146,16 +146,11 @@ class ServedRuns:
     def _attempt(self, entry: dict) -> int | None:
         """An entry's `attempt`: None if absent (an older file) or not a positive integer
         (logged: the run is still rejoined, its statuses unstamped, as an older peer's)."""
-        value = entry.get("attempt")
-        if value is None or (type(value) is int and value > 0):
-            return value
-        self.log.warning(
-            "%s: run %s: attempt %r is not a positive integer: taken as none",
-            self.path,
-            entry.get("run"),
-            value,
-        )
-        return None
+        try:
+            return noted_attempt(entry.get("attempt"))
+        except ValueError as err:
+            self.log.warning("%s: run %s: %s: taken as none", self.path, entry.get("run"), err)
+            return None
 
     def saved(self) -> list[SavedRun]:
         """The runs noted when the process died; none if there is no file, and none if
@@ -184,3 +179,40 @@ class ServedRuns:
             self.path.replace(self.path.with_name(self.path.name + ".refused"))
             return []
         return runs
+
+
+def noted_attempt(value: Any) -> int | None:
+    """An attempt as a file notes it (the runs file, the counter's attempt.json): None
+    (not noted) or a positive integer; ValueError for anything else."""
+    if value is None or (type(value) is int and value > 0):
+        return value
+    raise ValueError(f"attempt {value!r} is not a positive integer")
+
+
+class LearnerProcesses:
+    """Per run, the learner processes (`Weights.incarnation`) whose weights a service
+    took (the newest `kept` runs'), and for each run started since, those of its ended
+    attempts: a run queued again under its id has a new learner process, and what the
+    ended attempt's learner still sends (or left as the newest kept) is not the new
+    attempt's. The actor and the evaluator keep one each."""
+
+    def __init__(self, kept: int = 16) -> None:
+        self.kept = kept
+        self.took_from: dict[str, set[str]] = {}
+        self.ended: dict[str, set[str]] = {}
+
+    def begin(self, runs: list[str]) -> None:
+        """`runs` start (or a restart rejoins them): the processes taken from so far
+        are their ended attempts'."""
+        for run in runs:
+            self.ended[run] = set(self.took_from.get(run, ()))
+        for run in [r for r in self.ended if r not in self.took_from and r not in runs]:
+            del self.ended[run]  # (nothing taken from: nothing to remember)
+
+    def of_ended_attempt(self, run: str, incarnation: str) -> bool:
+        return incarnation in self.ended.get(run, ())
+
+    def took(self, run: str, incarnation: str) -> None:
+        self.took_from.setdefault(run, set()).add(incarnation)
+        while len(self.took_from) > self.kept:  # runs long over
+            self.took_from.pop(next(iter(self.took_from)))

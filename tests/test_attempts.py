@@ -66,6 +66,16 @@ class Statuses:
             return next((s for s in self.got if (s.state, s.attempt) == (state, attempt)), None)
 
 
+def first_attempt(cluster, bus, statuses: Statuses):
+    """An evaluator process serving attempt 1 of run "r": its config."""
+    cluster.service("evaluator", EVALUATOR)
+    wait_services(bus, 1)
+    config = make_config(CONFIG)
+    send_start(bus, "r", config, ASSIGN, attempt=1)
+    wait_for(lambda: statuses.find("running", 1), 60, what="attempt 1 running")
+    return config
+
+
 def learner_says(bus, state: str, attempt: int | None, reason: str) -> None:
     msg = Status("r", service=LEARNER, state=state, detail={}, reason=reason, attempt=attempt)
     bus.put(keys.k_status("r", LEARNER), encode(msg))
@@ -73,11 +83,7 @@ def learner_says(bus, state: str, attempt: int | None, reason: str) -> None:
 
 def test_a_service_stamps_its_attempt_and_a_late_answer_of_another_does_not_end_it(cluster, bus):
     statuses = Statuses(bus)
-    cluster.service("evaluator", EVALUATOR)
-    wait_services(bus, 1)
-    config = make_config(CONFIG)
-    send_start(bus, "r", config, ASSIGN, attempt=1)
-    wait_for(lambda: statuses.find("running", 1), 60, what="attempt 1 running")
+    config = first_attempt(cluster, bus, statuses)
     send_stop(bus, "r")
     wait_for(lambda: statuses.find("stopped", 1), 30, what="attempt 1 stopped, stamped 1")
     send_start(bus, "r", config, ASSIGN, attempt=2)
@@ -152,11 +158,7 @@ def test_the_evaluator_takes_points_only_from_its_attempts_learner(cluster, bus)
     rows: queue.Queue = queue.Queue()
     bus.subscribe(keys.k_metrics("r", "eval"), lambda k, p: rows.put(decode(p, Metrics).data))
     statuses = Statuses(bus)
-    cluster.service("evaluator", EVALUATOR)
-    wait_services(bus, 1)
-    config = make_config(CONFIG)
-    send_start(bus, "r", config, ASSIGN, attempt=1)
-    wait_for(lambda: statuses.find("running", 1), 60, what="attempt 1 running")
+    config = first_attempt(cluster, bus, statuses)
     old = f"{LEARNER}:100:1"
     bus.put(keys.k_weights("r", "eval"), eval_weights(old, 10))
     assert rows.get(timeout=60)["env_steps"] == 10  # attempt 1's point, from its learner

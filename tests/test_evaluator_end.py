@@ -10,6 +10,7 @@ import pytest
 
 from services.evaluator.history import RowHistory
 from services.evaluator.main import EvaluatorService
+from services.runs import LearnerProcesses
 from shared.config import make_config
 from shared.net.messages import Assignment, Weights
 
@@ -18,7 +19,7 @@ def bare_evaluator() -> tuple[EvaluatorService, list[tuple[str, str]]]:
     """Only what starting, evaluating and ending runs use: no bus."""
     ev = EvaluatorService.__new__(EvaluatorService)
     ev.runs, ev.group, ev.history, ev._retired = {}, None, RowHistory(), set()
-    ev._seen, ev._ended_attempts = {}, {}
+    ev.took_points = LearnerProcesses()
     ev.active, ev.log = {}, logging.getLogger("test")
     statuses: list[tuple[str, str]] = []
     ev.listen = lambda *a, **k: None  # type: ignore[method-assign]

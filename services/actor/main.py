@@ -47,6 +47,7 @@ from services.actor.lockstep import valid_action
 from services.actor.outbox import Outbox, rejoin_from, run_sender
 from services.actor.runs import ActorRuns
 from services.common import ServiceBase
+from services.runs import LearnerProcesses
 from shared.config import TrainConfig
 from shared.net import bus as keys
 from shared.net.messages import Ack, Action, Assignment, Weights
@@ -77,11 +78,10 @@ class ActorService(ServiceBase):
         # published once before any episode (an actor waited for them forever).
         self._newest: dict[str, tuple[str, bytes]] = {}
         self._newest_lock = threading.Lock()
-        # Per run, the learner processes whose weights this actor acted with. A run queued
-        # again under its id (a retry) has a new learner process, whose first weights may
-        # come after its start: the ended attempt's, still the newest kept, are not its.
-        self._acted_with: dict[str, set[str]] = {}
-        self._ended_attempts: dict[str, set[str]] = {}  # of the runs served now
+        # The learner processes whose weights this actor acted with, per run: a retry's
+        # new learner's first weights may come after its start, and the ended attempt's,
+        # still the newest kept, are not its.
+        self.acted_with = LearnerProcesses(NEWEST_RUNS_KEPT)
         # Subscribed for the service's lifetime: the learner's first weights may be out
         # before this actor has handled the start message.
         self.bus.subscribe(keys.k_weights("*", "*"), self._on_weights)
@@ -122,7 +122,7 @@ class ActorService(ServiceBase):
         if set(self._members) != set(runs):
             return
         cfgs = [self._members.pop(r) for r in runs]
-        self._ended_attempts = {r: set(self._acted_with.get(r, ())) for r in runs}
+        self.acted_with.begin(runs)
         retired, self._retired = self._retired & set(runs), set()
         outboxes = {r: self.outbox(r, cfg, assign) for r, cfg in zip(runs, cfgs)}
         act_pub = None
@@ -232,14 +232,12 @@ class ActorService(ServiceBase):
         msg = self.decode_for_run(*newest, Weights)
         if (
             msg is None
-            or msg.incarnation in self._ended_attempts.get(run, ())
+            or self.acted_with.of_ended_attempt(run, msg.incarnation)
             or not self.of_attempt(run, msg.attempt)
         ):
             return  # (an ended attempt's: the new learner's first weights are to come)
         if st.load_weights(msg):
-            self._acted_with.setdefault(run, set()).add(msg.incarnation)
-            while len(self._acted_with) > NEWEST_RUNS_KEPT:  # runs long over
-                self._acted_with.pop(next(iter(self._acted_with)))
+            self.acted_with.took(run, msg.incarnation)
 
     # ------------------------------------------------------------ work
     def tick(self) -> bool:

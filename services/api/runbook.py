@@ -17,7 +17,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 from shared.net import bus as keys
-from shared.net.messages import Assignment, Metrics, Status
+from shared.net.messages import Assignment, Metrics, Status, same_attempt
 from shared.net.monitor import Graces, live_peer
 from shared.net.wire import WireError, decode
 
@@ -158,7 +158,7 @@ class RunBook:
         if got is None or self.superseded(got[0]):
             return
         w, msg = got
-        if not msg.from_attempt(w.attempt):
+        if not same_attempt(msg.attempt, w.attempt):
             return  # an ended attempt's (a service answered its stop after the retry began)
         note = w.status(msg, self.clock())
         if note is not None:

@@ -148,7 +148,7 @@ class Watch:
     def status(self, msg: Status, now: float) -> str | None:
         """A service's status into the monitor; a note when it says its learner resumed
         (new notes only: a learner reports its resume in every status). The caller
-        has dropped one of another attempt (`from_attempt`)."""
+        has dropped one of another attempt (`same_attempt`)."""
         self.monitor.status(msg.service, msg.state, flat_row(msg.fields()), now)
         if msg.service != self.assign.learner or msg.resumed is None:
             return None

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from services.counter import snapshot
 from services.counter.state import RunState
+from services.runs import noted_attempt
 from shared.config import TrainConfig, make_config
 from shared.envs.tasks import task_spec_for
 from shared.net.messages import Assignment, WireError
@@ -83,10 +84,7 @@ class Runs:
         if not path.exists():
             return None
         try:
-            value = read_json(path).get("attempt")
-            if value is None or (type(value) is int and value > 0):
-                return value
-            raise ValueError(f"attempt {value!r} is not a positive integer")
+            return noted_attempt(read_json(path).get("attempt"))
         except (OSError, ValueError, AttributeError) as err:
             why = "run %s: %s does not read (%s): its attempt is not known"
             self.log.warning(why, run, path, err)

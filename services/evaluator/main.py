@@ -50,6 +50,7 @@ from services.evaluator.points import (
     eval_row,
     take_next,
 )
+from services.runs import LearnerProcesses
 from shared.config import TrainConfig
 from shared.metrics import early_stop_reason
 from shared.net import bus as keys
@@ -57,8 +58,6 @@ from shared.net.messages import Assignment, History, Weights, learner_of
 from shared.net.wire import encode
 from shared.run.rollout import EvalResult
 from shared.settings import settings
-
-SEEN_RUNS_KEPT = 16  # runs whose learner processes are remembered (an actor's rule too)
 
 
 class EvaluatorService(ServiceBase):
@@ -80,11 +79,9 @@ class EvaluatorService(ServiceBase):
         self.group: GroupEval | None = None  # those runs as one (a run alone: of one)
         self.history = RowHistory()
         self._retired: set[str] = set()  # the group's runs ended by their rule (a restart)
-        # The learner processes whose points it took, per run (the newest runs), and of
-        # the runs served now those of their ended attempts: a late point of an ended
+        # The learner processes whose points it took, per run: a late point of an ended
         # attempt's learner (paused, it had not yet taken its stop) is not the new one's.
-        self._seen: dict[str, set[str]] = {}
-        self._ended_attempts: dict[str, set[str]] = {}
+        self.took_points = LearnerProcesses()
         self.bus.queryable(keys.k_history("*", "eval"), self._history_reply)
 
     def _history_reply(self, key: str, payload: bytes) -> bytes | None:
@@ -96,7 +93,7 @@ class EvaluatorService(ServiceBase):
         return encode(History(run, source="eval", rows=rows, state=state))
 
     def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
-        self._ended_attempts[run] = set(self._seen.get(run, ()))
+        self.took_points.begin([run])
         self.listen(keys.k_weights(run, "eval"), "weights", run)
         self.runs[run] = EvaluatorRun.open(run, config)
         self.history.start(run)
@@ -131,9 +128,7 @@ class EvaluatorService(ServiceBase):
         st = self.runs.get(msg.run) if msg is not None else None
         if msg is None or st is None or msg.eval_point < 0 or not self._from_its_learner(msg):
             return
-        self._seen.setdefault(msg.run, set()).add(msg.incarnation)
-        while len(self._seen) > SEEN_RUNS_KEPT:  # runs long over
-            self._seen.pop(next(iter(self._seen)))
+        self.took_points.took(msg.run, msg.incarnation)
         if st.receive(msg, self.clock()):  # evaluated: the learner did not see its row
             row = self.history.row(st.run, msg.eval_point)
             if row is not None:
@@ -143,7 +138,7 @@ class EvaluatorService(ServiceBase):
     def _from_its_learner(self, msg: Weights) -> bool:
         """A point from the run's assigned learner (an incarnation naming no learner is
         an older learner's: taken), and from none that served an ended attempt of it."""
-        if msg.incarnation in self._ended_attempts.get(msg.run, ()):
+        if self.took_points.of_ended_attempt(msg.run, msg.incarnation):
             return False
         if not self.of_attempt(msg.run, msg.attempt):
             return False

@@ -170,6 +170,12 @@ class Weights(Message):
     attempt: int | None = None
 
 
+def same_attempt(a: int | None, b: int | None) -> bool:
+    """Whether two attempts of a run may be the same one: either naming none (an older
+    peer, a starter that never starts a run twice) is taken as the same."""
+    return a is None or b is None or a == b
+
+
 def new_incarnation(learner: str) -> str:
     """A learner's run start's `Weights.incarnation`: its id, process and start time, so
     a restart's weights, and another attempt's, are told apart from these."""
@@ -345,11 +351,6 @@ class Status(Message):
     points: int | None = None
     resumed: Resumed | None = None
     attempt: int | None = None
-
-    def from_attempt(self, attempt: int | None) -> bool:
-        """Whether it may belong to `attempt` of its run: either side naming none (an
-        older peer, a starter that never retries) is taken as the same."""
-        return self.attempt is None or attempt is None or self.attempt == attempt
 
     def fields(self) -> dict[str, Any]:
         """The status as one flat map, as watchers show and store it: `detail` and each
