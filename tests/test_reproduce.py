@@ -21,7 +21,8 @@ from cli.results import read_points
 from services.api.store import Store
 from tests.harness import cluster_processes, free_port, macb, spawn, wait_for
 
-EPISODES = 200  # x 11 arms x 2 seeds: about the episodes of the 7-arm figure at 300
+EPISODES = 60  # x 11 arms x 2 seeds, one run at a time: several seconds each, so a
+# SIGINT after the second run finds the third running
 
 
 def _completed(url: str) -> int:

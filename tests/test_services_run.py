@@ -163,6 +163,7 @@ def test_garbage_on_every_key_is_dropped_counted_and_changes_nothing(cluster, bu
 # The learner in `make test`; the actor, the same failure path, in test-slow.
 @pytest.mark.parametrize("victim", ["learner", pytest.param("actor0", marks=pytest.mark.slow)])
 def test_a_dead_learner_or_actor_fails_the_run_and_frees_the_others(cluster, bus, victim):
+    cluster.env["MACB_PEER_GRACE_S"] = "5"  # the grace a lost peer gets, not the default's 30 s
     cluster.services(1)
     wait_services(bus, 4)
     watch = start_run(bus, make_config({**SMALL, "episodes": 200}), actors=1)
