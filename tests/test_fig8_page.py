@@ -312,3 +312,40 @@ def test_the_plot_marks_each_value_the_thesis_states_where_the_runs_will_reach_i
     main(["reproduce", *ARGS, "--episodes", "1500", "--report-only", "--runs", str(runs_dir),
           "--out", str(out)])  # fmt: skip
     assert "hollow diamond" not in (out / "fig8.md").read_text()
+
+
+def test_arms_not_started_are_named_not_counted_as_the_figures_progress(runs_dir, tmp_path, capsys):
+    """The campaign runs the sparse arms, then the dense ones: a page of every arm while
+    the dense ones wait gives the progress of the arms started and names the rest, not
+    "0 of 40,000", and projects the started runs' finish."""
+    every = ("fig8", "--profile", "thesis", "--arms", "*", "--seeds", "0", "1")
+    assert main(["reproduce", *every, "--status", "--runs", str(runs_dir)]) == 0
+    out = capsys.readouterr().out
+    dense = "Distance, Distance + Cen-MACB (beta=0.1), Distance + constant beta=0.1 (control)"
+    figure = [x for x in out.splitlines() if x.startswith("figure: ")][0]
+    assert figure.startswith("figure: 1,500 of 40,000 episodes in the 4 arm(s) started (per")
+    assert f"not started: {dense} (6 run(s))" in figure
+    assert "of the runs started, in 77.0 h of running" in figure
+    assert figure.endswith("then 6 run(s) not started, not projected")
+    assert main(["reproduce", *every, "--report-only", "--runs", str(runs_dir),
+                 "--out", str(tmp_path / "page")]) == 1  # fmt: skip
+    md = (tmp_path / "page" / "fig8.md").read_text()
+    header = md.split("## Arms")[0]
+    assert "these runs reached 1,500, 2,000 episodes (3 arm(s) not started)." in header
+    assert "1,500 of 40,000 episodes in the 4 arm(s) started" in header
+    assert "counted from the build; then 6 run(s) not started, not projected." in header
+    reported = {"live": {"provenance": {"learner": {"precision": "fp32"}}}}
+    line = render.what_ran([{"id": "a", **reported}, {"id": "b"}, {"id": "c"}], {"a", "b"})
+    assert line.endswith("; 1 run(s) reported none; 1 run(s) not started."), line
+    why = md.split("## Why")[1].split("\n## ")[0]
+    (waiting,) = [r for r in why.splitlines() if r.startswith("| Distance + Cen-MACB")]
+    assert "| - | - | none paid yet |" in waiting, "no per-seed cells for runs not started"
+
+
+def test_a_figure_none_of_whose_runs_started_says_so():
+    from cli.reproduce.status import FigureProgress, RunProgress
+
+    runs = [RunProgress(f"r{i}", "a", i, 100) for i in range(2)]
+    progress = FigureProgress(runs, 100)
+    assert progress.reached() == "0 of 100 episodes"
+    assert progress.finish(0.0) == "no projection: no run has started (2 to run)"

@@ -246,12 +246,14 @@ def why_rows(a: Analysis) -> list[list[str]]:
         if not counts(configs[name]):
             continue
         mine = a.arm(name)
-        seeds = {s: a.for_seed(s) for s in a.seeds if s in mine.seeds}
+        runs = dict(zip(mine.seeds, mine.runs, strict=True))
+        # the seeds with rows: a run not started yet has no value of its own to give
+        ran = {s for s, r in runs.items() if len(a.points.get(r, {}).get("episode", ()))}
+        seeds = {s: a.for_seed(s) for s in a.seeds if s in ran}
         end = _value(metric, mine.final if len(mine.episodes) else None)
         end_s = {s: _value(metric, x.arm(name).final) for s, x in seeds.items()}
         c1 = count1(a, name, configs[name])
         c1_s = {s: _pct(_c1(x, name, configs[name])) for s, x in seeds.items()}
-        runs = dict(zip(mine.seeds, mine.runs, strict=True))
         paid = bonus_paid([a.points[r] for r in mine.runs if r in a.points])
         paid_s = {s: str(bonus_paid([a.points.get(runs[s], {})]) or "-") for s in seeds}
         constant = paid is not None and paid.spread <= 1e-6 * max(paid.mean, 1e-9)

@@ -59,10 +59,11 @@ def _milestone(arm: ArmCurve, episode: int, metric: str) -> str:
     return f"{v:.0%}"
 
 
-def what_ran(runs: list[dict[str, Any]]) -> str:
+def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str:
     """The report's line on what the runs ran on, from each run's provenance (the
     learner's report, `live.provenance`): the precision as run, which may not be the one
-    asked (bf16 on a CPU without it runs fp32), the CPUs and the code."""
+    asked (bf16 on a CPU without it runs fp32), the CPUs and the code. A run outside
+    `started` (the ids with rows, when given) has not run yet, so has nothing to report."""
     # provenance.reported(r), read here without it: shared.persist.provenance loads torch.
     starts = [(r.get("live") or {}).get("provenance") for r in runs]
     known = [s for s in starts if isinstance(s, dict)]
@@ -77,8 +78,12 @@ def what_ran(runs: list[dict[str, Any]]) -> str:
     if set(ran) != set(asked):
         line += f" (**asked {', '.join(asked)}**: a CPU without native bf16 runs fp32)"
     line += f"; CPU {', '.join(cpus)}; code {', '.join(commits)}"
-    if missing := len(starts) - len(known):
+    silent = [r for r, s in zip(runs, starts, strict=True) if not isinstance(s, dict)]
+    waiting = 0 if started is None else sum(1 for r in silent if r.get("id") not in started)
+    if missing := len(silent) - waiting:
         line += f"; {missing} run(s) reported none"
+    if waiting:
+        line += f"; {waiting} run(s) not started"
     return line + "."
 
 
@@ -117,7 +122,9 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         base["episodes"] = runs[0]["config"]["episodes"]
     base["profile"] = profile
     counts = ", ".join(f"{v} {k}" for k, v in (exp.get("counts") or {}).items())
-    lengths = {arm.length for arm in a.arms.values() if arm.runs}  # the arms selected
+    # the arms selected; an arm with no row yet waits its turn in the campaign
+    lengths = {arm.length for arm in a.arms.values() if arm.runs and arm.length}
+    waiting = [name for name, arm in a.arms.items() if arm.runs and not arm.length]
     window = sorted({arm.window for arm in a.arms.values()})
     lines = [
         f"# {fig.title}",
@@ -130,7 +137,8 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         f"{exp.get('status', '?')} ({counts or 'no runs'}).",
         f"- Profile `{profile}`; seeds {exp.get('seeds', [])}; the thesis ran 3 seeds of "
         f"{fig.episodes:,} episodes; these runs reached "
-        f"{', '.join(f'{n:,}' for n in sorted(lengths)) or 'no'} episodes.",
+        f"{', '.join(f'{n:,}' for n in sorted(lengths)) or 'no'} episodes"
+        + (f" ({len(waiting)} arm(s) not started)." if waiting else "."),
         page_line(from_points(exp, a.points, fig.episodes), time.time()),
         *restarts(runs),
         f"- Base config (every arm): {_fmt_point(base)}.",
@@ -167,7 +175,9 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
             + "): a claim beyond where they ended is judged on the episodes they ran, "
             "and says so."
         ]
-    lines += [what_ran(runs)]
+    lines += [
+        what_ran(runs, started={r for r, cols in a.points.items() if len(cols.get("episode", ()))})
+    ]
     if exp.get("wall_s"):  # local runs: their own clocks, over every start
         lines += [
             f"- Wall time: {exp['wall_s'] / 3600:.2f} h, the longest run's own clock (its "

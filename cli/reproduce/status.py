@@ -42,6 +42,11 @@ class RunProgress:
     stopped: bool = False  # ended by its `early_stop` rule at `episode`: finished
 
     @property
+    def started(self) -> bool:
+        """It has a row (a run ended by its rule at episode 0 has none, and is done)."""
+        return self.episode > 0
+
+    @property
     def left(self) -> int:
         return 0 if self.stopped else max(0, self.target - self.episode)
 
@@ -83,9 +88,9 @@ class FigureProgress:
         return all(r.left == 0 for r in self.runs)
 
     def slowest(self) -> RunProgress | None:
-        """The run that finishes last at its speed (None: some unfinished run has no
-        speed to project from, or every run is done)."""
-        left = [r for r in self.runs if r.left]
+        """The started run that finishes last at its speed (None: some started,
+        unfinished run has no speed to project from, or no started run is left)."""
+        left = [r for r in self.runs if r.left and r.started]
         if not left or any(r.hours_left is None for r in left):
             return None
         return max(left, key=lambda r: r.hours_left or 0.0)
@@ -97,14 +102,28 @@ class FigureProgress:
             out[r.arm] = min(out.get(r.arm, r.episode), r.episode)
         return out
 
+    def not_started(self) -> list[str]:
+        """The arms none of whose runs has a row yet, in the figure's order: a campaign
+        that runs its arms in turns (figure 8's sparse arms, then its dense ones)."""
+        started = {r.arm for r in self.runs if r.started or not r.left}
+        return [a for a in self.by_arm() if a not in started]
+
     def reached(self) -> str:
-        """'N of T episodes', with each arm's when they differ, and the runs their
-        `early_stop` rule ended (finished short of T)."""
+        """'N of T episodes' over the arms started (the arms not started named after
+        it), with each arm's when they differ, and the runs their `early_stop` rule
+        ended (finished short of T)."""
         arms = self.by_arm()
-        low = min(arms.values(), default=0)
+        waiting = self.not_started()
+        begun = {a: e for a, e in arms.items() if a not in waiting} or arms
+        low = min(begun.values(), default=0)
         text = f"{low:,} of {self.target:,} episodes"
-        if len(set(arms.values())) > 1:
-            text += " (per arm: " + "; ".join(f"{a} {e:,}" for a, e in arms.items()) + ")"
+        if waiting and len(begun) < len(arms):
+            runs = sum(1 for r in self.runs if r.arm in waiting)
+            text += f" in the {len(begun)} arm(s) started"
+        if len(set(begun.values())) > 1:
+            text += " (per arm: " + "; ".join(f"{a} {e:,}" for a, e in begun.items()) + ")"
+        if waiting and len(begun) < len(arms):
+            text += f"; not started: {', '.join(waiting)} ({runs} run(s))"
         stopped = [r for r in self.runs if r.stopped]
         if stopped:
             text += f"; {len(stopped)} run(s) ended by their early_stop rule (finished): " + (
@@ -120,19 +139,29 @@ class FigureProgress:
         span = f"{lo:,.0f}" if round(lo) == round(hi) else f"{lo:,.0f}-{hi:,.0f}"
         return f"{span} episodes per hour"
 
-    def finish(self, now: float) -> str:
-        """The projected finish counted from `now` (epoch s), and whose it is."""
+    def finish(self, now: float, counted: str = "") -> str:
+        """The projected finish counted from `now` (epoch s), and whose it is; `counted`
+        says from when, after the projection."""
         if self.done:
             return "complete: every run reached its target"
         slow = self.slowest()
+        queued = sum(1 for r in self.runs if r.left and not r.started)
+        after = f"; then {queued} run(s) not started, not projected" if queued else ""
         if slow is None:
-            waiting = sum(1 for r in self.runs if r.left and r.hours_left is None)
-            return f"no projection: {waiting} unfinished run(s) have no speed (rows with `wall_s`)"
+            waiting = sum(1 for r in self.runs if r.left and r.started and r.hours_left is None)
+            if not waiting:
+                return f"no projection: no run has started ({queued} to run)"
+            return (
+                f"no projection: {waiting} unfinished run(s) have no speed (rows with "
+                f"`wall_s`){after}"
+            )
         h = slow.hours_left or 0.0
         when = datetime.fromtimestamp(now + h * HOUR_S, UTC)
         return (
-            f"projected finish {when:%Y-%m-%d %H:%M} UTC, in {h:,.1f} h of running (the "
-            f"slowest group's: {slow.run}, {slow.left:,} episodes left at {slow.speed:,.0f}/h)"
+            f"projected finish {when:%Y-%m-%d %H:%M} UTC"
+            + (" of the runs started" if queued else "")
+            + f", in {h:,.1f} h of running (the slowest group's: {slow.run}, {slow.left:,} "
+            f"episodes left at {slow.speed:,.0f}/h){counted}{after}"
         )
 
 
@@ -165,8 +194,7 @@ def page_line(progress: FigureProgress, now: float) -> str:
     return (
         f"- Progress (page built {built:%Y-%m-%d %H:%M} UTC): {progress.reached()}; speed "
         f"over the last hour of each run's own clock (its rows' `wall_s`): "
-        f"{progress.speeds()}; {progress.finish(now)}"
-        + (", counted from the build." if progress.slowest() else ".")
+        f"{progress.speeds()}; {progress.finish(now, ', counted from the build')}."
     )
 
 
