@@ -114,15 +114,17 @@ class FigureProgress:
         ended (finished short of T)."""
         arms = self.by_arm()
         waiting = self.not_started()
-        begun = {a: e for a, e in arms.items() if a not in waiting} or arms
+        if len(waiting) == len(arms):  # nothing started: the figure is at 0, no more
+            waiting = []
+        begun = {a: e for a, e in arms.items() if a not in waiting}
         low = min(begun.values(), default=0)
         text = f"{low:,} of {self.target:,} episodes"
-        if waiting and len(begun) < len(arms):
-            runs = sum(1 for r in self.runs if r.arm in waiting)
+        if waiting:
             text += f" in the {len(begun)} arm(s) started"
         if len(set(begun.values())) > 1:
             text += " (per arm: " + "; ".join(f"{a} {e:,}" for a, e in begun.items()) + ")"
-        if waiting and len(begun) < len(arms):
+        if waiting:
+            runs = sum(1 for r in self.runs if r.arm in waiting)
             text += f"; not started: {', '.join(waiting)} ({runs} run(s))"
         stopped = [r for r in self.runs if r.stopped]
         if stopped:
