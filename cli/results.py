@@ -26,8 +26,10 @@ CLAIMS_FORMAT = 1
 
 
 def claims_record(figure: str, profile: str, verdicts: list, reached: int, full: int,
-                  seeds: list[int]) -> dict[str, Any]:  # fmt: skip
-    """What a page says about its claims, for `macb results`."""
+                  seeds: list[int], not_started: list[str] | None = None,
+                  ) -> dict[str, Any]:  # fmt: skip
+    """What a page says about its claims, for `macb results`: `reached` is how far the
+    arms started got, `not_started` the arms with no row yet."""
     return {
         "format": CLAIMS_FORMAT,
         "figure": figure,
@@ -35,6 +37,7 @@ def claims_record(figure: str, profile: str, verdicts: list, reached: int, full:
         "episodes_reached": reached,
         "episodes_full": full,
         "seeds": seeds,
+        "arms_not_started": list(not_started or []),
         "claims": [
             {"text": c.text, "measured": text, "verdict": verdict} for c, text, verdict in verdicts
         ],
@@ -97,6 +100,8 @@ def _length(record: dict[str, Any]) -> str:
     reached, full = record["episodes_reached"], record["episodes_full"]
     seeds = len(record["seeds"])
     length = "full length" if reached >= full else f"{reached:,} of {full:,} episodes"
+    if waiting := record.get("arms_not_started"):  # absent from older pages' records
+        length += f" ({len(waiting)} arm(s) not started)"
     return f"{length}, {seeds} seed{'s' * (seeds != 1)}"
 
 

@@ -56,6 +56,14 @@ def test_each_claim_shows_each_profiles_page_and_claims_without_one_say_not_run(
     assert all(row.endswith("| not run | not run | not run; not run |") for row in others)
 
 
+def test_a_page_whose_campaign_has_arms_not_started_says_how_many(tmp_path):
+    root = _results(tmp_path)
+    path = _page(root, "fig3-thesis", "thesis", 1200, "not run to that length")
+    record = json.loads(path.read_text())
+    path.write_text(json.dumps({**record, "arms_not_started": ["beta=1.2", "beta=0.6"]}))
+    assert "| 1,200 of 5,000 episodes (2 arm(s) not started), 3 seeds |" in table(root)
+
+
 def test_the_readme_keeps_its_prose_and_check_says_when_it_is_stale(tmp_path):
     root = _results(tmp_path)
     _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced")

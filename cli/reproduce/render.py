@@ -347,10 +347,12 @@ def write_report(
     png = write_png(a, profile, out / f"{name}.png")
     md = out / f"{name}.md"
     md.write_text(markdown(a, profile, png.name, command))
-    lengths = [arm.length for arm in a.arms.values() if arm.runs]
+    # how far the arms started got; the arms with no row yet (a campaign's next turn) named
+    lengths = [arm.length for arm in a.arms.values() if arm.runs and arm.length]
+    waiting = [n for n, arm in a.arms.items() if arm.runs and not arm.length] if lengths else []
     record = claims_record(
         name, profile, claim_verdicts(a), min(lengths, default=0), a.fig.episodes,
-        list(a.experiment.get("seeds") or []),
+        list(a.experiment.get("seeds") or []), waiting,
     )  # fmt: skip
     claims = out / f"{name}-claims.json"
     claims.write_text(json.dumps(record, indent=1) + "\n")
