@@ -340,6 +340,9 @@ def test_arms_not_started_are_named_not_counted_as_the_figures_progress(runs_dir
     why = md.split("## Why")[1].split("\n## ")[0]
     (waiting,) = [r for r in why.splitlines() if r.startswith("| Distance + Cen-MACB")]
     assert "| - | - | none paid yet |" in waiting, "no per-seed cells for runs not started"
+    claims = md.split("## Claims")[1].split("\n## ")[0]
+    (dense,) = [x for x in claims.splitlines() if "dense reward setting" in x]
+    assert "| no points | no points | **not run to that length** |" in dense
 
 
 def test_a_figure_none_of_whose_runs_started_says_so():

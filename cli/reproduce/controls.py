@@ -325,4 +325,6 @@ def claim_per_seed(a: Analysis, check: Any) -> str:
         if len(arms) == 1:
             text = text.removeprefix(f"{arms[0]}: ")
         parts.append(f"s{s}: {text}")
+    if all(p.endswith(": no points") for p in parts):  # none started: once, not per seed
+        return "no points" if parts else "-"
     return "; ".join(parts) or "-"
