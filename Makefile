@@ -27,7 +27,7 @@ setup: $(STAMP)
 run: $(STAMP)
 	$(BIN)/macb up --run configs/default.yaml --out runs/default --data-dir runs/cluster --quiet-services
 
-# Everything but the long checks (marked `slow`): 10-16 minutes on 2 shared cores (the slower machines take longer).
+# Everything but the long checks (marked `slow`): 18-20 minutes on 2 shared cores.
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
@@ -36,7 +36,7 @@ test: $(STAMP)
 
 # The long checks: learning (DDPG learns sparse simple; bf16 learns like fp32; the
 # cluster learns like the trainer), the fault matrix, `macb reproduce` end to end:
-# ~19 minutes. `.ci/run` runs them after `make test`.
+# ~25 minutes. `.ci/run` runs them after `make test`.
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -rs -m slow
 

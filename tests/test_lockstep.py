@@ -214,8 +214,16 @@ def test_early_stop_under_async_is_refused_and_a_cluster_group_may_hold_it():
     assert group_error([config, config.model_copy(update={"early_stop": None})], 1) is None
 
 
+# The counter's resend (3 s) in `make test`; the short pauses in test-slow, since the
+# group's test below pauses each service in `make test` (a run alone is a group of one).
 @pytest.mark.parametrize(
-    ("paused", "seconds"), [("counter", 1.2), ("counter", 3.0), ("learner", 1.2), ("actor0", 1.2)]
+    ("paused", "seconds"),
+    [
+        pytest.param("counter", 1.2, marks=pytest.mark.slow),
+        ("counter", 3.0),
+        pytest.param("learner", 1.2, marks=pytest.mark.slow),
+        pytest.param("actor0", 1.2, marks=pytest.mark.slow),
+    ],
 )
 def test_a_late_count_or_a_late_message_changes_nothing(cluster, bus, tmp_path, paused, seconds):
     """One service paused mid-run (SIGSTOP, then SIGCONT): the counter's acks come late
