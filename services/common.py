@@ -176,17 +176,24 @@ class ServiceBase(ServiceHooks):
         """Decode a per-run message; None (and a counted reject) unless it is for our run.
         A status from another attempt of the run is dropped silently: late traffic of
         an ended attempt, as of a run let go."""
+        return self.decode_or_why(key, payload, expect)[0]
+
+    def decode_or_why(
+        self, key: str, payload: bytes, expect: type[M]
+    ) -> tuple[M | None, str | None]:
+        """`decode_for_run`'s message, or None and the reject's reason (None when dropped
+        silently): what a query's refusal tells its asker."""
         try:
             msg = decode(payload, expect)
         except WireError as err:
             self.reject(key, str(err))
-            return None
+            return None, str(err)
         why = self.served.refusal(keys.run_of(key), msg.run)
         if why:
             self.reject(key, why)
         if isinstance(msg, Status) and not self.of_attempt(msg.run, msg.attempt):
-            return None
-        return msg if why is None else None
+            return None, why
+        return (msg, None) if why is None else (None, why)
 
     def of_attempt(self, run: str, attempt: int | None) -> bool:
         """Whether a message naming `attempt` may be of the attempt of `run` served."""

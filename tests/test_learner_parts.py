@@ -20,6 +20,7 @@ from services.learner.state import LearnerRun, RunGroup, new_run
 from shared.config import make_config
 from shared.core.learners.runs import SoloRuns
 from shared.envs.tasks import task_spec_for
+from shared.net.bus import Replies
 from shared.net.messages import Ack, Action, ActRequest, Metrics, Weights
 from shared.net.wire import WireError, decode, encode
 from shared.run.factories import build_learner
@@ -46,8 +47,8 @@ class SilentCounter:
     def get_async(self, key, payload, timeout):  # noqa: ANN001, ARG002
         return None
 
-    def collect(self, replies):  # noqa: ANN001, ARG002
-        return []
+    def collect_all(self, replies):  # noqa: ANN001, ARG002
+        return Replies()
 
     def reject(self, key, why):  # noqa: ANN001, ARG002
         pass

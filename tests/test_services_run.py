@@ -16,6 +16,7 @@ from services.learner.evaluations import EvaluationsInFlight
 from shared.config import make_config
 from shared.core.replay import Batch
 from shared.net import bus as keys
+from shared.net.bus import Replies
 from shared.net.control import discover, start_run
 from shared.net.messages import BonusQuery, BonusReply, Transitions
 from shared.net.wire import decode, encode
@@ -194,8 +195,8 @@ class _FakeBus:
         return [encode(BonusReply("r1", counts=np.ones_like(bonus), bonus=bonus))]
 
     @staticmethod
-    def collect(replies: list[bytes]) -> list[bytes]:
-        return replies
+    def collect_all(replies: list[bytes]) -> Replies:
+        return Replies(ok=replies)
 
 
 def test_bonus_client_prices_a_ticks_batches_in_one_query_and_splits_the_answer():

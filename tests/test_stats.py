@@ -27,6 +27,7 @@ LEARNER_MAP = {  # a learner's stats map as run_stats made it before the types
     "bonus_rows_per_query": 1024.0,
     "bonus_failures": 0,
     "bonus_unanswered": 1,
+    "bonus_refused": 2,
     "bonus_mean": 0.3,
     "rejects_total": 0,
     "contended_updates": 2,

@@ -35,7 +35,7 @@ from services.counter.runs import Runs, keys_held
 from services.counter.state import RunState
 from services.counter.stats import run_stats, update_rate
 from shared.config import TrainConfig
-from shared.net.bus import k_ack, k_bonus, k_status, k_transitions, run_of
+from shared.net.bus import Refused, k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.net.info import CounterInfo, ServiceInfo
 from shared.net.messages import Ack, Assignment, BonusQuery, Status, Transitions
 from shared.net.wire import WireError, check_dims, encode
@@ -216,22 +216,23 @@ class CounterService(ServiceBase):
         self.bus.put(k_ack(run, self.id), ack)
 
     # ------------------------------------------------------------ bonus queries
-    def _on_bonus(self, key: str, payload: bytes) -> bytes | None:
-        """On Zenoh's thread: counts and bonus for B rows, or None (rejected, no reply)."""
+    def _on_bonus(self, key: str, payload: bytes) -> bytes | Refused | None:
+        """On Zenoh's thread: counts and bonus for B rows, or the reject's reason as a
+        refusal (the learner counts it apart from a query nobody answered)."""
         with self.queries.answering():
             t0 = time.perf_counter()
-            msg = self.decode_for_run(key, payload, BonusQuery)
+            msg, why = self.decode_or_why(key, payload, BonusQuery)
             if msg is None:
-                return None
+                return Refused(why or "not a run served here")
             st = self.runs.get(msg.run)
             if st is None:
                 self.reject(key, f"unknown run: {msg.run}")
-                return None
+                return Refused(f"unknown run: {msg.run}")
             try:
                 bonus.check(st, msg)
             except WireError as err:
                 self._run_reject(st, key, str(err))
-                return None
+                return Refused(str(err))
             return bonus.answer(st, msg, self.runs.lock, t0)
 
     # ------------------------------------------------------------ stats, timers

@@ -11,6 +11,7 @@ where a malformed reply is reported.
 from __future__ import annotations
 
 import collections
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,20 +19,23 @@ from typing import Any
 
 import numpy as np
 
+from shared.net.bus import Replies
 from shared.net.messages import BonusQuery, BonusReply
 from shared.net.wire import WireError, decode, encode
 
+log = logging.getLogger(__name__)
+
 # Sends a query's payload to the run's counter; returns the wait for its replies.
-Query = Callable[[bytes], Callable[[], list[bytes]]]
+Query = Callable[[bytes], Callable[[], Replies]]
 QUERY_TIMEOUT_S = 2.0
 
 
 def bus_query(bus: Any, key: str, timeout: float = QUERY_TIMEOUT_S) -> Query:
-    """A query on `bus` (`get_async`, then `collect` its replies) at `key`."""
+    """A query on `bus` (`get_async`, then `collect_all` its replies) at `key`."""
 
-    def query(payload: bytes) -> Callable[[], list[bytes]]:
+    def query(payload: bytes) -> Callable[[], Replies]:
         replies = bus.get_async(key, payload, timeout=timeout)
-        return lambda: bus.collect(replies)
+        return lambda: bus.collect_all(replies)
 
     return query
 
@@ -49,6 +53,8 @@ class BonusClient:
         self.wait_s = 0.0  # all time spent in queries (the learner waits for each)
         self.failures = 0  # queries answered, but by no reply the learner could use
         self.unanswered = 0  # queries no counter answered in time (priced again later)
+        self.refused = 0  # queries the counter refused, saying why (priced again later)
+        self.refusals: set[str] = set()  # the reasons logged (each once)
         self.queries = 0
         self.rows = 0
         # The counter's table stats as of the last answered query (its reply carries
@@ -88,10 +94,13 @@ class BonusClient:
             replies = query.replies()
         finally:
             self.wait_s += time.perf_counter() - query.t0
-        if not replies:
-            self.unanswered += 1
+        if not replies.ok:
+            if replies.refused:
+                self._refused(replies.refused[0])
+            else:
+                self.unanswered += 1
             return None
-        for raw in replies:
+        for raw in replies.ok:
             try:
                 msg = decode(raw, BonusReply)
             except WireError as err:
@@ -111,6 +120,14 @@ class BonusClient:
         self.failures += 1
         return None
 
+    def _refused(self, why: str) -> None:
+        """A refusal is the counter's word on this run (a run it does not know, a
+        query it cannot price): counted, and each reason logged once."""
+        self.refused += 1
+        if why not in self.refusals and len(self.refusals) < 16:
+            self.refusals.add(why)
+            log.warning("run %s: the counter refused a bonus query: %s", self.run, why)
+
 
 @dataclass
 class PendingBonus:
@@ -119,7 +136,7 @@ class PendingBonus:
 
     sizes: list[int]
     priced: list[np.ndarray] | None
-    replies: Callable[[], list[bytes]] = list  # waits for the counter's replies
+    replies: Callable[[], Replies] = Replies  # waits for the counter's replies
     t0: float = 0.0
 
 

@@ -95,6 +95,7 @@ def run_stats(st: LearnerRun, rejects_total: int) -> LearnerStats:
         bonus_rows_per_query=st.bonus.rows / max(1, st.bonus.queries),
         bonus_failures=st.bonus.failures,
         bonus_unanswered=st.bonus.unanswered,
+        bonus_refused=st.bonus.refused,
         bonus_mean=float(np.mean(sp.bonus_means)) if sp.bonus_means else 0.0,
         rejects_total=rejects_total,
         contended_updates=sp.contended_updates,

@@ -19,6 +19,7 @@ import logging
 import os
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
@@ -180,6 +181,26 @@ def capture_zenoh_log(target: str, on_line: Callable[[str], None]) -> None:
     _init_logging()
 
 
+REFUSED = b"refused: "  # an error reply of ours; Zenoh's own ("Timeout") lack it
+
+
+@dataclass(frozen=True)
+class Refused:
+    """A query handler's refusal: sent as an error reply carrying `reason`, so the asker
+    tells a refused query from one nobody answered in time (Zenoh ends a query that
+    timed out with an error reply of its own, which is not a refusal)."""
+
+    reason: str
+
+
+@dataclass
+class Replies:
+    """A query's replies: each ok reply's payload, and each refusal's reason."""
+
+    ok: list[bytes] = field(default_factory=list)
+    refused: list[str] = field(default_factory=list)
+
+
 class Bus:
     """One Zenoh session and what a service declares on it (kept alive until close)."""
 
@@ -252,8 +273,11 @@ class Bus:
                 handle.undeclare()
 
     # ------------------------------------------------------------ queries
-    def queryable(self, key_expr: str, handler: Callable[[str, bytes], bytes | None]) -> None:
-        """handler(key, payload) -> reply bytes (or None for no reply), on Zenoh's thread."""
+    def queryable(
+        self, key_expr: str, handler: Callable[[str, bytes], bytes | Refused | None]
+    ) -> None:
+        """handler(key, payload) -> reply bytes, a `Refused` (an error reply with its
+        reason) or None (no reply), on Zenoh's thread."""
 
         concrete = "*" not in key_expr
 
@@ -267,7 +291,9 @@ class Bus:
                 except Exception:
                     log.exception("query handler failed on %s", query.key_expr)
                     return
-                if reply is not None:
+                if isinstance(reply, Refused):
+                    query.reply_err(REFUSED + reply.reason.encode())
+                elif reply is not None:
                     query.reply(key_expr if concrete else query.key_expr, reply)
 
         self._held.append(self.session.declare_queryable(key_expr, on_query))
@@ -280,6 +306,18 @@ class Bus:
     def collect(replies: Any) -> list[bytes]:
         """Every ok reply's payload of a query `get_async` started (waiting for them)."""
         return [r.ok.payload.to_bytes() for r in replies if r.ok]
+
+    @staticmethod
+    def collect_all(replies: Any) -> Replies:
+        """A query's ok payloads and our refusals' reasons (waiting for them); other
+        error replies (Zenoh's timeout) count as no answer."""
+        out = Replies()
+        for r in replies:
+            if r.ok:
+                out.ok.append(r.ok.payload.to_bytes())
+            elif r.err and (raw := r.err.payload.to_bytes()).startswith(REFUSED):
+                out.refused.append(raw[len(REFUSED) :].decode(errors="replace"))
+        return out
 
     def get_async(self, selector: str, payload: bytes | None = None, timeout: float = 2.0):
         """Start a query; iterate the returned handler later for the replies (`.ok`)."""

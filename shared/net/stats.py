@@ -106,6 +106,7 @@ class LearnerStats:
     bonus_rows_per_query: float = 0.0
     bonus_failures: int = 0  # answered by no usable reply (malformed, wrong shape)
     bonus_unanswered: int = 0  # no reply in time: its minibatches priced again later
+    bonus_refused: int = 0  # refused by the counter, saying why: priced again later too
     bonus_mean: float = 0.0
     rejects_total: int = 0
     contended_updates: int = 0
