@@ -71,9 +71,10 @@ class ServiceHooks:
     (all of them optional), apart from the machinery that calls them, so a service's
     main.py reads as its answers to these events."""
 
-    def start_replaces(self, run: str) -> bool:
-        """A start for a run this service already serves: False ignores it (a repeated
-        start); True means it begins a new attempt, and the service has let the old go."""
+    def start_replaces(self, run: str, attempt: int | None) -> bool:
+        """A start for a run this service already serves, as `attempt` (the one served,
+        or either not known): False ignores it (a repeated start); True means it begins
+        a new attempt, and the service has let the old go."""
         return False
 
     def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
@@ -263,7 +264,7 @@ class ServiceBase(ServiceHooks):
                 "run %s: attempt %s started while serving attempt %s", run, msg.attempt, old
             )
             self._end(run, "stopped", f"attempt {msg.attempt} of the run started")
-        elif run in self.active and not self.start_replaces(run):
+        elif run in self.active and not self.start_replaces(run, msg.attempt):
             return  # repeated start: idempotent
         if self.served.full() and not self.joins_group(run, msg.assign):
             self.log.warning("asked to start %s while serving %s: ignored", run, self.run_id)

@@ -465,6 +465,33 @@ def test_a_retry_whose_stop_never_came_is_counted_afresh_and_freed_by_its_learne
     assert done.attempt == 2 and run not in counter.info()["runs"]
 
 
+def test_a_restored_run_started_again_as_the_attempt_it_holds_keeps_its_counts(counter):
+    """A start naming the attempt a restored counter noted (attempt.json) is a repeated
+    start of that attempt: its tables stay; one naming no attempt is a new attempt."""
+    counter.launch()
+    run, stream = "r-same", Stream(3, 10)
+    counter.bus.put(k_control("start"), encode(Start(run, config=BASE, assign=ASSIGN, attempt=3)))
+    wait_for(lambda: run in (counter.info() or {}).get("runs", {}), 20, what="attempt 3")
+    counter.send(run, "a0", stream, 0, 10)
+    counter.wait_acked(run, {"a0": 10})
+    counter.kill(signal.SIGTERM)
+    counter.launch()
+    assert counter.stats(run)["counted_transitions"] == 10
+    counter.bus.put(k_control("start"), encode(Start(run, config=BASE, assign=ASSIGN, attempt=3)))
+    wait_for(lambda: "attempt 3 started again: already restored" in counter.log(), 10,
+             what="the repeated start")  # fmt: skip
+    assert counter.stats(run)["counted_transitions"] == 10
+    assert "started again while restored from disk" not in counter.log()
+    counter.bus.put(k_control("start"), encode(Start(run, config=BASE, assign=ASSIGN)))
+    wait_for(lambda: "started again while restored from disk" in counter.log(), 10,
+             what="a new attempt")  # fmt: skip
+    wait_for(
+        lambda: (counter.info() or {}).get("runs", {}).get(run, {}).get("counted_transitions") == 0,
+        10,
+        what="counted afresh",
+    )
+
+
 def test_timed_snapshots_wait_for_the_log_to_reach_a_quarter_of_the_table(counter):
     # k=64: 16-byte keys, 24 snapshot bytes per key, 16 log bytes per row (+30 per record).
     counter.launch(snapshot_s=0.2)

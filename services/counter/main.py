@@ -109,13 +109,17 @@ class CounterService(ServiceBase):
             )
         self.publish_status(run, "running", counted=st.counted)
 
-    def start_replaces(self, run: str) -> bool:
+    def start_replaces(self, run: str, attempt: int | None) -> bool:
         """A start for a run resumed from disk at startup: the run was queued again (its
         earlier attempt ended while this counter was down, so no stop reached it). Its
         old tables and expected numbers must not meet the new attempt's transitions,
         numbered from 0 again: stop the old state (archived by on_start) and start anew.
-        A run started in this process ignores a repeated start as every service does."""
+        A start naming the attempt restored (attempt.json) is that attempt's again, and
+        a run started in this process ignores a repeated start, as every service does."""
         if run not in self.runs.restored:
+            return False
+        if attempt is not None and attempt == self.served.attempts.get(run):
+            self.log.info("run %s: attempt %s started again: already restored", run, attempt)
             return False
         self.log.warning("run %s: started again while restored from disk: a new attempt", run)
         self.on_stop(run, "a new attempt of the run started")
