@@ -101,7 +101,8 @@ def _length(record: dict[str, Any]) -> str:
     seeds = len(record["seeds"])
     length = "full length" if reached >= full else f"{reached:,} of {full:,} episodes"
     if waiting := record.get("arms_not_started"):  # absent from older pages' records
-        length += f" ({len(waiting)} arm(s) not started)"
+        started = "the started arms at " + length if reached >= full else length
+        length = f"{started} ({len(waiting)} arm(s) not started)"
     return f"{length}, {seeds} seed{'s' * (seeds != 1)}"
 
 

@@ -10,6 +10,7 @@ again later, as before; only what the learner reports differs.
 from __future__ import annotations
 
 import logging
+import signal
 import threading
 
 import numpy as np
@@ -36,7 +37,7 @@ def _batch(rows: int = 4) -> Batch:
 
 
 def test_a_refused_query_says_why_and_a_silent_one_is_unanswered(cluster, bus, caplog):
-    cluster.service("counter")
+    cluster.service("counter", "c0")
     wait_services(bus, 1)
     key = keys.k_bonus("r-unknown")
 
@@ -44,13 +45,13 @@ def test_a_refused_query_says_why_and_a_silent_one_is_unanswered(cluster, bus, c
     query = encode(BonusQuery("r-unknown", obs=np.zeros((4, 3), np.float32),
                               act=np.zeros((4, 2), np.float32)))  # fmt: skip
     got = bus.collect_all(bus.get_async(key, query, timeout=2.0))
-    assert got.ok == [] and len(got.refused) == 1, got
-    assert "r-unknown" in got.refused[0], got.refused
+    assert got.ok == [] and [r.by for r in got.refused] == ["c0"], got
+    assert "r-unknown" in got.refused[0].reason, got.refused
     # not a query at all: refused with the decoder's reason
     garbage = bus.collect_all(bus.get_async(key, b"\x00garbage\xff", timeout=2.0))
-    assert garbage.ok == [] and len(garbage.refused) == 1 and garbage.refused[0], garbage
+    assert garbage.ok == [] and len(garbage.refused) == 1 and garbage.refused[0].reason, garbage
 
-    client = BonusClient(bus_query(bus, key), print, "r-unknown", "cen-macb", 0.8, 2)
+    client = BonusClient(bus_query(bus, key), print, "r-unknown", "cen-macb", 0.8, 2, "c0")
     with caplog.at_level(logging.WARNING, logger="services.learner.bonus"):
         assert client.bonus_for([_batch(), _batch()]) is None
         assert client.bonus_for([_batch()]) is None
@@ -58,9 +59,21 @@ def test_a_refused_query_says_why_and_a_silent_one_is_unanswered(cluster, bus, c
     said = [r.getMessage() for r in caplog.records if "refused a bonus query" in r.getMessage()]
     assert len(said) == 1 and "r-unknown" in said[0], "each reason logged once"
 
+    # A counter per node answers every run's key: another counter's refusal is not the
+    # run's counter's word (it does not serve the run), so it leaves the query unanswered.
+    cluster.service("counter", "c1", name="counter1")
+    wait_services(bus, 2)
+    both = bus.collect_all(bus.get_async(key, query, timeout=2.0))
+    assert sorted(r.by for r in both.refused) == ["c0", "c1"], both
+    elsewhere = BonusClient(bus_query(bus, key), print, "r-unknown", "cen-macb", 0.8, 2, "c9")
+    assert elsewhere.bonus_for([_batch()]) is None
+    assert (elsewhere.refused, elsewhere.unanswered) == (0, 1)
+    cluster.kill("counter1", signal.SIGTERM)
+
     # a counter that answers nothing (stopped): Zenoh's own timeout is no refusal
-    quick = BonusClient(bus_query(bus, key, timeout=0.5), print, "r-unknown", "cen-macb", 0.8, 2)
-    pause = threading.Thread(target=cluster.pause, args=("counter",), kwargs={"seconds": 2.0})
+    quick = BonusClient(bus_query(bus, key, timeout=0.5), print, "r-unknown", "cen-macb", 0.8,
+                        2, "c0")  # fmt: skip
+    pause = threading.Thread(target=cluster.pause, args=("c0",), kwargs={"seconds": 2.0})
     pause.start()
     try:
         threading.Event().wait(0.3)  # the SIGSTOP has landed
@@ -78,7 +91,7 @@ def test_a_handlers_refusal_reaches_the_asker_and_other_errors_do_not(router):
     ours; a handler that raises or returns None sends nothing."""
     a, b = Bus([router]), Bus([router])
     try:
-        b.queryable("t/refuse", lambda k, p: Refused(f"no {p.decode()}"))
+        b.queryable("t/refuse", lambda k, p: Refused("b", f"no {p.decode()}: none"))
         b.queryable("t/raise", lambda k, p: 1 / 0)
         b.queryable("t/ok", lambda k, p: b"yes")
         wait = threading.Event()
@@ -86,7 +99,8 @@ def test_a_handlers_refusal_reaches_the_asker_and_other_errors_do_not(router):
             if a.collect_all(a.get_async("t/ok", b"", timeout=1.0)).ok:
                 break
             wait.wait(0.1)
-        assert a.collect_all(a.get_async("t/refuse", b"x", timeout=1.0)) == Replies([], ["no x"])
+        refused = a.collect_all(a.get_async("t/refuse", b"x", timeout=1.0))
+        assert refused == Replies([], [Refused("b", "no x: none")]), refused
         assert a.collect_all(a.get_async("t/raise", b"x", timeout=1.0)) == Replies()
         assert a.get("t/refuse", b"x", timeout=1.0) == []  # `get` keeps only ok replies
     finally:

@@ -345,10 +345,41 @@ def test_arms_not_started_are_named_not_counted_as_the_figures_progress(runs_dir
     assert "| no points | no points | **not run to that length** |" in dense
 
 
-def test_a_figure_none_of_whose_runs_started_says_so():
+def test_an_arm_some_of_whose_seeds_started_is_started(runs_dir, tmp_path):
+    """Runs start one by one (the API's queue): an arm with one seed's rows is started,
+    at the least its seeds reached (0), not listed with the arms not started."""
+    every = ("fig8", "--profile", "thesis", "--arms", "*", "--seeds", "0", "1")
+    body = select_arms(FIG8, experiment_body(FIG8, "thesis", [0, 1], None), ["*"])
+    (one,) = [r for r in expand_body(body)[2] if r.arm == "Distance" and r.seed == 0]
+    folder = runs_dir / one.name
+    folder.mkdir()
+    (folder / "config.json").write_text(json.dumps(one.config.model_dump(mode="json")))
+    rows = [json.dumps(row) for row in _rows("Sparse", 0)[:100]]
+    (folder / "metrics.jsonl").write_text("\n".join(rows) + "\n")
+    assert main(["reproduce", *every, "--report-only", "--runs", str(runs_dir),
+                 "--out", str(tmp_path / "page")]) == 1  # fmt: skip
+    header = (tmp_path / "page" / "fig8.md").read_text().split("## Arms")[0]
+    assert "these runs reached 0, 1,500, 2,000 episodes (2 arm(s) not started)." in header
+    assert "0 of 40,000 episodes in the 5 arm(s) started" in header
+    assert "not started: Distance + Cen-MACB (beta=0.1), Distance + constant beta=0.1" in header
+    record = json.loads((tmp_path / "page" / "fig8-claims.json").read_text())
+    assert record["episodes_reached"] == 0 and len(record["arms_not_started"]) == 2
+
+
+def test_a_figure_none_of_whose_runs_started_says_so_and_so_between_two_turns():
     from cli.reproduce.status import FigureProgress, RunProgress
 
     runs = [RunProgress(f"r{i}", "a", i, 100) for i in range(2)]
     progress = FigureProgress(runs, 100)
     assert progress.reached() == "0 of 100 episodes"
     assert progress.finish(0.0) == "no projection: no run has started (2 to run)"
+    # the first turn's arm done, the next one's not started
+    split = FigureProgress(
+        [RunProgress("r0", "a", 0, 100, episode=100), RunProgress("r1", "b", 0, 100)], 100
+    )
+    assert (
+        split.reached() == "100 of 100 episodes in the 1 arm(s) started; not started: b (1 run(s))"
+    )
+    assert split.finish(0.0) == (
+        "the runs started are finished; 1 run(s) not started, not projected"
+    )

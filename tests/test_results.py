@@ -62,6 +62,8 @@ def test_a_page_whose_campaign_has_arms_not_started_says_how_many(tmp_path):
     record = json.loads(path.read_text())
     path.write_text(json.dumps({**record, "arms_not_started": ["beta=1.2", "beta=0.6"]}))
     assert "| 1,200 of 5,000 episodes (2 arm(s) not started), 3 seeds |" in table(root)
+    path.write_text(json.dumps({**record, "episodes_reached": 5000, "arms_not_started": ["x"]}))
+    assert "| the started arms at full length (1 arm(s) not started), 3 seeds |" in table(root)
 
 
 def test_the_readme_keeps_its_prose_and_check_says_when_it_is_stale(tmp_path):

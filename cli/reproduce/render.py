@@ -59,6 +59,21 @@ def _milestone(arm: ArmCurve, episode: int, metric: str) -> str:
     return f"{v:.0%}"
 
 
+def started_runs(a: Analysis) -> set[str]:
+    """The runs with a row."""
+    return {r for r, cols in a.points.items() if len(cols.get("episode", ()))}
+
+
+def not_started(a: Analysis) -> list[str]:
+    """The selected arms none of whose runs has a row yet, while others have: a campaign
+    that runs its arms in turns (figure 8's sparse arms, then its dense ones). An arm
+    some of whose seeds started is started (its length is the least they reached)."""
+    has = started_runs(a)
+    arms = [(n, arm) for n, arm in a.arms.items() if arm.runs]
+    waiting = [n for n, arm in arms if not has.intersection(arm.runs)]
+    return waiting if len(waiting) < len(arms) else []
+
+
 def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str:
     """The report's line on what the runs ran on, from each run's provenance (the
     learner's report, `live.provenance`): the precision as run, which may not be the one
@@ -122,10 +137,10 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
         base["episodes"] = runs[0]["config"]["episodes"]
     base["profile"] = profile
     counts = ", ".join(f"{v} {k}" for k, v in (exp.get("counts") or {}).items())
-    # the arms selected; an arm with no row yet waits its turn in the campaign
-    lengths = {arm.length for arm in a.arms.values() if arm.runs and arm.length}
-    waiting = [name for name, arm in a.arms.items() if arm.runs and not arm.length]
-    window = sorted({arm.window for arm in a.arms.values()})
+    waiting = not_started(a)
+    begun = [arm for name, arm in a.arms.items() if arm.runs and name not in waiting]
+    lengths = {arm.length for arm in begun}  # the arms selected and started
+    window = sorted({arm.window for arm in begun} or {arm.window for arm in a.arms.values()})
     lines = [
         f"# {fig.title}",
         "",
@@ -175,9 +190,7 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
             + "): a claim beyond where they ended is judged on the episodes they ran, "
             "and says so."
         ]
-    lines += [
-        what_ran(runs, started={r for r, cols in a.points.items() if len(cols.get("episode", ()))})
-    ]
+    lines += [what_ran(runs, started_runs(a))]
     if exp.get("wall_s"):  # local runs: their own clocks, over every start
         lines += [
             f"- Wall time: {exp['wall_s'] / 3600:.2f} h, the longest run's own clock (its "
@@ -347,9 +360,8 @@ def write_report(
     png = write_png(a, profile, out / f"{name}.png")
     md = out / f"{name}.md"
     md.write_text(markdown(a, profile, png.name, command))
-    # how far the arms started got; the arms with no row yet (a campaign's next turn) named
-    lengths = [arm.length for arm in a.arms.values() if arm.runs and arm.length]
-    waiting = [n for n, arm in a.arms.items() if arm.runs and not arm.length] if lengths else []
+    waiting = not_started(a)  # a campaign's next turn, named
+    lengths = [arm.length for n, arm in a.arms.items() if arm.runs and n not in waiting]
     record = claims_record(
         name, profile, claim_verdicts(a), min(lengths, default=0), a.fig.episodes,
         list(a.experiment.get("seeds") or []), waiting,

@@ -151,6 +151,8 @@ class FigureProgress:
         after = f"; then {queued} run(s) not started, not projected" if queued else ""
         if slow is None:
             waiting = sum(1 for r in self.runs if r.left and r.started and r.hours_left is None)
+            if not waiting and any(r.started for r in self.runs):  # between two turns
+                return f"the runs started are finished; {queued} run(s) not started, not projected"
             if not waiting:
                 return f"no projection: no run has started ({queued} to run)"
             return (

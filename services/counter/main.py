@@ -227,16 +227,16 @@ class CounterService(ServiceBase):
             t0 = time.perf_counter()
             msg, why = self.decode_or_why(key, payload, BonusQuery)
             if msg is None:
-                return Refused(why or "not a run served here")
+                return Refused(self.id, why or "not a run served here")
             st = self.runs.get(msg.run)
             if st is None:
                 self.reject(key, f"unknown run: {msg.run}")
-                return Refused(f"unknown run: {msg.run}")
+                return Refused(self.id, f"unknown run: {msg.run}")
             try:
                 bonus.check(st, msg)
             except WireError as err:
                 self._run_reject(st, key, str(err))
-                return Refused(str(err))
+                return Refused(self.id, str(err))
             return bonus.answer(st, msg, self.runs.lock, t0)
 
     # ------------------------------------------------------------ stats, timers

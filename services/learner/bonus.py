@@ -45,9 +45,19 @@ class BonusClient:
     `query` sends one (`bus_query`), `reject(why)` reports a malformed reply."""
 
     def __init__(
-        self, query: Query, reject: Callable[[str], None], run: str, mode: str, beta: float, n: int
+        self,
+        query: Query,
+        reject: Callable[[str], None],
+        run: str,
+        mode: str,
+        beta: float,
+        n: int,
+        counter: str | None = None,
     ) -> None:
         self.query, self.reject = query, reject
+        # the run's counter: only its refusal counts (every node's counter answers the
+        # key; the others do not serve the run). None: any counter's.
+        self.counter = counter
         self.run, self.mode, self.beta, self.n = run, mode, beta, n
         self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
         self.wait_s = 0.0  # all time spent in queries (the learner waits for each)
@@ -95,8 +105,9 @@ class BonusClient:
         finally:
             self.wait_s += time.perf_counter() - query.t0
         if not replies.ok:
-            if replies.refused:
-                self._refused(replies.refused[0])
+            mine = [r for r in replies.refused if self.counter in (None, r.by)]
+            if mine:
+                self._refused(mine[0].reason)
             else:
                 self.unanswered += 1
             return None

@@ -227,7 +227,7 @@ class LearnerService(ServiceBase):
         bonus_key = keys.k_bonus(run)
         bonus = BonusClient(
             bus_query(self.bus, bonus_key), lambda why: self.reject(bonus_key, why),
-            run, config.explore, config.beta, spec.n_agents,
+            run, config.explore, config.beta, spec.n_agents, assign.counter,
         )  # fmt: skip
         st = self.runs[run] = new_run(
             run, config, spec, list(assign.actors), learner=learner, bonus=bonus,

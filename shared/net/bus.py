@@ -186,19 +186,32 @@ REFUSED = b"refused: "  # an error reply of ours; Zenoh's own ("Timeout") lack i
 
 @dataclass(frozen=True)
 class Refused:
-    """A query handler's refusal: sent as an error reply carrying `reason`, so the asker
-    tells a refused query from one nobody answered in time (Zenoh ends a query that
-    timed out with an error reply of its own, which is not a refusal)."""
+    """A query handler's refusal: sent as an error reply `refused: <by>: <reason>`, so
+    the asker tells a refused query from one nobody answered in time (Zenoh ends a query
+    that timed out with an error reply of its own, which is not a refusal), and whose
+    refusal it is (several services may answer one key: a counter per node)."""
 
+    by: str
     reason: str
+
+    def payload(self) -> bytes:
+        return REFUSED + f"{self.by}: {self.reason}".encode()
+
+    @classmethod
+    def read(cls, raw: bytes) -> Refused | None:
+        """The refusal an error reply carries; None for any other error reply."""
+        if not raw.startswith(REFUSED):
+            return None
+        by, _, reason = raw[len(REFUSED) :].decode(errors="replace").partition(": ")
+        return cls(by, reason)
 
 
 @dataclass
 class Replies:
-    """A query's replies: each ok reply's payload, and each refusal's reason."""
+    """A query's replies: each ok reply's payload, and each refusal."""
 
     ok: list[bytes] = field(default_factory=list)
-    refused: list[str] = field(default_factory=list)
+    refused: list[Refused] = field(default_factory=list)
 
 
 class Bus:
@@ -292,7 +305,7 @@ class Bus:
                     log.exception("query handler failed on %s", query.key_expr)
                     return
                 if isinstance(reply, Refused):
-                    query.reply_err(REFUSED + reply.reason.encode())
+                    query.reply_err(reply.payload())
                 elif reply is not None:
                     query.reply(key_expr if concrete else query.key_expr, reply)
 
@@ -315,8 +328,8 @@ class Bus:
         for r in replies:
             if r.ok:
                 out.ok.append(r.ok.payload.to_bytes())
-            elif r.err and (raw := r.err.payload.to_bytes()).startswith(REFUSED):
-                out.refused.append(raw[len(REFUSED) :].decode(errors="replace"))
+            elif r.err and (refused := Refused.read(r.err.payload.to_bytes())):
+                out.refused.append(refused)
         return out
 
     def get_async(self, selector: str, payload: bytes | None = None, timeout: float = 2.0):
