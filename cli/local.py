@@ -137,7 +137,7 @@ class Refused(SystemExit):
         super().__init__(2)
 
 
-def _rows(folder: Path) -> list[dict[str, Any]]:
+def run_rows(folder: Path) -> list[dict[str, Any]]:
     """A run's rows as written so far. A last line without its newline is a row being
     written by a run that is still going (a page built during a campaign), not yet one;
     a last line that does not parse is one a killed process left torn: both are left
@@ -189,7 +189,7 @@ def run_state(folder: Path, cfg: TrainConfig) -> str:
     'new'."""
     if not _same_config(folder, cfg):
         return "new"
-    rows = _rows(folder)
+    rows = run_rows(folder)
     ended = rows and (rows[-1].get("episode") == cfg.episodes or rows[-1].get("stop_reason"))
     if ended and (folder / "checkpoint.pt").exists():
         return "done"
@@ -404,7 +404,7 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
             starts = provenance.read(folder / provenance.FILE)
         except provenance.ProvenanceError as err:
             log.warning("%s", err)
-        rows = _rows(folder) if state == "done" else []
+        rows = run_rows(folder) if state == "done" else []
         why = rows[-1].get("stop_reason") if rows else None
         described.append(
             {
@@ -424,7 +424,7 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
     for d in described:
         counts[d["status"]] = counts.get(d["status"], 0) + 1
     done = all(d["status"] == "completed" for d in described)
-    walls = [rows[-1].get("wall_s", 0.0) for r in runs if (rows := _rows(out / r.name))]
+    walls = [rows[-1].get("wall_s", 0.0) for r in runs if (rows := run_rows(out / r.name))]
     return {
         "wall_s": max(walls, default=0.0),
         "id": f"local:{out}",
@@ -449,7 +449,7 @@ def _resume(start: dict[str, Any]) -> dict[str, Any]:
 
 def local_points(runs: list[LocalRun], out: Path) -> dict[str, list[dict[str, Any]]]:
     """Each run's metric rows, read from its folder."""
-    return {r.name: _rows(out / r.name) for r in runs}
+    return {r.name: run_rows(out / r.name) for r in runs}
 
 
 def expand_body(body: dict[str, Any]) -> tuple[str, list[int], list[LocalRun]]:

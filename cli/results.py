@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,90 @@ def read_points(path: Path) -> list[dict[str, str]]:
     return list(csv.DictReader(io.StringIO(raw.decode("utf-8"), newline="")))
 
 
+KEYS = ("arm", "seed", "run", "episode")
+
+
+def _value(x: Any) -> float | None:
+    """A point's value for comparing: a number, or None where it is missing (an empty
+    CSV cell, a NaN, a column a row lacks)."""
+    if x is None or x == "":
+        return None
+    v = float(x)
+    return None if math.isnan(v) else v
+
+
+def compare_points(page: Path, runs_dir: Path) -> list[tuple[str, int, int, str | None]]:
+    """Each run of a page's points against its folder in runs_dir, episode by episode,
+    every column of the points file: (run, episodes both have, how many of those are
+    equal in every column, the first difference or why there is nothing to compare).
+    Equal means equal floats: the points file keeps each value's full repr, so rows a
+    second campaign of the same code on the same kind of CPU gives compare equal.
+    A folder's unreadable rows raise `cli.local.MetricsError`, naming the file."""
+    from cli.local import run_rows
+
+    files = sorted(page.glob("*.csv.gz")) or sorted(page.glob("*.csv"))
+    if len(files) != 1:
+        held = ", ".join(f.name for f in files) or "none"
+        raise SystemExit(f"macb results: {page} should hold one page's points "
+                         f"(FIGURE.csv.gz); it holds {held}")  # fmt: skip
+    found = files[0]
+    by_run: dict[str, dict[int, dict[str, str]]] = {}
+    for r in read_points(found):
+        by_run.setdefault(r["run"], {})[int(float(r["episode"]))] = r
+    out: list[tuple[str, int, int, str | None]] = []
+    for run, points in by_run.items():
+        folder = runs_dir / run
+        if not folder.is_dir():
+            out.append((run, 0, 0, f"no folder {folder}"))
+            continue
+        rows = {int(row["episode"]): row for row in run_rows(folder) if "episode" in row}
+        both = sorted(set(points) & set(rows))
+        first, same = None, 0
+        for ep in both:
+            diff = [
+                (c, v, rows[ep].get(c))
+                for c, v in points[ep].items()
+                if c not in KEYS and _value(v) != _value(rows[ep].get(c))
+            ]
+            if not diff:
+                same += 1
+            elif first is None:
+                c, v, w = diff[0]
+                first = f"episode {ep:,}: {c} {v} on the page, {w} in the folder"
+        if not both:
+            first = f"no episode in common ({len(points):,} on the page, {len(rows):,} in {folder})"
+        out.append((run, len(both), same, first))
+    return out
+
+
+def cmd_compare(page: Path, runs_dir: Path) -> int:
+    """`macb results --compare PAGE --runs DIR`: 0 when every run's common points are
+    equal, 1 when one differs, 2 when a run has nothing to compare or cannot be read."""
+    from cli.local import MetricsError
+
+    try:
+        result = compare_points(page, runs_dir)
+    except MetricsError as err:
+        print(f"macb results: {err}", file=sys.stderr)
+        return 2
+    for run, both, same, why in result:
+        if both and same == both:
+            print(f"{run}: equal at all {both:,} episodes both have")
+        elif both:
+            print(f"{run}: {both - same:,} of {both:,} episodes differ; first at {why}")
+        else:
+            print(f"{run}: {why}")
+    differ = sum(1 for _, both, same, _ in result if same != both)
+    empty = sum(1 for _, both, *_ in result if not both)
+    least = min((both for _, both, *_ in result), default=0)
+    print(
+        f"{len(result) - differ - empty} of {len(result)} run(s) equal to {page}'s points "
+        f"at every episode in common (each at least {least:,}); {differ} differ, "
+        f"{empty} with nothing to compare"
+    )
+    return 1 if differ else 2 if empty or not result else 0
+
+
 def _ours(page: tuple[Path, dict[str, Any]] | None, claim: str, root: Path) -> tuple[str, str]:
     """(the measured cell, the verdict) of one claim on one page."""
     if page is None:
@@ -145,6 +230,11 @@ def render(readme: str, generated: str) -> str:
 
 
 def cmd_results(args: argparse.Namespace) -> int:
+    if args.compare:
+        if not args.runs:
+            print("macb results: --compare needs --runs DIR (the runs' folders)", file=sys.stderr)
+            return 2
+        return cmd_compare(Path(args.compare), Path(args.runs))
     root = Path(args.dir)
     readme = root / "README.md"
     if not readme.is_file():
@@ -177,4 +267,13 @@ def add_results_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--check", action="store_true", help="write nothing; exit 1 if the README is stale"
     )
+    p.add_argument(
+        "--compare",
+        metavar="PAGE",
+        help="write nothing: compare a page's points (PAGE/FIGURE.csv.gz) with the runs' "
+        "folders in --runs, episode by episode, every column: do these runs give that "
+        "page's rows bit for bit (a second campaign of the same code, a run on another "
+        "machine)? Exit 0 equal, 1 a difference (the first named), 2 nothing to compare",
+    )
+    p.add_argument("--runs", metavar="DIR", help="with --compare: the runs' folders (OUT/runs)")
     p.set_defaults(func=cmd_results)

@@ -121,3 +121,49 @@ def test_a_page_s_points_are_its_csv_gz_and_an_older_page_s_plain_csv_still_read
     assert stale.returncode == 1, "the table links the page's .csv.gz now"
     with pytest.raises(macb.RunsError, match="no page's points"):
         macb.load_page(tmp_path)
+
+
+def _train(out: Path, seed: int) -> None:
+    """A real run of a few episodes, as `macb train` writes it (distance reward: its
+    evaluation returns differ from seed to seed from the first point)."""
+    done = macb_cli("train", "--task", "speaker_listener", "--algo", "cen-maddpg", "--explore",
+                    "cen-macb", "--hidden", "16,16", "--batch-size", "8", "--learning-starts",
+                    "20", "--eval-every", "2", "--eval-episodes", "1", "--learner-lanes", "1",
+                    "--reward", "dense", "--episodes", "8", "--seed", str(seed), "--out",
+                    str(out), "--quiet")  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_compare_says_whether_runs_give_a_page_s_points_bit_for_bit(tmp_path):
+    from cli.local import run_rows
+    from cli.reproduce.render import write_csv
+
+    first, again, other = (tmp_path / n / "arm-s0" for n in ("first", "again", "other"))
+    _train(first, seed=0)
+    _train(again, seed=0)
+    _train(other, seed=1)
+    page = tmp_path / "page"
+    page.mkdir()
+    exp = {"runs": [{"id": "arm-s0", "arm": "arm", "seed": 0}]}
+    write_csv(exp, {"arm-s0": run_rows(first)}, page / "fig8.csv.gz")
+    episodes = len(run_rows(first))
+    assert episodes >= 4
+
+    same = macb_cli("results", "--compare", str(page), "--runs", str(again.parent))
+    assert same.returncode == 0, same.stdout + same.stderr
+    assert f"arm-s0: equal at all {episodes} episodes both have" in same.stdout
+
+    differ = macb_cli("results", "--compare", str(page), "--runs", str(other.parent))
+    assert differ.returncode == 1, differ.stdout + differ.stderr
+    assert "arm-s0:" in differ.stdout and "differ; first at episode" in differ.stdout
+    assert "on the page" in differ.stdout and "1 differ" in differ.stdout
+
+    missing = macb_cli("results", "--compare", str(page), "--runs", str(tmp_path / "nowhere"))
+    assert missing.returncode == 2 and "no folder" in missing.stdout
+
+    (other / "metrics.jsonl").write_text('{"episode": 1}\nnot json\n{"episode": 3}\n')
+    torn = macb_cli("results", "--compare", str(page), "--runs", str(other.parent))
+    assert torn.returncode == 2 and "metrics.jsonl, line 2" in torn.stderr
+
+    no_runs = macb_cli("results", "--compare", str(page))
+    assert no_runs.returncode == 2 and "--compare needs --runs" in no_runs.stderr
