@@ -147,12 +147,12 @@ def test_reproduce_refuses_bad_counts(flag, tmp_path):
 def test_a_row_being_written_is_not_read_yet(tmp_path):
     """A page built while a campaign runs reads each run's rows as they stand: a last
     line without its newline (a row half written) is left for the next read."""
-    from cli.local import _rows
+    from cli.local import run_rows
 
     (tmp_path / "metrics.jsonl").write_text('{"episode": 10}\n{"episode": 20}\n{"epis')
-    assert [r["episode"] for r in _rows(tmp_path)] == [10, 20]
+    assert [r["episode"] for r in run_rows(tmp_path)] == [10, 20]
     (tmp_path / "metrics.jsonl").write_text('{"episode": 10}\n{"episode": 20}\n')
-    assert [r["episode"] for r in _rows(tmp_path)] == [10, 20]
+    assert [r["episode"] for r in run_rows(tmp_path)] == [10, 20]
 
 
 def test_jobs_default_to_one_group_per_cpu_or_per_gpu(monkeypatch):

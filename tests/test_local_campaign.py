@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from cli.local import MetricsError, _rows, split_groups
+from cli.local import MetricsError, run_rows, split_groups
 from shared import procs
 from shared.persist import runlock
 from tests.harness import macb, spawn, wait_for
@@ -62,13 +62,13 @@ def test_groups_are_as_many_as_jobs_where_the_runs_allow():
 def test_a_torn_last_line_is_left_out_and_garbage_before_it_is_refused_by_line(tmp_path):
     path = tmp_path / "metrics.jsonl"
     path.write_text('{"episode": 10}\n{"episode": 20}\n{"episode": 3\x00\x00\n')
-    assert [r["episode"] for r in _rows(tmp_path)] == [10, 20], "killed mid-row"
+    assert [r["episode"] for r in run_rows(tmp_path)] == [10, 20], "killed mid-row"
     path.write_bytes(b'{"episode": 10}\n\x00\x00\x00\x00{"episode": 20}\n{"episode": 30}\n')
     with pytest.raises(MetricsError, match=rf"{path}, line 2: not a metric row"):
-        _rows(tmp_path)
+        run_rows(tmp_path)
     path.write_text('{"episode": 10}\n[1, 2]\n{"episode": 30}\n')
     with pytest.raises(MetricsError, match="line 2: not a metric row"):
-        _rows(tmp_path)
+        run_rows(tmp_path)
 
 
 def test_a_run_folder_written_by_two_processes_is_refused_naming_the_line(tmp_path):
