@@ -74,6 +74,12 @@ def not_started(a: Analysis) -> list[str]:
     return waiting if len(waiting) < len(arms) else []
 
 
+def started_arms(a: Analysis) -> list[ArmCurve]:
+    """The selected arms that have started: every selected arm while none has."""
+    waiting = not_started(a)
+    return [arm for name, arm in a.arms.items() if arm.runs and name not in waiting]
+
+
 def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str:
     """The report's line on what the runs ran on, from each run's provenance (the
     learner's report, `live.provenance`): the precision as run, which may not be the one
@@ -138,8 +144,8 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
     base["profile"] = profile
     counts = ", ".join(f"{v} {k}" for k, v in (exp.get("counts") or {}).items())
     waiting = not_started(a)
-    begun = [arm for name, arm in a.arms.items() if arm.runs and name not in waiting]
-    lengths = {arm.length for arm in begun}  # the arms selected and started
+    begun = started_arms(a)
+    lengths = {arm.length for arm in begun}
     window = sorted({arm.window for arm in begun} or {arm.window for arm in a.arms.values()})
     lines = [
         f"# {fig.title}",
@@ -360,11 +366,10 @@ def write_report(
     png = write_png(a, profile, out / f"{name}.png")
     md = out / f"{name}.md"
     md.write_text(markdown(a, profile, png.name, command))
-    waiting = not_started(a)  # a campaign's next turn, named
-    lengths = [arm.length for n, arm in a.arms.items() if arm.runs and n not in waiting]
+    lengths = [arm.length for arm in started_arms(a)]
     record = claims_record(
         name, profile, claim_verdicts(a), min(lengths, default=0), a.fig.episodes,
-        list(a.experiment.get("seeds") or []), waiting,
+        list(a.experiment.get("seeds") or []), not_started(a),  # a campaign's next turn
     )  # fmt: skip
     claims = out / f"{name}-claims.json"
     claims.write_text(json.dumps(record, indent=1) + "\n")

@@ -313,12 +313,7 @@ class Bus:
 
     def get(self, selector: str, payload: bytes | None = None, timeout: float = 2.0) -> list[bytes]:
         """Blocking query: every ok reply's payload."""
-        return self.collect(self.get_async(selector, payload, timeout))
-
-    @staticmethod
-    def collect(replies: Any) -> list[bytes]:
-        """Every ok reply's payload of a query `get_async` started (waiting for them)."""
-        return [r.ok.payload.to_bytes() for r in replies if r.ok]
+        return self.collect_all(self.get_async(selector, payload, timeout)).ok
 
     @staticmethod
     def collect_all(replies: Any) -> Replies:
