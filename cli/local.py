@@ -130,8 +130,9 @@ class MetricsError(ValueError):
 
 
 class Refused(SystemExit):
-    """`run_groups` refused before anything ran (another process trains a run, a run's
-    rows do not read), the reason printed: the command exits 2, writing nothing."""
+    """`run_groups` refused before anything ran (a run's folder holds another config's
+    run, another process trains a run, a run's rows do not read), the reason printed:
+    the command exits 2, writing nothing."""
 
     def __init__(self) -> None:
         super().__init__(2)
@@ -183,6 +184,17 @@ def config_conflict(folder: Path, cfg: TrainConfig) -> str | None:
     return folder_config_difference(folder, cfg.model_dump(mode="json"))
 
 
+def config_conflicts(runs: list[LocalRun], out: Path) -> list[str]:
+    """One line per run whose folder under `out` holds another config's run ('FOLDER:
+    holds a run of another config (why)'): its rows are not this run's, so nothing may
+    train on, plot or report them as this run's."""
+    return [
+        f"{out / r.name}: holds a run of another config ({why})"
+        for r in runs
+        if (why := config_conflict(out / r.name, r.config))
+    ]
+
+
 def run_state(folder: Path, cfg: TrainConfig) -> str:
     """'done' (every episode run, or ended by its `early_stop` rule, checkpoint
     written), 'cut-<episode>' (can resume from its newest cut, of that episode) or
@@ -209,8 +221,8 @@ def run_groups(
 ) -> int:
     """Train `runs` as groups under `out`, `jobs` groups at a time in processes of their
     own (None: `default_jobs`), continuing what an earlier call left; 0 when every run
-    completed, 2 when a group could not resume or a run's folder is another process's
-    (the reason printed).
+    completed, 2 when a group could not resume or the runs' device is not here (the
+    reason printed).
 
     Complete runs are skipped one by one; the others are grouped by what they share and
     by where they stopped (runs that stopped together, at one cut, resume together;
@@ -220,9 +232,10 @@ def run_groups(
     one per process: on a CPU the products of one thread per group keep the cores busier
     than two threads on one.
 
-    A run another process trains, or whose rows cannot be read, ends the command before
-    anything is trained or written: `Refused` (a SystemExit, 2), the reason printed; the
-    caller writes no page or plot either. SIGTERM, SIGINT or SIGHUP while it trains
+    A run whose folder holds another config's run, that another process trains, or
+    whose rows cannot be read, ends the command before anything is trained or written:
+    `Refused` (a SystemExit, 2), the reason printed; the caller writes no page or plot
+    either. SIGTERM, SIGINT or SIGHUP while it trains
     ends every group process and raises `Stopped` (a SystemExit, 128 + the signal), one
     line printed; the group processes die with this one however it ends
     (cli/group_procs.py)."""
@@ -231,15 +244,11 @@ def run_groups(
 
     # A folder holding another config's run is refused, not overwritten: its results
     # may be all someone has (another --episodes, --threads, an edited file, ...).
-    conflicts = [(r, why) for r in runs if (why := config_conflict(out / r.name, r.config))]
-    for r, why in conflicts:
-        print(
-            f"{out / r.name}: holds a run of another config ({why}); move it away or give "
-            "another --out: nothing was run",
-            file=sys.stderr,
-        )
-    if conflicts:
-        return 2
+    # Refused, not a return code: the caller's page or summary would show its rows.
+    if conflicts := config_conflicts(runs, out):
+        for line in conflicts:
+            print(f"{line}; move it away or give another --out: nothing was run", file=sys.stderr)
+        raise Refused()
     if why := device_error([r.config for r in runs]):
         print(f"{why}: nothing was run", file=sys.stderr)
         return 2

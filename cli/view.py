@@ -359,7 +359,15 @@ def folder_view(args: argparse.Namespace) -> FolderView:
     )
     if not root.is_dir():
         raise RunsError(f"{root}: no such folder")
-    return FolderView(root, fig, figure_body(fig, flags))
+    view = FolderView(root, fig, figure_body(fig, flags))
+    from cli.local import config_conflicts, expand_body
+
+    if conflicts := config_conflicts(expand_body(view.body or {})[2], view.runs_dir):
+        raise RunsError(
+            "; ".join(conflicts) + ": give the flags these runs were trained with "
+            "(--episodes, --seeds, --precision, ...) or another folder"
+        )
+    return view
 
 
 def cmd_view(args: argparse.Namespace) -> int:

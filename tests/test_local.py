@@ -138,6 +138,31 @@ def test_reproduce_arms_runs_only_the_arms_named_and_refuses_a_pattern_of_none(t
     assert "--arms 'sparse*': no arm of fig3 matches (beta=0.0; beta=0.2;" in bad.stderr
 
 
+def test_runs_of_another_config_are_neither_trained_on_nor_shown_as_the_figure_s(tmp_path):
+    """A page, a --local campaign or a view asked for runs of another length than its
+    folders hold refuses, naming the folder and the field, and writes nothing: the
+    folders' rows would otherwise stand on the page as runs of the config asked."""
+    out = tmp_path / "fig3"
+    flags = ["--seeds", "0", "--arms", "beta=0.8", "--out", str(out)]
+    first = macb("reproduce", "fig3", "--local", "--episodes", "3", "--quiet", *flags)
+    assert first.returncode == 0, first.stderr
+    pages = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    rows_before = (out / "runs" / "beta_0.8-s0" / "metrics.jsonl").read_bytes()
+    why = f"{out / 'runs' / 'beta_0.8-s0'}: holds a run of another config (episodes: 3 in "
+    for mode in ("--report-only", "--local"):
+        other = macb("reproduce", "fig3", mode, "--episodes", "4", "--quiet", *flags)
+        assert other.returncode == 2, (mode, other.stderr)
+        assert why in other.stderr and "4 in the run" in other.stderr, other.stderr
+        assert "wrote" not in other.stderr, other.stderr
+        assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == pages
+        assert (out / "runs" / "beta_0.8-s0" / "metrics.jsonl").read_bytes() == rows_before
+    view = macb("view", str(out), "--figure", "fig3", "--episodes", "4", "--seeds", "0",
+                "--arms", "beta=0.8", "--port", "0", timeout=60)  # fmt: skip
+    assert view.returncode == 2 and why in view.stderr, view.stderr
+    same = macb("reproduce", "fig3", "--report-only", "--episodes", "3", *flags)
+    assert same.returncode == 0, same.stderr
+
+
 @pytest.mark.parametrize("flag", ["--jobs", "--group-size", "--threads"])
 def test_reproduce_refuses_bad_counts(flag, tmp_path):
     got = macb("reproduce", "fig3", "--local", flag, "0", "--out", str(tmp_path))

@@ -39,16 +39,33 @@ def write_page(
 ) -> int:
     """The page (FIGURE.png/.md/.csv.gz, FIGURE-runs.json) from the runs in `runs_dir`:
     0 when every run completed, 1 when some did not, 2 when a run's rows cannot be read
-    (named). `trained`: this command trained them (the page names it), else it names
-    the --local command that would, with `flags`, the runs' selection (--arms, --seeds,
-    --episodes, ...: without them that command would train other runs)."""
+    or its folder holds another config's run (named; nothing written: its rows would
+    stand on the page as this figure's). `trained`: this command trained them (the page
+    names it), else it names the --local command that would, with `flags`, the runs'
+    selection (--arms, --seeds, --episodes, ...: without them that command would train
+    other runs)."""
     import shlex
 
-    from cli.local import MetricsError, expand_body, local_experiment, local_points
+    from cli.local import (
+        MetricsError,
+        config_conflicts,
+        expand_body,
+        local_experiment,
+        local_points,
+    )
     from cli.reproduce.analysis import analyse, claim_verdicts, columns
     from cli.reproduce.render import write_report
 
     name, seeds, runs = expand_body(body)
+    if conflicts := config_conflicts(runs, runs_dir):
+        for line in conflicts:
+            print(f"macb reproduce: {line}", file=sys.stderr)
+        print(
+            "macb reproduce: no page written: give the flags these runs were trained with "
+            "(--episodes, --seeds, --precision, ...) or another --runs",
+            file=sys.stderr,
+        )
+        return 2
     try:
         exp = local_experiment(name, seeds, runs, runs_dir)
         points = {k: columns(v) for k, v in local_points(runs, runs_dir).items()}

@@ -515,20 +515,14 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
     --detach); build each figure's page once its runs are complete. 0 when every page
     is built (or, with --detach, when nothing ended unfinished), 1 while some group is
     incomplete (named), 2 when refused before submitting."""
-    from cli.local import config_conflict, plan_groups
+    from cli.local import config_conflicts, plan_groups
 
     opts = options(args)
     if error := preflight(opts, [c.runs_dir for c in campaigns]):
         return _refuse(error)
-    conflicts = [
-        (c.runs_dir / r.name, why)
-        for c in campaigns
-        for r in c.runs
-        if (why := config_conflict(c.runs_dir / r.name, r.config))
-    ]
-    if conflicts:
-        for folder, why in conflicts:
-            print(f"{folder}: holds a run of another config ({why})", file=sys.stderr)
+    if conflicts := [line for c in campaigns for line in config_conflicts(c.runs, c.runs_dir)]:
+        for line in conflicts:
+            print(line, file=sys.stderr)
         return _refuse("move those folders away or give another --out: nothing was submitted")
     slurm_dir = slurm_dir or campaigns[0].runs_dir / ".slurm"
 
