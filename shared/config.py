@@ -193,8 +193,8 @@ class TrainConfig(BaseModel):
     beta: float = Field(0.8, ge=0.0, le=100.0, description="bonus scale: r' = r + beta / sqrt(n)")
     beta_schedule: BetaSchedule | None = Field(
         None,
-        description="beta moving over the run (beyond the thesis), e.g. {kind: linear, "
-        "end: 0.1, horizon: 20000, unit: episodes}; none: beta throughout (docs/config.md)",
+        description="beta moving over the run (beyond the thesis), e.g. {kind: linear, end: "
+        "0.1, horizon: 20000, unit: episodes}; none: beta throughout (docs/fidelity.md, B1)",
     )
     k: int = Field(512, ge=1, le=4096, description="SimHash code length in bits")
     hash: Literal["simhash", "none", "raw"] = Field(
@@ -231,7 +231,7 @@ class TrainConfig(BaseModel):
         None,
         description="end the run when a rule holds on its evaluation points (beyond the "
         "thesis), e.g. {rule: success_at_least, threshold: 0.9, patience: 5}; the best "
-        "point's weights go to best.pt (docs/config.md)",
+        "point's weights go to best.pt (docs/fidelity.md, B2)",
     )
     batch_size: int = Field(100, ge=1, le=100_000)
     buffer_size: int = Field(1_000_000, ge=1)
