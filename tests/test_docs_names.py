@@ -69,3 +69,33 @@ def test_each_test_function_the_docs_name_is_defined():
     assert len(names) >= 20
     missing = [(d, n) for d, n in names if n not in defined]
     assert not missing, f"docs name tests that do not exist: {missing}"
+
+
+def test_each_function_cited_beside_its_file_is_defined_there():
+    """`path/x.py` `Name` (or `Name.attr`), the docs' way of citing code without line
+    numbers (which drift): the file defines Name (a def, class, field or assignment),
+    and attr."""
+    cited = re.compile(
+        r"`((?:cli|shared|services|macb|benchmarks|tests)/[\w/]+\.py)` "
+        r"`([A-Za-z_]\w*)(?:\.([A-Za-z_]\w*))?`"
+    )
+    found, missing = 0, []
+    for doc in DOCS:
+        for path, name, attr in cited.findall(doc.read_text()):
+            found += 1
+            file = ROOT / path
+            source = file.read_text() if file.is_file() else ""
+            for x in filter(None, (name, attr)):
+                rule = rf"^\s*(?:async\s+)?(?:def|class)\s+{x}\b|^\s*{x}\s*[:=]"
+                if not re.search(rule, source, re.M):
+                    missing.append((doc.relative_to(ROOT).as_posix(), path, x))
+    assert found >= 20
+    assert not missing, f"docs cite names their files do not define: {missing}"
+
+
+def test_the_docs_cite_our_code_by_name_not_by_line():
+    """Line numbers drift with every change; a name is checked above. (The thesis's own
+    tests, another repository, are cited by line: they do not change.)"""
+    by_line = re.compile(r"\b((?:cli|shared|services|macb|benchmarks)/[\w/]+\.py:\d+)")
+    found = named(by_line)
+    assert not found, f"docs cite our code by line number: {found}"
