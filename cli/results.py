@@ -45,6 +45,10 @@ def claims_record(figure: str, profile: str, verdicts: list, reached: int, full:
     }
 
 
+class ResultsError(ValueError):
+    """A page or its files that cannot be read: the message names the file and why."""
+
+
 def read_pages(root: Path) -> dict[tuple[str, str], tuple[Path, dict[str, Any]]]:
     """(figure, profile) -> (its page's claims file, the record) for every page under root.
     A claims file that cannot be read is refused, naming it."""
@@ -58,9 +62,9 @@ def read_pages(root: Path) -> dict[tuple[str, str], tuple[Path, dict[str, Any]]]
             if key[1] not in PROFILES or not isinstance(record["claims"], list):
                 raise ValueError(f"profile {key[1]!r}")
         except (OSError, ValueError, KeyError, TypeError) as err:
-            raise SystemExit(f"macb results: {path}: not a claims file ({err})") from None
+            raise ResultsError(f"{path}: not a claims file ({err})") from None
         if key in pages:
-            raise SystemExit(f"macb results: {path} and {pages[key][0]} both hold {key}")
+            raise ResultsError(f"{path} and {pages[key][0]} both hold {key}")
         pages[key] = (path, record)
     return pages
 
@@ -75,15 +79,20 @@ def points_file(folder: Path, figure: str) -> Path | None:
 
 
 def read_points(path: Path) -> list[dict[str, str]]:
-    """A page's points as text rows (the CSV's header the keys), gzipped or not."""
+    """A page's points as text rows (the CSV's header the keys), gzipped or not;
+    ResultsError naming the file when it does not read as that."""
     import csv
     import gzip
     import io
+    import zlib
 
-    raw = path.read_bytes()
-    if path.suffix == ".gz":
-        raw = gzip.decompress(raw)
-    return list(csv.DictReader(io.StringIO(raw.decode("utf-8"), newline="")))
+    try:
+        raw = path.read_bytes()
+        if path.suffix == ".gz":
+            raw = gzip.decompress(raw)
+        return list(csv.DictReader(io.StringIO(raw.decode("utf-8"), newline="")))
+    except (OSError, EOFError, zlib.error, UnicodeDecodeError, csv.Error) as err:
+        raise ResultsError(f"{path}: not a page's points ({err})") from err
 
 
 KEYS = ("arm", "seed", "run", "episode")
@@ -104,14 +113,15 @@ def compare_points(page: Path, runs_dir: Path) -> list[tuple[str, int, int, str 
     equal in every column, the first difference or why there is nothing to compare).
     Equal means equal floats: the points file keeps each value's full repr, so rows a
     second campaign of the same code on the same kind of CPU gives compare equal.
-    A folder's unreadable rows raise `cli.local.MetricsError`, naming the file."""
+    A folder's unreadable rows raise `cli.local.MetricsError`, naming the file; a page
+    without one points file, or whose points do not read, ResultsError."""
     from cli.local import run_rows
 
     files = sorted(page.glob("*.csv.gz")) or sorted(page.glob("*.csv"))
     if len(files) != 1:
         held = ", ".join(f.name for f in files) or "none"
-        raise SystemExit(f"macb results: {page} should hold one page's points "
-                         f"(FIGURE.csv.gz); it holds {held}")  # fmt: skip
+        raise ResultsError(f"{page} should hold one page's points (FIGURE.csv.gz); "
+                           f"it holds {held}")  # fmt: skip
     found = files[0]
     by_run: dict[str, dict[int, dict[str, str]]] = {}
     for r in read_points(found):
@@ -149,7 +159,7 @@ def cmd_compare(page: Path, runs_dir: Path) -> int:
 
     try:
         result = compare_points(page, runs_dir)
-    except MetricsError as err:
+    except (MetricsError, ResultsError) as err:
         print(f"macb results: {err}", file=sys.stderr)
         return 2
     for run, both, same, why in result:
@@ -161,7 +171,7 @@ def cmd_compare(page: Path, runs_dir: Path) -> int:
             print(f"{run}: {why}")
     differ = sum(1 for _, both, same, _ in result if same != both)
     empty = sum(1 for _, both, *_ in result if not both)
-    least = min((both for _, both, *_ in result), default=0)
+    least = min((both for _, both, *_ in result if both), default=0)
     print(
         f"{len(result) - differ - empty} of {len(result)} run(s) equal to {page}'s points "
         f"at every episode in common (each at least {least:,}); {differ} differ, "
@@ -223,13 +233,23 @@ def table(root: Path) -> str:
 def render(readme: str, generated: str) -> str:
     """The README with its generated part replaced (the markers must be there)."""
     if BEGIN not in readme or END not in readme:
-        raise SystemExit(f"macb results: the README lacks its markers {BEGIN!r} ... {END!r}")
+        raise ResultsError(f"the README lacks its markers {BEGIN!r} ... {END!r}")
     head, rest = readme.split(BEGIN, 1)
     _, tail = rest.split(END, 1)
     return f"{head}{BEGIN}\n{generated}{END}{tail}"
 
 
 def cmd_results(args: argparse.Namespace) -> int:
+    """`macb results`: 0 written (or, --check, up to date), 1 stale (--check), 2 a page
+    or the README that does not read (named); --compare: cmd_compare's codes."""
+    try:
+        return _results(args)
+    except ResultsError as err:
+        print(f"macb results: {err}", file=sys.stderr)
+        return 2
+
+
+def _results(args: argparse.Namespace) -> int:
     if args.compare:
         if not args.runs:
             print("macb results: --compare needs --runs DIR (the runs' folders)", file=sys.stderr)
@@ -273,7 +293,8 @@ def add_results_parser(sub: argparse._SubParsersAction) -> None:
         help="write nothing: compare a page's points (PAGE/FIGURE.csv.gz) with the runs' "
         "folders in --runs, episode by episode, every column: do these runs give that "
         "page's rows bit for bit (a second campaign of the same code, a run on another "
-        "machine)? Exit 0 equal, 1 a difference (the first named), 2 nothing to compare",
+        "machine)? Exit 0 equal, 1 a difference (the first named), 2 nothing to compare or "
+        "a file that does not read (named)",
     )
     p.add_argument("--runs", metavar="DIR", help="with --compare: the runs' folders (OUT/runs)")
     p.set_defaults(func=cmd_results)

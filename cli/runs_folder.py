@@ -93,7 +93,11 @@ def read_rows(folder: Path) -> list[dict[str, Any]]:
     path = folder / "metrics.jsonl"
     if not path.is_file():
         return _csv_rows(folder / "metrics.csv")
-    lines = [x for x in path.read_text().splitlines() if x.strip()]
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise RunsError(f"{path}: unreadable ({err})") from err
+    lines = [x for x in text.splitlines() if x.strip()]
     rows = []
     for i, line in enumerate(lines, 1):
         try:
@@ -109,8 +113,11 @@ def read_rows(folder: Path) -> list[dict[str, Any]]:
 
 
 def _csv_rows(path: Path) -> list[dict[str, Any]]:
-    with path.open(newline="") as f:
-        lines = list(csv.reader(f))
+    try:
+        with path.open(newline="") as f:
+            lines = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise RunsError(f"{path}: unreadable ({err})") from err
     if not lines:
         return []
     head, body = lines[0], lines[1:]

@@ -338,6 +338,8 @@ def add_view_parser(sub: argparse._SubParsersAction) -> None:
     vp.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="with --figure")
     vp.add_argument("--episodes", type=int, metavar="N", help="with --figure: the runs' length")
     vp.add_argument("--precision", choices=("fp32", "bf16"), help="with --figure")
+    vp.add_argument("--threads", type=int, metavar="N", help="with --figure: as reproduce's")
+    vp.add_argument("--device", metavar="DEVICE", help="with --figure: as reproduce's")
     vp.add_argument(
         "--host",
         default="127.0.0.1",
@@ -354,9 +356,8 @@ def folder_view(args: argparse.Namespace) -> FolderView:
     if args.figure is None:
         return FolderView(root)
     fig = FIGURES[args.figure]
-    flags = argparse.Namespace(
-        **{**vars(args), "threads": None, "local": True, "report_only": False, "status": False}
-    )
+    given = {"threads": None, "device": None, **vars(args)}  # a caller's may lack those two
+    flags = argparse.Namespace(**{**given, "local": True, "report_only": False, "status": False})
     if not root.is_dir():
         raise RunsError(f"{root}: no such folder")
     view = FolderView(root, fig, figure_body(fig, flags))

@@ -58,7 +58,10 @@ def load_page(path: str | Path) -> pd.DataFrame:
             found = found or points_file(page, claims.name.removesuffix("-claims.json"))
     if found is None:
         raise RunsError(f"{page}: no page's points (FIGURE.csv.gz or FIGURE.csv) there")
-    return pd.read_csv(found)  # gzip inferred from the name
+    try:
+        return pd.read_csv(found)  # gzip inferred from the name
+    except (OSError, EOFError, ValueError) as err:  # a torn gzip, a CSV that does not parse
+        raise RunsError(f"{found}: not a page's points ({err})") from err
 
 
 def joined(frames: list[pd.DataFrame]) -> pd.DataFrame:

@@ -141,26 +141,47 @@ def test_reproduce_arms_runs_only_the_arms_named_and_refuses_a_pattern_of_none(t
 def test_runs_of_another_config_are_neither_trained_on_nor_shown_as_the_figure_s(tmp_path):
     """A page, a --local campaign or a view asked for runs of another length than its
     folders hold refuses, naming the folder and the field, and writes nothing: the
-    folders' rows would otherwise stand on the page as runs of the config asked."""
+    folders' rows would otherwise stand on the page as runs of the config asked. So
+    does a page or --status given a folder holding none of the runs (OUT for OUT/runs):
+    an empty page would replace the one there."""
     out = tmp_path / "fig3"
-    flags = ["--seeds", "0", "--arms", "beta=0.8", "--out", str(out)]
+    flags = ["--seeds", "0", "--arms", "beta=0.8", "--threads", "2", "--out", str(out)]
     first = macb("reproduce", "fig3", "--local", "--episodes", "3", "--quiet", *flags)
     assert first.returncode == 0, first.stderr
     pages = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
     rows_before = (out / "runs" / "beta_0.8-s0" / "metrics.jsonl").read_bytes()
     why = f"{out / 'runs' / 'beta_0.8-s0'}: holds a run of another config (episodes: 3 in "
-    for mode in ("--report-only", "--local"):
-        other = macb("reproduce", "fig3", mode, "--episodes", "4", "--quiet", *flags)
+    wrong_folder = ["--episodes", "3", "--runs", str(out)]
+    for mode, more in [("--report-only", ["--episodes", "4"]), ("--local", ["--episodes", "4"]),
+                       ("--report-only", wrong_folder), ("--status", wrong_folder),
+                       ("--report-only", ["--group-runs", "beta_0.8-s0"])]:  # fmt: skip
+        other = macb("reproduce", "fig3", mode, *more, "--quiet", *flags)
         assert other.returncode == 2, (mode, other.stderr)
-        assert why in other.stderr and "4 in the run" in other.stderr, other.stderr
-        assert "wrote" not in other.stderr, other.stderr
+        if "--group-runs" in more:
+            assert "--group-runs trains with --local (not with --report-only" in other.stderr
+        elif "--runs" in more:
+            assert f"none of the 1 runs selected has a folder in {out} " in other.stderr
+        else:
+            assert why in other.stderr and "4 in the run" in other.stderr, other.stderr
+        assert "wrote" not in other.stderr and "Traceback" not in other.stderr, other.stderr
         assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == pages
         assert (out / "runs" / "beta_0.8-s0" / "metrics.jsonl").read_bytes() == rows_before
-    view = macb("view", str(out), "--figure", "fig3", "--episodes", "4", "--seeds", "0",
-                "--arms", "beta=0.8", "--port", "0", timeout=60)  # fmt: skip
-    assert view.returncode == 2 and why in view.stderr, view.stderr
+    view = ["view", str(out), "--figure", "fig3", "--seeds", "0", "--arms", "beta=0.8",
+            "--port", "0"]  # fmt: skip
+    other = macb(*view, "--threads", "2", "--episodes", "4", timeout=60)
+    assert other.returncode == 2 and why in other.stderr, other.stderr
+    threads = macb(*view, "--episodes", "3", timeout=60)  # the view has --threads for this
+    assert threads.returncode == 2, threads.stderr
+    assert "(threads: 2 in the folder, 1 in the run)" in threads.stderr, threads.stderr
     same = macb("reproduce", "fig3", "--report-only", "--episodes", "3", *flags)
     assert same.returncode == 0, same.stderr
+    # The page names the command that trains these runs: their flags and their folder.
+    rebuild = "macb reproduce fig3 --local --profile mpe2 --seeds 0 --episodes 3 --threads 2 "
+    assert rebuild in (out / "fig3.md").read_text()
+    moved = macb("reproduce", "fig3", "--report-only", "--episodes", "3", *flags[:-1],
+                 str(tmp_path / "page"), "--runs", str(out / "runs"))  # fmt: skip
+    assert moved.returncode == 0, moved.stderr
+    assert f"--runs {out / 'runs'} --arms beta=0.8`" in (tmp_path / "page" / "fig3.md").read_text()
 
 
 @pytest.mark.parametrize("flag", ["--jobs", "--group-size", "--threads"])

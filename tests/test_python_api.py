@@ -84,6 +84,9 @@ def test_a_torn_last_line_is_skipped_and_bad_files_are_refused_by_name(out):
     bad.write_text("\n".join([lines[0], "{not json", *lines[1:]]) + "\n")
     with pytest.raises(macb.RunsError, match=r"Sparse-s1/metrics.jsonl: line 2 is not a JSON row"):
         macb.load_runs(runs)
+    bad.write_bytes(("\n".join(lines) + "\n").encode() + b'{"episode": \xff\xfe}\n')
+    with pytest.raises(macb.RunsError, match=r"Sparse-s1/metrics.jsonl: unreadable"):
+        macb.load_runs(runs)  # bytes that are not UTF-8
     bad.write_text("\n".join(lines) + "\n")
     (runs / "Sparse-s1" / "config.json").write_text('{"seed": 1,')
     with pytest.raises(macb.RunsError, match=r"Sparse-s1/config.json: unreadable"):

@@ -84,9 +84,34 @@ def test_a_bad_claims_file_is_refused_naming_it(tmp_path, content):
     root = _results(tmp_path)
     path = _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced")
     path.write_text(content)
-    got = macb_cli("results", "--dir", str(root))
-    assert got.returncode != 0 and str(path) in got.stderr and "not a claims file" in got.stderr
+    for check in ([], ["--check"]):  # 2, unreadable: not 1, a stale README
+        got = macb_cli("results", "--dir", str(root), *check)
+        assert got.returncode == 2 and str(path) in got.stderr, got.stderr
+        assert "not a claims file" in got.stderr and "Traceback" not in got.stderr
     assert "old" in (root / "README.md").read_text()  # nothing written
+
+
+def test_a_torn_points_file_is_refused_naming_it(tmp_path):
+    """--compare and macb.load_page on a page whose FIGURE.csv.gz is torn (a copy cut
+    short) name the file; --compare exits 2 (cannot read), not 1 (a difference), as it
+    does for a folder that is not a page."""
+    import gzip
+
+    import macb
+
+    root = _results(tmp_path)
+    folder = _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced").parent
+    data = gzip.compress(b"arm,seed,run,episode,success_rate\n" + b"b,0,b-s0,1,0.5\n" * 500)
+    (folder / "fig3.csv.gz").write_bytes(data[: len(data) // 2])
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    got = macb_cli("results", "--compare", str(folder), "--runs", str(runs))
+    assert got.returncode == 2 and str(folder / "fig3.csv.gz") in got.stderr, got.stderr
+    assert "Traceback" not in got.stderr
+    with pytest.raises(macb.RunsError, match="fig3.csv.gz: not a page's points"):
+        macb.load_page(folder)
+    none = macb_cli("results", "--compare", str(tmp_path), "--runs", str(runs))
+    assert none.returncode == 2 and "should hold one page's points" in none.stderr
 
 
 def test_the_repositorys_results_readme_is_what_its_pages_say():

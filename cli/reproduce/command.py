@@ -296,12 +296,14 @@ def reproduce_local(
 
 
 def figure_flags(args: argparse.Namespace) -> list[str]:
-    """The flags that select a figure's runs and configs (seeds, episodes, precision,
-    threads, arms): what a command that resumes the same runs must repeat."""
+    """The flags that select a figure's runs, their configs and their folder (seeds,
+    episodes, precision, threads, device, arms, --runs): what a command that resumes
+    the same runs must repeat."""
     argv = ["--seeds", *map(str, args.seeds)] if args.seeds else []
-    for flag in ("episodes", "precision", "threads"):
+    for flag in ("episodes", "precision", "threads", "device"):
         if getattr(args, flag) is not None:
             argv += [f"--{flag}", str(getattr(args, flag))]
+    argv += ["--runs", str(args.runs)] if args.runs else []
     return argv + (["--arms", *args.arms] if args.arms else [])
 
 
@@ -315,8 +317,8 @@ def launcher_error(args: argparse.Namespace) -> str | None:
                 return f"--{flag.replace('_', '-')} is for --launcher slurm"
         if args.detach:
             return "--detach is for --launcher slurm"
-    if args.group_runs and not args.local:
-        return "--group-runs trains with --local"
+    if args.group_runs and (not args.local or args.report_only or args.status):
+        return "--group-runs trains with --local (not with --report-only or --status)"
     return None
 
 

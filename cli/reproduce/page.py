@@ -38,12 +38,12 @@ def write_page(
     flags: Sequence[str] = (),
 ) -> int:
     """The page (FIGURE.png/.md/.csv.gz, FIGURE-runs.json) from the runs in `runs_dir`:
-    0 when every run completed, 1 when some did not, 2 when a run's rows cannot be read
-    or its folder holds another config's run (named; nothing written: its rows would
-    stand on the page as this figure's). `trained`: this command trained them (the page
-    names it), else it names the --local command that would, with `flags`, the runs'
-    selection (--arms, --seeds, --episodes, ...: without them that command would train
-    other runs)."""
+    0 when every run completed, 1 when some did not, 2 when a run's rows cannot be read,
+    its folder holds another config's run or no run has a folder (named; nothing
+    written: an empty page, or another config's rows, would stand as this figure's).
+    `trained`: this command trained them (the page names it), else it names the --local
+    command that would, with `flags`, the runs' selection and folder (--arms, --seeds,
+    --episodes, --runs, ...: without them that command would train other runs)."""
     import shlex
 
     from cli.local import (
@@ -57,6 +57,14 @@ def write_page(
     from cli.reproduce.render import write_report
 
     name, seeds, runs = expand_body(body)
+    if not any((runs_dir / r.name).is_dir() for r in runs):
+        print(
+            f"macb reproduce: none of the {len(runs)} runs selected has a folder in "
+            f"{runs_dir} (give the runs folder, OUT/runs, and the flags they were trained "
+            "with: --seeds, --arms, ...): no page written",
+            file=sys.stderr,
+        )
+        return 2
     if conflicts := config_conflicts(runs, runs_dir):
         for line in conflicts:
             print(f"macb reproduce: {line}", file=sys.stderr)
