@@ -244,7 +244,7 @@ def write_results(
         d = out if len(exp["runs"]) == 1 else out / run["id"]
         d.mkdir(parents=True, exist_ok=True)
         (d / "metrics.csv").write_text(api.metrics_csv(run["id"]))
-        points = api.metrics(run["id"])["points"]
+        points = api.all_points(run["id"])  # every page: a run has more than one
         with (d / "metrics.jsonl").open("w") as f:
             for p in points:
                 f.write(json.dumps({k: v for k, v in p.items() if k != "seq"}) + "\n")

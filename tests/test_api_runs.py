@@ -71,3 +71,47 @@ def test_metrics_json_csv_since_and_curves_serve_exactly_what_is_stored(api, cli
     run = client.get(f"/runs/{a}").json()
     assert run["points"] == 3 and run["progress"]["episode"] == 12
     store.close()
+
+
+def test_macb_run_out_writes_every_point_of_a_run_longer_than_a_page(api, client, tmp_path):
+    """`macb run --out` / `macb up --out` (write_results) read a run's points page by page:
+    a figure 8 run has 40,000, the API's default page 10,000."""
+    import json
+
+    from cli.api import write_results
+    from services.api.client import ApiClient
+
+    exp = post(client, {**TINY, "seeds": [0]}).json()
+    run = exp["runs"][0]["id"]
+    n = 10_005
+    assert Store(api.settings.db_path).add_points(run, [row(e) for e in range(1, n + 1)]) == n
+    with ApiClient(api.url) as api_client:
+        whole = client.get(f"/experiments/{exp['id']}").json()
+        write_results(api_client, whole, tmp_path / "out", plot=False)
+    lines = (tmp_path / "out" / "metrics.jsonl").read_text().splitlines()
+    assert [json.loads(x)["episode"] for x in lines] == list(range(1, n + 1))
+    assert len((tmp_path / "out" / "metrics.csv").read_text().splitlines()) == n + 1
+
+
+def test_events_resume_after_last_event_id_and_refuse_one_that_is_not_a_seq(api, client):
+    """Last-Event-ID (what a browser's EventSource sends on reconnecting) resumes after
+    that seq; one that is not 1-19 ASCII digits is a 422, and one past SQLite's integers
+    ends the stream as one past the last point does (it aborted it, an OverflowError)."""
+    exp = post(client, {**TINY, "seeds": [0]}).json()
+    run = exp["runs"][0]["id"]
+    Store(api.settings.db_path).add_points(run, [row(e) for e in (4, 8, 12)])
+    assert client.post(f"/runs/{run}/stop").json()["changed"] is True  # ended: streams end
+
+    def events(last: bytes) -> list[str]:
+        r = client.get(f"/runs/{run}/events", headers={"Last-Event-ID": last})
+        assert r.status_code == 200, r.text
+        return [x for x in r.text.splitlines() if x.startswith(("id:", "event:"))]
+
+    after1 = events(b"1")
+    assert [x for x in after1 if x.startswith("id:")] == ["id: 2", "id: 3"], after1
+    assert after1[-1] == "event: end"
+    beyond = events(b"9" * 19)  # > 2**62
+    assert not [x for x in beyond if x.startswith("id:")] and beyond[-1] == "event: end"
+    for bad in (b"\xb2", b"1" * 20, b"-1", b"1e3"):
+        r = client.get(f"/runs/{run}/events", headers={"Last-Event-ID": bad})
+        assert r.status_code == 422 and "last-event-id" in r.text.lower(), (bad, r.text)

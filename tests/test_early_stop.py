@@ -195,8 +195,8 @@ def test_macb_up_out_copies_the_learners_best_point_beside_the_last(tmp_path):
         def metrics_csv(self, run: str) -> str:
             return "episode\n"
 
-        def metrics(self, run: str) -> dict:
-            return {"points": []}
+        def all_points(self, run: str) -> list:
+            return []
 
         def experiment_csv(self, exp: str) -> str:
             return "run,episode\n"

@@ -154,7 +154,8 @@ async def run_events(
     request: Request,
     store: StoreDep,
     since: Since = 0,
-    last_event_id: Annotated[str | None, Header(max_length=32)] = None,
+    # The seq of the last event seen (ASCII digits: str.isdigit takes '²' too).
+    last_event_id: Annotated[str | None, Header(pattern=r"^[0-9]{1,19}$")] = None,
 ):
     """Server-sent events: `metric` (one per point, id = its seq), `status` on each
     change (as polled; a run seen queued and then ended also gets its `running`, with
@@ -163,8 +164,8 @@ async def run_events(
     run = await run_in_threadpool(load_run, store, run_id)
     if run is None:
         raise not_found("run", run_id)
-    if last_event_id and last_event_id.isdigit():
-        since = max(since, int(last_event_id))
+    if last_event_id:
+        since = max(since, min(int(last_event_id), 2**62))  # SQLite's integers are 64-bit
     poll_s = request.app.state.settings.sse_poll_s
     return StreamingResponse(
         _events(request, store, run_id, since, poll_s),
