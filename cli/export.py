@@ -36,16 +36,27 @@ def add_export_parser(sub: argparse._SubParsersAction) -> None:
     ex.set_defaults(func=cmd_export)
 
 
-def tensorboard_folder(root: Path, experiment: dict[str, Any], run: dict[str, Any]) -> Path:
-    """DIR/<experiment name>-<id>/<arm>-seed<seed>: a run's folder, readable in TensorBoard's
-    run list and unique (an experiment's arms and its seeds are)."""
+def tensorboard_folders(
+    root: Path, experiment: dict[str, Any], runs: list[dict[str, Any]]
+) -> list[Path]:
+    """DIR/<experiment name>-<id>/<arm>-seed<seed>: each of `runs`' folder, readable in
+    TensorBoard's run list. Arms whose names differ only in characters a folder name
+    cannot hold ("no bonus", "no_bonus") would share one, the second run's events
+    deleting the first's: those runs' folders end in their run id too, whether the
+    experiment or one run is exported (`experiment["runs"]`, all of them, decides)."""
+    from collections import Counter
+
     from cli.tensorboard import run_folder_name
 
-    return (
-        root
-        / run_folder_name(experiment["name"], experiment["id"])
-        / run_folder_name(run["arm"] or "run", f"seed{run['seed']}")
-    )
+    def name(r: dict[str, Any]) -> str:
+        return run_folder_name(r["arm"] or "run", f"seed{r['seed']}")
+
+    every = Counter(name(r) for r in experiment.get("runs") or runs)
+    parent = root / run_folder_name(experiment["name"], experiment["id"])
+    return [
+        parent / (run_folder_name(name(r), str(r["id"])) if every[name(r)] > 1 else name(r))
+        for r in runs
+    ]
 
 
 def _from_store(db: str, ident: str) -> tuple[dict[str, Any], list[dict[str, Any]]] | None:
@@ -64,9 +75,9 @@ def _from_store(db: str, ident: str) -> tuple[dict[str, Any], list[dict[str, Any
             exp, only = store.experiment(run["experiment_id"]), ident
             if exp is None:  # (a run's experiment is never deleted)
                 return None
-        runs = store.runs_of([exp["id"]])[exp["id"]]
-        runs = [dict(r, points=store.points(r["id"])) for r in runs if only in (None, r["id"])]
-        return exp, runs
+        every = store.runs_of([exp["id"]])[exp["id"]]
+        runs = [dict(r, points=store.points(r["id"])) for r in every if only in (None, r["id"])]
+        return {**exp, "runs": every}, runs
     finally:
         store.close()
 
@@ -94,12 +105,10 @@ def _from_api(api: Any, ident: str) -> tuple[dict[str, Any], list[dict[str, Any]
 def write_tensorboard(root: Path, exp: dict[str, Any], runs: list[dict[str, Any]]) -> list[Path]:
     from cli.tensorboard import TensorBoardRun
 
-    folders = []
-    for run in runs:
-        folder = tensorboard_folder(root, exp, run)
+    folders = tensorboard_folders(root, exp, runs)
+    for run, folder in zip(runs, folders, strict=True):
         with TensorBoardRun(folder, fresh=True) as tb:
             tb.write_all(run["points"])
-        folders.append(folder)
     return folders
 
 

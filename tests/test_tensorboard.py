@@ -78,11 +78,14 @@ def test_macb_train_writes_every_metric_and_a_resume_does_not_repeat_steps(tmp_p
 
 
 def test_macb_export_writes_a_folder_per_run_named_by_experiment_arm_and_seed(tmp_path):
-    """An experiment of two arms x two seeds in a real API and store (its points written
-    as the scheduler writes them); exported from the API and from the store file."""
+    """An experiment of three arms x two seeds in a real API and store (its points written
+    as the scheduler writes them); exported from the API and from the store file. Two
+    arms whose names clean up to one folder name ("a/b c", "a_b c") each keep their
+    events, in folders ending in their run ids."""
     server = start_api(tmp_path, None)  # no bus
     try:
         arms = [{"name": "Cen-MACB", "explore": "cen-macb"}, {"name": "a/b c", "explore": "none"}]
+        arms.append({"name": "a_b c", "explore": "constant"})
         body = {**TINY, "seeds": [0, 1], "arms": arms, "name": "tb check"}
         exp = httpx.post(f"{server.url}/experiments", json=body).json()
         store = Store(server.settings.db_path)
@@ -123,23 +126,28 @@ def test_macb_export_writes_a_folder_per_run_named_by_experiment_arm_and_seed(tm
         str(tmp_path / "csv"),
         check=True,
     )
-    assert "TensorBoard: 4 run(s), 12 points" in proc.stdout
+    assert "TensorBoard: 6 run(s), 18 points" in proc.stdout
     top = f"tb_check-{exp['id']}"
-    names = {"Cen-MACB": "Cen-MACB", "a/b c": "a_b_c"}
+
+    def folder(run: dict) -> str:
+        if run["arm"] == "Cen-MACB":
+            return f"Cen-MACB-seed{run['seed']}"
+        return f"a_b_c-seed{run['seed']}-{run['id']}"  # two arms' runs share the name
+
     for root in (via_api, via_db):
         assert [p.name for p in root.iterdir()] == [top]
         folders = sorted(p.name for p in (root / top).iterdir())
-        assert folders == sorted(f"{names[r['arm']]}-seed{r['seed']}" for r in exp["runs"])
+        assert folders == sorted(folder(r) for r in exp["runs"])
         for run in exp["runs"]:
-            got = read_back(root / top / f"{names[run['arm']]}-seed{run['seed']}")
+            got = read_back(root / top / folder(run))
             assert_same(got, expected(points[run["id"]]))
-    run3 = exp["runs"][3]
-    assert [p.name for p in (one / top).iterdir()] == [f"a_b_c-seed{run3['seed']}"]
+    run3 = exp["runs"][3]  # exported alone, in the folder the experiment's export gives it
+    assert [p.name for p in (one / top).iterdir()] == [folder(run3)]
     # exporting again replaces a run's events: still one value per step
     macb("export", exp["id"], "--db", db, "--tensorboard", str(via_db), check=True)
     again = read_back(via_db / top / "Cen-MACB-seed0")
     assert [s for s, _ in again["success_rate"]] == [4, 8, 12]
-    assert (tmp_path / "csv" / "metrics.csv").read_text().count("\n") == 1 + 12
+    assert (tmp_path / "csv" / "metrics.csv").read_text().count("\n") == 1 + 18
 
 
 def test_macb_export_refuses_what_it_cannot_find(tmp_path):
