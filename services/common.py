@@ -147,7 +147,6 @@ class ServiceBase(ServiceHooks):
         self.endpoint = Endpoint(self.bus, self.inbox.put, self.id, self.role)
         # Subscriptions that enqueue (a run's end with it), statuses and metrics out.
         self.listen, self.subscribe = self.endpoint.listen, self.endpoint.subscribe
-        self.publish_metrics = self.endpoint.metrics
         # One subscription for both: a start and the stop sent after it arrive in that
         # order (Zenoh orders one subscription's messages, not several: "Order on the bus").
         self.listen(keys.k_control("*"), "control")
@@ -199,6 +198,10 @@ class ServiceBase(ServiceHooks):
     def of_attempt(self, run: str, attempt: int | None) -> bool:
         """Whether a message naming `attempt` may be of the attempt of `run` served."""
         return same_attempt(self.served.attempts.get(run), attempt)
+
+    def publish_metrics(self, run: str, data: dict[str, Any], source: str | None = None) -> None:
+        """A metric row or stats of `run`, stamped with the attempt served (its start's)."""
+        self.endpoint.metrics(run, data, source, attempt=self.served.attempts.get(run))
 
     def publish_status(self, run: str, state: str, **fields: Any) -> None:
         """The service's status in `run`, stamped with the attempt it serves (its start's)

@@ -63,6 +63,13 @@ class Endpoint:
         )
         self.bus.put(keys.k_status(run, self.id), encode(msg))
 
-    def metrics(self, run: str, data: dict[str, Any], source: str | None = None) -> None:
+    def metrics(
+        self,
+        run: str,
+        data: dict[str, Any],
+        source: str | None = None,
+        attempt: int | None = None,
+    ) -> None:
         source = source or f"{self.role}/{self.id}"
-        self.bus.put(keys.k_metrics(run, source), encode(Metrics(run, source=source, data=data)))
+        msg = Metrics(run, source=source, data=data, attempt=attempt)
+        self.bus.put(keys.k_metrics(run, source), encode(msg))

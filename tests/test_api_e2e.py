@@ -300,11 +300,16 @@ def test_a_stopped_run_retried_runs_afresh_under_its_id(cluster):
     assert again["changed"] is False and again["retried"] == []
 
 
+MARK = 0.123456  # a success rate no tiny run reaches: an ended attempt's row, if stored
+
+
 def test_a_retry_on_another_learner_is_not_stopped_by_the_old_learners_late_answer(cluster):
     """The old attempt's learner, paused, answers its stop only after the retry started on
     a second learner, and the counter's answer comes late too: on the same run's status
     key, neither is the new attempt's (the run's monitor counts the services the run was
-    assigned; a status names its attempt)."""
+    assigned; a status names its attempt). Nor are the old attempt's evaluation rows,
+    come late for points the new attempt has yet to reach: they were stored in its place
+    (the store keeps the first row of an episode) before a row named its attempt."""
     url = cluster.url
     cluster.service("learner", "learner-b")
     wait_for(
@@ -323,6 +328,8 @@ def test_a_retry_on_another_learner_is_not_stopped_by_the_old_learners_late_answ
             what="a point stored",
         )
         old = httpx.get(f"{url}/runs/{run_id}").json()["assign"]["learner"]
+        first = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"][0]
+        point = {k: v for k, v in first.items() if k != "seq"} | {"success_rate": MARK}
         names = [n for n in ("learner-b", "learner2", "learner") if n in cluster.procs]
         name = (
             "learner-b"
@@ -342,6 +349,11 @@ def test_a_retry_on_another_learner_is_not_stopped_by_the_old_learners_late_answ
             )
             assert retried["status"] == "running", retried  # (no late answer stopped it)
             assert retried["assign"]["learner"] != old
+            # The old attempt's evaluator, late, for points of the new attempt's to come.
+            stale = [
+                Metrics(run_id, source="eval", attempt=1, data={**point, "episode": e})
+                for e in (112, 116, 120)
+            ]
             # The counter serves both attempts: its answer to the old one's stop may come
             # as late (a busy inbox); here the test sends what it would say.
             counter = retried["assign"]["counter"]
@@ -350,6 +362,8 @@ def test_a_retry_on_another_learner_is_not_stopped_by_the_old_learners_late_answ
             )
             with closing(Bus([cluster.endpoint])) as bus:
                 bus.put(keys.k_status(run_id, counter), encode(late))
+                for msg in stale:
+                    bus.put(keys.k_metrics(run_id, "eval"), encode(msg))
                 time.sleep(1.0)  # (a put is sent on: the session must live till it is out)
         finally:
             os.kill(cluster.procs[name].pid, signal.SIGCONT)
@@ -368,6 +382,9 @@ def test_a_retry_on_another_learner_is_not_stopped_by_the_old_learners_late_answ
         assert run["status"] == "completed" and run["reason"] is None, run
         assert old not in run["services"], run["services"]
         assert run["attempts"] == 2 and run["points"] == 120 // 4
+        stored = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
+        assert [p["episode"] for p in stored] == list(range(4, 121, 4))
+        assert all(p["success_rate"] != MARK for p in stored), "an ended attempt's rows"
     finally:
         cluster.kill("learner-b")
 

@@ -109,6 +109,31 @@ def test_history_keeps_the_newest_runs_rows_and_a_restarted_run_starts_afresh():
     assert h.get("c") == ("running", [])
 
 
+def test_history_answers_name_the_attempt_their_rows_are_of_and_a_reader_takes_its_own():
+    """A retried run's history get is answered by the new attempt's evaluator and, maybe
+    first, by the ended attempt's: the reader takes the rows of its own attempt."""
+    from shared.net.control import history_rows
+    from shared.net.messages import History
+    from shared.net.wire import encode
+
+    h = RowHistory(keep=1)
+    h.start("r", 1)
+    assert h.attempt("r") == 1
+    h.start("s", 2)  # "r" dropped: its attempt with it
+    assert h.attempt("r") is None and h.attempt("s") == 2
+
+    class Replies:  # the bus's get: each evaluator's reply, the ended attempt's first
+        def get(self, key: str, timeout: float) -> list[bytes]:
+            return [
+                encode(History("r", source="eval", rows=[{"episode": 8}], state="x", attempt=1)),
+                encode(History("r", source="eval", rows=[{"episode": 4}], state="x", attempt=2)),
+            ]
+
+    assert history_rows(Replies(), "r", attempt=2) == [{"episode": 4}]  # type: ignore[arg-type]
+    assert history_rows(Replies(), "r", attempt=3) == []  # type: ignore[arg-type]
+    assert history_rows(Replies(), "r") == [{"episode": 8}]  # type: ignore[arg-type]
+
+
 def test_a_row_carries_the_points_numbers_and_the_learners_and_counters_stats():
     msg = weights(40, counter={"count1_pct": 12.5, "table_size": 7}, bonus={"bonus_mean": 0.3},
                   steps_per_sec=50.0, replay_ratio=1.0)  # fmt: skip

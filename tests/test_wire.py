@@ -12,6 +12,7 @@ from shared.net.messages import (
     MESSAGES,
     Ack,
     Assignment,
+    History,
     Metrics,
     Resumed,
     Start,
@@ -311,3 +312,17 @@ def test_a_status_without_the_newer_fields_reads_them_as_unset():
     msg = decode(_repack({**raw, "detail": {"rank": 1}}), Status)
     assert (msg.reason, msg.final_seq, msg.points, msg.resumed) == (None, None, None, None)
     assert msg.fields() == {"rank": 1}
+
+
+@pytest.mark.parametrize("cls", [Metrics, History])
+def test_metrics_and_history_name_their_attempt_and_an_older_peers_without_one_decode(cls):
+    """A row names the attempt of the run it is of (a retried run's reader drops an ended
+    attempt's); one from a peer before the field decodes as naming none."""
+    fields = {"source": "eval", "data": {"episode": 4}} if cls is Metrics else {
+        "source": "eval", "rows": [{"episode": 4}], "state": "running"}  # fmt: skip
+    msg = cls("r", **fields, attempt=2)
+    assert decode(encode(msg), cls) == msg
+    before = {"v": SCHEMA_VERSION, "type": cls.TYPE, "run": "r", **fields}
+    assert decode(msgpack.packb(before, use_bin_type=True), cls).attempt is None
+    with pytest.raises(WireError, match=f"{cls.TYPE}: field 'attempt' is not int"):
+        decode(msgpack.packb({**before, "attempt": "2"}, use_bin_type=True), cls)

@@ -150,6 +150,8 @@ class RunBook:
     def _metrics(self, key: str, payload: bytes, rows: dict[str, list]) -> None:
         if (got := self._followed(key, payload, Metrics)) is not None:
             w, msg = got
+            if not same_attempt(msg.attempt, w.attempt):
+                return  # an ended attempt's evaluator, late: its rows are not this attempt's
             if (row := w.metrics(msg)) is not None:
                 rows.setdefault(msg.run, []).append(row)
 

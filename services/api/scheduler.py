@@ -325,7 +325,8 @@ class Scheduler:
         bus = self.bus
         if bus is None:
             return 0
-        rows = [flat_row(r) for r in history_rows(bus, w.run, self.history_timeout_s)]
+        got = history_rows(bus, w.run, self.history_timeout_s, w.attempt)
+        rows = [flat_row(r) for r in got]
         return self.book.store_points(w.run, rows) if rows else 0
 
     # ------------------------------------------------------------ queries for HTTP

@@ -18,18 +18,28 @@ Row = dict[str, Any]
 
 
 class RowHistory:
-    """Per run, its state and the rows published, for the last `keep` runs."""
+    """Per run, its state and the rows published, for the last `keep` runs, and the
+    attempt of the run they are of (a reader of a retried run's next attempt tells an
+    ended attempt's rows apart by it, after the service let the run go)."""
 
     def __init__(self, keep: int = HISTORY_RUNS) -> None:
         self.keep = keep
         self._runs: collections.OrderedDict[str, tuple[str, list[Row]]] = collections.OrderedDict()
+        self._attempts: dict[str, int | None] = {}
         self._lock = threading.Lock()
 
-    def start(self, run: str) -> None:
-        """A run begins: a run queued again starts afresh, not with the old rows."""
+    def start(self, run: str, attempt: int | None = None) -> None:
+        """A run begins (as its `attempt`): a run queued again starts afresh, not with
+        the old rows."""
         with self._lock:
             self._runs.pop(run, None)
+            self._attempts[run] = attempt
         self.remember(run, "running")
+
+    def attempt(self, run: str) -> int | None:
+        """The attempt the run's rows here are of (None: not known)."""
+        with self._lock:
+            return self._attempts.get(run)
 
     def remember(self, run: str, state: str, row: Row | None = None) -> None:
         """The run's state now, and a row it published; the run becomes the newest kept."""
@@ -39,7 +49,8 @@ class RowHistory:
                 rows.append(row)
             self._runs[run] = (state, rows)
             while len(self._runs) > self.keep:
-                self._runs.popitem(last=False)
+                gone, _ = self._runs.popitem(last=False)
+                self._attempts.pop(gone, None)
 
     def get(self, run: str) -> tuple[str, list[Row]] | None:
         """The run's state and a copy of its rows; None if it is not kept here."""

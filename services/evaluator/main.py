@@ -90,13 +90,16 @@ class EvaluatorService(ServiceBase):
         if run is None or entry is None:
             return None  # not ours: another evaluator may answer
         state, rows = entry
-        return encode(History(run, source="eval", rows=rows, state=state))
+        attempt = self.history.attempt(run)
+        if attempt is None:  # (rows kept since a restart: the attempt rejoined)
+            attempt = self.served.attempts.get(run)
+        return encode(History(run, source="eval", rows=rows, state=state, attempt=attempt))
 
     def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         self.took_points.begin([run])
         self.listen(keys.k_weights(run, "eval"), "weights", run)
         self.runs[run] = EvaluatorRun.open(run, config)
-        self.history.start(run)
+        self.history.start(run, self.served.attempts.get(run))
         self.publish_status(run, "running")
         # The runs served as one: a run alone is a group of one; a start replaces
         # whatever group ended before it.

@@ -43,14 +43,14 @@ def reported_point(payload: bytes) -> int:
     return reported_row(payload)[0]
 
 
-def reported_row(payload: bytes) -> tuple[int, dict[str, Any]]:
-    """The point an evaluator's metrics row reports, and the row; WireError if
-    malformed."""
+def reported_row(payload: bytes) -> tuple[int, dict[str, Any], int | None]:
+    """The point an evaluator's metrics row reports, the row and the attempt of the run
+    it is of; WireError if malformed."""
     msg = decode(payload, Metrics)
     point = msg.data.get("episode") if isinstance(msg.data, dict) else None
     if not isinstance(point, int) or isinstance(point, bool):
         raise WireError(f"metrics: eval row episode is not an int: {point!r}")
-    return point, msg.data
+    return point, msg.data, msg.attempt
 
 
 @dataclass(frozen=True)

@@ -214,7 +214,7 @@ class LearnerService(ServiceBase):
         torch.set_num_threads(config.threads)
         for kind in ("transitions", "ack", "status"):
             self.listen(getattr(keys, f"k_{kind}")(run, "*"), kind, run)
-        on_row = lambda key, payload: self.on_eval_row(evaluations, key, payload)  # noqa: E731
+        on_row = lambda key, payload: self.on_eval_row(run, evaluations, key, payload)  # noqa: E731
         self.subscribe(keys.k_metrics(run, "eval"), on_row, run)
         spec = task_spec_for(config)
         folder = self.data_dir / "learner" / run
@@ -330,14 +330,20 @@ class LearnerService(ServiceBase):
             self.reject(key, why)
         members[0].time.add("inbound", time.perf_counter() - t0)
 
-    def on_eval_row(self, evaluations: EvaluationsInFlight, key: str, payload: bytes) -> None:
+    def on_eval_row(
+        self, run: str, evaluations: EvaluationsInFlight, key: str, payload: bytes
+    ) -> None:
         """The evaluator's row for a point (on Zenoh's thread): that evaluation is over.
         A malformed row is counted and logged on the service's thread (via the inbox),
-        which owns the reject counts that stats() reads."""
+        which owns the reject counts that stats() reads. A row of another attempt of the
+        run (an ended attempt's evaluator, late) reports none of this attempt's points."""
         try:
-            evaluations.reported(*reported_row(payload))
+            point, row, attempt = reported_row(payload)
         except WireError as err:
             self.inbox.put(("reject", key, str(err).encode()))
+            return
+        if self.of_attempt(run, attempt):
+            evaluations.reported(point, row)
 
     def tick(self) -> bool:
         busy = self.serving.tick()

@@ -22,7 +22,7 @@ from shared.config import TrainConfig, actors_error
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.info import ServiceInfo
-from shared.net.messages import Assignment, History, Metrics, Start, Status, Stop
+from shared.net.messages import Assignment, History, Metrics, Start, Status, Stop, same_attempt
 from shared.net.monitor import Decision, Graces, RunMonitor, RunVerdict, live_peer, peer_grace_s
 from shared.net.wire import WireError, decode, encode
 
@@ -136,15 +136,18 @@ def start_group(
     return watches
 
 
-def history_rows(bus: Bus, run: str, timeout: float = 2.0) -> list[dict[str, Any]]:
+def history_rows(
+    bus: Bus, run: str, timeout: float = 2.0, attempt: int | None = None
+) -> list[dict[str, Any]]:
     """Every evaluation row the run's evaluator has published (its history queryable),
-    in order; [] when no evaluator answers. Rows without an integer episode are left out."""
+    in order, of the run's `attempt` (an ended attempt's evaluator may answer too; None:
+    any); [] when no evaluator answers. Rows without an integer episode are left out."""
     for raw in bus.get(keys.k_history(run, "eval"), timeout=timeout):
         try:
             msg = decode(raw, History)
         except WireError:
             continue
-        if msg.run == run:
+        if msg.run == run and same_attempt(msg.attempt, attempt):
             return [
                 r for r in msg.rows if isinstance(r, dict) and isinstance(r.get("episode"), int)
             ]

@@ -237,21 +237,28 @@ class BonusReply(Message):
 
 @dataclass(frozen=True)
 class Metrics(Message):
-    """any service -> watchers: a metric point or stats."""
+    """any service -> watchers: a metric point or stats. `attempt`: the attempt of the
+    run it came from (its start's), so that the API and the learner of a retried run's
+    next attempt drop the rows an ended attempt's evaluator still sends (None: its start
+    named none, or an older peer)."""
 
     TYPE: ClassVar[str] = "metrics"
     source: str
     data: dict[str, Any]
+    attempt: int | None = None
 
 
 @dataclass(frozen=True)
 class History(Message):
-    """evaluator -> the API (a reply to a history get): every row of the run so far."""
+    """evaluator -> the API (a reply to a history get): every row of the run so far, of
+    the run's `attempt` that evaluator served (an ended attempt's evaluator may answer
+    too)."""
 
     TYPE: ClassVar[str] = "history"
     source: str
     rows: list[dict[str, Any]]
     state: str
+    attempt: int | None = None
 
 
 @dataclass(frozen=True)
