@@ -98,7 +98,13 @@ def add_plot_parser(sub: argparse._SubParsersAction) -> None:
         help="draw an experiment's learning curves (mean over seeds with a band) to a PNG",
     )
     pl.add_argument("experiment", metavar="EXPERIMENT_ID")
-    pl.add_argument("-o", "--output", required=True, metavar="FILE.png")
+    pl.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="FILE.png",
+        help="the figure; its suffix names the format (png, svg, pdf, ...)",
+    )
     pl.add_argument("--metric", default="success_rate", help="metric to plot")
     pl.add_argument("--api", metavar="URL", help=API_HELP)
     pl.add_argument("--db", metavar="FILE", help="read this store instead of asking the API")
@@ -473,6 +479,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from services.api.plot import plot_curves
 
     if args.db:
+        if not Path(args.db).is_file():  # (a Store would make it, and its folder)
+            print(f"macb plot: no store file {args.db}", file=sys.stderr)
+            return 2
         data = _curves_from_store(args.db, args.experiment, args.metric)
         if data is None:
             print(f"macb plot: no experiment {args.experiment!r} in {args.db}", file=sys.stderr)
@@ -483,6 +492,10 @@ def cmd_plot(args: argparse.Namespace) -> int:
                 data = api.curves(args.experiment, [args.metric])
         except (ApiError, httpx.HTTPError) as err:
             return _api_failed("plot", err)
-    out = plot_curves(data, args.metric, Path(args.output))
+    try:
+        out = plot_curves(data, args.metric, Path(args.output))
+    except ValueError as err:  # a format matplotlib does not write
+        print(f"macb plot: {args.output}: {err}", file=sys.stderr)
+        return 2
     print(f"wrote {out}")
     return 0

@@ -418,6 +418,16 @@ def test_plot_overlays_every_arm_with_its_name_in_the_legend(api, client, tmp_pa
         assert done.returncode == 0, done.stderr
         with Image.open(png_path) as png:
             assert json.loads(png.text["Legend"]) == ["a (3 seeds)", "b (3 seeds)"]
+    db = str(api.settings.db_path)
+    svg = macb("plot", exp["id"], "-o", str(tmp_path / "arms.svg"), "--db", db)
+    assert svg.returncode == 0, svg.stderr  # another format: no legend chunk to write
+    assert (tmp_path / "arms.svg").read_text().lstrip().startswith("<?xml")
+    odd = macb("plot", exp["id"], "-o", str(tmp_path / "arms.xyz"), "--db", db)
+    assert odd.returncode == 2 and "arms.xyz" in odd.stderr and "Traceback" not in odd.stderr
+    typo = tmp_path / "typo" / "api.sqlite3"
+    missing = macb("plot", exp["id"], "-o", str(tmp_path / "x.png"), "--db", str(typo))
+    assert missing.returncode == 2 and f"no store file {typo}" in missing.stderr
+    assert not typo.parent.exists()  # not made, nor its folder
     listed = macb("ls", "--api", api.url)
     assert listed.returncode == 0, listed.stderr
     for run in exp["runs"]:

@@ -363,3 +363,18 @@ def test_points_are_numbered_in_arrival_order_and_an_episode_is_stored_once(tmp_
     assert points.has_more("r", 2) and not points.has_more("r", 3)
     assert points.stats(["r", "none"]) == {"r": (3, 3, 12), "none": (0, 0, 0)}
     store.close()
+
+
+def test_a_users_stop_leaves_a_stop_to_send_for_a_run_started_since_it_was_read(tmp_path):
+    """POST /runs/{id}/stop reads the run, then finishes it: a run the scheduler started
+    in between (queued when read) still has services to stop. Whether a stop must go on
+    the bus is read with the finish, in one statement (`stop_sent=None`)."""
+    store = Store(tmp_path / "api.sqlite3")
+    runs = [{"id": r, "seed": 0, "point": {}, "config": TINY, "actors": 1} for r in ("r1", "r2")]
+    store.create_experiment("x", "x", {"config": TINY}, runs)
+    assert store.run("r1")["status"] == "queued"  # what the route read
+    assert store.claim("r1", Assignment.from_wire(ASSIGN))  # the scheduler, meanwhile
+    assert store.finish("r1", "stopped", "stopped by user", stop_sent=None)
+    assert store.finish("r2", "stopped", "stopped by user", stop_sent=None)  # still queued
+    assert store.stops_to_send() == [("r1", "stopped by user")]
+    assert not store.finish("r1", "stopped", "again", stop_sent=None)  # ended: no change

@@ -104,9 +104,12 @@ def figure_legend(fig: Figure) -> list[str]:
 
 
 def plot_curves(curves: dict[str, Any], metric: str, out: Path) -> Path:
-    """Draw and write the PNG; its `Legend` text chunk lists the legend entries."""
+    """Draw and write the figure in the format its suffix names (matplotlib's: png, svg,
+    pdf, ...; ValueError for one it lacks); a PNG's `Legend` text chunk lists the legend
+    entries (the other formats have no place for it)."""
     fig = draw_curves(curves, metric)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, metadata={"Legend": json.dumps(figure_legend(fig))})
+    legend = {"Legend": json.dumps(figure_legend(fig))} if out.suffix.lower() == ".png" else None
+    fig.savefig(out, metadata=legend)
     return out

@@ -165,15 +165,18 @@ class Store:
             )
 
     def finish(
-        self, run_id: str, status: str, reason: str | None = None, stop_sent: bool = True
+        self, run_id: str, status: str, reason: str | None = None, stop_sent: bool | None = True
     ) -> bool:
-        """Move an active run to a final status; False (and no change) if it had ended."""
+        """Move an active run to a final status; False (and no change) if it had ended.
+        `stop_sent` None: whether it was queued, read in the same statement (a user's
+        stop: a run the scheduler started meanwhile still has its services to stop)."""
         assert status in ("completed", "stopped", "failed")
+        sent = "status = 'queued'" if stop_sent is None else str(int(stop_sent))
         with self.db.tx() as c:
             cur = c.execute(
-                "UPDATE runs SET status = ?, reason = ?, ended = ?, stop_sent = ?"
+                f"UPDATE runs SET status = ?, reason = ?, ended = ?, stop_sent = ({sent})"
                 " WHERE id = ? AND status IN ('queued', 'running')",
-                (status, reason, time.time(), int(stop_sent), run_id),
+                (status, reason, time.time(), run_id),
             )
             return cur.rowcount == 1
 

@@ -131,7 +131,9 @@ def retry_experiment(
     """Queue the failed and stopped runs again under their ids (completed, queued and
     running runs are left as they are): their points are deleted and `attempts` goes
     up. Idempotent: once they are queued, a second call retries nothing. A running
-    experiment is no exception: its retried runs queue behind the others."""
+    experiment is no exception. A retried run keeps its place in the queue (the queue is
+    by when its experiment was created, then its index: `Store.runs_with_status`), so it
+    starts before later runs still queued."""
     runs = store.runs_of([exp["id"]])[exp["id"]]
     unknown = sorted(set(run or []) - {r["id"] for r in runs})
     if unknown:

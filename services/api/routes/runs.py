@@ -39,9 +39,8 @@ def stop_run(run: RunDep, store: StoreDep, scheduler: SchedulerDep):
             "detail": f"run already {run['status']}: nothing to stop",
             "run": run,
         }
-    changed = store.finish(
-        run["id"], "stopped", "stopped by user", stop_sent=run["status"] == "queued"
-    )
+    # (sent or not as the run stands when stopped: the scheduler may start it meanwhile)
+    changed = store.finish(run["id"], "stopped", "stopped by user", stop_sent=None)
     fresh = load_run(store, run["id"])  # as this request left it
     assert fresh is not None  # (runs are never deleted)
     if scheduler is not None:
