@@ -476,7 +476,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     import httpx
 
     from services.api.client import ApiError
-    from services.api.plot import plot_curves
+    from services.api.plot import PlotFormatError, plot_curves
 
     if args.db:
         if not Path(args.db).is_file():  # (a Store would make it, and its folder)
@@ -494,7 +494,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
             return _api_failed("plot", err)
     try:
         out = plot_curves(data, args.metric, Path(args.output))
-    except ValueError as err:  # a format matplotlib does not write
+    except PlotFormatError as err:
         print(f"macb plot: {args.output}: {err}", file=sys.stderr)
         return 2
     print(f"wrote {out}")

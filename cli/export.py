@@ -3,9 +3,10 @@ points as TensorBoard event files and/or CSV files.
 
 The points come from the API (`--api`) or straight from a store file (`--db`, no API
 needed). TensorBoard gets one folder per run, named by experiment, arm and seed
-(`DIR/<experiment name>-<experiment id>/<arm>-seed<seed>/`), so `tensorboard --logdir
-DIR` lists every run of every exported experiment by those names; exporting again
-replaces a run's events rather than doubling them.
+(`DIR/<experiment name>-<experiment id>/<arm>-seed<seed>/`, `-<run id>` added where two
+arms' names give one folder name), so `tensorboard --logdir DIR` lists every run of every
+exported experiment by those names; exporting again replaces a run's events rather than
+doubling them.
 """
 
 from __future__ import annotations

@@ -16,6 +16,7 @@ silently change every mean taken from it.
 
 from __future__ import annotations
 
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -60,7 +61,7 @@ def load_page(path: str | Path) -> pd.DataFrame:
         raise RunsError(f"{page}: no page's points (FIGURE.csv.gz or FIGURE.csv) there")
     try:
         return pd.read_csv(found)  # gzip inferred from the name
-    except (OSError, EOFError, ValueError) as err:  # a torn gzip, a CSV that does not parse
+    except (OSError, EOFError, ValueError, zlib.error) as err:  # torn or corrupt; not a CSV
         raise RunsError(f"{found}: not a page's points ({err})") from err
 
 

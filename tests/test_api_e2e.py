@@ -360,6 +360,8 @@ def test_a_retry_on_another_learner_is_not_stopped_by_the_old_learners_late_answ
             late = Status(
                 run_id, service=counter, state="stopped", detail={}, reason="late", attempt=1
             )
+            now = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
+            assert max((p["episode"] for p in now), default=0) < 112, "points to come"
             with closing(Bus([cluster.endpoint])) as bus:
                 bus.put(keys.k_status(run_id, counter), encode(late))
                 for msg in stale:

@@ -424,6 +424,11 @@ def test_plot_overlays_every_arm_with_its_name_in_the_legend(api, client, tmp_pa
     assert (tmp_path / "arms.svg").read_text().lstrip().startswith("<?xml")
     odd = macb("plot", exp["id"], "-o", str(tmp_path / "arms.xyz"), "--db", db)
     assert odd.returncode == 2 and "arms.xyz" in odd.stderr and "Traceback" not in odd.stderr
+    assert "matplotlib writes no .xyz" in odd.stderr
+    bare = macb("plot", exp["id"], "-o", str(tmp_path / "new" / "arms"), "--db", db)
+    assert bare.returncode == 0 and f"wrote {tmp_path / 'new' / 'arms.png'}" in bare.stdout
+    with Image.open(tmp_path / "new" / "arms.png") as png:  # no suffix: a PNG, its legend
+        assert json.loads(png.text["Legend"]) == ["a (3 seeds)", "b (3 seeds)"]
     typo = tmp_path / "typo" / "api.sqlite3"
     missing = macb("plot", exp["id"], "-o", str(tmp_path / "x.png"), "--db", str(typo))
     assert missing.returncode == 2 and f"no store file {typo}" in missing.stderr

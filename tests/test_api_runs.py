@@ -88,6 +88,8 @@ def test_macb_run_out_writes_every_point_of_a_run_longer_than_a_page(api, client
     with ApiClient(api.url) as api_client:
         whole = client.get(f"/experiments/{exp['id']}").json()
         write_results(api_client, whole, tmp_path / "out", plot=False)
+        paged = api_client.all_points(run, page=4_000)  # three pages, the last short
+    assert [p["episode"] for p in paged] == list(range(1, n + 1))
     lines = (tmp_path / "out" / "metrics.jsonl").read_text().splitlines()
     assert [json.loads(x)["episode"] for x in lines] == list(range(1, n + 1))
     assert len((tmp_path / "out" / "metrics.csv").read_text().splitlines()) == n + 1

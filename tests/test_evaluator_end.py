@@ -10,7 +10,7 @@ import pytest
 
 from services.evaluator.history import RowHistory
 from services.evaluator.main import EvaluatorService
-from services.runs import LearnerProcesses
+from services.runs import LearnerProcesses, ServedRuns
 from shared.config import make_config
 from shared.net.messages import Assignment, Weights
 
@@ -21,6 +21,7 @@ def bare_evaluator() -> tuple[EvaluatorService, list[tuple[str, str]]]:
     ev.runs, ev.group, ev.history, ev._retired = {}, None, RowHistory(), set()
     ev.took_points = LearnerProcesses()
     ev.active, ev.log = {}, logging.getLogger("test")
+    ev.served = ServedRuns(8, None, ev.log)  # (the attempts served: none named here)
     statuses: list[tuple[str, str]] = []
     ev.listen = lambda *a, **k: None  # type: ignore[method-assign]
     ev.publish_status = lambda run, state, **d: statuses.append((run, state))  # type: ignore[method-assign]

@@ -141,7 +141,8 @@ def test_the_page_says_how_far_why_and_each_seed(runs_dir, tmp_path):
     # only the arms selected ('sparse*'): no 0 for the dense arms without runs
     assert "these runs reached 1,500, 2,000 episodes." in header
     # the command that rebuilds and resumes these runs names their selection
-    assert "`macb reproduce fig8 --local --profile thesis --seeds 0 1 --arms 'sparse*'`" in md
+    rebuild = f"fig8 --local --profile thesis --seeds 0 1 --runs {runs_dir} --arms 'sparse*'`"
+    assert f"`macb reproduce {rebuild}" in md, "its selection and its folder"
     assert "- Restarts:" not in header, "no provenance, nothing said"
     assert not (out / "fig8.csv").exists()
     with gzip.open(out / "fig8.csv.gz", "rt") as f:

@@ -160,12 +160,18 @@ def test_runs_of_another_config_are_neither_trained_on_nor_shown_as_the_figure_s
         if "--group-runs" in more:
             assert "--group-runs trains with --local (not with --report-only" in other.stderr
         elif "--runs" in more:
-            assert f"none of the 1 runs selected has a folder in {out} " in other.stderr
+            assert f"none of the 1 runs selected has a folder in {out}" in other.stderr
         else:
             assert why in other.stderr and "4 in the run" in other.stderr, other.stderr
         assert "wrote" not in other.stderr and "Traceback" not in other.stderr, other.stderr
         assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == pages
         assert (out / "runs" / "beta_0.8-s0" / "metrics.jsonl").read_bytes() == rows_before
+    # A runs folder none of whose runs has started (queued on Slurm, arms that run later)
+    # is a campaign not started, not a mistake: --status says so.
+    (tmp_path / "later").mkdir()
+    later = macb("reproduce", "fig3", "--status", "--episodes", "3", "--quiet", *flags[:-1],
+                 str(tmp_path / "o"), "--runs", str(tmp_path / "later"))  # fmt: skip
+    assert later.returncode == 0 and "not started" in later.stdout, later.stdout + later.stderr
     view = ["view", str(out), "--figure", "fig3", "--seeds", "0", "--arms", "beta=0.8",
             "--port", "0"]  # fmt: skip
     other = macb(*view, "--threads", "2", "--episodes", "4", timeout=60)

@@ -311,16 +311,16 @@ def status_text(name: str, progress: FigureProgress, runs_dir: Path, now: float)
 
 
 def print_status(name: str, runs: list[Any], runs_dir: Path, target: int) -> int:
-    """`macb reproduce FIGURE --status`: 0, or 2 when there is no runs folder or none
-    of the runs has a folder in it (another folder, or other flags, meant)."""
+    """`macb reproduce FIGURE --status`: 0, or 2 when there is no runs folder, or when
+    none of the runs has a folder in it while it holds a `runs` folder (OUT given for
+    OUT/runs). Runs not started yet (queued on Slurm, arms that run later) are shown so."""
     if not runs_dir.is_dir():
         print(f"macb reproduce --status: no runs folder {runs_dir}", file=sys.stderr)
         return 2
-    if not any((runs_dir / r.name).is_dir() for r in runs):
+    if not any((runs_dir / r.name).is_dir() for r in runs) and (runs_dir / "runs").is_dir():
         print(
             f"macb reproduce --status: none of the {len(runs)} runs selected has a folder in "
-            f"{runs_dir} (give the runs folder, OUT/runs, and the flags they were trained "
-            "with: --seeds, --arms, ...)",
+            f"{runs_dir}, which holds a runs folder: give --runs {runs_dir / 'runs'}",
             file=sys.stderr,
         )
         return 2

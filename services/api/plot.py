@@ -103,12 +103,22 @@ def figure_legend(fig: Figure) -> list[str]:
     return [t.get_text() for t in legend.get_texts()] if legend else []
 
 
+class PlotFormatError(ValueError):
+    """An output file whose suffix names a format matplotlib does not write."""
+
+
 def plot_curves(curves: dict[str, Any], metric: str, out: Path) -> Path:
     """Draw and write the figure in the format its suffix names (matplotlib's: png, svg,
-    pdf, ...; ValueError for one it lacks); a PNG's `Legend` text chunk lists the legend
-    entries (the other formats have no place for it)."""
-    fig = draw_curves(curves, metric)
+    pdf, ...; none: png; PlotFormatError, nothing made, for one it lacks); a PNG's
+    `Legend` text chunk lists the legend entries (the others have no place for it)."""
     out = Path(out)
+    out = out if out.suffix else out.with_suffix(".png")
+    fig = draw_curves(curves, metric)
+    writes = fig.canvas.get_supported_filetypes()
+    if out.suffix[1:].lower() not in writes:
+        raise PlotFormatError(
+            f"matplotlib writes no {out.suffix} (it writes .{', .'.join(writes)})"
+        )
     out.parent.mkdir(parents=True, exist_ok=True)
     legend = {"Legend": json.dumps(figure_legend(fig))} if out.suffix.lower() == ".png" else None
     fig.savefig(out, metadata=legend)

@@ -41,6 +41,13 @@ class RowHistory:
         with self._lock:
             return self._attempts.get(run)
 
+    def answer(self, run: str) -> tuple[str, list[Row], int | None] | None:
+        """The run's state, a copy of its rows and their attempt, read at one moment (a
+        query comes on Zenoh's thread while a retry's start may reset the run)."""
+        with self._lock:
+            entry = self._runs.get(run)
+            return None if entry is None else (entry[0], list(entry[1]), self._attempts.get(run))
+
     def remember(self, run: str, state: str, row: Row | None = None) -> None:
         """The run's state now, and a row it published; the run becomes the newest kept."""
         with self._lock:

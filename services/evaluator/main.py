@@ -86,11 +86,10 @@ class EvaluatorService(ServiceBase):
 
     def _history_reply(self, key: str, payload: bytes) -> bytes | None:
         run = keys.run_of(key)
-        entry = None if run is None else self.history.get(run)
+        entry = None if run is None else self.history.answer(run)
         if run is None or entry is None:
             return None  # not ours: another evaluator may answer
-        state, rows = entry
-        attempt = self.history.attempt(run)
+        state, rows, attempt = entry
         if attempt is None:  # (rows kept since a restart: the attempt rejoined)
             attempt = self.served.attempts.get(run)
         return encode(History(run, source="eval", rows=rows, state=state, attempt=attempt))
