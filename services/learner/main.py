@@ -365,8 +365,15 @@ class LearnerService(ServiceBase):
         `early_stop` rule held at a point: it completes there, saying why; its actor
         and counter follow, and a group's other runs go on without it: `retire`)."""
         self.serving.checkpoint(st)
-        ckpt.retire(st)
         stats = self.out.stats(st).to_wire()
+        goes_on = self.serving.goes_on_without(st)  # its group's other runs go on
+        if goes_on:
+            # Noted retired (retired.pt, the runs file) before its log goes and its end
+            # is said: a restart after "completed" serves the group with it retired (in
+            # the other order it rejoined the run as running, with neither log nor cut).
+            self.serving.retire(st)
+            self.retire(st.run)
+        ckpt.retire(st)
         self.publish_metrics(st.run, stats, source="learner")
         why, at = (
             (None, {}) if st.stopped is None else (st.stopped[1], {"stopped_at": st.stopped[0]})
@@ -375,10 +382,7 @@ class LearnerService(ServiceBase):
         self.log.info(
             "run %s completed%s: %s", st.run, f" ({why})" if why else "", json.dumps(stats)
         )
-        if self.serving.goes_on_without(st):  # its group's other runs go on
-            self.serving.retire(st)
-            self.retire(st.run)
-        else:
+        if not goes_on:
             self.forget(st.run)
             self.free(st.run)
 
