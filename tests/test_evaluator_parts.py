@@ -118,9 +118,11 @@ def test_history_answers_name_the_attempt_their_rows_are_of_and_a_reader_takes_i
 
     h = RowHistory(keep=1)
     h.start("r", 1)
-    assert h.attempt("r") == 1
+    assert h.answer("r") == ("running", [], 1)
     h.start("s", 2)  # "r" dropped: its attempt with it
-    assert h.attempt("r") is None and h.attempt("s") == 2
+    assert h.answer("r") is None and h.answer("s") == ("running", [], 2)
+    h.remember("s", "running", {"episode": 4})  # a row keeps the attempt
+    assert h.answer("s") == ("running", [{"episode": 4}], 2)
 
     class Replies:  # the bus's get: each evaluator's reply, the ended attempt's first
         def get(self, key: str, timeout: float) -> list[bytes]:

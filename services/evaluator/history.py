@@ -24,8 +24,10 @@ class RowHistory:
 
     def __init__(self, keep: int = HISTORY_RUNS) -> None:
         self.keep = keep
-        self._runs: collections.OrderedDict[str, tuple[str, list[Row]]] = collections.OrderedDict()
-        self._attempts: dict[str, int | None] = {}
+        # run -> (state, rows, the attempt they are of)
+        self._runs: collections.OrderedDict[str, tuple[str, list[Row], int | None]] = (
+            collections.OrderedDict()
+        )
         self._lock = threading.Lock()
 
     def start(self, run: str, attempt: int | None = None) -> None:
@@ -33,31 +35,28 @@ class RowHistory:
         the old rows."""
         with self._lock:
             self._runs.pop(run, None)
-            self._attempts[run] = attempt
-        self.remember(run, "running")
-
-    def attempt(self, run: str) -> int | None:
-        """The attempt the run's rows here are of (None: not known)."""
-        with self._lock:
-            return self._attempts.get(run)
+            self._runs[run] = ("running", [], attempt)
+            self._trim()
 
     def answer(self, run: str) -> tuple[str, list[Row], int | None] | None:
         """The run's state, a copy of its rows and their attempt, read at one moment (a
         query comes on Zenoh's thread while a retry's start may reset the run)."""
         with self._lock:
             entry = self._runs.get(run)
-            return None if entry is None else (entry[0], list(entry[1]), self._attempts.get(run))
+            return None if entry is None else (entry[0], list(entry[1]), entry[2])
 
     def remember(self, run: str, state: str, row: Row | None = None) -> None:
         """The run's state now, and a row it published; the run becomes the newest kept."""
         with self._lock:
-            _, rows = self._runs.pop(run, ("running", []))
+            _, rows, attempt = self._runs.pop(run, ("running", [], None))
             if row is not None:
                 rows.append(row)
-            self._runs[run] = (state, rows)
-            while len(self._runs) > self.keep:
-                gone, _ = self._runs.popitem(last=False)
-                self._attempts.pop(gone, None)
+            self._runs[run] = (state, rows, attempt)
+            self._trim()
+
+    def _trim(self) -> None:
+        while len(self._runs) > self.keep:
+            self._runs.popitem(last=False)
 
     def get(self, run: str) -> tuple[str, list[Row]] | None:
         """The run's state and a copy of its rows; None if it is not kept here."""
