@@ -88,3 +88,52 @@ def test_the_api_groups_runs_with_an_early_stop_rule_and_ends_one_alone(tmp_path
                 assert run["reason"].startswith("early_stop success_at_least at episode 6")
             else:
                 assert rows[-1]["episode"] == BODY["episodes"] and not run["reason"], run
+
+
+def test_another_attempts_late_row_neither_stops_a_lockstep_run_nor_is_stored(tmp_path):
+    """In lockstep the learner reads each point's row for `early_stop`, and a row whose
+    evaluator found the rule holding stops the run there. A row of another attempt of
+    the run (an ended attempt's evaluator, late, or a later one's) names its attempt:
+    the learner reads none of it and the API stores none, so the run goes to its end
+    with `macb train`'s rows."""
+    from contextlib import closing
+
+    from cli.trainer import train
+    from shared.net import bus as keys
+    from shared.net.bus import Bus
+    from shared.net.messages import Metrics
+    from shared.net.wire import encode
+
+    never = {"rule": "success_at_least", "threshold": 1.0, "patience": 100}
+    with api_cluster(tmp_path) as cluster, closing(Bus([cluster.endpoint])) as bus:
+        url = cluster.url
+        body = {**BODY, "episodes": 30, "early_stop": never}
+        exp = httpx.post(f"{url}/experiments", json=body).json()
+        run_id = exp["runs"][0]["id"]
+        # (episode 28 is no point: no row of this attempt comes for it, whenever it comes)
+        stale = {
+            "episode": 28,
+            "env_steps": 280,
+            "success_rate": 1.0,
+            "stop_reason": "early_stop (stale)",
+        }
+        msg = encode(Metrics(run_id, source="eval", attempt=2, data=stale))
+
+        # Sent until the run's first point is stored: its learner has subscribed by then
+        # and has 27 episodes to go.
+        def sent_till_a_point() -> bool:
+            bus.put(keys.k_metrics(run_id, "eval"), msg)
+            return httpx.get(f"{url}/runs/{run_id}").json()["points"] >= 1
+
+        wait_for(sent_till_a_point, timeout=60, what="a point stored")
+        bus.put(keys.k_metrics(run_id, "eval"), msg)
+        done = wait_for(lambda: finished(url, exp["id"]), timeout=300, what="the experiment")
+        run = httpx.get(f"{url}/runs/{run_id}").json()
+        assert done["status"] == "completed" and run["reason"] is None, run
+        assert run["attempts"] == 1, run
+        points = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
+        rows = [{k: v for k, v in p.items() if k != "seq"} for p in points]
+        assert all(r.get("stop_reason") is None for r in rows), rows
+        local = train(make_config(run["config"]), tmp_path / "alone", progress=False)
+        diffs = compare(rows, local)
+        assert not diffs, "\n".join(diffs[:20])
