@@ -469,7 +469,9 @@ class GroupRun:
             raise ValueError(f"{len(cfgs)} runs but {len(outs)} output folders")
         if len({o is None for o in outs}) > 1:
             raise ValueError("give every run of a group an output folder, or none")
-        self.own = own = own_learner and len(cfgs) == 1
+        # A run alone keeps its config's learner when asked (`macb train`) or when it is
+        # the reference one, which no group updates with (`form_groups` puts it alone).
+        self.own = own = len(cfgs) == 1 and (own_learner or cfgs[0].learner_impl == "reference")
         if not own:
             check_group(cfgs)
         c0 = self.cfg = cfgs[0]
