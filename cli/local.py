@@ -16,7 +16,10 @@ import json
 import logging
 import os
 import re
+import socket
 import sys
+import time
+import uuid
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -265,6 +268,7 @@ def run_groups(
     except MetricsError as err:
         print(err, file=sys.stderr)
         raise Refused() from None
+    command = command_id()
     tasks = []
     for n, (state, members) in enumerate(groups, 1):
         chosen = [runs[i] for i in members]
@@ -279,6 +283,7 @@ def run_groups(
             cut_every_s,
             what,
             (n - 1) % max(jobs, 1) if jobs > 1 else None,
+            command,
         )
         tasks.append((what, args))
     if jobs <= 1 or len(tasks) <= 1:
@@ -295,6 +300,17 @@ def run_groups(
     for message in failed:
         print(message, file=sys.stderr)
     return 2 if failed else 0
+
+
+def command_id() -> str:
+    """What names one `run_groups` call in its runs' provenance: every group it starts,
+    however much later, is one restart of a campaign. A Slurm array job's tasks, one
+    call each, share their job's id (and a requeue is a restart of its own)."""
+    job = os.environ.get("SLURM_ARRAY_JOB_ID") or os.environ.get("SLURM_JOB_ID")
+    if job:
+        return f"slurm-{job}-{os.environ.get('SLURM_RESTART_COUNT') or 0}"
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    return f"{socket.gethostname()}-{stamp}-{uuid.uuid4().hex[:8]}"
 
 
 def plan_groups(
@@ -367,6 +383,7 @@ def _train_group_job(
     cut_every_s: float,
     what: str,
     position: int | None = None,
+    command: str | None = None,
 ) -> str | None:
     """One group, in this process or a pool's: None, or why it could not resume."""
     from cli.trainer import train_group
@@ -384,6 +401,7 @@ def _train_group_job(
             cut_every_s=cut_every_s,
             desc=what,
             position=position,
+            command=command,
         )
     except CutError as err:
         return f"{what}: cannot resume: {err}"
@@ -447,12 +465,15 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
 
 def _resume(start: dict[str, Any]) -> dict[str, Any]:
     """A start after a run's first, as the page's header names it: the episode it went on
-    from (None before starts recorded it), its code and when."""
+    from (None before starts recorded it), its code, when, and the command that made it
+    (None before starts named it)."""
     episode = start.get("resumed_at")
+    command = start.get("command")
     return {
         "episode": episode if isinstance(episode, int) else None,
         "code": start.get("code"),
         "started": start.get("started"),
+        "command": command if isinstance(command, str) else None,
     }
 
 

@@ -268,6 +268,7 @@ def train_group(
     position: int | None = None,
     stop_when: Callable[[list[dict]], bool] | None = None,
     own_learner: bool = False,
+    command: str | None = None,
 ) -> list[list[dict]]:
     """Train `cfgs` as one group; returns each run's metric rows (also written under
     its `outs` folder). The runs share one `GroupMADDPG`, a group of one too: with
@@ -275,7 +276,9 @@ def train_group(
     run would not give its uninterrupted rows bit for bit. `own_learner` (`train`,
     one run) keeps the learner its config asks for instead.
 
-    `on_metrics(r, row)` sees run r's rows as they come (after the point's cut);
+    `command` names the command this start is part of, in each run's provenance (the
+    page counts a command's starts as one restart). `on_metrics(r, row)` sees run r's
+    rows as they come (after the point's cut);
     `stop_when(rows)` returning True ends every run after that point. With `resume`,
     every run continues from its newest cut that all runs have (one episode), keeping
     its rows up to it. Each run's folder is locked while it trains (`runlock.hold`):
@@ -297,6 +300,7 @@ def train_group(
         threadpool_limits(limits=1, user_api="blas"),
     ):
         group = GroupRun(cfgs, outs, cut_every_s, own_learner)
+        group.command = command
         if resume:
             group.restore()
         else:
@@ -469,7 +473,9 @@ class GroupRun:
             raise ValueError(f"{len(cfgs)} runs but {len(outs)} output folders")
         if len({o is None for o in outs}) > 1:
             raise ValueError("give every run of a group an output folder, or none")
-        self.own = own = own_learner and len(cfgs) == 1
+        # A run alone keeps its config's learner when asked (`macb train`) or when it is
+        # the reference one, which no group updates with (`form_groups` puts it alone).
+        self.own = own = len(cfgs) == 1 and (own_learner or cfgs[0].learner_impl == "reference")
         if not own:
             check_group(cfgs)
         c0 = self.cfg = cfgs[0]
@@ -509,6 +515,7 @@ class GroupRun:
         self.minibatches_per_update = minibatches_per_update(c0)
         self.first_episode = 1
         self.resumed = False
+        self.command: str | None = None  # the command whose start this is (provenance)
         self.last_cut = time.monotonic()
         # (episode, seconds, replay bytes appended, cut file bytes) of each cut written,
         # summed over the runs.
@@ -743,6 +750,8 @@ class GroupRun:
             start = provenance.entry(m.cfg.precision, stats, "trainer" if self.own else "group")
             if not self.own:
                 start["group"] = {"runs": self.runs}
+            if self.command is not None:  # one restart of a campaign, however many groups
+                start["command"] = self.command
             if self.resumed:  # where the run went on from: a campaign's restarts, on its page
                 start["resumed_at"] = self.first_episode - 1
                 provenance.append(m.out / provenance.FILE, start)

@@ -199,8 +199,9 @@ class TrainConfig(BaseModel):
     k: int = Field(512, ge=1, le=4096, description="SimHash code length in bits")
     hash: Literal["simhash", "none", "raw"] = Field(
         "simhash",
-        description="simhash, none (key = vector rounded to 2 decimals) or raw (key = the "
-        "vector's float32 bytes: the thesis code's strategy 'None', its fig. 3 loop)",
+        description="simhash, none (key = the vector rounded to hash_round decimals, else "
+        "2) or raw (key = the vector's float32 bytes: the thesis code's strategy 'None', "
+        "its fig. 3 loop)",
     )
     key: Literal["state-action", "state"] = Field(
         "state-action", description="count s||a (state-action) or s only (state)"
@@ -305,8 +306,9 @@ class TrainConfig(BaseModel):
         None,
         ge=0,
         le=8,
-        description="round the counted vector to this many decimals before SimHash "
-        "(the thesis code: 2, for Cen-MACB only)",
+        description="round the counted vector to this many decimals before it is keyed "
+        "(SimHash or raw bytes; hash none: the key's decimals, 2 when unset) (the thesis "
+        "code: 2, for Cen-MACB only, whatever its strategy)",
     )
     same_init: bool = Field(
         False,

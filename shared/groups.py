@@ -90,10 +90,13 @@ def group_error(cfgs: Sequence[TrainConfig], actors: int) -> str | None:
 
 def form_groups(cfgs: Sequence[TrainConfig], max_runs: int | None = None) -> list[list[int]]:
     """Indices of `cfgs` in groups of runs that can share one (in order of first
-    appearance), each at most `max_runs` long."""
+    appearance), each at most `max_runs` long; a run asking for the reference learner
+    is a group of one (`check_group` refuses it beside others)."""
     by_key: dict[str, list[int]] = {}
     for i, cfg in enumerate(cfgs):
-        by_key.setdefault(group_key(cfg), []).append(i)
+        # (the reference learner is one run's: such a run trains alone, as `macb train`)
+        alone = f"reference run {i}" if cfg.learner_impl == "reference" else ""
+        by_key.setdefault(alone or group_key(cfg), []).append(i)
     groups = []
     for members in by_key.values():
         step = max_runs or len(members)

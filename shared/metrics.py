@@ -56,6 +56,12 @@ def smoothed(values: Sequence[float], window: int) -> list[float]:
     return out
 
 
+# Smoothed means closer than this are one value to the rules: a running float mean of
+# 0.7, 1.0, 1.0 is 0.8999999999999999, and 0.0, 0.2 then 0.2, 0.0 read as an improvement.
+# Far above the running sum's rounding, far below any two success rates that differ.
+SAME_WITHIN = 1e-9
+
+
 def early_stop_reason(rule: EarlyStop | None, rows: Sequence[dict]) -> str | None:
     """Why the run ends at its last row by `rule` (config `early_stop`), or None: a pure
     function of the rows so far, so a resumed run and every place that reads rows (the
@@ -67,7 +73,7 @@ def early_stop_reason(rule: EarlyStop | None, rows: Sequence[dict]) -> str | Non
     if rule.rule == "success_at_least":
         assert rule.threshold is not None
         tail = sm[-rule.patience :]
-        if len(tail) == rule.patience and all(v >= rule.threshold for v in tail):
+        if len(tail) == rule.patience and all(v >= rule.threshold - SAME_WITHIN for v in tail):
             return (
                 f"early_stop success_at_least at episode {rows[-1]['episode']}: {what} >= "
                 f"{rule.threshold:g} at {rule.patience} point(s) in a row"
@@ -75,7 +81,7 @@ def early_stop_reason(rule: EarlyStop | None, rows: Sequence[dict]) -> str | Non
         return None
     best, at = sm[0], 0
     for i, v in enumerate(sm[1:], 1):
-        if v > best + rule.min_delta:
+        if v > best + rule.min_delta + SAME_WITHIN:
             best, at = v, i
     if len(sm) - 1 - at >= rule.patience:
         return (

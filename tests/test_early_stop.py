@@ -63,6 +63,25 @@ def test_the_rules_read_the_points_so_far():
     assert early_stop_reason(None, rows_of(1.0)) is None
 
 
+def test_a_mean_on_the_limit_is_on_it_not_a_rounding_below_or_above():
+    """Means a person reads as equal are equal to the rules: a running float mean of
+    0.7, 1.0, 1.0 is 0.8999999999999999 (the shipped remedies rule's threshold 0.9 held
+    there), and 0.0, 0.2 then 0.2, 0.0 is no improvement (the sums' roundings differ)."""
+    from shared.metrics import smoothed
+
+    rule = {"rule": "success_at_least", "threshold": 0.9, "patience": 3, "smooth": 3}
+    at_least = make_config({**BASE, "early_stop": rule}).early_stop
+    rows = rows_of(0.1, 0.7, 1.0, 1.0, 0.7, 1.0)
+    assert smoothed([r["success_rate"] for r in rows], 3)[-3:] != [0.9, 0.9, 0.9]  # the case
+    assert "at 3 point(s) in a row" in (early_stop_reason(at_least, rows) or "")
+    assert early_stop_reason(at_least, rows_of(0.1, 0.7, 1.0, 1.0, 0.7, 0.9)) is None
+    rule = {"rule": "no_improvement", "patience": 2, "smooth": 2}
+    flat = make_config({**BASE, "early_stop": rule}).early_stop
+    why = early_stop_reason(flat, rows_of(0.0, 0.2, 0.0, 0.1))
+    assert why is not None and "not above 0.1 (episode 20) for 2 point(s)" in why
+    assert early_stop_reason(flat, rows_of(0.0, 0.2, 0.0, 0.3)) is None
+
+
 @pytest.mark.parametrize(
     ("rule", "says"),
     [

@@ -165,3 +165,28 @@ def test_hash_round_rounds_the_counted_vector_before_simhash():
     assert not np.array_equal(plain.keys(obs, act)[0], plain.keys(nudged, act)[0])
     rounded.observe(obs, act)
     assert (rounded.counts(nudged, act)[0] == 1).all()  # priced as the counted key
+
+
+def test_hash_round_rounds_before_every_key_kind_and_sets_hash_nones_decimals():
+    """The thesis code's Cen path rounds before whatever strategy keys the vector: with
+    `hash: raw` the raw bytes are the rounded vector's; with `hash: none` the key is the
+    vector at `hash_round` decimals (2 without it, the thesis's "decimals"), in keys wide
+    enough for them."""
+    from shared.core.simhash import RoundKey
+
+    obs, act = batch(50)
+    obs = np.round(obs, 3).astype(np.float32)
+    nudged = obs + np.float32(0.0004)  # the same vector at 3 decimals
+    raw = CountExploration(ExploreSpec(mode="cen-macb", hash="raw", round=3), OBS, ACT)
+    plain = CountExploration(ExploreSpec(mode="cen-macb", hash="raw"), OBS, ACT)
+    assert np.array_equal(raw.keys(obs, act)[0], raw.keys(nudged, act)[0])
+    assert not np.array_equal(plain.keys(obs, act)[0], plain.keys(nudged, act)[0])
+    three = CountExploration(ExploreSpec(mode="cen-macb", hash="none", round=3), OBS, ACT)
+    two = CountExploration(ExploreSpec(mode="cen-macb", hash="none"), OBS, ACT)
+    assert [h.decimals for h in three.hashers] == [3]
+    assert [h.decimals for h in two.hashers] == [2]
+    apart = obs + np.float32(0.002)  # another vector at 3 decimals
+    assert not np.array_equal(three.keys(obs, act)[0], three.keys(apart, act)[0])
+    big = np.full((1, 2), 300.0)  # 3e10 at 8 decimals: past int32
+    assert not np.array_equal(RoundKey(2, 8).keys(big), RoundKey(2, 8).keys(big + 1))
+    assert RoundKey(2, 8).key_bytes == 16 and RoundKey(2).key_bytes == 8

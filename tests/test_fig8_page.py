@@ -182,6 +182,62 @@ def test_the_page_header_says_how_often_and_where_the_campaign_resumed(runs_dir,
     ) in header
 
 
+def test_one_commands_starts_hours_apart_are_one_restart_and_two_commands_two():
+    """A `--local` with more groups than `--jobs` starts its later groups hours after its
+    first: the starts name their command, so they are one restart; another command is
+    another restart however close (beyond RESTART_GAP_S), and one begun within it of
+    the last is the same restart (stopped and given again at once)."""
+
+    def resume(started: str, episode: int, command: str | None) -> dict:
+        return {"episode": episode, "code": {"commit": "c" * 40}, "started": started,
+                "command": command}  # fmt: skip
+
+    runs = [
+        {"resumes": [resume("2026-12-05T09:00:00Z", 1000, "x")]},
+        {"resumes": [resume("2026-12-05T13:00:00Z", 1200, "x")]},  # the same command
+        {"resumes": [resume("2026-12-05T09:05:00Z", 900, "y")]},  # given again at once
+        {"resumes": [resume("2026-12-05T20:00:00Z", 2000, "z")]},
+    ]
+    line = render.restarts(runs)[0]
+    assert line.startswith("- Restarts: resumed 2 times (at episodes 900 and 1,000 and 1,200")
+    assert "; 2,000 (code cccccccccccc, 2026-12-05T20:00:00Z))." in line
+    # without command names (older starts) the hours-later group is a restart of its own
+    for r in runs:
+        r["resumes"][0]["command"] = None
+    assert render.restarts(runs)[0].startswith("- Restarts: resumed 3 times")
+
+
+def test_a_local_command_names_itself_in_every_start_it_makes(tmp_path, monkeypatch):
+    """Each `run_groups` call stamps one command id into every run's start, whichever
+    group and process trained it; a Slurm array's tasks share their job's (a requeue,
+    SLURM_RESTART_COUNT, is another)."""
+    from cli.local import LocalRun, command_id, run_groups
+    from shared.config import make_config
+
+    base = {"task": "simple", "algo": "ddpg", "hidden": [16, 16], "episode_len": 5,
+            "episodes": 2, "eval_every": 2, "eval_episodes": 1, "learning_starts": 10,
+            "batch_size": 4, "learner_lanes": 1, "threads": 1}  # fmt: skip
+    runs = [
+        LocalRun("a", None, 1, make_config({**base, "seed": 1})),
+        LocalRun("b", None, 2, make_config({**base, "seed": 2, "k": 8})),
+    ]
+    out = tmp_path / "runs"
+    assert run_groups(runs, out, quiet=True, max_runs=1, jobs=2) == 0  # two processes
+
+    def commands(name: str) -> list:
+        starts = json.loads((out / name / "provenance.json").read_text())["starts"]
+        return [s.get("command") for s in starts]
+
+    first = commands("a")
+    assert len(first) == 1 and isinstance(first[0], str) and commands("b") == first
+    assert command_id() != first[0]  # another call: another process or second
+    monkeypatch.setenv("SLURM_ARRAY_JOB_ID", "4242")
+    monkeypatch.delenv("SLURM_RESTART_COUNT", raising=False)
+    assert command_id() == "slurm-4242-0"
+    monkeypatch.setenv("SLURM_RESTART_COUNT", "1")
+    assert command_id() == "slurm-4242-1"
+
+
 def test_fig8_draws_the_bootstrap_75_percent_band_and_seeds_average_to_the_mean():
     shapes = {"Sparse": (30000, 0.45), "Sparse + Dis-MACB": (20000, 0.7)}
     exp, points = synthetic(FIG8, shapes, 40000, seeds=(0, 1, 2), step=200)

@@ -251,3 +251,25 @@ def test_a_group_with_its_replay_on_a_device_trains_the_hosts_rows(profile, tmp_
     _, resumed = train_with(cfgs, outs("cut"), "torch", resume=True, cut_every_s=0.0)
     for r in range(len(cfgs)):
         assert strip(resumed[r]) == strip(host[r]), f"run {r} resumed"
+
+
+def test_a_reference_run_in_a_local_figure_trains_alone_with_its_own_learner(tmp_path):
+    """A run asking for the reference learner (the batched one's CPU definition) is not
+    put in a group beside batched runs, which would refuse them all: `--local` trains it
+    alone with its own learner, `macb train`'s rows, and the others as a group."""
+    from cli.local import LocalRun, run_groups, run_rows
+
+    common = {**BASE, "task": "simple", "algo": "ddpg", "explore": "dis-macb"}
+    cfgs = [
+        make_config({**common, "seed": 1}),
+        make_config({**common, "seed": 2, "learner_impl": "reference"}),
+        make_config({**common, "seed": 3}),
+    ]
+    assert form_groups(cfgs) == [[0, 2], [1]]
+    runs = [LocalRun(f"r{i}", None, c.seed, c) for i, c in enumerate(cfgs)]
+    assert run_groups(runs, tmp_path / "runs", quiet=True, jobs=1) == 0
+    ref = train(cfgs[1], tmp_path / "alone", progress=False)
+    assert strip(run_rows(tmp_path / "runs" / "r1")) == strip(ref)
+    group = train_group([cfgs[0], cfgs[2]], [None, None], progress=False)
+    for r, rows in zip((0, 2), group):
+        assert strip(run_rows(tmp_path / "runs" / f"r{r}")) == strip(rows)

@@ -145,3 +145,16 @@ def test_make_collector_under_the_thesis_profile_random_for_exactly_learning_sta
     assert asked == list(range(45, 60))
     assert rows[-1].obs.shape == (20,)  # comm-free spread: 10 per agent
     assert [r.done for r in rows if r.episode_end] == [1.0] * 3  # time_limit_terminal
+
+
+def test_a_collectors_noise_and_its_worlds_draw_from_one_stream_as_fidelity_l7_says():
+    """docs/fidelity.md L7: the collector seeds its noise generator and its training
+    worlds with one seed, so both are the same PCG64 stream (the same increment), each
+    at its own position: the k-th uniform of the warm-up is the k-th draw of the worlds.
+    Kept because every published run was made so; this test says where it stands."""
+    env = make_task("simple")
+    c = Collector(env, 0.1, seed=7)
+    ours, world = c.rng.bit_generator.state["state"], env.rng_state()["state"]
+    assert ours["inc"] == world["inc"]
+    start = env.world.agents[0].state.p_pos  # the world's first draws: uniform(-1, 1)
+    assert np.allclose(c.rng.uniform(-1, 1, 2), start)  # the noise stream's first draws

@@ -267,27 +267,33 @@ def markdown(a: Analysis, profile: str, out_png: str = "", command: str | None =
     return "\n".join(lines) + "\n"
 
 
-RESTART_GAP_S = 600.0  # resumes this close in time are one restart of the command
+RESTART_GAP_S = 600.0  # restarts begun this close in time are one restart of the campaign
 
 
 def restarts(runs: list[dict[str, Any]]) -> list[str]:
     """The header's line on a campaign's restarts, from each run's resumes (`resumes`:
     the starts after its first in its provenance.json, as `cli.local.local_experiment`
     reads them; no line where no run has a provenance.json, or for a cluster's runs,
-    which carry none). Resumes started within RESTART_GAP_S of each other are one
-    restart: a command resumes its groups together (each at its cut), and a restart
-    that was stopped and given again at once, or that resumed only some groups, stays
-    one entry."""
+    which carry none). The starts one command made (their `command`: a `--local` with
+    more groups than `--jobs` starts its later groups hours after its first) are one
+    restart, and so are restarts begun within RESTART_GAP_S of each other: a command
+    that was stopped and given again at once, or starts written before they named their
+    command (a command resumes its groups together, each at its cut)."""
     lists = [r["resumes"] for r in runs if isinstance(r.get("resumes"), list)]
     if not lists:
         return []
-    every = sorted((str(x.get("started") or ""), i, x) for i, xs in enumerate(lists) for x in xs)
+    every = [x for xs in lists for x in xs]
     if not every:
         return ["- Restarts: none (each run trained in one start)."]
+    units: dict[str, list[dict[str, Any]]] = {}
+    for i, x in enumerate(every):
+        command = x.get("command")
+        units.setdefault(f"c:{command}" if isinstance(command, str) else f"s:{i}", []).append(x)
+    ordered = sorted(units.values(), key=lambda xs: min(str(x.get("started") or "") for x in xs))
     clusters: list[list[dict[str, Any]]] = []
     last: datetime | None = None
-    for started, _, x in every:
-        at = _when(started)
+    for these in ordered:
+        at = _when(min(str(x.get("started") or "") for x in these))
         if (
             not clusters
             or at is None
@@ -295,7 +301,7 @@ def restarts(runs: list[dict[str, Any]]) -> list[str]:
             or (at - last).total_seconds() > RESTART_GAP_S
         ):
             clusters.append([])
-        clusters[-1].append(x)
+        clusters[-1].extend(these)
         last = at or last
     parts, unknown = [], False
     for these in clusters:

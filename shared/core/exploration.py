@@ -30,11 +30,12 @@ class ExploreSpec:
     mode: str = "cen-macb"
     beta: float = 0.8
     k: int = 512
-    hash: str = "simhash"  # "simhash", "none" (round to 2 decimals) or "raw" (float32 bytes)
+    hash: str = "simhash"  # "simhash", "none" (round to `round` or 2 decimals), "raw" (bytes)
     key: str = "state-action"  # or "state"
     seed: int = 0
-    # Decimals the counted vector is rounded to before SimHash (None: not rounded); the
-    # thesis code rounds Cen-MACB's joint vector to 2.
+    # Decimals the counted vector is rounded to before it is keyed (None: not rounded;
+    # hash "none": the key's decimals, 2 when None); the thesis code rounds Cen-MACB's
+    # joint vector to 2 whatever its strategy.
     round: int | None = None
     # (width, depth, conservative) of a count-min sketch per table; None: exact tables.
     sketch: tuple[int, int, bool] | None = None
@@ -64,7 +65,7 @@ class CountExploration:
             if spec.hash == "simhash"
             else RawKey(d)
             if spec.hash == "raw"
-            else RoundKey(d)
+            else RoundKey(d, 2 if spec.round is None else spec.round)
             for t, d in enumerate(self.table_dims)
         ]
         self.tables: list[Counts] = [
@@ -101,9 +102,11 @@ class CountExploration:
     def keys(self, obs: np.ndarray, act: np.ndarray) -> list[np.ndarray]:
         """Packed keys per table: (B, key_bytes) uint8 each."""
         vectors = self.vectors(obs, act)
-        if self.spec.round is not None and self.spec.hash == "simhash":
-            # The same float32 values are rounded at collection and at sampling, so a
-            # sampled row always finds its counted key (the thesis code rounded float64
+        if self.spec.round is not None and self.spec.hash != "none":
+            # (hash none: RoundKey keys the vector at these decimals itself.) Any key is
+            # of the rounded vector, as the thesis code's Cen path rounds before any
+            # strategy. The same float32 values are rounded at collection and at sampling,
+            # so a sampled row always finds its counted key (the thesis code rounded float64
             # at one and float32 at the other: docs/fidelity.md, row C4).
             vectors = [np.round(v, self.spec.round) for v in vectors]
         return [h.keys(v) for h, v in zip(self.hashers, vectors)]

@@ -50,19 +50,23 @@ class SimHash:
 
 
 class RoundKey:
-    """The thesis's "without hash" variant: the key is the vector rounded to 2 decimals."""
+    """The thesis's "without hash" variant: the key is the vector rounded to `decimals`
+    (the thesis: 2)."""
 
     def __init__(self, dim: int, decimals: int = 2) -> None:
         self.dim = dim
         self.decimals = decimals
-        self.key_bytes = 4 * dim
+        # int32 holds |v| < 214,748 at 4 decimals; more decimals take int64 (the 2 of the
+        # thesis keep their 4-byte keys).
+        self.dtype = np.int32 if decimals <= 4 else np.int64
+        self.key_bytes = np.dtype(self.dtype).itemsize * dim
 
     def keys(self, batch: np.ndarray) -> np.ndarray:
         v = np.asarray(batch, dtype=np.float64)
         if v.ndim != 2 or v.shape[1] != self.dim:
             raise ValueError(f"expected a (B, {self.dim}) batch, got shape {v.shape}")
         # Integer hundredths: exact, and -0.0 and 0.0 become the same key.
-        scaled = np.rint(v * 10**self.decimals).astype(np.int32)
+        scaled = np.rint(v * 10**self.decimals).astype(self.dtype)
         return np.ascontiguousarray(scaled.view(np.uint8).reshape(len(v), -1))
 
 

@@ -254,8 +254,9 @@ class VecTransitions:
 class VecCollector:
     """R runs' `Collector`s over one world each of a VecTask (world r is run r's).
 
-    Run r draws its noise, warm-up actions and worlds from its own streams exactly as
-    its `Collector` alone does (same seed, same order of draws), so its transitions are
+    Run r draws its noise, warm-up actions and worlds from run r's streams exactly as
+    its `Collector` alone does (same seed, same order of draws; noise and worlds one
+    stream: docs/fidelity.md, L7), so its transitions are
     the same; the policy is asked once per step for every run. Episodes of a group end
     together (one `episode_len`), so a cut's episode boundary is every run's."""
 
