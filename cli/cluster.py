@@ -178,7 +178,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import socket
 
     from shared.net.bus import DEFAULT_ENDPOINT, default_connect
-    from shared.net.security import Security, SecurityError
+    from shared.net.security import BusError, Security, SecurityError
 
     try:  # every file and setting checked before any session opens: nothing half-starts
         sec = Security.from_env()
@@ -195,7 +195,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         listen = args.listen or [settings().zenoh_listen or DEFAULT_ENDPOINT]
         try:
             serve(listen, connect=args.connect, router_id=args.id or sec.user or "router")
-        except SecurityError as err:
+        except (SecurityError, BusError) as err:
             print(f"macb serve router: {err}", file=sys.stderr)
             return 2
         return 0
@@ -208,7 +208,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     module = importlib.import_module(f"services.{args.role}.main")
     service_id = args.id or f"{args.role}-{socket.gethostname()}-{os.getpid()}"
     connect = args.connect or default_connect()
-    service = module.make_service(service_id, connect, Path(args.data_dir or default_data_dir()))
+    try:
+        service = module.make_service(
+            service_id, connect, Path(args.data_dir or default_data_dir())
+        )
+    except BusError as err:  # no router at `connect`: named, one line (the role with it)
+        print(f"macb serve {args.role}: {err}", file=sys.stderr)
+        return 2
     from services.common import stop_on_signals
 
     stop_on_signals(service)

@@ -12,7 +12,7 @@ import sys
 from collections.abc import Callable
 
 from cli import api, cluster, export, reproduce, results, security, train, view
-from shared.net.security import SecurityError
+from shared.net.security import BusError, SecurityError
 
 # In the order `macb --help` lists them.
 COMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
@@ -52,6 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     security.apply_security_flags(args)
     try:
         return args.func(args)
-    except SecurityError as err:  # a bus setting or file that cannot be used: say which
+    # A bus setting or file that cannot be used, or a session that cannot open (no router
+    # at the endpoints, a port taken): said in one line, as any other bad input.
+    except (SecurityError, BusError) as err:
         print(f"macb {args.command}: {err}", file=sys.stderr)
         return 2

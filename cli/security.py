@@ -11,12 +11,14 @@ same steps by hand.
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import os
 import secrets
 import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from shared.net.roles import role_of
@@ -66,7 +68,9 @@ def add_certs_parser(sub: argparse._SubParsersAction) -> None:
         description="Write to DIR: ca.pem/ca.key (kept if present), for every router and "
         "user a certificate NAME.pem/NAME.key signed by the CA (common name NAME), for every "
         "user a password NAME.password, and users.txt (user:password, the routers' "
-        "credentials file). Run again with more names to add them; existing files are kept. "
+        "credentials file). Run again with more names to add them; existing files are kept, "
+        "but a router certificate lacking a host name --router gives is re-signed with it "
+        "(its key kept). "
         "Copy DIR to each host (ca.key need not leave this one).",
     )
     c.add_argument("dir", type=Path)
@@ -117,9 +121,16 @@ def cmd_certs(args: argparse.Namespace) -> int:
 
 
 def make_certs(
-    out: Path, routers: dict[str, list[str]], users: list[str], days: int = 825
+    out: Path,
+    routers: dict[str, list[str]],
+    users: list[str],
+    days: int = 825,
+    say: Callable[[str], None] = print,
 ) -> list[str]:
-    """Create what is missing in `out`; return the names of the files written."""
+    """Create what is missing in `out`; return the names of the files written. A
+    router's certificate lacking a host name asked for now is re-signed with its names
+    and the new ones (its key kept, so nothing else changes), and `say` tells which: a
+    certificate kept as it was would fail the TLS host check on the new host."""
     out.mkdir(parents=True, exist_ok=True)
     made: list[str] = []
     ca, ca_key = out / "ca.pem", out / "ca.key"
@@ -135,11 +146,23 @@ def make_certs(
     elif not ca_key.exists():
         raise SecurityError(f"{ca} exists but {ca_key} does not: cannot sign new certificates")
     for name in dict.fromkeys([*routers, *users]):
-        if (out / f"{name}.pem").exists():
+        wanted = _sans(["localhost", "127.0.0.1", name, *routers.get(name, [])])
+        cert = out / f"{name}.pem"
+        if not cert.exists():
+            _sign(out, name, wanted, days)
+            made += [f"{name}.pem", f"{name}.key"]
             continue
-        hosts = ["localhost", "127.0.0.1", name, *routers.get(name, [])]
-        _sign(out, name, list(dict.fromkeys(hosts)), days)
-        made += [f"{name}.pem", f"{name}.key"]
+        # Only host names asked for by --router re-sign a certificate: one made by hand
+        # without the defaults (localhost, ...) is the user's choice and stays as it is.
+        asked = _sans(routers.get(name, []))
+        have = _cert_sans(cert) if asked else []
+        if lacking := [s for s in asked if s not in have]:
+            _sign(out, name, list(dict.fromkeys([*have, *wanted])), days, keep_key=True)
+            made.append(cert.name)
+            say(
+                f"{cert.name}: re-signed to add {', '.join(lacking)}, its key kept; copy it "
+                f"to the host that runs {name} and restart it there"
+            )
     table_path = out / "users.txt"
     table = read_users_file(table_path) if table_path.exists() else {}
     for name in users:
@@ -155,22 +178,56 @@ def make_certs(
     return made
 
 
-def _sign(out: Path, name: str, hosts: list[str], days: int) -> None:
+def _sans(hosts: list[str]) -> list[str]:
+    """Host names and IPs as subjectAltName entries (`DNS:a.example`, `IP:10.0.0.5`), an
+    IP in its compressed form so that it compares equal to what openssl prints."""
+    sans: list[str] = []
+    for h in hosts:
+        try:
+            sans.append(f"IP:{ipaddress.ip_address(h).compressed}")
+        except ValueError:
+            sans.append(f"DNS:{h.lower()}")
+    return list(dict.fromkeys(sans))
+
+
+def _cert_sans(cert: Path) -> list[str]:
+    """The subjectAltName entries `cert` carries, as `_sans` writes them (none: [])."""
+    got = subprocess.run(
+        ["openssl", "x509", "-in", str(cert), "-noout", "-ext", "subjectAltName"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    if got.returncode:
+        last = (got.stderr.strip().splitlines() or ["openssl failed"])[-1]
+        raise SecurityError(f"certificate {cert}: cannot read it ({last})")
+    lines = got.stdout.splitlines()[1:]  # after the "X509v3 Subject Alternative Name:" line
+    entries = [e.strip() for line in lines for e in line.split(",") if e.strip()]
+    hosts = [e.split(":", 1)[1] for e in entries if e.startswith(("DNS:", "IP Address:"))]
+    return _sans(hosts)
+
+
+def _sign(out: Path, name: str, sans: list[str], days: int, keep_key: bool = False) -> None:
+    """Sign NAME.pem for `sans` with the CA; `keep_key`: for the key NAME.key already
+    holds (a re-signed certificate), else for a new one."""
     key, cert = out / f"{name}.key", out / f"{name}.pem"
-    sans = ",".join(
-        f"IP:{h}" if h.replace(".", "").isdigit() or ":" in h else f"DNS:{h}" for h in hosts
-    )
+    if keep_key and not key.exists():
+        raise SecurityError(
+            f"{cert} needs re-signing for more host names but its key {key} is missing "
+            f"(remove {cert} to make a new pair)"
+        )
     with tempfile.TemporaryDirectory() as tmp:
         csr, ext = Path(tmp) / "req.csr", Path(tmp) / "ext.cnf"
         ext.write_text(
-            f"subjectAltName={sans}\nbasicConstraints=CA:FALSE\n"
+            f"subjectAltName={','.join(sans)}\nbasicConstraints=CA:FALSE\n"
             "keyUsage=critical,digitalSignature,keyEncipherment\n"
             "extendedKeyUsage=serverAuth,clientAuth\n"
         )
-        _openssl(
-            "req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
-            "-keyout", key, "-out", csr, "-subj", f"/CN={name}",
-        )  # fmt: skip
+        if keep_key:
+            _openssl("req", "-new", "-key", key, "-out", csr, "-subj", f"/CN={name}")
+        else:
+            _openssl(
+                "req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+                "-keyout", key, "-out", csr, "-subj", f"/CN={name}",
+            )  # fmt: skip
         _openssl(
             "x509", "-req", "-in", csr, "-CA", out / "ca.pem", "-CAkey", out / "ca.key",
             "-CAcreateserial", "-out", cert, "-days", str(days), "-extfile", ext,

@@ -219,8 +219,11 @@ def cmd_up_slurm(args: argparse.Namespace) -> int:
     opts = SlurmOptions(
         args.partition, args.time, args.account, tuple(shlex.split(args.sbatch_args or ""))
     )
-    if why := job.error() or preflight(opts, [data_dir]):
+    if why := job.error():
         print(f"macb up --launcher slurm: {why}", file=sys.stderr)
+        return 2
+    if why := preflight(opts, [data_dir], folder="the data folder", flag="--data-dir"):
+        print(f"macb up: {why}", file=sys.stderr)  # it names --launcher slurm or the flag
         return 2
     job.log_dir.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")

@@ -265,14 +265,65 @@ def kustomize_major() -> int:
     return int(m[1]) if m else 2  # kubectl < 1.21 says no version: kustomize 2.0.3
 
 
+def docs_overlay() -> dict[str, Any]:
+    """docs/deploy.md's overlay (my-cluster/kustomization.yaml), parsed."""
+    docs = (ROOT / "docs" / "deploy.md").read_text()
+    block = docs.split("<!-- kubernetes overlay: tests/test_kubernetes.py renders it -->")[1]
+    return yaml.safe_load(block.split("```yaml\n", 1)[1].split("```", 1)[0])
+
+
+def docs_kubectl_commands() -> list[list[str]]:
+    """Every kubectl command in docs/deploy.md's "On Kubernetes" shell blocks, as words
+    (comments dropped; a command inside `$(...)` or after `&&` counts on its own)."""
+    docs = (ROOT / "docs" / "deploy.md").read_text()
+    section = docs.split("\n## On Kubernetes\n", 1)[1].split("\n## ", 1)[0]
+    found: list[list[str]] = []
+    for block in re.findall(r"```sh\n(.*?)```", section, re.S):
+        for line in block.splitlines():
+            code = re.sub(r"\s#.*", "", line)
+            found += [m.split() for m in re.findall(r"\bkubectl\s[^;&|)]*", code)]
+    return found
+
+
+# kubectl commands on objects of no namespace (nodes, the namespace itself).
+CLUSTER_SCOPED = (["label", "node"], ["get", "nodes"], ["create", "namespace"])
+
+
+def namespace_flag(words: list[str]) -> str | None:
+    """The namespace `-n NS`, `--namespace NS` or `--namespace=NS` names, else None."""
+    for i, w in enumerate(words):
+        if w in ("-n", "--namespace") and i + 1 < len(words):
+            return words[i + 1]
+        if w.startswith("--namespace="):
+            return w.split("=", 1)[1]
+    return None
+
+
+def test_every_kubectl_command_in_the_docs_works_in_the_overlay_s_namespace():
+    """The overlay puts every object in its namespace, so the Secrets its pods mount and
+    the Service one port-forwards to are there: each namespaced command names it (else
+    kubectl uses the current one, `default`, and the pods never find their Secrets), and
+    the namespace is created before the first of them. `apply -k` of the overlay needs
+    no flag: the overlay sets it (rendered below)."""
+    namespace = docs_overlay()["namespace"]
+    commands = docs_kubectl_commands()
+    assert ["kubectl", "create", "secret", "generic", "macb-bus"] in [c[:5] for c in commands]
+    create = ["kubectl", "create", "namespace", namespace]
+    assert create in commands, f"the docs never run `{' '.join(create)}`"
+    made = commands.index(create)
+    for i, words in enumerate(commands):
+        if words[1:3] in CLUSTER_SCOPED or words[1:3] == ["apply", "-k"]:
+            continue
+        assert namespace_flag(words) == namespace, " ".join(words)
+        assert i > made, f"before `kubectl create namespace {namespace}`: {' '.join(words)}"
+
+
 def test_the_overlay_in_the_docs_sets_namespace_image_and_slots(tmp_path):
     """docs/deploy.md's overlay, rendered over the base: every object in its namespace,
     every container on its image, its number of slots."""
     if kustomize_major() < 4:
         pytest.skip("this kubectl's kustomize (2.0) reads no `replicas` or folder resources")
-    docs = (ROOT / "docs" / "deploy.md").read_text()
-    block = docs.split("<!-- kubernetes overlay: tests/test_kubernetes.py renders it -->")[1]
-    overlay = yaml.safe_load(block.split("```yaml\n", 1)[1].split("```", 1)[0])
+    overlay = docs_overlay()
     overlay["resources"] = [os.path.relpath(BASE, tmp_path)]  # the docs' path, from here
     (tmp_path / "kustomization.yaml").write_text(yaml.safe_dump(overlay))
     objs = kustomize(tmp_path)

@@ -129,6 +129,51 @@ def test_macb_certs_makes_a_ca_and_certificates_it_alone_signed(secrets, other_c
     assert r.returncode == 2 and "names no role" in r.stderr
 
 
+def test_macb_certs_again_with_router_hosts_re_signs_that_router_s_certificate(tmp_path):
+    """docs/deploy.md's way from one node to several: `macb certs DIR`, later `macb certs
+    DIR --router router=cn01,cn02`. The router's certificate must then pass the TLS host
+    check for cn01 and cn02 (it was once kept as it was, exit 0), signed by the same CA for
+    the same key; asking again for names it has changes nothing."""
+
+    def host_ok(cert: Path, host: str) -> bool:
+        argv = ["openssl", "verify", "-CAfile", out / "ca.pem", "-verify_hostname", host, cert]
+        return subprocess.run(argv, capture_output=True).returncode == 0
+
+    def pubkey(*argv: object) -> str:
+        return subprocess.run(["openssl", *map(str, argv)], capture_output=True, text=True).stdout
+
+    out = tmp_path / "secrets"
+    macb("certs", str(out), check=True)
+    router, key = out / "router.pem", out / "router.key"
+    key_before, actor_before = key.read_bytes(), (out / "actor0.pem").read_bytes()
+    assert host_ok(router, "router") and not host_ok(router, "cn01")
+    r = macb("certs", str(out), "--router", "router=cn01,cn02,10.0.0.7,::1", check=True)
+    added = "DNS:cn01, DNS:cn02, IP:10.0.0.7, IP:::1"
+    assert f"router.pem: re-signed to add {added}, its key kept" in r.stdout, r.stdout
+    for host in ("cn01", "cn02", "router", "localhost"):
+        assert host_ok(router, host), host
+    text = subprocess.run(
+        ["openssl", "x509", "-in", router, "-noout", "-ext", "subjectAltName"],
+        capture_output=True, text=True,
+    ).stdout  # fmt: skip
+    assert "IP Address:10.0.0.7" in text and "IP Address:127.0.0.1" in text, text
+    assert "IP Address:0:0:0:0:0:0:0:1" in text, text
+    assert key.read_bytes() == key_before
+    assert pubkey("x509", "-in", router, "-noout", "-pubkey") == pubkey(
+        "pkey", "-in", key, "-pubout"
+    )
+    assert (out / "actor0.pem").read_bytes() == actor_before  # the others as they were
+    # names it already carries (in any case, an IP in any form): nothing to do
+    signed = router.read_bytes()
+    r = macb("certs", str(out), "--router", "router=CN01,0:0::1", check=True)
+    assert "re-signed" not in r.stdout and router.read_bytes() == signed
+    # a certificate to re-sign without its key: refused, naming both
+    key.unlink()
+    r = macb("certs", str(out), "--router", "router=cn03")
+    assert r.returncode == 2 and f"its key {key} is missing" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and router.read_bytes() == signed
+
+
 @pytest.mark.parametrize(
     "case", ["no credentials", "wrong password", "unknown user", "no TLS", "another CA"]
 )

@@ -129,22 +129,58 @@ class FakeSlurm:
 
 def test_nothing_is_submitted_on_bad_input(tmp_path, monkeypatch):
     runs = tmp_path / "out" / "runs"
+
+    def preflight(opts: SlurmOptions, folders: list[Path], run: FakeSlurm) -> str | None:
+        return slurm.preflight(opts, folders, folder="the runs folder", flag="--runs", run=run)
+
     monkeypatch.setattr(slurm.shutil, "which", lambda c: None if c == "sbatch" else "/bin/" + c)
     fake = FakeSlurm()
-    assert "sbatch not found on PATH" in slurm.preflight(SlurmOptions(), [runs], fake)
+    assert "sbatch not found on PATH" in preflight(SlurmOptions(), [runs], fake)
     assert fake.calls == [] and not runs.exists()
     monkeypatch.setattr(slurm.shutil, "which", lambda c: "/bin/" + c)
-    why = slurm.preflight(SlurmOptions(partition="gpu"), [runs], fake)
+    why = preflight(SlurmOptions(partition="gpu"), [runs], fake)
     assert why == "--partition gpu: no such partition (sinfo lists: long, short)"
     assert not runs.exists()  # refused before the runs folder is made
-    why = slurm.preflight(SlurmOptions(), [runs], FakeSlurm(rc=1))
+    why = preflight(SlurmOptions(), [runs], FakeSlurm(rc=1))
     assert why.startswith("--launcher slurm: Slurm does not answer (sinfo: slurm_load_partitions")
     blocker = tmp_path / "a-file"
     blocker.write_text("")
-    why = slurm.preflight(SlurmOptions(), [blocker / "runs"], fake)
+    why = preflight(SlurmOptions(), [blocker / "runs"], fake)
     assert why.startswith(f"--launcher slurm: the runs folder {blocker / 'runs'} is not writable")
-    assert slurm.preflight(SlurmOptions(partition="long"), [runs], fake) is None
+    assert preflight(SlurmOptions(partition="long"), [runs], fake) is None
     assert runs.is_dir() and list(runs.iterdir()) == []  # made; the probe file removed
+
+
+@pytest.mark.parametrize(
+    "command, folder, flag, wrong",
+    [
+        (["reproduce", "fig3", "--local", "--episodes", "2", "--out"], "the runs folder",
+         "--runs (or --out)", "--data-dir"),
+        (["up", "--data-dir"], "the data folder", "--data-dir", "--runs"),
+    ],
+)  # fmt: skip
+def test_an_unwritable_folder_is_named_with_the_flag_that_moves_it(
+    tmp_path, command, folder, flag, wrong
+):
+    """Each command that submits to Slurm names its own flag for the folder the job's tasks
+    write to (`macb up` once told the user to give --runs or --out, flags it has not in that
+    meaning). Slurm's commands stubbed on PATH, so the check gets as far as the folder."""
+    from tests.harness import macb
+
+    stubs = tmp_path / "bin"
+    stubs.mkdir()
+    for name, text in (("sbatch", ""), ("squeue", ""), ("sinfo", "echo short\n")):
+        (stubs / name).write_text(f"#!/bin/sh\n{text}exit 0\n")
+        (stubs / name).chmod(0o755)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    path = f"{stubs}{os.pathsep}{os.environ.get('PATH', '')}"
+    got = macb(*command, str(blocker / "d"), "--launcher", "slurm", env={"PATH": path})
+    assert got.returncode == 2, got.stderr
+    (line,) = got.stderr.strip().splitlines()
+    assert line.startswith(f"macb {command[0]}: --launcher slurm: {folder} "), line
+    assert "is not writable (Not a directory)" in line and f"give {flag} on a " in line, line
+    assert wrong not in line, line
 
 
 @pytest.mark.parametrize(

@@ -75,11 +75,18 @@ class Task:
 
 # ---------------------------------------------------------------- before submitting
 def preflight(
-    opts: SlurmOptions, runs_dirs: Sequence[Path], run: Runner = run_command
+    opts: SlurmOptions,
+    folders: Sequence[Path],
+    *,
+    folder: str,
+    flag: str,
+    run: Runner = run_command,
 ) -> str | None:
     """Why nothing can be submitted, or None: sbatch missing, Slurm not answering, an
-    unknown partition, a runs folder that cannot be written (made when missing, once
-    the rest is known to be right)."""
+    unknown partition, one of `folders` that cannot be written (made when missing, once
+    the rest is known to be right). `folder` says what they are and `flag` which of the
+    caller's flags moves them ("the runs folder", "--runs (or --out)" for `macb
+    reproduce`; "the data folder", "--data-dir" for `macb up`): each command has its own."""
     missing = [c for c in ("sbatch", "squeue", "sinfo") if shutil.which(c) is None]
     if missing:
         return (
@@ -95,11 +102,11 @@ def preflight(
             f"--partition {opts.partition}: no such partition (sinfo lists: "
             f"{', '.join(partitions) or 'none'})"
         )
-    for runs_dir in runs_dirs:
-        if why := unwritable(runs_dir):
-            return f"--launcher slurm: the runs folder {runs_dir} is not writable ({why}); " + (
-                "every task writes its runs there: give --runs (or --out) on a filesystem "
-                "the nodes share and you can write"
+    for path in folders:
+        if why := unwritable(path):
+            return (
+                f"--launcher slurm: {folder} {path} is not writable ({why}); the job's tasks "
+                f"write there: give {flag} on a filesystem the nodes share and you can write"
             )
     return None
 
@@ -518,7 +525,8 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
     from cli.local import config_conflicts, plan_groups
 
     opts = options(args)
-    if error := preflight(opts, [c.runs_dir for c in campaigns]):
+    runs_dirs = [c.runs_dir for c in campaigns]
+    if error := preflight(opts, runs_dirs, folder="the runs folder", flag="--runs (or --out)"):
         return _refuse(error)
     if conflicts := [line for c in campaigns for line in config_conflicts(c.runs, c.runs_dir)]:
         for line in conflicts:

@@ -17,6 +17,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -24,7 +25,7 @@ from typing import Any
 
 import zenoh
 
-from shared.net.security import Security, check_endpoints_match
+from shared.net.security import BusError, Security, check_endpoints_match
 from shared.settings import settings
 
 log = logging.getLogger("macb.bus")
@@ -214,6 +215,20 @@ class Replies:
     refused: list[Refused] = field(default_factory=list)
 
 
+def open_failure(
+    mode: str, connect: list[str] | None, listen: list[str] | None, err: Exception
+) -> str:
+    """Why a session did not open, in one line: its endpoints and zenoh's reason without
+    the Rust source locations zenoh appends (" at .../orchestrator.rs:447.")."""
+    where = []
+    if connect:
+        where.append(f"connecting to {', '.join(connect)}")
+    if listen:
+        where.append(f"listening on {', '.join(listen)}")
+    reason = re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(err)).strip()
+    return f"cannot open a {mode} session on the bus ({'; '.join(where)}): {reason}"
+
+
 class Bus:
     """One Zenoh session and what a service declares on it (kept alive until close)."""
 
@@ -230,7 +245,11 @@ class Bus:
         self.mode = mode
         if security is None:
             security = Security.from_env()
-        self.session = zenoh.open(_config(mode, connect, listen, security, acl))
+        config = _config(mode, connect, listen, security, acl)
+        try:
+            self.session = zenoh.open(config)
+        except zenoh.ZError as err:
+            raise BusError(open_failure(mode, connect, listen, err)) from None
         self._held: list[Any] = []  # declared entities must outlive their callbacks
 
     @classmethod

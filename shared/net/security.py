@@ -25,6 +25,13 @@ from typing import Any
 from shared.net.roles import SecurityError, acl_config, role_of
 from shared.settings import Settings, settings
 
+
+class BusError(RuntimeError):
+    """A session could not open: no router answers at the endpoints, or the port a
+    router would listen on is taken. Raised by shared/net/bus.py; defined here, where
+    zenoh is not imported, so the command line can catch it without loading zenoh."""
+
+
 # ---------------------------------------------------------------- settings
 # Each setting's variable (`shared.settings.Settings`' zenoh_* fields), by its name here.
 ENV = {
