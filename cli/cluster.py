@@ -111,7 +111,7 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         "otherwise serve until Ctrl-C / SIGTERM. A service that dies is restarted (0.5 s "
         "backoff doubling to 10 s) and rejoins its run; one that dies 5 times in a minute "
         "stops the cluster. Run again on the same --data-dir, it resumes the runs that "
-        "were running. No process outlives this command.",
+        "were running. No process outlives this command, even killed.",
     )
     up.add_argument("--actors", type=int, default=1, help="actor processes")
     up.add_argument(

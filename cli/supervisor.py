@@ -14,8 +14,12 @@ stops, naming it. `DATA_DIR/cluster.json` lists each child's PID and restarts.
 
 Shutdown: Ctrl-C or SIGTERM stops the children with SIGTERM (they flush snapshots and
 checkpoints), waits, and SIGKILLs whatever is left, so no process outlives `macb up`.
-Children are started and ended by PID with `shared.procs`, as the tests and the
-benchmarks do.
+Killed itself (SIGKILL, the OOM killer), `macb up` can end nothing: each child dies with
+it anyway (MACB_PARENT_PID, `shared.procs.die_with_env_parent`: PR_SET_PDEATHSIG, armed
+first thing in the child, which then checks its parent is still there). The death signal
+follows the thread that started the child, so `start` and `supervise` run on the main
+thread (as `macb up`, `macb serve slot` and the benchmarks call them). Children are
+started and ended by PID with `shared.procs`, as the tests and the benchmarks do.
 """
 
 from __future__ import annotations
@@ -204,6 +208,7 @@ class Cluster:
             "PYTHONUNBUFFERED": "1",
             **dict(spec.env),
             "MACB_RESTARTS": str(self.restarts[spec.name]),
+            **procs.parent_env(),
         }
         # In a session of its own: our signal handler, not the terminal, ends it.
         proc = procs.start([sys.executable, "-m", "cli", "serve", *spec.args], pipe=True, env=env)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from shared import procs
 from shared.core.learners.precision import native_bf16
 from shared.persist import provenance
 from tests.harness import ROOT, TINY, Cluster, macb, wait_port, wait_services, write_config
@@ -85,6 +86,25 @@ def test_sigterm_stops_every_service_and_the_router(tmp_path):
         while cluster.leftovers() and time.monotonic() < deadline:
             time.sleep(0.1)
         assert cluster.leftovers() == [], "no orphan process"
+
+
+def test_a_killed_macb_up_takes_every_service_with_it(tmp_path):
+    """SIGKILL of `macb up` (no handler of its own runs; the OOM killer, `kill -9`): the
+    router, the API and every service die with it (PR_SET_PDEATHSIG, armed by each child
+    from MACB_PARENT_PID), so none goes on holding its port and writing the data dir."""
+    with Cluster(tmp_path) as cluster:
+        cluster.up("--quiet", answering=5)  # the API, counter, learner, evaluator, actor0
+        pids = cluster.pids()
+        assert sorted(pids) == ["actor0", "api", "counter", "evaluator", "learner", "router"]
+        cluster.procs["up"].kill()
+        cluster.procs["up"].wait(timeout=30)
+        deadline = time.monotonic() + 5
+        while (alive := [n for n, pid in pids.items() if procs.alive(pid)]) and (
+            time.monotonic() < deadline
+        ):
+            time.sleep(0.1)
+        assert alive == [], f"outlived a killed macb up: {alive}"
+        assert cluster.leftovers() == []
 
 
 def _client(endpoint):
