@@ -15,7 +15,13 @@ and its lockstep round trips stay there; an experiment posted to the API spreads
 over the slots. On one node the bus is plain TCP on loopback (or TLS with --secrets); on
 several it must be the secure bus of docs/deploy.md (--secrets): the router listens on
 `tls/0.0.0.0:PORT`, every service signs in as its id, the users all known before the job
-starts. The job runs until its time limit or `scancel`, which ends every process of it.
+starts. The job runs until its time limit or `scancel`, which ends every process of it;
+a part of it that ends ends the job (`wait -n`, and `srun --kill-on-bad-exit=1`: without
+it srun waits for a step's other tasks when one fails).
+
+The router's and the API's ports must be free on the first node before either starts,
+and the router must still be ours when its port answers: otherwise the job's services
+would join whichever cluster listens there.
 """
 
 from __future__ import annotations
@@ -141,20 +147,40 @@ def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: Slu
     ]
     if secure:
         lines.append(f"export MACB_ZENOH_SECRETS={shlex.quote(str(job.secrets))}")
+    job_says = 'echo "macb cluster job $SLURM_JOB_ID:'
     lines += [
         'mkdir -p "$DATA"',
         'echo "macb cluster job $SLURM_JOB_ID on $SLURM_JOB_NODELIST: router and API on $HEAD,'
         ' $SLURM_NTASKS slot(s), bus $MACB_ZENOH_CONNECT"',
+        "# the router's and the API's ports free: else whoever listens there answers for them",
+        "for p in $PORT $API_PORT; do",
+        "    if (exec 3<>/dev/tcp/127.0.0.1/$p) 2>/dev/null; then",
+        f"        {job_says} port $p on $HEAD is in use: something listens on it (another"
+        ' cluster?); not starting" >&2',
+        "        exit 2",
+        "    fi",
+        "done",
         f'{user("router")}"${{MACB[@]}}" serve router --listen {listen} &',
-        "for _ in $(seq 300); do (exec 3<>/dev/tcp/127.0.0.1/$PORT) 2>/dev/null && break;"
-        " sleep 0.2; done",
+        "ROUTER=$!",
+        "listening=",
+        "for _ in $(seq 300); do",
+        "    kill -0 $ROUTER 2>/dev/null || break  # it ended: it could not listen",
+        "    (exec 3<>/dev/tcp/127.0.0.1/$PORT) 2>/dev/null && kill -0 $ROUTER 2>/dev/null"
+        " && listening=1 && break",
+        "    sleep 0.2",
+        "done",
+        "if [[ -z $listening ]]; then",
+        f'    {job_says} the router did not listen on port $PORT; ending the job" >&2',
+        "    exit 1",
+        "fi",
         "# a counter on every node, its data its own",
-        f"srun --overlap --nodes={n} --ntasks={n} --ntasks-per-node=1 --cpus-per-task=1 \\",
+        f"srun --overlap --kill-on-bad-exit=1 --nodes={n} --ntasks={n} --ntasks-per-node=1 "
+        "--cpus-per-task=1 \\",
         f"    bash -c 'd=$1; shift; id=counter-n$SLURM_NODEID; {counter_user}"
         'exec "$@" --id "$id" --data-dir "$d/$id"\' counter "$DATA" "${MACB[@]}" serve counter &',
         "# one worker slot per task: learner-sK, evaluator-sK, actor-sK (K: the task's rank)",
-        f"srun --overlap --nodes={n} --ntasks={n * per_node} --ntasks-per-node={per_node} "
-        f"--cpus-per-task={job.cpus} \\",
+        f"srun --overlap --kill-on-bad-exit=1 --nodes={n} --ntasks={n * per_node} "
+        f"--ntasks-per-node={per_node} --cpus-per-task={job.cpus} \\",
         "    bash -c 'd=$1; shift; id=s$SLURM_PROCID; "
         'exec "$@" --id "$id" --data-dir "$d/slot-$id"\' slot "$DATA" "${MACB[@]}" serve slot '
         f"--actors {job.actors} &",

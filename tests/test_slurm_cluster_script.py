@@ -27,10 +27,12 @@ for ((i = 0; i < n; i++)); do
 done
 wait
 """
-# macb: records "user|node id|args" a line; the router listens for a moment.
+# macb: records "user|node id|args" a line; the router listens for a moment (or, with
+# ROUTER_FAILS set, ends at once, as one that cannot bind its port does).
 MACB = """#!/bin/bash
 echo "${MACB_ZENOH_USER:-}|${MACB_ZENOH_CONNECT}|${MACB_ZENOH_SECRETS:-}|$*" >> "$RECORD"
 if [[ $2 == router ]]; then
+  [[ -n ${ROUTER_FAILS:-} ]] && exit 3
   exec python3 -c "import socket,time; s=socket.socket(); s.bind(('127.0.0.1', $PORT)); \
 s.listen(); time.sleep(4)"
 fi
@@ -43,7 +45,9 @@ def executable(path: Path, text: str) -> Path:
     return path
 
 
-def run_script(tmp_path: Path, job: ClusterJob) -> tuple[list[list[str]], str, int]:
+def run_script(
+    tmp_path: Path, job: ClusterJob, **more_env: str
+) -> tuple[list[list[str]], str, int]:
     """The rendered script run by bash with the stubs: the recorded lines (user,
     connect, secrets, args), the job's own output and its exit code."""
     bin_dir = tmp_path / "bin"
@@ -62,11 +66,12 @@ def run_script(tmp_path: Path, job: ClusterJob) -> tuple[list[list[str]], str, i
         "SLURM_JOB_ID": "77",
         "SLURM_JOB_NODELIST": "cn[1-2]",
         "SLURM_NTASKS": str(job.nodes * job.slots),
+        **more_env,
     }
     job.log_dir.mkdir(parents=True, exist_ok=True)
     got = subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, timeout=60)
-    lines = [line.split("|", 3) for line in record.read_text().splitlines()]
-    return lines, got.stdout + got.stderr, got.returncode
+    said = record.read_text().splitlines() if record.exists() else []
+    return [line.split("|", 3) for line in said], got.stdout + got.stderr, got.returncode
 
 
 def test_one_node_the_router_api_a_counter_and_a_slot_per_task_on_loopback(tmp_path):
@@ -147,3 +152,43 @@ def test_macb_up_on_slurm_submits_nothing_without_sbatch(tmp_path):
     assert not (tmp_path / "d").exists()
     got = macb("up", "--nodes", "2", check=False)
     assert got.returncode == 2 and "are for --launcher slurm" in got.stderr
+
+
+def test_both_steps_end_the_job_when_one_of_their_tasks_fails(tmp_path):
+    """Under Slurm's default (KillOnBadExit=0) srun waits for a step's other tasks when
+    one exits non-zero, so a dead counter or slot would not reach `wait -n`: both steps
+    ask for --kill-on-bad-exit=1 (docs/deploy.md says the job then ends)."""
+    for nodes, secrets in ((1, None), (2, tmp_path / "secrets")):
+        job = ClusterJob(nodes, 2, 1, 1, tmp_path / "data", secrets=secrets)
+        text = render_cluster_script(job, ["macb"], tmp_path, SlurmOptions())
+        steps = [line for line in text.splitlines() if line.startswith("srun ")]
+        assert len(steps) == 2, text
+        assert all(" --kill-on-bad-exit=1 " in step for step in steps), steps
+
+
+def test_a_taken_port_on_the_first_node_starts_nothing_naming_it(tmp_path):
+    """The router's or the API's port answering before the router starts (another
+    cluster, anyone's process): the job ends at once, exit 2, naming the port, and
+    starts nothing, instead of every check passing against the other listener."""
+    for taken in ("router", "api"):
+        folder = tmp_path / taken
+        folder.mkdir()
+        router, api = free_port(), free_port()
+        job = ClusterJob(1, 1, 1, 1, folder / "data", router_port=router, api_port=api)
+        with socket.socket() as held:
+            held.bind(("127.0.0.1", router if taken == "router" else api))
+            held.listen()
+            lines, out, code = run_script(folder, job)
+        port = router if taken == "router" else api
+        assert code == 2 and f"port {port} on " in out and "something listens" in out, out
+        assert lines == [], f"nothing starts: {lines}"
+
+
+def test_a_router_that_ends_before_it_listens_ends_the_job(tmp_path):
+    """The router process gone (it could not bind, say): the job ends at once, exit 1,
+    rather than waiting a minute and starting the services on a port that may be
+    someone else's."""
+    job = ClusterJob(1, 1, 1, 1, tmp_path / "data", router_port=free_port(), api_port=free_port())
+    lines, out, code = run_script(tmp_path, job, ROUTER_FAILS="1")
+    assert code == 1 and "the router did not listen" in out, out
+    assert [line[3].split()[1] for line in lines] == ["router"], lines
