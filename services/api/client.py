@@ -75,6 +75,10 @@ class ApiClient:
                 raise TimeoutError(f"the API at {self.url} did not become ready")
             time.sleep(0.2)
 
+    def workers(self) -> dict[str, Any]:
+        """GET /workers: every service the API has seen, and whether it answers."""
+        return self._call("GET", "/workers")
+
     def create_experiment(self, body: dict[str, Any]) -> dict[str, Any]:
         return self._call("POST", "/experiments", json=body)
 
