@@ -21,7 +21,14 @@ from typing import TYPE_CHECKING, Any
 from cli.api import experiment_body, run_via_api
 from cli.config_flags import add_config_flags, config_overrides, one_run_config, resolve_config
 from cli.security import add_security_flags
-from cli.supervisor import Cluster, cluster_plan
+from cli.supervisor import (
+    Cluster,
+    DidNotListen,
+    PortInUse,
+    check_ports,
+    cluster_plan,
+    host_port,
+)
 from shared.config import ConfigError, TrainConfig, actors_error
 from shared.persist.files import data_dir_help, default_data_dir
 from shared.settings import settings
@@ -111,7 +118,8 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         "otherwise serve until Ctrl-C / SIGTERM. A service that dies is restarted (0.5 s "
         "backoff doubling to 10 s) and rejoins its run; one that dies 5 times in a minute "
         "stops the cluster. Run again on the same --data-dir, it resumes the runs that "
-        "were running. No process outlives this command.",
+        "were running. No process outlives this command, even killed. A router or API port "
+        "that something already listens on is refused before anything starts (exit 2).",
     )
     up.add_argument("--actors", type=int, default=1, help="actor processes")
     up.add_argument(
@@ -395,6 +403,14 @@ def cmd_up(args: argparse.Namespace) -> int:
         if value < 1:
             print(f"macb up: {flag} must be at least 1, not {value}", file=sys.stderr)
             return 2
+    try:  # (the resolver would take port 70000 for 4464)
+        host_port(args.endpoint)
+    except ValueError as err:
+        print(f"macb up: --endpoint: {err}", file=sys.stderr)
+        return 2
+    if not 1 <= args.api_port <= 65535:
+        print(f"macb up: --api-port must be from 1 to 65535, not {args.api_port}", file=sys.stderr)
+        return 2
     if args.launcher == "slurm":
         from cli.slurm_cluster import cmd_up_slurm
 
@@ -428,8 +444,8 @@ def cmd_up(args: argparse.Namespace) -> int:
             if up.api is not None:
                 _print_where_results_stay(up.api, data_dir)
             return code
-    except ClusterDidNotStart:
-        return 1
+    except ClusterDidNotStart as err:
+        return err.code
 
 
 def _secure_endpoint(endpoint: str) -> tuple[str, str | None]:
@@ -445,7 +461,12 @@ def _secure_endpoint(endpoint: str) -> tuple[str, str | None]:
 
 
 class ClusterDidNotStart(RuntimeError):
-    """A service or the API did not come up (what and why is printed already)."""
+    """A service or the API did not come up (what and why is printed already); `code`:
+    the exit code to end with (2: refused before anything started)."""
+
+    def __init__(self, what: str, code: int = 1) -> None:
+        super().__init__(what)
+        self.code = code
 
 
 @dataclass
@@ -497,11 +518,20 @@ def local_cluster(
         for spec in plan:
             sec = Security.from_env({**os.environ, **dict(spec.env)})
             sec.for_router().check("router") if spec.name == "router" else sec.check("client")
+    try:  # before any process starts: a port taken is another cluster's (or anyone's)
+        check_ports(plan)
+    except PortInUse as err:
+        print(f"cannot start the local cluster: {err}", file=sys.stderr)
+        raise ClusterDidNotStart("ports", code=2) from None
     cluster = Cluster(plan, data_dir / "logs", echo=echo)
     stop = _stop_on_signals()
     api = None
     try:
-        _start_cluster(cluster, data_dir)
+        try:
+            _start_cluster(cluster, data_dir)
+        except (PortInUse, DidNotListen, TimeoutError) as err:
+            print(f"the cluster did not start: {err}", file=sys.stderr)
+            raise ClusterDidNotStart("router") from None
         with Bus([endpoint]) as bus:
             if not _services_came_up(bus, cluster, stop):
                 raise ClusterDidNotStart("services")
@@ -571,7 +601,9 @@ def _api_client_at(api_addr: str) -> ApiClient:
 
 
 def _api_came_up(api: ApiClient, cluster: Cluster, data_dir: Path) -> bool:
-    """Wait up to 60 s for the API to answer (giving up early if a service dies)."""
+    """Wait up to 60 s for the API to answer (giving up early if a service dies). An
+    answer counts only while our API process lives: one that failed to bind is not
+    stood in for by whatever else answers on its port."""
     try:
         api.wait_healthy(60, alive=lambda: not cluster.dead())
     except TimeoutError as err:

@@ -1,7 +1,8 @@
 """`macb`: the parser assembled from the command groups, and the entry point.
 
 Each group module (cli.train, cli.cluster, cli.api, cli.export, cli.reproduce) adds its own
-subcommands; this module only fixes their order in `macb --help` and sets up logging.
+subcommands; this module only fixes their order in `macb --help`, sets up logging and, in a
+process `macb up` started, arms its death with `macb up` (`shared.procs.die_with_env_parent`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import sys
 from collections.abc import Callable
 
 from cli import api, cluster, export, reproduce, results, security, train, view
+from shared import procs
 from shared.net.security import BusError, SecurityError
 
 # In the order `macb --help` lists them.
@@ -46,6 +48,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:  # a service of `macb up` dies with it, however it ends (SIGKILL included)
+        procs.die_with_env_parent()
+    except ValueError as err:
+        print(f"macb: {err}", file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # not a line per API call
     args = build_parser().parse_args(argv)

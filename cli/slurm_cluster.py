@@ -15,18 +15,30 @@ and its lockstep round trips stay there; an experiment posted to the API spreads
 over the slots. On one node the bus is plain TCP on loopback (or TLS with --secrets); on
 several it must be the secure bus of docs/deploy.md (--secrets): the router listens on
 `tls/0.0.0.0:PORT`, every service signs in as its id, the users all known before the job
-starts. The job runs until its time limit or `scancel`, which ends every process of it.
+starts. The job runs until its time limit or `scancel`, which ends every process of it;
+a part of it that ends ends the job (`wait -n`, and `srun --kill-on-bad-exit=1`: without
+it srun waits for a step's other tasks when one fails).
+
+The router's and the API's ports must be free on the first node before either starts,
+and the router must still be ours when its port answers: otherwise the job's services
+would join whichever cluster listens there. The API without MACB_API_TOKEN listens on
+127.0.0.1 of the first node, which `wait_until_up` polls only from that node itself
+(otherwise it says how to reach it); with a token it sends it.
 """
 
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import shlex
+import socket
 import sys
 import time
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
+from urllib.parse import urlparse
 
 from cli.reproduce.slurm import (
     Runner,
@@ -39,6 +51,9 @@ from cli.reproduce.slurm import (
     sbatch_argv,
 )
 from cli.supervisor import THREAD_ENV
+
+if TYPE_CHECKING:
+    from services.api.client import ApiClient
 
 JOB_NAME = "macb-cluster"
 
@@ -141,20 +156,41 @@ def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: Slu
     ]
     if secure:
         lines.append(f"export MACB_ZENOH_SECRETS={shlex.quote(str(job.secrets))}")
+    job_says = 'echo "macb cluster job $SLURM_JOB_ID:'
     lines += [
         'mkdir -p "$DATA"',
+        'echo "$HEAD" > "$LOGS/$SLURM_JOB_ID.head"',
         'echo "macb cluster job $SLURM_JOB_ID on $SLURM_JOB_NODELIST: router and API on $HEAD,'
         ' $SLURM_NTASKS slot(s), bus $MACB_ZENOH_CONNECT"',
+        "# the router's and the API's ports free: else whoever listens there answers for them",
+        "for p in $PORT $API_PORT; do",
+        "    if (exec 3<>/dev/tcp/127.0.0.1/$p) 2>/dev/null; then",
+        f"        {job_says} port $p on $HEAD is in use: something listens on it (another"
+        ' cluster?); not starting" >&2',
+        "        exit 2",
+        "    fi",
+        "done",
         f'{user("router")}"${{MACB[@]}}" serve router --listen {listen} &',
-        "for _ in $(seq 300); do (exec 3<>/dev/tcp/127.0.0.1/$PORT) 2>/dev/null && break;"
-        " sleep 0.2; done",
+        "ROUTER=$!",
+        "listening=",
+        "for _ in $(seq 300); do",
+        "    kill -0 $ROUTER 2>/dev/null || break  # it ended: it could not listen",
+        "    (exec 3<>/dev/tcp/127.0.0.1/$PORT) 2>/dev/null && kill -0 $ROUTER 2>/dev/null"
+        " && listening=1 && break",
+        "    sleep 0.2",
+        "done",
+        "if [[ -z $listening ]]; then",
+        f'    {job_says} the router did not listen on port $PORT; ending the job" >&2',
+        "    exit 1",
+        "fi",
         "# a counter on every node, its data its own",
-        f"srun --overlap --nodes={n} --ntasks={n} --ntasks-per-node=1 --cpus-per-task=1 \\",
+        f"srun --overlap --kill-on-bad-exit=1 --nodes={n} --ntasks={n} --ntasks-per-node=1 "
+        "--cpus-per-task=1 \\",
         f"    bash -c 'd=$1; shift; id=counter-n$SLURM_NODEID; {counter_user}"
         'exec "$@" --id "$id" --data-dir "$d/$id"\' counter "$DATA" "${MACB[@]}" serve counter &',
         "# one worker slot per task: learner-sK, evaluator-sK, actor-sK (K: the task's rank)",
-        f"srun --overlap --nodes={n} --ntasks={n * per_node} --ntasks-per-node={per_node} "
-        f"--cpus-per-task={job.cpus} \\",
+        f"srun --overlap --kill-on-bad-exit=1 --nodes={n} --ntasks={n * per_node} "
+        f"--ntasks-per-node={per_node} --cpus-per-task={job.cpus} \\",
         "    bash -c 'd=$1; shift; id=s$SLURM_PROCID; "
         'exec "$@" --id "$id" --data-dir "$d/slot-$id"\' slot "$DATA" "${MACB[@]}" serve slot '
         f"--actors {job.actors} &",
@@ -180,15 +216,61 @@ def job_state(job_id: str, run: Runner = run_command) -> tuple[str, str] | None:
     return state.strip(), "" if reason.strip() == "None" else reason.strip()
 
 
-def services_answering(url: str) -> int | None:
-    """How many services answer on the API's /workers (None: the API does not answer)."""
+def services_answering(api: ApiClient) -> int | None:
+    """How many services answer on the API's /workers (None: the API does not answer
+    yet). Raises ApiError when it refuses us (401: our MACB_API_TOKEN is not the job's),
+    which waiting does not mend."""
     import httpx
 
+    from services.api.client import ApiError
+
     try:
-        workers = httpx.get(f"{url}/workers", timeout=3).json()["workers"]
-    except (httpx.HTTPError, ValueError, KeyError):
+        workers = api.workers()["workers"]
+    except ApiError as err:
+        if err.status in (401, 403):
+            raise
         return None
-    return sum(1 for w in workers if w.get("answers"))
+    except (httpx.HTTPError, ValueError, KeyError, TypeError):
+        return None
+    return sum(1 for w in workers if isinstance(w, dict) and w.get("answers"))
+
+
+def this_host() -> str:
+    """This host's short name, as `hostname -s` gives the job's first node."""
+    return socket.gethostname().split(".")[0]
+
+
+def loopback_elsewhere(url: str, head: str, here: str) -> bool:
+    """Whether the job's API at `url` is on the loopback of its first node `head` while
+    this command runs on another host `here`: 127.0.0.1 here is not the job's then."""
+    host = urlparse(url).hostname or ""
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    return loopback and head.split(".")[0] != here.split(".")[0]
+
+
+def how_to_reach(job_id: str, url: str, head: str, log: Path) -> str:
+    """What to say when the job's API is on `head`'s loopback, out of this host's reach."""
+    port = urlparse(url).port
+    return (
+        f"cluster job {job_id} runs; its API listens on 127.0.0.1:{port} of {head} (no "
+        f"MACB_API_TOKEN: loopback only), which cannot be reached from here, so this command "
+        f"does not wait for it (its log: {log}). To use it from here:\n"
+        f"  ssh -N -L {port}:127.0.0.1:{port} {head} &        # a tunnel to it, then\n"
+        f"  MACB_API_URL=http://127.0.0.1:{port} macb run CONFIG\n"
+        f"or submit the cluster with MACB_API_TOKEN=... set: its API then listens on {head}'s "
+        "network and wants the token\n"
+        f"  scancel {job_id}                         # stop the cluster"
+    )
+
+
+def _read(path: Path) -> str | None:
+    try:
+        return path.read_text().strip() or None
+    except OSError:
+        return None
 
 
 def cmd_up_slurm(args: argparse.Namespace) -> int:
@@ -242,42 +324,85 @@ def cmd_up_slurm(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     if args.detach:
-        print(f"its API's address will be in {job.log_dir}/{job_id}.api", file=sys.stderr)
+        print(
+            f"its API's address will be in {job.log_dir}/{job_id}.api, its first node's "
+            f"name in {job_id}.head",
+            file=sys.stderr,
+        )
         return 0
     return wait_until_up(job_id, job, log, args.wait)
 
 
-def wait_until_up(job_id: str, job: ClusterJob, log: Path, timeout: float) -> int:
-    """Follow the job until its API and every service answer (0), or until it ends or
-    `timeout` passes (1)."""
+def wait_until_up(
+    job_id: str,
+    job: ClusterJob,
+    log: Path,
+    timeout: float,
+    run: Runner = run_command,
+    here: str | None = None,
+) -> int:
+    """Follow the job until its API and every service answer (0), or until it ends, its
+    API refuses our token or `timeout` passes (1: a job still running is named, with how
+    to cancel it). An API on the loopback of a first node that is not this host (`here`)
+    is not polled: what to do instead is said, and 0 returned."""
+    from services.api.client import ApiClient, ApiError
+
+    here = here or this_host()
     said: list[object] = [None, None]  # the last state and count of services told
     deadline = time.monotonic() + timeout
-    url_file = job.log_dir / f"{job_id}.api"
-    while time.monotonic() < deadline:
-        state = job_state(job_id)
-        if state is None or state[0] not in ("PENDING", "CONFIGURING", "RUNNING"):
-            print(f"cluster job {job_id} ended ({state[0] if state else 'gone'})", file=sys.stderr)
-            if log.exists():
-                print("\n".join(log.read_text().splitlines()[-20:]), file=sys.stderr)
-            return 1
-        if state != said[0]:
-            said[0] = state
-            print(f"cluster job {job_id}: {' '.join(w for w in state if w)}", file=sys.stderr)
-        url = url_file.read_text().strip() if url_file.exists() else None
-        answering = services_answering(url) if url else None
-        if answering is not None and answering != said[1]:
-            said[1] = answering
-            print(f"cluster job {job_id}: {answering} of {job.services} services answer",
-                  file=sys.stderr)  # fmt: skip
-        if url and answering is not None and answering >= job.services:
-            print(
-                f"cluster job {job_id} up: API {url} (dashboard {url}/)\n"
-                f"  MACB_API_URL={url} macb run CONFIG     # experiments, spread over the slots\n"
-                f"  scancel {job_id}                         # stop the cluster",
-                file=sys.stderr,
-            )
-            print(url)
-            return 0
-        time.sleep(2)
-    print(f"cluster job {job_id}: not up within {timeout:.0f} s", file=sys.stderr)
+    url_file, head_file = (job.log_dir / f"{job_id}.{x}" for x in ("api", "head"))
+    api: ApiClient | None = None
+    try:
+        while time.monotonic() < deadline:
+            state = job_state(job_id, run)
+            if state is None or state[0] not in ("PENDING", "CONFIGURING", "RUNNING"):
+                print(f"cluster job {job_id} ended ({state[0] if state else 'gone'})",
+                      file=sys.stderr)  # fmt: skip
+                if log.exists():
+                    print("\n".join(log.read_text().splitlines()[-20:]), file=sys.stderr)
+                return 1
+            if state != said[0]:
+                said[0] = state
+                print(f"cluster job {job_id}: {' '.join(w for w in state if w)}", file=sys.stderr)
+            url, head = _read(url_file), _read(head_file)
+            if url and head and loopback_elsewhere(url, head, here):
+                print(how_to_reach(job_id, url, head, log), file=sys.stderr)
+                return 0
+            if url and api is None:
+                api = ApiClient(url, timeout=3)  # with MACB_API_TOKEN, if set
+            try:
+                answering = services_answering(api) if api else None
+            except ApiError as err:
+                print(
+                    f"cluster job {job_id}: its API at {url} refuses this command ({err}): "
+                    "MACB_API_TOKEN here is not the one the job was submitted with. The job "
+                    f"is still running: `scancel {job_id}` stops it",
+                    file=sys.stderr,
+                )
+                return 1
+            if answering is not None and answering != said[1]:
+                said[1] = answering
+                print(f"cluster job {job_id}: {answering} of {job.services} services answer",
+                      file=sys.stderr)  # fmt: skip
+            if url and answering is not None and answering >= job.services:
+                token = ", MACB_API_TOKEN set as here" if job.api_public else ""
+                print(
+                    f"cluster job {job_id} up: API {url} (dashboard {url}/)\n"
+                    f"  MACB_API_URL={url} macb run CONFIG     # experiments, spread over "
+                    f"the slots{token}\n"
+                    f"  scancel {job_id}                         # stop the cluster",
+                    file=sys.stderr,
+                )
+                print(url)
+                return 0
+            time.sleep(2)
+    finally:
+        if api is not None:
+            api.close()
+    seen = f", last seen {' '.join(w for w in said[0] if w)}," if isinstance(said[0], tuple) else ""
+    print(
+        f"cluster job {job_id}: not up within {timeout:.0f} s. The job is left as it is{seen} "
+        f"and runs until its time limit: `scancel {job_id}` stops it; its log: {log}",
+        file=sys.stderr,
+    )
     return 1

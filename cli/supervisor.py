@@ -14,13 +14,23 @@ stops, naming it. `DATA_DIR/cluster.json` lists each child's PID and restarts.
 
 Shutdown: Ctrl-C or SIGTERM stops the children with SIGTERM (they flush snapshots and
 checkpoints), waits, and SIGKILLs whatever is left, so no process outlives `macb up`.
-Children are started and ended by PID with `shared.procs`, as the tests and the
-benchmarks do.
+Killed itself (SIGKILL, the OOM killer), `macb up` can end nothing: each child dies with
+it anyway (MACB_PARENT_PID, `shared.procs.die_with_env_parent`: PR_SET_PDEATHSIG, armed
+first thing in the child, which then checks its parent is still there). The death signal
+follows the thread that started the child, so `start` and `supervise` run on the main
+thread (as `macb up`, `macb serve slot` and the benchmarks call them). Children are
+started and ended by PID with `shared.procs`, as the tests and the benchmarks do.
+
+Ports: before anything starts, the router's and the API's ports must be free (`PortInUse`
+names one that is not): the router and the API would fail to bind, while every readiness
+check passed against whoever listens there, and the services would join that other
+cluster under the same ids. A port that answers counts only while our own child lives.
 """
 
 from __future__ import annotations
 
 import collections
+import errno
 import json
 import os
 import socket
@@ -164,12 +174,95 @@ def free_port(low: int = 20000) -> int:
         return s.getsockname()[1]
 
 
-def wait_port(endpoint: str, timeout: float = 20.0) -> None:
-    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+class PortInUse(RuntimeError):
+    """A port the cluster would listen on is taken (or cannot be listened on): nothing
+    was started."""
+
+
+class DidNotListen(RuntimeError):
+    """Our child ended before its port answered (another process may hold the port)."""
+
+
+def host_port(address: str) -> tuple[str, int]:
+    """HOST and PORT of a bus endpoint (`tcp/HOST:PORT`) or an HTTP address (`HOST:PORT`);
+    ValueError, naming it, if it has no host or no port in 1-65535 (the resolver would
+    take 70000 for 4464)."""
+    host, _, port = address.split("/", 1)[-1].rpartition(":")
+    if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ValueError(f"{address!r} is not HOST:PORT with a port from 1 to 65535")
+    return host.strip("[]"), int(port)
+
+
+def listen_address(spec: ServiceSpec) -> tuple[str, int] | None:
+    """Where the service of `spec` listens: the router's --listen, the API's
+    --listen-http; None for the others."""
+    for flag in ("--listen", "--listen-http"):
+        if flag in spec.args:
+            return host_port(spec.args[spec.args.index(flag) + 1])
+    return None
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Raise PortInUse unless a server could listen on HOST:PORT now. Probed by binding
+    with SO_REUSEADDR: a listener there (on that address or on all of them) refuses it,
+    connections an earlier cluster left in TIME_WAIT do not."""
+    where = f"port {port} on {host}"
+    try:
+        family, kind, proto, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except (OSError, UnicodeError) as err:
+        raise PortInUse(f"{where}: cannot resolve {host!r} ({err})") from None
+    with socket.socket(family, kind, proto) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(addr)
+            return
+        except OSError as err:
+            if err.errno != errno.EADDRINUSE:
+                raise PortInUse(f"cannot listen on {where}: {err.strerror}") from None
+    with socket.socket(family, kind, proto) as s:
+        s.settimeout(1.0)
+        listens = s.connect_ex(addr) == 0
+    raise PortInUse(
+        f"{where} is in use"
+        + (": something listens on it" if listens else "")
+        + " (another `macb up`, docker compose, another user's job?); stop it, or "
+        "choose another port (--endpoint, --api-port)"
+    )
+
+
+def check_ports(plan: list[ServiceSpec]) -> None:
+    """Raise PortInUse, naming every taken port, unless each port the plan's services
+    listen on is free."""
+    taken = []
+    for spec in plan:
+        if (address := listen_address(spec)) is not None:
+            try:
+                check_port_free(*address)
+            except PortInUse as err:
+                taken.append(f"{spec.name}: {err}")
+    if taken:
+        raise PortInUse("; ".join(taken))
+
+
+def wait_port(endpoint: str, timeout: float = 20.0, proc: subprocess.Popen | None = None) -> None:
+    """Until something listens at `endpoint` (TimeoutError after `timeout`). With `proc`
+    (the child that is to listen there): DidNotListen once it has ended, also just after
+    the port answered, since then another process answered."""
+    host, port = host_port(endpoint)
+
+    def ended() -> None:
+        if proc is not None and proc.poll() is not None:
+            raise DidNotListen(
+                f"the process to listen on {endpoint} ended (exit code {proc.returncode}) "
+                "before it listened"
+            )
+
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
+        ended()
         with socket.socket() as s:
-            if s.connect_ex((host, int(port))) == 0:
+            if s.connect_ex((host, port)) == 0:
+                ended()
                 return
         time.sleep(0.05)
     raise TimeoutError(f"router did not listen on {endpoint}")
@@ -193,17 +286,24 @@ class Cluster:
         self._stopping = False
 
     def start(self) -> None:
+        """Every service of the plan, router first (back once it listens). Raises
+        PortInUse, with nothing started, if a port the plan listens on is taken."""
+        check_ports(self.plan)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         for spec in self.plan:
             self._spawn(spec)
         self._write_state()
 
     def _spawn(self, spec: ServiceSpec) -> None:
+        """Start one service (a restart: its port checked free first); it dies with us."""
+        if self.restarts[spec.name] and (address := listen_address(spec)) is not None:
+            check_port_free(*address)
         env = {
             **os.environ,
             "PYTHONUNBUFFERED": "1",
             **dict(spec.env),
             "MACB_RESTARTS": str(self.restarts[spec.name]),
+            **procs.parent_env(),
         }
         # In a session of its own: our signal handler, not the terminal, ends it.
         proc = procs.start([sys.executable, "-m", "cli", "serve", *spec.args], pipe=True, env=env)
@@ -215,7 +315,7 @@ class Cluster:
         t.start()
         self._threads.append(t)
         if spec.name == "router":
-            wait_port(spec.args[spec.args.index("--listen") + 1])
+            wait_port(spec.args[spec.args.index("--listen") + 1], proc=proc)
 
     def _write_state(self) -> None:
         state = {
@@ -263,7 +363,7 @@ class Cluster:
                 self.restarts[spec.name] += 1
                 try:
                     self._spawn(spec)
-                except (OSError, TimeoutError) as err:
+                except (OSError, TimeoutError, PortInUse, DidNotListen) as err:
                     print(f"restarting {spec.name} failed: {err}", file=sys.stderr)
                 self._write_state()
         return None

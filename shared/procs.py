@@ -164,3 +164,27 @@ def die_with_parent(parent: int, poll_s: float = 1.0) -> str:
     if os.getppid() != parent:  # it ended before the signal was armed
         os.kill(os.getpid(), signal.SIGKILL)
     return how
+
+
+PARENT_ENV = "MACB_PARENT_PID"  # (a field of shared.settings.Settings, read here itself)
+
+
+def parent_env() -> dict[str, str]:
+    """The variable that makes a `macb` command started with it die with this process
+    (`die_with_env_parent`, first thing in `cli.main.main`). A variable and not
+    `preexec_fn`: that runs between fork and exec, which is unsafe with threads (the
+    supervisor pumps its children's output in threads)."""
+    return {PARENT_ENV: str(os.getpid())}
+
+
+def die_with_env_parent() -> str | None:
+    """Die with the process MACB_PARENT_PID names (`die_with_parent`): how, or None when
+    it is unset. The variable is taken out of this process's environment first, so a
+    process this one starts does not take it for its own parent (its parent is not that
+    PID, and it would kill itself at once). Raises ValueError if it is not a PID."""
+    value = os.environ.pop(PARENT_ENV, None)
+    if value is None or not value.strip():
+        return None
+    if not value.strip().isdigit() or int(value) < 1:
+        raise ValueError(f"{PARENT_ENV} must be a process id, not {value!r}")
+    return die_with_parent(int(value))

@@ -48,6 +48,10 @@ class Settings(BaseSettings):
     )
     # ---------------------------------------------------------------- services
     restarts: int = Field(0, description="set by `macb up`'s supervisor: this service's restarts")
+    # shared/procs.py reads this one itself (standard library only), first thing in `macb`.
+    parent_pid: int | None = Field(
+        None, description="set by `macb up`'s supervisor: the PID this service dies with"
+    )
     node: str | None = Field(
         None, description="the node this service runs on (default SLURMD_NODENAME, else the host)"
     )

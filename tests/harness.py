@@ -288,12 +288,14 @@ class Cluster:
                 procs.send(pid, signal.SIGCONT)
 
     def kill_all(self) -> None:
-        """SIGKILL `macb up` and every service: nothing is told, nothing flushes."""
+        """SIGKILL `macb up` and every service: nothing is told, nothing flushes. Back
+        once all are gone (their ports free: a `macb up` after this refuses taken ones)."""
         pids = self.pids()
         self.procs["up"].kill()
         self.procs["up"].wait()
         for pid in pids.values():
             procs.send(pid, signal.SIGKILL)
+        wait_for(lambda: not any(procs.alive(p) for p in pids.values()), 30, what="the kill")
 
     def log(self, name: str) -> str:
         return (self.tmp / f"{name}.log").read_text(errors="replace")

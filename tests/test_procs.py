@@ -100,3 +100,23 @@ def test_free_port_hands_out_ports_outgoing_connections_do_not_take_each_once():
         s.bind(("127.0.0.1", ports[-1]))  # it is free
         s.listen()
         assert free_port() != ports[-1]
+
+
+def test_a_child_given_its_parents_pid_dies_with_it_and_passes_the_pid_on_to_none():
+    """MACB_PARENT_PID (what `macb up`'s supervisor gives each service): the child arms
+    its death with that process and takes the variable out of its environment, so a
+    process it starts does not take that PID for its parent's (and kill itself); a value
+    that is not a PID is refused, `macb` exiting 2 naming it."""
+    from tests.harness import ROOT, macb
+
+    code = (
+        "import os; from shared import procs; "
+        "print(procs.die_with_env_parent(), os.environ.get(procs.PARENT_ENV))"
+    )
+    env = {**os.environ, **procs.parent_env()}
+    child = procs.start([sys.executable, "-c", code], pipe=True, env=env, cwd=ROOT)
+    out, _ = child.communicate(timeout=60)
+    assert out.decode().split() == ["prctl", "None"], out
+    got = macb("ps", env={procs.PARENT_ENV: "abc"}, timeout=120)
+    assert got.returncode == 2, got.stderr[-2000:]
+    assert "MACB_PARENT_PID must be a process id, not 'abc'" in got.stderr

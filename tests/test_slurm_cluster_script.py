@@ -27,10 +27,12 @@ for ((i = 0; i < n; i++)); do
 done
 wait
 """
-# macb: records "user|node id|args" a line; the router listens for a moment.
+# macb: records "user|node id|args" a line; the router listens for a moment (or, with
+# ROUTER_FAILS set, ends at once, as one that cannot bind its port does).
 MACB = """#!/bin/bash
 echo "${MACB_ZENOH_USER:-}|${MACB_ZENOH_CONNECT}|${MACB_ZENOH_SECRETS:-}|$*" >> "$RECORD"
 if [[ $2 == router ]]; then
+  [[ -n ${ROUTER_FAILS:-} ]] && exit 3
   exec python3 -c "import socket,time; s=socket.socket(); s.bind(('127.0.0.1', $PORT)); \
 s.listen(); time.sleep(4)"
 fi
@@ -43,7 +45,9 @@ def executable(path: Path, text: str) -> Path:
     return path
 
 
-def run_script(tmp_path: Path, job: ClusterJob) -> tuple[list[list[str]], str, int]:
+def run_script(
+    tmp_path: Path, job: ClusterJob, **more_env: str
+) -> tuple[list[list[str]], str, int]:
     """The rendered script run by bash with the stubs: the recorded lines (user,
     connect, secrets, args), the job's own output and its exit code."""
     bin_dir = tmp_path / "bin"
@@ -62,11 +66,12 @@ def run_script(tmp_path: Path, job: ClusterJob) -> tuple[list[list[str]], str, i
         "SLURM_JOB_ID": "77",
         "SLURM_JOB_NODELIST": "cn[1-2]",
         "SLURM_NTASKS": str(job.nodes * job.slots),
+        **more_env,
     }
     job.log_dir.mkdir(parents=True, exist_ok=True)
     got = subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, timeout=60)
-    lines = [line.split("|", 3) for line in record.read_text().splitlines()]
-    return lines, got.stdout + got.stderr, got.returncode
+    said = record.read_text().splitlines() if record.exists() else []
+    return [line.split("|", 3) for line in said], got.stdout + got.stderr, got.returncode
 
 
 def test_one_node_the_router_api_a_counter_and_a_slot_per_task_on_loopback(tmp_path):
@@ -92,6 +97,8 @@ def test_one_node_the_router_api_a_counter_and_a_slot_per_task_on_loopback(tmp_p
     assert {line[1] for line in lines} == {f"tcp/127.0.0.1:{port}"}  # one bus, loopback
     assert {line[0] for line in lines} == {""} and {line[2] for line in lines} == {""}
     assert (data / ".slurm" / "77.api").read_text() == "http://127.0.0.1:8123\n"
+    host = socket.gethostname().split(".")[0]  # `hostname -s`: where its loopback is
+    assert (data / ".slurm" / "77.head").read_text() == f"{host}\n"
     # a part that ends ends the job (Slurm then stops the rest)
     assert code == 1 and "a part of it ended" in out, out
 
@@ -147,3 +154,136 @@ def test_macb_up_on_slurm_submits_nothing_without_sbatch(tmp_path):
     assert not (tmp_path / "d").exists()
     got = macb("up", "--nodes", "2", check=False)
     assert got.returncode == 2 and "are for --launcher slurm" in got.stderr
+
+
+def test_both_steps_end_the_job_when_one_of_their_tasks_fails(tmp_path):
+    """Under Slurm's default (KillOnBadExit=0) srun waits for a step's other tasks when
+    one exits non-zero, so a dead counter or slot would not reach `wait -n`: both steps
+    ask for --kill-on-bad-exit=1 (docs/deploy.md says the job then ends)."""
+    for nodes, secrets in ((1, None), (2, tmp_path / "secrets")):
+        job = ClusterJob(nodes, 2, 1, 1, tmp_path / "data", secrets=secrets)
+        text = render_cluster_script(job, ["macb"], tmp_path, SlurmOptions())
+        steps = [line for line in text.splitlines() if line.startswith("srun ")]
+        assert len(steps) == 2, text
+        assert all(" --kill-on-bad-exit=1 " in step for step in steps), steps
+
+
+def test_a_taken_port_on_the_first_node_starts_nothing_naming_it(tmp_path):
+    """The router's or the API's port answering before the router starts (another
+    cluster, anyone's process): the job ends at once, exit 2, naming the port, and
+    starts nothing, instead of every check passing against the other listener."""
+    for taken in ("router", "api"):
+        folder = tmp_path / taken
+        folder.mkdir()
+        router, api = free_port(), free_port()
+        job = ClusterJob(1, 1, 1, 1, folder / "data", router_port=router, api_port=api)
+        with socket.socket() as held:
+            held.bind(("127.0.0.1", router if taken == "router" else api))
+            held.listen()
+            lines, out, code = run_script(folder, job)
+        port = router if taken == "router" else api
+        assert code == 2 and f"port {port} on " in out and "something listens" in out, out
+        assert lines == [], f"nothing starts: {lines}"
+
+
+def test_a_router_that_ends_before_it_listens_ends_the_job(tmp_path):
+    """The router process gone (it could not bind, say): the job ends at once, exit 1,
+    rather than waiting a minute and starting the services on a port that may be
+    someone else's."""
+    job = ClusterJob(1, 1, 1, 1, tmp_path / "data", router_port=free_port(), api_port=free_port())
+    lines, out, code = run_script(tmp_path, job, ROUTER_FAILS="1")
+    assert code == 1 and "the router did not listen" in out, out
+    assert [line[3].split()[1] for line in lines] == ["router"], lines
+
+
+# ---------------------------------------------------------------- following the job
+def squeue_says(state: str):
+    """A stand-in for `squeue -j JOB -o %T|%r` saying `state`."""
+    return lambda argv: subprocess.CompletedProcess(argv, 0, f"{state}|None\n", "")
+
+
+def job_files(tmp_path: Path, url: str, head: str) -> ClusterJob:
+    """A one-node job whose batch step has written its API's address and its node."""
+    job = ClusterJob(1, 1, 1, 1, tmp_path / "data")
+    job.log_dir.mkdir(parents=True)
+    (job.log_dir / "77.api").write_text(url + "\n")
+    (job.log_dir / "77.head").write_text(head + "\n")
+    return job
+
+
+def test_a_loopback_api_is_polled_only_from_its_own_node():
+    from cli.slurm_cluster import loopback_elsewhere
+
+    assert loopback_elsewhere("http://127.0.0.1:8000", "cn07", "login1")
+    assert loopback_elsewhere("http://localhost:8000", "cn07", "login1.example.org")
+    assert not loopback_elsewhere("http://127.0.0.1:8000", "cn07", "cn07")
+    assert not loopback_elsewhere("http://127.0.0.1:8000", "cn07", "cn07.cluster.local")
+    assert not loopback_elsewhere("http://cn07:8000", "cn07", "login1")  # a token: the network
+
+
+def test_an_api_on_another_nodes_loopback_is_not_polled_here_how_to_reach_it_is_said(
+    tmp_path, capsys
+):
+    """No token: the API listens on 127.0.0.1 of the job's first node. From a login node
+    127.0.0.1 is not the job's: nothing is polled (a listener there is not touched), the
+    command says how to reach it and returns 0, the job running."""
+    from cli.slurm_cluster import wait_until_up
+
+    port = free_port()
+    with socket.socket() as stranger:  # this host's 127.0.0.1:port: not the job's API
+        stranger.bind(("127.0.0.1", port))
+        stranger.listen()
+        stranger.settimeout(0.5)
+        job = job_files(tmp_path, f"http://127.0.0.1:{port}", "cn07")
+        code = wait_until_up("77", job, tmp_path / "log", 30, squeue_says("RUNNING"), "login1")
+        try:
+            stranger.accept()[0].close()
+            asked = True
+        except TimeoutError:
+            asked = False
+    err = capsys.readouterr().err
+    assert code == 0 and not asked, err
+    assert f"ssh -N -L {port}:127.0.0.1:{port} cn07" in err and "MACB_API_TOKEN" in err
+    assert f"MACB_API_URL=http://127.0.0.1:{port}" in err and "scancel 77" in err
+
+
+def test_the_api_is_asked_with_the_token_and_a_refusal_is_told_apart(
+    tmp_path, router, monkeypatch, capsys
+):
+    """MACB_API_TOKEN set: the API (uvicorn, TokenAuth) wants the bearer token on
+    /workers; it is sent, and a wrong one ends the wait at once saying so, and that the
+    job still runs (scancel), instead of polling to the timeout."""
+    from cli.slurm_cluster import services_answering, wait_until_up
+    from services.api.client import ApiClient, ApiError
+    from tests.harness import start_api
+
+    server = start_api(tmp_path, router, token="s3cret")
+    try:
+        monkeypatch.setenv("MACB_API_TOKEN", "s3cret")
+        with ApiClient(server.url) as api:  # the token from the environment
+            assert services_answering(api) is not None
+        with ApiClient(server.url, token="wrong") as api:
+            try:
+                services_answering(api)
+                raise AssertionError("a wrong token is not refused")
+            except ApiError as err:
+                assert err.status == 401
+        monkeypatch.setenv("MACB_API_TOKEN", "wrong")
+        here = socket.gethostname().split(".")[0]
+        job = job_files(tmp_path, server.url, here)
+        code = wait_until_up("77", job, tmp_path / "log", 60, squeue_says("RUNNING"), here)
+    finally:
+        server.stop()
+    err = capsys.readouterr().err
+    assert code == 1 and "HTTP 401" in err and "MACB_API_TOKEN" in err, err
+    assert "scancel 77" in err and "not up within" not in err, err
+
+
+def test_giving_up_says_the_job_is_left_running_and_how_to_cancel_it(tmp_path, capsys):
+    from cli.slurm_cluster import wait_until_up
+
+    job = ClusterJob(1, 1, 1, 1, tmp_path / "data")
+    code = wait_until_up("77", job, tmp_path / "log", 0.5, squeue_says("PENDING"), "login1")
+    err = capsys.readouterr().err
+    assert code == 1 and "not up within 0 s" in err and "last seen PENDING" in err, err
+    assert "scancel 77" in err, err

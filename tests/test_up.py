@@ -5,14 +5,26 @@ from __future__ import annotations
 import csv
 import json
 import signal
+import socket
 import time
 from pathlib import Path
 
 import pytest
 
+from cli.supervisor import free_port
+from shared import procs
 from shared.core.learners.precision import native_bf16
 from shared.persist import provenance
-from tests.harness import ROOT, TINY, Cluster, macb, wait_port, wait_services, write_config
+from tests.harness import (
+    ROOT,
+    TINY,
+    Cluster,
+    cluster_processes,
+    macb,
+    wait_port,
+    wait_services,
+    write_config,
+)
 
 
 def test_up_runs_an_experiment_and_leaves_nothing_running(tmp_path):
@@ -85,6 +97,54 @@ def test_sigterm_stops_every_service_and_the_router(tmp_path):
         while cluster.leftovers() and time.monotonic() < deadline:
             time.sleep(0.1)
         assert cluster.leftovers() == [], "no orphan process"
+
+
+def test_a_killed_macb_up_takes_every_service_with_it(tmp_path):
+    """SIGKILL of `macb up` (no handler of its own runs; the OOM killer, `kill -9`): the
+    router, the API and every service die with it (PR_SET_PDEATHSIG, armed by each child
+    from MACB_PARENT_PID), so none goes on holding its port and writing the data dir."""
+    with Cluster(tmp_path) as cluster:
+        cluster.up("--quiet", answering=5)  # the API, counter, learner, evaluator, actor0
+        pids = cluster.pids()
+        assert sorted(pids) == ["actor0", "api", "counter", "evaluator", "learner", "router"]
+        cluster.procs["up"].kill()
+        cluster.procs["up"].wait(timeout=30)
+        deadline = time.monotonic() + 5
+        while (alive := [n for n, pid in pids.items() if procs.alive(pid)]) and (
+            time.monotonic() < deadline
+        ):
+            time.sleep(0.1)
+        assert alive == [], f"outlived a killed macb up: {alive}"
+        assert cluster.leftovers() == []
+
+
+def test_up_refuses_a_port_someone_listens_on_naming_it_and_starts_nothing(tmp_path):
+    """7447 or 8000 taken (another `macb up`, compose, anyone's process): exit 2 naming
+    the port before any process starts, rather than a cluster whose router and API fail
+    to bind while the other listener answers every check. An endpoint or port that is
+    none is refused too, exit 2, naming it (it was a traceback)."""
+    for taken in ("--endpoint", "--api-port"):
+        data, router, api = tmp_path / taken.strip("-"), free_port(), free_port()
+        port = router if taken == "--endpoint" else api
+        with socket.socket() as held:
+            held.bind(("127.0.0.1", port))
+            held.listen()
+            got = macb("up", "--endpoint", f"tcp/127.0.0.1:{router}", "--api-port", str(api),
+                       "--data-dir", str(data), timeout=120)  # fmt: skip
+        assert got.returncode == 2, got.stderr[-3000:]
+        assert f"port {port} on 127.0.0.1 is in use: something listens on it" in got.stderr
+        assert not (data / "logs").exists() and not (data / "cluster.json").exists()
+        assert cluster_processes(f"tcp/127.0.0.1:{router}", data) == []
+    endpoint = ["--endpoint", f"tcp/127.0.0.1:{free_port()}"]
+    api_port = ["--api-port", str(free_port())]
+    for bad, said in (  # (each beside a port of its own: never 7447 or 8000)
+        (["--endpoint", "tcp/127.0.0.1", *api_port], "'tcp/127.0.0.1' is not HOST:PORT"),
+        (["--endpoint", "tcp/127.0.0.1:70000", *api_port], "with a port from 1 to 65535"),
+        ([*endpoint, "--api-port", "70000"], "--api-port must be from 1 to 65535, not 70000"),
+    ):
+        got = macb("up", *bad, "--data-dir", str(tmp_path / "bad"), timeout=120)
+        assert got.returncode == 2 and said in got.stderr, got.stderr[-3000:]
+        assert "Traceback" not in got.stderr and not (tmp_path / "bad").exists()
 
 
 def _client(endpoint):

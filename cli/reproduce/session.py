@@ -67,8 +67,8 @@ def with_local_cluster(
             if up.stop.is_set():
                 return session.interrupted()
             return code
-    except ClusterDidNotStart:
-        return 1
+    except ClusterDidNotStart as err:
+        return err.code
 
 
 def cluster_group_size(body: dict[str, Any], slots: int) -> int:

@@ -58,16 +58,26 @@ class ApiClient:
         return self._call("GET", "/health")
 
     def wait_healthy(self, timeout: float = 30.0, alive: Callable[[], bool] = lambda: True) -> None:
+        """Until /health says the API is on the bus (TimeoutError after `timeout`, or once
+        `alive()` is false). An answer counts only while `alive()` holds, asked after it:
+        an API process that died (its port taken) is not stood in for by whoever else
+        answers at the URL."""
         deadline = time.monotonic() + timeout
         while True:
             try:
-                if self.health().get("bus"):
+                if self.health().get("bus") and alive():
                     return
             except (httpx.HTTPError, ApiError):
                 pass
-            if time.monotonic() > deadline or not alive():
+            if not alive():
+                raise TimeoutError(f"the API at {self.url} did not become ready: a process ended")
+            if time.monotonic() > deadline:
                 raise TimeoutError(f"the API at {self.url} did not become ready")
             time.sleep(0.2)
+
+    def workers(self) -> dict[str, Any]:
+        """GET /workers: every service the API has seen, and whether it answers."""
+        return self._call("GET", "/workers")
 
     def create_experiment(self, body: dict[str, Any]) -> dict[str, Any]:
         return self._call("POST", "/experiments", json=body)
