@@ -167,10 +167,13 @@ class ServiceBase(ServiceHooks):
 
     # ------------------------------------------------------------ plumbing
     def reject(self, key: str, reason: str) -> None:
-        """Drop a message: count it by reason and log it (at most once a second)."""
+        """Drop a message: count it by reason and log it (at most once a second; the
+        reason cut short, as its sender may have made it as long as it liked)."""
         total = self.reject_tally.add(reason, time.monotonic())
         if total is not None:
-            self.log.warning("dropped message on %s: %s (%d dropped so far)", key, reason, total)
+            self.log.warning(
+                "dropped message on %.200s: %.300s (%d dropped so far)", key, reason, total
+            )
 
     def decode_for_run(self, key: str, payload: bytes, expect: type[M]) -> M | None:
         """Decode a per-run message; None (and a counted reject) unless it is for our run.

@@ -105,7 +105,7 @@ def _unpack_hook(obj: dict) -> Any:
     if "nd" in obj and "data" in obj and "shape" in obj:
         dtype, shape, data = _NP_DTYPES.get(obj["nd"]), obj["shape"], obj["data"]
         if dtype is None or type(shape) is not list or type(data) is not bytes:
-            raise WireError(f"bad array encoding (dtype {obj['nd']!r})")
+            raise WireError(f"bad array encoding: dtype {obj['nd']!r:.40}")
         for s in shape:
             if type(s) is not int or s < 0:
                 raise WireError("bad array shape")
@@ -143,10 +143,10 @@ def decode(payload: bytes, expect: type[Message] | None = None) -> Message:
     if not isinstance(msg, dict):
         raise WireError("message is not a map")
     if msg.get("v") != SCHEMA_VERSION:
-        raise WireError(f"schema version {msg.get('v')!r}, expected {SCHEMA_VERSION}")
+        raise WireError(f"schema version: {msg.get('v')!r:.40}, expected {SCHEMA_VERSION}")
     type_ = msg.get("type")
     if type_ not in SCHEMAS or (expect is not None and type_ != expect.TYPE):
-        raise WireError(f"unexpected message type {type_!r}")
+        raise WireError(f"unexpected message type: {type_!r:.40}")
     if not isinstance(msg.get("run"), str):
         raise WireError("message lacks a run id")
     if type_ == "status" and isinstance(msg.get("detail"), dict):
