@@ -13,6 +13,7 @@ import time
 import msgpack
 import pytest
 
+from services.common import ServiceBase
 from services.inbox import DRAINED, MAX_REASONS, OTHER_REASONS, Inbox, Rejects
 from services.peers import CHECK_S, PeerWatch, live_peer
 from services.runs import ServedRuns
@@ -224,3 +225,39 @@ def test_the_tally_keeps_a_bounded_number_of_reasons():
     rejects = Rejects()
     rejects.add("x" * 10_000, now=0.0)  # a long reason: its bucket is cut short
     assert [len(b) for b in rejects.counts()[0]] == [80]
+
+
+class Raising(ServiceBase):
+    """A service whose handler raises what its message makes it raise."""
+
+    role = "test"
+
+    def handle(self, tag: str, key: str, payload: bytes) -> None:
+        if payload == b"index":
+            raise IndexError("list index out of range")
+        raise ValueError(f"cannot read {payload!r}")
+
+
+def bare_service() -> Raising:
+    """Only what dispatching a message uses: no bus."""
+    svc = Raising.__new__(Raising)
+    svc.log = logging.getLogger("test.raising")
+    svc.reject_tally = Rejects(log_every_s=0.0)
+    svc._traced, svc._traced_lock = set(), threading.Lock()
+    return svc
+
+
+def test_a_handler_that_raises_drops_the_message_counts_it_and_the_service_goes_on(caplog):
+    svc = bare_service()
+    with caplog.at_level(logging.WARNING, logger="test.raising"):
+        for i in range(3):
+            svc._dispatch("transitions", f"macb/run/r/transitions/a{i}", b"%d" % i)
+        svc._dispatch("transitions", "macb/run/r/transitions/a0", b"index")
+    by_reason, total = svc.reject_tally.counts()
+    assert by_reason == {"handler raised ValueError": 3, "handler raised IndexError": 1}
+    assert total == 4
+    traced = [r for r in caplog.records if r.exc_info is not None]
+    assert [r.exc_info[0] for r in traced] == [ValueError, IndexError]  # once each
+    assert "macb/run/r/transitions/a0" in traced[0].getMessage()
+    dropped = [r.getMessage() for r in caplog.records if r.exc_info is None]
+    assert len(dropped) == 4 and "handler raised ValueError: cannot read b'1'" in dropped[1]
