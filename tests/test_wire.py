@@ -12,6 +12,7 @@ from shared.net.messages import (
     MESSAGES,
     Ack,
     Assignment,
+    BonusQuery,
     History,
     Metrics,
     Resumed,
@@ -94,14 +95,61 @@ def test_shapes_that_disagree_with_the_batch_are_refused():
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
-@pytest.mark.parametrize("field", ["obs", "act"])
+@pytest.mark.parametrize("field", ["obs", "act", "rew", "next_obs"])
 def test_non_finite_values_are_refused(field, bad):
+    """In every float column: a NaN reward or an inf next observation went into replay."""
     fields = _transitions()
     arr = fields[field].copy()
+    arr.flat[1] = bad
+    with pytest.raises(WireError, match=f"non-finite values in {field}"):
+        decode(encode(Transitions("r", **{**fields, field: arr})), Transitions)
+    query = BonusQuery("r", obs=fields["obs"], act=fields["act"])
+    arr = fields["obs"].copy()
     arr[1, 0] = bad
-    msg = decode(encode(Transitions("r", **{**fields, field: arr})))
-    with pytest.raises(WireError, match="non-finite"):
-        check_dims(msg, 4, 2)
+    with pytest.raises(WireError, match="non-finite"):  # a bonus query's rows: by check_dims
+        check_dims(decode(encode(BonusQuery("r", obs=arr, act=query.act))), 4, 2)
+
+
+@pytest.mark.parametrize(
+    "change, why",
+    [
+        ({"obs": np.zeros((3, 4)), "next_obs": np.zeros((3, 4))}, "obs is float64, not float32"),
+        ({"act": np.zeros((3, 2), np.int32)}, "act is int32, not float32"),
+        ({"rew": np.zeros(3, np.int64)}, "rew is int64, not float32"),
+        ({"done": np.zeros(3, bool)}, "done is bool, not float32"),
+        # float collisions (NaN among them) made the learner's ack path raise
+        ({"collisions": np.array([0, np.nan, 1], np.float32)}, "collisions is float32, not"),
+        ({"collisions": np.zeros(3, np.int64)}, "collisions is int64, not int32"),
+        ({"done": np.array([0, 0.5, 1], np.float32)}, "done is neither 0 nor 1"),
+        ({"done": np.array([0, 2, 1], np.float32)}, "done is neither 0 nor 1"),
+        ({"collisions": np.array([0, -1, 0], np.int32)}, "negative collisions"),
+        # the learner's log holds it as int32: it overflowed after the batch was taken
+        ({"policy_version": 2**31}, "policy_version out of the int32 range"),
+        ({"policy_version": -(2**31) - 1}, "policy_version out of the int32 range"),
+        ({"rew": np.zeros(0, np.float32)}, "empty batch"),
+        ({"rew": "0-d"}, "empty batch"),  # (len() of it raised TypeError, not WireError)
+    ],
+)
+def test_a_batch_the_learner_cannot_take_whole_is_refused_at_decode(change, why):
+    if isinstance(change.get("rew"), str):  # (encode sends arrays of one dimension or more)
+        raw = _raw(_transitions())
+        raw["rew"].update(shape=[], data=raw["rew"]["data"][:4])
+        payload = _repack(raw)
+    else:
+        payload = encode(Transitions("r", **_transitions(**change)))
+    with pytest.raises(WireError, match=why):
+        decode(payload, Transitions)
+
+
+def test_the_edges_of_a_batchs_values_pass():
+    fields = _transitions(
+        done=np.array([0, 1, 1], np.float32),
+        collisions=np.array([0, 7, 2**31 - 1], np.int32),
+        policy_version=2**31 - 1,
+    )
+    assert decode(encode(Transitions("r", **fields)), Transitions).policy_version == 2**31 - 1
+    lockstep = decode(encode(Transitions("r", **{**fields, "policy_version": -1})))
+    assert lockstep.policy_version == -1  # (a lockstep actor loads no weights: version -1)
 
 
 def test_large_finite_values_pass():

@@ -6,9 +6,9 @@ shared/net/messages.py's dataclasses, sent as a map with `v` (schema version), `
 {"nd": dtype, "shape": [...], "data": bytes} restricted to plain numeric dtypes
 (never objects, never pickle), an `Assignment` as its `to_wire` map. `decode` checks
 the version, the type, the presence and type of every field, array dtypes and shapes
-where the schema fixes them, and an assignment through `Assignment.from_wire` (a
-`Resumed` through its own); anything else raises `WireError`, which services count,
-log and drop.
+where the schema fixes them (a transitions batch's values too: `_check_transitions`),
+and an assignment through `Assignment.from_wire` (a `Resumed` through its own);
+anything else raises `WireError`, which services count, log and drop.
 
 A field with a default may be absent: a peer older than the field did not send it,
 and the message is read with the default. A field typed `X | None` may be nil. An
@@ -184,10 +184,31 @@ def _lift_status(msg: dict) -> None:
             msg[key] = detail.pop(key)
 
 
+# A transitions batch's columns as the actor sends them (services/actor/outbox.py) and
+# the learner's log and replay store them: any other dtype is refused, not converted.
+_TRANSITION_DTYPES = {
+    "obs": np.dtype("<f4"),
+    "act": np.dtype("<f4"),
+    "rew": np.dtype("<f4"),
+    "next_obs": np.dtype("<f4"),
+    "done": np.dtype("<f4"),
+    "collisions": np.dtype("<i4"),
+}
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1  # the learner logs `policy_version` as int32
+
+
 def _check_transitions(msg: dict) -> None:
-    n = len(msg["rew"])
-    if msg["seq"] < 0 or n == 0:
+    """What the counter and the learner take as a batch, whole: every column of its
+    dtype and of n rows; finite values (a NaN reward or an inf next observation would
+    go into replay and every update after it); `done` 0 or 1; no negative collision
+    count; a `policy_version` the log's int32 column holds (one that overflowed it was
+    taken, then failed to log: the actor resent it and the learner failed again)."""
+    for field, dtype in _TRANSITION_DTYPES.items():
+        if msg[field].dtype != dtype:
+            raise WireError(f"transitions: {field} is {msg[field].dtype}, not {dtype}")
+    if msg["rew"].ndim != 1 or len(msg["rew"]) == 0 or msg["seq"] < 0:
         raise WireError("transitions: empty batch or negative seq")
+    n = len(msg["rew"])
     for field in ("obs", "act", "next_obs"):
         if msg[field].ndim != 2 or len(msg[field]) != n:
             raise WireError(f"transitions: {field} must be ({n}, dim)")
@@ -196,10 +217,21 @@ def _check_transitions(msg: dict) -> None:
             raise WireError(f"transitions: {field} must be ({n},)")
     if msg["obs"].shape != msg["next_obs"].shape:
         raise WireError("transitions: obs and next_obs differ in shape")
+    for field in ("obs", "act", "rew", "next_obs"):
+        if not np.isfinite(msg[field]).all():
+            raise WireError(f"transitions: non-finite values in {field}")
+    done = msg["done"]
+    if not ((done == 0) | (done == 1)).all():
+        raise WireError("transitions: done is neither 0 nor 1")
+    if (msg["collisions"] < 0).any():
+        raise WireError("transitions: negative collisions")
+    if not INT32_MIN <= msg["policy_version"] <= INT32_MAX:
+        raise WireError("transitions: policy_version out of the int32 range")
 
 
 def check_dims(msg: Transitions | BonusQuery, obs_dim: int, act_dim: int) -> None:
-    """The run's layout: a batch for another task's dimensions is refused."""
+    """The run's layout: a batch for another task's dimensions is refused (and a bonus
+    query's non-finite rows; a batch's values were checked at decode)."""
     obs, act = msg.obs, msg.act
     if obs.shape[1] != obs_dim or act.shape[1] != act_dim:
         raise WireError(
