@@ -374,3 +374,27 @@ def test_metrics_and_history_name_their_attempt_and_an_older_peers_without_one_d
     assert decode(msgpack.packb(before, use_bin_type=True), cls).attempt is None
     with pytest.raises(WireError, match=f"{cls.TYPE}: field 'attempt' is not int"):
         decode(msgpack.packb({**before, "attempt": "2"}, use_bin_type=True), cls)
+
+
+@pytest.mark.parametrize(
+    "msg, field, value",
+    [
+        (Ack("r", service="c", acked={"a0": 4}, window=0), "acked", {"a0": "4"}),
+        (Ack("r", service="c", acked={"a0": 4}, window=0), "acked", {"a0": True}),
+        (Ack("r", service="c", acked={"a0": 4}, window=0), "acked", {0: 4}),
+        (Metrics("r", source="s", data={"x": 1}), "data", {1: 2}),
+        (History("r", source="eval", rows=[{"episode": 1}], state="running"), "rows", [3]),
+        (History("r", source="eval", rows=[{"episode": 1}], state="running"), "rows", [{1: 1}]),
+        (Stop("r", reason="x"), None, None),  # (no list or map field: nothing to spoil)
+    ],
+)
+def test_the_items_of_a_list_or_map_field_are_of_its_type(msg, field, value):
+    """A map's names are strings and a list's or map's items what its annotation says
+    (a stats map named by an int made the evaluator's row raise; a point that is a
+    string, its point order): refused at decode, naming the field."""
+    assert decode(encode(msg), type(msg)) == msg
+    if field is None:
+        return
+    raw = msgpack.unpackb(encode(msg), raw=False, strict_map_key=False)
+    with pytest.raises(WireError, match=f"{msg.TYPE}: field {field!r} is not"):
+        decode(_repack({**raw, field: value}), type(msg))

@@ -5,10 +5,11 @@ shared/net/messages.py's dataclasses, sent as a map with `v` (schema version), `
 `run` and its fields; numpy arrays travel as maps
 {"nd": dtype, "shape": [...], "data": bytes} restricted to plain numeric dtypes
 (never objects, never pickle), an `Assignment` as its `to_wire` map. `decode` checks
-the version, the type, the presence and type of every field, array dtypes and shapes
-where the schema fixes them (a transitions batch's values too: `_check_transitions`),
-and an assignment through `Assignment.from_wire` (a `Resumed` through its own);
-anything else raises `WireError`, which services count, log and drop.
+the version, the type, the presence and type of every field (a list's or a map's items
+too: `_ITEMS`), array dtypes and shapes where the schema fixes them (a transitions
+batch's values too: `_check_transitions`), and an assignment through
+`Assignment.from_wire` (a `Resumed` through its own); anything else raises
+`WireError`, which services count, log and drop.
 
 A field with a default may be absent: a peer older than the field did not send it,
 and the message is read with the default. A field typed `X | None` may be nil. An
@@ -58,11 +59,44 @@ def _kind(annotation: str) -> Any:
     return {"str": str, "int": int, "dict": dict, "list": list}[base]
 
 
+def _all_str_keys(value: dict) -> bool:
+    return all(type(k) is str for k in value)
+
+
+# A list or map field's items, by its annotation: what its readers take them for (a
+# number compared, a name a string), so that, say, a stats map with an int key or an
+# unreported point that is a string is refused here, not found out by a reader.
+_ITEMS: dict[str, Any] = {
+    "list[int]": lambda v: all(type(x) is int for x in v),
+    "list[str]": lambda v: all(type(x) is str for x in v),
+    "dict[str, int]": lambda v: all(type(k) is str and type(x) is int for k, x in v.items()),
+    "dict[str, Any]": _all_str_keys,
+    "list[dict[str, Any]]": lambda v: all(type(d) is dict and _all_str_keys(d) for d in v),
+    "list[dict[str, np.ndarray]]": lambda v: all(
+        type(d) is dict and all(type(k) is str and type(a) is np.ndarray for k, a in d.items())
+        for d in v
+    ),
+}
+
+
+def _items(annotation: str) -> tuple[str, Any] | None:
+    """The check of a list or map field's items (`_ITEMS`), with the annotation it names."""
+    annotation = annotation.removesuffix(" | None")
+    if annotation.split("[")[0] not in ("list", "dict"):
+        return None
+    return annotation, _ITEMS[annotation]  # (a KeyError here: a new field's, to add)
+
+
 # type -> {field: python type, "nd" for an ndarray, or a typed class}: what decode
 # checks, from the dataclasses themselves.
 SCHEMAS: dict[str, dict[str, Any]] = {
     type_: {f.name: _kind(str(f.type)) for f in dataclasses.fields(cls) if f.name != "run"}
     for type_, cls in MESSAGES.items()
+}
+# type -> {field: (its annotation, the check of its items)} for its list and map fields
+_ITEM_CHECKS = {
+    t: {f.name: items for f in dataclasses.fields(cls) if (items := _items(str(f.type)))}
+    for t, cls in MESSAGES.items()
 }
 # type -> its fields that may be nil (typed `X | None`)
 _NULLABLE = {
@@ -170,6 +204,8 @@ def decode(payload: bytes, expect: type[Message] | None = None) -> Message:
                 raise WireError(f"{type_}: {err}") from None
         elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
             raise WireError(f"{type_}: field {field!r} is not {kind.__name__}")
+        elif field in _ITEM_CHECKS[type_] and not _ITEM_CHECKS[type_][field][1](value):
+            raise WireError(f"{type_}: field {field!r} is not {_ITEM_CHECKS[type_][field][0]}")
     if type_ == "transitions":
         _check_transitions(msg)
     return MESSAGES[type_](run=msg["run"], **present)
