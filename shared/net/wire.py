@@ -133,9 +133,11 @@ def _pack_default(obj: Any) -> Any:
     raise TypeError(f"cannot encode {type(obj).__name__}")
 
 
-def _unpack_hook(obj: dict) -> Any:
-    # Called for every map of every inbound message (6 arrays in a transitions batch):
-    # dtype objects are looked up, not built, and the checks stay in plain loops.
+def _array(obj: dict) -> Any:
+    """A map that is an array's encoding, as the array (WireError if malformed); any
+    other map as it is. Called for every map of every inbound message (6 arrays in a
+    transitions batch): dtype objects are looked up, not built, and the checks stay in
+    plain loops."""
     if "nd" in obj and "data" in obj and "shape" in obj:
         dtype, shape, data = _NP_DTYPES.get(obj["nd"]), obj["shape"], obj["data"]
         if dtype is None or type(shape) is not list or type(data) is not bytes:
@@ -147,6 +149,62 @@ def _unpack_hook(obj: dict) -> Any:
             raise WireError("array data does not match its shape")
         return np.frombuffer(data, dtype=dtype).reshape(shape)
     return obj
+
+
+# What one message may cost to decode. msgpack builds every map and list before a check
+# here sees it, and an empty map is 1 byte on the wire and ~64 in memory: 8 MB of them
+# took 550 MB. So a payload is refused past its type's size, each string, array's
+# bytes, list and map past a length, and the decode stops once the maps, lists and their
+# items (`_Budget`) outnumber what the payload's size allows.
+MAX_STR = 1 << 20  # a string: a config's, a reason (a few KB)
+MAX_BIN = 64 << 20  # an array's bytes (an actor's [4096, 4096] layer)
+MAX_MAP = 1 << 14  # a map's entries: a config's, a stats map, an ack's actors (tens)
+# A list's items: the longest is a history's rows, one per evaluation point (a thesis
+# run of 50,000 episodes evaluated every one: 50,000); History's size binds first.
+MAX_ARRAY = 1 << 18
+SMALL_PAYLOAD = 4 << 20  # a message of any type not in MAX_PAYLOAD (a start: a few KB)
+MAX_PAYLOAD = {
+    "transitions": 256 << 20,  # an episode's rows (spread of 8 agents, 1,000 steps: 3 MB)
+    "weights": 256 << 20,  # every agent's actor (8 agents of [400, 300]: 4.5 MB)
+    "bonus_query": 64 << 20,  # a tick's minibatches (20 x 100 rows: < 1 MB)
+    "bonus_reply": 64 << 20,
+    "history": 64 << 20,  # rows of ~380 bytes: ~170,000 (50,000: 19 MB)
+}
+ITEMS_FREE = 1 << 16  # maps, lists and their items any message may have
+# ...and one more per this many bytes, for a type whose size is in them (not in its
+# arrays): a history's row is ~18 bytes per item (a map and its 20 entries in ~380).
+ITEM_BYTES = 8
+# The types whose size is in their arrays: their items are few whatever their size (a
+# transitions batch: ~30; weights: ~60 per agent), so ITEMS_FREE is all they get.
+_ARRAY_SIZED = {
+    t
+    for t, cls in MESSAGES.items()
+    if any("np.ndarray" in str(f.type) for f in dataclasses.fields(cls))
+}
+
+
+class _Budget:
+    """The maps, lists and items one decode may still build: msgpack's hooks charge
+    each map and list (and its entries) as it is built; past the budget the decode
+    stops with WireError, before the rest is built."""
+
+    __slots__ = ("left",)
+
+    def __init__(self, payload: int, type_: str | None) -> None:
+        sized_by_items = type_ is None or type_ not in _ARRAY_SIZED
+        self.left = ITEMS_FREE + (payload // ITEM_BYTES if sized_by_items else 0)
+
+    def map(self, obj: dict) -> Any:
+        self.left -= 1 + len(obj)
+        if self.left < 0:
+            raise WireError("too many maps and lists: more than the payload's size allows")
+        return _array(obj)
+
+    def list(self, obj: list) -> list:
+        self.left -= 1 + len(obj)
+        if self.left < 0:
+            raise WireError("too many maps and lists: more than the payload's size allows")
+        return obj
 
 
 def encode(msg: Message) -> bytes:
@@ -165,10 +223,25 @@ def decode(payload: bytes, expect: type[M]) -> M: ...
 def decode(payload: bytes, expect: None = None) -> Message: ...
 def decode(payload: bytes, expect: type[Message] | None = None) -> Message:
     """Parse and validate into its message class (`expect`'s, or any); raises WireError
-    for anything a service must not act on."""
+    for anything a service must not act on (past the limits above too, before it is
+    built)."""
+    expected = expect.TYPE if expect is not None else None
+    cap = MAX_PAYLOAD.get(expected, SMALL_PAYLOAD) if expected else max(MAX_PAYLOAD.values())
+    if len(payload) > cap:
+        raise WireError(f"payload too large: {len(payload)} bytes, at most {cap}")
+    budget = _Budget(len(payload), expected)
     try:
         msg = msgpack.unpackb(
-            payload, object_hook=_unpack_hook, raw=False, strict_map_key=False, max_bin_len=64 << 20
+            payload,
+            object_hook=budget.map,
+            list_hook=budget.list,
+            raw=False,
+            strict_map_key=False,
+            max_str_len=MAX_STR,
+            max_bin_len=MAX_BIN,
+            max_array_len=MAX_ARRAY,
+            max_map_len=MAX_MAP,
+            max_ext_len=0,
         )
     except WireError:
         raise
