@@ -4,8 +4,10 @@ A service is a loop on its own thread that drains an inbox filled by Zenoh
 callbacks (callbacks only enqueue). Inbound payloads are decoded and validated by
 `shared.net.wire`; a malformed message, a wrong schema version or a message for a run
 the service does not serve is dropped, counted in `rejects` and logged (rate
-limited), and the loop goes on. `after_drain` runs whenever the inbox is found empty
-after a burst of messages, for work a service does once per burst.
+limited), and the loop goes on. So is a message whose handling raises anything else
+(`handler_failed`: its traceback logged once per exception type). `after_drain` runs
+whenever the inbox is found empty after a burst of messages, for work a service does
+once per burst.
 
 Run control: `macb/control/start` carries the run id, its config and the
 assignment of services (by id); a service takes a run only when it is named in the
@@ -37,7 +39,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from services.endpoint import Endpoint
-from services.inbox import DRAINED, Inbox, Item, Rejects
+from services.inbox import DRAINED, Inbox, Item, Rejects, reason_bucket
 from services.peers import PeerWatch
 from services.runs import ServedRuns
 from shared.config import ConfigError, TrainConfig, make_config
@@ -135,6 +137,9 @@ class ServiceBase(ServiceHooks):
         self.data_dir = Path(data_dir)
         self.inbox: queue.Queue[Item] | queue.SimpleQueue[Item] = self.inbox_type()
         self.reject_tally = Rejects()
+        # The reasons of handlers' exceptions whose traceback has been logged (once each).
+        self._traced: set[str] = set()
+        self._traced_lock = threading.Lock()
         self.rejects = self.reject_tally.by_reason  # read by the services' stats
         self.stop_event = threading.Event()
         runs_file = self.data_dir / "services" / f"{self.id}.json" if self.rejoins else None
@@ -167,10 +172,13 @@ class ServiceBase(ServiceHooks):
 
     # ------------------------------------------------------------ plumbing
     def reject(self, key: str, reason: str) -> None:
-        """Drop a message: count it by reason and log it (at most once a second)."""
+        """Drop a message: count it by reason and log it (at most once a second; the
+        reason cut short, as its sender may have made it as long as it liked)."""
         total = self.reject_tally.add(reason, time.monotonic())
         if total is not None:
-            self.log.warning("dropped message on %s: %s (%d dropped so far)", key, reason, total)
+            self.log.warning(
+                "dropped message on %.200s: %.300s (%d dropped so far)", key, reason, total
+            )
 
     def decode_for_run(self, key: str, payload: bytes, expect: type[M]) -> M | None:
         """Decode a per-run message; None (and a counted reject) unless it is for our run.
@@ -409,6 +417,21 @@ class ServiceBase(ServiceHooks):
                 self.handle(tag, key, payload)
         except WireError as err:
             self.reject(key, str(err))
+        except Exception as err:
+            self.handler_failed(key, err)
+
+    def handler_failed(self, key: str, err: Exception) -> None:
+        """A message's handling raised (content the checks let through, or a bug it
+        hit): a message must not end the service, so it is dropped like a malformed
+        one, counted under a reason naming the exception's type, and the traceback is
+        logged the first time that reason comes (then at the rejects' rate)."""
+        reason = f"handler raised {type(err).__name__}: {err}"
+        with self._traced_lock:
+            first = reason_bucket(reason) not in self._traced
+            self._traced.add(reason_bucket(reason))
+        if first:
+            self.log.error("handling a message on %.200s raised", key, exc_info=err)
+        self.reject(key, reason)
 
     def shutdown(self) -> None:
         """Flush what must survive (hook), then close the session."""

@@ -43,21 +43,40 @@ class Inbox:
         return item
 
 
+# Reasons kept apart in the tally; drops for any further reason are counted under
+# OTHER_REASONS, so garbage cannot grow the tally (and every info reply) without bound.
+MAX_REASONS = 64
+REASON_CHARS = 80  # a reason's bucket is at most this long
+OTHER_REASONS = "other reasons"
+
+
+def reason_bucket(reason: str) -> str:
+    """The tally's bucket of a drop's reason: its fixed text, before the first ':'.
+    Every reason puts what varies (a run, a value the sender chose) after the colon, so
+    a sender cannot open a bucket per message."""
+    return reason.split(":", 1)[0][:REASON_CHARS]
+
+
 class Rejects:
-    """Messages dropped, by reason (the text before its first ':'). Safe from any thread
+    """Messages dropped, by reason (`reason_bucket`: the text before its first ':'), in
+    at most MAX_REASONS buckets (the rest under OTHER_REASONS). Safe from any thread
     (the counter drops bonus queries on Zenoh's); says when a drop should be logged, at
     most once every `log_every_s`, so a flood of garbage does not flood the log."""
 
-    def __init__(self, log_every_s: float = 1.0) -> None:
+    def __init__(self, log_every_s: float = 1.0, max_reasons: int = MAX_REASONS) -> None:
         self.by_reason: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._log_every_s = log_every_s
+        self._max_reasons = max_reasons
         self._last_log = 0.0
 
     def add(self, reason: str, now: float) -> int | None:
         """Count one drop; the total so far if it is to be logged now, else None."""
+        bucket = reason_bucket(reason)
         with self._lock:
-            self.by_reason[reason.split(":")[0]] += 1
+            if bucket not in self.by_reason and len(self.by_reason) >= self._max_reasons - 1:
+                bucket = OTHER_REASONS  # (the last bucket: every reason beyond the others)
+            self.by_reason[bucket] += 1
             if now - self._last_log > self._log_every_s:
                 self._last_log = now
                 return sum(self.by_reason.values())

@@ -348,13 +348,15 @@ def test_garbage_is_dropped_counted_and_harmless(counter):
 
     wait_for(lambda: counter.info()["rejects_total"] == before + sent, 10, what=f"{sent} rejects")
     info = counter.info()
-    for reason in ("undecodable payload", "unknown run", "actor mismatch", "run mismatch", "start"):
+    reasons = ("undecodable payload", "unknown run", "actor mismatch", "run mismatch", "start")
+    for reason in (*reasons, "schema version"):  # (by the reason's fixed text)
         assert info["rejects"].get(reason, 0) >= 1, (reason, info["rejects"])
-    assert any(r.startswith(f"schema version {SCHEMA_VERSION + 1}") for r in info["rejects"])
     assert counter.alive() and "r-x" not in info["runs"]
     s = info["runs"][run]
     assert s["counted_transitions"] == 10 and s["acked"] == {"a0": 10}
-    assert s["run_rejects"] == 4  # dims, non-finite, actor mismatch, query dims
+    # dims, actor mismatch, query dims (the non-finite batch is refused at decode,
+    # before its run is looked at: the service's rejects alone)
+    assert s["run_rejects"] == 3
 
     counter.bus.put(key, ok)  # still working
     counter.wait_acked(run, {"a0": 15})

@@ -1,18 +1,24 @@
 """A run alone and a group's runs start and end through the same evaluator code (a run
 alone is a group of one): a group once outlived its runs (the evaluator kept its ended
-group and evaluated the next run with it), a bug only the group path had."""
+group and evaluated the next run with it), a bug only the group path had. A point whose
+weights cannot be evaluated is refused as it comes, not met in the evaluation loop."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import pytest
 
 from services.evaluator.history import RowHistory
 from services.evaluator.main import EvaluatorService
+from services.evaluator.policies import LearnerPolicy
 from services.runs import LearnerProcesses, ServedRuns
 from shared.config import make_config
+from shared.core.networks import weights_as_arrays
+from shared.net import bus as keys
 from shared.net.messages import Assignment, Weights
+from shared.net.wire import encode
 
 
 def bare_evaluator() -> tuple[EvaluatorService, list[tuple[str, str]]]:
@@ -100,3 +106,37 @@ def test_a_groups_point_only_some_runs_have_goes_alone_after_the_wait_one_at_a_t
     clock[0] += GROUP_WAIT_S
     assert ev.tick()  # r0's 2 alone; r1's 4 is still there
     assert (ev.runs["r0"].points, ev.runs["r1"].points, len(ev.runs["r1"].pending)) == (1, 0, 1)
+
+
+# ------------------------------------------------------------ a point's weights refused
+@pytest.mark.parametrize(
+    "spoil, why",
+    [
+        (lambda w: {"actors": w.actors[:1]}, "weights: weights for 1 agents"),  # (ValueError)
+        (lambda w: {"actors": [w.actors[0], {"w": w.actors[0]["scale"]}]}, "weights: agent 1"),
+        (lambda w: {"stats": {"wall_s": "long"}}, "weights: stats: 'wall_s' is not a number"),
+        (lambda w: {"stats": {"counter": {"table_size": [1]}}}, "weights: stats: counter holds"),
+        (lambda w: {"stats": {"bonus": {"bonus_mean": None}}}, "weights: stats: bonus holds"),
+        (lambda w: {"stats": {1: 2}}, "weights: field 'stats' is not dict"),  # (AttributeError)
+        (lambda w: {"unreported": ["2"]}, "weights: field 'unreported' is not list"),  # (TypeError)
+    ],
+)
+def test_a_point_whose_weights_cannot_be_evaluated_is_refused_as_it_comes(spoil, why):
+    """Checked in `handle`: the evaluation loop met them and raised, ending the process."""
+    ev, _ = bare_evaluator()
+    refused: list[str] = []
+    ev.reject = lambda key, reason: refused.append(reason)  # type: ignore[method-assign]
+    start(ev, ["r"])
+    assign = Assignment.from_wire({"learner": "l", "actors": ["a0"]})
+    ev.served.join("r", ev.active["r"], assign, {})  # (the run its messages are checked for)
+    st = ev.runs["r"]
+    assert isinstance(st.policy, LearnerPolicy)
+    actors = weights_as_arrays(st.policy.learner.actor_weights())  # the learner's layout
+    good = dataclasses.replace(point("r", 2), actors=actors)
+    key = keys.k_weights("r", "eval")
+    ev.handle("weights", key, encode(dataclasses.replace(good, **spoil(good))))
+    assert len(refused) == 1 and refused[0].startswith(why) and not st.pending
+    assert not ev.tick() and st.points == 0
+    ev.handle("weights", key, encode(good))  # the same point's good weights: evaluated
+    ev.tick()
+    assert st.points == 1 and list(st.published) == [2] and len(refused) == 1

@@ -29,7 +29,7 @@ def weights(point: int, unreported: list[int] | None = None, run: str = "r", **s
 
 
 def run(name: str = "r") -> EvaluatorRun:
-    return EvaluatorRun(name, envs=[], policy=None)  # type: ignore[arg-type]
+    return EvaluatorRun(name, envs=[], policy=None, layout=[])  # type: ignore[arg-type]
 
 
 def test_a_point_is_kept_once_and_a_resend_of_an_evaluated_one_republishes_its_row_late():

@@ -4,6 +4,8 @@ checkpoint plus the log giving back the same state after a restart."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -72,6 +74,23 @@ def test_a_batch_of_another_length_or_layout_is_refused(tmp_path):
     with pytest.raises(WireError, match="dims"):
         intake.take(st, batch(st, "a0", 0, obs_dim=3))
     assert st.intake.received.positions() == {"a0": 0, "a1": 0} and not st.intake.held["a0"]
+
+
+def test_a_batch_that_cannot_be_logged_is_not_taken_and_its_resend_is(tmp_path):
+    """Its log record is made before the cursor moves: taken first, a batch whose
+    policy_version overflowed the log's int32 column was never logged, and its resend
+    was a duplicate (decode refuses such a version now; this is the order behind it)."""
+    st = new_run(tmp_path)
+    ckpt.open_log(st)
+    bad = dataclasses.replace(batch(st, "a0", 0), policy_version=2**31)
+    with pytest.raises(OverflowError):
+        intake.take(st, bad)
+    assert st.intake.received.positions() == {"a0": 0, "a1": 0} and not st.intake.held["a0"]
+    assert intake.take(st, batch(st, "a0", 0))  # the resend is taken, and logged
+    st.intake.log.close()
+    again = new_run(tmp_path)
+    assert [(r.actor, r.seq) for r in ckpt.open_log(again)] == [("a0", 0)]
+    again.intake.log.close()
 
 
 def test_a_checkpoint_and_the_log_give_the_same_state_back(tmp_path):

@@ -6,6 +6,7 @@ update all its runs have a cut of (checkpoint.py)."""
 from __future__ import annotations
 
 import logging
+import time
 import types
 
 import numpy as np
@@ -190,3 +191,94 @@ def test_an_evaluators_row_names_its_point_or_is_refused():
         reported_point(encode(Metrics("r", source="eval", data={"episode": True})))
     with pytest.raises(WireError):
         reported_point(encode(Metrics("r", source="eval", data={})))
+
+
+# ------------------------------------------------------------ rows on Zenoh's thread
+def test_a_row_reported_while_a_resend_is_encoded_is_not_undone(monkeypatch):
+    """`due` re-encodes a point's weights (milliseconds) while Zenoh's thread may report
+    its row: it once wrote its snapshot back, and the point reported was unreported
+    again (sent again, and the run held for its row)."""
+    from services.learner import evaluations as module
+    from tests.test_evaluator_order import _weights
+
+    ev = EvaluationsInFlight()
+    ev.unreported = {20: (100.0, _weights(20, [])), 40: (100.0, _weights(40, [20]))}
+    ev.last_sent, ev.reported_at = 40, 100.0
+    encode_again = module.with_unreported
+
+    def row_meanwhile(payload: bytes, earlier: list[int]) -> bytes:
+        ev.reported(decode(payload, Weights).eval_point)  # (Zenoh's thread, mid-encode)
+        return encode_again(payload, earlier)
+
+    monkeypatch.setattr(module, "with_unreported", row_meanwhile)
+    assert ev.due(200.0, at_once=True) == []  # both reported while re-encoded: none sent
+    assert ev.unreported == {} and ev.last_reported == 40
+
+
+def test_rows_and_resends_on_two_threads_leave_every_point_reported():
+    """Rows come on Zenoh's thread while the learner's resends: iterating the points as
+    a row removed one raised 'dictionary changed size during iteration', and a resend
+    wrote back points reported meanwhile."""
+    import sys
+    import threading
+
+    from tests.test_evaluator_order import _weights
+
+    ev = EvaluationsInFlight()
+    points = range(0, 400, 2)
+    ev.unreported = {p: (0.0, _weights(p, [])) for p in points}  # (sent, then lost)
+    errors: list[BaseException] = []
+    reporting = threading.Event()
+
+    def learner() -> None:
+        try:
+            while not reporting.is_set():
+                ev.due(1e9, at_once=True)
+        except BaseException as err:  # noqa: BLE001 (the test reports it)
+            errors.append(err)
+
+    def zenoh() -> None:
+        for p in reversed(points):  # (the earliest last: every resend names them)
+            ev.reported(p)
+            time.sleep(0)  # (the learner's turn)
+        reporting.set()
+
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as it can
+    try:
+        threads = [threading.Thread(target=f, daemon=True) for f in (learner, zenoh)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=120)
+    finally:
+        sys.setswitchinterval(switch)
+    assert errors == [] and ev.unreported == {} and ev.reported_rows == len(points)
+
+
+@pytest.mark.parametrize(
+    "data", [{"episode": 4, "env_steps": "x", "success_rate": 0.5},
+             {"episode": 4, "env_steps": float("inf"), "success_rate": 0.5},  # (OverflowError)
+             {"episode": 4}],
+)  # fmt: skip
+def test_a_row_early_stop_cannot_read_is_counted_on_the_services_thread(data):
+    """A malformed `early_stop` row raised on Zenoh's thread, uncounted (the reading was
+    outside the try): it goes to the inbox as a reject, and the point stays unreported."""
+    import queue
+    import threading
+
+    from services.inbox import Rejects
+    from services.learner.main import LearnerService
+    from services.runs import ServedRuns
+
+    svc = LearnerService.__new__(LearnerService)
+    svc.inbox, svc.log = queue.Queue(), logging.getLogger("test.learner")
+    svc.served = ServedRuns(1, None, svc.log)
+    svc.reject_tally, svc._traced, svc._traced_lock = Rejects(), set(), threading.Lock()
+    ev = EvaluationsInFlight(early_stop=True)
+    ev.sent(4, b"weights")
+    svc.on_eval_row("r", ev, "macb/run/r/metrics/eval", encode(Metrics("r", "eval", data)))
+    tag, key, why = svc.inbox.get_nowait()
+    assert (tag, key) == ("reject", "macb/run/r/metrics/eval")
+    assert why.startswith(b"metrics: eval row of point 4")
+    assert 4 in ev.unreported and not ev.rows_in and ev.reported_rows == 0

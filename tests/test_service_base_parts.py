@@ -10,11 +10,16 @@ import queue
 import threading
 import time
 
-from services.inbox import DRAINED, Inbox, Rejects
+import msgpack
+import pytest
+
+from services.common import ServiceBase
+from services.inbox import DRAINED, MAX_REASONS, OTHER_REASONS, Inbox, Rejects
 from services.peers import CHECK_S, PeerWatch, live_peer
 from services.runs import ServedRuns
 from shared.config import make_config
-from shared.net.messages import Assignment
+from shared.net.messages import Assignment, Stop, Transitions
+from shared.net.wire import SCHEMA_VERSION, WireError, decode, encode
 
 LOG = logging.getLogger("test")
 RAW = {"task": "speaker_listener", "explore": "dis-macb", "k": 32}
@@ -174,3 +179,85 @@ def test_rejects_from_several_threads_are_all_counted():
     for t in threads:
         t.join()
     assert rejects.counts() == ({"x": 8000}, 8000)
+
+
+def _wire_reason(payload: bytes) -> str:
+    """The reason a service drops `payload` with (as a transitions message)."""
+    with pytest.raises(WireError) as err:
+        decode(payload, Transitions)
+    return str(err.value)
+
+
+@pytest.mark.parametrize(
+    "tamper",
+    [
+        lambda raw, i: raw.update(v=1000 + i),  # a schema version of the sender's choice
+        lambda raw, i: raw.update(type=f"t{i}"),  # a message type of its choice
+    ],
+)
+def test_reasons_a_sender_varies_fall_in_one_bucket(tamper):
+    """The text before the ':' is fixed: a sender varying what follows it (a version, a
+    type, an array's dtype) adds to one count, not a bucket per message in every info
+    reply."""
+    rejects = Rejects()
+    for i in range(300):
+        raw = msgpack.unpackb(encode(Stop("r", reason="x")), raw=False)
+        tamper(raw, i)
+        rejects.add(_wire_reason(msgpack.packb(raw)), now=0.0)
+    by_reason, total = rejects.counts()
+    assert total == 300 and len(by_reason) == 1, by_reason
+    arrays = {"v": SCHEMA_VERSION, "type": "transitions", "run": "r"}
+    for i in range(300):
+        obs = {"nd": f"<x{i}", "shape": [1], "data": b"\0"}
+        rejects.add(_wire_reason(msgpack.packb({**arrays, "obs": obs})), now=0.0)
+    assert len(rejects.counts()[0]) == 2 and "bad array encoding" in rejects.counts()[0]
+
+
+def test_the_tally_keeps_a_bounded_number_of_reasons():
+    rejects = Rejects()
+    for i in range(10 * MAX_REASONS):
+        rejects.add(f"reason {i}: why", now=0.0)
+    by_reason, total = rejects.counts()
+    assert total == 10 * MAX_REASONS and len(by_reason) == MAX_REASONS
+    assert by_reason["reason 0"] == 1 and by_reason[OTHER_REASONS] == 9 * MAX_REASONS + 1
+    rejects.add("reason 1: again", now=0.0)  # a bucket kept goes on counting
+    assert rejects.counts()[0]["reason 1"] == 2
+    rejects = Rejects()
+    rejects.add("x" * 10_000, now=0.0)  # a long reason: its bucket is cut short
+    assert [len(b) for b in rejects.counts()[0]] == [80]
+
+
+class Raising(ServiceBase):
+    """A service whose handler raises what its message makes it raise."""
+
+    role = "test"
+
+    def handle(self, tag: str, key: str, payload: bytes) -> None:
+        if payload == b"index":
+            raise IndexError("list index out of range")
+        raise ValueError(f"cannot read {payload!r}")
+
+
+def bare_service() -> Raising:
+    """Only what dispatching a message uses: no bus."""
+    svc = Raising.__new__(Raising)
+    svc.log = logging.getLogger("test.raising")
+    svc.reject_tally = Rejects(log_every_s=0.0)
+    svc._traced, svc._traced_lock = set(), threading.Lock()
+    return svc
+
+
+def test_a_handler_that_raises_drops_the_message_counts_it_and_the_service_goes_on(caplog):
+    svc = bare_service()
+    with caplog.at_level(logging.WARNING, logger="test.raising"):
+        for i in range(3):
+            svc._dispatch("transitions", f"macb/run/r/transitions/a{i}", b"%d" % i)
+        svc._dispatch("transitions", "macb/run/r/transitions/a0", b"index")
+    by_reason, total = svc.reject_tally.counts()
+    assert by_reason == {"handler raised ValueError": 3, "handler raised IndexError": 1}
+    assert total == 4
+    traced = [r for r in caplog.records if r.exc_info is not None]
+    assert [r.exc_info[0] for r in traced] == [ValueError, IndexError]  # once each
+    assert "macb/run/r/transitions/a0" in traced[0].getMessage()
+    dropped = [r.getMessage() for r in caplog.records if r.exc_info is None]
+    assert len(dropped) == 4 and "handler raised ValueError: cannot read b'1'" in dropped[1]

@@ -12,6 +12,7 @@ from shared.net.messages import (
     MESSAGES,
     Ack,
     Assignment,
+    BonusQuery,
     History,
     Metrics,
     Resumed,
@@ -94,14 +95,61 @@ def test_shapes_that_disagree_with_the_batch_are_refused():
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
-@pytest.mark.parametrize("field", ["obs", "act"])
+@pytest.mark.parametrize("field", ["obs", "act", "rew", "next_obs"])
 def test_non_finite_values_are_refused(field, bad):
+    """In every float column: a NaN reward or an inf next observation went into replay."""
     fields = _transitions()
     arr = fields[field].copy()
+    arr.flat[1] = bad
+    with pytest.raises(WireError, match=f"non-finite values in {field}"):
+        decode(encode(Transitions("r", **{**fields, field: arr})), Transitions)
+    query = BonusQuery("r", obs=fields["obs"], act=fields["act"])
+    arr = fields["obs"].copy()
     arr[1, 0] = bad
-    msg = decode(encode(Transitions("r", **{**fields, field: arr})))
-    with pytest.raises(WireError, match="non-finite"):
-        check_dims(msg, 4, 2)
+    with pytest.raises(WireError, match="non-finite"):  # a bonus query's rows: by check_dims
+        check_dims(decode(encode(BonusQuery("r", obs=arr, act=query.act))), 4, 2)
+
+
+@pytest.mark.parametrize(
+    "change, why",
+    [
+        ({"obs": np.zeros((3, 4)), "next_obs": np.zeros((3, 4))}, "obs is float64, not float32"),
+        ({"act": np.zeros((3, 2), np.int32)}, "act is int32, not float32"),
+        ({"rew": np.zeros(3, np.int64)}, "rew is int64, not float32"),
+        ({"done": np.zeros(3, bool)}, "done is bool, not float32"),
+        # float collisions (NaN among them) made the learner's ack path raise
+        ({"collisions": np.array([0, np.nan, 1], np.float32)}, "collisions is float32, not"),
+        ({"collisions": np.zeros(3, np.int64)}, "collisions is int64, not int32"),
+        ({"done": np.array([0, 0.5, 1], np.float32)}, "done is neither 0 nor 1"),
+        ({"done": np.array([0, 2, 1], np.float32)}, "done is neither 0 nor 1"),
+        ({"collisions": np.array([0, -1, 0], np.int32)}, "negative collisions"),
+        # the learner's log holds it as int32: it overflowed after the batch was taken
+        ({"policy_version": 2**31}, "policy_version out of the int32 range"),
+        ({"policy_version": -(2**31) - 1}, "policy_version out of the int32 range"),
+        ({"rew": np.zeros(0, np.float32)}, "empty batch"),
+        ({"rew": "0-d"}, "empty batch"),  # (len() of it raised TypeError, not WireError)
+    ],
+)
+def test_a_batch_the_learner_cannot_take_whole_is_refused_at_decode(change, why):
+    if isinstance(change.get("rew"), str):  # (encode sends arrays of one dimension or more)
+        raw = _raw(_transitions())
+        raw["rew"].update(shape=[], data=raw["rew"]["data"][:4])
+        payload = _repack(raw)
+    else:
+        payload = encode(Transitions("r", **_transitions(**change)))
+    with pytest.raises(WireError, match=why):
+        decode(payload, Transitions)
+
+
+def test_the_edges_of_a_batchs_values_pass():
+    fields = _transitions(
+        done=np.array([0, 1, 1], np.float32),
+        collisions=np.array([0, 7, 2**31 - 1], np.int32),
+        policy_version=2**31 - 1,
+    )
+    assert decode(encode(Transitions("r", **fields)), Transitions).policy_version == 2**31 - 1
+    lockstep = decode(encode(Transitions("r", **{**fields, "policy_version": -1})))
+    assert lockstep.policy_version == -1  # (a lockstep actor loads no weights: version -1)
 
 
 def test_large_finite_values_pass():
@@ -326,3 +374,130 @@ def test_metrics_and_history_name_their_attempt_and_an_older_peers_without_one_d
     assert decode(msgpack.packb(before, use_bin_type=True), cls).attempt is None
     with pytest.raises(WireError, match=f"{cls.TYPE}: field 'attempt' is not int"):
         decode(msgpack.packb({**before, "attempt": "2"}, use_bin_type=True), cls)
+
+
+@pytest.mark.parametrize(
+    "msg, field, value",
+    [
+        (Ack("r", service="c", acked={"a0": 4}, window=0), "acked", {"a0": "4"}),
+        (Ack("r", service="c", acked={"a0": 4}, window=0), "acked", {"a0": True}),
+        (Ack("r", service="c", acked={"a0": 4}, window=0), "acked", {0: 4}),
+        (Metrics("r", source="s", data={"x": 1}), "data", {1: 2}),
+        (History("r", source="eval", rows=[{"episode": 1}], state="running"), "rows", [3]),
+        (History("r", source="eval", rows=[{"episode": 1}], state="running"), "rows", [{1: 1}]),
+        (Stop("r", reason="x"), None, None),  # (no list or map field: nothing to spoil)
+    ],
+)
+def test_the_items_of_a_list_or_map_field_are_of_its_type(msg, field, value):
+    """A map's names are strings and a list's or map's items what its annotation says
+    (a stats map named by an int made the evaluator's row raise; a point that is a
+    string, its point order): refused at decode, naming the field."""
+    assert decode(encode(msg), type(msg)) == msg
+    if field is None:
+        return
+    raw = msgpack.unpackb(encode(msg), raw=False, strict_map_key=False)
+    with pytest.raises(WireError, match=f"{msg.TYPE}: field {field!r} is not"):
+        decode(_repack({**raw, field: value}), type(msg))
+
+
+# ---------------------------------------------------------------- what a decode may cost
+def _history_of(rows: int) -> History:
+    """A history of `rows` evaluation rows as the evaluator makes them (eval_row, with a
+    beta schedule's column): a thesis run of 50,000 episodes evaluated every one."""
+    from services.evaluator.points import eval_row
+    from shared.config import make_config
+    from shared.net.stats import LearnerStats
+    from shared.run.rollout import EvalResult
+
+    schedule = {"kind": "linear", "end": 0.1, "horizon": 20000, "unit": "episodes"}
+    cfg = make_config({"task": "speaker_listener", "beta_schedule": schedule})
+    stats = LearnerStats(
+        counter={"table_size": 123456, "count1_pct": 12.5, "counted_transitions": 1234567},
+        bonus={"bonus_mean": 0.1, "bonus_std": 0.2, "sampled_count1_pct": 3.3},
+        wall_s=1234.5, steps_per_sec=345.6, replay_ratio=1.0, policy_lag=0.5,
+    ).to_wire()  # fmt: skip
+    ev = EvalResult(0.3, -12.345678, 10, 250)
+    out = []
+    for e in range(1, rows + 1):
+        w = Weights("r", version=e, updates=20 * e, env_steps=25 * e, episodes=e, eval_point=e,
+                    collisions_cum=3 * e, actors=[], stats=stats, incarnation="L:1:2")  # fmt: skip
+        out.append(eval_row(w, ev, cfg))
+    return History("r", source="eval", rows=out, state="running", attempt=1)
+
+
+def _largest_weights(hidden: list[int]) -> Weights:
+    """Weights of spread's 8 agents (the most the config allows; obs 48 each)."""
+    from shared.config import make_config
+    from shared.core.networks import JointPolicy, actor_weights
+    from shared.envs.tasks import task_spec_for
+
+    spec = task_spec_for(make_config({"task": "spread", "agents": 8}))
+    actors = actor_weights(JointPolicy.for_task(spec, hidden).actors)
+    stats = {"wall_s": 1.0, "counter": {"table_size": 1, "acked": {"a0": 5}}, "bonus": {}}
+    return Weights("r", version=1, updates=2, env_steps=3, episodes=4, eval_point=4,
+                   collisions_cum=0, actors=actors, stats=stats, incarnation="L:1:2",
+                   unreported=list(range(0, 4000, 4)))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: _history_of(50_000),
+        lambda: _largest_weights([400, 300]),  # the thesis's layers
+        lambda: _largest_weights([256, 256]),
+        lambda: Transitions("r", **_transitions(n=1000, obs_dim=384, act_dim=16)),
+    ],
+    ids=[
+        "history-50000-rows",
+        "weights-8x[400,300]",
+        "weights-8x[256,256]",
+        "transitions-1000x384",
+    ],
+)
+def test_the_largest_real_messages_decode(make):
+    msg = make()
+    back = decode(encode(msg), type(msg))
+    assert back.run == "r"
+    if isinstance(msg, History):
+        assert len(back.rows) == 50_000 and back.rows[-1] == msg.rows[-1]
+    if isinstance(msg, Weights):
+        assert all(np.array_equal(a[k], b[k]) for a, b in zip(msg.actors, back.actors) for k in a)
+
+
+def _nested_empty_maps(size: int) -> bytes:
+    """`size` bytes of lists of 255 empty maps each (one byte each on the wire, ~64 in
+    memory): under every length limit, so only the decode's budget stops it."""
+    inner = b"\xdc" + (255).to_bytes(2, "big") + b"\x80" * 255
+    count = size // len(inner)
+    return b"\xdd" + count.to_bytes(4, "big") + inner * count
+
+
+@pytest.mark.parametrize("cls", [Status, Weights, History])
+def test_a_payload_that_decodes_into_far_more_than_its_size_is_refused_early(cls):
+    """4 MB of empty maps took ~280 MB before any check saw them (8 MB: 550 MB)."""
+    import tracemalloc
+
+    payload = _nested_empty_maps((4 << 20) - 64)
+    tracemalloc.start()
+    try:
+        with pytest.raises(WireError, match="too many maps and lists"):
+            decode(payload, cls)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 48 << 20, f"{peak / 2**20:.0f} MiB"
+
+
+def test_what_no_message_holds_is_refused_before_it_is_built():
+    flat = b"\xdd" + (8 << 20).to_bytes(4, "big") + b"\x80" * (8 << 20)  # 8M maps in one list
+    with pytest.raises(WireError, match="undecodable payload: ValueError"):
+        decode(flat, History)
+    with pytest.raises(WireError, match="payload too large: 4194305 bytes"):  # a status: 4 MiB
+        decode(b"\x00" * ((4 << 20) + 1), Status)
+    raw = msgpack.unpackb(encode(Stop("r", reason="x")), raw=False)
+    ext = msgpack.packb({**raw, "reason": msgpack.ExtType(1, b"x")})  # (no message has one)
+    with pytest.raises(WireError, match="undecodable payload"):
+        decode(ext, Stop)
+    long = msgpack.packb({**raw, "reason": "x" * ((1 << 20) + 1)})
+    with pytest.raises(WireError, match="undecodable payload"):
+        decode(long, Stop)

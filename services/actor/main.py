@@ -49,6 +49,7 @@ from services.actor.runs import ActorRuns
 from services.common import ServiceBase
 from services.runs import LearnerProcesses
 from shared.config import TrainConfig
+from shared.core.networks import weights_error
 from shared.net import bus as keys
 from shared.net.messages import Ack, Action, Assignment, Weights
 from shared.net.wire import WireError, decode
@@ -225,19 +226,38 @@ class ActorService(ServiceBase):
             self.publish_status(run, "running", **self.running(st), rejoined_at=position)
 
     def load_newest_weights(self, st: ActorRuns) -> None:
+        """Act with the run's newest weights message if its actors are newer. One refused
+        (malformed, or actors not of this policy's layout, which raised in this loop and
+        ended the process) is counted once and forgotten: the actor goes on with the
+        weights it has, and the learner's next weights come at its next boundary."""
         run = st.runs[0]
-        newest = self._newest.get(run)
+        with self._newest_lock:
+            newest = self._newest.get(run)
         if newest is None:
             return
-        msg = self.decode_for_run(*newest, Weights)
-        if (
-            msg is None
-            or self.acted_with.of_ended_attempt(run, msg.incarnation)
-            or not self.of_attempt(run, msg.attempt)
+        msg, why = self.decode_or_why(*newest, Weights)
+        if msg is None:
+            self._forget_newest(run, newest)  # (refused: counted once, not every tick)
+            return
+        if self.acted_with.of_ended_attempt(run, msg.incarnation) or not self.of_attempt(
+            run, msg.attempt
         ):
             return  # (an ended attempt's: the new learner's first weights are to come)
+        if not st.newer(msg):
+            return
+        if st.policy is not None and (bad := weights_error(msg.actors, st.policy.layout)):
+            self.reject(newest[0], f"weights: {bad}")
+            self._forget_newest(run, newest)
+            return
         if st.load_weights(msg):
             self.acted_with.took(run, msg.incarnation)
+
+    def _forget_newest(self, run: str, newest: tuple[str, bytes]) -> None:
+        """Drop the run's newest weights message if it is still `newest` (newer ones may
+        have come on Zenoh's thread meanwhile: those are kept)."""
+        with self._newest_lock:
+            if self._newest.get(run) is newest:
+                del self._newest[run]
 
     # ------------------------------------------------------------ work
     def tick(self) -> bool:

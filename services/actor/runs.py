@@ -156,11 +156,16 @@ class ActorRuns:
         for r in self.going:
             self.outboxes[r].resend_due(now)
 
+    def newer(self, msg: Weights) -> bool:
+        """`msg`'s actors are newer than those acting: a higher version, or any version
+        of another learner process (a restarted learner numbers on from its last cut, so
+        its weights are newer than any of the process before, whatever their number)."""
+        return msg.version > self.version or msg.incarnation != self.incarnation
+
     def load_weights(self, msg: Weights) -> bool:
-        """Act with `msg`'s actors if they are newer: a higher version, or any version of
-        another learner process (a restarted learner numbers on from its last cut, so its
-        weights are newer than any of the process before, whatever their number)."""
-        if msg.version <= self.version and msg.incarnation == self.incarnation:
+        """Act with `msg`'s actors if they are `newer` (checked against the policy's
+        layout before: `shared.core.networks.weights_error`)."""
+        if not self.newer(msg):
             return False
         assert self.policy is not None
         self.policy.load(msg.actors)

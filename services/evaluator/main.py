@@ -130,6 +130,9 @@ class EvaluatorService(ServiceBase):
         st = self.runs.get(msg.run) if msg is not None else None
         if msg is None or st is None or msg.eval_point < 0 or not self._from_its_learner(msg):
             return
+        if why := st.refusal(msg):
+            self.reject(key, why)
+            return
         self.took_points.took(msg.run, msg.incarnation)
         if st.receive(msg, self.clock()):  # evaluated: the learner did not see its row
             row = self.history.row(st.run, msg.eval_point)

@@ -17,11 +17,11 @@ from typing import Any
 
 from services.evaluator.policies import GroupPolicy, LearnerPolicy
 from shared.config import TrainConfig
-from shared.core.networks import JointPolicy
+from shared.core.networks import JointPolicy, Layout, weights_error
 from shared.envs.tasks import TaskEnv, make_task_for
 from shared.envs.vectask import vectorize
 from shared.net.messages import Weights
-from shared.net.stats import LearnerStats
+from shared.net.stats import LearnerStats, learner_stats_error
 from shared.run.rollout import EvalResult, derive_seed, evaluate, evaluate_group
 
 REPUBLISH_AFTER_S = 5.0  # a row is published again for a resend only this long after
@@ -53,6 +53,7 @@ class EvaluatorRun:
     run: str
     envs: list[TaskEnv]
     policy: JointPolicy | LearnerPolicy
+    layout: Layout  # the actors' names and shapes a point's weights must have
     pending: collections.deque[Weights] = field(default_factory=collections.deque)
     points: int = 0
     published: dict[int, float] = field(default_factory=dict)  # point -> when its row went
@@ -69,11 +70,20 @@ class EvaluatorRun:
         for j, env in enumerate(envs):
             env.reset(seed=derive_seed(config.seed, "eval", j))
         policy: JointPolicy | LearnerPolicy
-        if config.interleave == "lockstep":
-            policy = LearnerPolicy(config, envs[0].spec)
-        else:
-            policy = JointPolicy.for_task(envs[0].spec, config.hidden)
-        return cls(run, envs, policy, eval_episodes=config.eval_episodes, config=config)
+        joint = JointPolicy.for_task(envs[0].spec, config.hidden)  # (the learner sends its layout)
+        policy = LearnerPolicy(config, envs[0].spec) if config.interleave == "lockstep" else joint
+        return cls(
+            run, envs, policy, joint.layout, eval_episodes=config.eval_episodes, config=config
+        )
+
+    def refusal(self, msg: Weights) -> str | None:
+        """Why a point's weights cannot be evaluated and its row made, or None: actors
+        not of the run's layout, or stats a row cannot read. Checked as they arrive, so
+        the evaluation loop never meets them (it raised there, ending the process)."""
+        why = weights_error(msg.actors, self.layout)
+        if why is None and (bad := learner_stats_error(msg.stats)) is not None:
+            why = f"stats: {bad}"
+        return None if why is None else f"weights: {why}"
 
     def evaluate(self, msg: Weights) -> EvalResult:
         """A point on the run's own worlds."""

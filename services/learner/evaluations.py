@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -69,7 +70,7 @@ class PointRow:
         why = data.get("stop_reason")
         try:
             steps, success = int(data["env_steps"]), float(data["success_rate"])
-        except (KeyError, TypeError, ValueError) as err:
+        except (KeyError, TypeError, ValueError, OverflowError) as err:  # (int(inf))
             raise WireError(f"metrics: eval row of point {point}: {err!r}") from None
         return cls(point, steps, success, why if isinstance(why, str) and why else None)
 
@@ -84,9 +85,12 @@ class PointRow:
 class EvaluationsInFlight:
     """Evaluation points sent to the evaluator that it has not reported yet.
 
-    `sent` is called on the learner's thread, `reported` on Zenoh's (from the
-    evaluator's metric rows); each writes its own fields. A point unreported after
-    `max_s` no longer counts (a slow or absent evaluator must not mark every update)."""
+    `sent` and `due` are called on the learner's thread, `reported` on Zenoh's (from the
+    evaluator's metric rows): what they read and write of the points is under one lock
+    (`due` once snapshotted the points, re-encoded them, then wrote them back, so a row
+    reported in between was undone, and a row could change the map while it was
+    iterated). A point unreported after `max_s` no longer counts (a slow or absent
+    evaluator must not mark every update)."""
 
     def __init__(self, max_s: float = 1.0, early_stop: bool = False) -> None:
         self.max_s = max_s
@@ -95,6 +99,8 @@ class EvaluationsInFlight:
         self.last_reported = -1
         self.reported_rows = 0
         # Points sent and not reported yet: point -> (when sent, the weights message).
+        # Read as a whole (`if unreported`) from the learner's thread; written under
+        # `_lock` only.
         self.unreported: dict[int, tuple[float, bytes]] = {}
         self.reported_at = time.monotonic()
         # `early_stop`: each point's row once, in the order they came, until the learner's
@@ -103,18 +109,34 @@ class EvaluationsInFlight:
         self.early_stop = early_stop
         self.rows_in: collections.deque[PointRow] = collections.deque()
         self._rows_seen: set[int] = set()
+        self._lock = threading.Lock()
 
-    def sent(self, point: int) -> None:
-        self.last_sent, self.sent_at = point, time.monotonic()
+    def sent(self, point: int, payload: bytes | None = None) -> None:
+        """Point `point` went out (noted before it goes: its row may come back at once),
+        its weights message `payload` kept until the row comes."""
+        with self._lock:
+            now = time.monotonic()
+            if payload is not None:
+                self.unreported[point] = (now, payload)
+            self.last_sent, self.sent_at = point, now
+
+    def unreported_before(self, point: int) -> list[int]:
+        """The points before `point` sent and not reported yet, in order."""
+        with self._lock:
+            return sorted(p for p in self.unreported if p < point)
 
     def reported(self, point: int, data: dict[str, Any] | None = None) -> None:
-        if self.early_stop and data is not None and point not in self._rows_seen:
-            self.rows_in.append(PointRow.of(point, data))  # (a repeated row: once)
-            self._rows_seen.add(point)
-        self.last_reported = max(self.last_reported, point)
-        self.reported_rows += 1
-        self.unreported.pop(point, None)
-        self.reported_at = time.monotonic()
+        """The evaluator's row for `point` came (on Zenoh's thread); WireError, with
+        nothing changed, if `early_stop` reads it and it is malformed."""
+        row = PointRow.of(point, data) if self.early_stop and data is not None else None
+        with self._lock:
+            if row is not None and point not in self._rows_seen:
+                self.rows_in.append(row)  # (a repeated row: once)
+                self._rows_seen.add(point)
+            self.last_reported = max(self.last_reported, point)
+            self.reported_rows += 1
+            self.unreported.pop(point, None)
+            self.reported_at = time.monotonic()
 
     def busy(self) -> bool:
         """The evaluator is (most likely) evaluating a point we sent."""
@@ -126,16 +148,25 @@ class EvaluationsInFlight:
         reported, those older than one sent since once the evaluator has been silent
         for EVAL_BEHIND_RESEND_S, or the last ones once it has been silent for
         EVAL_RESEND_S (a merely slow evaluator reports in order, so it is rarely sent
-        duplicates, which it drops); with `at_once` all of them (it just came back)."""
-        quiet = now - self.reported_at
+        duplicates, which it drops); with `at_once` all of them (it just came back).
+        Decided on a snapshot and re-encoded outside the lock (milliseconds); a point
+        reported meanwhile is neither noted again nor sent."""
+        with self._lock:
+            points = sorted(self.unreported.items())
+            quiet = now - self.reported_at
+            last_reported, last_sent = self.last_reported, self.last_sent
         out = []
-        for point, (sent, payload) in sorted(self.unreported.items()):
-            overtaken = point < self.last_reported and now - sent > 2.0  # (give a resend time)
+        for point, entry in points:
+            sent, payload = entry
+            overtaken = point < last_reported and now - sent > 2.0  # (give a resend time)
             waited = min(quiet, now - sent)  # silence since this point and since a row
-            held = point < self.last_sent and waited > EVAL_BEHIND_RESEND_S
-            if at_once or overtaken or held or waited > EVAL_RESEND_S:
-                earlier = sorted(p for p in self.unreported if p < point)
-                payload = with_unreported(payload, earlier)
+            held = point < last_sent and waited > EVAL_BEHIND_RESEND_S
+            if not (at_once or overtaken or held or waited > EVAL_RESEND_S):
+                continue
+            payload = with_unreported(payload, self.unreported_before(point))
+            with self._lock:
+                if self.unreported.get(point) is not entry:
+                    continue  # reported (or sent anew) while it was re-encoded
                 self.unreported[point] = (now, payload)
-                out.append((point, payload))
+            out.append((point, payload))
         return out

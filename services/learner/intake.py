@@ -126,10 +126,15 @@ def take(st: LearnerRun, msg: Transitions) -> bool:
         length = st.config.episode_len
         what = "one step (lockstep)" if st.lockstep else f"one episode ({length})"
         raise WireError(f"transitions: a batch is {what}, got {n}")
+    # Its log record is made before the cursor moves: a batch that cannot be logged
+    # raises with nothing taken (taken first, its resend was a duplicate, never logged).
+    cols = None
+    if it.log is not None and it.received.peek(msg.actor, msg.seq, n).took:
+        cols = log_columns(msg)
     if not it.received.take(msg.actor, msg.seq, n).took:
         return False
-    if it.log is not None:  # logged before the ack says we have it
-        it.log.append(msg.actor, msg.seq, n, log_columns(msg))
+    if it.log is not None and cols is not None:  # logged before the ack says we have it
+        it.log.append(msg.actor, msg.seq, n, cols)
     it.held[msg.actor].append(msg)
     release_counted(st)
     return True

@@ -333,17 +333,20 @@ class LearnerService(ServiceBase):
     def on_eval_row(
         self, run: str, evaluations: EvaluationsInFlight, key: str, payload: bytes
     ) -> None:
-        """The evaluator's row for a point (on Zenoh's thread): that evaluation is over.
-        A malformed row is counted and logged on the service's thread (via the inbox),
-        which owns the reject counts that stats() reads. A row of another attempt of the
-        run (an ended attempt's evaluator, late) reports none of this attempt's points."""
+        """The evaluator's row for a point (on Zenoh's thread; `EvaluationsInFlight`
+        locks what it shares with the learner's): that evaluation is over. A malformed
+        row (one `early_stop` cannot read too: that raised here, uncounted) is counted
+        and logged on the service's thread (via the inbox), which owns the reject counts
+        that stats() reads. A row of another attempt of the run (an ended attempt's
+        evaluator, late) reports none of this attempt's points."""
         try:
             point, row, attempt = reported_row(payload)
+            if self.of_attempt(run, attempt):
+                evaluations.reported(point, row)  # (WireError: a row early_stop cannot read)
         except WireError as err:
             self.inbox.put(("reject", key, str(err).encode()))
-            return
-        if self.of_attempt(run, attempt):
-            evaluations.reported(point, row)
+        except Exception as err:  # (not Zenoh's to swallow: counted and logged as ours)
+            self.handler_failed(key, err)
 
     def tick(self) -> bool:
         busy = self.serving.tick()

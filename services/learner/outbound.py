@@ -156,8 +156,7 @@ class Outbound:
         payload = encode(self.weights_message(st, eval_point, episode, env_steps, collisions))
         if eval_point >= 0:
             # Noted before it goes out: the evaluator's report may come back at once.
-            st.evaluations.unreported[eval_point] = (time.monotonic(), payload)
-            st.evaluations.sent(eval_point)
+            st.evaluations.sent(eval_point, payload)
             out.eval_pub(payload)
         else:
             out.weights_pub(payload)
@@ -187,7 +186,7 @@ class Outbound:
             # The points before this one that had no row when it went out: the
             # evaluator evaluates those first, so a run's rows come in episode order
             # even after an evaluator restart (the new point can beat the resends).
-            unreported=sorted(p for p in st.evaluations.unreported if p < eval_point),
+            unreported=st.evaluations.unreported_before(eval_point),
         )
 
     def boundaries(self, st: LearnerRun) -> None:

@@ -127,7 +127,7 @@ class Serving:
         g = self.group
         asks = g.asks if g is not None else None
         if g is None or asks is None or msg.actor != asks.actor or keys.run_of(key) != g.runs[0]:
-            return f"act_request from {msg.actor}: not the lockstep actor of these runs"
+            return f"act_request: not from the lockstep actor of these runs ({msg.actor:.40})"
         if again := lockstep.take_request(g, st.spec.joint_obs_dim, msg):
             asks.action_pub(again)  # the answer was lost: the same actions again
         return None

@@ -73,6 +73,7 @@ class JointPolicy:
         hidden: Sequence[int],
     ) -> None:
         self.actors = [Actor(o, lo, hi, hidden) for o, lo, hi in zip(obs_dims, lows, highs)]
+        self.layout = actor_layout(self.actors)  # what `load` takes (`weights_error`)
         self.bounds = offsets(obs_dims)
         self._refresh()
 
@@ -124,6 +125,39 @@ class JointPolicy:
     def load(self, weights: Sequence[dict]) -> None:
         load_actor_weights(self.actors, weights)
         self._refresh()
+
+
+# Per agent, its actor's parameter and buffer names with their shapes.
+Layout = list[dict[str, tuple[int, ...]]]
+
+
+def actor_layout(actors: Sequence[nn.Module]) -> Layout:
+    """Per agent, the names and shapes of its actor's state dict: the weights a
+    `Weights` message must carry for these actors (`weights_error`)."""
+    return [{k: tuple(v.shape) for k, v in m.state_dict().items()} for m in actors]
+
+
+def weights_error(weights: Any, layout: Layout) -> str | None:
+    """Why `weights` (a `Weights` message's `actors`) are not weights for actors of
+    `layout`, or None: one state dict per agent with exactly its actor's names, each a
+    finite float32 array of its shape. Loading anything else raised in the actor's or
+    evaluator's loop (ending the process), or loaded only part of it (the stacked
+    learners read the names they know; a zip over the agents ignores extra ones)."""
+    if not isinstance(weights, list) or len(weights) != len(layout):
+        count = len(weights) if isinstance(weights, list) else "no list of"
+        return f"weights for {count} agents, the policy has {len(layout)}"
+    for i, (sd, shapes) in enumerate(zip(weights, layout)):
+        if not isinstance(sd, dict) or set(sd) != set(shapes):
+            names = sorted(map(str, sd)) if isinstance(sd, dict) else type(sd).__name__
+            return f"agent {i}: parameters {names!s:.200}, the policy's {sorted(shapes)}"
+        for name, shape in shapes.items():
+            arr = sd[name]
+            if not isinstance(arr, np.ndarray) or arr.dtype != np.float32 or arr.shape != shape:
+                what = f"{arr.dtype} {arr.shape}" if isinstance(arr, np.ndarray) else "no array"
+                return f"agent {i}: {name} is {what}, the policy's float32 {shape}"
+            if not np.isfinite(arr).all():
+                return f"agent {i}: {name} has non-finite values"
+    return None
 
 
 def actor_weights(actors: Sequence[nn.Module]) -> list[dict]:

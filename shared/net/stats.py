@@ -161,3 +161,27 @@ class LearnerStats:
             counter=dict(counter) if isinstance(counter, Mapping) else None,
             bonus=dict(bonus) if isinstance(bonus, Mapping) else None,
         )
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float)  # (a bool too: `window_open`)
+
+
+def learner_stats_error(data: Mapping[str, Any]) -> str | None:
+    """Why a `Weights` message's `stats` cannot be read into a point's row, or None:
+    every value a number but `counter` and `bonus`, maps (or nil) with string names
+    whose values a row reads (the bonus's, `CounterStats`' own) are numbers. (`decode`
+    has checked the names are strings: `LearnerStats.from_wire` raised on another.)"""
+    counter_fields = {f.name for f in dataclasses.fields(CounterStats)}
+    for name, value in data.items():
+        if name in ("counter", "bonus"):
+            if value is None:
+                continue
+            if not isinstance(value, Mapping) or not all(isinstance(k, str) for k in value):
+                return f"{name} is not a map of names"
+            read = value if name == "bonus" else {k: value[k] for k in counter_fields & set(value)}
+            if not all(_number(v) for v in read.values()):
+                return f"{name} holds a value that is not a number"
+        elif not _number(value):
+            return f"{name!r:.60} is not a number"
+    return None
