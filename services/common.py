@@ -9,7 +9,8 @@ after a burst of messages, for work a service does once per burst.
 
 Run control: `macb/control/start` carries the run id, its config and the
 assignment of services (by id); a service takes a run only when it is named in the
-assignment and is free. `macb/control/stop` ends a run.
+assignment and is free, and never one whose id is no safe name (folders and keys are
+built from it: `run_id_error`). `macb/control/stop` ends a run.
 
 Restarts (docs/reliability.md): a service that takes a run writes it to
 `DATA_DIR/services/ID.json`; started again with the same id and data dir (by `macb
@@ -44,7 +45,16 @@ from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.info import ServiceInfo
-from shared.net.messages import MESSAGES, Assignment, Message, Start, Status, Stop, same_attempt
+from shared.net.messages import (
+    MESSAGES,
+    Assignment,
+    Message,
+    Start,
+    Status,
+    Stop,
+    run_id_error,
+    same_attempt,
+)
 from shared.net.monitor import peer_grace_s
 from shared.net.wire import WireError, decode
 from shared.settings import node_name, settings
@@ -255,6 +265,12 @@ class ServiceBase(ServiceHooks):
                 self._end(run, "stopped", msg.reason)
             return
         assert isinstance(msg, Start)
+        if why := run_id_error(run):
+            # Every service builds folders and keys from the id (the learner wipes
+            # data_dir/learner/<run>): refused here, once for all of them, and no status
+            # goes out on a key built from it.
+            self.reject(key, why)
+            return
         if not self.assigned(msg.assign):
             return  # another service's run: not an error
         if run in self.active and not self.of_attempt(run, msg.attempt):

@@ -9,7 +9,6 @@ the service publishes what follows (docs/architecture.md, "The counter's files")
 from __future__ import annotations
 
 import logging
-import re
 import shutil
 import threading
 import time
@@ -20,13 +19,11 @@ from services.counter.state import RunState
 from services.runs import noted_attempt
 from shared.config import TrainConfig, make_config
 from shared.envs.tasks import task_spec_for
-from shared.net.messages import Assignment, WireError
+from shared.net.messages import Assignment, WireError, run_id_error
 from shared.persist.checkpoint import folder_config_difference
 from shared.persist.files import read_json, write_json
 from shared.persist.wal import WriteAheadLog
 from shared.run.factories import build_exploration
-
-_RUN_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,127}")
 
 
 def keys_held(st: RunState) -> int:
@@ -58,8 +55,8 @@ class Runs:
         config (resumed; a key the saved config lacks counts as its default, the rule
         of every run folder: `folder_config_difference`), else what is there is archived; config,
         assignment (its `to_wire` map) and the start's attempt noted."""
-        if not _RUN_ID.fullmatch(run):
-            raise ValueError(f"run id {run!r} is not a safe directory name")
+        if why := run_id_error(run):  # (refused at the start already: services/common.py)
+            raise ValueError(f"{why}: not a safe directory name")
         path = self.root / run
         if path.exists():
             stopped = (path / "stopped").exists()

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -27,6 +28,21 @@ import numpy as np
 
 class WireError(ValueError):
     """A message that must be dropped: undecodable, wrong version, wrong shape."""
+
+
+# A run id names folders (data_dir/learner/<run>, data_dir/counter/<run>) and a chunk of
+# every per-run key (macb/run/<run>/...): letters, digits and `._-`, not starting with a
+# dot or a dash, at most 128 characters, so it can neither climb out of a data dir nor
+# reach into another key.
+_RUN_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,127}")
+
+
+def run_id_error(run: str) -> str | None:
+    """Why `run` cannot be a run's id, or None: every service refuses a start naming
+    such an id (services/common.py), so no path or key is ever built from one."""
+    if _RUN_ID.fullmatch(run):
+        return None
+    return f"run id: {run[:64]!r} is not a safe name (letters, digits, '._-', at most 128)"
 
 
 def _service_ids(value: Any, name: str) -> tuple[str, ...]:

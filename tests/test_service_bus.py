@@ -1,0 +1,72 @@
+"""The starts a service takes, in process on a real router: the handlers are called
+directly (no inbox, no thread), so what a start leaves behind is read off the service.
+
+- A start naming a run id that is no safe name (`../../x`, a slash, too long) is
+  refused, counted and logged by every service before any folder or key is built from
+  it: the learner wiped and created `data_dir/learner/<run>`, outside its data dir.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from services.common import ServiceBase
+from services.learner.main import LearnerService
+from shared.net import bus as keys
+from shared.net.messages import Assignment, Start, Stop, run_id_error
+from shared.net.wire import encode
+
+CONFIG = {
+    "task": "speaker_listener",
+    "explore": "none",
+    "episodes": 4,
+    "episode_len": 5,
+    "hidden": [16, 16],
+    "learner_lanes": 1,
+}
+ASSIGN = Assignment(learner="L", actors=("a0",), counter="c0", evaluator="e0")
+
+
+@pytest.fixture(autouse=True)
+def _torch_threads():
+    """Services set torch's threads for their process: this one's is restored."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+def control(svc: ServiceBase, msg: Start | Stop) -> None:
+    """`msg` as the service's control subscription hands it over."""
+    action = "start" if isinstance(msg, Start) else "stop"
+    svc._on_control(action, keys.k_control(action), encode(msg))
+
+
+@pytest.mark.parametrize(
+    "run", ["ok-1", "x20250101-120000-abcdef-3", "_r.2", "r" * 128], ids=lambda r: r[:12]
+)
+def test_a_run_id_is_a_safe_name(run):
+    assert run_id_error(run) is None
+
+
+@pytest.mark.parametrize("run", ["../../escape", "a/b", "", ".hidden", "-r", "r*", "r" * 129])
+def test_an_unsafe_run_id_is_named_as_such(run):
+    assert run_id_error(run) is not None
+
+
+def test_a_start_naming_an_unsafe_run_id_is_refused_and_builds_no_path(router, tmp_path):
+    outside = tmp_path / "escape"  # data_dir/learner/../../escape
+    outside.mkdir()
+    (outside / "checkpoint.pt").write_bytes(b"someone else's")
+    svc = LearnerService("L", [router], tmp_path / "data")
+    try:
+        for run in ("../../escape", "a/b"):
+            control(svc, Start(run, config=CONFIG, assign=ASSIGN, attempt=1))
+        assert not svc.active
+        assert (outside / "checkpoint.pt").read_bytes() == b"someone else's"  # not wiped
+        assert not (tmp_path / "data" / "learner").exists()
+        assert svc.rejects == {"run id": 2}, svc.rejects  # (one reason, whatever the ids)
+        control(svc, Start("fine", config=CONFIG, assign=ASSIGN, attempt=1))  # still serving
+        assert list(svc.active) == ["fine"] and (tmp_path / "data" / "learner" / "fine").is_dir()
+    finally:
+        svc.shutdown()
