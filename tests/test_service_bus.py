@@ -1,9 +1,14 @@
-"""The starts a service takes, in process on a real router: the handlers are called
-directly (no inbox, no thread), so what a start leaves behind is read off the service.
+"""A service's own declarations and the starts it takes, in process on a real router:
+the handlers are called directly (no inbox, no thread), so what a start or a stop
+leaves behind is read off the service itself.
 
 - A start naming a run id that is no safe name (`../../x`, a slash, too long) is
   refused, counted and logged by every service before any folder or key is built from
   it: the learner wiped and created `data_dir/learner/<run>`, outside its data dir.
+- A run's publishers (the learner's weights, eval weights, acks and lockstep answers;
+  an actor's transitions and act requests) are undeclared when the run is let go, as
+  its subscriptions are: each holds state in the session, and a long-lived service
+  otherwise grew by a few per run until it closed.
 """
 
 from __future__ import annotations
@@ -11,9 +16,11 @@ from __future__ import annotations
 import pytest
 import torch
 
+from services.actor.main import ActorService
 from services.common import ServiceBase
 from services.learner.main import LearnerService
 from shared.net import bus as keys
+from shared.net.bus import Bus
 from shared.net.messages import Assignment, Start, Stop, run_id_error
 from shared.net.wire import encode
 
@@ -68,5 +75,42 @@ def test_a_start_naming_an_unsafe_run_id_is_refused_and_builds_no_path(router, t
         assert svc.rejects == {"run id": 2}, svc.rejects  # (one reason, whatever the ids)
         control(svc, Start("fine", config=CONFIG, assign=ASSIGN, attempt=1))  # still serving
         assert list(svc.active) == ["fine"] and (tmp_path / "data" / "learner" / "fine").is_dir()
+    finally:
+        svc.shutdown()
+
+
+def test_a_publisher_is_undeclared_before_the_session_closes(router):
+    bus = Bus([router])
+    try:
+        held = len(bus._held)
+        pub = bus.publisher("macb/test/publisher")
+        pub(b"x")
+        assert len(bus._held) == held + 1
+        pub.undeclare()
+        pub.undeclare()  # (once only)
+        bus.undeclare(pub)
+        assert len(bus._held) == held
+    finally:
+        bus.close()
+
+
+@pytest.mark.parametrize(
+    ("role", "interleave"),
+    [("learner", "async"), ("learner", "lockstep"), ("actor", "async"), ("actor", "lockstep")],
+)
+def test_a_runs_publishers_go_with_the_run(router, tmp_path, role, interleave):
+    cls = LearnerService if role == "learner" else ActorService
+    svc = cls("L" if role == "learner" else "a0", [router], tmp_path / "data")
+    try:
+        held = len(svc.bus._held)
+        for attempt in (1, 2):  # (one run after another: nothing piles up)
+            config = {**CONFIG, "interleave": interleave}
+            control(svc, Start("r", config=config, assign=ASSIGN, attempt=attempt))
+            assert svc.serves("r"), svc.rejects
+            declared = len(svc.bus._held) - held
+            assert declared >= 3, "the run's subscriptions and publishers"
+            control(svc, Stop("r", reason="the test is over"))
+            assert not svc.active
+            assert len(svc.bus._held) == held, "the run's declarations outlived it"
     finally:
         svc.shutdown()
