@@ -285,7 +285,7 @@ def test_restore_opens_every_unfinished_run_and_skips_the_rest(tmp_path):
     for run in ("a", "b", "c"):
         st, _ = runs.open(run, cfg, runs.prepare(run, cfg, ASSIGN))
         o, a = rows(3, 5, st.obs_dim, st.act_dim)
-        count(st, "x", 0, o, a)
+        count(st, "a0", 0, o, a)
     runs.mark_stopped("b", runs.get("b"), "done")
     for run in ("a", "b", "c"):
         runs.close(run)
@@ -298,6 +298,29 @@ def test_restore_opens_every_unfinished_run_and_skips_the_rest(tmp_path):
     assert again.restored == {"a"} and again.get("c") is None
     again.close("a")
     assert again.restored == set()
+
+
+def test_a_run_takes_batches_by_the_learners_rule_of_its_actors_alone(tmp_path, caplog):
+    """The counter counts only what the learner can take: its actors' batches, whole
+    (an overlap is refused, not taken for its tail), before and after a restore; a
+    restored position of an actor the run no longer names is let go."""
+    runs = Runs(tmp_path, logging.getLogger("t"))
+    cfg = make_config(CONFIG)
+    two = Assignment.from_wire({"counter": "c0", "learner": "L", "actors": ["a0", "a1"]})
+    st, _ = runs.open("r", cfg, runs.prepare("r", cfg, two))
+    assert st.actors == ("a0", "a1") and st.cursor.positions() == {"a0": 0, "a1": 0}
+    assert not st.cursor.knows("a2")
+    o, a = rows(10, 5, st.obs_dim, st.act_dim)
+    count(st, "a0", 0, o[:5], a[:5])
+    count(st, "a1", 0, o[:5], a[:5])
+    assert not burst.plan(st.cursor, [("a0", 3, o, a)]).segments  # an overlap: refused whole
+    runs.close("r")
+
+    again, _ = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN))  # a0 alone now
+    assert again.cursor.positions() == {"a0": 5} and again.counted == 10
+    assert not again.cursor.knows("a1") and not again.cursor.partial
+    assert "positions of ['a1'], not of its actors, let go" in caplog.text
+    runs.close("r")
 
 
 # ------------------------------------------------------------ stats, snapshot schedule

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from shared.net.messages import (
+    MAX_ID_BYTES,
     MESSAGES,
     Ack,
     Assignment,
@@ -199,6 +200,8 @@ def test_an_assignment_names_its_services_by_role():
         ({"actors": []}, "actors", "is not a non-empty list"),
         ({"actors": ["a0", 1]}, "actors", "holds something other than an id"),
         ({"actors": ["a0", "a0"]}, "actors", "names an id twice"),
+        ({"actors": ["a0", "a" * 256]}, "actors", "holds something other than an id"),
+        ({"counter": "é" * 128}, "counter", "is not a service id"),  # 256 bytes
         ({"group": {"g0": 0}}, "group", "is not a non-empty list"),
         ({"group": ["g0", ""]}, "group", "holds something other than an id"),
         ({"group": ["g0", "g0"]}, "group", "names an id twice"),
@@ -206,6 +209,8 @@ def test_an_assignment_names_its_services_by_role():
     ],
 )
 def test_a_malformed_assignment_is_refused_naming_the_field(change, field, why):
+    """(An id is at most MAX_ID_BYTES bytes: ids go into keys and the counter's log,
+    whose records hold an actor's id after a 2-byte length.)"""
     wire = {k: v for k, v in {**GROUP, **change}.items() if v is not None or k not in change}
     if why == "unknown field":
         match = f"assignment: unknown field {field!r}"
@@ -213,6 +218,11 @@ def test_a_malformed_assignment_is_refused_naming_the_field(change, field, why):
         match = f"assignment: field {field!r} {why}"
     with pytest.raises(WireError, match=match):
         Assignment.from_wire(wire)
+
+
+def test_an_id_of_the_longest_length_is_one():
+    longest = "é" * (MAX_ID_BYTES // 2) + "a"  # 255 bytes
+    assert Assignment.from_wire({"learner": longest, "actors": [longest]}).learner == longest
 
 
 def test_an_assignment_that_is_no_map_is_refused():

@@ -20,6 +20,7 @@ from services.runs import noted_attempt
 from shared.config import TrainConfig, make_config
 from shared.envs.tasks import task_spec_for
 from shared.net.messages import Assignment, WireError, run_id_error
+from shared.net.protocol import ReceiveCursor
 from shared.persist.checkpoint import folder_config_difference
 from shared.persist.files import read_json, write_json
 from shared.persist.wal import WriteAheadLog
@@ -110,15 +111,32 @@ class Runs:
             raise
         st.rate_counted = st.counted
         if (path / "assign.json").exists():
-            try:  # the learner whose end ends the run
-                st.learner = Assignment.from_wire(read_json(path / "assign.json")).learner
+            try:  # the learner whose end ends the run, the actors whose batches count
+                assign = Assignment.from_wire(read_json(path / "assign.json"))
+                st.learner, st.actors = assign.learner, assign.actors
             except WireError as err:
-                self.log.warning("run %s: %s in %s: its learner is not known", run, err, path)
+                why = "run %s: %s in %s: its learner and actors are not known"
+                self.log.warning(why, run, err, path)
+        st.cursor = self._receiving(run, st)
         with self.lock:
             self.states[run] = st
         if replayed:
             snapshot.write(run, st)  # fold the log into a snapshot right away
         return st, replayed
+
+    def _receiving(self, run: str, st: RunState) -> ReceiveCursor:
+        """The run's cursor as restored (or new), made the learner's rule: the run's
+        actors alone (a batch of another is refused), whole batches only (an overlap
+        refused, not taken for its tail), so that every row counted is one the learner
+        can take. A position restored for an actor the run no longer names is let go
+        (logged): its batches would not be taken."""
+        positions = st.cursor.positions()
+        if st.actors is not None and (strangers := sorted(set(positions) - set(st.actors))):
+            self.log.warning("run %s: positions of %s, not of its actors, let go", run, strangers)
+            positions = {a: p for a, p in positions.items() if a in st.actors}
+        cursor = ReceiveCursor(positions, actors=st.actors, partial=False)
+        cursor.duplicate_rows, cursor.gaps = st.cursor.duplicate_rows, st.cursor.gaps
+        return cursor
 
     def restore_all(self) -> list[tuple[str, TrainConfig, RunState]]:
         """Open every run this counter had not finished (no `stopped` marker); a run

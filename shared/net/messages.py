@@ -45,11 +45,21 @@ def run_id_error(run: str) -> str | None:
     return f"run id: {run[:64]!r} is not a safe name (letters, digits, '._-', at most 128)"
 
 
+# The longest service id, in UTF-8 bytes: ids travel in keys and in the counter's log
+# records (the actor's id, after a 2-byte length), and no deployment names one longer.
+MAX_ID_BYTES = 255
+
+
+def is_service_id(value: Any) -> bool:
+    """A non-empty string of at most MAX_ID_BYTES bytes."""
+    return isinstance(value, str) and 0 < len(value.encode()) <= MAX_ID_BYTES
+
+
 def _service_ids(value: Any, name: str) -> tuple[str, ...]:
     """A non-empty list of distinct service (or run) ids, or a WireError naming `name`."""
     if not isinstance(value, list | tuple) or not value:
         raise WireError(f"assignment: field {name!r} is not a non-empty list")
-    if not all(isinstance(v, str) and v for v in value):
+    if not all(is_service_id(v) for v in value):
         raise WireError(f"assignment: field {name!r} holds something other than an id")
     if len(set(value)) != len(value):
         raise WireError(f"assignment: field {name!r} names an id twice")
@@ -111,7 +121,7 @@ class Assignment:
                 raise WireError(f"assignment: field {name!r} is missing")
         for name in ("learner", "counter", "evaluator"):
             one = value.get(name)
-            if (one is not None or name == "learner") and not (isinstance(one, str) and one):
+            if (one is not None or name == "learner") and not is_service_id(one):
                 raise WireError(f"assignment: field {name!r} is not a service id")
         group = value.get("group")
         return cls(
