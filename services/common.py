@@ -47,6 +47,7 @@ from shared.net.bus import Bus
 from shared.net.info import ServiceInfo
 from shared.net.messages import (
     MESSAGES,
+    Ack,
     Assignment,
     Message,
     Start,
@@ -185,7 +186,9 @@ class ServiceBase(ServiceHooks):
     def decode_for_run(self, key: str, payload: bytes, expect: type[M]) -> M | None:
         """Decode a per-run message; None (and a counted reject) unless it is for our run.
         A status from another attempt of the run is dropped silently: late traffic of
-        an ended attempt, as of a run let go."""
+        an ended attempt, as of a run let go. An ack of another attempt is dropped and
+        counted: acks only move forward, and a counter that restored an ended attempt
+        acks its positions every second, which would release batches it never counted."""
         return self.decode_or_why(key, payload, expect)[0]
 
     def decode_or_why(
@@ -203,6 +206,10 @@ class ServiceBase(ServiceHooks):
             self.reject(key, why)
         if isinstance(msg, Status) and not self.of_attempt(msg.run, msg.attempt):
             return None, why
+        if why is None and isinstance(msg, Ack) and not self.of_attempt(msg.run, msg.attempt):
+            served = self.served.attempts.get(msg.run)
+            why = f"ack of another attempt: {msg.service} acks {msg.attempt}, serving {served}"
+            self.reject(key, why)
         return (msg, None) if why is None else (None, why)
 
     def of_attempt(self, run: str, attempt: int | None) -> bool:

@@ -279,6 +279,28 @@ def test_a_runs_folder_is_resumed_for_the_same_config_and_archived_otherwise(tmp
     runs.close("r")
 
 
+def test_a_runs_folder_of_another_attempt_is_archived_not_resumed(tmp_path, caplog):
+    """A start of attempt 2 finding attempt 1's unfinished folder (its stop never came,
+    a restore that failed left it) starts afresh: attempt 1's tables and positions must
+    not meet attempt 2's transitions, numbered from 0 again. A start or a folder that
+    names no attempt (an older peer's, `macb start`'s) is taken as the same attempt."""
+    runs = Runs(tmp_path, logging.getLogger("t"))
+    cfg = make_config(CONFIG)
+    st, _ = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN, 1))
+    o, a = rows(5, 4, st.obs_dim, st.act_dim)
+    count(st, "a0", 0, o, a)
+    runs.close("r")
+    for attempt, counted in ((1, 5), (2, 0), (2, 3), (None, 3)):
+        st, _ = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN, attempt))
+        assert st.counted == counted, attempt
+        if st.counted == 0:
+            count(st, "a0", 0, o[:3], a[:3])
+        runs.close("r")
+    assert len(list((tmp_path / ".archive").iterdir())) == 1
+    assert "run r was attempt 1, not 2: old state moved to" in caplog.text
+    assert runs.attempt("r") is None  # (as the last start named it)
+
+
 def test_restore_opens_every_unfinished_run_and_skips_the_rest(tmp_path):
     runs = Runs(tmp_path, logging.getLogger("t"))
     cfg = make_config(CONFIG)

@@ -104,6 +104,7 @@ class Counter:
         self.acks: dict[str, dict[str, int]] = {}
         self.lengths: dict[str, int] = defaultdict(lambda: BASE["episode_len"])  # run -> rows
         self.ack_history: dict[str, list[dict[str, int]]] = defaultdict(list)
+        self.ack_attempts: dict[str, int | None] = {}  # run -> the attempt its last ack named
         bus.subscribe(k_ack("*", "c0"), self._on_ack)
 
     def _on_ack(self, key: str, payload: bytes) -> None:
@@ -111,6 +112,7 @@ class Counter:
         with self._lock:
             self.acks[msg.run] = dict(msg.acked)
             self.ack_history[msg.run].append(dict(msg.acked))
+            self.ack_attempts[msg.run] = msg.attempt
 
     def acked(self, run: str) -> dict[str, int]:
         with self._lock:
@@ -489,6 +491,7 @@ def test_a_retry_whose_stop_never_came_is_counted_afresh_and_freed_by_its_learne
     wait_for(lambda: run in (counter.info() or {}).get("runs", {}), 20, what="attempt 1")
     counter.send(run, "a0", stream, 0, 10)
     counter.wait_acked(run, {"a0": 10})
+    assert counter.ack_attempts[run] == 1  # (a reader of another attempt drops them)
     again = Start(run, config=BASE, assign=ASSIGN, attempt=2)
     counter.bus.put(k_control("start"), encode(again))
     wait_for(
@@ -500,6 +503,8 @@ def test_a_retry_whose_stop_never_came_is_counted_afresh_and_freed_by_its_learne
     assert len(list((counter.data_dir / "counter" / ".archive").iterdir())) == 1
     counter.send(run, "a0", stream, 0, 5)  # numbered from 0 again
     wait_for(lambda: counter.stats(run)["counted_transitions"] == 5, 10, what="counted anew")
+    counter.wait_acked(run, {"a0": 5})
+    assert counter.ack_attempts[run] == 2
 
     def learner(state: str, attempt: int) -> None:
         msg = Status(run, service="L", state=state, detail={}, attempt=attempt)
@@ -530,8 +535,13 @@ def test_a_restored_run_started_again_as_the_attempt_it_holds_keeps_its_counts(c
     counter.send(run, "a0", stream, 0, 10)
     counter.wait_acked(run, {"a0": 10})
     counter.kill(signal.SIGTERM)
+    counter.acks.pop(run)
     counter.launch()
     assert counter.stats(run)["counted_transitions"] == 10
+    # Restored, it acks (every second) the attempt its folder notes: were that attempt
+    # over, the learner of the next would drop these acks.
+    counter.wait_acked(run, {"a0": 10})
+    assert counter.ack_attempts[run] == 3
     counter.bus.put(k_control("start"), encode(Start(run, config=BASE, assign=ASSIGN, attempt=3)))
     wait_for(lambda: "attempt 3 started again: already restored" in counter.log(), 10,
              what="the repeated start")  # fmt: skip

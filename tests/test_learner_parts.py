@@ -54,7 +54,7 @@ class SilentCounter:
         pass
 
 
-def run(tmp_path, explore="constant", interleave="async", svc=None, **extra):  # noqa: ANN001
+def run(tmp_path, explore="constant", interleave="async", svc=None, attempt=None, **extra):  # noqa: ANN001
     cfg = make_config({"task": "speaker_listener", "explore": explore, "episodes": 8,
                        "episode_len": LEN, "hidden": [16, 16], "learning_starts": 3,
                        "learner_lanes": 1, "eval_every": 2, "interleave": interleave,
@@ -67,7 +67,7 @@ def run(tmp_path, explore="constant", interleave="async", svc=None, **extra):  #
     pubs = {"weights": Sent(Weights), "eval": Sent(Weights), "ack": Sent(Ack)}
     return new_run("r", cfg, spec, ACTORS, learner=build_learner(cfg, spec), bonus=bonus,
                    evaluations=EvaluationsInFlight(), pubs=pubs, counter="c",
-                   folder=folder)  # fmt: skip
+                   folder=folder, attempt=attempt)  # fmt: skip
 
 
 def alone(st: LearnerRun, asks: lockstep.Asks | None = None) -> RunGroup:
@@ -143,6 +143,13 @@ def test_the_credit_window_closes_while_the_learner_is_behind_and_reopens(tmp_pa
     assert sent.ack_pub[-1].window > 0 and sent.window_open
     assert len(sent.weights_pub) == 1  # nothing taken yet: the first weights again
     assert rows == ["learner"]
+
+
+def test_an_ack_names_the_attempt_of_the_run(tmp_path):
+    """(An actor of another attempt of the run drops it: acks only move forward.)"""
+    st = run(tmp_path, attempt=3)
+    outbound().ack(st)
+    assert st.outgoing.ack_pub[-1].attempt == 3
 
 
 def test_a_lockstep_request_is_answered_only_once_its_steps_are_in_replay_and_learnt(tmp_path):

@@ -9,19 +9,25 @@ leaves behind is read off the service itself.
   an actor's transitions and act requests) are undeclared when the run is let go, as
   its subscriptions are: each holds state in the session, and a long-lived service
   otherwise grew by a few per run until it closed.
+- An ack of another attempt of the run is dropped and counted: a counter that restored
+  an ended attempt from disk acks that attempt's positions every second, and the new
+  attempt's learner took them (acks only move forward) and released batches into
+  replay that its counter had not counted.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from services.actor.main import ActorService
 from services.common import ServiceBase
 from services.learner.main import LearnerService
+from shared.config import make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
-from shared.net.messages import Assignment, Start, Stop, run_id_error
+from shared.net.messages import Ack, Assignment, Start, Stop, Transitions, run_id_error
 from shared.net.wire import encode
 
 CONFIG = {
@@ -112,5 +118,51 @@ def test_a_runs_publishers_go_with_the_run(router, tmp_path, role, interleave):
             control(svc, Stop("r", reason="the test is over"))
             assert not svc.active
             assert len(svc.bus._held) == held, "the run's declarations outlived it"
+    finally:
+        svc.shutdown()
+
+
+def test_an_ack_of_another_attempt_is_dropped_and_counted(router, tmp_path):
+    """The learner of attempt 2 holds a batch its counter has not counted; the counter
+    that restored attempt 1 acks past it. That ack releases nothing; attempt 2's does."""
+    svc = LearnerService("L", [router], tmp_path / "data")
+    try:
+        control(svc, Start("r", config={**CONFIG, "explore": "cen-macb"}, assign=ASSIGN,
+                           attempt=2))  # fmt: skip
+        st = svc.runs["r"]
+        n, obs_dim, act_dim = 5, st.spec.joint_obs_dim, st.spec.joint_act_dim
+        obs = np.zeros((n, obs_dim), np.float32)
+        batch = Transitions("r", "a0", 0, obs=obs, act=np.zeros((n, act_dim), np.float32),
+                            rew=np.zeros(n, np.float32), next_obs=obs,
+                            done=np.zeros(n, np.float32), collisions=np.zeros(n, np.int32),
+                            policy_version=0)  # fmt: skip
+        svc.handle("transitions", keys.k_transitions("r", "a0"), encode(batch))
+        assert len(st.intake.held["a0"]) == 1 and st.intake.ingested == 0
+
+        def counter_acks(attempt: int | None) -> None:
+            ack = Ack("r", service="c0", acked={"a0": 20}, window=0, attempt=attempt)
+            svc.handle("ack", keys.k_ack("r", "c0"), encode(ack))
+
+        counter_acks(1)
+        assert len(st.intake.held["a0"]) == 1 and st.intake.ingested == 0, "released"
+        assert svc.rejects.get("ack of another attempt") == 1, svc.rejects
+        counter_acks(2)
+        assert not st.intake.held["a0"] and st.intake.ingested == n
+    finally:
+        svc.shutdown()
+
+
+def test_an_ack_naming_no_attempt_is_taken_as_an_older_peers(router, tmp_path):
+    svc = ServiceBase("s", [router], tmp_path)
+    try:
+        svc.served.join("r", make_config(CONFIG), ASSIGN, CONFIG, 2)
+        key = keys.k_ack("r", "c0")
+        acks = {
+            a: Ack("r", service="c0", acked={"a0": 5}, window=0, attempt=a) for a in (1, 2, None)
+        }
+        assert svc.decode_for_run(key, encode(acks[1]), Ack) is None
+        assert svc.decode_for_run(key, encode(acks[2]), Ack) == acks[2]
+        assert svc.decode_for_run(key, encode(acks[None]), Ack) == acks[None]
+        assert svc.rejects == {"ack of another attempt": 1}
     finally:
         svc.shutdown()

@@ -224,7 +224,8 @@ class CounterService(ServiceBase):
     def _ack(self, run: str, st: RunState) -> None:
         with self.runs.lock:
             acked = st.cursor.positions()
-        ack = encode(Ack(run, service=self.id, acked=acked, window=0))
+        attempt = self.served.attempts.get(run)  # (a restored run's: its attempt.json)
+        ack = encode(Ack(run, service=self.id, acked=acked, window=0, attempt=attempt))
         self.bus.put(k_ack(run, self.id), ack)
 
     # ------------------------------------------------------------ bonus queries

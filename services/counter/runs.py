@@ -19,7 +19,7 @@ from services.counter.state import RunState
 from services.runs import noted_attempt
 from shared.config import TrainConfig, make_config
 from shared.envs.tasks import task_spec_for
-from shared.net.messages import Assignment, WireError, run_id_error
+from shared.net.messages import Assignment, WireError, run_id_error, same_attempt
 from shared.net.protocol import ReceiveCursor
 from shared.persist.checkpoint import folder_config_difference
 from shared.persist.files import read_json, write_json
@@ -54,8 +54,10 @@ class Runs:
     ) -> Path:
         """The run's folder for a start: kept if it holds an unfinished run of the same
         config (resumed; a key the saved config lacks counts as its default, the rule
-        of every run folder: `folder_config_difference`), else what is there is archived; config,
-        assignment (its `to_wire` map) and the start's attempt noted."""
+        of every run folder: `folder_config_difference`) and attempt (either not noted:
+        taken as the same, `same_attempt`), else what is there is archived; config,
+        assignment (its `to_wire` map) and the start's attempt noted. Another attempt's
+        tables must not meet this one's transitions, numbered from 0 again."""
         if why := run_id_error(run):  # (refused at the start already: services/common.py)
             raise ValueError(f"{why}: not a safe directory name")
         path = self.root / run
@@ -65,8 +67,15 @@ class Runs:
                 diff = folder_config_difference(path, config.model_dump(mode="json"))
             else:
                 diff = "no config.json"
-            if stopped or diff is not None:
-                why = "was stopped" if stopped else f"had another config ({diff})"
+            noted = self.attempt(run)
+            why = None
+            if stopped:
+                why = "was stopped"
+            elif diff is not None:
+                why = f"had another config ({diff})"
+            elif not same_attempt(noted, attempt):
+                why = f"was attempt {noted}, not {attempt}"
+            if why is not None:
                 dest = self.archive(path)
                 self.log.warning("run %s %s: old state moved to %s", run, why, dest)
         path.mkdir(parents=True, exist_ok=True)

@@ -166,12 +166,17 @@ class Transitions(Message):
 @dataclass(frozen=True)
 class Ack(Message):
     """counter, learner -> actors: the next sequence number expected from each actor;
-    `window`: the learner's credits (how far an actor may run ahead), 0 from the counter."""
+    `window`: the learner's credits (how far an actor may run ahead), 0 from the counter.
+    `attempt`: the attempt of the run it counts or learns (its start's): acks only move
+    forward, so a reader of another attempt drops it, as a counter that restored an
+    ended attempt from disk acks that attempt's positions every second (None: its start
+    named none, or an older peer)."""
 
     TYPE: ClassVar[str] = "ack"
     service: str
     acked: dict[str, int]
     window: int
+    attempt: int | None = None
 
 
 @dataclass(frozen=True)
