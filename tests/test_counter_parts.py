@@ -182,7 +182,8 @@ def test_a_bonus_query_is_answered_from_the_counts_and_tallies_rows_never_counte
     count(st, "a0", 4, o[:2], a[:2])  # rows 0-1 twice
     msg = query(st, o, a)
     bonus.check(st, msg)
-    reply = decode(bonus.answer(st, msg, threading.RLock(), time.perf_counter()), BonusReply)
+    reply = decode(bonus.answer(st, msg, threading.RLock(), time.perf_counter(), "c0"), BonusReply)
+    assert reply.service == "c0"  # (the learner takes only its run's counter's reply)
     assert reply.counts.shape == (len(st.explorer.tables), 6)
     for table_counts, want in zip(reply.counts, st.explorer.counts(o, a)):
         assert np.array_equal(table_counts, want)
@@ -192,7 +193,7 @@ def test_a_bonus_query_is_answered_from_the_counts_and_tallies_rows_never_counte
     assert st.uncounted_rows_queried == 2  # rows 4 and 5 were never counted
 
     st.closed = True  # stopped while the query was on its way: no reply
-    assert bonus.answer(st, msg, threading.RLock(), time.perf_counter()) is None
+    assert bonus.answer(st, msg, threading.RLock(), time.perf_counter(), "c0") is None
 
 
 def test_a_bonus_query_of_another_shape_is_refused(tmp_path):

@@ -24,7 +24,7 @@ import torch
 
 from shared.config import make_config
 from shared.envs.tasks import task_spec_for
-from shared.net.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
+from shared.net.bus import Replies, k_ack, k_bonus, k_control, k_info, k_status, k_transitions
 from shared.net.messages import (
     Ack,
     Assignment,
@@ -168,10 +168,19 @@ class Counter:
         want = {a: want.get(a, 0) for a in ASSIGN.actors}
         wait_for(lambda: self.acked(run) == want, timeout, what=f"acks {want}")
 
-    def query(self, run: str, obs: np.ndarray, act: np.ndarray) -> BonusReply | None:
-        replies = self.bus.get(k_bonus(run), encode(BonusQuery(run, obs=obs, act=act)), 2.0)
+    def query(
+        self, run: str, obs: np.ndarray, act: np.ndarray, attempt: int | None = None
+    ) -> BonusReply | None:
+        replies = self.replies(run, obs, act, attempt).ok
         assert len(replies) <= 1
         return decode(replies[0], BonusReply) if replies else None
+
+    def replies(
+        self, run: str, obs: np.ndarray, act: np.ndarray, attempt: int | None = None
+    ) -> Replies:
+        """Every reply and refusal to a query of the run's `attempt`."""
+        query = encode(BonusQuery(run, obs=obs, act=act, attempt=attempt))
+        return self.bus.collect_all(self.bus.get_async(k_bonus(run), query, timeout=2.0))
 
 
 @pytest.fixture
@@ -217,7 +226,7 @@ def test_exactly_once_per_actor_with_duplicates_gaps_and_overlap(counter):
     obs = np.concatenate([a0.obs, a1.obs])
     act = np.concatenate([a0.act, a1.act])
     reply = counter.query(run, obs, act)
-    assert reply is not None
+    assert reply is not None and reply.service == "c0"  # (the learner takes its counter's)
     counts = reply.counts
     assert counts.shape == (1, 35) and counts.dtype == np.int64
     assert np.array_equal(counts, np.stack(truth.counts(obs, act)))
@@ -527,7 +536,10 @@ def test_a_retry_whose_stop_never_came_is_counted_afresh_and_freed_by_its_learne
 
 def test_a_restored_run_started_again_as_the_attempt_it_holds_keeps_its_counts(counter):
     """A start naming the attempt a restored counter noted (attempt.json) is a repeated
-    start of that attempt: its tables stay; one naming no attempt is a new attempt."""
+    start of that attempt: its tables stay; one naming no attempt is a new attempt.
+    Restored, it prices only that attempt's queries (its learner goes on after the
+    counter's restart, and no start comes): another attempt's (a retry, its start lost
+    to this counter, or given to another counter) gets a refusal, not stale counts."""
     counter.launch()
     run, stream = "r-same", Stream(3, 10)
     counter.bus.put(k_control("start"), encode(Start(run, config=BASE, assign=ASSIGN, attempt=3)))
@@ -542,6 +554,12 @@ def test_a_restored_run_started_again_as_the_attempt_it_holds_keeps_its_counts(c
     # over, the learner of the next would drop these acks.
     counter.wait_acked(run, {"a0": 10})
     assert counter.ack_attempts[run] == 3
+    reply = counter.query(run, stream.obs, stream.act, attempt=3)
+    assert reply is not None and reply.service == "c0" and reply.counts.min() == 1
+    assert counter.query(run, stream.obs, stream.act) is not None  # (an older learner's)
+    other = counter.replies(run, stream.obs, stream.act, attempt=4)
+    assert other.ok == [] and [r.by for r in other.refused] == ["c0"], other
+    assert "another attempt: asked for attempt 4, holds 3" in other.refused[0].reason
     counter.bus.put(k_control("start"), encode(Start(run, config=BASE, assign=ASSIGN, attempt=3)))
     wait_for(lambda: "attempt 3 started again: already restored" in counter.log(), 10,
              what="the repeated start")  # fmt: skip

@@ -13,6 +13,8 @@ from shared.net.messages import (
     MESSAGES,
     Ack,
     Assignment,
+    BonusQuery,
+    BonusReply,
     History,
     Metrics,
     Resumed,
@@ -336,3 +338,20 @@ def test_metrics_and_history_name_their_attempt_and_an_older_peers_without_one_d
     assert decode(msgpack.packb(before, use_bin_type=True), cls).attempt is None
     with pytest.raises(WireError, match=f"{cls.TYPE}: field 'attempt' is not int"):
         decode(msgpack.packb({**before, "attempt": "2"}, use_bin_type=True), cls)
+
+
+def test_acks_and_bonus_messages_name_attempt_and_counter_and_an_older_peers_decode():
+    """Ack.attempt, BonusQuery.attempt and BonusReply.service are optional: a peer from
+    before them sends none and is read as naming none (taken as before)."""
+    rows = np.zeros((2, 3), np.float32)
+    msgs = [
+        Ack("r", service="c0", acked={"a0": 5}, window=0, attempt=2),
+        BonusQuery("r", obs=rows, act=rows, attempt=2),
+        BonusReply("r", counts=np.ones((1, 2), np.int64), bonus=rows[:, :2], service="c0"),
+    ]
+    for msg, field in zip(msgs, ("attempt", "attempt", "service")):
+        back = decode(encode(msg), type(msg))
+        assert getattr(back, field) == getattr(msg, field)
+        raw = msgpack.unpackb(encode(msg), raw=False)
+        del raw[field]
+        assert getattr(decode(_repack(raw), type(msg)), field) is None

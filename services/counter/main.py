@@ -9,7 +9,10 @@ into replay, then hashed in bursts, written to a write-ahead log and only then c
 and acknowledged, so an acknowledged count survives a SIGKILL.
 Bonus queries are answered on Zenoh's thread under the lock ingestion takes, so a
 query sees a burst counted whole or not at all, and they come first (a short GIL
-switch interval, the service thread stepping aside): the learner waits for them.
+switch interval, the service thread stepping aside): the learner waits for them. A
+query of another attempt of the run than the one whose tables it holds is refused
+(a run restored from disk answers only its noted attempt's learner, until a start of
+another attempt replaces it), and every reply names this counter.
 
 This class is the shell: the bus, the timers and the dispatch. Its parts: `runs.py`
 (the runs' folders, opened, restored, archived; the lock), `burst.py` (a burst's new
@@ -241,12 +244,20 @@ class CounterService(ServiceBase):
             if st is None:
                 self.reject(key, f"unknown run: {msg.run}")
                 return Refused(self.id, f"unknown run: {msg.run}")
+            if not self.of_attempt(msg.run, msg.attempt):
+                # Its tables are another attempt's: a run restored from disk after its
+                # attempt ended (no stop reached this counter), whose retry another
+                # counter counts, or this one once its start comes.
+                held = self.served.attempts.get(msg.run)
+                why = f"another attempt: asked for attempt {msg.attempt}, holds {held}"
+                self.reject(key, f"bonus query of {why}")
+                return Refused(self.id, f"the counter's tables are of {why}")
             try:
                 bonus.check(st, msg)
             except WireError as err:
                 self._run_reject(st, key, str(err))
                 return Refused(self.id, str(err))
-            return bonus.answer(st, msg, self.runs.lock, t0)
+            return bonus.answer(st, msg, self.runs.lock, t0, self.id)
 
     # ------------------------------------------------------------ stats, timers
     def tick(self) -> bool:

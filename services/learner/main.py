@@ -229,6 +229,7 @@ class LearnerService(ServiceBase):
         bonus = BonusClient(
             bus_query(self.bus, bonus_key), lambda why: self.reject(bonus_key, why),
             run, config.explore, config.beta, spec.n_agents, assign.counter,
+            attempt=self.served.attempts.get(run),
         )  # fmt: skip
         st = self.runs[run] = new_run(
             run, config, spec, list(assign.actors), learner=learner, bonus=bonus,

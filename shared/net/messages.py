@@ -248,22 +248,29 @@ class Action(Message):
 
 @dataclass(frozen=True)
 class BonusQuery(Message):
-    """learner -> counter: the rows of a sampled minibatch to price."""
+    """learner -> counter: the rows of a sampled minibatch to price. `attempt`: the
+    attempt of the run the learner serves (its start's): a counter holding another
+    attempt's tables (one restored from disk after that attempt ended) refuses it (None:
+    its start named none, or an older learner)."""
 
     TYPE: ClassVar[str] = "bonus_query"
     obs: np.ndarray
     act: np.ndarray
+    attempt: int | None = None
 
 
 @dataclass(frozen=True)
 class BonusReply(Message):
     """counter -> learner: each row's count and bonus, from the counts at that moment,
-    and the counter's table stats then (what the learner's next point reports)."""
+    and the counter's table stats then (what the learner's next point reports).
+    `service`: the counter that answered: every counter answers the run's key, and the
+    learner takes only its run's counter's reply (None: an older counter)."""
 
     TYPE: ClassVar[str] = "bonus_reply"
     counts: np.ndarray
     bonus: np.ndarray
     tables: dict[str, Any] = field(default_factory=dict)
+    service: str | None = None
 
 
 @dataclass(frozen=True)
