@@ -15,8 +15,8 @@ default, so one table over the 19-dim joint s||a, 128-byte keys) and
 * `paced`: the same publishers, paced to `--paced-rate` transitions/s in total;
 * `idle`: no publisher.
 
-In every phase the harness also asks 100-row bonus queries (rows of 2,000 transitions
-it counted in the run first), one every 5 ms, and times each at the client: encode,
+In every phase the harness also asks 100-row bonus queries (rows of 1,920 transitions
+it counted in the run first, as actor `q0`), one every 5 ms, and times each at the client: encode,
 Zenoh get, decode (what the learner's `bonus_p50_ms` measures). The counter's own
 server-side percentiles (`query_p50_ms`, `query_p99_ms`) are reported alongside.
 
@@ -83,7 +83,9 @@ ABOUT = (  # what --help adds to the docstring's first paragraph
 )
 QUERY_ROWS = 100
 QUERY_EVERY_S = 0.005
-SEED_ROWS = 2000  # transitions the harness counts first; queries sample them
+# Transitions the harness counts first (queries sample them), in batches of the phase's
+# rows (the counter takes a run's episodes whole: episode_len is the phase's rows).
+SEED_ROWS = 1920
 TARGET_INGEST = 50_000.0
 TARGET_P99_MS = 5.0
 
@@ -270,11 +272,12 @@ class CounterHarness:
         info = self.info() or {}
         return info.get("runs", {}).get(run, {})
 
-    def new_run(self, actors: list[str]) -> str:
+    def new_run(self, actors: list[str], rows: int) -> str:
+        """A run of `actors` whose episodes (one batch each) are `rows` long."""
         self.runs += 1
         run = f"bench-{self.runs}"
         assign = Assignment(learner="L", actors=tuple(actors), counter=COUNTER, evaluator="e")
-        config = {**CONFIG, "k": self.k}
+        config = {**CONFIG, "k": self.k, "episode_len": rows}
         self.bus.put(k_control("start"), encode(Start(run, config=config, assign=assign)))
         deadline = time.monotonic() + 20
         while not self.run_stats(run):
@@ -282,9 +285,10 @@ class CounterHarness:
                 raise RuntimeError(f"the counter did not start run {run}")
             time.sleep(0.05)
         # Count the rows that queries will ask for (as actor q0), and wait for them.
-        for s in range(0, SEED_ROWS, 100):
+        assert SEED_ROWS % rows == 0, (SEED_ROWS, rows)
+        for s in range(0, SEED_ROWS, rows):
             payload = transitions_payload(
-                run, "q0", s, self.q_obs[s : s + 100], self.q_act[s : s + 100]
+                run, "q0", s, self.q_obs[s : s + rows], self.q_act[s : s + rows]
             )
             self.bus.put(k_transitions(run, "q0"), payload)
         while self.run_stats(run).get("acked", {}).get("q0", 0) < SEED_ROWS:
@@ -336,7 +340,7 @@ class CounterHarness:
         duration: float,
     ) -> dict:
         actors = [f"p{i}" for i in range(publishers)]
-        run = self.new_run(actors + ["q0"])
+        run = self.new_run(actors + ["q0"], rows)
         results, names = [], []
         for i, actor in enumerate(actors):
             result = self.work / f"{run}-{actor}"

@@ -11,7 +11,8 @@ once per burst.
 
 Run control: `macb/control/start` carries the run id, its config and the
 assignment of services (by id); a service takes a run only when it is named in the
-assignment and is free. `macb/control/stop` ends a run.
+assignment and is free, and never one whose id is no safe name (folders and keys are
+built from it: `run_id_error`). `macb/control/stop` ends a run.
 
 Restarts (docs/reliability.md): a service that takes a run writes it to
 `DATA_DIR/services/ID.json`; started again with the same id and data dir (by `macb
@@ -46,7 +47,17 @@ from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.info import ServiceInfo
-from shared.net.messages import MESSAGES, Assignment, Message, Start, Status, Stop, same_attempt
+from shared.net.messages import (
+    MESSAGES,
+    Ack,
+    Assignment,
+    Message,
+    Start,
+    Status,
+    Stop,
+    run_id_error,
+    same_attempt,
+)
 from shared.net.monitor import peer_grace_s
 from shared.net.wire import WireError, decode
 from shared.settings import node_name, settings
@@ -183,7 +194,9 @@ class ServiceBase(ServiceHooks):
     def decode_for_run(self, key: str, payload: bytes, expect: type[M]) -> M | None:
         """Decode a per-run message; None (and a counted reject) unless it is for our run.
         A status from another attempt of the run is dropped silently: late traffic of
-        an ended attempt, as of a run let go."""
+        an ended attempt, as of a run let go. An ack of another attempt is dropped and
+        counted: acks only move forward, and a counter that restored an ended attempt
+        acks its positions every second, which would release batches it never counted."""
         return self.decode_or_why(key, payload, expect)[0]
 
     def decode_or_why(
@@ -201,6 +214,10 @@ class ServiceBase(ServiceHooks):
             self.reject(key, why)
         if isinstance(msg, Status) and not self.of_attempt(msg.run, msg.attempt):
             return None, why
+        if why is None and isinstance(msg, Ack) and not self.of_attempt(msg.run, msg.attempt):
+            served = self.served.attempts.get(msg.run)
+            why = f"ack of another attempt: {msg.service} acks {msg.attempt}, serving {served}"
+            self.reject(key, why)
         return (msg, None) if why is None else (None, why)
 
     def of_attempt(self, run: str, attempt: int | None) -> bool:
@@ -263,6 +280,12 @@ class ServiceBase(ServiceHooks):
                 self._end(run, "stopped", msg.reason)
             return
         assert isinstance(msg, Start)
+        if why := run_id_error(run):
+            # Every service builds folders and keys from the id (the learner wipes
+            # data_dir/learner/<run>): refused here, once for all of them, and no status
+            # goes out on a key built from it.
+            self.reject(key, why)
+            return
         if not self.assigned(msg.assign):
             return  # another service's run: not an error
         if run in self.active and not self.of_attempt(run, msg.attempt):

@@ -1,5 +1,6 @@
-"""A service's side of the bus: subscriptions whose callbacks only enqueue (those of a
-run end with it, so a service never receives the traffic of runs others serve), and
+"""A service's side of the bus: subscriptions whose callbacks only enqueue and
+publishers (those of a run end with it, so a service never receives the traffic of
+runs others serve, and a long-lived one holds no declarations of runs long over), and
 its statuses and metric rows out."""
 
 from __future__ import annotations
@@ -8,7 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 from shared.net import bus as keys
-from shared.net.bus import Bus
+from shared.net.bus import Bus, Publisher
 from shared.net.messages import Metrics, Resumed, Status
 from shared.net.wire import encode
 
@@ -18,7 +19,7 @@ class Endpoint:
 
     def __init__(self, bus: Bus, put: Callable[[Any], None], service_id: str, role: str) -> None:
         self.bus, self.put, self.id, self.role = bus, put, service_id, role
-        self.run_subs: dict[str, list] = {}  # run -> its subscriptions
+        self.run_subs: dict[str, list] = {}  # run -> its subscriptions and publishers
 
     def listen(self, key_expr: str, tag: str, run: str | None = None) -> None:
         """Subscribe; the callback only enqueues (tag, key, payload). With `run`, the
@@ -31,8 +32,15 @@ class Endpoint:
         if run is not None:
             self.run_subs.setdefault(run, []).append(handle)
 
+    def publisher(self, key: str, run: str) -> Publisher:
+        """A publisher that belongs to `run` (or to what a group's subscriptions are held
+        under): undeclared when the run is freed."""
+        pub = self.bus.publisher(key)
+        self.run_subs.setdefault(run, []).append(pub)
+        return pub
+
     def drop_run(self, run: str) -> None:
-        """The run's subscriptions end."""
+        """The run's subscriptions and publishers end."""
         for handle in self.run_subs.pop(run, []):
             self.bus.undeclare(handle)
 

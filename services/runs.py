@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.config import ConfigError, TrainConfig, make_config
-from shared.net.messages import Assignment
+from shared.net.messages import Assignment, run_id_error
 from shared.persist.files import write_json
 
 
@@ -154,8 +154,8 @@ class ServedRuns:
 
     def saved(self) -> list[SavedRun]:
         """The runs noted when the process died; none if there is no file, and none if
-        it is unreadable, holds no run, a bad config or a bad assignment (then it is
-        renamed *.refused)."""
+        it is unreadable, holds no run, a bad config, a bad assignment or a run id no
+        start could name (then it is renamed *.refused)."""
         if self.path is None or not self.path.exists():
             return []
         try:
@@ -174,6 +174,8 @@ class ServedRuns:
             ]
             if all(r.retired for r in runs):
                 raise ValueError("no run in it")
+            if why := next(filter(None, (run_id_error(r.run) for r in runs)), None):
+                raise ValueError(why)  # (a file written by hand: its folders not built)
         except (OSError, ValueError, KeyError, TypeError, ConfigError) as err:
             self.log.error("refusing %s (%s): renamed *.refused; not rejoining", self.path, err)
             self.path.replace(self.path.with_name(self.path.name + ".refused"))

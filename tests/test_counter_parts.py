@@ -182,7 +182,8 @@ def test_a_bonus_query_is_answered_from_the_counts_and_tallies_rows_never_counte
     count(st, "a0", 4, o[:2], a[:2])  # rows 0-1 twice
     msg = query(st, o, a)
     bonus.check(st, msg)
-    reply = decode(bonus.answer(st, msg, threading.RLock(), time.perf_counter()), BonusReply)
+    reply = decode(bonus.answer(st, msg, threading.RLock(), time.perf_counter(), "c0"), BonusReply)
+    assert reply.service == "c0"  # (the learner takes only its run's counter's reply)
     assert reply.counts.shape == (len(st.explorer.tables), 6)
     for table_counts, want in zip(reply.counts, st.explorer.counts(o, a)):
         assert np.array_equal(table_counts, want)
@@ -192,7 +193,7 @@ def test_a_bonus_query_is_answered_from_the_counts_and_tallies_rows_never_counte
     assert st.uncounted_rows_queried == 2  # rows 4 and 5 were never counted
 
     st.closed = True  # stopped while the query was on its way: no reply
-    assert bonus.answer(st, msg, threading.RLock(), time.perf_counter()) is None
+    assert bonus.answer(st, msg, threading.RLock(), time.perf_counter(), "c0") is None
 
 
 def test_a_bonus_query_of_another_shape_is_refused(tmp_path):
@@ -279,13 +280,35 @@ def test_a_runs_folder_is_resumed_for_the_same_config_and_archived_otherwise(tmp
     runs.close("r")
 
 
+def test_a_runs_folder_of_another_attempt_is_archived_not_resumed(tmp_path, caplog):
+    """A start of attempt 2 finding attempt 1's unfinished folder (its stop never came,
+    a restore that failed left it) starts afresh: attempt 1's tables and positions must
+    not meet attempt 2's transitions, numbered from 0 again. A start or a folder that
+    names no attempt (an older peer's, `macb start`'s) is taken as the same attempt."""
+    runs = Runs(tmp_path, logging.getLogger("t"))
+    cfg = make_config(CONFIG)
+    st, _ = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN, 1))
+    o, a = rows(5, 4, st.obs_dim, st.act_dim)
+    count(st, "a0", 0, o, a)
+    runs.close("r")
+    for attempt, counted in ((1, 5), (2, 0), (2, 3), (None, 3)):
+        st, _ = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN, attempt))
+        assert st.counted == counted, attempt
+        if st.counted == 0:
+            count(st, "a0", 0, o[:3], a[:3])
+        runs.close("r")
+    assert len(list((tmp_path / ".archive").iterdir())) == 1
+    assert "run r was attempt 1, not 2: old state moved to" in caplog.text
+    assert runs.attempt("r") is None  # (as the last start named it)
+
+
 def test_restore_opens_every_unfinished_run_and_skips_the_rest(tmp_path):
     runs = Runs(tmp_path, logging.getLogger("t"))
     cfg = make_config(CONFIG)
     for run in ("a", "b", "c"):
         st, _ = runs.open(run, cfg, runs.prepare(run, cfg, ASSIGN))
         o, a = rows(3, 5, st.obs_dim, st.act_dim)
-        count(st, "x", 0, o, a)
+        count(st, "a0", 0, o, a)
     runs.mark_stopped("b", runs.get("b"), "done")
     for run in ("a", "b", "c"):
         runs.close(run)
@@ -298,6 +321,29 @@ def test_restore_opens_every_unfinished_run_and_skips_the_rest(tmp_path):
     assert again.restored == {"a"} and again.get("c") is None
     again.close("a")
     assert again.restored == set()
+
+
+def test_a_run_takes_batches_by_the_learners_rule_of_its_actors_alone(tmp_path, caplog):
+    """The counter counts only what the learner can take: its actors' batches, whole
+    (an overlap is refused, not taken for its tail), before and after a restore; a
+    restored position of an actor the run no longer names is let go."""
+    runs = Runs(tmp_path, logging.getLogger("t"))
+    cfg = make_config(CONFIG)
+    two = Assignment.from_wire({"counter": "c0", "learner": "L", "actors": ["a0", "a1"]})
+    st, _ = runs.open("r", cfg, runs.prepare("r", cfg, two))
+    assert st.actors == ("a0", "a1") and st.cursor.positions() == {"a0": 0, "a1": 0}
+    assert not st.cursor.knows("a2")
+    o, a = rows(10, 5, st.obs_dim, st.act_dim)
+    count(st, "a0", 0, o[:5], a[:5])
+    count(st, "a1", 0, o[:5], a[:5])
+    assert not burst.plan(st.cursor, [("a0", 3, o, a)]).segments  # an overlap: refused whole
+    runs.close("r")
+
+    again, _ = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN))  # a0 alone now
+    assert again.cursor.positions() == {"a0": 5} and again.counted == 10
+    assert not again.cursor.knows("a1") and not again.cursor.partial
+    assert "positions of ['a1'], not of its actors, let go" in caplog.text
+    runs.close("r")
 
 
 # ------------------------------------------------------------ stats, snapshot schedule

@@ -1,9 +1,11 @@
 """The counter service against a real router and a real `macb serve counter` process.
 
-The test plays the actors and the learner: it publishes numbered transition batches,
-watches the counter's acks and asks it for bonuses. Expected counts come from a
-CountExploration built in the test with the run's config (same SimHash seed), fed the
-unique transitions, so every reply is checked exactly, not just its shape.
+The test plays the actors and the learner: it publishes numbered transition batches
+(one episode each, `episode_len` rows, as actors do: the counter takes no other, as the
+learner takes no other), watches the counter's acks and asks it for bonuses. Expected
+counts come from a CountExploration built in the test with the run's config (same
+SimHash seed), fed the unique transitions, so every reply is checked exactly, not just
+its shape.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import torch
 
 from shared.config import make_config
 from shared.envs.tasks import task_spec_for
-from shared.net.bus import k_ack, k_bonus, k_control, k_info, k_status, k_transitions
+from shared.net.bus import Replies, k_ack, k_bonus, k_control, k_info, k_status, k_transitions
 from shared.net.messages import (
     Ack,
     Assignment,
@@ -42,7 +44,13 @@ OBS, ACT = 14, 5  # speaker_listener: joint obs 3 + 11, joint act 3 + 2
 ASSIGN = Assignment.from_wire(
     {"counter": "c0", "learner": "L", "actors": ["a0", "a1"], "evaluator": "e"}
 )
-BASE = {"task": "speaker_listener", "algo": "cen-maddpg", "explore": "cen-macb", "k": 64}
+BASE = {
+    "task": "speaker_listener",
+    "algo": "cen-maddpg",
+    "explore": "cen-macb",
+    "k": 64,
+    "episode_len": 5,
+}
 
 
 class Stream:
@@ -94,7 +102,9 @@ class Counter:
         self.name = ""
         self._lock = threading.Lock()
         self.acks: dict[str, dict[str, int]] = {}
+        self.lengths: dict[str, int] = defaultdict(lambda: BASE["episode_len"])  # run -> rows
         self.ack_history: dict[str, list[dict[str, int]]] = defaultdict(list)
+        self.ack_attempts: dict[str, int | None] = {}  # run -> the attempt its last ack named
         bus.subscribe(k_ack("*", "c0"), self._on_ack)
 
     def _on_ack(self, key: str, payload: bytes) -> None:
@@ -102,6 +112,7 @@ class Counter:
         with self._lock:
             self.acks[msg.run] = dict(msg.acked)
             self.ack_history[msg.run].append(dict(msg.acked))
+            self.ack_attempts[msg.run] = msg.attempt
 
     def acked(self, run: str) -> dict[str, int]:
         with self._lock:
@@ -134,22 +145,42 @@ class Counter:
 
     def start_run(self, run: str, **over) -> dict:
         config = {**BASE, **over}
+        self.lengths[run] = 1 if config.get("interleave") == "lockstep" else config["episode_len"]
         self.bus.put(k_control("start"), encode(Start(run, config=config, assign=ASSIGN)))
         wait_for(lambda: run in (self.info() or {}).get("runs", {}), 20, what=f"run {run}")
         return config
 
     def send(self, run: str, actor: str, stream: Stream, seq: int, n: int) -> None:
+        """Rows [seq, seq + n) of `stream` as the actor sends them: one batch per episode."""
+        length = self.lengths[run]
+        assert seq % length == 0 and n % length == 0, (seq, n, length)
+        for first in range(seq, seq + n, length):
+            self.send_batch(run, actor, stream, first, length)
+
+    def send_batch(self, run: str, actor: str, stream: Stream, seq: int, n: int) -> None:
+        """Rows [seq, seq + n) of `stream` as one batch, whatever its length."""
         sl = slice(seq, seq + n)
         payload = transitions(run, actor, seq, stream.obs[sl], stream.act[sl])
         self.bus.put(k_transitions(run, actor), payload)
 
     def wait_acked(self, run: str, want: dict[str, int], timeout: float = 20) -> None:
+        """The counter acks `want` (an actor of the run not in it: at 0, as acked)."""
+        want = {a: want.get(a, 0) for a in ASSIGN.actors}
         wait_for(lambda: self.acked(run) == want, timeout, what=f"acks {want}")
 
-    def query(self, run: str, obs: np.ndarray, act: np.ndarray) -> BonusReply | None:
-        replies = self.bus.get(k_bonus(run), encode(BonusQuery(run, obs=obs, act=act)), 2.0)
+    def query(
+        self, run: str, obs: np.ndarray, act: np.ndarray, attempt: int | None = None
+    ) -> BonusReply | None:
+        replies = self.replies(run, obs, act, attempt).ok
         assert len(replies) <= 1
         return decode(replies[0], BonusReply) if replies else None
+
+    def replies(
+        self, run: str, obs: np.ndarray, act: np.ndarray, attempt: int | None = None
+    ) -> Replies:
+        """Every reply and refusal to a query of the run's `attempt`."""
+        query = encode(BonusQuery(run, obs=obs, act=act, attempt=attempt))
+        return self.bus.collect_all(self.bus.get_async(k_bonus(run), query, timeout=2.0))
 
 
 @pytest.fixture
@@ -160,8 +191,8 @@ def counter(bus, cluster):
 def test_exactly_once_per_actor_with_duplicates_gaps_and_overlap(counter):
     counter.launch()
     run = "r-once"
-    config = counter.start_run(run)
-    a0, a1 = Stream(1, 23), Stream(2, 7)
+    config = counter.start_run(run)  # batches of one episode: 5 rows
+    a0, a1 = Stream(1, 25), Stream(2, 10)
     counter.send(run, "a0", a0, 0, 5)
     counter.send(run, "a0", a0, 5, 5)
     counter.send(run, "a0", a0, 5, 5)  # repeated: 5 duplicates
@@ -171,18 +202,21 @@ def test_exactly_once_per_actor_with_duplicates_gaps_and_overlap(counter):
     wait_for(lambda: len(counter.ack_history[run]) > answered, 5, what="the gap's ack")
     # Later batches are sent back to back: the counter takes them in bursts (one ack
     # per burst), with the same exactly-once outcome as one by one.
-    counter.send(run, "a1", a1, 0, 7)
+    counter.send(run, "a1", a1, 0, 5)
     counter.send(run, "a0", a0, 10, 5)  # the missing batch
     counter.send(run, "a0", a0, 15, 5)  # the dropped batch, resent
-    counter.send(run, "a0", a0, 18, 5)  # overlaps 18, 19: 2 duplicates, 3 new
-    counter.send(run, "a1", a1, 0, 7)  # 7 duplicates
-    counter.wait_acked(run, {"a0": 23, "a1": 7})
+    # Overlaps 18, 19: refused whole, as the learner refuses it (its replay takes whole
+    # episodes); the counter took its tail once, rows the learner then never had.
+    counter.send_batch(run, "a0", a0, 18, 5)
+    counter.send(run, "a0", a0, 20, 5)
+    counter.send(run, "a1", a1, 0, 10)  # 5 duplicates, 5 new
+    counter.wait_acked(run, {"a0": 25, "a1": 10})
 
     s = counter.stats(run)
-    assert s["counted_transitions"] == 30
-    assert s["duplicates"] == 5 + 2 + 7
-    assert s["gaps"] == 1
-    assert s["acked"] == {"a0": 23, "a1": 7}
+    assert s["counted_transitions"] == 35
+    assert s["duplicates"] == 5 + 5
+    assert s["gaps"] == 2  # the batch out of order, the overlap
+    assert s["acked"] == {"a0": 25, "a1": 10}
     history = [h.get("a0", 0) for h in counter.ack_history[run]]
     assert history == sorted(history), "acks never go back"
     assert history[answered] == 10, "the gap was answered with the expected seq (10)"
@@ -192,14 +226,45 @@ def test_exactly_once_per_actor_with_duplicates_gaps_and_overlap(counter):
     obs = np.concatenate([a0.obs, a1.obs])
     act = np.concatenate([a0.act, a1.act])
     reply = counter.query(run, obs, act)
-    assert reply is not None
+    assert reply is not None and reply.service == "c0"  # (the learner takes its counter's)
     counts = reply.counts
-    assert counts.shape == (1, 30) and counts.dtype == np.int64
+    assert counts.shape == (1, 35) and counts.dtype == np.int64
     assert np.array_equal(counts, np.stack(truth.counts(obs, act)))
     assert counts.min() >= 1
     beta = make_config(config).beta
     np.testing.assert_allclose(reply.bonus[:, 0], beta / np.sqrt(counts[0]), rtol=1e-6)
-    assert truth.tables[0].total == 30
+    assert truth.tables[0].total == 35
+
+
+def test_a_batch_the_learner_would_refuse_is_not_counted(counter):
+    """The counter counts only rows the learner can take into replay: a batch of the
+    run's actors, of one episode (one step in lockstep). It counted others, which never
+    reached replay, and then took the real rows of those numbers for duplicates, never
+    counting them."""
+    counter.launch()
+    run, steps = "r-refuse", "r-lockstep"
+    counter.start_run(run)
+    counter.start_run(steps, interleave="lockstep")
+    stream = Stream(12, 10)
+    assert counter.info()["rejects_total"] == 0
+    counter.send_batch(run, "a0", stream, 0, 3)  # not one episode (5 rows)
+    counter.send_batch(run, "a9", stream, 0, 5)  # not one of the run's actors
+    counter.send_batch(run, "a" * 300, stream, 0, 5)  # no id is that long (255 bytes)
+    counter.send_batch(steps, "a0", stream, 0, 5)  # lockstep: a batch is one step
+    wait_for(lambda: counter.info()["rejects_total"] == 4, 10, what="4 rejects")
+    assert counter.alive()
+    info = counter.info()
+    assert info["rejects"] == {"transitions": 2, "unknown actor": 2}, info["rejects"]
+    log = counter.log()  # (each reason logged once a second at most: the first is)
+    assert "transitions: a batch is one episode (5), got 3" in log
+    assert info["runs"][run]["counted_transitions"] == 0 and info["runs"][run]["run_rejects"] == 3
+    # The actor's own batches for those numbers are all counted.
+    counter.send(run, "a0", stream, 0, 10)
+    counter.send(steps, "a0", stream, 0, 3)
+    counter.wait_acked(run, {"a0": 10})
+    counter.wait_acked(steps, {"a0": 3})
+    assert counter.stats(run)["counted_transitions"] == 10
+    assert counter.stats(steps)["counted_transitions"] == 3
 
 
 def test_bonus_reply_shapes_for_cen_dis_and_control_arms(counter):
@@ -257,7 +322,7 @@ def test_bonus_reply_shapes_for_cen_dis_and_control_arms(counter):
 def test_sigkill_and_restart_lose_nothing_acknowledged(counter):
     counter.launch(snapshot_s=3600)  # no timed snapshot: the log alone must carry the counts
     run = "r-kill"
-    config = counter.start_run(run)
+    config = counter.start_run(run, episode_len=25)
     n_batches, n = 50, 25
     streams = {"a0": Stream(6, n_batches * n), "a1": Stream(7, n_batches * n)}
 
@@ -353,7 +418,7 @@ def test_garbage_is_dropped_counted_and_harmless(counter):
         assert info["rejects"].get(reason, 0) >= 1, (reason, info["rejects"])
     assert counter.alive() and "r-x" not in info["runs"]
     s = info["runs"][run]
-    assert s["counted_transitions"] == 10 and s["acked"] == {"a0": 10}
+    assert s["counted_transitions"] == 10 and s["acked"] == {"a0": 10, "a1": 0}
     # dims, actor mismatch, query dims (the non-finite batch is refused at decode,
     # before its run is looked at: the service's rejects alone)
     assert s["run_rejects"] == 3
@@ -381,7 +446,8 @@ def test_stop_snapshots_and_frees_the_run_and_shutdown_saves_the_rest(counter):
     path = counter.data_dir / "counter" / stopped
     assert (path / "stopped").exists()
     snap = torch.load(path / "snapshot.pt", weights_only=True)
-    assert snap["expected"] == {"a0": 10} and int(snap["tables"]["table0"]["counts"].sum()) == 10
+    assert snap["expected"] == {"a0": 10, "a1": 0}
+    assert int(snap["tables"]["table0"]["counts"].sum()) == 10
     wait_for(lambda: any(m.state == "stopped" for m in statuses), 5, what="stopped status")
     assert counter.query(stopped, stream.obs, stream.act) is None  # no longer served
     assert kept in counter.info()["runs"]
@@ -436,6 +502,7 @@ def test_a_retry_whose_stop_never_came_is_counted_afresh_and_freed_by_its_learne
     wait_for(lambda: run in (counter.info() or {}).get("runs", {}), 20, what="attempt 1")
     counter.send(run, "a0", stream, 0, 10)
     counter.wait_acked(run, {"a0": 10})
+    assert counter.ack_attempts[run] == 1  # (a reader of another attempt drops them)
     again = Start(run, config=BASE, assign=ASSIGN, attempt=2)
     counter.bus.put(k_control("start"), encode(again))
     wait_for(
@@ -445,8 +512,10 @@ def test_a_retry_whose_stop_never_came_is_counted_afresh_and_freed_by_its_learne
     assert (ended.attempt, ended.reason) == (1, "attempt 2 of the run started")
     assert counter.stats(run)["counted_transitions"] == 0
     assert len(list((counter.data_dir / "counter" / ".archive").iterdir())) == 1
-    counter.send(run, "a0", stream, 0, 4)  # numbered from 0 again
-    wait_for(lambda: counter.stats(run)["counted_transitions"] == 4, 10, what="counted anew")
+    counter.send(run, "a0", stream, 0, 5)  # numbered from 0 again
+    wait_for(lambda: counter.stats(run)["counted_transitions"] == 5, 10, what="counted anew")
+    counter.wait_acked(run, {"a0": 5})
+    assert counter.ack_attempts[run] == 2
 
     def learner(state: str, attempt: int) -> None:
         msg = Status(run, service="L", state=state, detail={}, attempt=attempt)
@@ -469,7 +538,10 @@ def test_a_retry_whose_stop_never_came_is_counted_afresh_and_freed_by_its_learne
 
 def test_a_restored_run_started_again_as_the_attempt_it_holds_keeps_its_counts(counter):
     """A start naming the attempt a restored counter noted (attempt.json) is a repeated
-    start of that attempt: its tables stay; one naming no attempt is a new attempt."""
+    start of that attempt: its tables stay; one naming no attempt is a new attempt.
+    Restored, it prices only that attempt's queries (its learner goes on after the
+    counter's restart, and no start comes): another attempt's (a retry, its start lost
+    to this counter, or given to another counter) gets a refusal, not stale counts."""
     counter.launch()
     run, stream = "r-same", Stream(3, 10)
     counter.bus.put(k_control("start"), encode(Start(run, config=BASE, assign=ASSIGN, attempt=3)))
@@ -477,8 +549,19 @@ def test_a_restored_run_started_again_as_the_attempt_it_holds_keeps_its_counts(c
     counter.send(run, "a0", stream, 0, 10)
     counter.wait_acked(run, {"a0": 10})
     counter.kill(signal.SIGTERM)
+    counter.acks.pop(run)
     counter.launch()
     assert counter.stats(run)["counted_transitions"] == 10
+    # Restored, it acks (every second) the attempt its folder notes: were that attempt
+    # over, the learner of the next would drop these acks.
+    counter.wait_acked(run, {"a0": 10})
+    assert counter.ack_attempts[run] == 3
+    reply = counter.query(run, stream.obs, stream.act, attempt=3)
+    assert reply is not None and reply.service == "c0" and reply.counts.min() == 1
+    assert counter.query(run, stream.obs, stream.act) is not None  # (an older learner's)
+    other = counter.replies(run, stream.obs, stream.act, attempt=4)
+    assert other.ok == [] and [r.by for r in other.refused] == ["c0"], other
+    assert "another attempt: asked for attempt 4, holds 3" in other.refused[0].reason
     counter.bus.put(k_control("start"), encode(Start(run, config=BASE, assign=ASSIGN, attempt=3)))
     wait_for(lambda: "attempt 3 started again: already restored" in counter.log(), 10,
              what="the repeated start")  # fmt: skip
@@ -495,22 +578,29 @@ def test_a_restored_run_started_again_as_the_attempt_it_holds_keeps_its_counts(c
 
 
 def test_timed_snapshots_wait_for_the_log_to_reach_a_quarter_of_the_table(counter):
-    # k=64: 16-byte keys, 24 snapshot bytes per key, 16 log bytes per row (+30 per record).
+    # k=64: 16-byte keys, 24 snapshot bytes per key, 16 log bytes per row (+30 per record);
+    # episodes of 50 rows, one batch each.
     counter.launch(snapshot_s=0.2)
     run = "r-snap"
-    counter.start_run(run)
-    stream = Stream(10, 650)
-    counter.send(run, "a0", stream, 0, 400)  # log 6,430 B >= 0.25 * 400 * 24
-    counter.wait_acked(run, {"a0": 400})
-    wait_for(lambda: counter.stats(run)["snapshots"] == 1, 10, what="the first snapshot")
-    counter.send(run, "a0", stream, 400, 50)  # log 830 B < 0.25 * 450 * 24 = 2,700
-    counter.wait_acked(run, {"a0": 450})
+    counter.start_run(run, episode_len=50)
+    stream = Stream(10, 350)
+    counter.send(run, "a0", stream, 0, 200)  # log >= 3,230 B >= 0.25 * 200 * 24 = 1,200
+    counter.wait_acked(run, {"a0": 200})
+    # (four batches may be taken in more than one burst, and snapshotted in steps)
+    wait_for(
+        lambda: (s := counter.stats(run))["snapshots"] >= 1 and s["wal_records"] == 0,
+        10,
+        what="the first rows snapshotted",
+    )
+    first = counter.stats(run)["snapshots"]
+    counter.send(run, "a0", stream, 200, 50)  # log 830 B < 0.25 * 250 * 24 = 1,500
+    counter.wait_acked(run, {"a0": 250})
     time.sleep(1.0)  # five timed checks
     s = counter.stats(run)
-    assert s["snapshots"] == 1 and s["wal_records"] == 1, s
-    counter.send(run, "a0", stream, 450, 200)  # log 4,060 B >= 0.25 * 650 * 24 = 3,900
-    counter.wait_acked(run, {"a0": 650})
-    wait_for(lambda: counter.stats(run)["snapshots"] == 2, 10, what="the second snapshot")
+    assert s["snapshots"] == first and s["wal_records"] == 1, s
+    counter.send(run, "a0", stream, 250, 100)  # log >= 2,460 B >= 0.25 * 350 * 24 = 2,100
+    counter.wait_acked(run, {"a0": 350})
+    wait_for(lambda: counter.stats(run)["snapshots"] == first + 1, 10, what="the next snapshot")
     assert counter.stats(run)["wal_records"] == 0
 
 

@@ -1,7 +1,8 @@
 """The learner service's parts in process, no bus: the update loop at the replay ratio
 (updates.py), when a lockstep request is answered (lockstep.py), what goes out at an
-episode's end and between updates (outbound.py), and a group's resume from the newest
-update all its runs have a cut of (checkpoint.py)."""
+episode's end and between updates (outbound.py), a group's resume from the newest
+update all its runs have a cut of (checkpoint.py), and which counter's bonus reply is
+taken (bonus.py)."""
 
 from __future__ import annotations
 
@@ -21,8 +22,16 @@ from services.learner.state import LearnerRun, RunGroup, new_run
 from shared.config import make_config
 from shared.core.learners.runs import SoloRuns
 from shared.envs.tasks import task_spec_for
-from shared.net.bus import Replies
-from shared.net.messages import Ack, Action, ActRequest, Metrics, Weights
+from shared.net.bus import Refused, Replies
+from shared.net.messages import (
+    Ack,
+    Action,
+    ActRequest,
+    BonusQuery,
+    BonusReply,
+    Metrics,
+    Weights,
+)
 from shared.net.wire import WireError, decode, encode
 from shared.run.factories import build_learner
 from tests.test_learner_intake import batch
@@ -55,7 +64,7 @@ class SilentCounter:
         pass
 
 
-def run(tmp_path, explore="constant", interleave="async", svc=None, **extra):  # noqa: ANN001
+def run(tmp_path, explore="constant", interleave="async", svc=None, attempt=None, **extra):  # noqa: ANN001
     cfg = make_config({"task": "speaker_listener", "explore": explore, "episodes": 8,
                        "episode_len": LEN, "hidden": [16, 16], "learning_starts": 3,
                        "learner_lanes": 1, "eval_every": 2, "interleave": interleave,
@@ -68,7 +77,7 @@ def run(tmp_path, explore="constant", interleave="async", svc=None, **extra):  #
     pubs = {"weights": Sent(Weights), "eval": Sent(Weights), "ack": Sent(Ack)}
     return new_run("r", cfg, spec, ACTORS, learner=build_learner(cfg, spec), bonus=bonus,
                    evaluations=EvaluationsInFlight(), pubs=pubs, counter="c",
-                   folder=folder)  # fmt: skip
+                   folder=folder, attempt=attempt)  # fmt: skip
 
 
 def alone(st: LearnerRun, asks: lockstep.Asks | None = None) -> RunGroup:
@@ -144,6 +153,13 @@ def test_the_credit_window_closes_while_the_learner_is_behind_and_reopens(tmp_pa
     assert sent.ack_pub[-1].window > 0 and sent.window_open
     assert len(sent.weights_pub) == 1  # nothing taken yet: the first weights again
     assert rows == ["learner"]
+
+
+def test_an_ack_names_the_attempt_of_the_run(tmp_path):
+    """(An actor of another attempt of the run drops it: acks only move forward.)"""
+    st = run(tmp_path, attempt=3)
+    outbound().ack(st)
+    assert st.outgoing.ack_pub[-1].attempt == 3
 
 
 def test_a_lockstep_request_is_answered_only_once_its_steps_are_in_replay_and_learnt(tmp_path):
@@ -282,3 +298,53 @@ def test_a_row_early_stop_cannot_read_is_counted_on_the_services_thread(data):
     assert (tag, key) == ("reject", "macb/run/r/metrics/eval")
     assert why.startswith(b"metrics: eval row of point 4")
     assert 4 in ev.unreported and not ev.rows_in and ev.reported_rows == 0
+
+
+class Counters:
+    """Every counter's answers to the next query: (service, bonus) replies and refusals
+    (by), as the run's key gets them; what was asked, decoded."""
+
+    def __init__(self) -> None:
+        self.next: tuple[list[tuple[str | None, np.ndarray]], list[str]] = ([], [])
+        self.asked: list[BonusQuery] = []
+
+    def get_async(self, key, payload, timeout):  # noqa: ANN001, ARG002
+        self.asked.append(decode(payload, BonusQuery))
+        replies, refusals = self.next
+        ok = [
+            encode(BonusReply("r", counts=np.ones((1, len(b)), np.int64), bonus=b, service=by))
+            for by, b in replies
+        ]
+        return Replies(ok, [Refused(by, "no") for by in refusals])
+
+    def collect_all(self, replies):  # noqa: ANN001
+        return replies
+
+
+def test_only_the_runs_counters_bonus_is_taken_and_only_a_finite_one(tmp_path):
+    """Every counter answers the run's key: one that restored this run's tables of an
+    ended attempt from disk answers too (a retry counted by another counter). Its
+    reply, first or alone, is not the run's price; nor is a bonus not finite or < 0."""
+    counters, rejects = Counters(), []
+    client = BonusClient(bus_query(counters, "bonus"), rejects.append, "r", "cen-macb", 0.8,
+                         2, counter="c1", attempt=2)  # fmt: skip
+    b = batch(run(tmp_path), "a0", 0)
+    stale, fresh = np.full((LEN, 2), 0.8, np.float32), np.full((LEN, 2), 0.1, np.float32)
+
+    counters.next = ([("c0", stale), ("c1", fresh)], [])
+    assert np.array_equal(client.bonus_for([b])[0], fresh)
+    assert counters.asked[-1].attempt == 2  # (a counter of another attempt refuses it)
+    counters.next = ([("c0", stale)], ["c1"])  # its own counter refused: a refusal
+    assert client.bonus_for([b]) is None and client.refused == 1
+    counters.next = ([("c0", stale)], [])  # its own counter silent: unanswered
+    assert client.bonus_for([b]) is None and client.unanswered == 1
+    assert client.failures == 0
+    assert len(rejects) == 3 and all("another counter: c0, not c1" in r for r in rejects)
+
+    for bad in (np.nan, np.inf, -0.5):
+        counters.next = ([("c1", np.full((LEN, 2), bad, np.float32))], [])
+        assert client.bonus_for([b]) is None
+    assert client.failures == 3 and rejects[-1] == "bonus_reply: a bonus not finite and >= 0"
+    counters.next = ([(None, fresh)], [])  # an older counter names none: taken
+    assert np.array_equal(client.bonus_for([b])[0], fresh)
+    assert client.queries == 2

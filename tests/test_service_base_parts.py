@@ -92,11 +92,15 @@ def test_a_runs_file_of_one_run_still_loads_and_a_bad_one_is_refused_aside(tmp_p
     back = ServedRuns(1, path, LOG).saved()
     assert [s.run for s in back] == ["r"] and [s.assign.to_wire() for s in back] == [assign]
     no_actors = {"runs": [{"run": "r", "config": RAW, "assign": {"learner": "L"}}]}
+    # a run id no start could name (refused at the start): the learner would build its
+    # folder from it, outside its data dir
+    climbs = {"runs": [{"run": "../../r", "config": RAW, "assign": assign}]}
     for bad in (
         "not json",
         json.dumps({"runs": []}),
         json.dumps({"runs": [{"run": "r"}]}),
         json.dumps(no_actors),
+        json.dumps(climbs),
     ):
         path.write_text(bad)
         assert ServedRuns(1, path, LOG).saved() == []

@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from shared.net.messages import (
+    MAX_ID_BYTES,
     MESSAGES,
     Ack,
     Assignment,
     BonusQuery,
+    BonusReply,
     History,
     Metrics,
     Resumed,
@@ -247,6 +249,8 @@ def test_an_assignment_names_its_services_by_role():
         ({"actors": []}, "actors", "is not a non-empty list"),
         ({"actors": ["a0", 1]}, "actors", "holds something other than an id"),
         ({"actors": ["a0", "a0"]}, "actors", "names an id twice"),
+        ({"actors": ["a0", "a" * 256]}, "actors", "holds something other than an id"),
+        ({"counter": "é" * 128}, "counter", "is not a service id"),  # 256 bytes
         ({"group": {"g0": 0}}, "group", "is not a non-empty list"),
         ({"group": ["g0", ""]}, "group", "holds something other than an id"),
         ({"group": ["g0", "g0"]}, "group", "names an id twice"),
@@ -254,6 +258,8 @@ def test_an_assignment_names_its_services_by_role():
     ],
 )
 def test_a_malformed_assignment_is_refused_naming_the_field(change, field, why):
+    """(An id is at most MAX_ID_BYTES bytes: ids go into keys and the counter's log,
+    whose records hold an actor's id after a 2-byte length.)"""
     wire = {k: v for k, v in {**GROUP, **change}.items() if v is not None or k not in change}
     if why == "unknown field":
         match = f"assignment: unknown field {field!r}"
@@ -261,6 +267,11 @@ def test_a_malformed_assignment_is_refused_naming_the_field(change, field, why):
         match = f"assignment: field {field!r} {why}"
     with pytest.raises(WireError, match=match):
         Assignment.from_wire(wire)
+
+
+def test_an_id_of_the_longest_length_is_one():
+    longest = "é" * (MAX_ID_BYTES // 2) + "a"  # 255 bytes
+    assert Assignment.from_wire({"learner": longest, "actors": [longest]}).learner == longest
 
 
 def test_an_assignment_that_is_no_map_is_refused():
@@ -501,3 +512,20 @@ def test_what_no_message_holds_is_refused_before_it_is_built():
     long = msgpack.packb({**raw, "reason": "x" * ((1 << 20) + 1)})
     with pytest.raises(WireError, match="undecodable payload"):
         decode(long, Stop)
+
+
+def test_acks_and_bonus_messages_name_attempt_and_counter_and_an_older_peers_decode():
+    """Ack.attempt, BonusQuery.attempt and BonusReply.service are optional: a peer from
+    before them sends none and is read as naming none (taken as before)."""
+    rows = np.zeros((2, 3), np.float32)
+    msgs = [
+        Ack("r", service="c0", acked={"a0": 5}, window=0, attempt=2),
+        BonusQuery("r", obs=rows, act=rows, attempt=2),
+        BonusReply("r", counts=np.ones((1, 2), np.int64), bonus=rows[:, :2], service="c0"),
+    ]
+    for msg, field in zip(msgs, ("attempt", "attempt", "service")):
+        back = decode(encode(msg), type(msg))
+        assert getattr(back, field) == getattr(msg, field)
+        raw = msgpack.unpackb(encode(msg), raw=False)
+        del raw[field]
+        assert getattr(decode(_repack(raw), type(msg)), field) is None

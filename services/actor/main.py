@@ -103,10 +103,12 @@ class ActorService(ServiceBase):
 
     # ------------------------------------------------------------ lifecycle
     def outbox(self, run: str, config: TrainConfig, assign: Assignment) -> Outbox:
-        """A run's outbox on the bus (its acks listened to)."""
+        """A run's outbox on the bus (its acks listened to; its publisher, as its
+        subscriptions, ends when the run is freed)."""
         self.listen(keys.k_ack(run, "*"), "ack", run)
         sender = run_sender(config, assign)
-        return Outbox(run, self.id, sender, self.bus.publisher(keys.k_transitions(run, self.id)))
+        pub = self.endpoint.publisher(keys.k_transitions(run, self.id), run)
+        return Outbox(run, self.id, sender, pub)
 
     def on_start(self, run: str, config: TrainConfig, assign: Assignment) -> None:
         self._open(run, config, assign, rejoining=False)
@@ -129,7 +131,7 @@ class ActorService(ServiceBase):
         act_pub = None
         if config.interleave == "lockstep":  # (a group's: on its lead run's keys; the
             # answers' subscription held by the group, as its lead may end before the others)
-            act_pub = self.bus.publisher(keys.k_act(runs[0], self.id))
+            act_pub = self.endpoint.publisher(keys.k_act(runs[0], self.id), group_subs(runs))
             self.listen(keys.k_action(runs[0], self.id), "action", group_subs(runs))
         actors = list(assign.actors)
         rank, grouped = actors.index(self.id), assign.group is not None

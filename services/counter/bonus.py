@@ -69,9 +69,12 @@ def check(st: RunState, msg: BonusQuery) -> None:
     check_dims(msg, st.obs_dim, st.act_dim)
 
 
-def answer(st: RunState, msg: BonusQuery, lock: threading.RLock, t0: float) -> bytes | None:
-    """The encoded reply to a checked query (None if the run was closed meanwhile); its
-    time since `t0` and its rows never counted go to the run's stats."""
+def answer(
+    st: RunState, msg: BonusQuery, lock: threading.RLock, t0: float, service: str
+) -> bytes | None:
+    """The encoded reply to a checked query (None if the run was closed meanwhile),
+    naming the counter that answers (`service`); its time since `t0` and its rows never
+    counted go to the run's stats."""
     batch = len(msg.obs)
     keys = st.explorer.keys(msg.obs, msg.act)  # no lock: hashers are read-only
     with lock:
@@ -87,8 +90,9 @@ def answer(st: RunState, msg: BonusQuery, lock: threading.RLock, t0: float) -> b
     bonus = st.explorer.bonus_from_counts([np.maximum(c, 1) for c in counts], batch)
     with lock:
         tables = st.explorer.stats()  # O(1): kept up to date as keys are counted
+    bonus32 = bonus.astype(np.float32)
     reply = encode(
-        BonusReply(msg.run, counts=counts_arr, bonus=bonus.astype(np.float32), tables=tables)
+        BonusReply(msg.run, counts=counts_arr, bonus=bonus32, tables=tables, service=service)
     )
     elapsed = time.perf_counter() - t0
     with lock:

@@ -1,8 +1,9 @@
 """What a burst of batches adds to a run's counts, decided before anything is counted.
 
-The exactly-once rule (`ReceiveCursor`) runs batch by batch in arrival order on a
-staging copy of the run's cursor; what one actor has taken in a burst is one contiguous
-range (each taken batch starts where the last ended), so it becomes one log record.
+The exactly-once rule (the run's `ReceiveCursor`: its actors, whole batches, as the
+learner's) runs batch by batch in arrival order on a staging copy of the run's cursor;
+what one actor has taken in a burst is one contiguous range (each taken batch starts
+where the last ended), so it becomes one log record.
 `commit` then hashes the rows, logs them, counts them and only then swaps the staged
 cursor in; the service acknowledges after it: an acknowledged count is always on disk.
 
@@ -70,7 +71,8 @@ class Burst:
 
 
 def plan(cursor: ReceiveCursor, batches: list[Batch]) -> Burst:
-    """The rows of `batches` that are new (an overlap's new tail included), by actor."""
+    """The rows of `batches` that are new (an overlap's new tail too, for a cursor that
+    takes one), by actor."""
     staged = cursor.copy()
     taken: dict[str, tuple[int, list[np.ndarray], list[np.ndarray]]] = {}
     for actor, seq, obs, act in batches:

@@ -1,13 +1,18 @@
 """The counter service: the count tables of every active run, exactly once per transition.
 
 It owns the tables because counts must change only on collection, once per transition,
-whoever else sees the transitions: every run's batches are taken by the receive rule of
-`shared.net.protocol.ReceiveCursor` (duplicates ignored, an overlap's new tail taken, gaps
-dropped for the actor to resend), hashed in bursts, written to a write-ahead log and
-only then counted and acknowledged, so an acknowledged count survives a SIGKILL.
+whoever else sees the transitions: every run's batches are taken by the learner's
+receive rule (`shared.net.protocol.ReceiveCursor` of the run's actors, whole batches:
+duplicates ignored, gaps and overlaps dropped for the actor to resend; a batch of one
+episode, one step in lockstep), so that every row counted is one the learner can take
+into replay, then hashed in bursts, written to a write-ahead log and only then counted
+and acknowledged, so an acknowledged count survives a SIGKILL.
 Bonus queries are answered on Zenoh's thread under the lock ingestion takes, so a
 query sees a burst counted whole or not at all, and they come first (a short GIL
-switch interval, the service thread stepping aside): the learner waits for them.
+switch interval, the service thread stepping aside): the learner waits for them. A
+query of another attempt of the run than the one whose tables it holds is refused
+(a run restored from disk answers only its noted attempt's learner, until a start of
+another attempt replaces it), and every reply names this counter.
 
 This class is the shell: the bus, the timers and the dispatch. Its parts: `runs.py`
 (the runs' folders, opened, restored, archived; the lock), `burst.py` (a burst's new
@@ -37,8 +42,8 @@ from services.counter.stats import run_stats, update_rate
 from shared.config import TrainConfig
 from shared.net.bus import Refused, k_ack, k_bonus, k_status, k_transitions, run_of
 from shared.net.info import CounterInfo, ServiceInfo
-from shared.net.messages import Ack, Assignment, BonusQuery, Status, Transitions
-from shared.net.wire import WireError, check_dims, encode
+from shared.net.messages import Ack, Assignment, BonusQuery, Status, Transitions, is_service_id
+from shared.net.wire import WireError, check_batch_rows, check_dims, encode
 from shared.settings import settings
 
 STATS_S = 1.0
@@ -168,11 +173,17 @@ class CounterService(ServiceBase):
             self.reject(key, f"unknown run: {msg.run}")
             return
         if key.rsplit("/", 1)[-1] != msg.actor:
-            why = f"actor mismatch: key and message name different actors ({msg.actor})"
+            why = f"actor mismatch: key and message name different actors ({msg.actor:.64})"
             self._run_reject(st, key, why)
+            return
+        if not st.cursor.knows(msg.actor) or not is_service_id(msg.actor):
+            # not one of the run's actors (the learner refuses its batches too), or
+            # (actors not known) an id longer than an id can be, and than the log holds
+            self._run_reject(st, key, f"unknown actor: {msg.actor:.64}")
             return
         try:
             check_dims(msg, st.obs_dim, st.act_dim)
+            check_batch_rows(msg, st.config.episode_len, st.lockstep)  # the learner's rule
         except WireError as err:
             self._run_reject(st, key, str(err))
             return
@@ -216,7 +227,8 @@ class CounterService(ServiceBase):
     def _ack(self, run: str, st: RunState) -> None:
         with self.runs.lock:
             acked = st.cursor.positions()
-        ack = encode(Ack(run, service=self.id, acked=acked, window=0))
+        attempt = self.served.attempts.get(run)  # (a restored run's: its attempt.json)
+        ack = encode(Ack(run, service=self.id, acked=acked, window=0, attempt=attempt))
         self.bus.put(k_ack(run, self.id), ack)
 
     # ------------------------------------------------------------ bonus queries
@@ -232,12 +244,20 @@ class CounterService(ServiceBase):
             if st is None:
                 self.reject(key, f"unknown run: {msg.run}")
                 return Refused(self.id, f"unknown run: {msg.run}")
+            if not self.of_attempt(msg.run, msg.attempt):
+                # Its tables are another attempt's: a run restored from disk after its
+                # attempt ended (no stop reached this counter), whose retry another
+                # counter counts, or this one once its start comes.
+                held = self.served.attempts.get(msg.run)
+                why = f"another attempt: asked for attempt {msg.attempt}, holds {held}"
+                self.reject(key, f"bonus query of {why}")
+                return Refused(self.id, f"the counter's tables are of {why}")
             try:
                 bonus.check(st, msg)
             except WireError as err:
                 self._run_reject(st, key, str(err))
                 return Refused(self.id, str(err))
-            return bonus.answer(st, msg, self.runs.lock, t0)
+            return bonus.answer(st, msg, self.runs.lock, t0, self.id)
 
     # ------------------------------------------------------------ stats, timers
     def tick(self) -> bool:

@@ -9,7 +9,6 @@ the service publishes what follows (docs/architecture.md, "The counter's files")
 from __future__ import annotations
 
 import logging
-import re
 import shutil
 import threading
 import time
@@ -20,13 +19,12 @@ from services.counter.state import RunState
 from services.runs import noted_attempt
 from shared.config import TrainConfig, make_config
 from shared.envs.tasks import task_spec_for
-from shared.net.messages import Assignment, WireError
+from shared.net.messages import Assignment, WireError, run_id_error, same_attempt
+from shared.net.protocol import ReceiveCursor
 from shared.persist.checkpoint import folder_config_difference
 from shared.persist.files import read_json, write_json
 from shared.persist.wal import WriteAheadLog
 from shared.run.factories import build_exploration
-
-_RUN_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,127}")
 
 
 def keys_held(st: RunState) -> int:
@@ -56,10 +54,12 @@ class Runs:
     ) -> Path:
         """The run's folder for a start: kept if it holds an unfinished run of the same
         config (resumed; a key the saved config lacks counts as its default, the rule
-        of every run folder: `folder_config_difference`), else what is there is archived; config,
-        assignment (its `to_wire` map) and the start's attempt noted."""
-        if not _RUN_ID.fullmatch(run):
-            raise ValueError(f"run id {run!r} is not a safe directory name")
+        of every run folder: `folder_config_difference`) and attempt (either not noted:
+        taken as the same, `same_attempt`), else what is there is archived; config,
+        assignment (its `to_wire` map) and the start's attempt noted. Another attempt's
+        tables must not meet this one's transitions, numbered from 0 again."""
+        if why := run_id_error(run):  # (refused at the start already: services/common.py)
+            raise ValueError(f"{why}: not a safe directory name")
         path = self.root / run
         if path.exists():
             stopped = (path / "stopped").exists()
@@ -67,8 +67,15 @@ class Runs:
                 diff = folder_config_difference(path, config.model_dump(mode="json"))
             else:
                 diff = "no config.json"
-            if stopped or diff is not None:
-                why = "was stopped" if stopped else f"had another config ({diff})"
+            noted = self.attempt(run)
+            why = None
+            if stopped:
+                why = "was stopped"
+            elif diff is not None:
+                why = f"had another config ({diff})"
+            elif not same_attempt(noted, attempt):
+                why = f"was attempt {noted}, not {attempt}"
+            if why is not None:
                 dest = self.archive(path)
                 self.log.warning("run %s %s: old state moved to %s", run, why, dest)
         path.mkdir(parents=True, exist_ok=True)
@@ -113,15 +120,32 @@ class Runs:
             raise
         st.rate_counted = st.counted
         if (path / "assign.json").exists():
-            try:  # the learner whose end ends the run
-                st.learner = Assignment.from_wire(read_json(path / "assign.json")).learner
+            try:  # the learner whose end ends the run, the actors whose batches count
+                assign = Assignment.from_wire(read_json(path / "assign.json"))
+                st.learner, st.actors = assign.learner, assign.actors
             except WireError as err:
-                self.log.warning("run %s: %s in %s: its learner is not known", run, err, path)
+                why = "run %s: %s in %s: its learner and actors are not known"
+                self.log.warning(why, run, err, path)
+        st.cursor = self._receiving(run, st)
         with self.lock:
             self.states[run] = st
         if replayed:
             snapshot.write(run, st)  # fold the log into a snapshot right away
         return st, replayed
+
+    def _receiving(self, run: str, st: RunState) -> ReceiveCursor:
+        """The run's cursor as restored (or new), made the learner's rule: the run's
+        actors alone (a batch of another is refused), whole batches only (an overlap
+        refused, not taken for its tail), so that every row counted is one the learner
+        can take. A position restored for an actor the run no longer names is let go
+        (logged): its batches would not be taken."""
+        positions = st.cursor.positions()
+        if st.actors is not None and (strangers := sorted(set(positions) - set(st.actors))):
+            self.log.warning("run %s: positions of %s, not of its actors, let go", run, strangers)
+            positions = {a: p for a, p in positions.items() if a in st.actors}
+        cursor = ReceiveCursor(positions, actors=st.actors, partial=False)
+        cursor.duplicate_rows, cursor.gaps = st.cursor.duplicate_rows, st.cursor.gaps
+        return cursor
 
     def restore_all(self) -> list[tuple[str, TrainConfig, RunState]]:
         """Open every run this counter had not finished (no `stopped` marker); a run

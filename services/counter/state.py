@@ -25,7 +25,8 @@ class RunState:
     act_dim: int
     path: Path
     wal: WriteAheadLog
-    # Next expected number per actor, and the duplicate rows / gaps seen (shared.net.protocol).
+    # Next expected number per actor, and the duplicate rows / gaps seen (shared.net.protocol):
+    # once opened, of the run's actors alone and whole batches only, as the learner's.
     cursor: ReceiveCursor = field(default_factory=ReceiveCursor)
     counted: int = 0
     run_rejects: int = 0
@@ -39,3 +40,11 @@ class RunState:
     rate_counted: int = 0
     closed: bool = False
     learner: str | None = None  # the run ends for the counter when its learner completes
+    # The run's actors (its assignment's), whose batches alone are counted; None: not
+    # known (a folder without a readable assign.json), any actor's.
+    actors: tuple[str, ...] | None = None
+
+    @property
+    def lockstep(self) -> bool:
+        """interleave lockstep: a batch is one step, not one episode."""
+        return self.config.interleave == "lockstep"

@@ -6,6 +6,11 @@ overlap. A query the counter does not answer is kept (`PendingBonus`) and priced
 never redrawn: the sampler's stream stays the one per-update sampling gives. The client
 holds no service: it is given the query to send (`bus_query` makes one on a bus) and
 where a malformed reply is reported.
+
+Every counter answers the run's key, so a reply is taken only from the run's counter
+(`BonusReply.service`): another one may hold this run's tables of an ended attempt,
+restored from its disk. A query names the run's attempt, which such a counter refuses;
+a bonus that is not finite and >= 0 is refused here.
 """
 
 from __future__ import annotations
@@ -53,11 +58,14 @@ class BonusClient:
         beta: float,
         n: int,
         counter: str | None = None,
+        attempt: int | None = None,
     ) -> None:
         self.query, self.reject = query, reject
-        # the run's counter: only its refusal counts (every node's counter answers the
-        # key; the others do not serve the run). None: any counter's.
+        # the run's counter: only its reply or refusal counts (every node's counter
+        # answers the key; the others do not serve the run, or hold an ended attempt's
+        # tables). None: any counter's.
         self.counter = counter
+        self.attempt = attempt  # the run's (Start.attempt), on every query
         self.run, self.mode, self.beta, self.n = run, mode, beta, n
         self.latencies: collections.deque[float] = collections.deque(maxlen=1000)
         self.wait_s = 0.0  # all time spent in queries (the learner waits for each)
@@ -90,7 +98,7 @@ class BonusClient:
             return PendingBonus(sizes, [np.full((B, self.n), self.beta, np.float32) for B in sizes])
         obs = np.concatenate([b.obs for b in batches])
         act = np.concatenate([b.act for b in batches])
-        payload = encode(BonusQuery(self.run, obs=obs, act=act))
+        payload = encode(BonusQuery(self.run, obs=obs, act=act, attempt=self.attempt))
         t0 = time.perf_counter()
         return PendingBonus(sizes, None, self.query(payload), t0)
 
@@ -104,31 +112,41 @@ class BonusClient:
             replies = query.replies()
         finally:
             self.wait_s += time.perf_counter() - query.t0
-        if not replies.ok:
-            mine = [r for r in replies.refused if self.counter in (None, r.by)]
-            if mine:
-                self._refused(mine[0].reason)
-            else:
-                self.unanswered += 1
-            return None
+        answered = False  # the run's counter replied (an unusable reply is a failure)
         for raw in replies.ok:
             try:
                 msg = decode(raw, BonusReply)
             except WireError as err:
                 self.reject(str(err))
+                answered = True
                 continue
-            if msg.bonus.shape == (rows, self.n):
-                self.latencies.append(time.perf_counter() - query.t0)
-                self.queries += 1
-                self.rows += rows
-                self.tables = _table_stats(msg.tables)
-                self.fresh = True
-                bonus = msg.bonus.astype(np.float32)
-                cuts = np.cumsum(sizes)[:-1]
-                if msg.counts.ndim == 2 and msg.counts.shape[1] == rows:
-                    self.counts = np.split(msg.counts, cuts, axis=1)
-                return np.split(bonus, cuts)
-        self.failures += 1
+            if self.counter is not None and msg.service not in (None, self.counter):
+                self.reject(f"bonus_reply of another counter: {msg.service}, not {self.counter}")
+                continue  # (None: an older counter, which does not say)
+            answered = True
+            if msg.bonus.shape != (rows, self.n):
+                continue
+            if not (np.isfinite(msg.bonus).all() and (msg.bonus >= 0).all()):
+                self.reject("bonus_reply: a bonus not finite and >= 0")
+                continue
+            self.latencies.append(time.perf_counter() - query.t0)
+            self.queries += 1
+            self.rows += rows
+            self.tables = _table_stats(msg.tables)
+            self.fresh = True
+            bonus = msg.bonus.astype(np.float32)
+            cuts = np.cumsum(sizes)[:-1]
+            if msg.counts.ndim == 2 and msg.counts.shape[1] == rows:
+                self.counts = np.split(msg.counts, cuts, axis=1)
+            return np.split(bonus, cuts)
+        if answered:
+            self.failures += 1
+            return None
+        mine = [r for r in replies.refused if self.counter in (None, r.by)]
+        if mine:
+            self._refused(mine[0].reason)
+        else:
+            self.unanswered += 1
         return None
 
     def _refused(self, why: str) -> None:

@@ -22,7 +22,7 @@ import numpy as np
 from shared.core.replay import ReplayBuffer
 from shared.net.messages import Transitions
 from shared.net.protocol import AckTracker, ReceiveCursor
-from shared.net.wire import WireError, check_dims
+from shared.net.wire import check_batch_rows, check_dims
 from shared.persist.wal import WriteAheadLog
 
 if TYPE_CHECKING:
@@ -121,11 +121,8 @@ def take(st: LearnerRun, msg: Transitions) -> bool:
     taken: the ack tells the actor where we are); True if taken. Refuses a batch of
     another layout or length with WireError."""
     check_dims(msg, st.spec.joint_obs_dim, st.spec.joint_act_dim)
+    check_batch_rows(msg, st.config.episode_len, st.lockstep)  # (the counter's rule too)
     n, it = len(msg), st.intake
-    if n != (1 if st.lockstep else st.config.episode_len):
-        length = st.config.episode_len
-        what = "one step (lockstep)" if st.lockstep else f"one episode ({length})"
-        raise WireError(f"transitions: a batch is {what}, got {n}")
     # Its log record is made before the cursor moves: a batch that cannot be logged
     # raises with nothing taken (taken first, its resend was a duplicate, never logged).
     cols = None

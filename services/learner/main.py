@@ -190,7 +190,8 @@ class LearnerService(ServiceBase):
         group = RunGroup(runs, learner, grouped)
         if c0.interleave == "lockstep":  # (held by the group: its lead may end first)
             actor, lead = assign.actors[0], runs[0]
-            group.asks = Asks(actor, self.bus.publisher(keys.k_action(lead, actor)))
+            answers = self.endpoint.publisher(keys.k_action(lead, actor), group.subs)
+            group.asks = Asks(actor, answers)
             self.listen(keys.k_act(lead, "*"), "act_request", group.subs)
         self.serving.group = group
         for r, run in enumerate(runs):
@@ -219,15 +220,16 @@ class LearnerService(ServiceBase):
         spec = task_spec_for(config)
         folder = self.data_dir / "learner" / run
         folder.mkdir(parents=True, exist_ok=True)
-        pubs = {
-            "weights": self.bus.publisher(keys.k_weights(run, "latest")),
-            "eval": self.bus.publisher(keys.k_weights(run, "eval")),
-            "ack": self.bus.publisher(keys.k_ack(run, self.id)),
+        pubs = {  # (undeclared with the run's subscriptions when it is freed)
+            "weights": self.endpoint.publisher(keys.k_weights(run, "latest"), run),
+            "eval": self.endpoint.publisher(keys.k_weights(run, "eval"), run),
+            "ack": self.endpoint.publisher(keys.k_ack(run, self.id), run),
         }
         bonus_key = keys.k_bonus(run)
         bonus = BonusClient(
             bus_query(self.bus, bonus_key), lambda why: self.reject(bonus_key, why),
             run, config.explore, config.beta, spec.n_agents, assign.counter,
+            attempt=self.served.attempts.get(run),
         )  # fmt: skip
         st = self.runs[run] = new_run(
             run, config, spec, list(assign.actors), learner=learner, bonus=bonus,

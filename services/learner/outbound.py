@@ -136,7 +136,8 @@ class Outbound:
         out.last_ack = time.monotonic()
         window = WINDOW_EPISODES * st.config.episode_len if out.window_open else 0
         positions = st.intake.received.positions()
-        out.ack_pub(encode(Ack(st.run, service=self.id, acked=positions, window=window)))
+        ack = Ack(st.run, service=self.id, acked=positions, window=window, attempt=out.attempt)
+        out.ack_pub(encode(ack))
 
     def weights(
         self,

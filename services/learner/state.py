@@ -14,7 +14,7 @@ share of the group's learner through a `MemberLearner`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -168,7 +168,7 @@ def new_run(
     learner: Learner | MemberLearner,
     bonus: BonusClient,
     evaluations: EvaluationsInFlight,
-    pubs: dict[str, Callable[[bytes], None]],
+    pubs: Mapping[str, Callable[[bytes], None]],
     counter: str | None = None,
     folder: Path | None = None,
     incarnation: str = "",

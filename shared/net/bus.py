@@ -229,6 +229,29 @@ def open_failure(
     return f"cannot open a {mode} session on the bus ({'; '.join(where)}): {reason}"
 
 
+class Publisher:
+    """A publisher a `Bus` declared: called with a payload, it puts it. Each holds
+    state in the session until it is undeclared, so a long-lived service undeclares
+    the ones of a run when it lets the run go (`Endpoint.drop_run`), not only when its
+    session closes."""
+
+    def __init__(self, bus: Bus, pub: Any) -> None:
+        self._bus, self._pub = bus, pub
+        self.put = pub.put
+
+    def __call__(self, payload: bytes) -> None:
+        self.put(payload)
+
+    def undeclare(self) -> None:
+        """Let it go (once; a second call does nothing)."""
+        if self in self._bus._held:
+            self._bus._held.remove(self)
+        pub, self._pub = self._pub, None
+        if pub is not None:
+            with contextlib.suppress(Exception):  # the session may be gone already
+                pub.undeclare()
+
+
 class Bus:
     """One Zenoh session and what a service declares on it (kept alive until close)."""
 
@@ -264,7 +287,7 @@ class Bus:
         return cls(connect=connect, mode="router", listen=listen, security=security, acl=acl)
 
     def close(self) -> None:
-        for h in reversed(self._held):
+        for h in reversed(list(self._held)):  # (a Publisher leaves the list as it goes)
             with contextlib.suppress(Exception):  # already undeclared or session gone
                 h.undeclare()
         self._held.clear()
@@ -277,12 +300,14 @@ class Bus:
         self.close()
 
     # ------------------------------------------------------------ pub/sub
-    def publisher(self, key: str, block: bool = True) -> Callable[[bytes], None]:
-        """A put function. BLOCK makes a congested link wait instead of dropping."""
+    def publisher(self, key: str, block: bool = True) -> Publisher:
+        """A declared publisher on `key`, called with a payload to put it; `undeclare`
+        (or `Bus.undeclare`) lets it go. BLOCK makes a congested link wait instead of
+        dropping."""
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-        pub = self.session.declare_publisher(key, congestion_control=cc)
+        pub = Publisher(self, self.session.declare_publisher(key, congestion_control=cc))
         self._held.append(pub)
-        return pub.put
+        return pub
 
     def put(self, key: str, payload: bytes, block: bool = True) -> None:
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -29,11 +30,36 @@ class WireError(ValueError):
     """A message that must be dropped: undecodable, wrong version, wrong shape."""
 
 
+# A run id names folders (data_dir/learner/<run>, data_dir/counter/<run>) and a chunk of
+# every per-run key (macb/run/<run>/...): letters, digits and `._-`, not starting with a
+# dot or a dash, at most 128 characters, so it can neither climb out of a data dir nor
+# reach into another key.
+_RUN_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,127}")
+
+
+def run_id_error(run: str) -> str | None:
+    """Why `run` cannot be a run's id, or None: every service refuses a start naming
+    such an id (services/common.py), so no path or key is ever built from one."""
+    if _RUN_ID.fullmatch(run):
+        return None
+    return f"run id: {run[:64]!r} is not a safe name (letters, digits, '._-', at most 128)"
+
+
+# The longest service id, in UTF-8 bytes: ids travel in keys and in the counter's log
+# records (the actor's id, after a 2-byte length), and no deployment names one longer.
+MAX_ID_BYTES = 255
+
+
+def is_service_id(value: Any) -> bool:
+    """A non-empty string of at most MAX_ID_BYTES bytes."""
+    return isinstance(value, str) and 0 < len(value.encode()) <= MAX_ID_BYTES
+
+
 def _service_ids(value: Any, name: str) -> tuple[str, ...]:
     """A non-empty list of distinct service (or run) ids, or a WireError naming `name`."""
     if not isinstance(value, list | tuple) or not value:
         raise WireError(f"assignment: field {name!r} is not a non-empty list")
-    if not all(isinstance(v, str) and v for v in value):
+    if not all(is_service_id(v) for v in value):
         raise WireError(f"assignment: field {name!r} holds something other than an id")
     if len(set(value)) != len(value):
         raise WireError(f"assignment: field {name!r} names an id twice")
@@ -95,7 +121,7 @@ class Assignment:
                 raise WireError(f"assignment: field {name!r} is missing")
         for name in ("learner", "counter", "evaluator"):
             one = value.get(name)
-            if (one is not None or name == "learner") and not (isinstance(one, str) and one):
+            if (one is not None or name == "learner") and not is_service_id(one):
                 raise WireError(f"assignment: field {name!r} is not a service id")
         group = value.get("group")
         return cls(
@@ -140,12 +166,17 @@ class Transitions(Message):
 @dataclass(frozen=True)
 class Ack(Message):
     """counter, learner -> actors: the next sequence number expected from each actor;
-    `window`: the learner's credits (how far an actor may run ahead), 0 from the counter."""
+    `window`: the learner's credits (how far an actor may run ahead), 0 from the counter.
+    `attempt`: the attempt of the run it counts or learns (its start's): acks only move
+    forward, so a reader of another attempt drops it, as a counter that restored an
+    ended attempt from disk acks that attempt's positions every second (None: its start
+    named none, or an older peer)."""
 
     TYPE: ClassVar[str] = "ack"
     service: str
     acked: dict[str, int]
     window: int
+    attempt: int | None = None
 
 
 @dataclass(frozen=True)
@@ -217,22 +248,29 @@ class Action(Message):
 
 @dataclass(frozen=True)
 class BonusQuery(Message):
-    """learner -> counter: the rows of a sampled minibatch to price."""
+    """learner -> counter: the rows of a sampled minibatch to price. `attempt`: the
+    attempt of the run the learner serves (its start's): a counter holding another
+    attempt's tables (one restored from disk after that attempt ended) refuses it (None:
+    its start named none, or an older learner)."""
 
     TYPE: ClassVar[str] = "bonus_query"
     obs: np.ndarray
     act: np.ndarray
+    attempt: int | None = None
 
 
 @dataclass(frozen=True)
 class BonusReply(Message):
     """counter -> learner: each row's count and bonus, from the counts at that moment,
-    and the counter's table stats then (what the learner's next point reports)."""
+    and the counter's table stats then (what the learner's next point reports).
+    `service`: the counter that answered: every counter answers the run's key, and the
+    learner takes only its run's counter's reply (None: an older counter)."""
 
     TYPE: ClassVar[str] = "bonus_reply"
     counts: np.ndarray
     bonus: np.ndarray
     tables: dict[str, Any] = field(default_factory=dict)
+    service: str | None = None
 
 
 @dataclass(frozen=True)

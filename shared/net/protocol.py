@@ -221,8 +221,9 @@ class Rejoin:
     learner and (for a counting run) the counter acknowledge of it. Both matter: after
     two faults at once one of them may lack a batch the dead actor had in flight, and
     only a batch sent again (collected anew from there) fills it; the other drops it as
-    a duplicate. The counter acknowledges only runs it has counted something of, so it
-    is waited for at most `counter_wait_s`, then the learner's position is taken."""
+    a duplicate. The counter's ack may not come (it is down, or it does not know the
+    run's actors and has counted nothing of it), so it is waited for at most
+    `counter_wait_s`, then the learner's position is taken."""
 
     learner: str
     counter: str | None  # None: the run counts nothing

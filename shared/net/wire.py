@@ -338,6 +338,17 @@ def _check_transitions(msg: dict) -> None:
         raise WireError("transitions: policy_version out of the int32 range")
 
 
+def check_batch_rows(msg: Transitions, episode_len: int, lockstep: bool) -> None:
+    """A run's batch is one episode (one step in lockstep), as actors publish them: the
+    learner's replay takes nothing else, so the counter must not count anything else
+    either (rows it counted that never reach replay, and the real ones for those
+    numbers later dropped as duplicates, uncounted)."""
+    n = len(msg)
+    if n != (1 if lockstep else episode_len):
+        what = "one step (lockstep)" if lockstep else f"one episode ({episode_len})"
+        raise WireError(f"transitions: a batch is {what}, got {n}")
+
+
 def check_dims(msg: Transitions | BonusQuery, obs_dim: int, act_dim: int) -> None:
     """The run's layout: a batch for another task's dimensions is refused (and a bonus
     query's non-finite rows; a batch's values were checked at decode)."""
