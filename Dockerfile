@@ -42,5 +42,7 @@ COPY --from=build /opt/macb /opt/macb
 ENV PATH=/opt/macb/bin:$PATH PYTHONUNBUFFERED=1
 WORKDIR /app
 COPY configs configs
+# (the wheel has no configs/: the figures' arms and the dashboard's presets are read here)
+ENV MACB_CONFIGS_DIR=/app/configs
 VOLUME /data
 CMD ["macb", "--help"]

@@ -83,6 +83,11 @@ class Settings(BaseSettings):
         "(benchmarks/bench_fig8.py)",
     )
     # ---------------------------------------------------------------- the API's clients
+    configs_dir: Path | None = Field(
+        None,
+        description="the shipped configs/ folder (the thesis's figures' arms, the "
+        "dashboard's presets); default: the checkout's, else ./configs",
+    )
     api_url: str | None = Field(None, description="the API `macb run/ls/stop/reproduce` call")
     api_token: str | None = Field(
         None, description="the bearer token they send (the server reads it too)"
@@ -118,6 +123,18 @@ def node_name() -> str:
     except ValueError:
         explicit = None
     return explicit or os.environ.get("SLURMD_NODENAME") or socket.gethostname().split(".")[0]
+
+
+def shipped_configs() -> Path:
+    """The configs/ folder the figures' arms and the dashboard's presets are read from:
+    MACB_CONFIGS_DIR; else the checkout's beside these packages (a source or editable
+    install); else ./configs (an image's working folder holds it: the wheel has no
+    configs, which are no package)."""
+    given = settings().configs_dir
+    if given is not None:
+        return given
+    checkout = Path(__file__).resolve().parents[1] / "configs"
+    return checkout if checkout.is_dir() else Path("configs")
 
 
 def settings() -> Settings:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import gzip
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from cli.reproduce.figures import FIGURES, PROFILES
 from services.api.schemas import ExperimentCreate
 from shared.config import TrainConfig
 
-ROOT_CONFIGS = experiments.CONFIGS
+ROOT_CONFIGS = Path(experiments.__file__).resolve().parents[2] / "configs"
 
 
 def test_every_figure_the_issue_names_is_defined():

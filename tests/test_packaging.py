@@ -9,6 +9,7 @@ checkout gets no build/ or egg-info of its own.
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -106,3 +107,46 @@ def test_the_pages_render_from_the_installed_wheel(wheel):
     fused = (unpacked / "shared/core/learners/fused.py").read_text()
     (name,) = re.findall(r'with_name\("([^"]+)"\)', fused)
     assert (unpacked / "shared/core/learners" / name).is_file()
+
+
+def test_the_figures_arms_are_read_from_the_configs_folder_an_image_gives(wheel, tmp_path):
+    """The wheel holds no configs/ (no package): from it, the figures' arm files (the
+    API's figure view, `macb reproduce`) are read from MACB_CONFIGS_DIR, as the image
+    sets it, or ./configs; with neither, a clear error names the folder and the way."""
+    from cli.reproduce.figures import FIGURES
+
+    unpacked, _ = wheel
+    arms = str(len(FIGURES["fig8"].arms))
+    shutil.copytree(ROOT / "configs", tmp_path / "copy")
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1])\n"
+        "from cli.reproduce import experiments\n"
+        "from cli.reproduce.figures import FIGURES\n"
+        "assert experiments.__file__.startswith(sys.argv[1]), experiments.__file__\n"
+        "try:\n"
+        "    print(len(experiments.arm_configs(FIGURES['fig8'])))\n"
+        "except FileNotFoundError as err:\n"
+        "    print('refused:', err)\n"
+    )
+
+    def run(cwd: Path, env: dict) -> str:
+        out = subprocess.run(
+            [sys.executable, "-c", code, str(unpacked)],
+            cwd=cwd,
+            env={**os.environ, **env},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert out.returncode == 0, out.stderr[-3000:]
+        return out.stdout.strip()
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    given = {"MACB_CONFIGS_DIR": str(tmp_path / "copy")}
+    assert run(empty, given) == arms
+    shutil.copytree(ROOT / "configs", empty / "configs")
+    assert run(empty, {}) == arms  # ./configs, as the image's WORKDIR holds it
+    shutil.rmtree(empty / "configs")
+    said = run(empty, {})
+    assert said.startswith("refused:") and "MACB_CONFIGS_DIR" in said, said

@@ -14,11 +14,24 @@ from typing import Any
 from cli.reproduce.defs import PROFILES, ArmDef, FigureDef
 from shared.config import COUNTING_EXPLORE, TrainConfig, read_config_file
 
-CONFIGS = Path(__file__).resolve().parent.parent.parent / "configs"
 # Keys only counting reads: a control (no counting) matches its MACB arm on all others.
 COUNTING_KEYS = ("explore", "k", "hash", "key", "hash_round")
 # Keys of a config file that are the experiment's, not one run's.
 EXPERIMENT_KEYS = ("seeds",)
+
+
+def configs_file(name: str) -> Path:
+    """A figure's arm file in the shipped configs/ (`shared.settings.shipped_configs`);
+    a missing one is refused naming the folder and how to give another."""
+    from shared.settings import shipped_configs
+
+    path = shipped_configs() / name
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{path}: no such config file (the figures read the shipped configs/ folder: "
+            "run from a checkout, or set MACB_CONFIGS_DIR to a copy of it)"
+        )
+    return path
 
 
 def arm_file(arm: ArmDef) -> dict[str, Any]:
@@ -26,7 +39,7 @@ def arm_file(arm: ArmDef) -> dict[str, Any]:
     read from its runs gives its runs' config."""
     if arm.config is not None:
         return {k: v for k, v in arm.config.items() if k not in EXPERIMENT_KEYS}
-    data = read_config_file(CONFIGS / arm.file)
+    data = read_config_file(configs_file(arm.file))
     return {k: v for k, v in data.items() if k not in EXPERIMENT_KEYS}
 
 
@@ -37,7 +50,7 @@ def arm_configs(fig: FigureDef) -> dict[str, dict[str, Any]]:
 
 def file_seeds(fig: FigureDef) -> list[int]:
     """The seeds the figure's files list (all the same; tests check it)."""
-    seeds = {json.dumps(read_config_file(CONFIGS / a.file).get("seeds")) for a in fig.arms}
+    seeds = {json.dumps(read_config_file(configs_file(a.file)).get("seeds")) for a in fig.arms}
     if len(seeds) != 1 or seeds == {"null"}:
         raise ValueError(f"{fig.name}: its config files list different seeds: {seeds}")
     return json.loads(seeds.pop())

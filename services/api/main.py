@@ -77,15 +77,18 @@ class Settings(BaseSettings):
     )
 
     configs_dir: Path | None = Field(
-        None, description="the presets the dashboard offers (default: the shipped configs/)"
+        None,
+        description="the presets the dashboard offers (default: the shipped configs/, "
+        "MACB_CONFIGS_DIR)",
     )
 
     @property
     def presets_dir(self) -> Path:
         if self.configs_dir is not None:
             return self.configs_dir
-        shipped = Path(__file__).resolve().parents[2] / "configs"
-        return shipped if shipped.is_dir() else Path("configs")
+        from shared.settings import shipped_configs
+
+        return shipped_configs()
 
     @property
     def db_path(self) -> Path:
