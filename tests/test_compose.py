@@ -299,6 +299,30 @@ def test_a_run_posted_over_rest_with_a_token_completes_exactly(compose):
     )
 
 
+def test_the_image_serves_the_dashboard_and_a_figures_view(compose):
+    """The pages and the figures' arm files are in the image (the wheel ships the pages;
+    the image's configs/ is MACB_CONFIGS_DIR): GET /, GET /view and a `macb reproduce
+    fig8` experiment's figure view answer."""
+    from cli.reproduce.experiments import experiment_body, experiment_name, select_arms
+    from cli.reproduce.figures import FIGURES
+
+    fig8 = FIGURES["fig8"]
+    body = select_arms(fig8, experiment_body(fig8, "thesis", [0], 8), ["sparse"])
+    body["name"] = experiment_name(fig8, body)
+    with compose.client() as http:
+        for page in ("/", "/view"):
+            got = http.get(page)
+            assert got.status_code == 200 and "<script>" in got.text, (page, got.text[-2000:])
+        exp = http.post("/experiments", json=body)
+        assert exp.status_code == 201, exp.text
+        try:
+            view = http.get(f"/experiments/{exp.json()['id']}/figure")
+            assert view.status_code == 200, view.text[-2000:]
+            assert view.json()["figure"] == "fig8" and view.json()["claims"], view.json()
+        finally:
+            http.post(f"/experiments/{exp.json()['id']}/stop")
+
+
 def _second_point_and_a_cut(run: dict) -> bool:
     """The run has two points and its learner has written a cut of it (its live stats,
     published every second, say so): killed before its first cut, a learner resumes
