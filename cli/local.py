@@ -391,6 +391,7 @@ def _train_group_job(
     from shared.core.learners.precision import DeviceError
     from shared.persist.cuts import CutError
     from shared.persist.runlock import RunLocked
+    from shared.run.rollout import WorldError
 
     try:
         train_group(
@@ -407,7 +408,7 @@ def _train_group_job(
         return f"{what}: cannot resume: {err}"
     except RunLocked as err:
         return f"{what}: {err}"
-    except DeviceError as err:
+    except (DeviceError, WorldError) as err:
         return f"{what}: {err}"
     except Exception as err:  # any other failure of one group: said, the others go on
         import traceback

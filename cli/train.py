@@ -96,6 +96,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from shared.core.learners.precision import DeviceError
     from shared.persist.cuts import CutError
     from shared.persist.runlock import RunLocked
+    from shared.run.rollout import WorldError
 
     if args.resume:
         given = sorted(config_overrides(args))
@@ -139,6 +140,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         return 2
     except (DeviceError, RunLocked) as err:
         print(f"macb train: {err}", file=sys.stderr)
+        return 2
+    except WorldError as err:
+        print(f"macb train: {err}: the run ended there (its rows up to the last point kept)",
+              file=sys.stderr)  # fmt: skip
         return 2
     finally:
         if tb is not None:

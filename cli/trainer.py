@@ -61,7 +61,14 @@ from shared.run.factories import (
     minibatches_per_update,
 )
 from shared.run.heap import steady_heap
-from shared.run.rollout import EvalResult, derive_seed, evaluate_group, make_vec_collector
+from shared.run.rollout import (
+    EvalResult,
+    WorldError,
+    derive_seed,
+    evaluate_group,
+    make_vec_collector,
+    nonfinite,
+)
 from shared.settings import settings
 
 log = logging.getLogger("macb.trainer")
@@ -485,6 +492,7 @@ class GroupRun:
         self.venv = vectorize([make_task_for(cfg) for cfg in cfgs])
         self.spec = spec = self.venv.spec
         self.members = members = [Member(cfg, out, spec) for cfg, out in zip(cfgs, outs)]
+        self.names = [o.name if o is not None else f"{r}" for r, o in enumerate(outs)]
         self.replay = GroupReplay(
             [m.capacity for m in members],
             spec.joint_obs_dim,
@@ -767,6 +775,8 @@ class GroupRun:
         for _ in range(c0.episode_len):
             t0 = clock()
             tr = self.collector.step(self.learner.act)
+            if (why := nonfinite(tr, self.names)) is not None:
+                raise WorldError(f"{why} in episode {members[0].env_steps // c0.episode_len + 1}")
             t1 = clock()
             timing["act_env"] += t1 - t0
             for r, m in enumerate(members):

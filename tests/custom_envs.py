@@ -32,6 +32,7 @@ class TinyEnv(ParallelEnv):
         terminate_at: int | None = None,
         truncate_at: int | None = None,
         success_at: int | None = None,
+        nan_at: int | None = None,
     ) -> None:
         self.possible_agents = [f"a{i}" for i in range(agents)]
         self.agents = list(self.possible_agents)
@@ -43,6 +44,7 @@ class TinyEnv(ParallelEnv):
             truncate_at,
             success_at,
         )
+        self.nan_at = nan_at  # the step of each episode whose reward is NaN (a bug's)
         self.np_random = np.random.default_rng()
         self.actions: list[dict[str, Any]] = []
         self.resets = 0
@@ -82,6 +84,8 @@ class TinyEnv(ParallelEnv):
             self.pos[a][0] += 0.1 * float(np.asarray(actions[a]).reshape(-1)[0])
         obs = self._obs()
         rewards = {a: float(i + self.t) for i, a in enumerate(self.agents)}
+        if self.t == self.nan_at:
+            rewards = dict.fromkeys(self.agents, float("nan"))
         terms = {a: self.t == self.terminate_at for a in self.agents}
         truncs = {a: self.t == self.truncate_at for a in self.agents}
         infos = {a: {"hit": self.t == self.success_at} for a in self.agents}

@@ -229,11 +229,24 @@ def jsonl(out) -> list[dict]:
     return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
 
 
+def test_a_world_giving_a_nan_ends_macb_train_saying_where(tmp_path):
+    """A custom task's NaN reward would go into replay and every update after it: the
+    run ends at that step, naming the run and the field (the cluster's actor refuses
+    to send such rows alike: the test below)."""
+    from shared.run.rollout import WorldError
+
+    cfg = make_config({"task": TINY, "task_kwargs": {"nan_at": 3}, "algo": "cen-maddpg",
+                       "episodes": 2, "episode_len": 5, "eval_every": 1, **SMALL})  # fmt: skip
+    with pytest.raises(WorldError, match="run out: its world gave a non-finite rew in episode 1"):
+        train(cfg, tmp_path / "out", progress=False)
+
+
 def test_the_cluster_and_its_api_run_a_custom_task(tmp_path):
     """Router, counter, learner, evaluator, an actor and the API as processes: a custom
     task goes in over HTTP like any other and is counted exactly once; bad ones get
     422 naming the field, the agent and the space, or the module the API may not import."""
-    with api_cluster(tmp_path) as cluster:
+    modules = '["mpe2", "pettingzoo", "examples", "tests"]'  # (tests.custom_envs too)
+    with api_cluster(tmp_path, api_env={"MACB_API_TASK_MODULES": modules}) as cluster:
         url = cluster.url
         bad = httpx.post(
             f"{url}/experiments",
@@ -288,3 +301,14 @@ def test_the_cluster_and_its_api_run_a_custom_task(tmp_path):
         assert folder.name == "cen-maddpg_+_cen-macb-seed0"
         assert_same(read_back(folder), expected(points))
         print(f"custom task on the cluster: {[(p['episode'], p['success_rate']) for p in points]}")
+        # A world giving a NaN reward: the actor refuses to send rows no learner takes
+        # (resent and refused forever, the run never ended) and fails the run, saying so.
+        nan = {**SMALL, "task": TINY, "task_kwargs": {"nan_at": 3}, "algo": "cen-maddpg"}
+        nan |= {"episodes": 4, "episode_len": 5, "eval_every": 2, "seeds": [0]}
+        created = httpx.post(f"{url}/experiments", json=nan)
+        assert created.status_code == 201, created.text
+        (run,) = created.json()["runs"]
+        final = wait_for(done, timeout=120, interval=0.5, what="the NaN run ended")
+        assert final["status"] == "failed", final
+        assert "its world gave rows no learner takes" in final["reason"], final
+        assert "non-finite values in rew" in final["reason"], final

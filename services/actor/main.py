@@ -44,7 +44,7 @@ from typing import Any
 import torch
 
 from services.actor.lockstep import valid_action
-from services.actor.outbox import Outbox, rejoin_from, run_sender
+from services.actor.outbox import BadWorld, Outbox, rejoin_from, run_sender
 from services.actor.runs import ActorRuns
 from services.common import ServiceBase
 from services.runs import LearnerProcesses
@@ -281,11 +281,17 @@ class ActorService(ServiceBase):
                 self.publish_metrics(run, st.stats(run, sum(self.rejects.values())).to_wire())
         if st.finished:
             return self.finish_if_settled(st)
-        if st.lockstep:  # one step of every world per answered act request
-            return st.lockstep_step(now)
-        if st.lead.sender.can_send(st.episode_len):
-            st.run_episode()
-            return True
+        try:
+            if st.lockstep:  # one step of every world per answered act request
+                return st.lockstep_step(now)
+            if st.lead.sender.can_send(st.episode_len):
+                st.run_episode()
+                return True
+        except BadWorld as err:  # (the group's worlds step together: all of it ends)
+            self.log.error("%s", err)
+            for run in list(self.active):
+                self._end(run, "failed", str(err))
+            return False
         return False
 
     def on_learner_completed(self, run: str) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 from shared.config import TrainConfig
 from shared.net.messages import Assignment, Transitions
 from shared.net.protocol import Rejoin, Sender
-from shared.net.wire import encode
+from shared.net.wire import encode, transitions_error
 from shared.run.rollout import Transition
 
 MAX_UNCOUNTED_BATCHES = 8  # episodes in flight that the counter has not acknowledged
@@ -46,24 +46,32 @@ def rejoin_from(assign: Assignment, cfgs: Sequence[TrainConfig], now: float) -> 
     return Rejoin(assign.learner, counter, since=now)
 
 
+class BadWorld(Exception):
+    """A run's world gave rows that no learner or counter takes (a NaN or an infinite
+    observation or reward, from a custom task): the run fails saying so, instead of
+    the batch being resent and refused forever."""
+
+
 def transitions_payload(
     run: str, actor: str, seq: int, obs, act, rew, next_obs, done, collisions, version: int
 ) -> bytes:
-    """One numbered `transitions` batch (rows seq, seq+1, ...) as the wire carries it."""
-    return encode(
-        Transitions(
-            run,
-            actor=actor,
-            seq=seq,
-            obs=np.asarray(obs, np.float32),
-            act=np.asarray(act, np.float32),
-            rew=np.asarray(rew, np.float32),
-            next_obs=np.asarray(next_obs, np.float32),
-            done=np.asarray(done, np.float32),
-            collisions=np.asarray(collisions, np.int32),
-            policy_version=version,
-        )
+    """One numbered `transitions` batch (rows seq, seq+1, ...) as the wire carries it;
+    `BadWorld` for one the receivers would refuse."""
+    msg = Transitions(
+        run,
+        actor=actor,
+        seq=seq,
+        obs=np.asarray(obs, np.float32),
+        act=np.asarray(act, np.float32),
+        rew=np.asarray(rew, np.float32),
+        next_obs=np.asarray(next_obs, np.float32),
+        done=np.asarray(done, np.float32),
+        collisions=np.asarray(collisions, np.int32),
+        policy_version=version,
     )
+    if why := transitions_error(msg):
+        raise BadWorld(f"run {run}: its world gave rows no learner takes, from row {seq} ({why})")
+    return encode(msg)
 
 
 @dataclass

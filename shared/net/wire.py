@@ -338,6 +338,16 @@ def _check_transitions(msg: dict) -> None:
         raise WireError("transitions: policy_version out of the int32 range")
 
 
+def transitions_error(msg: Transitions) -> str | None:
+    """Why the counter and the learner would refuse `msg` at decode (None: they take
+    it): the sender's own check, so a world that gives a NaN is said, not resent."""
+    try:
+        _check_transitions(vars(msg))
+    except WireError as err:
+        return str(err)
+    return None
+
+
 def check_batch_rows(msg: Transitions, episode_len: int, lockstep: bool) -> None:
     """A run's batch is one episode (one step in lockstep), as actors publish them: the
     learner's replay takes nothing else, so the counter must not count anything else

@@ -236,6 +236,21 @@ def evaluate(policy: Policy, envs: list[TaskEnv], episodes: int) -> EvalResult:
 GroupPolicy = Callable[[np.ndarray], np.ndarray]  # (R, rows, joint_obs) -> (R, rows, joint_act)
 
 
+class WorldError(RuntimeError):
+    """A run's world gave a non-finite observation, action or reward (a custom task's
+    bug): it would go into replay and every update after it, so the run ends saying
+    where, in `macb train` as in the cluster (whose actor refuses to send such rows)."""
+
+
+def nonfinite(tr: VecTransitions, runs: Sequence[str]) -> str | None:
+    """Where a step of R worlds holds a value that is not finite (None: nowhere)."""
+    for field in ("obs", "act", "rew", "next_obs"):
+        ok = np.isfinite(getattr(tr, field)).reshape(len(runs), -1).all(axis=1)
+        if not ok.all():
+            return f"run {runs[int(np.argmin(ok))]}: its world gave a non-finite {field}"
+    return None
+
+
 @dataclass
 class VecTransitions:
     """One step of R runs' collectors: (R, ...) arrays, row r what run r's `Collector`
