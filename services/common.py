@@ -437,9 +437,20 @@ class ServiceBase(ServiceHooks):
             elif tag == "live":
                 self._peer_event(key, payload == b"1")
             else:
-                self.handle(tag, key, payload)
+                self._handle_data(tag, key, payload)
         except WireError as err:
             self.reject(key, str(err))
+
+    def _handle_data(self, tag: str, key: str, payload: bytes) -> None:
+        """A data message (`handle`): one whose handling raises is dropped and counted
+        (`handler_failed`). Not the service's own failures: a disk or memory error
+        ends the process, whose restart goes on from its files (dropped, a batch whose
+        log write failed was acknowledged all the same), and a control message's
+        handling, which may have changed a run halfway, ends it too."""
+        try:
+            self.handle(tag, key, payload)
+        except (WireError, OSError, MemoryError):
+            raise
         except Exception as err:
             self.handler_failed(key, err)
 

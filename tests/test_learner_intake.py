@@ -93,6 +93,30 @@ def test_a_batch_that_cannot_be_logged_is_not_taken_and_its_resend_is(tmp_path):
     again.intake.log.close()
 
 
+def test_a_log_write_that_fails_takes_nothing_and_the_resend_is_taken(tmp_path):
+    """A full disk (the log's append raising OSError) leaves the cursor where it was:
+    moved first, the batch was in neither the log nor replay, and its resend a
+    duplicate, while the next ack said the learner had it."""
+    st = new_run(tmp_path)
+    ckpt.open_log(st)
+    log = st.intake.log
+    real = log.append
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    log.append = full
+    with pytest.raises(OSError):
+        intake.take(st, batch(st, "a0", 0))
+    assert st.intake.received.positions() == {"a0": 0, "a1": 0} and not st.intake.held["a0"]
+    log.append = real
+    assert intake.take(st, batch(st, "a0", 0))
+    log.close()
+    again = new_run(tmp_path)
+    assert [(r.actor, r.seq) for r in ckpt.open_log(again)] == [("a0", 0)]
+    again.intake.log.close()
+
+
 def test_a_checkpoint_and_the_log_give_the_same_state_back(tmp_path):
     st = new_run(tmp_path)
     ckpt.open_log(st)

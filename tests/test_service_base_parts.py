@@ -239,6 +239,8 @@ class Raising(ServiceBase):
     def handle(self, tag: str, key: str, payload: bytes) -> None:
         if payload == b"index":
             raise IndexError("list index out of range")
+        if payload == b"disk":
+            raise OSError(28, "No space left on device")
         raise ValueError(f"cannot read {payload!r}")
 
 
@@ -265,3 +267,13 @@ def test_a_handler_that_raises_drops_the_message_counts_it_and_the_service_goes_
     assert "macb/run/r/transitions/a0" in traced[0].getMessage()
     dropped = [r.getMessage() for r in caplog.records if r.exc_info is None]
     assert len(dropped) == 4 and "handler raised ValueError: cannot read b'1'" in dropped[1]
+
+
+def test_the_services_own_failures_still_end_it_for_its_restart():
+    """A disk error while handling a message (a log that cannot be written) is the
+    service's failure, not the message's: it ends the process, whose restart goes on
+    from its files, rather than being counted as a dropped message."""
+    svc = bare_service()
+    with pytest.raises(OSError):
+        svc._dispatch("transitions", "macb/run/r/transitions/a0", b"disk")
+    assert svc.reject_tally.counts() == ({}, 0)

@@ -123,15 +123,15 @@ def take(st: LearnerRun, msg: Transitions) -> bool:
     check_dims(msg, st.spec.joint_obs_dim, st.spec.joint_act_dim)
     check_batch_rows(msg, st.config.episode_len, st.lockstep)  # (the counter's rule too)
     n, it = len(msg), st.intake
-    # Its log record is made before the cursor moves: a batch that cannot be logged
-    # raises with nothing taken (taken first, its resend was a duplicate, never logged).
-    cols = None
-    if it.log is not None and it.received.peek(msg.actor, msg.seq, n).took:
-        cols = log_columns(msg)
-    if not it.received.take(msg.actor, msg.seq, n).took:
+    if not it.received.peek(msg.actor, msg.seq, n).took:
+        it.received.take(msg.actor, msg.seq, n)  # (counts the duplicate or the gap)
         return False
-    if it.log is not None and cols is not None:  # logged before the ack says we have it
-        it.log.append(msg.actor, msg.seq, n, cols)
+    # Logged before the cursor moves (and before the ack says we have it): a batch
+    # that cannot be logged raises with nothing taken, and its resend is taken (taken
+    # first, the resend was a duplicate, in neither the log nor replay).
+    if it.log is not None:
+        it.log.append(msg.actor, msg.seq, n, log_columns(msg))
+    it.received.take(msg.actor, msg.seq, n)
     it.held[msg.actor].append(msg)
     release_counted(st)
     return True

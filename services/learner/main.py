@@ -347,8 +347,10 @@ class LearnerService(ServiceBase):
                 evaluations.reported(point, row)  # (WireError: a row early_stop cannot read)
         except WireError as err:
             self.inbox.put(("reject", key, str(err).encode()))
-        except Exception as err:  # (not Zenoh's to swallow: counted and logged as ours)
-            self.handler_failed(key, err)
+        except Exception as err:  # (not Zenoh's to swallow: counted on our thread too)
+            reason = f"handler raised {type(err).__name__}: {err}"
+            self.log.error("an evaluation row on %.200s raised", key, exc_info=err)
+            self.inbox.put(("reject", key, reason.encode()))
 
     def tick(self) -> bool:
         busy = self.serving.tick()
