@@ -310,5 +310,5 @@ def test_the_cluster_and_its_api_run_a_custom_task(tmp_path):
         (run,) = created.json()["runs"]
         final = wait_for(done, timeout=120, interval=0.5, what="the NaN run ended")
         assert final["status"] == "failed", final
-        assert "its world gave rows no learner takes" in final["reason"], final
+        assert "its steps gave rows no learner takes" in final["reason"], final
         assert "non-finite values in rew" in final["reason"], final

@@ -47,9 +47,9 @@ def rejoin_from(assign: Assignment, cfgs: Sequence[TrainConfig], now: float) -> 
 
 
 class BadWorld(Exception):
-    """A run's world gave rows that no learner or counter takes (a NaN or an infinite
-    observation or reward, from a custom task): the run fails saying so, instead of
-    the batch being resent and refused forever."""
+    """A run's steps gave rows that no learner or counter takes (a NaN or an infinite
+    observation or reward from a custom task, an action from a learner gone to NaN):
+    the run fails saying so, instead of the batch being resent and refused forever."""
 
 
 def transitions_payload(
@@ -70,7 +70,7 @@ def transitions_payload(
         policy_version=version,
     )
     if why := transitions_error(msg):
-        raise BadWorld(f"run {run}: its world gave rows no learner takes, from row {seq} ({why})")
+        raise BadWorld(f"run {run}: its steps gave rows no learner takes, from row {seq} ({why})")
     return encode(msg)
 
 

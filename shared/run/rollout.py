@@ -237,9 +237,10 @@ GroupPolicy = Callable[[np.ndarray], np.ndarray]  # (R, rows, joint_obs) -> (R, 
 
 
 class WorldError(RuntimeError):
-    """A run's world gave a non-finite observation, action or reward (a custom task's
-    bug): it would go into replay and every update after it, so the run ends saying
-    where, in `macb train` as in the cluster (whose actor refuses to send such rows)."""
+    """A step gave a non-finite observation or reward (a custom task's bug) or action (a
+    learner gone to NaN): it would go into replay and every update after it, so the run
+    ends saying where, in `macb train` as in the cluster (whose actor refuses to send
+    such rows)."""
 
 
 def nonfinite(tr: VecTransitions, runs: Sequence[str]) -> str | None:
@@ -247,7 +248,10 @@ def nonfinite(tr: VecTransitions, runs: Sequence[str]) -> str | None:
     for field in ("obs", "act", "rew", "next_obs"):
         ok = np.isfinite(getattr(tr, field)).reshape(len(runs), -1).all(axis=1)
         if not ok.all():
-            return f"run {runs[int(np.argmin(ok))]}: its world gave a non-finite {field}"
+            run = runs[int(np.argmin(ok))]
+            if field == "act":  # (from the policy: its learner's weights are not finite)
+                return f"run {run}: its policy gave a non-finite action (a diverged learner)"
+            return f"run {run}: its world gave a non-finite {field}"
     return None
 
 
