@@ -348,3 +348,26 @@ def test_only_the_runs_counters_bonus_is_taken_and_only_a_finite_one(tmp_path):
     counters.next = ([(None, fresh)], [])  # an older counter names none: taken
     assert np.array_equal(client.bonus_for([b])[0], fresh)
     assert client.queries == 2
+
+
+def test_weights_gone_to_nan_fail_the_run_instead_of_going_out(tmp_path):
+    """Actors and the evaluator refuse non-finite weights (they would act and evaluate
+    on nothing): a learner gone to NaN raises `Diverged` before anything goes out, and
+    the service fails the run saying so, rather than waiting for rows that never come."""
+    from services.learner.outbound import Diverged
+
+    st = run(tmp_path)
+    out = outbound()
+    out.weights(st, eval_point=2)
+    assert len(st.outgoing.eval_pub) == 1  # finite: it went out
+    weights = st.learner.actor_weights
+
+    def gone_to_nan() -> list[dict]:
+        sds = [{k: v.clone() for k, v in sd.items()} for sd in weights()]
+        next(iter(sds[0].values())).fill_(float("nan"))
+        return sds
+
+    st.learner.actor_weights = gone_to_nan
+    with pytest.raises(Diverged, match="run r: its learner's weights are not finite"):
+        out.weights(st, eval_point=4)
+    assert len(st.outgoing.eval_pub) == 1 and 4 not in st.evaluations.unreported

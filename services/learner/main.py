@@ -55,7 +55,7 @@ from services.learner import intake
 from services.learner.bonus import BonusClient, bus_query
 from services.learner.evaluations import EvaluationsInFlight, reported_row
 from services.learner.lockstep import Asks
-from services.learner.outbound import Outbound
+from services.learner.outbound import Diverged, Outbound
 from services.learner.serving import Serving
 from services.learner.state import LearnerRun, MemberLearner, RunGroup, new_run, open_error
 from shared.config import TrainConfig
@@ -353,7 +353,12 @@ class LearnerService(ServiceBase):
             self.inbox.put(("reject", key, reason.encode()))
 
     def tick(self) -> bool:
-        busy = self.serving.tick()
+        try:
+            busy = self.serving.tick()
+        except Diverged as err:
+            if (st := self.runs.get(err.run)) is not None:
+                self.fail(st, str(err))
+            return False
         for st in self.serving.finished():
             self.finish(st)
         return busy

@@ -65,6 +65,16 @@ class Outgoing:
         self.version = max(self.version, version)
 
 
+class Diverged(Exception):
+    """A run's learner went to NaN or infinity: the actors and the evaluator refuse such
+    weights (they would act and evaluate on nothing), so the run fails, saying so,
+    rather than waiting for rows that never come."""
+
+    def __init__(self, run: str, why: str) -> None:
+        super().__init__(f"run {run}: {why}")
+        self.run = run
+
+
 def run_stats(st: LearnerRun, rejects_total: int) -> LearnerStats:
     """The run's learner stats: progress, replay ratio and lag, where the time per update
     goes, the bonus queries, the cuts, and the learner's own."""
@@ -167,6 +177,10 @@ class Outbound:
         self, st: LearnerRun, eval_point: int, episode: int, env_steps: int, collisions: int
     ) -> Weights:
         point = eval_point >= 0
+        actors = weights_as_arrays(st.learner.actor_weights())
+        if not all(np.isfinite(a).all() for sd in actors for a in sd.values()):
+            raise Diverged(st.run, f"its learner's weights are not finite at update "
+                           f"{st.learner.updates} (diverged)")  # fmt: skip
         return Weights(
             st.run,
             version=st.outgoing.version,
@@ -175,7 +189,7 @@ class Outbound:
             episodes=episode,
             eval_point=eval_point,
             collisions_cum=collisions,
-            actors=weights_as_arrays(st.learner.actor_weights()),
+            actors=actors,
             stats=dataclasses.replace(
                 self.stats(st),
                 counter=self.counter_stats(st) if point else {},
