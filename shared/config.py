@@ -11,7 +11,15 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from shared.core.counting import SKETCH_MAX_CELLS, SKETCH_MAX_DEPTH, SKETCH_MAX_WIDTH
 
@@ -23,6 +31,18 @@ WORLD_OPTIONS = ("cover", "landmark_size", "pad_obs", "comm_obs", "integrator")
 # The explore modes that count transitions (a table, a count-1 share, a bonus that can
 # fall); `constant` pays the bonus on every reward and counts nothing.
 COUNTING_EXPLORE = ("dis-macb", "cen-macb")
+
+
+def _not_a_bool(value: Any) -> Any:
+    """A number field refuses true and false (lax pydantic reads them as 1 and 0: a YAML
+    `threads: yes` or a JSON `"episodes": true` ran as 1)."""
+    if isinstance(value, bool):
+        raise ValueError(f"a number, not {str(value).lower()}")
+    return value
+
+
+Int = Annotated[int, BeforeValidator(_not_a_bool)]
+Float = Annotated[float, BeforeValidator(_not_a_bool)]
 
 
 class BetaSchedule(BaseModel):
@@ -37,8 +57,8 @@ class BetaSchedule(BaseModel):
         description="constant (beta throughout), linear or exponential (geometric) from "
         "beta to end over horizon, end after it",
     )
-    end: float | None = Field(None, ge=0.0, le=100.0, description="beta at the horizon and after")
-    horizon: int | None = Field(None, ge=1, description="episodes or steps to reach end")
+    end: Float | None = Field(None, ge=0.0, le=100.0, description="beta at the horizon and after")
+    horizon: Int | None = Field(None, ge=1, description="episodes or steps to reach end")
     unit: Literal["episodes", "steps"] = Field(
         "episodes", description="what horizon counts: training episodes or transitions"
     )
@@ -84,14 +104,14 @@ class EarlyStop(BaseModel):
         "patience points in a row; no_improvement: the smoothed success rate has not "
         "beaten its best for patience points",
     )
-    threshold: float | None = Field(
+    threshold: Float | None = Field(
         None, ge=0.0, le=1.0, description="success_at_least: the success rate to reach"
     )
-    patience: int = Field(1, ge=1, le=100_000, description="evaluation points the rule needs")
-    smooth: int = Field(
+    patience: Int = Field(1, ge=1, le=100_000, description="evaluation points the rule needs")
+    smooth: Int = Field(
         1, ge=1, le=10_000, description="points in the moving mean of the success rate (1: raw)"
     )
-    min_delta: float = Field(
+    min_delta: Float = Field(
         0.0, ge=0.0, le=1.0, description="no_improvement: how much above its best counts"
     )
 
@@ -112,15 +132,15 @@ class CountSketchConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    width: int | None = Field(
+    width: Int | None = Field(
         None,
         ge=1,
         le=SKETCH_MAX_WIDTH,
         description="cells per row: estimate <= true + (e / width) * N with probability "
         ">= 1 - exp(-depth) (N: transitions counted); give width or memory_mb",
     )
-    depth: int = Field(4, ge=1, le=SKETCH_MAX_DEPTH, description="rows (hash functions)")
-    memory_mb: float | None = Field(
+    depth: Int = Field(4, ge=1, le=SKETCH_MAX_DEPTH, description="rows (hash functions)")
+    memory_mb: Float | None = Field(
         None,
         gt=0.0,
         le=8192.0,
@@ -181,7 +201,7 @@ class TrainConfig(BaseModel):
         description="a custom task's info key whose true value marks success at a step "
         "(some agent's info); without it the success rate stays 0",
     )
-    agents: int = Field(2, ge=2, le=8, description="number of agents and landmarks (spread only)")
+    agents: Int = Field(2, ge=2, le=8, description="number of agents and landmarks (spread only)")
     algo: Literal["ddpg", "dis-maddpg", "cen-maddpg"] = Field(
         "cen-maddpg", description="ddpg (simple), dis-maddpg or cen-maddpg (multi-agent tasks)"
     )
@@ -190,13 +210,13 @@ class TrainConfig(BaseModel):
         description="count bonus: none, dis-macb (table per agent), cen-macb (joint table), "
         "constant (control arm: bonus beta on every reward, no counting)",
     )
-    beta: float = Field(0.8, ge=0.0, le=100.0, description="bonus scale: r' = r + beta / sqrt(n)")
+    beta: Float = Field(0.8, ge=0.0, le=100.0, description="bonus scale: r' = r + beta / sqrt(n)")
     beta_schedule: BetaSchedule | None = Field(
         None,
         description="beta moving over the run (beyond the thesis), e.g. {kind: linear, end: "
         "0.1, horizon: 20000, unit: episodes}; none: beta throughout (docs/fidelity.md, B1)",
     )
-    k: int = Field(512, ge=1, le=4096, description="SimHash code length in bits")
+    k: Int = Field(512, ge=1, le=4096, description="SimHash code length in bits")
     hash: Literal["simhash", "none", "raw"] = Field(
         "simhash",
         description="simhash, none (key = the vector rounded to hash_round decimals, else "
@@ -223,26 +243,26 @@ class TrainConfig(BaseModel):
     reward: Literal["sparse", "sparse_offset", "dense"] = Field(
         "sparse", description="sparse (thesis), sparse_offset (sparse + 0.7), dense (mpe2's own)"
     )
-    episodes: int = Field(1000, ge=1, description="training episodes")
-    episode_len: int = Field(20, ge=1, le=1000, description="steps per episode")
-    seed: int = Field(0, ge=0, lt=2**31, description="run seed")
-    eval_every: int = Field(1, ge=1, description="evaluate after every M training episodes")
-    eval_episodes: int = Field(10, ge=1, le=1000, description="noise-free episodes per evaluation")
+    episodes: Int = Field(1000, ge=1, description="training episodes")
+    episode_len: Int = Field(20, ge=1, le=1000, description="steps per episode")
+    seed: Int = Field(0, ge=0, lt=2**31, description="run seed")
+    eval_every: Int = Field(1, ge=1, description="evaluate after every M training episodes")
+    eval_episodes: Int = Field(10, ge=1, le=1000, description="noise-free episodes per evaluation")
     early_stop: EarlyStop | None = Field(
         None,
         description="end the run when a rule holds on its evaluation points (beyond the "
         "thesis), e.g. {rule: success_at_least, threshold: 0.9, patience: 5}; the best "
         "point's weights go to best.pt (docs/fidelity.md, B2)",
     )
-    batch_size: int = Field(100, ge=1, le=100_000)
-    buffer_size: int = Field(1_000_000, ge=1)
-    learning_starts: int = Field(100, ge=0, description="transitions collected before updates")
-    gamma: float = Field(0.99, ge=0.0, le=1.0)
-    tau: float = Field(0.005, gt=0.0, le=1.0)
-    lr_actor: float = Field(1e-3, gt=0.0, le=1.0)
-    lr_critic: float = Field(1e-3, gt=0.0, le=1.0)
-    hidden: tuple[int, ...] = Field((400, 300), min_length=1, description="MLP hidden sizes")
-    noise_sigma: float = Field(
+    batch_size: Int = Field(100, ge=1, le=100_000)
+    buffer_size: Int = Field(1_000_000, ge=1)
+    learning_starts: Int = Field(100, ge=0, description="transitions collected before updates")
+    gamma: Float = Field(0.99, ge=0.0, le=1.0)
+    tau: Float = Field(0.005, gt=0.0, le=1.0)
+    lr_actor: Float = Field(1e-3, gt=0.0, le=1.0)
+    lr_critic: Float = Field(1e-3, gt=0.0, le=1.0)
+    hidden: tuple[Int, ...] = Field((400, 300), min_length=1, description="MLP hidden sizes")
+    noise_sigma: Float = Field(
         0.1, ge=0.0, le=10.0, description="Gaussian action noise, relative to the half-range"
     )
     time_limit_terminal: bool = Field(
@@ -269,7 +289,7 @@ class TrainConfig(BaseModel):
         "of agent and landmark sizes (sum), or within the landmark's own size (landmark, "
         "the thesis code); success always uses the sum",
     )
-    landmark_size: float | None = Field(
+    landmark_size: Float | None = Field(
         None,
         gt=0.0,
         le=1.0,
@@ -302,7 +322,7 @@ class TrainConfig(BaseModel):
         "thesis code; Algorithm 1's 'each agent samples')",
     )
     # Strict: `false` is no number of decimals (lax int would read it as 0).
-    hash_round: Annotated[int, Field(strict=True)] | None = Field(
+    hash_round: Annotated[Int, Field(strict=True)] | None = Field(
         None,
         ge=0,
         le=8,
@@ -324,8 +344,8 @@ class TrainConfig(BaseModel):
         "weights published at episode ends, the learner catches up: faster, not the "
         "thesis's interleaving). macb train and run groups always run the thesis's loop",
     )
-    threads: int = Field(1, ge=1, le=64, description="torch intra-op threads")
-    learner_lanes: Literal["auto"] | Annotated[int, Field(ge=1, le=16)] = Field(
+    threads: Int = Field(1, ge=1, le=64, description="torch intra-op threads")
+    learner_lanes: Literal["auto"] | Annotated[Int, Field(ge=1, le=16)] = Field(
         "auto",
         description="batched learner on the CPU (on a GPU it runs one lane): split each "
         "minibatch into this many row blocks computed in parallel threads (1 torch thread "

@@ -1,6 +1,7 @@
 """Invalid configs are refused with the field and the reason, before anything runs."""
 
 import json
+import re
 
 import pytest
 
@@ -124,3 +125,20 @@ def test_profile_thesis_sets_the_task_and_collection_options_a_config_does_not_g
         True,
         "velocity-first",
     )
+
+
+@pytest.mark.parametrize(
+    ("data", "says"),
+    [
+        ({"threads": True}, "threads: a number, not true"),
+        ({"episodes": False}, "episodes: a number, not false"),
+        ({"beta": True}, "beta: a number, not true"),
+        ({"hidden": [True, 64]}, "hidden.0: a number, not true"),
+        ({"early_stop": {"rule": "no_improvement", "patience": True}}, "early_stop.patience"),
+    ],
+)
+def test_a_boolean_is_no_number(data, says):
+    """Lax pydantic read true and false as 1 and 0 (`threads: yes` in YAML ran one
+    thread; the API's fuzzing found `"threads": true` accepted): refused, named."""
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        make_config({"task": "simple", "algo": "ddpg", **data})
