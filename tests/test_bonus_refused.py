@@ -21,7 +21,7 @@ from shared.net import bus as keys
 from shared.net.bus import Bus, Refused, Replies
 from shared.net.messages import BonusQuery
 from shared.net.wire import encode
-from tests.harness import wait_services
+from tests.harness import wait_for, wait_services
 
 
 def _batch(rows: int = 4) -> Batch:
@@ -63,8 +63,13 @@ def test_a_refused_query_says_why_and_a_silent_one_is_unanswered(cluster, bus, c
     # run's counter's word (it does not serve the run), so it leaves the query unanswered.
     cluster.service("counter", "c1", name="counter1")
     wait_services(bus, 2)
-    both = bus.collect_all(bus.get_async(key, query, timeout=2.0))
-    assert sorted(r.by for r in both.refused) == ["c0", "c1"], both
+
+    def refused_by_both():  # (asked again: c1 may answer its info before its first query)
+        got = bus.collect_all(bus.get_async(key, query, timeout=2.0))
+        return got if sorted(r.by for r in got.refused) == ["c0", "c1"] else None
+
+    both = wait_for(refused_by_both, timeout=30, what="both counters' refusals")
+    assert both.ok == [], both
     elsewhere = BonusClient(bus_query(bus, key), print, "r-unknown", "cen-macb", 0.8, 2, "c9")
     assert elsewhere.bonus_for([_batch()]) is None
     assert (elsewhere.refused, elsewhere.unanswered) == (0, 1)
