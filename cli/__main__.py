@@ -3,7 +3,7 @@ the interpreter they run under rather than whichever `macb` is on PATH."""
 
 import sys
 
-from cli.main import main
+from cli.main import entry
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(entry())

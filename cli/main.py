@@ -8,6 +8,7 @@ process `macb up` started, arms its death with `macb up` (`shared.procs.die_with
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import sys
 from collections.abc import Callable
@@ -64,3 +65,20 @@ def main(argv: list[str] | None = None) -> int:
     except (SecurityError, BusError) as err:
         print(f"macb {args.command}: {err}", file=sys.stderr)
         return 2
+
+
+def entry() -> int:
+    """The `macb` command (and `python -m cli`): `main`, then a lighter interpreter exit.
+
+    With torch loaded, Python's own teardown runs the cyclic collector over every object
+    torch made, again and again as it clears the modules: most of a service's stop. One
+    collection here runs every finalizer of the garbage there is (so nothing a finalizer
+    would flush is lost), and freezing the survivors keeps the teardown from walking them
+    again; files are closed by the commands themselves. Not in `main`, which tests call in
+    their own process, where a freeze would outlive the call.
+    """
+    code = main()
+    if "torch" in sys.modules:
+        gc.collect()
+        gc.freeze()
+    return code
