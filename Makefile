@@ -5,15 +5,20 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test test-slow test-compose test-slurm soak lint bench clean
+.PHONY: setup run test test-slow test-compose test-slurm soak lint clean
+
+# torch's index, when pip's own config should not choose (README, Quick start).
+TORCH_INDEX ?=
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH"; exit 1; }
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	# torch first, alone, at pyproject's pin (the one place): pip then takes the CPU
-	# wheel from find-links instead of resolving a multi-GB CUDA build for it.
-	$(BIN)/pip install --quiet "$$(grep -o '"torch==[^"]*"' pyproject.toml | tr -d '"')"
+	# torch first, alone, at pyproject's pin (the one place), from TORCH_INDEX when given.
+	# Else pip's config decides: these machines' find-links hold the CPU build; PyPI itself
+	# gives Linux x86-64 the multi-GB CUDA build.
+	$(BIN)/pip install --quiet $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) \
+		"$$(grep -o '"torch==[^"]*"' pyproject.toml | tr -d '"')"
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 

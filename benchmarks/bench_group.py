@@ -35,8 +35,8 @@ same arrays, checked bit for bit before timing; the target is <= 1 ms per step.
 Each side's rate is run-steps/s: the group's from its own timing, the `cluster`'s total
 over its two runs (steady rates, as bench_slots.py takes them). The group's share of
 wall time in acting and stepping the worlds and in evaluation is reported; from the
-rates, figure 8's headline pair (2.1e6 updates: 2 arms x 3 seeds x 17,500 episodes x 20
-steps) in hours.
+rates, figure 8's headline pair (4.8e6 run-steps: 2 arms x 3 seeds x configs/fig8's 40,000
+episodes x 20 steps) in hours.
 
     .venv/bin/python benchmarks/bench_group.py update [--runs 6] [--rounds 7]
         [--precision fp32 bf16] [--threads 1]
@@ -63,7 +63,8 @@ from _harness import RESULTS, command, progress, write_result
 from _procs import ROOT
 from _stats import cpu_model, measure, ratio_median, rotating_rounds
 
-FIG8_PAIR_RUN_STEPS = 2 * 3 * 17_500 * 20
+# 2 arms x 3 seeds x configs/fig8's episodes x episode_len (tests/test_benchmarks.py checks it)
+FIG8_PAIR_RUN_STEPS = 2 * 3 * 40_000 * 20
 
 
 # ---------------------------------------------------------------- update

@@ -11,7 +11,7 @@ over its runs, which overlap for all but their first and last seconds; the comma
 rate (all env steps over the whole command, startup included) is shown beside.
 
 The projection: figure 8's headline pair (its sparse Cen-MACB and sparse Cen-MADDPG
-arms, 3 seeds each, 1.75e4 episodes of 25 steps: 2.6e6 env steps, ~2.1e6 updates) at
+arms, 3 seeds each, configs/fig8's 4e4 episodes of 20 steps: 4.8e6 env steps) at
 the measured total rate, the arms run S at a time.
 
     .venv/bin/python benchmarks/bench_slots.py [--rounds 3] [--episodes 300]
@@ -47,7 +47,8 @@ from bench_cluster_bf16 import steady_rate
 
 from cli.supervisor import free_port
 
-FIG8_PAIR_ENV_STEPS = 2 * 3 * 17_500 * 25  # 2 arms x 3 seeds x 1.75e4 episodes x 25 steps
+# 2 arms x 3 seeds x configs/fig8's episodes x episode_len (tests/test_benchmarks.py checks it)
+FIG8_PAIR_ENV_STEPS = 2 * 3 * 40_000 * 20
 
 
 def run_variant(slots: int, args: Any, work: Path) -> dict[str, Any]:

@@ -81,7 +81,7 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
     )
     add_group_flags(rn)
     rn.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_config_flags(rn)
+    add_config_flags(rn, "CONFIG")
     rn.set_defaults(func=cmd_run)
 
 

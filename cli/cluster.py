@@ -52,7 +52,11 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
         "ROLE-ID, restarted when they die (what the Slurm cluster job runs per task).",
     )
     s.add_argument("role", choices=SERVICES)
-    s.add_argument("--id", help="service id (default: role-host-pid); actors need distinct ids")
+    s.add_argument(
+        "--id",
+        help="service id (default: role-host-pid; the router: MACB_ZENOH_USER, else "
+        "`router`; the API: MACB_API_SERVICE_ID, else `api`); actors need distinct ids",
+    )
     s.add_argument(
         "--connect",
         action="append",
@@ -150,7 +154,7 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
     up.add_argument("--out", metavar="DIR", help="with --run: write metrics here")
     up.add_argument("--quiet", action="store_true", help="no progress bar")
     up.add_argument("--quiet-services", action="store_true", help="service logs to files only")
-    add_config_flags(up)
+    add_config_flags(up, "--run CONFIG")
     add_security_flags(up)  # --secrets DIR: TLS, each service signed in as its id
     add_up_slurm_flags(up)
     up.set_defaults(func=cmd_up)

@@ -54,10 +54,11 @@ def flag_dest(field: str) -> str:
     return f"cfg_{field}"
 
 
-def add_config_flags(p: argparse.ArgumentParser) -> None:
-    """One flag per config key; each overrides the file. Values stay raw strings here
-    (`config_overrides` reads them) so that a flag not given is told apart by None."""
-    group = p.add_argument_group("config keys (override --config)")
+def add_config_flags(p: argparse.ArgumentParser, source: str = "--config") -> None:
+    """One flag per config key; each overrides the file (`source`: how the command names
+    it, for the help's heading). Values stay raw strings here (`config_overrides` reads
+    them) so that a flag not given is told apart by None."""
+    group = p.add_argument_group(f"config keys (override {source})")
     for name, field in TrainConfig.model_fields.items():
         default = field.default
         if name in COMMA_LIST_FIELDS:

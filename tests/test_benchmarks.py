@@ -282,3 +282,24 @@ def test_bus_order_probe_counts_pairs_and_one_subscription_keeps_its_order() -> 
     }
     assert len(counts) == 4 and all(0 <= n <= 300 for n in counts.values()), proc.stdout
     assert [n for case, n in counts.items() if case.startswith("one subscriber")] == [0, 0]
+
+
+def test_the_fig8_projections_count_the_shipped_configs_steps() -> None:
+    """bench_group's and bench_slots' hours for figure 8's headline pair are its six
+    runs' env steps as configs/fig8 ships them (episodes x episode_len), not a length
+    the figure once had."""
+    from shared.config import TrainConfig, read_config_file
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from bench_group import FIG8_PAIR_RUN_STEPS
+        from bench_slots import FIG8_PAIR_ENV_STEPS
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    steps = 0
+    for arm in ("sparse", "sparse-cen-macb"):
+        raw = read_config_file(ROOT / "configs" / "fig8" / f"{arm}.yaml")
+        seeds = raw.pop("seeds")
+        cfg = TrainConfig.model_validate(raw)
+        steps += len(seeds) * cfg.episodes * cfg.episode_len
+    assert FIG8_PAIR_RUN_STEPS == FIG8_PAIR_ENV_STEPS == steps

@@ -396,3 +396,20 @@ def _health(port: int) -> bool:
         return httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200
     except httpx.HTTPError:
         return False
+
+
+@pytest.mark.parametrize("command", CONFIG_COMMANDS)
+def test_the_config_keys_heading_names_how_the_command_takes_its_file(subparsers, command):
+    """The config flags' heading in --help says what they override: the command's own
+    flag or argument for the config file (`macb up` has --run CONFIG, `macb run` a
+    positional CONFIG; neither has --config)."""
+    p = subparsers[command]
+    (title,) = [g.title for g in p._action_groups if (g.title or "").startswith("config keys")]
+    named = re.fullmatch(r"config keys \(override (.+)\)", title).group(1)
+    flag, _, metavar = named.partition(" ")
+    ours = {s: a for a in p._actions for s in a.option_strings}
+    if flag.startswith("--"):
+        assert flag in ours, f"macb {command}: the heading names {flag}, not a flag of it"
+        assert not metavar or ours[flag].metavar == metavar
+    else:
+        assert flag in [a.metavar for a in p._actions if not a.option_strings], title

@@ -64,3 +64,16 @@ def test_the_deploy_doc_has_one_row_per_variable_and_no_other():
     named = [name for row in rows for name in re.findall(r"`(MACB_\w+)`", row.split("|")[1])]
     assert len(named) == len(set(named))
     assert set(named) == {Settings.env_name(f) for f in Settings.model_fields}
+
+
+def test_the_api_doc_has_one_row_per_api_setting_and_no_other():
+    """docs/api.md's table of `MACB_API_*` variables: one row per field of the API's
+    Settings, each named as pydantic-settings reads it (its env_prefix)."""
+    from services.api.main import Settings as ApiSettings
+
+    doc = (ROOT / "docs" / "api.md").read_text()
+    table = doc.split("<!-- api settings:", 1)[1].split("\n\n", 1)[0]
+    named = re.findall(r"^\| `(MACB_API_\w+)`", table, flags=re.M)
+    assert len(named) == len(set(named))
+    prefix = ApiSettings.model_config["env_prefix"]
+    assert set(named) == {f"{prefix}{f}".upper() for f in ApiSettings.model_fields}

@@ -32,7 +32,8 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
     rp = sub.add_parser(
         "reproduce",
         help="run one of the thesis's figures (every arm x seed) and compare with the thesis",
-        description="Run FIGURE's arms (configs/FIGURE/*.yaml and their controls) over its "
+        description="Run FIGURE's arms (its config files under configs/: configs/FIGURE/*.yaml, "
+        "their constant-bonus controls among them; fig7 reuses fig4's and fig6's) over its "
         "seeds as one experiment through the API (starting the local cluster when no API "
         "answers), then write OUT/FIGURE.png (the arms overlaid, smoothed, mean over seeds, "
         "a std band), OUT/FIGURE.md (the thesis's claims beside the measured numbers, a "
@@ -65,7 +66,7 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         choices=("fp32", "bf16"),
         help="every run's learner precision (default: the files', fp32). bf16 makes the "
         "learner 1.7-2.5x faster; its learning is not shown equal to fp32's "
-        "(docs/performance.md, 'bf16: learning parity')",
+        "(docs/performance.md, 'bf16', Learning parity)",
     )
     rp.add_argument(
         "--device",
