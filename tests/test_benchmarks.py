@@ -178,7 +178,7 @@ def test_bench_slots_runs_one_two_and_three_at_once(tmp_path: Path) -> None:
         summary = result["summary"][slots]
         assert summary["ratio"] == pytest.approx(run["total"] / alone)
         assert summary["fig8_pair_hours"] == pytest.approx(
-            2 * 3 * 17_500 * 25 / run["total"] / 3600
+            2 * 3 * 40_000 * 20 / run["total"] / 3600
         )
     assert "| 3 runs at once |" in proc.stdout and "figure 8's headline pair" in proc.stdout
 
