@@ -413,3 +413,23 @@ def test_the_config_keys_heading_names_how_the_command_takes_its_file(subparsers
         assert not metavar or ours[flag].metavar == metavar
     else:
         assert flag in [a.metavar for a in p._actions if not a.option_strings], title
+
+
+def test_the_command_freezes_the_heap_before_a_torch_process_exits():
+    """`entry` (the `macb` script, `python -m cli`): with torch loaded, one collection
+    and a gc freeze, so the interpreter's teardown does not walk torch's objects again;
+    without torch, nothing (`main` itself, which tests call in-process, never freezes)."""
+    code = (
+        "import gc, sys\n"
+        "import cli.main as m\n"
+        "{torch}"
+        "sys.argv = ['macb', 'results', '--check']\n"
+        "m.main(sys.argv[1:]); after_main = gc.get_freeze_count()\n"
+        "m.entry(); print(after_main, gc.get_freeze_count())\n"
+    )
+    for torch, frozen in (("import torch\n", True), ("", False)):
+        out = subprocess.run(
+            [sys.executable, "-c", code.format(torch=torch)],
+            capture_output=True, text=True, cwd=ROOT, timeout=120, check=True,
+        ).stdout.splitlines()[-1].split()  # fmt: skip
+        assert out[0] == "0" and (int(out[1]) > 0) == frozen, (torch, out)
