@@ -45,7 +45,7 @@ from services.peers import PeerWatch
 from services.runs import ServedRuns
 from shared.config import ConfigError, TrainConfig, make_config
 from shared.net import bus as keys
-from shared.net.bus import Bus
+from shared.net.bus import Bus, Refused
 from shared.net.info import ServiceInfo
 from shared.net.messages import (
     MESSAGES,
@@ -63,6 +63,7 @@ from shared.net.wire import WireError, decode
 from shared.settings import node_name, settings
 
 M = TypeVar("M", bound=Message)
+Reply = bytes | Refused | None  # what a query handler gives (`Bus.queryable`)
 
 
 def restarts() -> int:
@@ -166,7 +167,7 @@ class ServiceBase(ServiceHooks):
         # One subscription for both: a start and the stop sent after it arrive in that
         # order (Zenoh orders one subscription's messages, not several: "Order on the bus").
         self.listen(keys.k_control("*"), "control")
-        self.bus.queryable(keys.k_info(self.role, self.id), self._info_reply)
+        self.answer(keys.k_info(self.role, self.id), self._info_reply)
         put = self.inbox.put
         self.bus.watch_liveliness(
             keys.k_live("*", "*"), lambda key, alive: put(("live", key, b"1" if alive else b"0"))
@@ -466,6 +467,25 @@ class ServiceBase(ServiceHooks):
         if first:
             self.log.error("handling a message on %.200s raised", key, exc_info=err)
         self.reject(key, reason)
+
+    def answer(self, key_expr: str, handler: Callable[[str, bytes], Reply]) -> None:
+        """Declare a queryable on `key_expr`; `handler` runs on Zenoh's thread (`guarded`)."""
+        self.bus.queryable(key_expr, self.guarded(handler))
+
+    def guarded(self, handler: Callable[[str, bytes], Reply]) -> Callable[[str, bytes], Reply]:
+        """A query handler whose exception is the query's refusal, naming the exception's
+        type (the asker counts it apart from silence, rather than waiting out its timeout
+        and asking again), and a dropped message of the service (`handler_failed`: counted,
+        its traceback logged the first time), rather than a traceback per query."""
+
+        def answer(key: str, payload: bytes) -> Reply:
+            try:
+                return handler(key, payload)
+            except Exception as err:
+                self.handler_failed(key, err)
+                return Refused(self.id, f"handler raised {type(err).__name__}")
+
+        return answer
 
     def shutdown(self) -> None:
         """Flush what must survive (hook), then close the session."""

@@ -17,6 +17,8 @@ leaves behind is read off the service itself.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import torch
@@ -165,4 +167,35 @@ def test_an_ack_naming_no_attempt_is_taken_as_an_older_peers(router, tmp_path):
         assert svc.decode_for_run(key, encode(acks[None]), Ack) == acks[None]
         assert svc.rejects == {"ack of another attempt": 1}
     finally:
+        svc.shutdown()
+
+
+def test_a_query_whose_handler_raises_is_refused_counted_and_the_service_answers_on(
+    router, tmp_path, caplog
+):
+    """A queryable's handler runs on Zenoh's thread, out of the dispatch loop's reach: its
+    exception is the query's refusal naming the exception's type (the asker does not wait
+    out its timeout), a counted reject, and one logged traceback; the next query is
+    answered."""
+    svc = ServiceBase("s", [router], tmp_path)
+    bus = Bus([router])
+
+    def handler(key: str, payload: bytes) -> bytes:
+        if payload == b"bad":
+            raise KeyError("no such table")
+        return b"ok:" + payload
+
+    try:
+        svc.answer("macb/test/q/s", handler)
+        with caplog.at_level(logging.ERROR, logger="macb.service.s"):
+            for _ in range(3):
+                got = Bus.collect_all(bus.get_async("macb/test/q/s", b"bad", timeout=5))
+                assert got.ok == [] and [(r.by, r.reason) for r in got.refused] == [
+                    ("s", "handler raised KeyError")
+                ]
+        assert svc.rejects == {"handler raised KeyError": 3}
+        assert len([r for r in caplog.records if r.exc_info]) == 1  # its traceback once
+        assert bus.get("macb/test/q/s", b"fine", timeout=5) == [b"ok:fine"]
+    finally:
+        bus.close()
         svc.shutdown()

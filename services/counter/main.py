@@ -84,7 +84,7 @@ class CounterService(ServiceBase):
             self.served.attempts[run] = self.runs.attempt(run)
             self.publish_status(run, "running", restored=True, counted=st.counted)
             self._ack(run, st)
-        self.bus.queryable(k_bonus("*"), self._on_bonus)
+        self.answer(k_bonus("*"), self._on_bonus)
         now = time.monotonic()
         self._next_stats = now + self.stats_s
         self._next_snapshot = now + self.snapshot_s

@@ -82,7 +82,7 @@ class EvaluatorService(ServiceBase):
         # The learner processes whose points it took, per run: a late point of an ended
         # attempt's learner (paused, it had not yet taken its stop) is not the new one's.
         self.took_points = LearnerProcesses()
-        self.bus.queryable(keys.k_history("*", "eval"), self._history_reply)
+        self.answer(keys.k_history("*", "eval"), self._history_reply)
 
     def _history_reply(self, key: str, payload: bytes) -> bytes | None:
         run = keys.run_of(key)
