@@ -605,3 +605,37 @@ def test_an_arm_may_count_in_a_sketch_and_an_invalid_one_is_refused_naming_it(cl
     assert err["field"] == "arms.0.count_sketch" and err["msg"].startswith(
         "give width or memory_mb"
     )
+
+
+@pytest.mark.parametrize(
+    ("task", "why"),
+    [
+        # os, reached through a module an allowed one imported
+        ("mpe2._mpe_utils.simple_env:os.system", "'os' is a module (os)"),
+        ("mpe2._mpe_utils.simple_env:__builtins__.get", "'__builtins__' is private"),
+        # a callable the allowed module imported from elsewhere (typing)
+        ("mpe2._mpe_utils.simple_env:Any", "Any is defined in typing, not in a package"),
+    ],
+)
+def test_a_task_reaching_outside_the_allowed_packages_is_refused_uncalled(
+    tmp_path, router, task, why
+):
+    """MACB_API_TASK_MODULES bounds what a body may make the API call: not only the
+    module a task names but the factory it reaches, which must be defined in those
+    packages (or be PettingZoo's env wrapper, as every mpe2 `parallel_env` is)."""
+    server = start_api(tmp_path, router, task_modules=["mpe2"])
+    try:
+        marker = tmp_path / "called"
+        body = {**TINY, "task": task, "task_kwargs": {"command": f"touch {marker}"}}
+        got = httpx.post(f"{server.url}/experiments", json=body, timeout=30)
+        assert got.status_code == 422, got.text
+        (err,) = got.json()["detail"]
+        assert err["field"] == "task" and why in err["msg"], err
+        assert not marker.exists(), "the factory was called"
+        assert httpx.get(f"{server.url}/experiments", timeout=30).json()["experiments"] == []
+        # mpe2's own factory is PettingZoo's wrapper: still taken with only mpe2 allowed
+        ok = {**TINY, "task": "mpe2.simple_speaker_listener_v4:parallel_env", "episodes": 4}
+        ok["task_kwargs"] = {"continuous_actions": True}
+        assert httpx.post(f"{server.url}/experiments", json=ok, timeout=30).status_code == 201
+    finally:
+        server.stop()

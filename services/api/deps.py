@@ -69,12 +69,38 @@ def module_allowed(module: str, allowed: list[str]) -> bool:
     return any(module == p or module.startswith(p + ".") for p in allowed)
 
 
+# PettingZoo's own wrappers: every mpe2 and PettingZoo `parallel_env` is one of these
+# (`parallel_wrapper_fn`), defined there rather than in the module that names it.
+ENV_WRAPPERS = ["pettingzoo.utils.conversions"]
+
+
+def factory_refusal(task: str, allowed: list[str]) -> str | None:
+    """Why the factory a task names may not be called here: one defined outside the
+    allowed packages (a function its module imported, e.g. `from os import system`),
+    whatever module named it. None when allowed, or when it does not load (the body's
+    validation then says why)."""
+    from shared.envs.custom_task import TaskError, load_factory
+
+    try:
+        factory = load_factory(task)
+    except TaskError:
+        return None
+    defined = getattr(factory, "__module__", None)
+    if isinstance(defined, str) and module_allowed(defined, allowed + ENV_WRAPPERS):
+        return None
+    return (
+        f"{task.split(':', 1)[1]} is defined in {defined or 'no module'}, not in a package "
+        f"this API may call tasks from ({', '.join(allowed) or 'none'}; MACB_API_TASK_MODULES)"
+    )
+
+
 async def require_allowed_tasks(request: Request) -> None:
     """A custom task (`package.module:factory`) is imported and called in this process
     and on every service to check and run it: only modules under the API's
-    `task_modules` (MACB_API_TASK_MODULES) may be named, so a body cannot make the API
-    call an arbitrary function. Refused with 422 naming the field, before the body is
-    validated (which would call the factory)."""
+    `task_modules` (MACB_API_TASK_MODULES) may be named, and the factory must be defined
+    in them (`factory_refusal`), so a body cannot make the API call an arbitrary function.
+    Refused with 422 naming the field, before the body is validated (which would call
+    the factory)."""
     try:
         body = await request.json()
     except ValueError:
@@ -83,15 +109,17 @@ async def require_allowed_tasks(request: Request) -> None:
     errors = []
     for where, task in task_names(body):
         module = task.split(":", 1)[0]
-        if ":" in task and not module_allowed(module, allowed):
-            errors.append(
-                {
-                    "loc": ("body", *where),
-                    "msg": f"module {module!r} is not one this API may import tasks from "
-                    f"({', '.join(allowed) or 'none'}; MACB_API_TASK_MODULES sets them)",
-                    "type": "value_error",
-                }
+        if ":" not in task:
+            continue
+        if not module_allowed(module, allowed):
+            why: str | None = (
+                f"module {module!r} is not one this API may import tasks from "
+                f"({', '.join(allowed) or 'none'}; MACB_API_TASK_MODULES sets them)"
             )
+        else:  # imported (an allowed module), not called: is what it names allowed too?
+            why = factory_refusal(task, allowed)
+        if why is not None:
+            errors.append({"loc": ("body", *where), "msg": why, "type": "value_error"})
     if errors:
         raise RequestValidationError(errors)
 

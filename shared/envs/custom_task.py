@@ -33,6 +33,7 @@ import math
 import os
 import re
 import sys
+import types
 from collections.abc import Sequence
 from typing import Any
 
@@ -54,7 +55,11 @@ def module_of(task: str) -> str:
 
 
 def load_factory(task: str) -> Any:
-    """Import `package.module` and return its `factory` attribute, or say what failed."""
+    """Import `package.module` and return its `factory` attribute, or say what failed.
+
+    The attribute path (`factory`, or `Class.method`) stays in the named module: a part
+    that is private (`_x`, dunders) or a module the named one imported is refused, so
+    naming an allowed module cannot reach `os.system` or builtins through it."""
     if not SPEC_RE.match(task):
         raise TaskError(
             f"{task}: a custom task is `package.module:factory` (e.g. "
@@ -74,9 +79,16 @@ def load_factory(task: str) -> Any:
             f"{task}: cannot import {module_name}: {type(err).__name__}: {err}"
         ) from None
     for part in attr.split("."):
+        if part.startswith("_"):
+            raise TaskError(f"{task}: {part!r} is private; name a public factory of {module_name}")
         if not hasattr(obj, part):
             raise TaskError(f"{task}: {module_name} has no attribute {attr!r}")
         obj = getattr(obj, part)
+        if isinstance(obj, types.ModuleType):
+            raise TaskError(
+                f"{task}: {part!r} is a module ({obj.__name__}); name a factory in its own "
+                f"module: `{obj.__name__}:NAME`"
+            )
     if not callable(obj):
         raise TaskError(f"{task}: {attr} is a {type(obj).__name__}, not a factory")
     return obj
