@@ -7,6 +7,7 @@ keys are errors, so a misspelt key never silently falls back to a default).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -58,7 +59,7 @@ class BetaSchedule(BaseModel):
         "beta to end over horizon, end after it",
     )
     end: Float | None = Field(None, ge=0.0, le=100.0, description="beta at the horizon and after")
-    horizon: Int | None = Field(None, ge=1, description="episodes or steps to reach end")
+    horizon: Int | None = Field(None, ge=1, le=10**12, description="episodes or steps to reach end")
     unit: Literal["episodes", "steps"] = Field(
         "episodes", description="what horizon counts: training episodes or transitions"
     )
@@ -243,10 +244,12 @@ class TrainConfig(BaseModel):
     reward: Literal["sparse", "sparse_offset", "dense"] = Field(
         "sparse", description="sparse (thesis), sparse_offset (sparse + 0.7), dense (mpe2's own)"
     )
-    episodes: Int = Field(1000, ge=1, description="training episodes")
+    episodes: Int = Field(1000, ge=1, le=10**8, description="training episodes")
     episode_len: Int = Field(20, ge=1, le=1000, description="steps per episode")
     seed: Int = Field(0, ge=0, lt=2**31, description="run seed")
-    eval_every: Int = Field(1, ge=1, description="evaluate after every M training episodes")
+    eval_every: Int = Field(
+        1, ge=1, le=10**8, description="evaluate after every M training episodes"
+    )
     eval_episodes: Int = Field(10, ge=1, le=1000, description="noise-free episodes per evaluation")
     early_stop: EarlyStop | None = Field(
         None,
@@ -255,13 +258,17 @@ class TrainConfig(BaseModel):
         "point's weights go to best.pt (docs/fidelity.md, B2)",
     )
     batch_size: Int = Field(100, ge=1, le=100_000)
-    buffer_size: Int = Field(1_000_000, ge=1)
-    learning_starts: Int = Field(100, ge=0, description="transitions collected before updates")
+    buffer_size: Int = Field(1_000_000, ge=1, le=10**9)
+    learning_starts: Int = Field(
+        100, ge=0, le=10**12, description="transitions collected before updates"
+    )
     gamma: Float = Field(0.99, ge=0.0, le=1.0)
     tau: Float = Field(0.005, gt=0.0, le=1.0)
     lr_actor: Float = Field(1e-3, gt=0.0, le=1.0)
     lr_critic: Float = Field(1e-3, gt=0.0, le=1.0)
-    hidden: tuple[Int, ...] = Field((400, 300), min_length=1, description="MLP hidden sizes")
+    hidden: tuple[Int, ...] = Field(
+        (400, 300), min_length=1, max_length=16, description="MLP hidden sizes"
+    )
     noise_sigma: Float = Field(
         0.1, ge=0.0, le=10.0, description="Gaussian action noise, relative to the half-range"
     )
@@ -383,6 +390,16 @@ class TrainConfig(BaseModel):
         "this torch build or machine lacks is refused when the learner is built",
     )
 
+    @field_validator("task_kwargs")
+    @classmethod
+    def _plain_kwargs(cls, kwargs: dict[str, Any] | None) -> dict[str, Any] | None:
+        """Refused unless plain data every part can carry (the store's JSON, the UTF-8 of
+        HTTP replies, msgpack on the bus): else a body stored by the API would break every
+        listing that shows it, and its run's start would fail to encode."""
+        if kwargs is not None:
+            plain_data(kwargs, "task_kwargs")
+        return kwargs
+
     @field_validator("task")
     @classmethod
     def _task_name(cls, task: str) -> str:
@@ -451,8 +468,8 @@ class TrainConfig(BaseModel):
             )
         if self.task in MULTI_AGENT_TASKS and self.algo == "ddpg":
             raise ValueError(f"algo ddpg trains one agent; task {self.task} has several")
-        if any(h < 1 for h in self.hidden):
-            raise ValueError("hidden sizes must be >= 1")
+        if any(not 1 <= h <= 65_536 for h in self.hidden):
+            raise ValueError("hidden sizes must be from 1 to 65536")
         if self.device != "cpu" and self.learner_impl == "reference":
             raise ValueError(
                 f"device {self.device} needs learner_impl batched; learner_impl reference "
@@ -596,6 +613,43 @@ def make_config(data: dict[str, Any]) -> TrainConfig:
         return TrainConfig.model_validate(data)
     except ValidationError as err:
         raise ConfigError(format_errors(err)) from None
+
+
+PLAIN_DEPTH = 16  # nesting a config's free-form mapping may have
+
+
+def plain_data(value: Any, where: str, depth: int = 0) -> None:
+    """Raise ValueError naming the place unless `value` is JSON-like data: None, a bool, an
+    int within 64 bits, a finite float, a string that is valid UTF-8 (no lone surrogate),
+    or lists and string-keyed mappings of those, at most PLAIN_DEPTH deep."""
+    if depth > PLAIN_DEPTH:
+        raise ValueError(f"{where}: nested deeper than {PLAIN_DEPTH} levels")
+    if value is None or isinstance(value, bool):
+        return
+    if isinstance(value, int):
+        if not -(2**63) <= value < 2**64:
+            raise ValueError(f"{where}: {value} does not fit in 64 bits")
+    elif isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"{where}: {value} is not a finite number")
+    elif isinstance(value, str):
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ValueError(
+                f"{where}: a string that is not valid UTF-8 (a lone surrogate)"
+            ) from None
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            plain_data(item, f"{where}[{i}]", depth + 1)
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise ValueError(f"{where}: key {key!r} is not a string")
+            plain_data(key, f"{where} key", depth + 1)
+            plain_data(item, f"{where}.{key}", depth + 1)
+    else:
+        raise ValueError(f"{where}: a {type(value).__name__} is not plain data (JSON's kinds)")
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:

@@ -639,3 +639,20 @@ def test_a_task_reaching_outside_the_allowed_packages_is_refused_uncalled(
         assert httpx.post(f"{server.url}/experiments", json=ok, timeout=30).status_code == 201
     finally:
         server.stop()
+
+
+def test_a_body_the_store_could_store_but_not_show_is_refused_and_stores_nothing(busless):
+    """A lone surrogate in a custom task's kwargs is valid JSON text but not UTF-8: once
+    stored, every listing showing it would fail to encode. Refused with 422 naming the
+    field, nothing stored, every listing still answering."""
+    _, client = busless
+    raw = (
+        b'{"task": "mpe2.simple_speaker_listener_v4:parallel_env", "algo": "cen-maddpg",'
+        b' "episodes": 4, "task_kwargs": {"render_mode": "\\ud800", "continuous_actions": true}}'
+    )
+    got = client.post("/experiments", content=raw, headers={"content-type": "application/json"})
+    assert got.status_code == 422, got.text
+    (err,) = got.json()["detail"]
+    assert err["field"] == "task_kwargs" and "not valid UTF-8" in err["msg"], err
+    listing = client.get("/experiments")
+    assert listing.status_code == 200 and listing.json()["experiments"] == []

@@ -8,6 +8,8 @@ import pytest
 from shared.config import ConfigError, TrainConfig, load_config, make_config
 from tests.harness import macb
 
+CUSTOM = {"task": "mpe2.simple_speaker_listener_v4:parallel_env", "algo": "cen-maddpg"}
+
 
 def test_defaults_are_the_thesis_settings():
     c = TrainConfig()
@@ -40,6 +42,26 @@ def test_defaults_are_the_thesis_settings():
             "config",
             "precision bf16 needs learner_impl batched",
         ),
+        # sizes past any run, which would fail only when the start is encoded (msgpack's
+        # 64 bits) or the buffer allocated: refused here, naming the field
+        ({"episodes": 2**64}, "episodes", "less than or equal to 100000000"),
+        ({"eval_every": 10**30}, "eval_every", "less than or equal to 100000000"),
+        ({"buffer_size": 10**12}, "buffer_size", "less than or equal to 1000000000"),
+        ({"hidden": [64, 10**9]}, "config", "hidden sizes must be from 1 to 65536"),
+        (
+            {"beta_schedule": {"kind": "linear", "end": 0, "horizon": 10**30}},
+            "beta_schedule.horizon",
+            "less than or equal to",
+        ),
+        # a custom task's kwargs: plain data only (the store's JSON, HTTP's UTF-8, msgpack)
+        (
+            {**CUSTOM, "task_kwargs": {"render_mode": "\ud800"}},
+            "task_kwargs",
+            "task_kwargs.render_mode: a string that is not valid UTF-8",
+        ),
+        ({**CUSTOM, "task_kwargs": {"x": [1, float("nan")]}}, "task_kwargs", "x[1]: nan is not"),
+        ({**CUSTOM, "task_kwargs": {"n": 2**70}}, "task_kwargs", "does not fit in 64 bits"),
+        ({**CUSTOM, "task_kwargs": {"when": {1, 2}}}, "task_kwargs", "a set is not plain data"),
     ],
 )
 def test_invalid_configs_name_field_and_reason(data, field, reason):
