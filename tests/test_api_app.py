@@ -72,6 +72,14 @@ def test_a_token_is_required_on_every_call_but_health(tmp_path, router):
             assert ok.get("/workers").status_code == 200
             assert anon.get("/", params={"token": "s3cret"}).status_code == 200
             assert anon.get("/", params={"token": "nope"}).status_code == 401
+            # the docs page a browser opens from the dashboard's link, and the schema it
+            # loads with the token it was given
+            docs = anon.get("/docs", params={"token": "s3cret"})
+            assert docs.status_code == 200 and "/openapi.json?token=s3cret" in docs.text
+            assert anon.get("/openapi.json", params={"token": "s3cret"}).json()["paths"]
+            for page in ("/docs", "/openapi.json"):
+                assert anon.get(page, params={"token": "nope"}).status_code == 401
+                assert anon.post(page, params={"token": "s3cret"}).status_code == 401
     finally:
         server.stop()
 

@@ -21,12 +21,13 @@ import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
-from urllib.parse import parse_qs
+from urllib.parse import parse_qs, urlencode
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -188,7 +189,9 @@ class TokenAuth:
     """With a token: `Authorization: Bearer <token>` on every call but /health."""
 
     OPEN = ("/health",)
-    PAGES = ("/", "/view")  # may take the token as ?token= (a link, a browser's address)
+    # May take the token as ?token= (a link, a browser's address); /docs passes it on to
+    # the /openapi.json it loads.
+    PAGES = ("/", "/view", "/docs", "/openapi.json")
 
     def __init__(self, app, token: str) -> None:
         self.app = app
@@ -297,6 +300,7 @@ def make_app(settings: Settings | None = None, figure_view: FigureView | None = 
         description="Experiments and runs of multi-agent count-based exploration on the "
         "cluster: launch, follow, stop, and read every stored metric point.",
         lifespan=lifespan,
+        docs_url=None,  # ours below: it passes a ?token= on to the schema it loads
     )
     app.state.settings = settings
     app.state.store = store
@@ -312,6 +316,16 @@ def make_app(settings: Settings | None = None, figure_view: FigureView | None = 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def dashboard() -> HTMLResponse:
         return HTMLResponse(page("dashboard.html"), headers={"Cache-Control": "no-cache"})
+
+    @app.get("/docs", response_class=HTMLResponse, include_in_schema=False)
+    def api_docs(token: str | None = None) -> HTMLResponse:
+        """Swagger UI. A browser cannot send the bearer header with a link, so the token
+        it was given as ?token= goes on to the schema's URL (its "Try it out" requests
+        carry no token: with one set, they get 401; macb and curl send the header)."""
+        schema = app.openapi_url or "/openapi.json"
+        if token:
+            schema += "?" + urlencode({"token": token})
+        return get_swagger_ui_html(openapi_url=schema, title=f"{app.title} - docs")
 
     @app.get("/view", response_class=HTMLResponse, include_in_schema=False)
     def figure_page() -> HTMLResponse:
