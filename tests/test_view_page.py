@@ -182,10 +182,13 @@ def _healthy(url: str) -> bool:
 def test_the_dashboards_figure_view_follows_a_run_through_the_api(tmp_path):
     """A real run on the cluster: from the dashboard's link, the figure view draws its
     points as the event stream brings them, the values the report computes from the
-    stored points."""
+    stored points. Eight arms on one learner: one runs, seven wait, and the page must
+    not hold the browser's six connections to the API with their runs' streams."""
     # Far longer than the test waits: the test stops it after two draws, so however fast
     # the machine, the run is still going when the page first draws it.
+    arms = [{"name": f"beta {b}", "beta": b} for b in (0.8, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)]
     body = {**TINY, "episodes": 4000, "eval_every": 4, "seeds": [0], "name": "figure view"}
+    body["arms"] = arms
     (tmp_path / "cluster").mkdir()
     env = {"MACB_PEER_GRACE_S": "8"}
     with Cluster(tmp_path / "cluster", env=env) as cluster, Browser(tmp_path / "chromium") as page:
@@ -225,11 +228,9 @@ def test_the_dashboards_figure_view_follows_a_run_through_the_api(tmp_path):
 
         def analysed():
             done = httpx.get(f"{url}/experiments/{exp['id']}").json()
-            (run,) = done["runs"]
+            (run,) = [r for r in done["runs"] if r["points"]]  # the one that ran
             points = httpx.get(f"{url}/runs/{run['id']}/metrics").json()["points"]
-            figure = analyse(
-                runs_figure(done["name"], done["runs"]), done, {run["id"]: columns(points)}
-            )
+            figure = analyse(runs_figure(done["name"], [run]), done, {run["id"]: columns(points)})
             return run, figure.arm(run["arm"])
 
         def drawn_all() -> tuple | None:
