@@ -61,7 +61,11 @@ class Settings(BaseSettings):
     connect: list[str] | None = Field(None, description="router endpoints (MACB_ZENOH_CONNECT)")
     service_id: str = "api"
     max_body: int = Field(64 * 1024, ge=1, description="largest request body, bytes (413)")
-    scheduler: bool = Field(True, description="run the scheduler (off: read-only store view)")
+    scheduler: bool = Field(
+        True,
+        description="run the scheduler (off: the store served as it is; runs posted here are "
+        "stored and queued, but nothing in this process starts or follows them)",
+    )
     sse_poll_s: float = Field(0.25, gt=0)
     counter_grace_s: float = Field(120.0, gt=0)
     start_timeout_s: float = Field(60.0, gt=0)
