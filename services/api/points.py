@@ -3,7 +3,8 @@
 A point is stored as the JSON of the evaluator's row with its `seq` (its number in the
 run, from 1, in arrival order) put in front; reads concatenate the stored JSON as it
 is, so serving many points decodes nothing. A point repeated for the same evaluation
-episode is ignored, so storing is idempotent (rows come at least once). seq has no
+episode is ignored, so storing is idempotent (rows come at least once); rows of an
+attempt other than the run's current one are not stored. seq has no
 holes, so a run's count is its last seq: two index look-ups per run.
 """
 
@@ -22,13 +23,21 @@ class Points:
     def __init__(self, db: Database) -> None:
         self.db = db
 
-    def add(self, run_id: str, rows: list[dict[str, Any]]) -> int:
-        """Append metric rows (one per evaluation episode); the number newly stored."""
+    def add(self, run_id: str, rows: list[dict[str, Any]], attempt: int | None = None) -> int:
+        """Append metric rows (one per evaluation episode); the number newly stored.
+
+        `attempt`: the run's attempt the rows are of (None: whichever is current). They
+        are stored only while it is the run's current attempt, read in this transaction:
+        a retry may have queued the run again since they were sent, and an ended
+        attempt's row would take the episode from the new attempt's own row."""
         if not rows:
             return 0
         added = 0
         now = time.time()
         with self.db.tx() as c:
+            run = c.execute("SELECT attempts FROM runs WHERE id = ?", (run_id,)).fetchone()
+            if run is None or (attempt is not None and run[0] != attempt):
+                return 0
             seq = c.execute(
                 "SELECT COALESCE(MAX(seq), 0) FROM metrics WHERE run_id = ?", (run_id,)
             ).fetchone()[0]

@@ -243,8 +243,10 @@ class Store:
             c.execute("UPDATE runs SET reason = ? WHERE id = ?", (reason, run_id))
 
     # ------------------------------------------------------------ metric points
-    def add_points(self, run_id: str, rows: list[dict[str, Any]]) -> int:
-        return self.metrics.add(run_id, rows)
+    def add_points(
+        self, run_id: str, rows: list[dict[str, Any]], attempt: int | None = None
+    ) -> int:
+        return self.metrics.add(run_id, rows, attempt)
 
     def points_json(self, run_id: str, since: int = 0, limit: int = 10_000) -> tuple[str, int, int]:
         return self.metrics.page_json(run_id, since, limit)
