@@ -256,8 +256,9 @@ def test_a_run_whose_learner_dies_fails_with_the_reason_and_the_others_go_on(clu
 
 def test_a_stopped_run_retried_runs_afresh_under_its_id(cluster):
     """Stopped mid-run and queued again (POST /experiments/{id}/retry): the same run id
-    runs from the start on the same services, its earlier points gone, and the counter
-    counts the new attempt's transitions from nothing (not on top of the old ones)."""
+    runs from the start on the same services, its earlier points gone (the new ones
+    numbered on after their last seq), and the counter counts the new attempt's
+    transitions from nothing (not on top of the old ones)."""
     url = cluster.url
     episodes = 120
     exp = httpx.post(f"{url}/experiments", json={**TINY, "episodes": episodes}).json()
@@ -275,6 +276,7 @@ def test_a_stopped_run_retried_runs_afresh_under_its_id(cluster):
     )
     stopped = httpx.get(f"{url}/runs/{run_id}").json()
     assert stopped["status"] == "stopped" and stopped["points"] >= 2
+    last = httpx.get(f"{url}/runs/{run_id}/metrics").json()["next_since"]
     out = httpx.post(f"{url}/experiments/{exp['id']}/retry").json()
     assert out["retried"] == [run_id] and out["experiment"]["runs"][0]["attempts"] == 2
     run = wait_for(
@@ -288,7 +290,8 @@ def test_a_stopped_run_retried_runs_afresh_under_its_id(cluster):
     assert run["status"] == "completed" and run["reason"] is None, run
     assert run["attempts"] == 2 and run["points"] == episodes // 4
     points = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
-    assert [p["seq"] for p in points] == list(range(1, episodes // 4 + 1))
+    first = points[0]["seq"]
+    assert first > last and [p["seq"] for p in points] == list(range(first, first + len(points)))
     assert [p["episode"] for p in points] == list(range(4, episodes + 1, 4))
 
     def counted():

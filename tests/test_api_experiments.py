@@ -22,6 +22,7 @@ from pydantic import ValidationError
 from services.api.naming import format_value
 from services.api.store import CSV_FIELDS, Store
 from shared.config import TrainConfig
+from shared.net.messages import Assignment
 from tests.harness import TINY, macb, post, row, start_api, wait_for
 
 
@@ -126,6 +127,46 @@ def test_retry_queues_failed_and_stopped_runs_again_under_their_ids(busless):
     missing = client.post("/experiments/no-such-experiment/retry")
     assert missing.status_code == 404
     assert "no experiment with id 'no-such-experiment'" in missing.json()["detail"]
+
+
+def test_a_cursor_from_before_a_retry_reads_every_point_of_the_new_attempt(busless):
+    """A client polling with `since=next_since` (or resuming events after its
+    Last-Event-ID) across a retry: the new attempt's points are numbered on after the
+    old attempt's last seq, so the old cursor misses none of them and meets no seq
+    twice; the run holds and counts the new attempt's points only."""
+    api, client = busless
+    exp = post(client, {**TINY, "seeds": [0]}).json()
+    run = exp["runs"][0]["id"]
+    assign = Assignment(learner="L", actors=("A",), counter="C", evaluator="E")
+    store = Store(api.settings.db_path)  # a second connection, as the scheduler has
+    try:
+        assert store.claim(run, assign)
+        assert store.add_points(run, [row(e) for e in (4, 8, 12)], attempt=1) == 3
+        page = client.get(f"/runs/{run}/metrics").json()
+        cursor = page["next_since"]
+        assert cursor == 3
+        store.finish(run, "failed", "learner died")
+        assert client.post(f"/experiments/{exp['id']}/retry").json()["retried"] == [run]
+        waiting = client.get(f"/runs/{run}/metrics", params={"since": cursor}).json()
+        assert waiting["points"] == [] and waiting["next_since"] == cursor
+        assert store.claim(run, assign)
+        assert store.add_points(run, [row(4, success_rate=0.9), row(8)], attempt=2) == 2
+        page = client.get(f"/runs/{run}/metrics", params={"since": cursor}).json()
+        assert [(p["seq"], p["episode"]) for p in page["points"]] == [(4, 4), (5, 8)]
+        assert page["points"][0]["success_rate"] == 0.9
+        assert store.add_points(run, [row(12), row(16)], attempt=2) == 2
+        later = client.get(f"/runs/{run}/metrics", params={"since": page["next_since"]}).json()
+        assert [(p["seq"], p["episode"]) for p in later["points"]] == [(6, 12), (7, 16)]
+        whole = client.get(f"/runs/{run}/metrics").json()["points"]
+        assert [p["episode"] for p in whole] == [4, 8, 12, 16], "the new attempt's only"
+        got = client.get(f"/runs/{run}").json()
+        assert (got["points"], got["attempts"], got["progress"]["episode"]) == (4, 2, 16)
+    finally:
+        store.close()
+    client.post(f"/runs/{run}/stop")  # ended: the event stream ends
+    r = client.get(f"/runs/{run}/events", headers={"Last-Event-ID": str(cursor)})
+    ids = [x for x in r.text.splitlines() if x.startswith("id:")]
+    assert ids == ["id: 4", "id: 5", "id: 6", "id: 7"], r.text
 
 
 def test_profile_thesis_fills_in_each_runs_options_through_the_api(client):

@@ -262,8 +262,12 @@ def status(state: str, service: str = "L1", run: str = "r1", **detail) -> tuple:
     return ("status", keys.k_status(run, service), encode(msg))
 
 
-def metrics(episode: int, run: str = "r1", source: str = "eval") -> tuple:
-    msg = Metrics(run, source=source, data={"episode": episode, "success_rate": 0.1})
+def metrics(
+    episode: int, run: str = "r1", source: str = "eval", attempt: int | None = None, sr=0.1
+) -> tuple:
+    msg = Metrics(
+        run, source=source, data={"episode": episode, "success_rate": sr}, attempt=attempt
+    )
     return ("metrics", keys.k_metrics(run, source), encode(msg))
 
 
@@ -328,6 +332,31 @@ def test_a_failure_records_its_stop_as_due_and_a_retry_supersedes_the_ended_atte
     assert store.points("r1") == [] and store.run("r1")["services"] == {}
 
 
+def test_a_late_row_of_an_attempt_stopped_and_retried_over_http_is_not_stored(book):
+    """A stop and a retry over HTTP, both before the scheduler's next pass: the watch of
+    the ended attempt is not yet marked ended when its evaluator's late row comes. The
+    row is not stored on the queued run, and the new attempt's own row for that episode
+    is (the store keeps an episode's first)."""
+    b, store, _ = book
+    b.handle([metrics(4, attempt=1, sr=0.11)])
+    assert store.finish("r1", "stopped", "stopped by user", stop_sent=None)
+    assert [r["id"] for r in store.retry_runs("x", ["r1"])] == ["r1"]
+    old = b.watches["r1"]
+    assert old.ended is None and old.attempt == 1  # the scheduler has not looked yet
+    b.handle([metrics(8, attempt=1, sr=0.22)])  # the ended attempt's evaluator, late
+    assert store.points("r1") == [] and old.points == 1
+    assert store.claim("r1", Assignment.from_wire(ASSIGN))  # the retry starts
+    new = b.watch(store.run("r1"), started=1.0)
+    assert new.attempt == 2
+    b.handle([metrics(e, attempt=2, sr=e / 10) for e in (4, 8, 12)])
+    assert [(p["episode"], p["success_rate"]) for p in store.points("r1")] == [
+        (4, 0.4),
+        (8, 0.8),
+        (12, 1.2),
+    ]
+    assert new.points == 3 and new.last_episode == 12
+
+
 def test_a_run_stopped_over_http_is_not_decided_again(book):
     b, store, _ = book
     store.finish("r1", "stopped", "stopped by user", stop_sent=False)
@@ -362,6 +391,9 @@ def test_points_are_numbered_in_arrival_order_and_an_episode_is_stored_once(tmp_
     assert (text, n, last) == ('[{"seq": 2, "episode": 4}]', 1, 2)
     assert points.has_more("r", 2) and not points.has_more("r", 3)
     assert points.stats(["r", "none"]) == {"r": (3, 3, 12), "none": (0, 0, 0)}
+    assert points.add("r", [{"episode": 16}], attempt=2) == 0, "not the run's attempt"
+    assert points.add("r", [{"episode": 16}], attempt=1) == 1
+    assert points.add("none", [{"episode": 4}]) == 0, "no such run"
     store.close()
 
 

@@ -1,5 +1,5 @@
 """The API's store (services/api/store.py): what survives a restart of the API, the CSV
-columns, a newer schema refused and a schema-1 file migrated."""
+columns, a newer schema refused, and schema-1 and schema-3 files migrated."""
 
 from __future__ import annotations
 
@@ -86,8 +86,11 @@ def test_a_schema_1_store_is_migrated_and_its_runs_get_arm_names(tmp_path):
                 assert conn.execute("SELECT version FROM schema_version").fetchall() == [
                     (SCHEMA_VERSION,)
                 ]
-            assert SCHEMA_VERSION == 3 and {"arm", "attempts"} <= set(_columns(path))
-            assert {r["attempts"] for r in store.runs_of(["xgrid"])["xgrid"]} == {1}
+            assert SCHEMA_VERSION == 4 and {"arm", "attempts", "seq_base"} <= set(_columns(path))
+            assert {(r["attempts"], r["seq_base"]) for r in store.runs_of(["xgrid"])["xgrid"]} == {
+                (1, 0)
+            }
+            assert store.point_stats(["xgrid-3"]) == {"xgrid-3": (2, 2, 8)}
             runs = store.runs_of(["xgrid", "xplain"])
             assert [r["arm"] for r in runs["xgrid"]] == ["beta=0.2"] * 2 + ["beta=0.8"] * 2
             assert [r["arm"] for r in runs["xplain"]] == ["cen-maddpg + cen-macb"]
@@ -116,3 +119,34 @@ def test_a_schema_1_store_is_migrated_and_its_runs_get_arm_names(tmp_path):
         finally:
             again.close()
     print(f"migrated {len(files)} schema-1 file(s)")
+
+
+def test_a_schema_3_store_is_migrated_and_a_retry_there_numbers_its_points_on(tmp_path):
+    """A schema-3 file (runs without `seq_base`: the file as schema 3 wrote it) gets the
+    column at 0, so its points keep their seqs; a retry then numbers the new attempt's
+    points on from the last one."""
+    path = tmp_path / "s3.sqlite3"
+    store = Store(path)
+    run = {"id": "x-0", "seed": 0, "point": {}, "config": TINY, "actors": 1}
+    store.create_experiment("x", "x", {"config": TINY}, [run])
+    store.add_points("x-0", [row(4), row(8)])
+    store.close()
+    with contextlib.closing(sqlite3.connect(path)) as conn, conn:
+        conn.execute("ALTER TABLE runs DROP COLUMN seq_base")
+        conn.execute("UPDATE schema_version SET version = 3")
+    assert "seq_base" not in _columns(path)
+    store = Store(path)
+    try:
+        with contextlib.closing(sqlite3.connect(path)) as conn:
+            assert conn.execute("SELECT version FROM schema_version").fetchall() == [(4,)]
+        assert store.run("x-0")["seq_base"] == 0
+        assert [(p["seq"], p["episode"]) for p in store.points("x-0")] == [(1, 4), (2, 8)]
+        assert store.point_stats(["x-0"]) == {"x-0": (2, 2, 8)}
+        store.finish("x-0", "failed", "boom")
+        assert [r["id"] for r in store.retry_runs("x")] == ["x-0"]
+        assert store.point_stats(["x-0"]) == {"x-0": (0, 0, 0)}
+        assert store.add_points("x-0", [row(4)]) == 1
+        assert [(p["seq"], p["episode"]) for p in store.points("x-0")] == [(3, 4)]
+        assert store.point_stats(["x-0"]) == {"x-0": (1, 3, 4)}
+    finally:
+        store.close()

@@ -29,6 +29,7 @@ from cli.view_app import page_app
 from services.api.main import ApiServer, Settings
 from services.api.store import Store
 from shared.config import TrainConfig
+from shared.net.messages import Assignment
 from tests.harness import TINY
 from tests.test_fig8_page import _rows
 
@@ -207,6 +208,47 @@ def test_the_apis_figure_of_an_experiment_is_the_reports(tmp_path):
         assert httpx.get(f"{bare.url}/experiments/{exp['id']}/figure").status_code == 501
     finally:
         bare.stop()
+
+
+def test_the_apis_figure_is_new_after_a_retry_whose_attempt_has_as_many_points(tmp_path):
+    """GET /experiments/{id}/figure with the ETag of a run's earlier attempt: its points
+    were deleted by the retry and the new attempt stored as many, ended the same way.
+    The data changed, so it is a 200 with the new attempt's points, never a 304."""
+
+    def view(exp: dict, points: dict) -> dict:
+        return {r: [p["success_rate"] for p in ps] for r, ps in points.items()}
+
+    settings = Settings(port=0, data_dir=tmp_path / "api", connect=["tcp/127.0.0.1:1"])
+    server = ApiServer(settings, view).start()
+    store = Store(server.settings.db_path)  # a second connection, as the scheduler has
+    assign = Assignment(learner="L", actors=("A",), counter="C", evaluator="E")
+    try:
+        exp = httpx.post(f"{server.url}/experiments", json={**TINY, "seed": 0}).json()
+        run = exp["runs"][0]["id"]
+        url = f"{server.url}/experiments/{exp['id']}/figure"
+
+        def attempt(n: int, success: tuple[float, float]) -> str:
+            """The run's attempt n: two points, stopped; the figure's ETag then."""
+            assert store.claim(run, assign)
+            rows = [{"episode": e, "success_rate": s} for e, s in zip((4, 8), success)]
+            assert store.add_points(run, rows, attempt=n) == 2
+            assert httpx.post(f"{server.url}/runs/{run}/stop").json()["changed"]
+            got = httpx.get(url)
+            assert got.status_code == 200 and got.json() == {run: list(success)}
+            assert httpx.get(url, headers={"If-None-Match": got.headers["etag"]}).status_code == 304
+            return got.headers["etag"]
+
+        first = attempt(1, (0.1, 0.2))
+        httpx.post(f"{server.url}/experiments/{exp['id']}/retry").raise_for_status()
+        queued = httpx.get(url, headers={"If-None-Match": first})
+        assert queued.status_code == 200 and queued.json() == {run: []}
+        second = attempt(2, (0.9, 0.8))
+        assert second != first
+        again = httpx.get(url, headers={"If-None-Match": first})
+        assert again.status_code == 200 and again.json() == {run: [0.9, 0.8]}
+    finally:
+        store.close()
+        server.stop()
 
 
 def test_what_was_learned_is_said_in_the_reports_words():

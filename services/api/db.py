@@ -5,7 +5,9 @@ connection per thread, and one lock that serialises writers. The schema has a ve
 table, created or checked on open, so a newer file is refused instead of being misread
 and an older one is migrated in place (in one transaction): schema 2 gave each run its
 arm's name (`runs.arm`), which schema 1 files get from the run's grid point and config
-by the rule new runs are named by; schema 3 counts a run's attempts.
+by the rule new runs are named by; schema 3 counts a run's attempts; schema 4 keeps the
+last seq of a run's earlier attempts (`runs.seq_base`), so a retried run's points are
+numbered on from there and a client's cursor (`since`) never meets a seq twice.
 
 The tables' rows are read and written by `store.py` (experiments, runs) and
 `points.py` (metric points), both over one `Database`.
@@ -23,7 +25,7 @@ from typing import Any
 
 from .naming import base_name, point_name
 
-SCHEMA_VERSION = 3  # 1: first; 2: runs.arm; 3: runs.attempts
+SCHEMA_VERSION = 4  # 1: first; 2: runs.arm; 3: runs.attempts; 4: runs.seq_base
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL);
@@ -52,7 +54,8 @@ CREATE TABLE IF NOT EXISTS runs (
     services      TEXT NOT NULL DEFAULT '{}',  -- JSON: service id -> last status
     live          TEXT NOT NULL DEFAULT '{}',  -- JSON: source -> latest stats
     stop_sent     INTEGER NOT NULL DEFAULT 1,  -- 0: a stop must still go on the bus
-    attempts      INTEGER NOT NULL DEFAULT 1   -- 1 + how often it was queued again
+    attempts      INTEGER NOT NULL DEFAULT 1,  -- 1 + how often it was queued again
+    seq_base      INTEGER NOT NULL DEFAULT 0   -- the last seq its earlier attempts gave
 );
 CREATE INDEX IF NOT EXISTS runs_by_experiment ON runs(experiment_id, idx);
 CREATE INDEX IF NOT EXISTS runs_by_status ON runs(status, created, idx);
@@ -96,6 +99,13 @@ def _add_arms(c: sqlite3.Connection) -> None:
 def _add_attempts(c: sqlite3.Connection) -> None:
     """Schema 2 -> 3: every run so far ran (or will run) once."""
     c.execute("ALTER TABLE runs ADD COLUMN attempts INTEGER NOT NULL DEFAULT 1")
+
+
+def _add_seq_base(c: sqlite3.Connection) -> None:
+    """Schema 3 -> 4: numbering starts at 0 for every run. A run retried before holds
+    its current attempt's points only, numbered from 1 (the cursors of its earlier
+    attempts are lost with them, as they were)."""
+    c.execute("ALTER TABLE runs ADD COLUMN seq_base INTEGER NOT NULL DEFAULT 0")
 
 
 class Database:
@@ -170,4 +180,6 @@ class Database:
                     _add_arms(c)
                 if row[0] < 3:
                     _add_attempts(c)
+                if row[0] < 4:
+                    _add_seq_base(c)
                 c.execute("UPDATE schema_version SET version = ?", (SCHEMA_VERSION,))

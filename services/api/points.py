@@ -1,10 +1,16 @@
 """A run's metric points: the `metrics` table, written by the scheduler, read by HTTP.
 
 A point is stored as the JSON of the evaluator's row with its `seq` (its number in the
-run, from 1, in arrival order) put in front; reads concatenate the stored JSON as it
-is, so serving many points decodes nothing. A point repeated for the same evaluation
-episode is ignored, so storing is idempotent (rows come at least once). seq has no
-holes, so a run's count is its last seq: two index look-ups per run.
+run, in arrival order) put in front; reads concatenate the stored JSON as it is, so
+serving many points decodes nothing. A point repeated for the same evaluation episode
+is ignored, so storing is idempotent (rows come at least once); rows of an attempt
+other than the run's current one are not stored.
+
+A run's seq never goes back: a retry deletes the points but keeps their last seq as the
+run's `seq_base`, and the next attempt's points are numbered on from it. So a cursor
+(`since`, Last-Event-ID) taken in an earlier attempt reads every point of the new one.
+An attempt's seqs have no holes, so a run's count is its last seq less its base: two
+index look-ups per run.
 """
 
 from __future__ import annotations
@@ -22,16 +28,26 @@ class Points:
     def __init__(self, db: Database) -> None:
         self.db = db
 
-    def add(self, run_id: str, rows: list[dict[str, Any]]) -> int:
-        """Append metric rows (one per evaluation episode); the number newly stored."""
+    def add(self, run_id: str, rows: list[dict[str, Any]], attempt: int | None = None) -> int:
+        """Append metric rows (one per evaluation episode); the number newly stored.
+
+        `attempt`: the run's attempt the rows are of (None: whichever is current). They
+        are stored only while it is the run's current attempt, read in this transaction:
+        a retry may have queued the run again since they were sent, and an ended
+        attempt's row would take the episode from the new attempt's own row."""
         if not rows:
             return 0
         added = 0
         now = time.time()
         with self.db.tx() as c:
-            seq = c.execute(
-                "SELECT COALESCE(MAX(seq), 0) FROM metrics WHERE run_id = ?", (run_id,)
-            ).fetchone()[0]
+            run = c.execute(
+                "SELECT r.attempts, COALESCE((SELECT MAX(seq) FROM metrics WHERE run_id = r.id),"
+                " r.seq_base) FROM runs r WHERE r.id = ?",
+                (run_id,),
+            ).fetchone()
+            if run is None or (attempt is not None and run[0] != attempt):
+                return 0
+            seq = run[1]
             for row in rows:
                 episode = int(row["episode"])
                 data = json.dumps({"seq": seq + 1, **{k: v for k, v in row.items() if k != "seq"}})
@@ -67,20 +83,22 @@ class Points:
         return [json.loads(r[0]) for r in rows]
 
     def stats(self, run_ids: list[str]) -> dict[str, tuple[int, int, int]]:
-        """run -> (number of points, last seq, last episode); (0, 0, 0) for none."""
+        """run -> (number of points, last seq, last episode); (0, 0, 0) for none (a
+        retried run's before its new attempt's first point)."""
         if not run_ids:
             return {}
         marks = ",".join("?" * len(run_ids))
         rows = self.db.conn().execute(
-            "SELECT r.id,"
+            "SELECT r.id, r.seq_base,"
             " (SELECT MAX(seq) FROM metrics m WHERE m.run_id = r.id),"
             " (SELECT MAX(episode) FROM metrics m WHERE m.run_id = r.id)"
             f" FROM runs r WHERE r.id IN ({marks})",
             run_ids,
         )
         out = {r: (0, 0, 0) for r in run_ids}
-        for run_id, last_seq, last_episode in rows:
-            out[run_id] = (last_seq or 0, last_seq or 0, last_episode or 0)
+        for run_id, base, last_seq, last_episode in rows:
+            if last_seq is not None:
+                out[run_id] = (last_seq - base, last_seq, last_episode)
         return out
 
     def has_more(self, run_id: str, since: int) -> bool:

@@ -91,9 +91,10 @@ class RunBook:
         return {sid for w in self.watches.values() if w.ended is None for sid in w.holds()}
 
     def superseded(self, w: Watch) -> bool:
-        """The watch's run ended and was queued again since (a retry): what its ended
-        attempt still sends belongs to no attempt the store keeps. A look-up only for
-        ended watches, which live ENDED_WATCH_S."""
+        """The watch's run ended and was queued again since (a retry): the statuses its
+        ended attempt still sends belong to no attempt the store keeps. A look-up only
+        for ended watches, which live ENDED_WATCH_S. (Rows are checked by the store
+        itself: `store_points`.)"""
         if w.ended is None:
             return False
         row = self.store.run(w.run)
@@ -122,12 +123,15 @@ class RunBook:
         return came_up
 
     def store_points(self, run: str, rows: list[dict[str, Any]]) -> int:
-        """Store evaluation rows (the store ignores episodes it has); count the new ones
-        on the run's watch. Returns how many were new."""
+        """Store evaluation rows of the watched attempt (the store ignores episodes it
+        has); count the new ones on the run's watch. Returns how many were new.
+
+        The store keeps them only if the watch's attempt is still the run's current
+        one, checked in the insert's transaction: a stop over HTTP and a retry can both
+        land before the watch learns of the stop, and a late row of the ended attempt
+        would then take its episode from the new attempt's row."""
         w = self.watches.get(run)
-        if w is not None and self.superseded(w):
-            return 0
-        added = self.store.add_points(run, rows)
+        added = self.store.add_points(run, rows, w.attempt if w is not None else None)
         if w is not None:
             w.stored(rows, added)
         if added:

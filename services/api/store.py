@@ -8,7 +8,8 @@ claimed (a group's runs all or none), waiting, finished, stopped with its stop s
 to send.
 
 A failed or stopped run can be queued again under its id (`retry_runs`): its points go,
-its `attempts` goes up by one, so the record says it ran more than once.
+its `attempts` goes up by one, so the record says it ran more than once, and its
+`seq_base` keeps their last seq, so the next attempt's points are numbered on from it.
 """
 
 from __future__ import annotations
@@ -199,8 +200,9 @@ class Store:
 
     def retry_runs(self, exp_id: str, run_ids: list[str] | None = None) -> list[dict[str, Any]]:
         """Queue the experiment's failed and stopped runs again (of `run_ids` only, if
-        given), under the same ids: their points are deleted, `attempts` goes up, the
-        reason says what they were. In one transaction; the runs retried (as they were
+        given), under the same ids: their points are deleted (their last seq kept as the
+        run's `seq_base`: seq goes on from it), `attempts` goes up, the reason says what
+        they were. In one transaction; the runs retried (as they were
         before), [] when there is nothing to retry. A stop not yet sent stays due: the
         scheduler sends it before the run can be started again."""
         with self.db.tx() as c:
@@ -213,13 +215,15 @@ class Store:
             for r in rows:
                 was = r["status"] + (f": {r['reason']}" if r["reason"] else "")
                 reason = f"retried (attempt {r['attempts'] + 1}; was {was})"
-                c.execute("DELETE FROM metrics WHERE run_id = ?", (r["id"],))
                 c.execute(
                     "UPDATE runs SET status = 'queued', reason = ?, started = NULL,"
                     " ended = NULL, assign = NULL, services = '{}', live = '{}',"
-                    " attempts = attempts + 1 WHERE id = ?",
+                    " attempts = attempts + 1, seq_base = COALESCE("
+                    "(SELECT MAX(seq) FROM metrics WHERE run_id = runs.id), seq_base)"
+                    " WHERE id = ?",
                     (reason, r["id"]),
                 )
+                c.execute("DELETE FROM metrics WHERE run_id = ?", (r["id"],))
             return [dict(r) for r in rows]
 
     def stops_to_send(self) -> list[tuple[str, str]]:
@@ -243,8 +247,10 @@ class Store:
             c.execute("UPDATE runs SET reason = ? WHERE id = ?", (reason, run_id))
 
     # ------------------------------------------------------------ metric points
-    def add_points(self, run_id: str, rows: list[dict[str, Any]]) -> int:
-        return self.metrics.add(run_id, rows)
+    def add_points(
+        self, run_id: str, rows: list[dict[str, Any]], attempt: int | None = None
+    ) -> int:
+        return self.metrics.add(run_id, rows, attempt)
 
     def points_json(self, run_id: str, since: int = 0, limit: int = 10_000) -> tuple[str, int, int]:
         return self.metrics.page_json(run_id, since, limit)

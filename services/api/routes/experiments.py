@@ -32,7 +32,7 @@ from ..schemas import (
     Problem,
 )
 from ..store import CSV_FIELDS
-from ..views import curves, load_experiments
+from ..views import curves, experiment_public, load_experiments
 
 router = APIRouter(prefix="/experiments", tags=["experiments"])
 
@@ -175,12 +175,19 @@ def get_curves(
 def get_figure(exp: ExperimentRowDep, store: StoreDep, request: Request) -> Response:
     """The figure view's data: the experiment as the report draws it (each arm's smoothed
     mean, band and seeds, controls, claims and their verdicts so far, progress), computed
-    by the report's functions (cli/view.py). ETag: 304 while no point was added."""
+    by the report's functions (cli/view.py). ETag: 304 while no point was added.
+
+    The ETag is each run's attempt, last seq and status. A run's seq is never given
+    twice (a retry numbers on after its last), so its last seq (0 for none) names its
+    stored points: a point added, or an attempt's points deleted, changes it. A count
+    does not: a retried run's new attempt can reach its old attempt's count."""
     view = request.app.state.figure_view
     if view is None:
         raise HTTPException(501, "no figure view in this API (start it with `macb serve api`)")
-    public = load_experiments(store, [exp])[0]
-    etag = '"' + "-".join(f"{r['points']}.{r['status']}" for r in public["runs"]) + '"'
+    runs = store.runs_of([exp["id"]])[exp["id"]]
+    stats = store.point_stats([r["id"] for r in runs])
+    public = experiment_public(exp, runs, stats)
+    etag = '"' + "-".join(f"{r['attempts']}.{stats[r['id']][1]}.{r['status']}" for r in runs) + '"'
     if request.headers.get("if-none-match") == etag:
         return Response(status_code=304, headers={"ETag": etag})
     points = {r["id"]: store.points(r["id"]) for r in public["runs"]}
