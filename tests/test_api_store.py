@@ -150,3 +150,24 @@ def test_a_schema_3_store_is_migrated_and_a_retry_there_numbers_its_points_on(tm
         assert store.point_stats(["x-0"]) == {"x-0": (1, 3, 4)}
     finally:
         store.close()
+
+
+def test_the_point_stats_of_more_runs_than_sqlite_binds_at_once(tmp_path):
+    """A page of experiments may hold more runs than SQLite binds variables in one
+    query (32,766; 999 before 3.32): the stats are read in slices. Here the store's
+    connection binds at most 999, and 2,000 runs are asked for."""
+    store = Store(tmp_path / "many.sqlite3")
+    try:
+        runs = [
+            {"id": f"x-{i}", "seed": i, "point": {}, "config": TINY, "actors": 1}
+            for i in range(2000)
+        ]
+        store.create_experiment("x", "x", {"config": TINY}, runs)
+        store.add_points("x-7", [row(4), row(8)])
+        store.add_points("x-1999", [row(4)])
+        store.db.conn().setlimit(sqlite3.SQLITE_LIMIT_VARIABLE_NUMBER, 999)
+        stats = store.point_stats([r["id"] for r in runs])
+        assert len(stats) == 2000 and stats["x-7"] == (2, 2, 8) and stats["x-1999"] == (1, 1, 4)
+        assert {v for k, v in stats.items() if k not in ("x-7", "x-1999")} == {(0, 0, 0)}
+    finally:
+        store.close()

@@ -21,6 +21,8 @@ from typing import Any
 
 from .db import Database
 
+STATS_SLICE = 900  # run ids bound in one `stats` query (under any SQLite's limit)
+
 
 class Points:
     """The metric points of every run, over the store's `Database`."""
@@ -85,20 +87,21 @@ class Points:
     def stats(self, run_ids: list[str]) -> dict[str, tuple[int, int, int]]:
         """run -> (number of points, last seq, last episode); (0, 0, 0) for none (a
         retried run's before its new attempt's first point)."""
-        if not run_ids:
-            return {}
-        marks = ",".join("?" * len(run_ids))
-        rows = self.db.conn().execute(
-            "SELECT r.id, r.seq_base,"
-            " (SELECT MAX(seq) FROM metrics m WHERE m.run_id = r.id),"
-            " (SELECT MAX(episode) FROM metrics m WHERE m.run_id = r.id)"
-            f" FROM runs r WHERE r.id IN ({marks})",
-            run_ids,
-        )
         out = {r: (0, 0, 0) for r in run_ids}
-        for run_id, base, last_seq, last_episode in rows:
-            if last_seq is not None:
-                out[run_id] = (last_seq - base, last_seq, last_episode)
+        # In slices: SQLite binds at most 32,766 variables (999 before 3.32), and a page
+        # of experiments may hold more runs than that.
+        for i in range(0, len(run_ids), STATS_SLICE):
+            part = run_ids[i : i + STATS_SLICE]
+            rows = self.db.conn().execute(
+                "SELECT r.id, r.seq_base,"
+                " (SELECT MAX(seq) FROM metrics m WHERE m.run_id = r.id),"
+                " (SELECT MAX(episode) FROM metrics m WHERE m.run_id = r.id)"
+                f" FROM runs r WHERE r.id IN ({','.join('?' * len(part))})",
+                part,
+            )
+            for run_id, base, last_seq, last_episode in rows:
+                if last_seq is not None:
+                    out[run_id] = (last_seq - base, last_seq, last_episode)
         return out
 
     def has_more(self, run_id: str, since: int) -> bool:
