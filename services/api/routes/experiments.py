@@ -32,7 +32,7 @@ from ..schemas import (
     Problem,
 )
 from ..store import CSV_FIELDS
-from ..views import curves, experiment_public, load_experiments
+from ..views import curves, load_experiments
 
 router = APIRouter(prefix="/experiments", tags=["experiments"])
 
@@ -177,17 +177,16 @@ def get_figure(exp: ExperimentRowDep, store: StoreDep, request: Request) -> Resp
     mean, band and seeds, controls, claims and their verdicts so far, progress), computed
     by the report's functions (cli/view.py). ETag: 304 while no point was added.
 
-    The ETag is each run's attempt, last seq and status. A run's seq is never given
-    twice (a retry numbers on after its last), so its last seq (0 for none) names its
-    stored points: a point added, or an attempt's points deleted, changes it. A count
-    does not: a retried run's new attempt can reach its old attempt's count."""
+    The ETag is each run's attempt, point count and status. Within an attempt points are
+    only added, so its count names what is stored; a retry deletes them and counts the
+    attempt up, so a new attempt that reaches its old attempt's count still differs."""
     view = request.app.state.figure_view
     if view is None:
         raise HTTPException(501, "no figure view in this API (start it with `macb serve api`)")
-    runs = store.runs_of([exp["id"]])[exp["id"]]
-    stats = store.point_stats([r["id"] for r in runs])
-    public = experiment_public(exp, runs, stats)
-    etag = '"' + "-".join(f"{r['attempts']}.{stats[r['id']][1]}.{r['status']}" for r in runs) + '"'
+    public = load_experiments(store, [exp])[0]
+    etag = (
+        '"' + "-".join(f"{r['attempts']}.{r['points']}.{r['status']}" for r in public["runs"]) + '"'
+    )
     if request.headers.get("if-none-match") == etag:
         return Response(status_code=304, headers={"ETag": etag})
     points = {r["id"]: store.points(r["id"]) for r in public["runs"]}
