@@ -39,6 +39,10 @@ THESIS_ARM = {
     "beta": 0.8,
 }
 CLI_MODULE = "cli"  # what `macb` runs: `python -m cli ...`
+# Env steps of figure 8's headline pair (sparse and sparse Cen-MACB): 2 arms x 3 seeds x
+# configs/fig8's episodes x episode_len (tests/test_benchmarks.py checks it), the length
+# bench_group's and bench_slots' projections in hours are of.
+FIG8_PAIR_RUN_STEPS = 2 * 3 * 40_000 * 20
 
 
 def macb_argv(*args: str, profile: Path | None = None) -> list[str]:

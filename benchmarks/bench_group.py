@@ -59,12 +59,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from _harness import RESULTS, command, progress, write_result
+from _harness import FIG8_PAIR_RUN_STEPS, RESULTS, command, progress, write_result
 from _procs import ROOT
 from _stats import cpu_model, measure, ratio_median, rotating_rounds
-
-# 2 arms x 3 seeds x configs/fig8's episodes x episode_len (tests/test_benchmarks.py checks it)
-FIG8_PAIR_RUN_STEPS = 2 * 3 * 40_000 * 20
 
 
 # ---------------------------------------------------------------- update

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from _harness import (
+    FIG8_PAIR_RUN_STEPS,
     add_out,
     bench_parser,
     command,
@@ -46,9 +47,6 @@ from _stats import fmt, median, ratio_median, rotating_rounds
 from bench_cluster_bf16 import steady_rate
 
 from cli.supervisor import free_port
-
-# 2 arms x 3 seeds x configs/fig8's episodes x episode_len (tests/test_benchmarks.py checks it)
-FIG8_PAIR_ENV_STEPS = 2 * 3 * 40_000 * 20
 
 
 def run_variant(slots: int, args: Any, work: Path) -> dict[str, Any]:
@@ -149,7 +147,7 @@ def main(argv: list[str] | None = None) -> None:
 def hours(group: list[dict[str, Any]]) -> float | None:
     """Figure 8's headline pair, in hours, at the median total rate of these runs."""
     total = median(x["total"] for x in group)
-    return FIG8_PAIR_ENV_STEPS / total / 3600 if total else None
+    return FIG8_PAIR_RUN_STEPS / total / 3600 if total else None
 
 
 def summarise(runs: list[dict[str, Any]], counts: list[int]) -> dict[int, dict[str, Any]]:
