@@ -469,23 +469,20 @@ class ServiceBase(ServiceHooks):
         self.reject(key, reason)
 
     def answer(self, key_expr: str, handler: Callable[[str, bytes], Reply]) -> None:
-        """Declare a queryable on `key_expr`; `handler` runs on Zenoh's thread (`guarded`)."""
-        self.bus.queryable(key_expr, self.guarded(handler))
+        """Declare a queryable on `key_expr`; `handler` runs on Zenoh's thread. Its
+        exception is the query's refusal, naming the exception's type (the asker counts it
+        apart from silence, rather than waiting out its timeout and asking again), and a
+        dropped message of the service (`handler_failed`: counted, its traceback logged
+        the first time), rather than a traceback per query."""
 
-    def guarded(self, handler: Callable[[str, bytes], Reply]) -> Callable[[str, bytes], Reply]:
-        """A query handler whose exception is the query's refusal, naming the exception's
-        type (the asker counts it apart from silence, rather than waiting out its timeout
-        and asking again), and a dropped message of the service (`handler_failed`: counted,
-        its traceback logged the first time), rather than a traceback per query."""
-
-        def answer(key: str, payload: bytes) -> Reply:
+        def guarded(key: str, payload: bytes) -> Reply:
             try:
                 return handler(key, payload)
             except Exception as err:
                 self.handler_failed(key, err)
                 return Refused(self.id, f"handler raised {type(err).__name__}")
 
-        return answer
+        self.bus.queryable(key_expr, guarded)
 
     def shutdown(self) -> None:
         """Flush what must survive (hook), then close the session."""
