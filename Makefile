@@ -32,16 +32,21 @@ setup: $(STAMP)
 run: $(STAMP)
 	$(BIN)/macb up --run configs/default.yaml --out runs/default --data-dir runs/cluster --quiet-services
 
-# Everything but the long checks (marked `slow`): 18-20 minutes on 2 shared cores.
+# Everything but the long checks (marked `slow`): ~20 minutes on 2 shared cores, in
+# TEST_WORKERS pytest-xdist workers (2: one core idles while a serial suite's test waits
+# on its processes; more only fight over the cores). TEST_WORKERS=0: one process.
+TEST_WORKERS ?= 2
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q -rs -m "not slow and not soak and not slurm"
+	$(BIN)/python -m pytest -q -rs -m "not slow and not soak and not slurm" \
+		-n $(TEST_WORKERS) --dist worksteal
 
 # The long checks: learning (DDPG learns sparse simple; bf16 learns like fp32; the
 # cluster learns like the trainer), the fault matrix, `macb reproduce` end to end:
-# ~25 minutes. `.ci/run` runs them after `make test`.
+# ~25 minutes, in one process: they compute more than they wait, so two at once on two
+# cores take longer in all (32 minutes, measured). `.ci/run` runs them after `make test`.
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -rs -m slow
 
