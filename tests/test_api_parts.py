@@ -345,6 +345,7 @@ def test_a_late_row_of_an_attempt_stopped_and_retried_over_http_is_not_stored(bo
     assert old.ended is None and old.attempt == 1  # the scheduler has not looked yet
     b.handle([metrics(8, attempt=1, sr=0.22)])  # the ended attempt's evaluator, late
     assert store.points("r1") == [] and old.points == 1
+    store.stop_sent("r1")  # the scheduler's next pass: the stop goes out first
     assert store.claim("r1", Assignment.from_wire(ASSIGN))  # the retry starts
     new = b.watch(store.run("r1"), started=1.0)
     assert new.attempt == 2
