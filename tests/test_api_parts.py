@@ -345,6 +345,7 @@ def test_a_late_row_of_an_attempt_stopped_and_retried_over_http_is_not_stored(bo
     assert old.ended is None and old.attempt == 1  # the scheduler has not looked yet
     b.handle([metrics(8, attempt=1, sr=0.22)])  # the ended attempt's evaluator, late
     assert store.points("r1") == [] and old.points == 1
+    store.stop_sent("r1")  # the scheduler's next pass: the stop goes out first
     assert store.claim("r1", Assignment.from_wire(ASSIGN))  # the retry starts
     new = b.watch(store.run("r1"), started=1.0)
     assert new.attempt == 2
@@ -355,6 +356,44 @@ def test_a_late_row_of_an_attempt_stopped_and_retried_over_http_is_not_stored(bo
         (12, 1.2),
     ]
     assert new.points == 3 and new.last_episode == 12
+
+
+def test_a_late_status_of_an_attempt_stopped_and_retried_over_http_is_not_written(book):
+    """As the late row above, for statuses: the ended attempt's watch, not yet marked
+    ended, hears its services answer the stop. Their states and notes are not written
+    onto the queued run (nor its next attempt), whose reason stays the retry's."""
+    b, store, clock = book
+    b.handle([status("running")])
+    assert store.run("r1")["services"]["L1"]["state"] == "running"
+    assert store.finish("r1", "stopped", "stopped by user", stop_sent=None)
+    store.retry_runs("x", ["r1"])
+    old = b.watches["r1"]
+    assert old.ended is None and old.attempt == 1 and not b.superseded(old)
+    cut = Resumed("r1", from_episode=4, updates=3, replay_rows=9, held_batches=0, seconds=0.1)
+    b.handle([status("stopped", "E1"), status("running", "L1", resumed=cut)])  # late, attempt 1
+    assert old.notes, "the watch itself heard them"
+    b.show_waiting(old, "waiting: something")  # a waiting reason cleared, on the old watch
+    b.save_live(old, clock())
+    row = store.run("r1")
+    assert row["services"] == {} and row["live"] == {}
+    assert row["reason"].startswith("retried (attempt 2; was stopped")
+
+
+def test_a_run_whose_stop_is_still_due_is_not_claimed_until_the_stop_is_sent(book):
+    """A stop and a retry over HTTP after the scheduler's stop pass read nothing due: the
+    stop (which names no attempt) is still to go on the bus, so the queue pass may not
+    claim the run yet, or that Stop would end the attempt it starts."""
+    _, store, _ = book
+    assert store.finish("r1", "stopped", "stopped by user", stop_sent=None)
+    store.retry_runs("x", ["r1"])
+    assert store.run("r1")["status"] == "queued"
+    assert store.stops_to_send() == [("r1", "retried (attempt 2; was stopped: stopped by user)")]
+    assert not store.claim("r1", Assignment.from_wire(ASSIGN))
+    assert not store.claim_all(["r1", "r2"], Assignment.from_wire(ASSIGN)), "all or none"
+    assert store.run("r2")["status"] == "queued"
+    store.stop_sent("r1")
+    assert store.claim("r1", Assignment.from_wire(ASSIGN))
+    assert store.run("r1")["attempts"] == 2
 
 
 def test_a_run_stopped_over_http_is_not_decided_again(book):

@@ -229,6 +229,7 @@ def test_the_apis_figure_is_new_after_a_retry_whose_attempt_has_as_many_points(t
 
         def attempt(n: int, success: tuple[float, float]) -> str:
             """The run's attempt n: two points, stopped; the figure's ETag then."""
+            store.stop_sent(run)  # as the scheduler's pass: a due stop goes out, then the claim
             assert store.claim(run, assign)
             rows = [{"episode": e, "success_rate": s} for e, s in zip((4, 8), success)]
             assert store.add_points(run, rows, attempt=n) == 2

@@ -169,8 +169,8 @@ class RunBook:
         note = w.status(msg, self.clock())
         if note is not None:
             log.info("run %s: %s", w.run, note)
-            self.store.set_reason(w.run, "; ".join(w.notes))
-        self.store.set_services(w.run, w.states)
+            self.store.set_reason(w.run, "; ".join(w.notes), w.attempt)
+        self.store.set_services(w.run, w.states, w.attempt)
         self.changed()
 
     def _live(self, key: str, up: bool) -> bool:
@@ -196,12 +196,12 @@ class RunBook:
         if waiting != before:
             if before is not None and waiting is None:
                 log.info("run %s: back (%s no longer)", w.run, before)
-            self.store.set_reason(w.run, w.reason())
+            self.store.set_reason(w.run, w.reason(), w.attempt)
             self.changed()
 
     # ------------------------------------------------------------ decisions
     def save_live(self, w: Watch, now: float) -> None:
-        self.store.set_live(w.run, w.live)
+        self.store.set_live(w.run, w.live, w.attempt)
         w.live_saved(now)
         self.changed()
 

@@ -140,13 +140,16 @@ class Store:
         return self.claim_all([run_id], assign)
 
     def claim_all(self, run_ids: list[str], assign: Assignment) -> bool:
-        """`claim` for the runs of a group: all of them, or none (one stopped meanwhile)."""
+        """`claim` for the runs of a group: all of them, or none (one stopped meanwhile, or
+        one whose stop is still to go on the bus: a stop and a retry over HTTP after the
+        scheduler's stop pass read nothing due; claimed now, the Stop sent next pass,
+        which names no attempt, would stop the new one. The next pass claims it.)"""
         marks = ",".join("?" * len(run_ids))
         try:
             with self.db.tx() as c:
                 cur = c.execute(
                     "UPDATE runs SET status = 'running', started = ?, assign = ?, reason = NULL"
-                    f" WHERE id IN ({marks}) AND status = 'queued'",
+                    f" WHERE id IN ({marks}) AND status = 'queued' AND stop_sent = 1",
                     (time.time(), json.dumps(assign.to_wire()), *run_ids),
                 )
                 if cur.rowcount != len(run_ids):
@@ -234,17 +237,26 @@ class Store:
         with self.db.tx() as c:
             c.execute("UPDATE runs SET stop_sent = 1 WHERE id = ?", (run_id,))
 
-    def set_services(self, run_id: str, services: dict[str, Any]) -> None:
-        with self.db.tx() as c:
-            c.execute("UPDATE runs SET services = ? WHERE id = ?", (json.dumps(services), run_id))
+    def set_services(
+        self, run_id: str, services: dict[str, Any], attempt: int | None = None
+    ) -> None:
+        self._set(run_id, "services", json.dumps(services), attempt)
 
-    def set_live(self, run_id: str, live: dict[str, Any]) -> None:
-        with self.db.tx() as c:
-            c.execute("UPDATE runs SET live = ? WHERE id = ?", (json.dumps(live), run_id))
+    def set_live(self, run_id: str, live: dict[str, Any], attempt: int | None = None) -> None:
+        self._set(run_id, "live", json.dumps(live), attempt)
 
-    def set_reason(self, run_id: str, reason: str | None) -> None:
+    def set_reason(self, run_id: str, reason: str | None, attempt: int | None = None) -> None:
+        self._set(run_id, "reason", reason, attempt)
+
+    def _set(self, run_id: str, column: str, value: str | None, attempt: int | None) -> None:
+        """One column of a run's row; with `attempt`, only while that attempt is the run's
+        current one (read in the same statement): what a watch learned of an attempt
+        stopped and retried over HTTP, before the scheduler saw it end, must not land on
+        the queued run or its next attempt."""
+        assert column in ("services", "live", "reason")
+        where, args = ("", ()) if attempt is None else (" AND attempts = ?", (attempt,))
         with self.db.tx() as c:
-            c.execute("UPDATE runs SET reason = ? WHERE id = ?", (reason, run_id))
+            c.execute(f"UPDATE runs SET {column} = ? WHERE id = ?{where}", (value, run_id, *args))
 
     # ------------------------------------------------------------ metric points
     def add_points(
