@@ -60,27 +60,57 @@ def tensorboard_folders(
     ]
 
 
+class NotAStore(Exception):
+    """The --db file is not an API store (named, with the reason)."""
+
+
 def _from_store(db: str, ident: str) -> tuple[dict[str, Any], list[dict[str, Any]]] | None:
     """(experiment, its runs each with `points`) from a store file; one run if `ident` is
-    a run id."""
+    a run id. The file is only read: opening a store migrates it to this version's
+    schema, so a consistent copy (SQLite's backup, a running API's WAL included) is
+    opened instead, and an older API can still read its own file afterwards."""
+    import sqlite3
+    import tempfile
+
+    from services.api.db import StoreError
     from services.api.store import Store
 
-    store = Store(db)
-    try:
-        exp = store.experiment(ident)
-        only = None
-        if exp is None:
-            run = store.run(ident)
-            if run is None:
-                return None
-            exp, only = store.experiment(run["experiment_id"]), ident
-            if exp is None:  # (a run's experiment is never deleted)
-                return None
-        every = store.runs_of([exp["id"]])[exp["id"]]
-        runs = [dict(r, points=store.points(r["id"])) for r in every if only in (None, r["id"])]
-        return {**exp, "runs": every}, runs
-    finally:
-        store.close()
+    with tempfile.TemporaryDirectory(prefix="macb-export-") as tmp:
+        copy = Path(tmp) / "store.sqlite3"
+        try:
+            src = sqlite3.connect(f"{Path(db).resolve().as_uri()}?mode=ro", uri=True)
+            try:
+                tables = {r[0] for r in src.execute("SELECT name FROM sqlite_master")}
+                if not {"schema_version", "experiments", "runs", "metrics"} <= tables:
+                    raise NotAStore(f"{db}: not a macb API store (no experiments, runs, metrics)")
+                with sqlite3.connect(copy) as dst:
+                    src.backup(dst)
+                dst.close()
+            finally:
+                src.close()
+            store = Store(copy)
+        except (sqlite3.Error, StoreError) as err:
+            raise NotAStore(f"{db}: not a store this version reads ({err})") from None
+        try:
+            return _read_store(store, ident)
+        finally:
+            store.close()
+
+
+def _read_store(store: Any, ident: str) -> tuple[dict[str, Any], list[dict[str, Any]]] | None:
+    """`_from_store` over an open store."""
+    exp = store.experiment(ident)
+    only = None
+    if exp is None:
+        run = store.run(ident)
+        if run is None:
+            return None
+        exp, only = store.experiment(run["experiment_id"]), ident
+        if exp is None:  # (a run's experiment is never deleted)
+            return None
+    every = store.runs_of([exp["id"]])[exp["id"]]
+    runs = [dict(r, points=store.points(r["id"])) for r in every if only in (None, r["id"])]
+    return {**exp, "runs": every}, runs
 
 
 def _from_api(api: Any, ident: str) -> tuple[dict[str, Any], list[dict[str, Any]]] | None:
@@ -162,7 +192,11 @@ def cmd_export(args: argparse.Namespace) -> int:
         if not Path(args.db).exists():
             print(f"macb export: no store file {args.db}", file=sys.stderr)
             return 2
-        found = _from_store(args.db, args.id)
+        try:
+            found = _from_store(args.db, args.id)
+        except NotAStore as err:
+            print(f"macb export: {err}", file=sys.stderr)
+            return 2
     else:
         try:
             with _api_client(args) as api:

@@ -159,3 +159,42 @@ def test_macb_export_refuses_what_it_cannot_find(tmp_path):
     assert proc.returncode == 1 and "no run or experiment 'nope'" in proc.stderr
     proc = macb("export", "x")
     assert proc.returncode == 2 and "--tensorboard DIR and/or --csv DIR" in proc.stderr
+
+
+def test_macb_export_only_reads_its_store_and_refuses_a_file_that_is_none(tmp_path):
+    """`--db` reads: an older API's store is exported from a copy and left as it was
+    (opening it as a store would migrate it, and that API could no longer read it); a
+    file that is not a store is refused, naming it, and left alone too."""
+    import hashlib
+    import shutil
+    import sqlite3
+
+    from tests.store_schema1 import COMMITTED
+
+    old = tmp_path / "old.sqlite3"
+    shutil.copy(COMMITTED, old)
+    before = hashlib.sha256(old.read_bytes()).hexdigest()
+    exp = sqlite3.connect(old).execute("SELECT id FROM experiments ORDER BY id").fetchone()[0]
+    proc = macb("export", exp, "--db", str(old), "--csv", str(tmp_path / "csv"), timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "point" in proc.stdout and (tmp_path / "csv").is_dir()
+    assert hashlib.sha256(old.read_bytes()).hexdigest() == before
+    # (SQLite may leave a reader's empty -wal beside a WAL-mode file, and its -shm index)
+    assert {p.name for p in tmp_path.iterdir()} - {"old.sqlite3-wal", "old.sqlite3-shm"} == {
+        "csv",
+        "old.sqlite3",
+    }
+    assert (
+        not (tmp_path / "old.sqlite3-wal").exists()
+        or not (tmp_path / "old.sqlite3-wal").stat().st_size
+    )
+    other = tmp_path / "notes.sqlite3"
+    with sqlite3.connect(other) as c:
+        c.execute("CREATE TABLE notes (x)")
+    text = tmp_path / "text.sqlite3"
+    text.write_text("not a database\n")
+    for bad in (other, text):
+        kept = bad.read_bytes()
+        proc = macb("export", "x", "--db", str(bad), "--csv", str(tmp_path / "c2"), timeout=60)
+        assert proc.returncode == 2 and f"macb export: {bad}: not a" in proc.stderr, proc.stderr
+        assert "Traceback" not in proc.stderr and bad.read_bytes() == kept
