@@ -8,6 +8,10 @@ run's config.json keys prefixed `config.` (nested ones joined with dots): a pref
 config key never shadows a metric of the same name, and `frame.filter(like="config.")`
 gives the config back.
 
+A run with no row yet (started, nothing evaluated) has no row in the frame, so
+`macb.summary` counts the runs with a point; the report (FIGURE.md) counts the figure's
+runs and says "no points" for an arm while one of its runs has none.
+
 A run being written may end in a torn line: that last line is skipped. Anything else
 that does not read (a bad line before the last, a config.json that is not a JSON object,
 no config.json) is refused with RunsError naming the file: a half-read frame would
@@ -66,7 +70,11 @@ def load_page(path: str | Path) -> pd.DataFrame:
 
 
 def joined(frames: list[pd.DataFrame]) -> pd.DataFrame:
-    """Runs' frames as one: run, arm, seed, the metrics, then the config keys sorted."""
+    """Runs' frames as one: run, arm, seed, the metrics, then the config keys sorted. A
+    run without a row yet adds none: its empty frame, concatenated, would make every
+    other run's integer columns float (pandas' common type with an empty object column)."""
+    if any(len(f) for f in frames):
+        frames = [f for f in frames if len(f)]
     frame = pd.concat(frames, ignore_index=True, sort=False)
     config = sorted(c for c in frame.columns if c.startswith(CONFIG_PREFIX))
     metrics = [c for c in frame.columns if c not in LEADING and c not in config]

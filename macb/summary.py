@@ -26,7 +26,7 @@ from cli.reproduce.defs import FigureDef
 from cli.reproduce.experiments import arm_configs
 from cli.reproduce.figures import FIGURES
 from cli.reproduce.render import measured
-from macb.runs import RunsError
+from macb.runs import CONFIG_PREFIX, RunsError
 
 
 @dataclass
@@ -46,7 +46,9 @@ def summary(frame: pd.DataFrame, figure: str | FigureDef) -> FigureSummary:
     """The summary of `figure` (a name in `macb reproduce`'s figures, or its definition)
     over the runs of `frame` (from load_runs). A run's arm is matched to the figure's by
     name or by its folder name (`Sparse + Dis-MACB` is `Sparse_Dis-MACB`); runs of other
-    arms are left out. RunsError when no run belongs to the figure."""
+    arms are left out. RunsError when no run belongs to the figure, or when a run named
+    as one of its arms was run with another value of a key that arm's config file sets
+    (`arm_mismatch`)."""
     fig = _figure(figure)
     exp, points = experiment(frame, fig)
     a = analyse(fig, exp, points)
@@ -85,6 +87,7 @@ def experiment(frame: pd.DataFrame, fig: FigureDef) -> tuple[dict[str, Any], dic
     """The frame's runs of `fig` as the report takes them: the experiment (as GET
     /experiments/{id} describes it) and each run's columns (analysis.columns)."""
     names = {a.name: a.name for a in fig.arms} | {folder_name(a.name): a.name for a in fig.arms}
+    configs = arm_configs(fig)
     runs: list[dict[str, Any]] = []
     points: dict[str, Columns] = {}
     fields = [f for f in ("episode", *LOADED, "stop_reason") if f in frame.columns]
@@ -92,6 +95,8 @@ def experiment(frame: pd.DataFrame, fig: FigureDef) -> tuple[dict[str, Any], dic
         arm = names.get(str(rows["arm"].iloc[0]))
         if arm is None:
             continue
+        if why := arm_mismatch(rows.iloc[0], configs[arm], fig):
+            raise RunsError(f"run {run} is not {fig.name}'s arm {arm!r}: {why}")
         runs.append({"id": str(run), "arm": arm, "seed": int(rows["seed"].iloc[0])})
         kept = rows.loc[rows["episode"].notna(), fields]
         points[str(run)] = columns(kept.to_dict("records"))
@@ -105,6 +110,36 @@ def experiment(frame: pd.DataFrame, fig: FigureDef) -> tuple[dict[str, Any], dic
         "runs": runs,
     }
     return exp, points
+
+
+def arm_mismatch(row: pd.Series, arm_config: dict[str, Any], fig: FigureDef) -> str | None:
+    """Why a run's `config.*` cells (`row`) are not of an arm: the first key its config
+    file sets to another value ('key: x in the run, y in the arm'), or None. Not compared:
+    what `macb reproduce` flags change (episodes, seeds) and the keys a profile sets over
+    the file (the figure's `thesis_method`); a key the frame lacks (a config from before
+    it existed) says nothing."""
+    skip = {"episodes", "seeds", "seed"} | {k for k, _ in fig.thesis_method}
+    for key, want in _flat(arm_config).items():
+        column = CONFIG_PREFIX + key
+        if key.split(".")[0] in skip or column not in row.index:
+            continue
+        have = row[column]
+        have = have.item() if hasattr(have, "item") else have  # numpy scalar: Python's
+        if isinstance(have, float) and have != have:
+            continue  # NaN: this run's config has no such key (other runs' configs do)
+        if not bool(have == want):
+            return f"{key}: {have!r} in the run, {want!r} in the arm"
+    return None
+
+
+def _flat(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in config.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
+    return out
 
 
 def _arms(a: Analysis) -> pd.DataFrame:

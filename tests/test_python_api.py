@@ -195,6 +195,37 @@ def test_a_frame_of_another_figure_or_an_unknown_figure_is_refused(out):
         macb.summary(frame, "fig3")
 
 
+def test_a_run_named_as_an_arm_but_of_another_config_is_refused_naming_it(out):
+    """An arm is matched by name, so a run of the same name from another figure or
+    another config (another task, algorithm, beta, ...) would be summarised as the arm:
+    refused as `--report-only` refuses it, naming the run and the key. What reproduce's
+    flags change (episodes) is not a mismatch."""
+    folder = out / "runs" / "Sparse_Dis-MACB-s1"
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**config, "episodes": 7}))
+    assert macb.summary(macb.load_runs(out), "fig8").arms.loc["Sparse + Dis-MACB", "runs"] == 2
+    (folder / "config.json").write_text(json.dumps({**config, "beta": 0.2}))
+    with pytest.raises(
+        macb.RunsError,
+        match=r"run Sparse_Dis-MACB-s1 is not fig8's arm 'Sparse \+ Dis-MACB': "
+        r"beta: 0\.2 in the run, 0\.8 in the arm",
+    ):
+        macb.summary(macb.load_runs(out), "fig8")
+
+
+def test_a_run_without_a_row_yet_changes_no_other_runs_columns(out):
+    """A run started but not evaluated yet has no row (a row is a point); its empty
+    frame must not turn the other runs' integer columns into floats."""
+    whole = macb.load_runs(out)
+    (out / "runs" / "Sparse-s1" / "metrics.jsonl").write_text("")
+    frame = macb.load_runs(out)
+    assert "Sparse-s1" not in set(frame["run"])
+    assert len(frame) == len(whole) - int((whole["run"] == "Sparse-s1").sum())
+    for column in ("episode", "env_steps", "config.seed", "config.episodes"):
+        assert frame[column].dtype == whole[column].dtype == np.int64, column
+    assert macb.summary(frame, "fig8").arms.loc["Sparse", "runs"] == 1
+
+
 def _code_blocks(doc: Path) -> list[str]:
     return re.findall(r"```python\n(.*?)```", doc.read_text(), flags=re.S)
 
