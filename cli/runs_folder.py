@@ -11,6 +11,7 @@ silently change every mean taken from it.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import re
@@ -62,15 +63,20 @@ def _recorded_arms(root: Path) -> dict[str, str]:
     arms: dict[str, str] = {}
     table = root / "metrics.csv"
     if table.is_file():
-        with table.open(newline="") as f:
-            for r in csv.DictReader(f):
-                if r.get("run") and r.get("arm") is not None:
-                    arms.setdefault(r["run"], r["arm"])
+        try:
+            with table.open(newline="") as f:
+                for r in csv.DictReader(f):
+                    if r.get("run") and r.get("arm") is not None:
+                        arms.setdefault(r["run"], r["arm"])
+        except (OSError, UnicodeDecodeError, csv.Error) as err:
+            raise RunsError(f"{table}: unreadable ({err})") from err
     for record in sorted(root.glob("*-runs.json")):
         try:
             runs = json.loads(record.read_text()).get("runs") or []
         except (OSError, ValueError, AttributeError) as err:
             raise RunsError(f"{record}: not a reproduce runs record ({err})") from err
+        if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
+            raise RunsError(f"{record}: not a reproduce runs record (runs: not a list of objects)")
         arms.update({str(r["id"]): str(r["arm"]) for r in runs if "id" in r and "arm" in r})
     return arms
 
@@ -89,10 +95,11 @@ def read_config(folder: Path) -> dict[str, Any]:
 
 
 def read_rows(folder: Path) -> list[dict[str, Any]]:
-    """The run's metric rows; a torn last line of metrics.jsonl is skipped."""
+    """The run's metric rows; a torn last line is skipped. A row whose episode is not a
+    whole number is refused (every reader indexes points by it)."""
     path = folder / "metrics.jsonl"
     if not path.is_file():
-        return _csv_rows(folder / "metrics.csv")
+        return _checked(folder / "metrics.csv", _csv_rows(folder / "metrics.csv"))
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as err:
@@ -109,19 +116,30 @@ def read_rows(folder: Path) -> list[dict[str, Any]]:
         if not isinstance(row, dict):
             raise RunsError(f"{path}: line {i} is not a JSON object")
         rows.append(row)
+    return _checked(path, rows)
+
+
+def _checked(path: Path, rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """`rows`, each episode (where given) an int; else RunsError naming the row."""
+    for n, row in enumerate(rows, 1):
+        episode = row.get("episode", 0)
+        if not isinstance(episode, int) or isinstance(episode, bool):
+            raise RunsError(f"{path}: row {n} has episode {episode!r}, not a whole number")
     return rows
 
 
 def _csv_rows(path: Path) -> list[dict[str, Any]]:
+    """metrics.csv's rows; a last line without its newline is a row being written (a
+    tear inside its last cell keeps the cell count) and is skipped."""
     try:
-        with path.open(newline="") as f:
-            lines = list(csv.reader(f))
+        text = path.read_text()
+        lines = list(csv.reader(io.StringIO(text)))
     except (OSError, UnicodeDecodeError, csv.Error) as err:
         raise RunsError(f"{path}: unreadable ({err})") from err
     if not lines:
         return []
     head, body = lines[0], lines[1:]
-    if body and len(body[-1]) != len(head):  # a row being written
+    if body and (not text.endswith("\n") or len(body[-1]) != len(head)):  # being written
         body = body[:-1]
     for i, cells in enumerate(body, 2):
         if len(cells) != len(head):

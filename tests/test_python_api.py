@@ -123,6 +123,38 @@ def test_train_runs_one_folder_seeds_and_a_csv_only_run(tmp_path):
     assert single["run"].unique().tolist() == ["seed-4"] and len(single) == 2
 
 
+def test_a_csv_row_torn_inside_its_last_cell_is_skipped_and_bad_side_files_are_named(tmp_path):
+    """A last CSV line without its newline is a row being written, even with all its
+    cells (the tear cut its last number); a root metrics.csv that is not text, a runs
+    record whose runs are not objects and a row whose episode is no whole number are
+    refused with RunsError naming the file (not a decode or type error)."""
+    folder = tmp_path / "out" / "runs" / "a-s0"
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"seed": 0}))
+    (folder / "metrics.csv").write_text("episode,wall_s\n10,12.5\n20,1437.17")  # torn: 1437.17...
+    frame = macb.load_runs(tmp_path / "out")
+    assert frame["episode"].tolist() == [10] and frame["wall_s"].tolist() == [12.5]
+    (folder / "metrics.csv").write_text("episode,wall_s\n10,12.5\n20,1437.17\n")
+    assert macb.load_runs(tmp_path / "out")["wall_s"].tolist() == [12.5, 1437.17]
+    (folder / "metrics.csv").write_text("episode,wall_s\n10,12.5\nten,3\n")
+    with pytest.raises(macb.RunsError, match=r"a-s0/metrics.csv: row 2 has episode 'ten'"):
+        macb.load_runs(tmp_path / "out")
+    (folder / "metrics.csv").unlink()
+    (folder / "metrics.jsonl").write_text('{"episode": 10}\n{"episode": null}\n{"episode": 30}\n')
+    with pytest.raises(macb.RunsError, match=r"a-s0/metrics.jsonl: row 2 has episode None"):
+        macb.load_runs(tmp_path / "out")
+    assert main(["view", str(tmp_path / "out"), "--port", "0"]) == 2  # refused, not a traceback
+    (folder / "metrics.jsonl").write_text('{"episode": 10}\n')
+    record = tmp_path / "out" / "fig8-runs.json"
+    record.write_text(json.dumps({"runs": ["a-s0"]}))
+    with pytest.raises(macb.RunsError, match=r"fig8-runs.json: not a reproduce runs record"):
+        macb.load_runs(tmp_path / "out")
+    record.unlink()
+    (tmp_path / "out" / "metrics.csv").write_bytes(b"run,arm\n\xff\xfe,x\n")
+    with pytest.raises(macb.RunsError, match=r"out/metrics.csv: unreadable"):
+        macb.load_runs(tmp_path / "out")
+
+
 def test_a_macb_run_out_folder_names_each_runs_arm(tmp_path):
     """`macb run --out DIR` of several runs: DIR/<run id>/ each, and the experiment's
     metrics.csv (arm, seed, run columns) in DIR, which is not a run."""
