@@ -61,12 +61,28 @@ def read_pages(root: Path) -> dict[tuple[str, str], tuple[Path, dict[str, Any]]]
                 raise ValueError(f"format {record.get('format')!r}, figure {key[0]!r}")
             if key[1] not in PROFILES or not isinstance(record["claims"], list):
                 raise ValueError(f"profile {key[1]!r}")
+            _check_record(record)
         except (OSError, ValueError, KeyError, TypeError) as err:
             raise ResultsError(f"{path}: not a claims file ({err})") from None
         if key in pages:
             raise ResultsError(f"{path} and {pages[key][0]} both hold {key}")
         pages[key] = (path, record)
     return pages
+
+
+def _check_record(record: dict[str, Any]) -> None:
+    """ValueError naming the first field a claims record lacks or holds wrongly (the
+    README's rows read each of them)."""
+    for name in ("episodes_reached", "episodes_full"):
+        if not isinstance(record.get(name), int) or isinstance(record.get(name), bool):
+            raise ValueError(f"{name}: {record.get(name)!r}, not a whole number")
+    if not isinstance(record.get("seeds"), list):
+        raise ValueError(f"seeds: {record.get('seeds')!r}, not a list")
+    for i, claim in enumerate(record["claims"], 1):
+        if not isinstance(claim, dict) or not all(
+            isinstance(claim.get(k), str) for k in ("text", "measured", "verdict")
+        ):
+            raise ValueError(f"claim {i}: not an object of text, measured and verdict strings")
 
 
 def points_file(folder: Path, figure: str) -> Path | None:
@@ -124,8 +140,11 @@ def compare_points(page: Path, runs_dir: Path) -> list[tuple[str, int, int, str 
                            f"it holds {held}")  # fmt: skip
     found = files[0]
     by_run: dict[str, dict[int, dict[str, str]]] = {}
-    for r in read_points(found):
-        by_run.setdefault(r["run"], {})[int(float(r["episode"]))] = r
+    for line, r in enumerate(read_points(found), 2):
+        try:
+            by_run.setdefault(r["run"], {})[int(float(r["episode"]))] = r
+        except (KeyError, TypeError, ValueError) as err:  # a short row gives None cells
+            raise ResultsError(f"{found}: line {line} has no run and episode ({err})") from None
     out: list[tuple[str, int, int, str | None]] = []
     for run, points in by_run.items():
         folder = runs_dir / run
@@ -136,11 +155,14 @@ def compare_points(page: Path, runs_dir: Path) -> list[tuple[str, int, int, str 
         both = sorted(set(points) & set(rows))
         first, same = None, 0
         for ep in both:
-            diff = [
-                (c, v, rows[ep].get(c))
-                for c, v in points[ep].items()
-                if c not in KEYS and _value(v) != _value(rows[ep].get(c))
-            ]
+            try:
+                diff = [
+                    (c, v, rows[ep].get(c))
+                    for c, v in points[ep].items()
+                    if c not in KEYS and _value(v) != _value(rows[ep].get(c))
+                ]
+            except (TypeError, ValueError) as err:  # a cell of neither that is no number
+                raise ResultsError(f"{found} or {folder}: episode {ep:,}: {err}") from None
             if not diff:
                 same += 1
             elif first is None:

@@ -91,6 +91,46 @@ def test_a_bad_claims_file_is_refused_naming_it(tmp_path, content):
     assert "old" in (root / "README.md").read_text()  # nothing written
 
 
+@pytest.mark.parametrize(
+    "damage",
+    [
+        {"episodes_reached": None},
+        {"episodes_reached": "400"},
+        {"seeds": 3},
+        {"claims": ["a claim"]},
+        {"claims": [{"measured": "x", "verdict": "y"}]},
+    ],
+)
+def test_a_claims_file_missing_or_mistyping_a_field_the_readme_reads_is_refused(tmp_path, damage):
+    """Every field the README's rows read is checked when the file is read: a damaged
+    one is refused naming the file (exit 2), not a KeyError or TypeError later (exit 1,
+    which --check means as "stale")."""
+    root = _results(tmp_path)
+    path = _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced")
+    record = json.loads(path.read_text())
+    record.update(damage)
+    path.write_text(json.dumps({k: v for k, v in record.items() if v is not None}))
+    for check in ([], ["--check"]):
+        got = macb_cli("results", "--dir", str(root), *check)
+        assert got.returncode == 2 and str(path) in got.stderr, got.stderr
+        assert "not a claims file" in got.stderr and "Traceback" not in got.stderr
+
+
+def test_compare_refuses_a_points_row_without_run_or_episode_naming_the_file(tmp_path):
+    import gzip
+
+    root = _results(tmp_path)
+    folder = _page(root, "fig3-mpe2", "mpe2", 5000, "reproduced").parent
+    (folder / "fig3.csv.gz").write_bytes(
+        gzip.compress(b"arm,seed,run,episode,success_rate\nb,0,b-s0,1,0.5\nb,0,b-s0\n")
+    )
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    got = macb_cli("results", "--compare", str(folder), "--runs", str(runs))
+    assert got.returncode == 2 and f"{folder / 'fig3.csv.gz'}: line 3" in got.stderr, got.stderr
+    assert "Traceback" not in got.stderr
+
+
 def test_a_torn_points_file_is_refused_naming_it(tmp_path):
     """--compare and macb.load_page on a page whose FIGURE.csv.gz is torn (a copy cut
     short) name the file; --compare exits 2 (cannot read), not 1 (a difference), as it
