@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import math
 import re
 import sys
@@ -299,7 +300,12 @@ class FolderView:
         """(version, the page's data), computed again only when the version changed."""
         with self._lock:
             name, seeds, runs, local = self._runs()
-            stamps = ";".join(f"{r.id}:{self._stamp(r.folder)}" for r in runs)
+            # each run's arm and config too: a reproduce's FIGURE-runs.json written (or a
+            # config.json rewritten) since the last request renames an arm or changes a run
+            stamps = ";".join(
+                f"{r.id}:{r.arm}:{json.dumps(r.config, sort_keys=True)}:{self._stamp(r.folder)}"
+                for r in runs
+            )
             version = hashlib.sha256(stamps.encode()).hexdigest()[:16]
             if self._data is not None and self._data[0] == version:
                 return self._data

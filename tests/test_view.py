@@ -144,9 +144,19 @@ def test_a_folder_of_any_runs_pairs_each_counting_run_with_its_constant_control(
         (folder / "config.json").write_text(json.dumps(config.model_dump(mode="json")))
         rows = [{"episode": e, "success_rate": e / 40, "wall_s": e * 1.0} for e in (10, 20)]
         (folder / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-    data = TestClient(page_app(FolderView(tmp_path))).get("/figure.json").json()
+    client = TestClient(page_app(FolderView(tmp_path)))
+    first = client.get("/figure.json")
+    data = first.json()
     arms = {x["name"]: x for x in data["arms"]}
     assert set(arms) == {"counting", "control", "plain"}
+    # a runs record written since (a reproduce's FIGURE-runs.json) names the arms anew,
+    # though no metrics file changed: the view's version sees it
+    record = {"runs": [{"id": "plain", "arm": "no bonus"}]}
+    (tmp_path / "mine-runs.json").write_text(json.dumps(record))
+    renamed = client.get("/figure.json", headers={"If-None-Match": first.headers["etag"]})
+    assert renamed.status_code == 200
+    assert {x["name"] for x in renamed.json()["arms"]} == {"counting", "control", "no bonus"}
+    (tmp_path / "mine-runs.json").unlink()
     assert arms["counting"]["control"] == "control" and arms["control"]["is_control"]
     assert arms["plain"]["control"] is None and not arms["plain"]["counts"]
     assert arms["counting"]["mean"] == [0.25, 0.5]
