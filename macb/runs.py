@@ -61,6 +61,12 @@ def load_page(path: str | Path) -> pd.DataFrame:
     if page.is_dir():
         for claims in sorted(page.glob("*-claims.json")):
             found = found or points_file(page, claims.name.removesuffix("-claims.json"))
+        if found is None:  # a page's points copied without its claims file: the one there
+            files = sorted(page.glob("*.csv.gz")) or sorted(page.glob("*.csv"))
+            if len(files) > 1:
+                names = ", ".join(f.name for f in files)
+                raise RunsError(f"{page}: which page's points? it holds {names}: give the file")
+            found = files[0] if files else None
     if found is None:
         raise RunsError(f"{page}: no page's points (FIGURE.csv.gz or FIGURE.csv) there")
     try:

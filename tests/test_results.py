@@ -186,6 +186,13 @@ def test_a_page_s_points_are_its_csv_gz_and_an_older_page_s_plain_csv_still_read
     assert stale.returncode == 1, "the table links the page's .csv.gz now"
     with pytest.raises(macb.RunsError, match="no page's points"):
         macb.load_page(tmp_path)
+    copied = tmp_path / "copied"  # the points alone, without their claims file
+    copied.mkdir()
+    (copied / "fig3.csv.gz").write_bytes((folder / "fig3.csv.gz").read_bytes())
+    assert macb.load_page(copied)["success_rate"][0] == 0.25
+    (copied / "fig8.csv.gz").write_bytes((folder / "fig3.csv.gz").read_bytes())
+    with pytest.raises(macb.RunsError, match="which page's points"):
+        macb.load_page(copied)
 
 
 def _train(out: Path, seed: int) -> None:
