@@ -43,6 +43,8 @@ from urllib.parse import urlparse
 from cli.reproduce.slurm import (
     Runner,
     SlurmOptions,
+    directive,
+    directive_path_error,
     macb_argv,
     parse_job_id,
     placement,
@@ -134,8 +136,8 @@ def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: Slu
         f"#SBATCH --nodes={n}",
         f"#SBATCH --ntasks-per-node={per_node}",
         f"#SBATCH --cpus-per-task={job.cpus}",
-        f"#SBATCH --output={job.log_dir}/cluster-%j.log",
-        f"#SBATCH --chdir={cwd}",
+        directive("output", f"{job.log_dir}/cluster-%j.log"),
+        directive("chdir", str(cwd)),
     ]
     lines += placement(opts)
     thread_env = " ".join(f"{k}={v}" for k, v in THREAD_ENV.items())
@@ -303,6 +305,14 @@ def cmd_up_slurm(args: argparse.Namespace) -> int:
     )
     if why := job.error():
         print(f"macb up --launcher slurm: {why}", file=sys.stderr)
+        return 2
+    if why := directive_path_error(
+        [
+            ("the data folder", job.data_dir, "give --data-dir a folder without it"),
+            ("this command's folder", Path.cwd(), "run it from a folder without it"),
+        ]
+    ):
+        print(f"macb up: {why}", file=sys.stderr)
         return 2
     if why := preflight(opts, [data_dir], folder="the data folder", flag="--data-dir"):
         print(f"macb up: {why}", file=sys.stderr)  # it names --launcher slurm or the flag

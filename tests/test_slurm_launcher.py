@@ -282,3 +282,103 @@ def test_following_says_each_change_once_survives_a_silent_controller_and_ends(c
         "fig3 group 1/1 [job 5_0]: complete, episode 0 of 6",
         "page built",
     ]
+
+
+# ---------------------------------------------------------------- the #SBATCH lines
+def sbatch_reads(script: str) -> list[str]:
+    """The arguments sbatch takes from a script's #SBATCH lines: Slurm's own directive
+    parser (src/sbatch/opt.c, `_get_argument`) ported: whitespace ends an argument unless
+    quoted, a quote groups up to its match, a backslash escapes the next character,
+    an unquoted '#' starts a comment; the first line that is no comment ends them."""
+    argv: list[str] = []
+    for line in script.splitlines()[1:]:
+        if not line.startswith("#"):
+            break
+        if not line.startswith("#SBATCH"):
+            continue
+        rest, i = line[len("#SBATCH") :], 0
+        while True:
+            while i < len(rest) and rest[i].isspace():
+                i += 1
+            if i >= len(rest):
+                break
+            arg, quote, escaped = "", "", False
+            while i < len(rest) and (quote or not rest[i].isspace()):
+                c, i = rest[i], i + 1
+                if escaped:
+                    escaped = False
+                elif c == "\\":
+                    escaped = True
+                    continue
+                elif quote:
+                    if c == quote:
+                        quote = ""
+                        continue
+                elif c in "\"'":
+                    quote = c
+                    continue
+                elif c == "#":
+                    i = len(rest)
+                    break
+                arg += c
+            if arg:
+                argv.append(arg)
+    return argv
+
+
+def test_folders_with_spaces_hashes_and_quotes_reach_sbatch_whole(tmp_path):
+    """A runs or data folder named 'My Runs', 'lab#2' or "it's" is one argument to sbatch:
+    written unquoted, sbatch's parser cut --output and --chdir at the space and dropped the
+    rest of the line at the '#'."""
+    from cli.slurm_cluster import ClusterJob, render_cluster_script
+
+    for name in ("My Runs", "lab#2", "it's here"):
+        base = tmp_path / name
+        tasks = [Task("g1", ("a-s0",), ("macb", "reproduce", "fig3"))]
+        text = slurm.render_script("macb-fig3", tasks, base / ".slurm", base, 1, SlurmOptions())
+        argv = sbatch_reads(text)
+        assert f"--output={base}/.slurm/%A_%a.log" in argv, argv
+        assert f"--chdir={base}" in argv, argv
+        job = ClusterJob(1, 1, 1, 1, base / "data")
+        argv = sbatch_reads(render_cluster_script(job, ["macb"], base, SlurmOptions("short")))
+        assert f"--output={base}/data/.slurm/cluster-%j.log" in argv, argv
+        assert f"--chdir={base}" in argv and "--partition=short" in argv, argv
+
+
+def slurm_stubs(tmp_path: Path, squeue: str = "exit 0", sinfo: str = "echo short") -> dict:
+    """sbatch, squeue and sinfo stubbed on PATH: sbatch records its arguments (a line
+    each call, in SBATCH_CALLS) and prints job id 4242. The environment to run macb in."""
+    stubs = tmp_path / "bin"
+    stubs.mkdir(exist_ok=True)
+    calls = tmp_path / "sbatch-calls.txt"
+    texts = {
+        "sbatch": f'echo "$@" >> {shlex.quote(str(calls))}\necho 4242\n',
+        "squeue": squeue + "\n",
+        "sinfo": sinfo + "\n",
+    }
+    for name, text in texts.items():
+        (stubs / name).write_text(f"#!/bin/bash\n{text}")
+        (stubs / name).chmod(0o755)
+    return {"PATH": f"{stubs}{os.pathsep}{os.environ.get('PATH', '')}", "SBATCH_CALLS": str(calls)}
+
+
+@pytest.mark.parametrize(
+    "command, folder, char",
+    [
+        (["reproduce", "fig3", "--local", "--episodes", "2", "--out"], "50%", "'%'"),
+        (["reproduce", "fig3", "--local", "--episodes", "2", "--out"], 'say "hi"', "double quote"),
+        (["up", "--data-dir"], "back\\slash", "backslash"),
+    ],
+)  # fmt: skip
+def test_a_folder_the_sbatch_lines_cannot_carry_is_refused_naming_it(
+    tmp_path, command, folder, char
+):
+    from tests.harness import macb
+
+    env = slurm_stubs(tmp_path)
+    path = tmp_path / folder
+    got = macb(*command, str(path), "--launcher", "slurm", env=env)
+    assert got.returncode == 2, got.stderr
+    (line,) = got.stderr.strip().splitlines()
+    assert repr(str(path))[:-1] in line and char in line and "#SBATCH" in line, line
+    assert not Path(env["SBATCH_CALLS"]).exists() and not path.exists()

@@ -129,6 +129,44 @@ def macb_argv() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "cli"]
 
 
+#: What an #SBATCH line cannot carry in a path, and why. sbatch reads its directives
+#: with its own parser (Slurm's src/sbatch/opt.c, `_get_argument`): whitespace ends an
+#: argument unless quoted, an unquoted '#' starts a comment, a quote ('"' or "'")
+#: groups characters up to its match and a backslash escapes the next character, in
+#: quotes too. So a path is written in double quotes (`directive`), which carry spaces,
+#: '#' and "'", and the characters below are refused before anything is submitted. '%'
+#: is refused too: --output expands Slurm's filename patterns (%j, %A, ...) and
+#: --chdir does in some versions, so a '%' in a folder's name would name another file.
+UNSAFE_IN_DIRECTIVE = (
+    ('"', "a double quote"),
+    ("\\", "a backslash"),
+    ("\n", "a newline"),
+    ("%", "a '%' (Slurm reads %j, %A, ... in --output as filename patterns)"),
+)
+
+
+def directive(flag: str, value: str) -> str:
+    """`#SBATCH --flag=value`, the value in double quotes when it holds whitespace, '#'
+    or a quote, which sbatch's directive parser would otherwise split the argument at
+    or read as a comment or a quote (UNSAFE_IN_DIRECTIVE: what it cannot carry at all)."""
+    if any(c.isspace() or c in "#'" for c in value):
+        value = f'"{value}"'
+    return f"#SBATCH --{flag}={value}"
+
+
+def directive_path_error(paths: Sequence[tuple[str, Path, str]]) -> str | None:
+    """Why one of `paths` (what it is, the path, what to do instead) cannot be written
+    in the job script's #SBATCH lines, naming it and the character; or None."""
+    for what, path, instead in paths:
+        for char, name in UNSAFE_IN_DIRECTIVE:
+            if char in str(path):
+                return (
+                    f"--launcher slurm: {what} {str(path)!r} holds {name}, which the job "
+                    f"script's #SBATCH --output/--chdir lines cannot carry; {instead}"
+                )
+    return None
+
+
 def render_script(
     name: str, tasks: Sequence[Task], log_dir: Path, cwd: Path, cpus: int, opts: SlurmOptions
 ) -> str:
@@ -141,8 +179,8 @@ def render_script(
         "#SBATCH --ntasks=1",
         "#SBATCH --requeue",
         "#SBATCH --open-mode=append",
-        f"#SBATCH --output={log_dir}/%A_%a.log",
-        f"#SBATCH --chdir={cwd}",
+        directive("output", f"{log_dir}/%A_%a.log"),
+        directive("chdir", str(cwd)),
     ]
     lines += placement(opts)
     lines += [
@@ -526,13 +564,20 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
 
     opts = options(args)
     runs_dirs = [c.runs_dir for c in campaigns]
+    slurm_dir = slurm_dir or campaigns[0].runs_dir / ".slurm"
+    if error := directive_path_error(
+        [
+            ("the logs' folder", slurm_dir, "give --runs (or --out) a folder without it"),
+            ("this command's folder", Path.cwd(), "run it from a folder without it"),
+        ]
+    ):
+        return _refuse(error)
     if error := preflight(opts, runs_dirs, folder="the runs folder", flag="--runs (or --out)"):
         return _refuse(error)
     if conflicts := [line for c in campaigns for line in config_conflicts(c.runs, c.runs_dir)]:
         for line in conflicts:
             print(line, file=sys.stderr)
         return _refuse("move those folders away or give another --out: nothing was submitted")
-    slurm_dir = slurm_dir or campaigns[0].runs_dir / ".slurm"
 
     def look() -> Standing:
         slurm = query()
