@@ -209,13 +209,42 @@ def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: Slu
     return "\n".join(lines)
 
 
-def job_state(job_id: str, run: Runner = run_command) -> tuple[str, str] | None:
-    """Slurm's state and reason of the job, or None once it no longer knows it."""
-    got = run(["squeue", "-h", "-j", job_id, "-t", "all", "-o", "%T|%r"])
-    if got.returncode or not got.stdout.strip():
-        return None
-    state, _, reason = got.stdout.strip().splitlines()[0].partition("|")
-    return state.strip(), "" if reason.strip() == "None" else reason.strip()
+#: How often a failing squeue is asked again before the job's state counts as unknown,
+#: and the pause between: a busy or restarting controller answers again within minutes.
+SQUEUE_TRIES, SQUEUE_RETRY_S = 6, 10.0
+
+
+class SlurmUnanswered(RuntimeError):
+    """squeue kept failing: where the job stands is unknown (it may well run)."""
+
+
+def job_state(
+    job_id: str,
+    run: Runner = run_command,
+    tries: int | None = None,
+    pause_s: float | None = None,
+) -> tuple[str, str] | None:
+    """Slurm's state and reason of the job, or None once it no longer knows it (an
+    empty listing, or squeue's "Invalid job id specified"). Any other squeue failure
+    (the controller busy: "Socket timed out") says nothing about the job: it is asked
+    again, `tries` times in all, each said, then SlurmUnanswered."""
+    tries, pause_s = tries or SQUEUE_TRIES, SQUEUE_RETRY_S if pause_s is None else pause_s
+    why = ""
+    for attempt in range(1, tries + 1):
+        got = run(["squeue", "-h", "-j", job_id, "-t", "all", "-o", "%T|%r"])
+        if not got.returncode:
+            if not got.stdout.strip():
+                return None
+            state, _, reason = got.stdout.strip().splitlines()[0].partition("|")
+            return state.strip(), "" if reason.strip() == "None" else reason.strip()
+        why = (got.stderr or got.stdout).strip() or f"exit {got.returncode}"
+        if "Invalid job id specified" in why:
+            return None
+        if attempt < tries:
+            print(f"cluster job {job_id}: squeue failed ({why}); asking again in "
+                  f"{pause_s:.0f} s ({attempt} of {tries})", file=sys.stderr)  # fmt: skip
+            time.sleep(pause_s)
+    raise SlurmUnanswered(f"squeue failed {tries} times ({why})")
 
 
 def services_answering(api: ApiClient) -> int | None:
@@ -364,7 +393,16 @@ def wait_until_up(
     api: ApiClient | None = None
     try:
         while time.monotonic() < deadline:
-            state = job_state(job_id, run)
+            try:
+                state = job_state(job_id, run)
+            except SlurmUnanswered as err:
+                print(
+                    f"cluster job {job_id}: where it stands is unknown: {err}. It may well "
+                    f"run: `squeue -j {job_id}` says once Slurm answers, `scancel {job_id}` "
+                    f"stops it; its log: {log}",
+                    file=sys.stderr,
+                )
+                return 1
             if state is None or state[0] not in ("PENDING", "CONFIGURING", "RUNNING"):
                 print(f"cluster job {job_id} ended ({state[0] if state else 'gone'})",
                       file=sys.stderr)  # fmt: skip
