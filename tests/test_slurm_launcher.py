@@ -382,3 +382,26 @@ def test_a_folder_the_sbatch_lines_cannot_carry_is_refused_naming_it(
     (line,) = got.stderr.strip().splitlines()
     assert repr(str(path))[:-1] in line and char in line and "#SBATCH" in line, line
     assert not Path(env["SBATCH_CALLS"]).exists() and not path.exists()
+
+
+def test_detach_after_a_submission_squeue_cannot_answer_says_so_and_exits_0(tmp_path):
+    """squeue answering before the submission and failing right after it (a busy
+    controller): --detach once ended in a traceback, the job submitted; now it says the
+    job was submitted, that where it stands is unknown and that the same command says."""
+    from tests.harness import macb
+
+    asked = tmp_path / "squeue-asked"
+    squeue = (
+        f"if [[ -e {asked} ]]; then echo 'squeue: error: Socket timed out' >&2; exit 1; fi\n"
+        f"touch {asked}; exit 0"
+    )
+    env = slurm_stubs(tmp_path, squeue=squeue)
+    out = str(tmp_path / "out")
+    got = macb("reproduce", "fig3", "--local", "--launcher", "slurm", "--episodes", "2",
+               "--seeds", "0", "--out", out, "--detach", "--quiet", env=env)  # fmt: skip
+    assert got.returncode == 0, got.stderr
+    assert "Traceback" not in got.stderr, got.stderr
+    last = got.stderr.strip().splitlines()[-1]
+    assert last.startswith("job 4242 was submitted; where the groups stand is unknown"), last
+    assert "Socket timed out" in last and "the same command again says" in last, last
+    assert len(Path(env["SBATCH_CALLS"]).read_text().splitlines()) == 1

@@ -612,6 +612,7 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
             argv = group_command(c.fig.name, c.profile, args, c.out, c.runs_dir, names)
             tasks.append(Task(label, tuple(names), tuple(argv)))
             owner.append(c)
+    job: str | None = None
     if tasks:
         name = "macb-" + "-".join(dict.fromkeys(c.fig.name for c in owner))
         cpus = cpus_for([r.config for c in campaigns for r in c.runs])
@@ -638,7 +639,13 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
         return built
 
     if args.detach:
-        now = look()
+        try:
+            now = look()
+        except RuntimeError as err:  # the job is in; only its standing is not known yet
+            what = f"job {job} was submitted" if job else "nothing was submitted"
+            print(f"{what}; where the groups stand is unknown ({err}): the same command "
+                  "again says", file=sys.stderr)  # fmt: skip
+            return 0
         for g in now.groups:
             print(g.line(), file=sys.stderr)
         pages(now)
