@@ -176,7 +176,12 @@ def add_up_slurm_flags(up: argparse.ArgumentParser) -> None:
     slurm.add_argument("--partition", help="the job's partition (sbatch --partition)")
     slurm.add_argument("--time", metavar="LIMIT", help="the job's time limit (sbatch --time)")
     slurm.add_argument("--account", help="the account charged (sbatch --account)")
-    slurm.add_argument("--sbatch-args", metavar="ARGS", help="more sbatch arguments, as one string")
+    slurm.add_argument(
+        "--sbatch-args",
+        metavar="ARGS",
+        help="more sbatch arguments, as one string (not -M/--clusters: the job is followed "
+        "on the default cluster only)",
+    )
     slurm.add_argument("--detach", action="store_true", help="submit and return at once")
     slurm.add_argument(
         "--wait", type=float, default=600.0, metavar="S", help="how long to wait for its API"

@@ -405,3 +405,22 @@ def test_detach_after_a_submission_squeue_cannot_answer_says_so_and_exits_0(tmp_
     assert last.startswith("job 4242 was submitted; where the groups stand is unknown"), last
     assert "Socket timed out" in last and "the same command again says" in last, last
     assert len(Path(env["SBATCH_CALLS"]).read_text().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    "extra", [("--clusters=gpu",), ("-M", "gpu"), ("--mem=4G", "--cluster", "a")]
+)
+def test_sbatch_args_naming_another_cluster_are_refused_before_slurm_is_asked(
+    tmp_path, extra, monkeypatch
+):
+    """sbatch -M/--clusters submits to another cluster, but squeue answers for the default
+    one: every task looked gone at once, exit 1, and the next run submitted it all again."""
+    monkeypatch.setattr(slurm.shutil, "which", lambda c: "/bin/" + c)
+    runs = tmp_path / "runs"
+    fake = FakeSlurm()
+    why = slurm.preflight(SlurmOptions(extra=extra), [runs], folder="f", flag="--f", run=fake)
+    assert why is not None and why.startswith("--sbatch-args: ") and "another Slurm cluster" in why
+    assert [w for w in extra if w.startswith("-")][-1] in why
+    assert fake.calls == [] and not runs.exists()
+    ok = SlurmOptions(extra=("--cluster-constraint=fast", "--mem=4G"))
+    assert slurm.preflight(ok, [runs], folder="f", flag="--f", run=fake) is None

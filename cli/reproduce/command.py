@@ -161,7 +161,8 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
     slurm.add_argument(
         "--sbatch-args",
         metavar="ARGS",
-        help="more sbatch arguments, as one string (e.g. '--qos=long --mem=4G')",
+        help="more sbatch arguments, as one string (e.g. '--qos=long --mem=4G'); not "
+        "-M/--clusters: the tasks are followed on the default cluster only",
     )
     slurm.add_argument(
         "--detach",

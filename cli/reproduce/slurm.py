@@ -82,11 +82,14 @@ def preflight(
     flag: str,
     run: Runner = run_command,
 ) -> str | None:
-    """Why nothing can be submitted, or None: sbatch missing, Slurm not answering, an
-    unknown partition, one of `folders` that cannot be written (made when missing, once
-    the rest is known to be right). `folder` says what they are and `flag` which of the
-    caller's flags moves them ("the runs folder", "--runs (or --out)" for `macb
-    reproduce`; "the data folder", "--data-dir" for `macb up`): each command has its own."""
+    """Why nothing can be submitted, or None: --sbatch-args naming another cluster,
+    sbatch missing, Slurm not answering, an unknown partition, one of `folders` that
+    cannot be written (made when missing, once the rest is known to be right).
+    `folder` says what they are and `flag` which of the caller's flags moves them ("the
+    runs folder", "--runs (or --out)" for `macb reproduce`; "the data folder",
+    "--data-dir" for `macb up`): each command has its own."""
+    if error := sbatch_args_error(opts.extra):
+        return error
     missing = [c for c in ("sbatch", "squeue", "sinfo") if shutil.which(c) is None]
     if missing:
         return (
@@ -107,6 +110,22 @@ def preflight(
             return (
                 f"--launcher slurm: {folder} {path} is not writable ({why}); the job's tasks "
                 f"write there: give {flag} on a filesystem the nodes share and you can write"
+            )
+    return None
+
+
+def sbatch_args_error(extra: Sequence[str]) -> str | None:
+    """Why --sbatch-args cannot be passed on, or None. -M/--clusters (--cluster) sends
+    the job to another cluster, while squeue, asked without it, answers for the default
+    one: every task would look gone at once and the next run would submit it again.
+    Following jobs on several clusters is not supported, so it is refused."""
+    for word in extra:
+        flag = word.split("=", 1)[0]
+        if flag in ("--clusters", "--cluster") or word.startswith("-M"):
+            return (
+                f"--sbatch-args: {word} sends the job to another Slurm cluster, and macb "
+                "follows jobs on the default cluster only (squeue would find none of its "
+                "tasks); run this on a login node of that cluster instead"
             )
     return None
 
