@@ -329,9 +329,12 @@ def cmd_up_slurm(args: argparse.Namespace) -> int:
         api_public=bool(os.environ.get("MACB_API_TOKEN")),
         group_size=args.group_size,
     )
-    opts = SlurmOptions(
-        args.partition, args.time, args.account, tuple(shlex.split(args.sbatch_args or ""))
-    )
+    try:
+        extra = tuple(shlex.split(args.sbatch_args or ""))
+    except ValueError as err:  # an unclosed quote
+        print(f"macb up: --sbatch-args: {err}", file=sys.stderr)
+        return 2
+    opts = SlurmOptions(args.partition, args.time, args.account, extra)
     if why := job.error():
         print(f"macb up --launcher slurm: {why}", file=sys.stderr)
         return 2

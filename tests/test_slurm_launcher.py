@@ -424,3 +424,31 @@ def test_sbatch_args_naming_another_cluster_are_refused_before_slurm_is_asked(
     assert fake.calls == [] and not runs.exists()
     ok = SlurmOptions(extra=("--cluster-constraint=fast", "--mem=4G"))
     assert slurm.preflight(ok, [runs], folder="f", flag="--f", run=fake) is None
+
+
+@pytest.mark.parametrize("command", [["reproduce", "fig3", "--local", "--episodes", "2"], ["up"]])
+def test_sbatch_args_of_one_flag_or_several_reach_sbatch_in_either_form(tmp_path, command):
+    """`--sbatch-args '--mem=4G'` (one flag, no space) was refused by argparse ("expected
+    one argument": a value starting with '-' read as an option); it is taken as written,
+    as `--sbatch-args=...` always was, and an unclosed quote is refused naming the option."""
+    from tests.harness import macb
+
+    running = "printf '4242_0|RUNNING|None|macb-fig3\\n4242_1|RUNNING|None|macb-fig3\\n'"
+    env = slurm_stubs(tmp_path, squeue=running)
+    calls = Path(env["SBATCH_CALLS"])
+    flag = "--data-dir" if command == ["up"] else "--out"
+    for i, (given, passed) in enumerate([
+        (["--sbatch-args", "--mem=4G"], "--parsable --mem=4G "),
+        (["--sbatch-args=--qos=long --mem=4G"], "--parsable --qos=long --mem=4G "),
+        (["--sbatch-args", "--qos=long -c 2"], "--parsable --qos=long -c 2 "),
+    ]):  # fmt: skip
+        calls.unlink(missing_ok=True)
+        where = [flag, str(tmp_path / f"d{i}")]
+        got = macb(*command, *where, "--launcher", "slurm", *given, "--detach", env=env)
+        assert got.returncode == 0, got.stderr
+        (call,) = calls.read_text().splitlines()
+        assert call.startswith(passed), (given, call)
+    calls.unlink()
+    got = macb(*command, *where, "--launcher", "slurm", "--sbatch-args", "--qos='long", env=env)
+    assert got.returncode == 2 and "--sbatch-args: No closing quotation" in got.stderr, got.stderr
+    assert not calls.exists()

@@ -581,7 +581,10 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
     incomplete (named), 2 when refused before submitting."""
     from cli.local import config_conflicts, plan_groups
 
-    opts = options(args)
+    try:
+        opts = options(args)
+    except ValueError as err:  # shlex: an unclosed quote
+        return _refuse(f"--sbatch-args: {err}")
     runs_dirs = [c.runs_dir for c in campaigns]
     slurm_dir = slurm_dir or campaigns[0].runs_dir / ".slurm"
     if error := directive_path_error(
