@@ -145,12 +145,21 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         "one learner, actor and evaluator serve them all, each run the one-process "
         "group's (default 1: every run on its own services)",
     )
-    up.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="router endpoint")
+    up.add_argument(
+        "--endpoint",
+        default="tcp/127.0.0.1:7447",
+        help="router endpoint (with --launcher slurm only its port is chosen: the job's "
+        "router listens where its nodes reach it)",
+    )
     up.add_argument("--data-dir", help=data_dir_help("snapshots, checkpoints, logs, the store"))
     up.add_argument("--run", metavar="CONFIG", help="run this experiment, then stop")
     up.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="with --run: seeds")
     up.add_argument("--api-port", type=int, default=8000, help="the API's port on 127.0.0.1")
-    up.add_argument("--no-api", action="store_true", help="no API (runs go on the bus)")
+    up.add_argument(
+        "--no-api",
+        action="store_true",
+        help="no API (runs go on the bus; not with --launcher slurm, whose job runs it)",
+    )
     up.add_argument("--out", metavar="DIR", help="with --run: write metrics here")
     up.add_argument("--quiet", action="store_true", help="no progress bar")
     up.add_argument("--quiet-services", action="store_true", help="service logs to files only")

@@ -136,6 +136,9 @@ def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: Slu
         f"#SBATCH --nodes={n}",
         f"#SBATCH --ntasks-per-node={per_node}",
         f"#SBATCH --cpus-per-task={job.cpus}",
+        # a requeued job (a node lost: Slurm requeues batch jobs by default) appends to
+        # the log rather than truncating the failed attempt's
+        "#SBATCH --open-mode=append",
         directive("output", f"{job.log_dir}/cluster-%j.log"),
         directive("chdir", str(cwd)),
     ]
@@ -304,6 +307,25 @@ def _read(path: Path) -> str | None:
         return None
 
 
+def placement_error(args: argparse.Namespace) -> str | None:
+    """Why flags of the local cluster that the job fixes itself cannot be taken, or None:
+    the job always runs the API (the command follows it to its API; `macb run` needs it),
+    and its router listens where the nodes reach it (loopback on one node, every
+    interface on several), so only --endpoint's port is the user's."""
+    from cli.supervisor import host_port
+
+    if args.no_api:
+        return "--no-api: the job always runs the API on its first node (it is how runs reach it)"
+    host, _ = host_port(args.endpoint)
+    if host != "127.0.0.1":
+        return (
+            f"--endpoint {args.endpoint}: the job's router listens on the first node's "
+            "loopback (one node) or on every interface (several), so only the port can be "
+            "chosen: give tcp/127.0.0.1:PORT"
+        )
+    return None
+
+
 def cmd_up_slurm(args: argparse.Namespace) -> int:
     """Write the cluster job's script, submit it and (unless --detach) wait until its API
     answers; say where it is and how to stop it."""
@@ -314,6 +336,9 @@ def cmd_up_slurm(args: argparse.Namespace) -> int:
 
     if args.run:
         print("macb up --launcher slurm: submit runs to the job's API (macb run)", file=sys.stderr)
+        return 2
+    if why := placement_error(args):
+        print(f"macb up --launcher slurm: {why}", file=sys.stderr)
         return 2
     secrets = settings().zenoh_secrets
     data_dir = Path(args.data_dir or default_data_dir() / "slurm-cluster").resolve()

@@ -336,3 +336,30 @@ def test_a_busy_controller_is_asked_again_and_only_an_unknown_job_is_gone(
         run = squeue_answers(*answers)
         assert wait_until_up("77", job, tmp_path / "log", 30, run, "login1") == 1
         assert "cluster job 77 ended (gone)" in capsys.readouterr().err and len(run.calls) == 1
+
+
+def test_flags_the_job_fixes_itself_are_refused_not_ignored(tmp_path):
+    """The job always runs the API and places its router itself: `--no-api` and an
+    --endpoint host were taken and ignored (the job started the API, the router listened
+    on loopback). They are refused before anything is written or submitted."""
+    from tests.harness import macb
+
+    data = tmp_path / "d"
+    for flags, says in [
+        (["--no-api"], "--no-api: the job always runs the API"),
+        (["--endpoint", "tcp/10.1.2.3:7447"], "--endpoint tcp/10.1.2.3:7447: the job's router"),
+    ]:
+        got = macb("up", "--launcher", "slurm", "--data-dir", str(data), "--detach", *flags,
+                   env={"PATH": "/nonexistent"})  # fmt: skip
+        assert got.returncode == 2 and says in got.stderr, got.stderr
+        assert not data.exists()
+
+
+def test_a_requeued_job_appends_to_its_log(tmp_path):
+    """Slurm requeues a batch job by default when its node fails; the cluster job's log
+    is opened for appending, so the failed attempt's lines stay (the default truncates)."""
+    from tests.test_slurm_launcher import sbatch_reads
+
+    job = ClusterJob(1, 1, 1, 1, tmp_path / "data")
+    argv = sbatch_reads(render_cluster_script(job, ["macb"], tmp_path, SlurmOptions()))
+    assert "--open-mode=append" in argv, argv
