@@ -452,3 +452,25 @@ def test_sbatch_args_of_one_flag_or_several_reach_sbatch_in_either_form(tmp_path
     got = macb(*command, *where, "--launcher", "slurm", "--sbatch-args", "--qos='long", env=env)
     assert got.returncode == 2 and "--sbatch-args: No closing quotation" in got.stderr, got.stderr
     assert not calls.exists()
+
+
+def test_runs_on_a_gpu_get_a_gpu_per_task_and_as_many_tasks_as_on_the_cpu(tmp_path):
+    """--device cuda once asked Slurm for no GPU, and sized the plan by the GPUs of the
+    submitting machine (a login node: none, so one task for every run): each task now
+    asks for a GPU of its own, and the runs make as many tasks as on the CPU."""
+    from tests.harness import macb
+
+    env = slurm_stubs(tmp_path)
+    scripts = {}
+    for device in ("cpu", "cuda"):
+        out = tmp_path / device
+        got = macb("reproduce", "fig3", "--local", "--launcher", "slurm", "--episodes", "2",
+                   "--seeds", "0", "--device", device, "--out", str(out), "--detach",
+                   "--quiet", env=env)  # fmt: skip
+        assert "submitted job 4242: " in got.stderr, got.stderr
+        call = Path(env["SBATCH_CALLS"]).read_text().splitlines()[-1]
+        scripts[device] = sbatch_reads(Path(call.split()[-1]).read_text())
+    assert "--gres=gpu:1" in scripts["cuda"] and "--gres=gpu:1" not in scripts["cpu"]
+    tasks = min(os.cpu_count() or 1, 11)  # fig3's 11 runs of seed 0, --jobs' default
+    assert f"--array=0-{tasks - 1}" in scripts["cuda"], scripts["cuda"]
+    assert f"--array=0-{tasks - 1}" in scripts["cpu"], scripts["cpu"]

@@ -73,7 +73,8 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         metavar="DEVICE",
         help="every run's learner device: cpu (the default), cuda, cuda:N, xpu, mps. With "
         "--local, --jobs defaults to one group per GPU, and a bare `cuda` gives each "
-        "group's process a GPU of its own. The replay's rows live on the device; acting, "
+        "group's process a GPU of its own (with --launcher slurm: --jobs defaults as on the "
+        "CPU, and each task asks Slurm for a GPU). The replay's rows live on the device; acting, "
         "sampling and counting stay on the CPU; "
         "a run's rows on a GPU are not the CPU's bit for bit (docs/performance.md, 'On a GPU')",
     )

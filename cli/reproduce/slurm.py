@@ -187,9 +187,16 @@ def directive_path_error(paths: Sequence[tuple[str, Path, str]]) -> str | None:
 
 
 def render_script(
-    name: str, tasks: Sequence[Task], log_dir: Path, cwd: Path, cpus: int, opts: SlurmOptions
+    name: str,
+    tasks: Sequence[Task],
+    log_dir: Path,
+    cwd: Path,
+    cpus: int,
+    opts: SlurmOptions,
+    gpu: bool = False,
 ) -> str:
-    """The batch script: an array of len(tasks), task i running tasks[i].argv."""
+    """The batch script: an array of len(tasks), task i running tasks[i].argv; with
+    `gpu` (the runs' device is not the CPU), each task asks for a GPU of its own."""
     lines = [
         "#!/bin/bash",
         f"#SBATCH --job-name={name}",
@@ -201,6 +208,12 @@ def render_script(
         directive("output", f"{log_dir}/%A_%a.log"),
         directive("chdir", str(cwd)),
     ]
+    if gpu:
+        # --gres=gpu:1 rather than --gpus-per-task=1: each array task is a one-task job,
+        # so per node is per task, and --gres works under select/cons_res too, where the
+        # --gpus-* options are refused (they need cons_tres). Slurm sets the task's
+        # CUDA_VISIBLE_DEVICES to that GPU, which the group's `cuda` then is.
+        lines.append("#SBATCH --gres=gpu:1")
     lines += placement(opts)
     lines += [
         "# Written by `macb reproduce --launcher slurm`. Each task trains one run group",
@@ -388,13 +401,14 @@ def submit(
     cpus: int,
     opts: SlurmOptions,
     run: Runner = run_command,
+    gpu: bool = False,
 ) -> tuple[str, dict[str, Any]]:
-    """One array job of `tasks` (script and logs in `slurm_dir`): its id and the record
-    of it (when, how, each task's index, label, runs and command)."""
+    """One array job of `tasks` (script and logs in `slurm_dir`; `gpu`: a GPU per task):
+    its id and the record of it (when, how, each task's index, label, runs and command)."""
     slurm_dir.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
     script = slurm_dir / f"{name}-{stamp}.sh"
-    script.write_text(render_script(name, tasks, slurm_dir, Path.cwd(), cpus, opts))
+    script.write_text(render_script(name, tasks, slurm_dir, Path.cwd(), cpus, opts, gpu))
     argv = sbatch_argv(opts, script)
     got = run(argv)
     if got.returncode:
@@ -623,7 +637,10 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
         todo = [r for r in c.runs if r.name not in held and not done(r.name)]
         if not todo:
             continue
-        plan = plan_groups(todo, c.runs_dir, args.group_size, args.jobs)
+        # sized as on the CPU whatever the device (default: this machine's CPUs), not by
+        # the GPUs of this login node: each task gets a GPU of its own from Slurm
+        jobs = args.jobs or os.cpu_count() or 1
+        plan = plan_groups(todo, c.runs_dir, args.group_size, jobs)
         for i, (state, members) in enumerate(plan, 1):
             chosen = [todo[m] for m in members]
             task = chosen[0].config.task
@@ -638,8 +655,9 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
     if tasks:
         name = "macb-" + "-".join(dict.fromkeys(c.fig.name for c in owner))
         cpus = cpus_for([r.config for c in campaigns for r in c.runs])
+        gpu = any(r.config.device != "cpu" for c in owner for r in c.runs)
         try:
-            job, entry = submit(name[:64], tasks, slurm_dir, cpus, opts)
+            job, entry = submit(name[:64], tasks, slurm_dir, cpus, opts, gpu=gpu)
         except (RuntimeError, ValueError, OSError) as err:
             return _refuse(str(err))
         for c in dict.fromkeys(owner):  # each figure records its own tasks
