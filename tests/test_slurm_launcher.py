@@ -347,12 +347,15 @@ def test_folders_with_spaces_hashes_and_quotes_reach_sbatch_whole(tmp_path):
 
 def slurm_stubs(tmp_path: Path, squeue: str = "exit 0", sinfo: str = "echo short") -> dict:
     """sbatch, squeue and sinfo stubbed on PATH: sbatch records its arguments (a line
-    each call, in SBATCH_CALLS) and prints job id 4242. The environment to run macb in."""
+    each call, in SBATCH_CALLS) and prints job id 4242, then 4243, ... The environment
+    to run macb in."""
     stubs = tmp_path / "bin"
     stubs.mkdir(exist_ok=True)
     calls = tmp_path / "sbatch-calls.txt"
+    ids = shlex.quote(str(tmp_path / "sbatch-next-id"))
     texts = {
-        "sbatch": f'echo "$@" >> {shlex.quote(str(calls))}\necho 4242\n',
+        "sbatch": f'echo "$@" >> {shlex.quote(str(calls))}\n'
+        f"n=$(cat {ids} 2>/dev/null || echo 4242); echo $((n + 1)) > {ids}; echo $n\n",
         "squeue": squeue + "\n",
         "sinfo": sinfo + "\n",
     }
@@ -474,3 +477,37 @@ def test_runs_on_a_gpu_get_a_gpu_per_task_and_as_many_tasks_as_on_the_cpu(tmp_pa
     tasks = min(os.cpu_count() or 1, 11)  # fig3's 11 runs of seed 0, --jobs' default
     assert f"--array=0-{tasks - 1}" in scripts["cuda"], scripts["cuda"]
     assert f"--array=0-{tasks - 1}" in scripts["cpu"], scripts["cpu"]
+
+
+def test_all_tells_apart_runs_of_one_name_in_two_figures(tmp_path):
+    """fig3 and table2 both have a run beta_0.0-s0, each in its own runs folder. What
+    Slurm held was told by run name alone, so with fig3's tasks running and table2's
+    cancelled, table2's beta_0.0-s0 (and every namesake) was left out of the new
+    submission, though said to be submitted again."""
+    import json
+
+    from tests.harness import macb
+
+    states = tmp_path / "squeue.txt"
+    env = slurm_stubs(tmp_path, squeue=f"cat {states} 2>/dev/null; exit 0")
+    out = tmp_path / "out"
+    argv = ["reproduce", "all", "--local", "--launcher", "slurm", "--episodes", "2",
+            "--seeds", "0", "--out", str(out), "--detach", "--quiet"]  # fmt: skip
+    got = macb(*argv, env=env)
+    assert "submitted job 4242: " in got.stderr, got.stderr
+    (table2,) = out.glob("table2-*/runs")
+    lines = []
+    for record in out.glob("*/runs/.slurm/jobs.json"):
+        state = "CANCELLED" if record.parents[2] == table2.parent else "RUNNING"
+        for t in json.loads(record.read_text())["submissions"][0]["tasks"]:
+            lines.append(f"4242_{t['index']}|{state}|None|macb-fig3-fig4-fig6-fig7-fig8-table2")
+    states.write_text("\n".join(lines) + "\n")
+    got = macb(*argv, env=env)
+    assert "submitted job 4243: " in got.stderr, got.stderr
+    subs = json.loads((table2 / ".slurm" / "jobs.json").read_text())["submissions"]
+    first, again = ({r for t in s["tasks"] for r in t["runs"]} for s in subs)
+    assert "beta_0.0-s0" in first and again == first
+    said = [line for line in got.stderr.splitlines() if "submitting its" in line]
+    assert len(said) == len(subs[0]["tasks"]) and all(line.startswith("table2 ") for line in said)
+    n = sum(int(line.split("submitting its ")[1].split()[0]) for line in said)
+    assert n == len(first), said

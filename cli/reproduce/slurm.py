@@ -615,26 +615,40 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
             print(line, file=sys.stderr)
         return _refuse("move those folders away or give another --out: nothing was submitted")
 
-    def look() -> Standing:
+    def look_each() -> list[tuple[Campaign, Standing]]:
         slurm = query()
-        return Standing([g for c in campaigns for g in c.standing(slurm).groups])
+        return [(c, c.standing(slurm)) for c in campaigns]
+
+    def look() -> Standing:
+        return Standing([g for _, s in look_each() for g in s.groups])
 
     def total() -> tuple[int, int]:
         eps = [e for c in campaigns for e in c.progress().values()]
         return sum(e for e, _ in eps), sum(t for _, t in eps)
 
     try:
-        before = look()
+        before_each = look_each()
     except RuntimeError as err:
         return _refuse(str(err))
-    held = {r for g in before.groups if g.status in ("running", "pending") for r in g.runs}
-    for g in before.of("incomplete"):
-        print(f"{g.line()}: submitting its runs again", file=sys.stderr)
+    before = Standing([g for _, s in before_each for g in s.groups])
+    # A run is its folder in its figure's runs folder: figures share run names (fig3's
+    # and table2's beta_0.0-s0 are two runs), so what Slurm holds is told apart by both.
+    held = {
+        (c.runs_dir, r)
+        for c, s in before_each
+        for g in s.groups
+        if g.status in ("running", "pending")
+        for r in g.runs
+    }
     tasks: list[Task] = []
     owner: list[Campaign] = []
-    for c in campaigns:
+    for c, s in before_each:
         done = c.finished(c.progress())
-        todo = [r for r in c.runs if r.name not in held and not done(r.name)]
+        todo = [r for r in c.runs if (c.runs_dir, r.name) not in held and not done(r.name)]
+        again = {r.name for r in todo}
+        for g in s.of("incomplete"):
+            n = sum(r in again for r in g.runs)
+            print(f"{g.line()}: submitting its {n} unfinished run(s) again", file=sys.stderr)
         if not todo:
             continue
         # sized as on the CPU whatever the device (default: this machine's CPUs), not by
