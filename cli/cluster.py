@@ -182,7 +182,9 @@ def add_up_slurm_flags(up: argparse.ArgumentParser) -> None:
     slurm = up.add_argument_group("--launcher slurm")
     slurm.add_argument("--nodes", type=int, default=1, help="the job's nodes")
     slurm.add_argument("--cpus-per-slot", type=int, default=1, help="CPUs of each slot's task")
-    slurm.add_argument("--partition", help="the job's partition (sbatch --partition)")
+    slurm.add_argument(
+        "--partition", help="the job's partition, or a comma-separated list (sbatch --partition)"
+    )
     slurm.add_argument("--time", metavar="LIMIT", help="the job's time limit (sbatch --time)")
     slurm.add_argument("--account", help="the account charged (sbatch --account)")
     slurm.add_argument(

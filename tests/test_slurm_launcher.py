@@ -511,3 +511,25 @@ def test_all_tells_apart_runs_of_one_name_in_two_figures(tmp_path):
     assert len(said) == len(subs[0]["tasks"]) and all(line.startswith("table2 ") for line in said)
     n = sum(int(line.split("submitting its ")[1].split()[0]) for line in said)
     assert n == len(first), said
+
+
+def test_a_list_of_partitions_and_hidden_ones_are_taken(tmp_path, monkeypatch):
+    """sbatch takes `--partition short,long` (the first that can start the job) and a
+    hidden partition by name; both were refused: the list as one unknown name, the hidden
+    one because plain `sinfo` does not list it (`sinfo -a` does)."""
+    monkeypatch.setattr(slurm.shutil, "which", lambda c: "/bin/" + c)
+
+    def sinfo(argv):
+        names = "short\nlong\n" + ("hidden\n" if "-a" in argv else "")
+        return subprocess.CompletedProcess(argv, 0, names, "")
+
+    def check(partition: str) -> str | None:
+        opts = SlurmOptions(partition=partition)
+        return slurm.preflight(opts, [tmp_path / "r"], folder="f", flag="--f", run=sinfo)
+
+    assert check("short,long") is None and check("hidden") is None
+    assert check("long,hidden") is None
+    assert check("short,gpu") == (
+        "--partition short,gpu: no such partition 'gpu' (sinfo lists: hidden, long, short)"
+    )
+    assert check("short,") is not None  # an empty name is no partition either

@@ -156,7 +156,9 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "when all are complete: docs/deploy.md, 'On a Slurm cluster')",
     )
     slurm = rp.add_argument_group("--launcher slurm")
-    slurm.add_argument("--partition", help="the tasks' partition (sbatch --partition)")
+    slurm.add_argument(
+        "--partition", help="the tasks' partition, or a comma-separated list (sbatch --partition)"
+    )
     slurm.add_argument("--time", metavar="LIMIT", help="each task's time limit (sbatch --time)")
     slurm.add_argument("--account", help="the account charged (sbatch --account)")
     slurm.add_argument(

@@ -96,15 +96,20 @@ def preflight(
             f"--launcher slurm: {', '.join(missing)} not found on PATH; run this on a "
             "Slurm login node (or put Slurm's commands on PATH)"
         )
-    got = run(["sinfo", "-h", "-o", "%R"])
+    # -a: hidden partitions (and those of other groups) too, which sbatch takes by name
+    got = run(["sinfo", "-a", "-h", "-o", "%R"])
     if got.returncode:
         return f"--launcher slurm: Slurm does not answer (sinfo: {got.stderr.strip()})"
     partitions = sorted({p.strip() for p in got.stdout.split() if p.strip()})
-    if opts.partition and opts.partition not in partitions:
-        return (
-            f"--partition {opts.partition}: no such partition (sinfo lists: "
-            f"{', '.join(partitions) or 'none'})"
-        )
+    if opts.partition is not None:
+        # a list (sbatch runs the job in whichever of them can start it first)
+        names = [p.strip() for p in opts.partition.split(",")]
+        if unknown := [p for p in names if p not in partitions]:
+            which = f" {', '.join(repr(p) for p in unknown)}" if len(names) > 1 else ""
+            return (
+                f"--partition {opts.partition}: no such partition{which} (sinfo lists: "
+                f"{', '.join(partitions) or 'none'})"
+            )
     for path in folders:
         if why := unwritable(path):
             return (
