@@ -533,3 +533,24 @@ def test_a_list_of_partitions_and_hidden_ones_are_taken(tmp_path, monkeypatch):
         "--partition short,gpu: no such partition 'gpu' (sinfo lists: hidden, long, short)"
     )
     assert check("short,") is not None  # an empty name is no partition either
+
+
+def test_a_slurm_command_that_hangs_is_a_failure_not_a_traceback(tmp_path, monkeypatch):
+    """A hung controller makes sinfo or squeue hang: run_command's timeout raised
+    TimeoutExpired through every caller. Now it is that command failing: preflight
+    says Slurm does not answer, and following asks squeue again."""
+    from cli.slurm_cluster import SlurmUnanswered, job_state
+
+    stubs = tmp_path / "bin"
+    stubs.mkdir()
+    for name in ("sbatch", "squeue", "sinfo"):
+        (stubs / name).write_text("#!/bin/sh\nexec sleep 30\n")
+        (stubs / name).chmod(0o755)
+    monkeypatch.setenv("PATH", f"{stubs}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setattr(slurm, "COMMAND_TIMEOUT_S", 0.3)
+    why = slurm.preflight(SlurmOptions(), [tmp_path / "r"], folder="f", flag="--f")
+    assert why == "--launcher slurm: Slurm does not answer (sinfo: sinfo did not answer within 0 s)"
+    with pytest.raises(RuntimeError, match="squeue did not answer"):
+        slurm.query()
+    with pytest.raises(SlurmUnanswered, match=r"squeue failed 2 times \(squeue did not answer"):
+        job_state("77", tries=2, pause_s=0)

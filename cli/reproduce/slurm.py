@@ -50,8 +50,20 @@ POLL_S, POLL_LATER_S, POLL_FAST_FOR_S = 5.0, 30.0, 120.0
 Runner = Callable[[Sequence[str]], subprocess.CompletedProcess]
 
 
+#: How long a Slurm command may take before it counts as failed (a hung controller).
+COMMAND_TIMEOUT_S = 120.0
+
+
 def run_command(argv: Sequence[str]) -> subprocess.CompletedProcess:
-    return subprocess.run(list(argv), capture_output=True, text=True, timeout=120)
+    """`argv` run to its end, its output captured; one that does not end within
+    COMMAND_TIMEOUT_S is killed and returned as a failure (exit 124, why in stderr), so
+    each caller handles it as it handles the command failing: asked again where that
+    is retried, a clear error elsewhere, never a traceback."""
+    try:
+        return subprocess.run(list(argv), capture_output=True, text=True, timeout=COMMAND_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        why = f"{argv[0]} did not answer within {COMMAND_TIMEOUT_S:.0f} s"
+        return subprocess.CompletedProcess(list(argv), 124, "", why)
 
 
 @dataclass(frozen=True)
