@@ -436,7 +436,9 @@ def test_sbatch_args_of_one_flag_or_several_reach_sbatch_in_either_form(tmp_path
     as `--sbatch-args=...` always was, and an unclosed quote is refused naming the option."""
     from tests.harness import macb
 
-    running = "printf '4242_0|RUNNING|None|macb-fig3\\n4242_1|RUNNING|None|macb-fig3\\n'"
+    last = f"$(( $(cat {tmp_path / 'sbatch-next-id'} 2>/dev/null || echo 4243) - 1 ))"
+    tasks = " ".join(f"${{n}}_{i}'|RUNNING|None|macb-fig3'" for i in range(2))
+    running = f"n={last}; printf '%s\\n' {tasks}"  # the last job's tasks, running
     env = slurm_stubs(tmp_path, squeue=running)
     calls = Path(env["SBATCH_CALLS"])
     flag = "--data-dir" if command == ["up"] else "--out"
@@ -470,7 +472,7 @@ def test_runs_on_a_gpu_get_a_gpu_per_task_and_as_many_tasks_as_on_the_cpu(tmp_pa
         got = macb("reproduce", "fig3", "--local", "--launcher", "slurm", "--episodes", "2",
                    "--seeds", "0", "--device", device, "--out", str(out), "--detach",
                    "--quiet", env=env)  # fmt: skip
-        assert "submitted job 4242: " in got.stderr, got.stderr
+        assert "submitted job " in got.stderr, got.stderr
         call = Path(env["SBATCH_CALLS"]).read_text().splitlines()[-1]
         scripts[device] = sbatch_reads(Path(call.split()[-1]).read_text())
     assert "--gres=gpu:1" in scripts["cuda"] and "--gres=gpu:1" not in scripts["cpu"]
