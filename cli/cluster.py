@@ -145,12 +145,21 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         "one learner, actor and evaluator serve them all, each run the one-process "
         "group's (default 1: every run on its own services)",
     )
-    up.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="router endpoint")
+    up.add_argument(
+        "--endpoint",
+        default="tcp/127.0.0.1:7447",
+        help="router endpoint (with --launcher slurm only its port is chosen: the job's "
+        "router listens where its nodes reach it)",
+    )
     up.add_argument("--data-dir", help=data_dir_help("snapshots, checkpoints, logs, the store"))
     up.add_argument("--run", metavar="CONFIG", help="run this experiment, then stop")
     up.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="with --run: seeds")
     up.add_argument("--api-port", type=int, default=8000, help="the API's port on 127.0.0.1")
-    up.add_argument("--no-api", action="store_true", help="no API (runs go on the bus)")
+    up.add_argument(
+        "--no-api",
+        action="store_true",
+        help="no API (runs go on the bus; not with --launcher slurm, whose job runs it)",
+    )
     up.add_argument("--out", metavar="DIR", help="with --run: write metrics here")
     up.add_argument("--quiet", action="store_true", help="no progress bar")
     up.add_argument("--quiet-services", action="store_true", help="service logs to files only")
@@ -173,10 +182,17 @@ def add_up_slurm_flags(up: argparse.ArgumentParser) -> None:
     slurm = up.add_argument_group("--launcher slurm")
     slurm.add_argument("--nodes", type=int, default=1, help="the job's nodes")
     slurm.add_argument("--cpus-per-slot", type=int, default=1, help="CPUs of each slot's task")
-    slurm.add_argument("--partition", help="the job's partition (sbatch --partition)")
+    slurm.add_argument(
+        "--partition", help="the job's partition, or a comma-separated list (sbatch --partition)"
+    )
     slurm.add_argument("--time", metavar="LIMIT", help="the job's time limit (sbatch --time)")
     slurm.add_argument("--account", help="the account charged (sbatch --account)")
-    slurm.add_argument("--sbatch-args", metavar="ARGS", help="more sbatch arguments, as one string")
+    slurm.add_argument(
+        "--sbatch-args",
+        metavar="ARGS",
+        help="more sbatch arguments, as one string (not -M/--clusters: the job is followed "
+        "on the default cluster only)",
+    )
     slurm.add_argument("--detach", action="store_true", help="submit and return at once")
     slurm.add_argument(
         "--wait", type=float, default=600.0, metavar="S", help="how long to wait for its API"

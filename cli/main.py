@@ -48,6 +48,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Options whose value is itself a command line: argparse takes a value starting with '-'
+#: for an option of its own ("expected one argument"), so `--sbatch-args '--mem=4G'` is
+#: given to it as `--sbatch-args=--mem=4G`, which it reads as the value.
+LINE_VALUED = ("--sbatch-args",)
+
+
+def join_line_values(argv: list[str]) -> list[str]:
+    """`argv` with each LINE_VALUED option and the word after it made one `OPT=VALUE`
+    (up to a `--`, after which nothing is an option)."""
+    out: list[str] = []
+    words = iter(argv)
+    for word in words:
+        if word == "--":
+            out += [word, *words]
+            break
+        if word in LINE_VALUED:
+            value = next(words, None)
+            out.append(word if value is None else f"{word}={value}")
+        else:
+            out.append(word)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     try:  # a service of `macb up` dies with it, however it ends (SIGKILL included)
         procs.die_with_env_parent()
@@ -56,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     logging.getLogger("httpx").setLevel(logging.WARNING)  # not a line per API call
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(join_line_values(sys.argv[1:] if argv is None else argv))
     security.apply_security_flags(args)
     try:
         return args.func(args)

@@ -43,6 +43,8 @@ from urllib.parse import urlparse
 from cli.reproduce.slurm import (
     Runner,
     SlurmOptions,
+    directive,
+    directive_path_error,
     macb_argv,
     parse_job_id,
     placement,
@@ -134,8 +136,11 @@ def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: Slu
         f"#SBATCH --nodes={n}",
         f"#SBATCH --ntasks-per-node={per_node}",
         f"#SBATCH --cpus-per-task={job.cpus}",
-        f"#SBATCH --output={job.log_dir}/cluster-%j.log",
-        f"#SBATCH --chdir={cwd}",
+        # a requeued job (a node lost: Slurm requeues batch jobs by default) appends to
+        # the log rather than truncating the failed attempt's
+        "#SBATCH --open-mode=append",
+        directive("output", f"{job.log_dir}/cluster-%j.log"),
+        directive("chdir", str(cwd)),
     ]
     lines += placement(opts)
     thread_env = " ".join(f"{k}={v}" for k, v in THREAD_ENV.items())
@@ -207,13 +212,42 @@ def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: Slu
     return "\n".join(lines)
 
 
-def job_state(job_id: str, run: Runner = run_command) -> tuple[str, str] | None:
-    """Slurm's state and reason of the job, or None once it no longer knows it."""
-    got = run(["squeue", "-h", "-j", job_id, "-t", "all", "-o", "%T|%r"])
-    if got.returncode or not got.stdout.strip():
-        return None
-    state, _, reason = got.stdout.strip().splitlines()[0].partition("|")
-    return state.strip(), "" if reason.strip() == "None" else reason.strip()
+#: How often a failing squeue is asked again before the job's state counts as unknown,
+#: and the pause between: a busy or restarting controller answers again within minutes.
+SQUEUE_TRIES, SQUEUE_RETRY_S = 6, 10.0
+
+
+class SlurmUnanswered(RuntimeError):
+    """squeue kept failing: where the job stands is unknown (it may well run)."""
+
+
+def job_state(
+    job_id: str,
+    run: Runner = run_command,
+    tries: int | None = None,
+    pause_s: float | None = None,
+) -> tuple[str, str] | None:
+    """Slurm's state and reason of the job, or None once it no longer knows it (an
+    empty listing, or squeue's "Invalid job id specified"). Any other squeue failure
+    (the controller busy: "Socket timed out") says nothing about the job: it is asked
+    again, `tries` times in all, each said, then SlurmUnanswered."""
+    tries, pause_s = tries or SQUEUE_TRIES, SQUEUE_RETRY_S if pause_s is None else pause_s
+    why = ""
+    for attempt in range(1, tries + 1):
+        got = run(["squeue", "-h", "-j", job_id, "-t", "all", "-o", "%T|%r"])
+        if not got.returncode:
+            if not got.stdout.strip():
+                return None
+            state, _, reason = got.stdout.strip().splitlines()[0].partition("|")
+            return state.strip(), "" if reason.strip() == "None" else reason.strip()
+        why = (got.stderr or got.stdout).strip() or f"exit {got.returncode}"
+        if "Invalid job id specified" in why:
+            return None
+        if attempt < tries:
+            print(f"cluster job {job_id}: squeue failed ({why}); asking again in "
+                  f"{pause_s:.0f} s ({attempt} of {tries})", file=sys.stderr)  # fmt: skip
+            time.sleep(pause_s)
+    raise SlurmUnanswered(f"squeue failed {tries} times ({why})")
 
 
 def services_answering(api: ApiClient) -> int | None:
@@ -273,6 +307,25 @@ def _read(path: Path) -> str | None:
         return None
 
 
+def placement_error(args: argparse.Namespace) -> str | None:
+    """Why flags of the local cluster that the job fixes itself cannot be taken, or None:
+    the job always runs the API (the command follows it to its API; `macb run` needs it),
+    and its router listens where the nodes reach it (loopback on one node, every
+    interface on several), so only --endpoint's port is the user's."""
+    from cli.supervisor import host_port
+
+    if args.no_api:
+        return "--no-api: the job always runs the API on its first node (it is how runs reach it)"
+    host, _ = host_port(args.endpoint)
+    if host != "127.0.0.1":
+        return (
+            f"--endpoint {args.endpoint}: the job's router listens on the first node's "
+            "loopback (one node) or on every interface (several), so only the port can be "
+            "chosen: give tcp/127.0.0.1:PORT"
+        )
+    return None
+
+
 def cmd_up_slurm(args: argparse.Namespace) -> int:
     """Write the cluster job's script, submit it and (unless --detach) wait until its API
     answers; say where it is and how to stop it."""
@@ -283,6 +336,9 @@ def cmd_up_slurm(args: argparse.Namespace) -> int:
 
     if args.run:
         print("macb up --launcher slurm: submit runs to the job's API (macb run)", file=sys.stderr)
+        return 2
+    if why := placement_error(args):
+        print(f"macb up --launcher slurm: {why}", file=sys.stderr)
         return 2
     secrets = settings().zenoh_secrets
     data_dir = Path(args.data_dir or default_data_dir() / "slurm-cluster").resolve()
@@ -298,11 +354,22 @@ def cmd_up_slurm(args: argparse.Namespace) -> int:
         api_public=bool(os.environ.get("MACB_API_TOKEN")),
         group_size=args.group_size,
     )
-    opts = SlurmOptions(
-        args.partition, args.time, args.account, tuple(shlex.split(args.sbatch_args or ""))
-    )
+    try:
+        extra = tuple(shlex.split(args.sbatch_args or ""))
+    except ValueError as err:  # an unclosed quote
+        print(f"macb up: --sbatch-args: {err}", file=sys.stderr)
+        return 2
+    opts = SlurmOptions(args.partition, args.time, args.account, extra)
     if why := job.error():
         print(f"macb up --launcher slurm: {why}", file=sys.stderr)
+        return 2
+    if why := directive_path_error(
+        [
+            ("the data folder", job.data_dir, "give --data-dir a folder without it"),
+            ("this command's folder", Path.cwd(), "run it from a folder without it"),
+        ]
+    ):
+        print(f"macb up: {why}", file=sys.stderr)
         return 2
     if why := preflight(opts, [data_dir], folder="the data folder", flag="--data-dir"):
         print(f"macb up: {why}", file=sys.stderr)  # it names --launcher slurm or the flag
@@ -354,7 +421,16 @@ def wait_until_up(
     api: ApiClient | None = None
     try:
         while time.monotonic() < deadline:
-            state = job_state(job_id, run)
+            try:
+                state = job_state(job_id, run)
+            except SlurmUnanswered as err:
+                print(
+                    f"cluster job {job_id}: where it stands is unknown: {err}. It may well "
+                    f"run: `squeue -j {job_id}` says once Slurm answers, `scancel {job_id}` "
+                    f"stops it; its log: {log}",
+                    file=sys.stderr,
+                )
+                return 1
             if state is None or state[0] not in ("PENDING", "CONFIGURING", "RUNNING"):
                 print(f"cluster job {job_id} ended ({state[0] if state else 'gone'})",
                       file=sys.stderr)  # fmt: skip

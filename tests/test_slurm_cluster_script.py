@@ -287,3 +287,79 @@ def test_giving_up_says_the_job_is_left_running_and_how_to_cancel_it(tmp_path, c
     err = capsys.readouterr().err
     assert code == 1 and "not up within 0 s" in err and "last seen PENDING" in err, err
     assert "scancel 77" in err, err
+
+
+def squeue_answers(*answers: tuple[int, str, str]):
+    """A stand-in for squeue giving (exit code, stdout, stderr) in turn, the last one
+    again once they run out; the calls are counted in its `calls`."""
+    calls: list[list[str]] = []
+
+    def run(argv):
+        calls.append(list(argv))
+        code, out, err = answers[min(len(calls), len(answers)) - 1]
+        return subprocess.CompletedProcess(argv, code, out, err)
+
+    run.calls = calls  # type: ignore[attr-defined]
+    return run
+
+
+BUSY = (1, "", "squeue: error: slurm_load_jobs error: Socket timed out on send/recv operation")
+
+
+def test_a_busy_controller_is_asked_again_and_only_an_unknown_job_is_gone(
+    tmp_path, monkeypatch, capsys
+):
+    """squeue failing says nothing of the job (a busy controller times out): `macb up
+    --launcher slurm` once took the first failure for the job's end, exit 1, while it
+    ran. It asks again, saying so; the job is gone only when squeue lists nothing or
+    says "Invalid job id specified"; squeue failing every time ends the wait saying the
+    job's state is unknown, not that it ended."""
+    import cli.slurm_cluster as sc
+    from cli.slurm_cluster import wait_until_up
+
+    monkeypatch.setattr(sc, "SQUEUE_RETRY_S", 0.0)
+    job = job_files(tmp_path, "http://127.0.0.1:8123", "cn07")
+    run = squeue_answers(BUSY, BUSY, (0, "RUNNING|None\n", ""))
+    assert wait_until_up("77", job, tmp_path / "log", 30, run, "login1") == 0
+    err = capsys.readouterr().err
+    assert err.count("squeue failed (squeue: error: slurm_load_jobs error: Socket") == 2, err
+    assert "ended" not in err and "ssh -N -L 8123:127.0.0.1:8123 cn07" in err, err
+
+    run = squeue_answers(BUSY)
+    assert wait_until_up("77", job, tmp_path / "log", 30, run, "login1") == 1
+    err = capsys.readouterr().err
+    assert len(run.calls) == sc.SQUEUE_TRIES and "ended" not in err, err
+    assert "where it stands is unknown: squeue failed 6 times" in err and "scancel 77" in err
+
+    gone = (1, "", "slurm_load_jobs error: Invalid job id specified")
+    for answers in ((gone,), ((0, "", ""),)):
+        run = squeue_answers(*answers)
+        assert wait_until_up("77", job, tmp_path / "log", 30, run, "login1") == 1
+        assert "cluster job 77 ended (gone)" in capsys.readouterr().err and len(run.calls) == 1
+
+
+def test_flags_the_job_fixes_itself_are_refused_not_ignored(tmp_path):
+    """The job always runs the API and places its router itself: `--no-api` and an
+    --endpoint host were taken and ignored (the job started the API, the router listened
+    on loopback). They are refused before anything is written or submitted."""
+    from tests.harness import macb
+
+    data = tmp_path / "d"
+    for flags, says in [
+        (["--no-api"], "--no-api: the job always runs the API"),
+        (["--endpoint", "tcp/10.1.2.3:7447"], "--endpoint tcp/10.1.2.3:7447: the job's router"),
+    ]:
+        got = macb("up", "--launcher", "slurm", "--data-dir", str(data), "--detach", *flags,
+                   env={"PATH": "/nonexistent"})  # fmt: skip
+        assert got.returncode == 2 and says in got.stderr, got.stderr
+        assert not data.exists()
+
+
+def test_a_requeued_job_appends_to_its_log(tmp_path):
+    """Slurm requeues a batch job by default when its node fails; the cluster job's log
+    is opened for appending, so the failed attempt's lines stay (the default truncates)."""
+    from tests.test_slurm_launcher import sbatch_reads
+
+    job = ClusterJob(1, 1, 1, 1, tmp_path / "data")
+    argv = sbatch_reads(render_cluster_script(job, ["macb"], tmp_path, SlurmOptions()))
+    assert "--open-mode=append" in argv, argv

@@ -282,3 +282,277 @@ def test_following_says_each_change_once_survives_a_silent_controller_and_ends(c
         "fig3 group 1/1 [job 5_0]: complete, episode 0 of 6",
         "page built",
     ]
+
+
+# ---------------------------------------------------------------- the #SBATCH lines
+def sbatch_reads(script: str) -> list[str]:
+    """The arguments sbatch takes from a script's #SBATCH lines: Slurm's own directive
+    parser (src/sbatch/opt.c, `_get_argument`) ported: whitespace ends an argument unless
+    quoted, a quote groups up to its match, a backslash escapes the next character,
+    an unquoted '#' starts a comment; the first line that is no comment ends them."""
+    argv: list[str] = []
+    for line in script.splitlines()[1:]:
+        if not line.startswith("#"):
+            break
+        if not line.startswith("#SBATCH"):
+            continue
+        rest, i = line[len("#SBATCH") :], 0
+        while True:
+            while i < len(rest) and rest[i].isspace():
+                i += 1
+            if i >= len(rest):
+                break
+            arg, quote, escaped = "", "", False
+            while i < len(rest) and (quote or not rest[i].isspace()):
+                c, i = rest[i], i + 1
+                if escaped:
+                    escaped = False
+                elif c == "\\":
+                    escaped = True
+                    continue
+                elif quote:
+                    if c == quote:
+                        quote = ""
+                        continue
+                elif c in "\"'":
+                    quote = c
+                    continue
+                elif c == "#":
+                    i = len(rest)
+                    break
+                arg += c
+            if arg:
+                argv.append(arg)
+    return argv
+
+
+def test_folders_with_spaces_hashes_and_quotes_reach_sbatch_whole(tmp_path):
+    """A runs or data folder named 'My Runs', 'lab#2' or "it's" is one argument to sbatch:
+    written unquoted, sbatch's parser cut --output and --chdir at the space and dropped the
+    rest of the line at the '#'."""
+    from cli.slurm_cluster import ClusterJob, render_cluster_script
+
+    for name in ("My Runs", "lab#2", "it's here"):
+        base = tmp_path / name
+        tasks = [Task("g1", ("a-s0",), ("macb", "reproduce", "fig3"))]
+        text = slurm.render_script("macb-fig3", tasks, base / ".slurm", base, 1, SlurmOptions())
+        argv = sbatch_reads(text)
+        assert f"--output={base}/.slurm/%A_%a.log" in argv, argv
+        assert f"--chdir={base}" in argv, argv
+        job = ClusterJob(1, 1, 1, 1, base / "data")
+        argv = sbatch_reads(render_cluster_script(job, ["macb"], base, SlurmOptions("short")))
+        assert f"--output={base}/data/.slurm/cluster-%j.log" in argv, argv
+        assert f"--chdir={base}" in argv and "--partition=short" in argv, argv
+
+
+def slurm_stubs(tmp_path: Path, squeue: str = "exit 0", sinfo: str = "echo short") -> dict:
+    """sbatch, squeue and sinfo stubbed on PATH: sbatch records its arguments (a line
+    each call, in SBATCH_CALLS) and prints job id 4242, then 4243, ... The environment
+    to run macb in."""
+    stubs = tmp_path / "bin"
+    stubs.mkdir(exist_ok=True)
+    calls = tmp_path / "sbatch-calls.txt"
+    ids = shlex.quote(str(tmp_path / "sbatch-next-id"))
+    texts = {
+        "sbatch": f'echo "$@" >> {shlex.quote(str(calls))}\n'
+        f"n=$(cat {ids} 2>/dev/null || echo 4242); echo $((n + 1)) > {ids}; echo $n\n",
+        "squeue": squeue + "\n",
+        "sinfo": sinfo + "\n",
+    }
+    for name, text in texts.items():
+        (stubs / name).write_text(f"#!/bin/bash\n{text}")
+        (stubs / name).chmod(0o755)
+    return {"PATH": f"{stubs}{os.pathsep}{os.environ.get('PATH', '')}", "SBATCH_CALLS": str(calls)}
+
+
+@pytest.mark.parametrize(
+    "command, folder, char",
+    [
+        (["reproduce", "fig3", "--local", "--episodes", "2", "--out"], "50%", "'%'"),
+        (["reproduce", "fig3", "--local", "--episodes", "2", "--out"], 'say "hi"', "double quote"),
+        (["up", "--data-dir"], "back\\slash", "backslash"),
+    ],
+)  # fmt: skip
+def test_a_folder_the_sbatch_lines_cannot_carry_is_refused_naming_it(
+    tmp_path, command, folder, char
+):
+    from tests.harness import macb
+
+    env = slurm_stubs(tmp_path)
+    path = tmp_path / folder
+    got = macb(*command, str(path), "--launcher", "slurm", env=env)
+    assert got.returncode == 2, got.stderr
+    (line,) = got.stderr.strip().splitlines()
+    assert repr(str(path))[:-1] in line and char in line and "#SBATCH" in line, line
+    assert not Path(env["SBATCH_CALLS"]).exists() and not path.exists()
+
+
+def test_detach_after_a_submission_squeue_cannot_answer_says_so_and_exits_0(tmp_path):
+    """squeue answering before the submission and failing right after it (a busy
+    controller): --detach once ended in a traceback, the job submitted; now it says the
+    job was submitted, that where it stands is unknown and that the same command says."""
+    from tests.harness import macb
+
+    asked = tmp_path / "squeue-asked"
+    squeue = (
+        f"if [[ -e {asked} ]]; then echo 'squeue: error: Socket timed out' >&2; exit 1; fi\n"
+        f"touch {asked}; exit 0"
+    )
+    env = slurm_stubs(tmp_path, squeue=squeue)
+    out = str(tmp_path / "out")
+    got = macb("reproduce", "fig3", "--local", "--launcher", "slurm", "--episodes", "2",
+               "--seeds", "0", "--out", out, "--detach", "--quiet", env=env)  # fmt: skip
+    assert got.returncode == 0, got.stderr
+    assert "Traceback" not in got.stderr, got.stderr
+    last = got.stderr.strip().splitlines()[-1]
+    assert last.startswith("job 4242 was submitted; where the groups stand is unknown"), last
+    assert "Socket timed out" in last and "the same command again says" in last, last
+    assert len(Path(env["SBATCH_CALLS"]).read_text().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    "extra", [("--clusters=gpu",), ("-M", "gpu"), ("--mem=4G", "--cluster", "a")]
+)
+def test_sbatch_args_naming_another_cluster_are_refused_before_slurm_is_asked(
+    tmp_path, extra, monkeypatch
+):
+    """sbatch -M/--clusters submits to another cluster, but squeue answers for the default
+    one: every task looked gone at once, exit 1, and the next run submitted it all again."""
+    monkeypatch.setattr(slurm.shutil, "which", lambda c: "/bin/" + c)
+    runs = tmp_path / "runs"
+    fake = FakeSlurm()
+    why = slurm.preflight(SlurmOptions(extra=extra), [runs], folder="f", flag="--f", run=fake)
+    assert why is not None and why.startswith("--sbatch-args: ") and "another Slurm cluster" in why
+    assert [w for w in extra if w.startswith("-")][-1] in why
+    assert fake.calls == [] and not runs.exists()
+    ok = SlurmOptions(extra=("--cluster-constraint=fast", "--mem=4G"))
+    assert slurm.preflight(ok, [runs], folder="f", flag="--f", run=fake) is None
+
+
+@pytest.mark.parametrize("command", [["reproduce", "fig3", "--local", "--episodes", "2"], ["up"]])
+def test_sbatch_args_of_one_flag_or_several_reach_sbatch_in_either_form(tmp_path, command):
+    """`--sbatch-args '--mem=4G'` (one flag, no space) was refused by argparse ("expected
+    one argument": a value starting with '-' read as an option); it is taken as written,
+    as `--sbatch-args=...` always was, and an unclosed quote is refused naming the option."""
+    from tests.harness import macb
+
+    last = f"$(( $(cat {tmp_path / 'sbatch-next-id'} 2>/dev/null || echo 4243) - 1 ))"
+    tasks = " ".join(f"${{n}}_{i}'|RUNNING|None|macb-fig3'" for i in range(2))
+    running = f"n={last}; printf '%s\\n' {tasks}"  # the last job's tasks, running
+    env = slurm_stubs(tmp_path, squeue=running)
+    calls = Path(env["SBATCH_CALLS"])
+    flag = "--data-dir" if command == ["up"] else "--out"
+    for i, (given, passed) in enumerate([
+        (["--sbatch-args", "--mem=4G"], "--parsable --mem=4G "),
+        (["--sbatch-args=--qos=long --mem=4G"], "--parsable --qos=long --mem=4G "),
+        (["--sbatch-args", "--qos=long -c 2"], "--parsable --qos=long -c 2 "),
+    ]):  # fmt: skip
+        calls.unlink(missing_ok=True)
+        where = [flag, str(tmp_path / f"d{i}")]
+        got = macb(*command, *where, "--launcher", "slurm", *given, "--detach", env=env)
+        assert got.returncode == 0, got.stderr
+        (call,) = calls.read_text().splitlines()
+        assert call.startswith(passed), (given, call)
+    calls.unlink()
+    got = macb(*command, *where, "--launcher", "slurm", "--sbatch-args", "--qos='long", env=env)
+    assert got.returncode == 2 and "--sbatch-args: No closing quotation" in got.stderr, got.stderr
+    assert not calls.exists()
+
+
+def test_runs_on_a_gpu_get_a_gpu_per_task_and_as_many_tasks_as_on_the_cpu(tmp_path):
+    """--device cuda once asked Slurm for no GPU, and sized the plan by the GPUs of the
+    submitting machine (a login node: none, so one task for every run): each task now
+    asks for a GPU of its own, and the runs make as many tasks as on the CPU."""
+    from tests.harness import macb
+
+    env = slurm_stubs(tmp_path)
+    scripts = {}
+    for device in ("cpu", "cuda"):
+        out = tmp_path / device
+        got = macb("reproduce", "fig3", "--local", "--launcher", "slurm", "--episodes", "2",
+                   "--seeds", "0", "--device", device, "--out", str(out), "--detach",
+                   "--quiet", env=env)  # fmt: skip
+        assert "submitted job " in got.stderr, got.stderr
+        call = Path(env["SBATCH_CALLS"]).read_text().splitlines()[-1]
+        scripts[device] = sbatch_reads(Path(call.split()[-1]).read_text())
+    assert "--gres=gpu:1" in scripts["cuda"] and "--gres=gpu:1" not in scripts["cpu"]
+    tasks = min(os.cpu_count() or 1, 11)  # fig3's 11 runs of seed 0, --jobs' default
+    assert f"--array=0-{tasks - 1}" in scripts["cuda"], scripts["cuda"]
+    assert f"--array=0-{tasks - 1}" in scripts["cpu"], scripts["cpu"]
+
+
+def test_all_tells_apart_runs_of_one_name_in_two_figures(tmp_path):
+    """fig3 and table2 both have a run beta_0.0-s0, each in its own runs folder. What
+    Slurm held was told by run name alone, so with fig3's tasks running and table2's
+    cancelled, table2's beta_0.0-s0 (and every namesake) was left out of the new
+    submission, though said to be submitted again."""
+    import json
+
+    from tests.harness import macb
+
+    states = tmp_path / "squeue.txt"
+    env = slurm_stubs(tmp_path, squeue=f"cat {states} 2>/dev/null; exit 0")
+    out = tmp_path / "out"
+    argv = ["reproduce", "all", "--local", "--launcher", "slurm", "--episodes", "2",
+            "--seeds", "0", "--out", str(out), "--detach", "--quiet"]  # fmt: skip
+    got = macb(*argv, env=env)
+    assert "submitted job 4242: " in got.stderr, got.stderr
+    (table2,) = out.glob("table2-*/runs")
+    lines = []
+    for record in out.glob("*/runs/.slurm/jobs.json"):
+        state = "CANCELLED" if record.parents[2] == table2.parent else "RUNNING"
+        for t in json.loads(record.read_text())["submissions"][0]["tasks"]:
+            lines.append(f"4242_{t['index']}|{state}|None|macb-fig3-fig4-fig6-fig7-fig8-table2")
+    states.write_text("\n".join(lines) + "\n")
+    got = macb(*argv, env=env)
+    assert "submitted job 4243: " in got.stderr, got.stderr
+    subs = json.loads((table2 / ".slurm" / "jobs.json").read_text())["submissions"]
+    first, again = ({r for t in s["tasks"] for r in t["runs"]} for s in subs)
+    assert "beta_0.0-s0" in first and again == first
+    said = [line for line in got.stderr.splitlines() if "submitting its" in line]
+    assert len(said) == len(subs[0]["tasks"]) and all(line.startswith("table2 ") for line in said)
+    n = sum(int(line.split("submitting its ")[1].split()[0]) for line in said)
+    assert n == len(first), said
+
+
+def test_a_list_of_partitions_and_hidden_ones_are_taken(tmp_path, monkeypatch):
+    """sbatch takes `--partition short,long` (the first that can start the job) and a
+    hidden partition by name; both were refused: the list as one unknown name, the hidden
+    one because plain `sinfo` does not list it (`sinfo -a` does)."""
+    monkeypatch.setattr(slurm.shutil, "which", lambda c: "/bin/" + c)
+
+    def sinfo(argv):
+        names = "short\nlong\n" + ("hidden\n" if "-a" in argv else "")
+        return subprocess.CompletedProcess(argv, 0, names, "")
+
+    def check(partition: str) -> str | None:
+        opts = SlurmOptions(partition=partition)
+        return slurm.preflight(opts, [tmp_path / "r"], folder="f", flag="--f", run=sinfo)
+
+    assert check("short,long") is None and check("hidden") is None
+    assert check("long,hidden") is None
+    assert check("short,gpu") == (
+        "--partition short,gpu: no such partition 'gpu' (sinfo lists: hidden, long, short)"
+    )
+    assert check("short,") is not None  # an empty name is no partition either
+
+
+def test_a_slurm_command_that_hangs_is_a_failure_not_a_traceback(tmp_path, monkeypatch):
+    """A hung controller makes sinfo or squeue hang: run_command's timeout raised
+    TimeoutExpired through every caller. Now it is that command failing: preflight
+    says Slurm does not answer, and following asks squeue again."""
+    from cli.slurm_cluster import SlurmUnanswered, job_state
+
+    stubs = tmp_path / "bin"
+    stubs.mkdir()
+    for name in ("sbatch", "squeue", "sinfo"):
+        (stubs / name).write_text("#!/bin/sh\nexec sleep 30\n")
+        (stubs / name).chmod(0o755)
+    monkeypatch.setenv("PATH", f"{stubs}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setattr(slurm, "COMMAND_TIMEOUT_S", 0.3)
+    why = slurm.preflight(SlurmOptions(), [tmp_path / "r"], folder="f", flag="--f")
+    assert why == "--launcher slurm: Slurm does not answer (sinfo: sinfo did not answer within 0 s)"
+    with pytest.raises(RuntimeError, match="squeue did not answer"):
+        slurm.query()
+    with pytest.raises(SlurmUnanswered, match=r"squeue failed 2 times \(squeue did not answer"):
+        job_state("77", tries=2, pause_s=0)

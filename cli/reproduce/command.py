@@ -73,7 +73,8 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         metavar="DEVICE",
         help="every run's learner device: cpu (the default), cuda, cuda:N, xpu, mps. With "
         "--local, --jobs defaults to one group per GPU, and a bare `cuda` gives each "
-        "group's process a GPU of its own. The replay's rows live on the device; acting, "
+        "group's process a GPU of its own (with --launcher slurm: --jobs defaults as on the "
+        "CPU, and each task asks Slurm for a GPU). The replay's rows live on the device; acting, "
         "sampling and counting stay on the CPU; "
         "a run's rows on a GPU are not the CPU's bit for bit (docs/performance.md, 'On a GPU')",
     )
@@ -155,13 +156,16 @@ def add_reproduce_parser(sub: argparse._SubParsersAction) -> None:
         "when all are complete: docs/deploy.md, 'On a Slurm cluster')",
     )
     slurm = rp.add_argument_group("--launcher slurm")
-    slurm.add_argument("--partition", help="the tasks' partition (sbatch --partition)")
+    slurm.add_argument(
+        "--partition", help="the tasks' partition, or a comma-separated list (sbatch --partition)"
+    )
     slurm.add_argument("--time", metavar="LIMIT", help="each task's time limit (sbatch --time)")
     slurm.add_argument("--account", help="the account charged (sbatch --account)")
     slurm.add_argument(
         "--sbatch-args",
         metavar="ARGS",
-        help="more sbatch arguments, as one string (e.g. '--qos=long --mem=4G')",
+        help="more sbatch arguments, as one string (e.g. '--qos=long --mem=4G'); not "
+        "-M/--clusters: the tasks are followed on the default cluster only",
     )
     slurm.add_argument(
         "--detach",

@@ -50,8 +50,20 @@ POLL_S, POLL_LATER_S, POLL_FAST_FOR_S = 5.0, 30.0, 120.0
 Runner = Callable[[Sequence[str]], subprocess.CompletedProcess]
 
 
+#: How long a Slurm command may take before it counts as failed (a hung controller).
+COMMAND_TIMEOUT_S = 120.0
+
+
 def run_command(argv: Sequence[str]) -> subprocess.CompletedProcess:
-    return subprocess.run(list(argv), capture_output=True, text=True, timeout=120)
+    """`argv` run to its end, its output captured; one that does not end within
+    COMMAND_TIMEOUT_S is killed and returned as a failure (exit 124, why in stderr), so
+    each caller handles it as it handles the command failing: asked again where that
+    is retried, a clear error elsewhere, never a traceback."""
+    try:
+        return subprocess.run(list(argv), capture_output=True, text=True, timeout=COMMAND_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        why = f"{argv[0]} did not answer within {COMMAND_TIMEOUT_S:.0f} s"
+        return subprocess.CompletedProcess(list(argv), 124, "", why)
 
 
 @dataclass(frozen=True)
@@ -82,31 +94,55 @@ def preflight(
     flag: str,
     run: Runner = run_command,
 ) -> str | None:
-    """Why nothing can be submitted, or None: sbatch missing, Slurm not answering, an
-    unknown partition, one of `folders` that cannot be written (made when missing, once
-    the rest is known to be right). `folder` says what they are and `flag` which of the
-    caller's flags moves them ("the runs folder", "--runs (or --out)" for `macb
-    reproduce`; "the data folder", "--data-dir" for `macb up`): each command has its own."""
+    """Why nothing can be submitted, or None: --sbatch-args naming another cluster,
+    sbatch missing, Slurm not answering, an unknown partition, one of `folders` that
+    cannot be written (made when missing, once the rest is known to be right).
+    `folder` says what they are and `flag` which of the caller's flags moves them ("the
+    runs folder", "--runs (or --out)" for `macb reproduce`; "the data folder",
+    "--data-dir" for `macb up`): each command has its own."""
+    if error := sbatch_args_error(opts.extra):
+        return error
     missing = [c for c in ("sbatch", "squeue", "sinfo") if shutil.which(c) is None]
     if missing:
         return (
             f"--launcher slurm: {', '.join(missing)} not found on PATH; run this on a "
             "Slurm login node (or put Slurm's commands on PATH)"
         )
-    got = run(["sinfo", "-h", "-o", "%R"])
+    # -a: hidden partitions (and those of other groups) too, which sbatch takes by name
+    got = run(["sinfo", "-a", "-h", "-o", "%R"])
     if got.returncode:
         return f"--launcher slurm: Slurm does not answer (sinfo: {got.stderr.strip()})"
     partitions = sorted({p.strip() for p in got.stdout.split() if p.strip()})
-    if opts.partition and opts.partition not in partitions:
-        return (
-            f"--partition {opts.partition}: no such partition (sinfo lists: "
-            f"{', '.join(partitions) or 'none'})"
-        )
+    if opts.partition is not None:
+        # a list (sbatch runs the job in whichever of them can start it first)
+        names = [p.strip() for p in opts.partition.split(",")]
+        if unknown := [p for p in names if p not in partitions]:
+            which = f" {', '.join(repr(p) for p in unknown)}" if len(names) > 1 else ""
+            return (
+                f"--partition {opts.partition}: no such partition{which} (sinfo lists: "
+                f"{', '.join(partitions) or 'none'})"
+            )
     for path in folders:
         if why := unwritable(path):
             return (
                 f"--launcher slurm: {folder} {path} is not writable ({why}); the job's tasks "
                 f"write there: give {flag} on a filesystem the nodes share and you can write"
+            )
+    return None
+
+
+def sbatch_args_error(extra: Sequence[str]) -> str | None:
+    """Why --sbatch-args cannot be passed on, or None. -M/--clusters (--cluster) sends
+    the job to another cluster, while squeue, asked without it, answers for the default
+    one: every task would look gone at once and the next run would submit it again.
+    Following jobs on several clusters is not supported, so it is refused."""
+    for word in extra:
+        flag = word.split("=", 1)[0]
+        if flag in ("--clusters", "--cluster") or word.startswith("-M"):
+            return (
+                f"--sbatch-args: {word} sends the job to another Slurm cluster, and macb "
+                "follows jobs on the default cluster only (squeue would find none of its "
+                "tasks); run this on a login node of that cluster instead"
             )
     return None
 
@@ -129,10 +165,55 @@ def macb_argv() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "cli"]
 
 
+#: What an #SBATCH line cannot carry in a path, and why. sbatch reads its directives
+#: with its own parser (Slurm's src/sbatch/opt.c, `_get_argument`): whitespace ends an
+#: argument unless quoted, an unquoted '#' starts a comment, a quote ('"' or "'")
+#: groups characters up to its match and a backslash escapes the next character, in
+#: quotes too. So a path is written in double quotes (`directive`), which carry spaces,
+#: '#' and "'", and the characters below are refused before anything is submitted. '%'
+#: is refused too: --output expands Slurm's filename patterns (%j, %A, ...) and
+#: --chdir does in some versions, so a '%' in a folder's name would name another file.
+UNSAFE_IN_DIRECTIVE = (
+    ('"', "a double quote"),
+    ("\\", "a backslash"),
+    ("\n", "a newline"),
+    ("%", "a '%' (Slurm reads %j, %A, ... in --output as filename patterns)"),
+)
+
+
+def directive(flag: str, value: str) -> str:
+    """`#SBATCH --flag=value`, the value in double quotes when it holds whitespace, '#'
+    or a quote, which sbatch's directive parser would otherwise split the argument at
+    or read as a comment or a quote (UNSAFE_IN_DIRECTIVE: what it cannot carry at all)."""
+    if any(c.isspace() or c in "#'" for c in value):
+        value = f'"{value}"'
+    return f"#SBATCH --{flag}={value}"
+
+
+def directive_path_error(paths: Sequence[tuple[str, Path, str]]) -> str | None:
+    """Why one of `paths` (what it is, the path, what to do instead) cannot be written
+    in the job script's #SBATCH lines, naming it and the character; or None."""
+    for what, path, instead in paths:
+        for char, name in UNSAFE_IN_DIRECTIVE:
+            if char in str(path):
+                return (
+                    f"--launcher slurm: {what} {str(path)!r} holds {name}, which the job "
+                    f"script's #SBATCH --output/--chdir lines cannot carry; {instead}"
+                )
+    return None
+
+
 def render_script(
-    name: str, tasks: Sequence[Task], log_dir: Path, cwd: Path, cpus: int, opts: SlurmOptions
+    name: str,
+    tasks: Sequence[Task],
+    log_dir: Path,
+    cwd: Path,
+    cpus: int,
+    opts: SlurmOptions,
+    gpu: bool = False,
 ) -> str:
-    """The batch script: an array of len(tasks), task i running tasks[i].argv."""
+    """The batch script: an array of len(tasks), task i running tasks[i].argv; with
+    `gpu` (the runs' device is not the CPU), each task asks for a GPU of its own."""
     lines = [
         "#!/bin/bash",
         f"#SBATCH --job-name={name}",
@@ -141,9 +222,15 @@ def render_script(
         "#SBATCH --ntasks=1",
         "#SBATCH --requeue",
         "#SBATCH --open-mode=append",
-        f"#SBATCH --output={log_dir}/%A_%a.log",
-        f"#SBATCH --chdir={cwd}",
+        directive("output", f"{log_dir}/%A_%a.log"),
+        directive("chdir", str(cwd)),
     ]
+    if gpu:
+        # --gres=gpu:1 rather than --gpus-per-task=1: each array task is a one-task job,
+        # so per node is per task, and --gres works under select/cons_res too, where the
+        # --gpus-* options are refused (they need cons_tres). Slurm sets the task's
+        # CUDA_VISIBLE_DEVICES to that GPU, which the group's `cuda` then is.
+        lines.append("#SBATCH --gres=gpu:1")
     lines += placement(opts)
     lines += [
         "# Written by `macb reproduce --launcher slurm`. Each task trains one run group",
@@ -331,13 +418,14 @@ def submit(
     cpus: int,
     opts: SlurmOptions,
     run: Runner = run_command,
+    gpu: bool = False,
 ) -> tuple[str, dict[str, Any]]:
-    """One array job of `tasks` (script and logs in `slurm_dir`): its id and the record
-    of it (when, how, each task's index, label, runs and command)."""
+    """One array job of `tasks` (script and logs in `slurm_dir`; `gpu`: a GPU per task):
+    its id and the record of it (when, how, each task's index, label, runs and command)."""
     slurm_dir.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
     script = slurm_dir / f"{name}-{stamp}.sh"
-    script.write_text(render_script(name, tasks, slurm_dir, Path.cwd(), cpus, opts))
+    script.write_text(render_script(name, tasks, slurm_dir, Path.cwd(), cpus, opts, gpu))
     argv = sbatch_argv(opts, script)
     got = run(argv)
     if got.returncode:
@@ -524,39 +612,66 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
     incomplete (named), 2 when refused before submitting."""
     from cli.local import config_conflicts, plan_groups
 
-    opts = options(args)
+    try:
+        opts = options(args)
+    except ValueError as err:  # shlex: an unclosed quote
+        return _refuse(f"--sbatch-args: {err}")
     runs_dirs = [c.runs_dir for c in campaigns]
+    slurm_dir = slurm_dir or campaigns[0].runs_dir / ".slurm"
+    if error := directive_path_error(
+        [
+            ("the logs' folder", slurm_dir, "give --runs (or --out) a folder without it"),
+            ("this command's folder", Path.cwd(), "run it from a folder without it"),
+        ]
+    ):
+        return _refuse(error)
     if error := preflight(opts, runs_dirs, folder="the runs folder", flag="--runs (or --out)"):
         return _refuse(error)
     if conflicts := [line for c in campaigns for line in config_conflicts(c.runs, c.runs_dir)]:
         for line in conflicts:
             print(line, file=sys.stderr)
         return _refuse("move those folders away or give another --out: nothing was submitted")
-    slurm_dir = slurm_dir or campaigns[0].runs_dir / ".slurm"
+
+    def look_each() -> list[tuple[Campaign, Standing]]:
+        slurm = query()
+        return [(c, c.standing(slurm)) for c in campaigns]
 
     def look() -> Standing:
-        slurm = query()
-        return Standing([g for c in campaigns for g in c.standing(slurm).groups])
+        return Standing([g for _, s in look_each() for g in s.groups])
 
     def total() -> tuple[int, int]:
         eps = [e for c in campaigns for e in c.progress().values()]
         return sum(e for e, _ in eps), sum(t for _, t in eps)
 
     try:
-        before = look()
+        before_each = look_each()
     except RuntimeError as err:
         return _refuse(str(err))
-    held = {r for g in before.groups if g.status in ("running", "pending") for r in g.runs}
-    for g in before.of("incomplete"):
-        print(f"{g.line()}: submitting its runs again", file=sys.stderr)
+    before = Standing([g for _, s in before_each for g in s.groups])
+    # A run is its folder in its figure's runs folder: figures share run names (fig3's
+    # and table2's beta_0.0-s0 are two runs), so what Slurm holds is told apart by both.
+    held = {
+        (c.runs_dir, r)
+        for c, s in before_each
+        for g in s.groups
+        if g.status in ("running", "pending")
+        for r in g.runs
+    }
     tasks: list[Task] = []
     owner: list[Campaign] = []
-    for c in campaigns:
+    for c, s in before_each:
         done = c.finished(c.progress())
-        todo = [r for r in c.runs if r.name not in held and not done(r.name)]
+        todo = [r for r in c.runs if (c.runs_dir, r.name) not in held and not done(r.name)]
+        again = {r.name for r in todo}
+        for g in s.of("incomplete"):
+            n = sum(r in again for r in g.runs)
+            print(f"{g.line()}: submitting its {n} unfinished run(s) again", file=sys.stderr)
         if not todo:
             continue
-        plan = plan_groups(todo, c.runs_dir, args.group_size, args.jobs)
+        # sized as on the CPU whatever the device (default: this machine's CPUs), not by
+        # the GPUs of this login node: each task gets a GPU of its own from Slurm
+        jobs = args.jobs or os.cpu_count() or 1
+        plan = plan_groups(todo, c.runs_dir, args.group_size, jobs)
         for i, (state, members) in enumerate(plan, 1):
             chosen = [todo[m] for m in members]
             task = chosen[0].config.task
@@ -567,11 +682,13 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
             argv = group_command(c.fig.name, c.profile, args, c.out, c.runs_dir, names)
             tasks.append(Task(label, tuple(names), tuple(argv)))
             owner.append(c)
+    job: str | None = None
     if tasks:
         name = "macb-" + "-".join(dict.fromkeys(c.fig.name for c in owner))
         cpus = cpus_for([r.config for c in campaigns for r in c.runs])
+        gpu = any(r.config.device != "cpu" for c in owner for r in c.runs)
         try:
-            job, entry = submit(name[:64], tasks, slurm_dir, cpus, opts)
+            job, entry = submit(name[:64], tasks, slurm_dir, cpus, opts, gpu=gpu)
         except (RuntimeError, ValueError, OSError) as err:
             return _refuse(str(err))
         for c in dict.fromkeys(owner):  # each figure records its own tasks
@@ -593,7 +710,13 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
         return built
 
     if args.detach:
-        now = look()
+        try:
+            now = look()
+        except RuntimeError as err:  # the job is in; only its standing is not known yet
+            what = f"job {job} was submitted" if job else "nothing was submitted"
+            print(f"{what}; where the groups stand is unknown ({err}): the same command "
+                  "again says", file=sys.stderr)  # fmt: skip
+            return 0
         for g in now.groups:
             print(g.line(), file=sys.stderr)
         pages(now)
