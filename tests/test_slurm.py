@@ -131,7 +131,7 @@ def test_a_requeued_task_resumes_from_its_cut_and_a_cancelled_one_is_named_then_
     again = on(node, *args, "--launcher", "slurm", "--out", str(out))
     assert again.returncode == 0, again.stderr
     assert f"[job {task[names[1]]}]: incomplete (CANCELLED)" in again.stderr
-    assert "submitting its runs again" in again.stderr
+    assert "submitting its 1 unfinished run(s) again" in again.stderr
     assert "resumes from cut-" in again.stderr and "2 completed" in again.stderr, again.stderr
     # Both runs' rows equal those of the same runs trained straight through, without Slurm.
     straight = on(node, *args, "--out", str(tmp_path / "straight"))
