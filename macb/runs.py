@@ -102,16 +102,18 @@ def run_frame(
     frame.insert(0, "run", run)
     frame.insert(1, "arm", arm)
     frame.insert(2, "seed", seed)
-    flat = _flatten(config)
+    flat = flatten_config(config)
     extra = pd.DataFrame({k: [v] * len(frame) for k, v in flat.items()}, index=frame.index)
     return pd.concat([frame, extra], axis=1)
 
 
-def _flatten(config: dict[str, Any], prefix: str = CONFIG_PREFIX) -> dict[str, Any]:
+def flatten_config(config: dict[str, Any], prefix: str = CONFIG_PREFIX) -> dict[str, Any]:
+    """A config as the frame's columns: `config.`-prefixed keys, nested ones joined with
+    dots, lists as tuples (a cell holds one value)."""
     out: dict[str, Any] = {}
     for key, value in config.items():
         if isinstance(value, dict):
-            out.update(_flatten(value, f"{prefix}{key}."))
+            out.update(flatten_config(value, f"{prefix}{key}."))
         else:
             out[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
     return out
@@ -121,6 +123,7 @@ __all__ = [
     "CONFIG_PREFIX",
     "RunsError",
     "arm_of",
+    "flatten_config",
     "joined",
     "load_runs",
     "read_config",

@@ -26,7 +26,7 @@ from cli.reproduce.defs import FigureDef
 from cli.reproduce.experiments import arm_configs
 from cli.reproduce.figures import FIGURES
 from cli.reproduce.render import measured
-from macb.runs import CONFIG_PREFIX, RunsError
+from macb.runs import CONFIG_PREFIX, RunsError, flatten_config
 
 
 @dataclass
@@ -119,8 +119,8 @@ def arm_mismatch(row: pd.Series, arm_config: dict[str, Any], fig: FigureDef) -> 
     the file (the figure's `thesis_method`); a key the frame lacks (a config from before
     it existed) says nothing."""
     skip = {"episodes", "seeds", "seed"} | {k for k, _ in fig.thesis_method}
-    for key, want in _flat(arm_config).items():
-        column = CONFIG_PREFIX + key
+    for column, want in flatten_config(arm_config).items():  # as load_runs names them
+        key = column.removeprefix(CONFIG_PREFIX)
         if key.split(".")[0] in skip or column not in row.index:
             continue
         have = row[column]
@@ -130,16 +130,6 @@ def arm_mismatch(row: pd.Series, arm_config: dict[str, Any], fig: FigureDef) -> 
         if not bool(have == want):
             return f"{key}: {have!r} in the run, {want!r} in the arm"
     return None
-
-
-def _flat(config: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in config.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
-    return out
 
 
 def _arms(a: Analysis) -> pd.DataFrame:
