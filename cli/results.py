@@ -85,6 +85,12 @@ def _check_record(record: dict[str, Any]) -> None:
             raise ValueError(f"claim {i}: not an object of text, measured and verdict strings")
 
 
+def points_files(folder: Path) -> list[Path]:
+    """Every page's points file in `folder`: its FIGURE.csv.gz files, else (an older
+    page) its plain FIGURE.csv files."""
+    return sorted(folder.glob("*.csv.gz")) or sorted(folder.glob("*.csv"))
+
+
 def points_file(folder: Path, figure: str) -> Path | None:
     """A page's file of points: FIGURE.csv.gz, or an older page's FIGURE.csv (written
     plain up to 4 MB); None when it has neither."""
@@ -133,7 +139,7 @@ def compare_points(page: Path, runs_dir: Path) -> list[tuple[str, int, int, str 
     without one points file, or whose points do not read, ResultsError."""
     from cli.local import run_rows
 
-    files = sorted(page.glob("*.csv.gz")) or sorted(page.glob("*.csv"))
+    files = points_files(page)
     if len(files) != 1:
         held = ", ".join(f.name for f in files) or "none"
         raise ResultsError(f"{page} should hold one page's points (FIGURE.csv.gz); "

@@ -54,7 +54,7 @@ def load_page(path: str | Path) -> pd.DataFrame:
     plain FIGURE.csv): `path` is the page's folder (docs/results/fig8-thesis) or the
     file. One row per point: arm, seed, run, episode, env_steps, the metrics the report
     reads; a cell left empty (no value) is NaN. RunsError when there is none."""
-    from cli.results import points_file
+    from cli.results import points_file, points_files
 
     page = Path(path)
     found: Path | None = page if page.is_file() else None
@@ -62,7 +62,7 @@ def load_page(path: str | Path) -> pd.DataFrame:
         for claims in sorted(page.glob("*-claims.json")):
             found = found or points_file(page, claims.name.removesuffix("-claims.json"))
         if found is None:  # a page's points copied without its claims file: the one there
-            files = sorted(page.glob("*.csv.gz")) or sorted(page.glob("*.csv"))
+            files = points_files(page)
             if len(files) > 1:
                 names = ", ".join(f.name for f in files)
                 raise RunsError(f"{page}: which page's points? it holds {names}: give the file")
