@@ -636,8 +636,11 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
         slurm = query()
         return [(c, c.standing(slurm)) for c in campaigns]
 
+    def merged(each: list[tuple[Campaign, Standing]]) -> Standing:
+        return Standing([g for _, s in each for g in s.groups])
+
     def look() -> Standing:
-        return Standing([g for _, s in look_each() for g in s.groups])
+        return merged(look_each())
 
     def total() -> tuple[int, int]:
         eps = [e for c in campaigns for e in c.progress().values()]
@@ -647,7 +650,7 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
         before_each = look_each()
     except RuntimeError as err:
         return _refuse(str(err))
-    before = Standing([g for _, s in before_each for g in s.groups])
+    before = merged(before_each)
     # A run is its folder in its figure's runs folder: figures share run names (fig3's
     # and table2's beta_0.0-s0 are two runs), so what Slurm holds is told apart by both.
     held = {
