@@ -70,8 +70,11 @@ class Client:
 
     def follow(self, experiment_id: str, poll_s: float = 1.0) -> Iterator[dict[str, Any]]:
         """Each new point of the experiment's runs as it is stored (a dict with `run`,
-        `arm` and `seed` besides the metric row), polled every `poll_s` s, until every run
-        has ended and its last point was given. Stop early by leaving the loop."""
+        `arm`, `seed` and `attempt` besides the metric row), polled every `poll_s` s,
+        until every run has ended and its last point was given. Stop early by leaving
+        the loop. A run retried meanwhile gives its new attempt's points after the old
+        ones, episodes again from its start, with the higher `attempt`: the earlier
+        attempt's rows are superseded (the store keeps only the latest attempt's)."""
         since: dict[str, int] = {}
         while True:
             exp = self.api.experiment(experiment_id)
@@ -79,8 +82,9 @@ class Client:
             for r in exp["runs"]:
                 while True:  # every page stored so far
                     got = self.api.metrics(r["id"], since.get(r["id"], 0))
+                    head = {"run": r["id"], "arm": r["arm"], "seed": r["seed"]}
                     for p in _rows(got["points"]):
-                        yield {"run": r["id"], "arm": r["arm"], "seed": r["seed"], **p}
+                        yield {**head, "attempt": got["attempt"], **p}
                     if got["points"]:
                         since[r["id"]] = got["next_since"]
                     if not got["more"]:

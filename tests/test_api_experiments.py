@@ -144,16 +144,17 @@ def test_a_cursor_from_before_a_retry_reads_every_point_of_the_new_attempt(busle
         assert store.add_points(run, [row(e) for e in (4, 8, 12)], attempt=1) == 3
         page = client.get(f"/runs/{run}/metrics").json()
         cursor = page["next_since"]
-        assert cursor == 3
+        assert (cursor, page["attempt"]) == (3, 1)
         store.finish(run, "failed", "learner died")
         assert client.post(f"/experiments/{exp['id']}/retry").json()["retried"] == [run]
         waiting = client.get(f"/runs/{run}/metrics", params={"since": cursor}).json()
         assert waiting["points"] == [] and waiting["next_since"] == cursor
+        assert waiting["attempt"] == 2, "the attempt is the run's, with or without points"
         assert store.claim(run, assign)
         assert store.add_points(run, [row(4, success_rate=0.9), row(8)], attempt=2) == 2
         page = client.get(f"/runs/{run}/metrics", params={"since": cursor}).json()
         assert [(p["seq"], p["episode"]) for p in page["points"]] == [(4, 4), (5, 8)]
-        assert page["points"][0]["success_rate"] == 0.9
+        assert page["points"][0]["success_rate"] == 0.9 and page["attempt"] == 2
         assert store.add_points(run, [row(12), row(16)], attempt=2) == 2
         later = client.get(f"/runs/{run}/metrics", params={"since": page["next_since"]}).json()
         assert [(p["seq"], p["episode"]) for p in later["points"]] == [(6, 12), (7, 16)]

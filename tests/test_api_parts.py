@@ -426,8 +426,10 @@ def test_points_are_numbered_in_arrival_order_and_an_episode_is_stored_once(tmp_
     assert points.add("r", [{"episode": 8, "seq": 99}, {"episode": 4}]) == 2
     assert points.add("r", [{"episode": 4}, {"episode": 12}]) == 1
     assert [(p["seq"], p["episode"]) for p in points.rows("r")] == [(1, 8), (2, 4), (3, 12)]
-    text, n, last = points.page_json("r", since=1, limit=1)
-    assert (text, n, last) == ('[{"seq": 2, "episode": 4}]', 1, 2)
+    text, n, last, attempt = points.page_json("r", since=1, limit=1)
+    assert (text, n, last, attempt) == ('[{"seq": 2, "episode": 4}]', 1, 2, 1)
+    assert points.page_json("r", since=3) == ("[]", 0, 3, 1), "none after: the cursor stays"
+    assert points.page_json("none") == ("[]", 0, 0, 0), "no such run"
     assert points.has_more("r", 2) and not points.has_more("r", 3)
     assert points.stats(["r", "none"]) == {"r": (3, 3, 12), "none": (0, 0, 0)}
     assert points.add("r", [{"episode": 16}], attempt=2) == 0, "not the run's attempt"

@@ -22,6 +22,7 @@ from cli.reproduce.analysis import analyse, columns
 from cli.reproduce.experiments import experiment_body, select_arms
 from cli.reproduce.figures import FIGURES
 from services.api.store import Store
+from shared.net.messages import Assignment
 from tests.harness import TINY, row, start_api
 from tests.test_fig8_page import _rows
 
@@ -320,6 +321,56 @@ def test_start_follow_stop_and_frame_over_the_api_with_the_clis_token_rules(api,
     assert frame[["run", "episode"]].values.tolist() == [[a, 4], [a, 8], [a, 12], [d, 4]]
     assert frame["config.beta"].tolist() == [0.2, 0.2, 0.2, 0.8]
     assert frame["success_rate"].tolist() == [0.04, 0.08, 0.12, 0.75]
+    store.close()
+    client.close()
+
+
+@pytest.mark.timeout(60)
+def test_follow_and_a_paged_read_across_a_retry_say_or_keep_one_attempt(api):
+    """A run retried while followed starts its episodes again: `follow` gives the new
+    attempt's rows after the old ones, each with its `attempt`. A read page by page that
+    a retry interrupts starts over, so it holds one attempt's rows, not two of an
+    episode."""
+    client = macb.Client(api.url, token="s3cret")
+    exp = client.start({**TINY, "seeds": [0]})
+    run = exp["runs"][0]["id"]
+    assign = Assignment(learner="L", actors=("A",), counter="C", evaluator="E")
+    store = Store(api.settings.db_path)  # a second connection, as the scheduler has
+
+    def retry(attempt: int, rows: list[dict]) -> None:
+        store.finish(run, "failed", "learner died")
+        assert client.api.retry_experiment(exp["id"])["retried"] == [run]
+        assert store.claim(run, assign)
+        assert store.add_points(run, rows, attempt=attempt) == len(rows)
+
+    assert store.claim(run, assign)
+    store.add_points(run, [row(4), row(8)], attempt=1)
+    follow = client.follow(exp["id"], poll_s=0.05)
+    assert [(x["episode"], x["attempt"]) for x in (next(follow), next(follow))] == [
+        (4, 1),
+        (8, 1),
+    ]
+    retry(2, [row(4, success_rate=0.5), row(8), row(12)])
+    again = [next(follow) for _ in range(3)]
+    assert [(x["episode"], x["attempt"]) for x in again] == [(4, 2), (8, 2), (12, 2)]
+    assert again[0]["success_rate"] == 0.5
+
+    pages = client.api.metrics
+    calls = []
+
+    def metrics(run_id: str, since: int = 0, limit: int | None = None) -> dict:
+        calls.append(since)
+        if len(calls) == 2:  # between the first page and the second
+            retry(3, [row(4, success_rate=0.25)])
+        return pages(run_id, since, limit)
+
+    client.api.metrics = metrics  # type: ignore[method-assign]
+    got = client.api.all_points(run, page=1)
+    assert [(p["episode"], p["success_rate"]) for p in got] == [(4, 0.25)], "attempt 3's only"
+    assert calls == [0, 3, 0], "read again from the start once the attempt changed"
+    client.api.metrics = pages  # type: ignore[method-assign]
+    assert client.stop(exp["id"])["changed"] is True
+    assert [(x["episode"], x["attempt"]) for x in follow] == [(4, 3)]
     store.close()
     client.close()
 

@@ -107,11 +107,17 @@ class ApiClient:
         return self._call("GET", f"/runs/{run_id}/metrics", params=params)
 
     def all_points(self, run_id: str, page: int = 50_000) -> list[dict[str, Any]]:
-        """Every stored point of a run, page by page (a 50,000-episode run has 50,000)."""
+        """Every stored point of a run, page by page (a 50,000-episode run has 50,000),
+        all of one attempt: a retry between two pages deletes the points read so far,
+        so the read starts over from the new attempt's first point."""
         points: list[dict[str, Any]] = []
-        since = 0
+        since, attempt = 0, None
         while True:
             got = self.metrics(run_id, since, limit=page)
+            if attempt is not None and got["attempt"] != attempt:
+                points, since, attempt = [], 0, None  # retried meanwhile: read it again
+                continue
+            attempt = got["attempt"]
             points += got["points"]
             if not got["more"] or not got["points"]:
                 return points

@@ -63,18 +63,28 @@ class Points:
                     added += 1
         return added
 
-    def page_json(self, run_id: str, since: int = 0, limit: int = 10_000) -> tuple[str, int, int]:
-        """Points after `since` as a JSON array text; (text, count, last seq)."""
+    def page_json(
+        self, run_id: str, since: int = 0, limit: int = 10_000
+    ) -> tuple[str, int, int, int]:
+        """Points after `since` as a JSON array text; (text, count, last seq, attempt).
+
+        `attempt` is the run's current attempt read in the same statement as the points,
+        so every point in the page is of it (a retry deletes the points of the attempts
+        before it, in the transaction that counts the new one); 0 for an unknown run."""
         rows = (
             self.db.conn()
             .execute(
-                "SELECT seq, data FROM metrics WHERE run_id = ? AND seq > ? ORDER BY seq LIMIT ?",
-                (run_id, since, limit),
+                "SELECT r.attempts, m.seq, m.data FROM runs r LEFT JOIN ("
+                " SELECT seq, data FROM metrics WHERE run_id = ? AND seq > ? ORDER BY seq"
+                " LIMIT ?) m WHERE r.id = ? ORDER BY m.seq",
+                (run_id, since, limit, run_id),
             )
             .fetchall()
         )
-        last = rows[-1][0] if rows else since
-        return "[" + ",".join(r[1] for r in rows) + "]", len(rows), last
+        attempt = rows[0][0] if rows else 0
+        points = [r for r in rows if r[1] is not None]
+        last = points[-1][1] if points else since
+        return "[" + ",".join(r[2] for r in points) + "]", len(points), last, attempt
 
     def rows(self, run_id: str, since: int = 0, limit: int = 1_000_000) -> list[dict[str, Any]]:
         """Points after `since`, decoded, in seq order."""

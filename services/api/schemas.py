@@ -431,6 +431,10 @@ class ExperimentRetryResult(BaseModel):
 class MetricsPage(BaseModel):
     run: str
     status: Status
+    attempt: int = Field(
+        description="the run's attempt, read with the points: every point here is of it"
+        " (a retry deletes the earlier attempts' points)"
+    )
     since: int
     next_since: int = Field(description="pass as `since` to get only newer points")
     more: bool = Field(description="true: more points than `limit` remain after these")

@@ -264,7 +264,9 @@ class Store:
     ) -> int:
         return self.metrics.add(run_id, rows, attempt)
 
-    def points_json(self, run_id: str, since: int = 0, limit: int = 10_000) -> tuple[str, int, int]:
+    def points_json(
+        self, run_id: str, since: int = 0, limit: int = 10_000
+    ) -> tuple[str, int, int, int]:
         return self.metrics.page_json(run_id, since, limit)
 
     def points(self, run_id: str, since: int = 0, limit: int = 1_000_000) -> list[dict[str, Any]]:

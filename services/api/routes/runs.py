@@ -60,11 +60,17 @@ def get_metrics(
     limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
 ):
     """Stored metric points in arrival order; poll with `since=next_since` for new ones."""
-    text, n, last = store.points_json(run["id"], since, limit)
+    text, n, last, attempt = store.points_json(run["id"], since, limit)
     more = n == limit and store.has_more(run["id"], last)
     # The points are stored as JSON: splice them in instead of decoding 10,000 rows.
     head = json.dumps(
-        {"run": run["id"], "status": run["status"], "since": since, "next_since": last}
+        {
+            "run": run["id"],
+            "status": run["status"],
+            "attempt": attempt,
+            "since": since,
+            "next_since": last,
+        }
     )
     body = f'{head[:-1]}, "more": {json.dumps(more)}, "points": {text}}}'
     return Response(body, media_type="application/json")
