@@ -429,6 +429,20 @@ def test_sbatch_args_naming_another_cluster_are_refused_before_slurm_is_asked(
     assert slurm.preflight(ok, [runs], folder="f", flag="--f", run=fake) is None
 
 
+def test_slurm_clusters_in_the_environment_is_refused_as_m_is(tmp_path, monkeypatch):
+    """sbatch and squeue read SLURM_CLUSTERS as -M: set on the login node, the job went
+    to that cluster while the tasks were looked for in squeue's multi-cluster answer."""
+    monkeypatch.setattr(slurm.shutil, "which", lambda c: "/bin/" + c)
+    monkeypatch.setenv("SLURM_CLUSTERS", "gpu")
+    runs = tmp_path / "runs"
+    fake = FakeSlurm()
+    why = slurm.preflight(SlurmOptions(), [runs], folder="f", flag="--f", run=fake)
+    assert why is not None and "SLURM_CLUSTERS=gpu is set" in why and "unset it" in why
+    assert fake.calls == [] and not runs.exists()
+    monkeypatch.setenv("SLURM_CLUSTERS", "")
+    assert slurm.preflight(SlurmOptions(), [runs], folder="f", flag="--f", run=fake) is None
+
+
 @pytest.mark.parametrize("command", [["reproduce", "fig3", "--local", "--episodes", "2"], ["up"]])
 def test_sbatch_args_of_one_flag_or_several_reach_sbatch_in_either_form(tmp_path, command):
     """`--sbatch-args '--mem=4G'` (one flag, no space) was refused by argparse ("expected
@@ -479,6 +493,16 @@ def test_runs_on_a_gpu_get_a_gpu_per_task_and_as_many_tasks_as_on_the_cpu(tmp_pa
     tasks = min(os.cpu_count() or 1, 11)  # fig3's 11 runs of seed 0, --jobs' default
     assert f"--array=0-{tasks - 1}" in scripts["cuda"], scripts["cuda"]
     assert f"--array=0-{tasks - 1}" in scripts["cpu"], scripts["cpu"]
+    sbatched = len(Path(env["SBATCH_CALLS"]).read_text().splitlines())
+    out = tmp_path / "second-gpu"
+    argv = ["reproduce", "fig3", "--local", "--launcher", "slurm", "--episodes", "2",
+            "--seeds", "0", "--device", "cuda:1", "--out", str(out), "--detach"]  # fmt: skip
+    got = macb(*argv, env=env)
+    # a task sees its one GPU as cuda:0, so cuda:1 would fail on every node
+    assert got.returncode == 2 and "--device cuda:1: with --launcher slurm" in got.stderr
+    assert "give --device cuda" in got.stderr, got.stderr
+    assert len(Path(env["SBATCH_CALLS"]).read_text().splitlines()) == sbatched
+    assert slurm.device_error(["cpu", "cuda", "cuda:0"]) is None
 
 
 def test_all_tells_apart_runs_of_one_name_in_two_figures(tmp_path):

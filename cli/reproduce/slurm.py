@@ -27,7 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -131,11 +131,12 @@ def preflight(
     return None
 
 
-def sbatch_args_error(extra: Sequence[str]) -> str | None:
+def sbatch_args_error(extra: Sequence[str], env: Mapping[str, str] | None = None) -> str | None:
     """Why --sbatch-args cannot be passed on, or None. -M/--clusters (--cluster) sends
     the job to another cluster, while squeue, asked without it, answers for the default
     one: every task would look gone at once and the next run would submit it again.
-    Following jobs on several clusters is not supported, so it is refused."""
+    Following jobs on several clusters is not supported, so it is refused, and so is
+    SLURM_CLUSTERS in the environment, which sbatch and squeue read as -M."""
     for word in extra:
         flag = word.split("=", 1)[0]
         if flag in ("--clusters", "--cluster") or word.startswith("-M"):
@@ -143,6 +144,26 @@ def sbatch_args_error(extra: Sequence[str]) -> str | None:
                 f"--sbatch-args: {word} sends the job to another Slurm cluster, and macb "
                 "follows jobs on the default cluster only (squeue would find none of its "
                 "tasks); run this on a login node of that cluster instead"
+            )
+    clusters = (os.environ if env is None else env).get("SLURM_CLUSTERS")
+    if clusters:
+        return (
+            f"--launcher slurm: SLURM_CLUSTERS={clusters} is set, which sends the job to "
+            "that Slurm cluster (as -M), and macb follows jobs on the default cluster only; "
+            "unset it, or run this on a login node of that cluster"
+        )
+    return None
+
+
+def device_error(devices: Sequence[str]) -> str | None:
+    """Why the runs' devices cannot be asked of Slurm, or None. Each task gets one GPU
+    (`--gres=gpu:1`) and Slurm shows it to the task alone, as its first CUDA device:
+    `cuda:1` names a GPU no task can see."""
+    for device in dict.fromkeys(devices):
+        if device.startswith("cuda:") and device != "cuda:0":
+            return (
+                f"--device {device}: with --launcher slurm each task gets one GPU of its "
+                "own, which it sees as cuda:0; give --device cuda"
             )
     return None
 
@@ -624,6 +645,8 @@ def reproduce_slurm(campaigns: list[Campaign], args: Any, slurm_dir: Path | None
             ("this command's folder", Path.cwd(), "run it from a folder without it"),
         ]
     ):
+        return _refuse(error)
+    if error := device_error([r.config.device for c in campaigns for r in c.runs]):
         return _refuse(error)
     if error := preflight(opts, runs_dirs, folder="the runs folder", flag="--runs (or --out)"):
         return _refuse(error)
