@@ -11,7 +11,7 @@ import pytest
 
 from services.api.planner import Invalid, QueuePass, Start
 from services.api.points import Points
-from services.api.reconcile import reconcile_run, stale_runs, worker_rows
+from services.api.reconcile import reconcile_run, stale_runs, start_lost, worker_rows
 from services.api.runbook import RunBook
 from services.api.store import Store
 from services.api.watch import Ending, Watch, flat_row
@@ -205,6 +205,41 @@ def test_a_learner_gone_unseen_is_given_the_peer_grace():
     reconcile_run(w, {"E1": serving_infos("r1")["E1"]}, set(), 20.0, 15.0, 30.0)
     assert w.monitor.waiting() == "learner L1 is down; waiting up to 30 s for it"
     assert w.monitor.decide(51.0).state == "failed"
+
+
+def test_a_start_lost_to_the_counter_is_sent_again_on_the_second_look_and_not_often():
+    """The counter answers (ready) and its learner serves the run, but the counter holds
+    the run not at all, or as another attempt (restored from its disk): the start is
+    to be sent again, on a second look in a row (a run ending frees its learner first)
+    and at most every `every_s`. A counter not ready, one that names no attempt (older),
+    a learner not on the run: nothing to send."""
+    w = watch()
+    w.attempt = 2
+
+    def infos(held: dict | None, ready: bool = True, learner: str | None = "r1") -> dict:
+        runs = {} if held is None else {"r1": held}
+        return {
+            "C": {"id": "C", "role": "counter", "runs": runs, "ready": ready},
+            "L1": {"id": "L1", "role": "learner", "run": learner},
+        }
+
+    assert start_lost(w, infos(None)) == "counter C does not hold the run"
+    old = start_lost(w, infos({"attempt": 1}))
+    assert old == "counter C holds attempt 1 of the run, not 2"
+    for fine in (
+        infos({"attempt": 2}),
+        infos({"counted_transitions": 5}),  # an older counter: no attempt said
+        infos(None, ready=False),  # still restoring its tables
+        infos(None, learner=None),  # the learner is not on it (ended, or not yet)
+        {"L1": infos(None)["L1"]},  # no counter answers
+    ):
+        assert start_lost(w, fine) is None, fine
+    assert not w.start_again_due(True, 10.0, 15.0), "a first look only"
+    assert not w.start_again_due(False, 13.0, 15.0), "found again: the look starts over"
+    assert not w.start_again_due(True, 16.0, 15.0)
+    assert w.start_again_due(True, 19.0, 15.0), "two looks in a row"
+    assert not w.start_again_due(True, 22.0, 15.0) and not w.start_again_due(True, 33.0, 15.0)
+    assert w.start_again_due(True, 34.0, 15.0), "again once every_s has passed"
 
 
 def test_services_that_rejoined_an_ended_run_are_to_be_stopped():

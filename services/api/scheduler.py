@@ -20,7 +20,10 @@
   `counter_grace_s` (it restarts from its snapshot and log). A learner that resumed
   from a cut says so in its status, and the run's record keeps it as its note.
 - A service that rejoins a run after a restart while that run had ended meanwhile is
-  told to stop it, so it is free again.
+  told to stop it, so it is free again. A counter that missed a run's start (it died
+  just after the run was assigned to it) is sent the start again once its learner is
+  seen serving the run and the counter, ready, holds it not at all or as another
+  attempt (`reconcile.start_lost`): else the learner waits on refused queries.
 - Sends the stop messages the HTTP side asks for (a failed run's other services are
   stopped too, so they are free for the next run).
 - On start (after an API restart), re-attaches to the runs the store says are
@@ -49,6 +52,7 @@ import time
 from typing import Any
 
 from services.common import restarts
+from shared.config import ConfigError, make_config
 from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.control import discover, history_rows, send_start, send_stop
@@ -58,7 +62,7 @@ from shared.net.monitor import peer_grace_s as peer_grace
 from shared.settings import node_name
 
 from .planner import Invalid, QueuePass
-from .reconcile import reconcile_run, stale_runs, worker_rows
+from .reconcile import reconcile_run, stale_runs, start_lost, worker_rows
 from .runbook import ENDED_WATCH_S, RunBook
 from .store import Store
 from .watch import Ending, Watch, flat_row
@@ -306,6 +310,23 @@ class Scheduler:
                 ending = reconcile_run(w, infos, self.book.alive, now, settle_s, wait_s)
                 if ending is not None:
                     self._end(w, ending)
+                    continue
+                lost = start_lost(w, infos) if now - w.monitor.started > settle_s else None
+                if w.start_again_due(lost is not None, now, settle_s):
+                    self._start_again(w, f"{lost}: its start sent again")
+
+    def _start_again(self, w: Watch, why: str) -> None:
+        """Put the run's start again (`start_lost`), as its attempt on its assignment."""
+        assert self.bus is not None
+        row = self.store.run(w.run)
+        if row is None or row["status"] != "running" or row.get("attempts") != w.attempt:
+            return  # ended, or queued again, since the look
+        try:
+            config = make_config(row["config"])
+        except ConfigError:
+            return  # (a start of it was sent: it was read so then)
+        log.warning("run %s: %s", w.run, why)
+        send_start(self.bus, w.run, config, w.assign, w.attempt)
 
     def _reattach(self) -> None:
         """After a (re)start: follow the runs the store says are running, and store the

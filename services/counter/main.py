@@ -295,6 +295,7 @@ class CounterService(ServiceBase):
             stats[run] = self._run_stats(st)
             with self.runs.lock:
                 stats[run]["acked"] = st.cursor.positions()
+            stats[run]["attempt"] = self.served.attempts.get(run)  # (restored: its noted one)
         return CounterInfo(
             **{f.name: getattr(base, f.name) for f in dataclasses.fields(ServiceInfo)},
             run_stats=stats,

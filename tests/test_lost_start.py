@@ -1,0 +1,97 @@
+"""A run's start lost to its counter, on real processes.
+
+The scheduler puts a run's start once. A counter that dies just after the run was
+assigned to it never gets it, and, restarted, restores from its disk only what it had:
+here the run's ended attempt, whose stop never reached it (the counter was down then
+too). Its learner, started, would wait on refused bonus queries for good. The API runs
+in this process so that the test can kill the counter in that window: its scheduler's
+`send_start` is wrapped to kill the counter before the start goes out and start it
+again after. A router, a counter, a learner, an evaluator and an actor are processes.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import httpx
+import pytest
+
+import services.api.scheduler as scheduler
+from tests.harness import TINY, Cluster, start_api, wait_for
+
+EPISODES = 40
+
+
+def answering(url: str, role: str) -> bool:
+    workers = httpx.get(f"{url}/workers", timeout=10).json()["workers"]
+    return any(w["role"] == role and w["answers"] for w in workers)
+
+
+@pytest.mark.timeout(420)
+def test_a_counter_that_missed_its_runs_start_is_sent_it_again(tmp_path, monkeypatch, caplog):
+    caplog.set_level(logging.WARNING, logger="macb.api.scheduler")
+    with Cluster(tmp_path, env={"MACB_PEER_GRACE_S": "8"}) as cluster:
+        router = cluster.router()
+        cluster.services(actors=1)
+        server = start_api(tmp_path, router)
+        try:
+            url = server.url
+            for role in ("counter", "learner", "evaluator", "actor"):
+                wait_for(lambda r=role: answering(url, r), 120, what=f"the {role}")
+            exp = httpx.post(
+                f"{url}/experiments", json={**TINY, "episodes": EPISODES}, timeout=30
+            ).json()
+            run = exp["runs"][0]["id"]
+
+            def got() -> dict:
+                return httpx.get(f"{url}/runs/{run}", timeout=10).json()
+
+            wait_for(lambda: got()["points"] >= 1, 120, what="attempt 1's first point")
+            # The counter dies holding attempt 1; the stop of that attempt never reaches it.
+            cluster.kill("counter")
+            httpx.post(f"{url}/experiments/{exp['id']}/stop", timeout=30)
+            wait_for(lambda: got()["status"] == "stopped", 30, what="attempt 1 stopped")
+            wait_for(
+                lambda: all(
+                    w["run"] is None
+                    for w in httpx.get(f"{url}/workers", timeout=10).json()["workers"]
+                ),
+                60,
+                what="the learner, evaluator and actor freed by the stop",
+            )
+            real = scheduler.send_start
+            lost: list[int | None] = []
+
+            def start_lost_to_the_counter(bus, run_id, config, assign, attempt=None):
+                if lost:  # sent again: let it through
+                    return real(bus, run_id, config, assign, attempt)
+                lost.append(attempt)
+                cluster.kill("counter-2")  # dies just after the assignment
+                real(bus, run_id, config, assign, attempt)
+                cluster.service("counter", "counter", name="counter-3")
+
+            monkeypatch.setattr(scheduler, "send_start", start_lost_to_the_counter)
+            retried = httpx.post(f"{url}/experiments/{exp['id']}/retry", timeout=30).json()
+            assert retried["retried"] == [run]
+            # Back, it restores attempt 1 (unfinished on its disk); the queue takes it.
+            cluster.service("counter", "counter", name="counter-2")
+            done = wait_for(
+                lambda: (r := got())["status"] not in ("queued", "running") and r,
+                300,
+                what="the retried run to end",
+            )
+            assert lost == [2], "the retry's start was the one lost"
+            assert done["status"] == "completed" and done["attempts"] == 2, done
+            assert done["points"] == EPISODES // TINY["eval_every"]
+            again = [r.message for r in caplog.records if "its start sent again" in r.message]
+            assert again and "holds attempt 1 of the run, not 2" in again[0], again
+
+            def counted() -> bool:
+                live = got()["live"]
+                return live.get("counter", {}).get("counted_transitions") == EPISODES * 20
+
+            wait_for(counted, 30, what="attempt 2 counted in full, from nothing")
+            log = cluster.log("counter-3")
+            assert "attempt 2 started while serving attempt 1" in log, log[-3000:]
+        finally:
+            server.stop()
