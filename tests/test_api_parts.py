@@ -11,13 +11,13 @@ import pytest
 
 from services.api.planner import Invalid, QueuePass, Start
 from services.api.points import Points
-from services.api.reconcile import reconcile_run, stale_runs, start_lost, worker_rows
+from services.api.reconcile import reconcile_run, stale_runs, worker_rows
 from services.api.runbook import RunBook
 from services.api.store import Store
 from services.api.watch import Ending, Watch, flat_row
 from shared.net import bus as keys
 from shared.net.messages import Assignment, Metrics, Resumed, Status
-from shared.net.monitor import Graces, serving
+from shared.net.monitor import Graces, serving, start_lost
 from shared.net.wire import encode
 from tests.harness import TINY
 
@@ -223,8 +223,11 @@ def test_a_start_lost_to_the_counter_is_sent_again_on_the_second_look_and_not_of
             "L1": {"id": "L1", "role": "learner", "run": learner},
         }
 
-    assert start_lost(w, infos(None)) == "counter C does not hold the run"
-    old = start_lost(w, infos({"attempt": 1}))
+    def lost(infos: dict) -> str | None:
+        return start_lost(w.run, w.assign, w.attempt, infos)
+
+    assert lost(infos(None)) == "counter C does not hold the run"
+    old = lost(infos({"attempt": 1}))
     assert old == "counter C holds attempt 1 of the run, not 2"
     for fine in (
         infos({"attempt": 2}),
@@ -233,13 +236,15 @@ def test_a_start_lost_to_the_counter_is_sent_again_on_the_second_look_and_not_of
         infos(None, learner=None),  # the learner is not on it (ended, or not yet)
         {"L1": infos(None)["L1"]},  # no counter answers
     ):
-        assert start_lost(w, fine) is None, fine
-    assert not w.start_again_due(True, 10.0, 15.0), "a first look only"
-    assert not w.start_again_due(False, 13.0, 15.0), "found again: the look starts over"
-    assert not w.start_again_due(True, 16.0, 15.0)
-    assert w.start_again_due(True, 19.0, 15.0), "two looks in a row"
-    assert not w.start_again_due(True, 22.0, 15.0) and not w.start_again_due(True, 33.0, 15.0)
-    assert w.start_again_due(True, 34.0, 15.0), "again once every_s has passed"
+        assert lost(fine) is None, fine
+    assert start_lost(w.run, w.assign, None, infos({"attempt": 1})) is None, "a starter's none"
+    due = w.lost_start.due
+    assert not due(True, 10.0, 15.0), "a first look only"
+    assert not due(False, 13.0, 15.0), "found again: the look starts over"
+    assert not due(True, 16.0, 15.0)
+    assert due(True, 19.0, 15.0), "two looks in a row"
+    assert not due(True, 22.0, 15.0) and not due(True, 33.0, 15.0)
+    assert due(True, 34.0, 15.0), "again once every_s has passed"
 
 
 def test_services_that_rejoined_an_ended_run_are_to_be_stopped():

@@ -3,10 +3,11 @@
 The scheduler puts a run's start once. A counter that dies just after the run was
 assigned to it never gets it, and, restarted, restores from its disk only what it had:
 here the run's ended attempt, whose stop never reached it (the counter was down then
-too). Its learner, started, would wait on refused bonus queries for good. The API runs
-in this process so that the test can kill the counter in that window: its scheduler's
-`send_start` is wrapped to kill the counter before the start goes out and start it
-again after. A router, a counter, a learner, an evaluator and an actor are processes.
+too). Its learner, started, would wait on refused bonus queries for good. The API (and
+`macb start`'s watch) runs in this process so that the test can kill the counter in
+that window: its `send_start` is wrapped to kill the counter before the start goes
+out and start it again after. A router, a counter, a learner, an evaluator and an
+actor are processes.
 """
 
 from __future__ import annotations
@@ -17,7 +18,10 @@ import httpx
 import pytest
 
 import services.api.scheduler as scheduler
-from tests.harness import TINY, Cluster, start_api, wait_for
+import shared.net.control as control
+from shared.config import make_config
+from shared.net.bus import Bus
+from tests.harness import TINY, Cluster, start_api, wait_for, wait_services
 
 EPISODES = 40
 
@@ -95,3 +99,36 @@ def test_a_counter_that_missed_its_runs_start_is_sent_it_again(tmp_path, monkeyp
             assert "attempt 2 started while serving attempt 1" in log, log[-3000:]
         finally:
             server.stop()
+
+
+@pytest.mark.timeout(300)
+def test_macb_starts_watch_sends_the_start_again_to_a_counter_that_missed_it(
+    tmp_path, monkeypatch
+):
+    """`macb start` (no API) watches its run by the API's rule, the lost start too: the
+    counter, killed as the start goes out, comes back holding nothing of the run."""
+    with Cluster(tmp_path) as cluster:
+        router = cluster.router()
+        cluster.services(actors=1)
+        bus = Bus([router])
+        try:
+            wait_services(bus, 4)
+            real = control.send_start
+            sent: list[str] = []
+
+            def start_lost_to_the_counter(bus, run_id, config, assign, attempt=None):
+                sent.append(run_id)
+                if len(sent) == 1:
+                    cluster.kill("counter")  # dies just after the assignment
+                real(bus, run_id, config, assign, attempt)
+                if len(sent) == 1:
+                    cluster.service("counter", "counter", name="counter-2")
+
+            monkeypatch.setattr(control, "send_start", start_lost_to_the_counter)
+            config = make_config({**TINY, "episodes": EPISODES})
+            watch = control.start_run(bus, config)
+            assert watch.wait(timeout=240) == "completed", watch.decision()
+            assert len(sent) >= 2 and set(sent) == {watch.run}, sent
+            assert len(watch.rows) == EPISODES // TINY["eval_every"]
+        finally:
+            bus.close()

@@ -14,8 +14,7 @@ from collections.abc import Callable, Container, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from shared.net.messages import same_attempt
-from shared.net.monitor import live_peer, serving
+from shared.net.monitor import live_peer
 
 from .watch import Ending, Watch
 
@@ -52,31 +51,6 @@ def reconcile_run(
     the monitor's rule (`RunMonitor.unserved`), which `macb start` applies too."""
     decision = w.monitor.unserved(w.run, infos, alive, now, settle_s, wait_s)
     return None if decision is None else Ending.of(decision)
-
-
-def start_lost(w: Watch, infos: Mapping[str, dict[str, Any]]) -> str | None:
-    """Why the run's counter is to be sent the run's start again (None: it is not).
-
-    The scheduler puts a start once. A counter that died just after the run was assigned
-    to it never gets it; restarted, it restores from its disk only what it had, which
-    may be an ended attempt of this run whose stop never reached it. Its learner,
-    started, then waits on refused bonus queries for good. So: the counter answers
-    and is ready, the learner serves the run, and the counter holds the run not at all
-    or as another attempt (a counter that names none is taken as holding this one).
-    A start sent again is a repeated start to the services that have it (ignored)."""
-    counter = infos.get(w.assign.counter)
-    learner = infos.get(w.assign.learner)
-    if counter is None or counter.get("role") != "counter" or counter.get("ready") is not True:
-        return None
-    if learner is None or not serving(w.run, [("learner", w.assign.learner)], infos):
-        return None
-    held = (counter.get("runs") or {}).get(w.run)
-    if not isinstance(held, dict):
-        return f"counter {w.assign.counter} does not hold the run"
-    attempt = held.get("attempt")
-    if same_attempt(attempt, w.attempt):
-        return None
-    return f"counter {w.assign.counter} holds attempt {attempt} of the run, not {w.attempt}"
 
 
 def stale_runs(

@@ -23,7 +23,7 @@
   told to stop it, so it is free again. A counter that missed a run's start (it died
   just after the run was assigned to it) is sent the start again once its learner is
   seen serving the run and the counter, ready, holds it not at all or as another
-  attempt (`reconcile.start_lost`): else the learner waits on refused queries.
+  attempt (`shared.net.monitor.start_lost`): else the learner waits on refused queries.
 - Sends the stop messages the HTTP side asks for (a failed run's other services are
   stopped too, so they are free for the next run).
 - On start (after an API restart), re-attaches to the runs the store says are
@@ -57,12 +57,12 @@ from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.control import discover, history_rows, send_start, send_stop
 from shared.net.info import ApiInfo
-from shared.net.monitor import Graces, live_peer
+from shared.net.monitor import Graces, live_peer, start_lost
 from shared.net.monitor import peer_grace_s as peer_grace
 from shared.settings import node_name
 
 from .planner import Invalid, QueuePass
-from .reconcile import reconcile_run, stale_runs, start_lost, worker_rows
+from .reconcile import reconcile_run, stale_runs, worker_rows
 from .runbook import ENDED_WATCH_S, RunBook
 from .store import Store
 from .watch import Ending, Watch, flat_row
@@ -311,8 +311,10 @@ class Scheduler:
                 if ending is not None:
                     self._end(w, ending)
                     continue
-                lost = start_lost(w, infos) if now - w.monitor.started > settle_s else None
-                if w.start_again_due(lost is not None, now, settle_s):
+                lost = None
+                if now - w.monitor.started > settle_s:
+                    lost = start_lost(w.run, w.assign, w.attempt, infos)
+                if w.lost_start.due(lost is not None, now, settle_s):
                     self._start_again(w, f"{lost}: its start sent again")
 
     def _start_again(self, w: Watch, why: str) -> None:

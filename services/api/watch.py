@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from shared.net.messages import Assignment, Metrics, Status
-from shared.net.monitor import Decision, Graces, RunMonitor
+from shared.net.monitor import Decision, Graces, LostStart, RunMonitor
 
 LIVE_SAVE_S = 1.0  # a running run's latest stats are saved at most this often
 
@@ -72,8 +72,7 @@ class Watch:
     ended: float | None = None  # monotonic time it reached a final status
     notes: list[str] = field(default_factory=list)  # resumes: kept as the run's reason
     attempt: int | None = None  # the run's `attempts` when started (Start.attempt)
-    start_lost_since: float | None = None  # its counter first seen without its start
-    start_again_at: float | None = None  # when its start was last sent again
+    lost_start: LostStart = field(default_factory=LostStart)  # its counter without its start
 
     @classmethod
     def of(
@@ -173,22 +172,6 @@ class Watch:
 
     def live_saved(self, now: float) -> None:
         self.live_dirty, self.live_written = False, now
-
-    def start_again_due(self, lost: bool, now: float, every_s: float) -> bool:
-        """Whether to send the run's start again, its counter being seen without it
-        (`lost`) now: on two looks in a row (a run ending meanwhile frees its learner
-        first, so a second look no longer finds it lost), and at most every `every_s`
-        (a counter restoring its tables is slow to answer)."""
-        if not lost:
-            self.start_lost_since = None
-            return False
-        if self.start_lost_since is None:
-            self.start_lost_since = now
-            return False
-        if self.start_again_at is not None and now - self.start_again_at < every_s:
-            return False
-        self.start_again_at = now
-        return True
 
     # ------------------------------------------------------------ what the bus shows
     def unobserved_end(self) -> Ending:

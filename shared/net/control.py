@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import threading
 import time
 import uuid
@@ -23,8 +24,19 @@ from shared.net import bus as keys
 from shared.net.bus import Bus
 from shared.net.info import ServiceInfo
 from shared.net.messages import Assignment, History, Metrics, Start, Status, Stop, same_attempt
-from shared.net.monitor import Decision, Graces, RunMonitor, RunVerdict, live_peer, peer_grace_s
+from shared.net.monitor import (
+    Decision,
+    Graces,
+    LostStart,
+    RunMonitor,
+    RunVerdict,
+    live_peer,
+    peer_grace_s,
+    start_lost,
+)
 from shared.net.wire import WireError, decode, encode
+
+log = logging.getLogger("macb.control")
 
 
 class NoFreeServices(RuntimeError):
@@ -191,6 +203,8 @@ class RunWatch:
     _final: Decision | None = None  # once a run is over, it stays so
     _alive: set[tuple[str, str]] = field(default_factory=set)  # (role, id) with a token
     _checked: float = 0.0  # when who serves the run was last asked
+    config: TrainConfig | None = None  # its start's, sent again to a counter that missed it
+    _lost_start: LostStart = field(default_factory=LostStart)
 
     def __post_init__(self) -> None:
         self.monitor = RunMonitor(
@@ -274,7 +288,14 @@ class RunWatch:
             ending = self.monitor.unserved(
                 self.run, infos, self._alive, now, g.settle_s, g.unserved_s(self.check_s)
             )
-            return ending or self.monitor.decide(now)  # a learner found gone meanwhile
+            ending = ending or self.monitor.decide(now)  # a learner found gone meanwhile
+        lost = None
+        if ending.state == "running" and now - self.monitor.started > g.settle_s:
+            lost = start_lost(self.run, self.assign, None, infos)
+        if self._lost_start.due(lost is not None, now, g.settle_s) and self.config is not None:
+            log.warning("run %s: %s: its start sent again", self.run, lost)
+            send_start(self._bus, self.run, self.config, self.assign)
+        return ending
 
     def verdict(self) -> RunVerdict:
         """The run's status by its services' reports alone."""
@@ -340,7 +361,7 @@ def start_run(
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.2)
-    watch = RunWatch(run, assign, episodes=config.episodes, on_row=on_row)
+    watch = RunWatch(run, assign, episodes=config.episodes, on_row=on_row, config=config)
     watch.attach(bus)
     send_start(bus, run, config, assign)
     return watch

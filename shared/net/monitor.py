@@ -17,7 +17,7 @@ from collections.abc import Container, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from shared.net.messages import Assignment
+from shared.net.messages import Assignment, same_attempt
 from shared.settings import Settings, settings
 
 # Services without which a run cannot go on; the counter has a grace of its own (it
@@ -192,6 +192,54 @@ def serving(run: str, services: Iterable[tuple[str, str]], infos: Mapping[str, A
         and sid in infos
         and (infos[sid].get("run") == run or run in (infos[sid].get("runs") or []))
     ]
+
+
+def start_lost(
+    run: str, assign: Assignment, attempt: int | None, infos: Mapping[str, Mapping[str, Any]]
+) -> str | None:
+    """Why the run's counter is to be sent the run's start again (None: it is not).
+
+    A starter puts a run's start once. A counter that died just after the run was
+    assigned to it never gets it; restarted, it restores from its disk only what it
+    had, which may be an ended attempt of this run whose stop never reached it. Its
+    learner, started, then waits on refused bonus queries for good. So: the counter
+    answers and is ready, the learner serves the run, and the counter holds the run not
+    at all or as another attempt (either naming none is taken as the same). A start
+    sent again is a repeated start to the services that have it (ignored)."""
+    counter = infos.get(assign.counter)
+    if counter is None or counter.get("role") != "counter" or counter.get("ready") is not True:
+        return None
+    if not serving(run, [("learner", assign.learner)], infos):
+        return None
+    held = (counter.get("runs") or {}).get(run)
+    if not isinstance(held, Mapping):
+        return f"counter {assign.counter} does not hold the run"
+    if same_attempt(held.get("attempt"), attempt):
+        return None
+    return f"counter {assign.counter} holds attempt {held.get('attempt')} of the run, not {attempt}"
+
+
+@dataclass
+class LostStart:
+    """When to send a run's start again, its counter seen without it (`start_lost`)."""
+
+    since: float | None = None  # first seen so, on the looks in a row up to now
+    sent_at: float | None = None  # the start last sent again
+
+    def due(self, lost: bool, now: float, every_s: float) -> bool:
+        """Whether to send it now: on two looks in a row (a run ending meanwhile frees
+        its learner first, so a second look no longer finds it lost), and at most
+        every `every_s` (a counter restoring its tables is slow to answer)."""
+        if not lost:
+            self.since = None
+            return False
+        if self.since is None:
+            self.since = now
+            return False
+        if self.sent_at is not None and now - self.sent_at < every_s:
+            return False
+        self.sent_at = now
+        return True
 
 
 class RunMonitor:
