@@ -84,7 +84,7 @@ class Client:
                     got = self.api.metrics(r["id"], since.get(r["id"], 0))
                     head = {"run": r["id"], "arm": r["arm"], "seed": r["seed"]}
                     for p in _rows(got["points"]):
-                        yield {**head, "attempt": got["attempt"], **p}
+                        yield {**head, "attempt": got.get("attempt"), **p}
                     if got["points"]:
                         since[r["id"]] = got["next_since"]
                     if not got["more"]:

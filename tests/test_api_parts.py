@@ -215,6 +215,9 @@ def test_a_start_lost_to_the_counter_is_sent_again_on_the_second_look_and_not_of
     a learner not on the run: nothing to send."""
     w = watch()
     w.attempt = 2
+    assert not w.counts, "an arm that counts nothing learns without its counter"
+    counting = {"id": "r1", "assign": ASSIGN, "config": {"explore": "dis-macb"}}
+    assert Watch.of(counting, 0.0, GRACES, (0, 0, 0)).counts
 
     def infos(held: dict | None, ready: bool = True, learner: str | None = "r1") -> dict:
         runs = {} if held is None else {"r1": held}
@@ -466,11 +469,11 @@ def test_points_are_numbered_in_arrival_order_and_an_episode_is_stored_once(tmp_
     assert points.add("r", [{"episode": 8, "seq": 99}, {"episode": 4}]) == 2
     assert points.add("r", [{"episode": 4}, {"episode": 12}]) == 1
     assert [(p["seq"], p["episode"]) for p in points.rows("r")] == [(1, 8), (2, 4), (3, 12)]
-    text, n, last, attempt = points.page_json("r", since=1, limit=1)
-    assert (text, n, last, attempt) == ('[{"seq": 2, "episode": 4}]', 1, 2, 1)
-    assert points.page_json("r", since=3) == ("[]", 0, 3, 1), "none after: the cursor stays"
-    assert points.page_json("none") == ("[]", 0, 0, 0), "no such run"
-    assert points.has_more("r", 2) and not points.has_more("r", 3)
+    page = points.page_json("r", since=1, limit=1)
+    assert page == ('[{"seq": 2, "episode": 4}]', 1, 2, 1, True), "attempt 1, one more after"
+    assert points.page_json("r", since=2, limit=1)[4] is False, "the last one: none after"
+    assert points.page_json("r", since=3) == ("[]", 0, 3, 1, False), "the cursor stays"
+    assert points.page_json("none") == ("[]", 0, 0, 0, False), "no such run"
     assert points.stats(["r", "none"]) == {"r": (3, 3, 12), "none": (0, 0, 0)}
     assert points.add("r", [{"episode": 16}], attempt=2) == 0, "not the run's attempt"
     assert points.add("r", [{"episode": 16}], attempt=1) == 1

@@ -100,6 +100,14 @@ def test_a_service_stamps_its_attempt_and_a_late_answer_of_another_does_not_end_
     learner_says(bus, "failed", 2, "this attempt's")
     ended = wait_for(lambda: statuses.find("stopped", 2), 30, what="attempt 2 ended")
     assert ended.reason == "learner failed: this attempt's", ended
+    # Attempt 2's start again (sent for a counter that missed it): over here, ignored.
+    send_start(bus, "r", config, ASSIGN, attempt=2)
+    wait_for(
+        lambda: "run r: start of attempt 2, let go already: ignored" in cluster.log(EVALUATOR),
+        30,
+        what="the repeated start ignored",
+    )
+    assert not [s for s in statuses.got if s.attempt == 2 and s.state == "running"][1:]
     # A start it refuses (a bad config) fails as the attempt it named.
     send_bad_start(bus, attempt=3)
     failed = wait_for(lambda: statuses.find("failed", 3), 30, what="attempt 3 refused")

@@ -102,9 +102,7 @@ def test_a_counter_that_missed_its_runs_start_is_sent_it_again(tmp_path, monkeyp
 
 
 @pytest.mark.timeout(300)
-def test_macb_starts_watch_sends_the_start_again_to_a_counter_that_missed_it(
-    tmp_path, monkeypatch
-):
+def test_macb_starts_watch_sends_the_start_again_to_a_counter_that_missed_it(tmp_path, monkeypatch):
     """`macb start` (no API) watches its run by the API's rule, the lost start too: the
     counter, killed as the start goes out, comes back holding nothing of the run."""
     with Cluster(tmp_path) as cluster:

@@ -429,17 +429,19 @@ def test_sbatch_args_naming_another_cluster_are_refused_before_slurm_is_asked(
     assert slurm.preflight(ok, [runs], folder="f", flag="--f", run=fake) is None
 
 
-def test_slurm_clusters_in_the_environment_is_refused_as_m_is(tmp_path, monkeypatch):
-    """sbatch and squeue read SLURM_CLUSTERS as -M: set on the login node, the job went
-    to that cluster while the tasks were looked for in squeue's multi-cluster answer."""
+@pytest.mark.parametrize("name", ["SLURM_CLUSTERS", "SBATCH_CLUSTERS"])
+def test_a_cluster_named_in_the_environment_is_refused_as_m_is(tmp_path, monkeypatch, name):
+    """sbatch reads SBATCH_CLUSTERS and SLURM_CLUSTERS as -M: set on the login node, the
+    job went to that cluster while squeue looked for its tasks elsewhere (or, reading
+    SLURM_CLUSTERS itself, answered in its multi-cluster format)."""
     monkeypatch.setattr(slurm.shutil, "which", lambda c: "/bin/" + c)
-    monkeypatch.setenv("SLURM_CLUSTERS", "gpu")
+    monkeypatch.setenv(name, "gpu")
     runs = tmp_path / "runs"
     fake = FakeSlurm()
     why = slurm.preflight(SlurmOptions(), [runs], folder="f", flag="--f", run=fake)
-    assert why is not None and "SLURM_CLUSTERS=gpu is set" in why and "unset it" in why
+    assert why is not None and f"{name}=gpu is set" in why and "unset it" in why
     assert fake.calls == [] and not runs.exists()
-    monkeypatch.setenv("SLURM_CLUSTERS", "")
+    monkeypatch.setenv(name, "")
     assert slurm.preflight(SlurmOptions(), [runs], folder="f", flag="--f", run=fake) is None
 
 

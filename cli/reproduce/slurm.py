@@ -27,7 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -131,12 +131,13 @@ def preflight(
     return None
 
 
-def sbatch_args_error(extra: Sequence[str], env: Mapping[str, str] | None = None) -> str | None:
+def sbatch_args_error(extra: Sequence[str]) -> str | None:
     """Why --sbatch-args cannot be passed on, or None. -M/--clusters (--cluster) sends
     the job to another cluster, while squeue, asked without it, answers for the default
     one: every task would look gone at once and the next run would submit it again.
-    Following jobs on several clusters is not supported, so it is refused, and so is
-    SLURM_CLUSTERS in the environment, which sbatch and squeue read as -M."""
+    Following jobs on several clusters is not supported, so it is refused, and so are
+    SBATCH_CLUSTERS and SLURM_CLUSTERS in the environment, which sbatch reads as -M
+    (squeue reads the second only, and then answers in another format)."""
     for word in extra:
         flag = word.split("=", 1)[0]
         if flag in ("--clusters", "--cluster") or word.startswith("-M"):
@@ -145,13 +146,13 @@ def sbatch_args_error(extra: Sequence[str], env: Mapping[str, str] | None = None
                 "follows jobs on the default cluster only (squeue would find none of its "
                 "tasks); run this on a login node of that cluster instead"
             )
-    clusters = (os.environ if env is None else env).get("SLURM_CLUSTERS")
-    if clusters:
-        return (
-            f"--launcher slurm: SLURM_CLUSTERS={clusters} is set, which sends the job to "
-            "that Slurm cluster (as -M), and macb follows jobs on the default cluster only; "
-            "unset it, or run this on a login node of that cluster"
-        )
+    for name in ("SBATCH_CLUSTERS", "SLURM_CLUSTERS"):
+        if clusters := os.environ.get(name):
+            return (
+                f"--launcher slurm: {name}={clusters} is set, which sends the job to that "
+                "Slurm cluster (as -M), and macb follows jobs on the default cluster only; "
+                "unset it, or run this on a login node of that cluster"
+            )
     return None
 
 

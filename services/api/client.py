@@ -114,10 +114,10 @@ class ApiClient:
         since, attempt = 0, None
         while True:
             got = self.metrics(run_id, since, limit=page)
-            if attempt is not None and got["attempt"] != attempt:
+            if attempt is not None and got.get("attempt") != attempt:
                 points, since, attempt = [], 0, None  # retried meanwhile: read it again
                 continue
-            attempt = got["attempt"]
+            attempt = got.get("attempt")  # (None from an API older than the field)
             points += got["points"]
             if not got["more"] or not got["points"]:
                 return points

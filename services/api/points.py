@@ -65,26 +65,27 @@ class Points:
 
     def page_json(
         self, run_id: str, since: int = 0, limit: int = 10_000
-    ) -> tuple[str, int, int, int]:
-        """Points after `since` as a JSON array text; (text, count, last seq, attempt).
-
-        `attempt` is the run's current attempt read in the same statement as the points,
-        so every point in the page is of it (a retry deletes the points of the attempts
-        before it, in the transaction that counts the new one); 0 for an unknown run."""
-        rows = (
-            self.db.conn()
-            .execute(
-                "SELECT r.attempts, m.seq, m.data FROM runs r LEFT JOIN ("
-                " SELECT seq, data FROM metrics WHERE run_id = ? AND seq > ? ORDER BY seq"
-                " LIMIT ?) m WHERE r.id = ? ORDER BY m.seq",
-                (run_id, since, limit, run_id),
-            )
-            .fetchall()
-        )
-        attempt = rows[0][0] if rows else 0
-        points = [r for r in rows if r[1] is not None]
-        last = points[-1][1] if points else since
-        return "[" + ",".join(r[2] for r in points) + "]", len(points), last, attempt
+    ) -> tuple[str, int, int, int, bool]:
+        """Points after `since` as a JSON array text: (text, count, last seq, attempt,
+        more), read in one statement, so that `attempt` (the run's current one) is the
+        attempt of every point in the page (a retry deletes the earlier attempts' points
+        in the transaction that counts the new one) and `more` (points remain after
+        these) is of the same state. An empty page reads the attempt alone; 0 for an
+        unknown run."""
+        conn = self.db.conn()
+        rows = conn.execute(
+            "SELECT (SELECT attempts FROM runs WHERE id = ?), seq, data FROM metrics"
+            " WHERE run_id = ? AND seq > ? ORDER BY seq LIMIT ?",
+            (run_id, run_id, since, limit + 1),
+        ).fetchall()
+        more = len(rows) > limit
+        rows = rows[:limit]
+        if rows:
+            attempt, last = rows[0][0], rows[-1][1]
+        else:
+            got = conn.execute("SELECT attempts FROM runs WHERE id = ?", (run_id,)).fetchone()
+            attempt, last = (got[0] if got else 0), since
+        return "[" + ",".join(r[2] for r in rows) + "]", len(rows), last, attempt, more
 
     def rows(self, run_id: str, since: int = 0, limit: int = 1_000_000) -> list[dict[str, Any]]:
         """Points after `since`, decoded, in seq order."""
@@ -113,11 +114,3 @@ class Points:
                 if last_seq is not None:
                     out[run_id] = (last_seq - base, last_seq, last_episode)
         return out
-
-    def has_more(self, run_id: str, since: int) -> bool:
-        row = (
-            self.db.conn()
-            .execute("SELECT 1 FROM metrics WHERE run_id = ? AND seq > ? LIMIT 1", (run_id, since))
-            .fetchone()
-        )
-        return row is not None

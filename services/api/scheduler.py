@@ -312,7 +312,7 @@ class Scheduler:
                     self._end(w, ending)
                     continue
                 lost = None
-                if now - w.monitor.started > settle_s:
+                if w.counts and now - w.monitor.started > settle_s:
                     lost = start_lost(w.run, w.assign, w.attempt, infos)
                 if w.lost_start.due(lost is not None, now, settle_s):
                     self._start_again(w, f"{lost}: its start sent again")

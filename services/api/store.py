@@ -266,7 +266,7 @@ class Store:
 
     def points_json(
         self, run_id: str, since: int = 0, limit: int = 10_000
-    ) -> tuple[str, int, int, int]:
+    ) -> tuple[str, int, int, int, bool]:
         return self.metrics.page_json(run_id, since, limit)
 
     def points(self, run_id: str, since: int = 0, limit: int = 1_000_000) -> list[dict[str, Any]]:
@@ -274,9 +274,6 @@ class Store:
 
     def point_stats(self, run_ids: list[str]) -> dict[str, tuple[int, int, int]]:
         return self.metrics.stats(run_ids)
-
-    def has_more(self, run_id: str, since: int) -> bool:
-        return self.metrics.has_more(run_id, since)
 
     def snapshot(self) -> dict[str, list[tuple]]:
         """Every row of every table (tests: check that refused requests changed nothing)."""

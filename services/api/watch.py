@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from shared.config import COUNTING_EXPLORE
 from shared.net.messages import Assignment, Metrics, Status
 from shared.net.monitor import Decision, Graces, LostStart, RunMonitor
 
@@ -73,6 +74,7 @@ class Watch:
     notes: list[str] = field(default_factory=list)  # resumes: kept as the run's reason
     attempt: int | None = None  # the run's `attempts` when started (Start.attempt)
     lost_start: LostStart = field(default_factory=LostStart)  # its counter without its start
+    counts: bool = True  # its arm counts (a counter that missed its start stalls it)
 
     @classmethod
     def of(
@@ -97,6 +99,7 @@ class Watch:
             monitor=monitor,
             live=dict(run.get("live") or {}),
             attempt=run.get("attempts"),
+            counts=run["config"].get("explore") in COUNTING_EXPLORE,
         )
 
     @property

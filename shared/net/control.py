@@ -290,9 +290,10 @@ class RunWatch:
             )
             ending = ending or self.monitor.decide(now)  # a learner found gone meanwhile
         lost = None
-        if ending.state == "running" and now - self.monitor.started > g.settle_s:
+        counts = self.config is not None and self.config.counts
+        if counts and ending.state == "running" and now - self.monitor.started > g.settle_s:
             lost = start_lost(self.run, self.assign, None, infos)
-        if self._lost_start.due(lost is not None, now, g.settle_s) and self.config is not None:
+        if self._lost_start.due(lost is not None, now, g.settle_s) and self.config:
             log.warning("run %s: %s: its start sent again", self.run, lost)
             send_start(self._bus, self.run, self.config, self.assign)
         return ending

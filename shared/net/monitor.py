@@ -205,7 +205,8 @@ def start_lost(
     learner, started, then waits on refused bonus queries for good. So: the counter
     answers and is ready, the learner serves the run, and the counter holds the run not
     at all or as another attempt (either naming none is taken as the same). A start
-    sent again is a repeated start to the services that have it (ignored)."""
+    sent again is ignored by the services that serve the run or have let that attempt
+    go (services/common.py); the callers ask only for arms that count."""
     counter = infos.get(assign.counter)
     if counter is None or counter.get("role") != "counter" or counter.get("ready") is not True:
         return None

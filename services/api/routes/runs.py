@@ -60,8 +60,7 @@ def get_metrics(
     limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
 ):
     """Stored metric points in arrival order; poll with `since=next_since` for new ones."""
-    text, n, last, attempt = store.points_json(run["id"], since, limit)
-    more = n == limit and store.has_more(run["id"], last)
+    text, _, last, attempt, more = store.points_json(run["id"], since, limit)
     # The points are stored as JSON: splice them in instead of decoding 10,000 rows.
     head = json.dumps(
         {
