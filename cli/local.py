@@ -12,7 +12,6 @@ config's run is refused, never overwritten.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import re
@@ -142,37 +141,24 @@ class Refused(SystemExit):
 
 
 def run_rows(folder: Path) -> list[dict[str, Any]]:
-    """A run's rows as written so far. A last line without its newline is a row being
-    written by a run that is still going (a page built during a campaign), not yet one;
-    a last line that does not parse is one a killed process left torn: both are left
-    out (a resume rewrites the rows from its cut anyway). A line before the last that
-    does not parse (NUL bytes where two processes wrote the file at once) is refused:
-    `MetricsError`, naming the file and the line."""
+    """A run's rows as written so far (`cli.runs_folder.jsonl_rows`: a row being written
+    or a torn last line is left out). A line before the last that does not read is
+    refused: `MetricsError`, naming the file and the line."""
+    from cli.runs_folder import RowError, jsonl_rows
+
     path = folder / "metrics.jsonl"
     if not path.exists():
         return []
-    text = path.read_bytes().decode(errors="replace")
-    if not text.endswith("\n"):
-        text = text[: text.rfind("\n") + 1]
-    lines = text.splitlines()
-    rows = []
-    for i, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
-        try:
-            row = json.loads(line)
-            if not isinstance(row, dict):
-                raise ValueError(f"a {type(row).__name__}, not an object")
-        except ValueError as err:
-            if i == len(lines):
-                break
-            raise MetricsError(
-                f"{path}, line {i}: not a metric row ({str(err)[:80]}); only a torn last "
-                "line is left out. Were two processes writing this run? Its rows cannot "
-                "be read: move the folder away (the same command then trains it afresh)"
-            ) from None
-        rows.append(row)
-    return rows
+    try:
+        return jsonl_rows(path)
+    except RowError as err:
+        raise MetricsError(
+            f"{path}, {err}; only a torn last line is left out. Were two processes writing "
+            "this run? Its rows cannot be read: move the folder away (the same command "
+            "then trains it afresh)"
+        ) from None
+    except OSError as err:
+        raise MetricsError(f"{path}: cannot be read ({err})") from None
 
 
 def _same_config(folder: Path, cfg: TrainConfig) -> bool:

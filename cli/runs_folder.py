@@ -94,28 +94,52 @@ def read_config(folder: Path) -> dict[str, Any]:
     return config
 
 
+class RowError(ValueError):
+    """A line of a metrics.jsonl, not its last, that is not a JSON row."""
+
+    def __init__(self, line: int, why: str) -> None:
+        super().__init__(f"line {line}: not a metric row ({why})")
+        self.line = line
+
+
+def jsonl_rows(path: Path) -> list[dict[str, Any]]:
+    """A metrics.jsonl's rows as written so far, the one reading of every reader. A last
+    line without its newline is a row being written by a run still going, not yet a
+    row; a last line that does not read (JSON in UTF-8) is one a killed process left
+    torn: both are left out (a resume writes the rows again from its cut). Another line
+    that does not read (NUL bytes where two processes wrote at once) raises RowError
+    naming it. OSError when the file cannot be read."""
+    data = path.read_bytes()
+    lines = data[: data.rfind(b"\n") + 1].split(b"\n")[:-1]  # each ended by its newline
+    rows = []
+    for i, raw in enumerate(lines, 1):
+        if not raw.strip():
+            continue
+        try:
+            row = json.loads(raw.decode())
+            if not isinstance(row, dict):
+                raise ValueError(f"a {type(row).__name__}, not an object")
+        except ValueError as err:  # (UnicodeDecodeError too)
+            if i == len(lines):
+                break
+            raise RowError(i, str(err)[:80]) from None
+        rows.append(row)
+    return rows
+
+
 def read_rows(folder: Path) -> list[dict[str, Any]]:
-    """The run's metric rows; a torn last line is skipped. A row whose episode is not a
-    whole number is refused (every reader indexes points by it)."""
+    """The run's metric rows (`jsonl_rows`; a folder with only a metrics.csv, its rows). A
+    row whose episode is not a whole number is refused (every reader indexes points by
+    it)."""
     path = folder / "metrics.jsonl"
     if not path.is_file():
         return _checked(folder / "metrics.csv", _csv_rows(folder / "metrics.csv"))
     try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as err:
+        rows = jsonl_rows(path)
+    except OSError as err:
         raise RunsError(f"{path}: unreadable ({err})") from err
-    lines = [x for x in text.splitlines() if x.strip()]
-    rows = []
-    for i, line in enumerate(lines, 1):
-        try:
-            row = json.loads(line)
-        except ValueError as err:
-            if i == len(lines):  # a row being written
-                break
-            raise RunsError(f"{path}: line {i} is not a JSON row ({err})") from err
-        if not isinstance(row, dict):
-            raise RunsError(f"{path}: line {i} is not a JSON object")
-        rows.append(row)
+    except RowError as err:
+        raise RunsError(f"{path}: {err}") from None
     return _checked(path, rows)
 
 

@@ -83,11 +83,14 @@ def test_a_torn_last_line_is_skipped_and_bad_files_are_refused_by_name(out):
     bad = runs / "Sparse-s1" / "metrics.jsonl"
     lines = bad.read_text().splitlines()
     bad.write_text("\n".join([lines[0], "{not json", *lines[1:]]) + "\n")
-    with pytest.raises(macb.RunsError, match=r"Sparse-s1/metrics.jsonl: line 2 is not a JSON row"):
+    with pytest.raises(macb.RunsError, match=r"s1/metrics.jsonl: line 2: not a metric row"):
         macb.load_runs(runs)
-    bad.write_bytes(("\n".join(lines) + "\n").encode() + b'{"episode": \xff\xfe}\n')
-    with pytest.raises(macb.RunsError, match=r"Sparse-s1/metrics.jsonl: unreadable"):
+    bad.write_bytes(lines[0].encode() + b'\n{"episode": \xff\xfe}\n' + lines[1].encode() + b"\n")
+    with pytest.raises(macb.RunsError, match=r"s1/metrics.jsonl: line 2: not a metric row"):
         macb.load_runs(runs)  # bytes that are not UTF-8
+    bad.write_bytes(("\n".join(lines) + "\n").encode() + b'{"episode": \xff\xfe}\n')
+    frame = macb.load_runs(runs)  # a last line that does not read: torn, left out
+    assert (frame["run"] == "Sparse-s1").sum() == len(lines)
     bad.write_text("\n".join(lines) + "\n")
     (runs / "Sparse-s1" / "config.json").write_text('{"seed": 1,')
     with pytest.raises(macb.RunsError, match=r"Sparse-s1/config.json: unreadable"):
