@@ -207,40 +207,49 @@ def test_a_learner_gone_unseen_is_given_the_peer_grace():
     assert w.monitor.decide(51.0).state == "failed"
 
 
-def test_a_start_lost_to_the_counter_is_sent_again_on_the_second_look_and_not_often():
-    """The counter answers (ready) and its learner serves the run, but the counter holds
-    the run not at all, or as another attempt (restored from its disk): the start is
-    to be sent again, on a second look in a row (a run ending frees its learner first)
-    and at most every `every_s`. A counter not ready, one that names no attempt (older),
-    a learner not on the run: nothing to send."""
+def test_a_service_that_missed_its_start_is_sent_it_again_on_the_second_look_and_not_often():
+    """While some service of the run serves it, an assigned one that answers, has said
+    nothing in this attempt and serves the run not at all (a counter, ready: or holds
+    another attempt of it, restored from its disk) missed its start: it is to be sent
+    again, on a second look in a row and at most every `every_s`. One that said
+    something got it (an actor that completed and let the run go); one that does not
+    answer is the peer graces'; a counter not ready, or one that names no attempt
+    (older), is left; an arm that counts nothing learns without its counter."""
     w = watch()
     w.attempt = 2
     assert not w.counts, "an arm that counts nothing learns without its counter"
     counting = {"id": "r1", "assign": ASSIGN, "config": {"explore": "dis-macb"}}
     assert Watch.of(counting, 0.0, GRACES, (0, 0, 0)).counts
 
-    def infos(held: dict | None, ready: bool = True, learner: str | None = "r1") -> dict:
-        runs = {} if held is None else {"r1": held}
-        return {
-            "C": {"id": "C", "role": "counter", "runs": runs, "ready": ready},
-            "L1": {"id": "L1", "role": "learner", "run": learner},
-        }
+    def infos(held: dict | None = None, ready: bool = True, **runs: str | None) -> dict:
+        """C holds `held` (None: nothing of r1); L1, E1, A1 serve r1 unless given."""
+        out = {"C": {"id": "C", "role": "counter", "ready": ready, "runs": {}}}
+        if held is not None:
+            out["C"]["runs"] = {"r1": held}
+        for sid, role in (("L1", "learner"), ("E1", "evaluator"), ("A1", "actor")):
+            out[sid] = {"id": sid, "role": role, "run": runs.get(sid, "r1")}
+        return out
 
-    def lost(infos: dict) -> str | None:
-        return start_lost(w.run, w.assign, w.attempt, infos)
+    def lost(infos: dict, said: tuple = (), counts: bool = True) -> str | None:
+        return start_lost(w.run, w.assign, w.attempt, infos, said, counts)
 
-    assert lost(infos(None)) == "counter C does not hold the run"
-    old = lost(infos({"attempt": 1}))
-    assert old == "counter C holds attempt 1 of the run, not 2"
-    for fine in (
-        infos({"attempt": 2}),
-        infos({"counted_transitions": 5}),  # an older counter: no attempt said
-        infos(None, ready=False),  # still restoring its tables
-        infos(None, learner=None),  # the learner is not on it (ended, or not yet)
-        {"L1": infos(None)["L1"]},  # no counter answers
+    assert lost(infos()) == "counter C does not hold the run"
+    assert lost(infos({"attempt": 1})) == "counter C holds attempt 1 of the run, not 2"
+    assert lost(infos({"attempt": 2}, L1=None)) == "learner L1 does not serve the run"
+    assert lost(infos({"attempt": 2}, A1=None)) == "actor A1 does not serve the run"
+    assert lost(infos({"attempt": 2}, E1="other")) == "evaluator E1 does not serve the run"
+    for fine, said, counts in (
+        (infos({"attempt": 2}), (), True),
+        (infos({"counted_transitions": 5}), (), True),  # an older counter: no attempt said
+        (infos(ready=False), (), True),  # still restoring its tables
+        (infos(), ("C",), True),  # it said something in this attempt: it got the start
+        (infos(), (), False),  # an arm that counts nothing
+        (infos({"attempt": 2}, A1=None), ("A1",), True),  # completed, let the run go
+        ({k: v for k, v in infos().items() if k != "C"}, (), True),  # no counter answers
+        (infos(L1=None, E1=None, A1=None), (), True),  # nobody serves it: not under way
     ):
-        assert lost(fine) is None, fine
-    assert start_lost(w.run, w.assign, None, infos({"attempt": 1})) is None, "a starter's none"
+        assert lost(fine, said, counts) is None, (fine, said, counts)
+    assert start_lost(w.run, w.assign, None, infos({"attempt": 1}), ()) is None, "a starter's"
     due = w.lost_start.due
     assert not due(True, 10.0, 15.0), "a first look only"
     assert not due(False, 13.0, 15.0), "found again: the look starts over"

@@ -1,13 +1,13 @@
-"""A run's start lost to its counter, on real processes.
+"""A run's start lost to one of its services, on real processes.
 
-The scheduler puts a run's start once. A counter that dies just after the run was
-assigned to it never gets it, and, restarted, restores from its disk only what it had:
-here the run's ended attempt, whose stop never reached it (the counter was down then
-too). Its learner, started, would wait on refused bonus queries for good. The API (and
-`macb start`'s watch) runs in this process so that the test can kill the counter in
-that window: its `send_start` is wrapped to kill the counter before the start goes
-out and start it again after. A router, a counter, a learner, an evaluator and an
-actor are processes.
+The scheduler puts a run's start once. A service that dies just after the run was
+assigned to it never gets it and, restarted, rejoins only what its runs file (the
+counter: its disk) holds: nothing of the run, or, for the counter, the run's ended
+attempt whose stop never reached it (the counter was down then too). The run's other
+services would wait on it for good. The API (and `macb start`'s watch) runs in this
+process so that the test can kill the service in that window: its `send_start` is
+wrapped to kill the service before the start goes out and start it again after. A
+router, a counter, a learner, an evaluator and an actor are processes.
 """
 
 from __future__ import annotations
@@ -97,6 +97,55 @@ def test_a_counter_that_missed_its_runs_start_is_sent_it_again(tmp_path, monkeyp
             wait_for(counted, 30, what="attempt 2 counted in full, from nothing")
             log = cluster.log("counter-3")
             assert "attempt 2 started while serving attempt 1" in log, log[-3000:]
+        finally:
+            server.stop()
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("role, sid", [("learner", "learner"), ("actor", "actor0")])
+def test_a_learner_or_actor_that_missed_its_runs_start_is_sent_it_again(
+    tmp_path, monkeypatch, caplog, role, sid
+):
+    """Killed as the run's start goes out and started again, it rejoins nothing (its
+    runs file never had the run) while the run's other services wait on it."""
+    caplog.set_level(logging.WARNING, logger="macb.api.scheduler")
+    with Cluster(tmp_path) as cluster:
+        router = cluster.router()
+        cluster.services(actors=1)
+        server = start_api(tmp_path, router)
+        try:
+            url = server.url
+            for r in ("counter", "learner", "evaluator", "actor"):
+                wait_for(lambda r=r: answering(url, r), 120, what=f"the {r}")
+            real = scheduler.send_start
+            sent: list[str] = []
+
+            def start_lost_to_it(bus, run_id, config, assign, attempt=None):
+                sent.append(run_id)
+                if len(sent) == 1:
+                    cluster.kill(sid)  # dies just after the assignment
+                real(bus, run_id, config, assign, attempt)
+                if len(sent) == 1:
+                    cluster.service(role, sid, name=f"{sid}-2")
+
+            monkeypatch.setattr(scheduler, "send_start", start_lost_to_it)
+            exp = httpx.post(
+                f"{url}/experiments", json={**TINY, "episodes": EPISODES}, timeout=30
+            ).json()
+            run = exp["runs"][0]["id"]
+            done = wait_for(
+                lambda: (
+                    (r := httpx.get(f"{url}/runs/{run}", timeout=10).json())["status"]
+                    not in ("queued", "running")
+                    and r
+                ),
+                240,
+                what="the run to end",
+            )
+            assert done["status"] == "completed" and done["points"] == EPISODES // 4, done
+            again = [r.message for r in caplog.records if "its start sent again" in r.message]
+            assert again and f"{role} {sid} does not serve the run" in again[0], again
+            assert len(sent) == 1 + len(again)
         finally:
             server.stop()
 

@@ -20,10 +20,10 @@
   `counter_grace_s` (it restarts from its snapshot and log). A learner that resumed
   from a cut says so in its status, and the run's record keeps it as its note.
 - A service that rejoins a run after a restart while that run had ended meanwhile is
-  told to stop it, so it is free again. A counter that missed a run's start (it died
-  just after the run was assigned to it) is sent the start again once its learner is
-  seen serving the run and the counter, ready, holds it not at all or as another
-  attempt (`shared.net.monitor.start_lost`): else the learner waits on refused queries.
+  told to stop it, so it is free again. A service that missed a run's start (it died
+  just after the run was assigned to it) is sent the start again once seen, on two
+  looks, not serving the run while others do (`shared.net.monitor.start_lost`): else
+  they wait on it for good.
 - Sends the stop messages the HTTP side asks for (a failed run's other services are
   stopped too, so they are free for the next run).
 - On start (after an API restart), re-attaches to the runs the store says are
@@ -312,8 +312,8 @@ class Scheduler:
                     self._end(w, ending)
                     continue
                 lost = None
-                if w.counts and now - w.monitor.started > settle_s:
-                    lost = start_lost(w.run, w.assign, w.attempt, infos)
+                if now - w.monitor.started > settle_s:
+                    lost = start_lost(w.run, w.assign, w.attempt, infos, w.states, w.counts)
                 if w.lost_start.due(lost is not None, now, settle_s):
                     self._start_again(w, f"{lost}: its start sent again")
 

@@ -73,8 +73,8 @@ class Watch:
     ended: float | None = None  # monotonic time it reached a final status
     notes: list[str] = field(default_factory=list)  # resumes: kept as the run's reason
     attempt: int | None = None  # the run's `attempts` when started (Start.attempt)
-    lost_start: LostStart = field(default_factory=LostStart)  # its counter without its start
-    counts: bool = True  # its arm counts (a counter that missed its start stalls it)
+    lost_start: LostStart = field(default_factory=LostStart)  # a service without its start
+    counts: bool = True  # its arm counts (its counter matters to its learning)
 
     @classmethod
     def of(

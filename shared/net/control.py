@@ -289,10 +289,10 @@ class RunWatch:
                 self.run, infos, self._alive, now, g.settle_s, g.unserved_s(self.check_s)
             )
             ending = ending or self.monitor.decide(now)  # a learner found gone meanwhile
+            said = set(self.monitor.states)  # the services with a status of the run
         lost = None
-        counts = self.config is not None and self.config.counts
-        if counts and ending.state == "running" and now - self.monitor.started > g.settle_s:
-            lost = start_lost(self.run, self.assign, None, infos)
+        if self.config and ending.state == "running" and now - self.monitor.started > g.settle_s:
+            lost = start_lost(self.run, self.assign, None, infos, said, self.config.counts)
         if self._lost_start.due(lost is not None, now, g.settle_s) and self.config:
             log.warning("run %s: %s: its start sent again", self.run, lost)
             send_start(self._bus, self.run, self.config, self.assign)

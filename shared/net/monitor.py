@@ -195,34 +195,51 @@ def serving(run: str, services: Iterable[tuple[str, str]], infos: Mapping[str, A
 
 
 def start_lost(
-    run: str, assign: Assignment, attempt: int | None, infos: Mapping[str, Mapping[str, Any]]
+    run: str,
+    assign: Assignment,
+    attempt: int | None,
+    infos: Mapping[str, Mapping[str, Any]],
+    said: Container[str],
+    counts: bool = True,
 ) -> str | None:
-    """Why the run's counter is to be sent the run's start again (None: it is not).
+    """Which of the run's services missed its start, and how (None: none did).
 
-    A starter puts a run's start once. A counter that died just after the run was
-    assigned to it never gets it; restarted, it restores from its disk only what it
-    had, which may be an ended attempt of this run whose stop never reached it. Its
-    learner, started, then waits on refused bonus queries for good. So: the counter
-    answers and is ready, the learner serves the run, and the counter holds the run not
-    at all or as another attempt (either naming none is taken as the same). A start
-    sent again is ignored by the services that serve the run or have let that attempt
-    go (services/common.py); the callers ask only for arms that count."""
-    counter = infos.get(assign.counter)
-    if counter is None or counter.get("role") != "counter" or counter.get("ready") is not True:
-        return None
-    if not serving(run, [("learner", assign.learner)], infos):
-        return None
-    held = (counter.get("runs") or {}).get(run)
-    if not isinstance(held, Mapping):
-        return f"counter {assign.counter} does not hold the run"
-    if same_attempt(held.get("attempt"), attempt):
-        return None
-    return f"counter {assign.counter} holds attempt {held.get('attempt')} of the run, not {attempt}"
+    A starter puts a run's start once. A service that died just after the run was
+    assigned to it never gets it: restarted, it rejoins only what its runs file (the
+    counter: its disk) holds, which may be nothing of the run or, for the counter, an
+    ended attempt of it whose stop never reached it. The run's other services then wait
+    on it for good (the learner on refused bonus queries, the actors on weights). So,
+    while some service of the run serves it: a service that answers (a counter: ready)
+    and has said nothing in this attempt (`said`: the ids with a status of it, so one
+    that did its part and let the run go is not taken for one that missed it) serves
+    the run not at all, or (a counter) holds another attempt of it (either naming none
+    is taken as the same). `counts`: the run's arm counts; an arm that counts nothing
+    learns without its counter. The start sent again is ignored by the services that
+    serve the run or have let that attempt go (services/common.py)."""
+    services = [(r, s) for r, s in assign.services() if r != "counter" or counts]
+    if not serving(run, services, infos):
+        return None  # not under way: starting, or ended (the monitor's to judge)
+    for role, sid in services:
+        info = infos.get(sid)
+        if sid in said or info is None or info.get("role") != role:
+            continue  # it got the start; or it does not answer (the peer graces apply)
+        if role != "counter":
+            if not serving(run, [(role, sid)], infos):
+                return f"{role} {sid} does not serve the run"
+            continue
+        if info.get("ready") is not True:
+            continue  # still restoring its tables
+        held = (info.get("runs") or {}).get(run)
+        if not isinstance(held, Mapping):
+            return f"counter {sid} does not hold the run"
+        if not same_attempt(held.get("attempt"), attempt):
+            return f"counter {sid} holds attempt {held.get('attempt')} of the run, not {attempt}"
+    return None
 
 
 @dataclass
 class LostStart:
-    """When to send a run's start again, its counter seen without it (`start_lost`)."""
+    """When to send a run's start again, a service of it seen without it (`start_lost`)."""
 
     since: float | None = None  # first seen so, on the looks in a row up to now
     sent_at: float | None = None  # the start last sent again
