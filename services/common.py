@@ -289,10 +289,11 @@ class ServiceBase(ServiceHooks):
             return
         if not self.assigned(msg.assign):
             return  # another service's run: not an error
-        if run not in self.active and run in self.finished and self.of_attempt(run, msg.attempt):
+        let_go = run not in self.active and run in self.finished
+        if let_go and msg.attempt is not None and msg.attempt == self.served.attempts.get(run):
             # Sent again for a service that missed it (shared.net.monitor.start_lost)
             # after this one had done its part: the attempt is over here. (A retry names
-            # its new attempt; a run `macb start` starts, with none, is not started twice.)
+            # its new attempt; a starter that numbers none may start a run id again.)
             self.log.info("run %s: start of attempt %s, let go already: ignored", run, msg.attempt)
             return
         if run in self.active and not self.of_attempt(run, msg.attempt):

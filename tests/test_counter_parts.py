@@ -284,7 +284,7 @@ def test_a_runs_folder_of_another_attempt_is_archived_not_resumed(tmp_path, capl
     """A start of attempt 2 finding attempt 1's unfinished folder (its stop never came,
     a restore that failed left it) starts afresh: attempt 1's tables and positions must
     not meet attempt 2's transitions, numbered from 0 again. A start or a folder that
-    names no attempt (an older peer's, `macb start`'s) is taken as the same attempt."""
+    names no attempt (an older peer's) is taken as the same attempt."""
     runs = Runs(tmp_path, logging.getLogger("t"))
     cfg = make_config(CONFIG)
     st, _ = runs.open("r", cfg, runs.prepare("r", cfg, ASSIGN, 1))

@@ -37,6 +37,9 @@ from shared.net.monitor import (
 from shared.net.wire import WireError, decode, encode
 
 log = logging.getLogger("macb.control")
+# `start_run` starts a run once, as attempt 1: numbered, so that a service that has let it
+# go ignores its start sent again for another that missed it (`start_lost`).
+ATTEMPT = 1
 
 
 class NoFreeServices(RuntimeError):
@@ -292,10 +295,10 @@ class RunWatch:
             said = set(self.monitor.states)  # the services with a status of the run
         lost = None
         if self.config and ending.state == "running" and now - self.monitor.started > g.settle_s:
-            lost = start_lost(self.run, self.assign, None, infos, said, self.config.counts)
+            lost = start_lost(self.run, self.assign, ATTEMPT, infos, said, self.config.counts)
         if self._lost_start.due(lost is not None, now, g.settle_s) and self.config:
             log.warning("run %s: %s: its start sent again", self.run, lost)
-            send_start(self._bus, self.run, self.config, self.assign)
+            send_start(self._bus, self.run, self.config, self.assign, ATTEMPT)
         return ending
 
     def verdict(self) -> RunVerdict:
@@ -364,5 +367,5 @@ def start_run(
             time.sleep(0.2)
     watch = RunWatch(run, assign, episodes=config.episodes, on_row=on_row, config=config)
     watch.attach(bus)
-    send_start(bus, run, config, assign)
+    send_start(bus, run, config, assign, ATTEMPT)
     return watch
