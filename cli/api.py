@@ -147,11 +147,17 @@ def _grid_value(key: str, raw: str) -> Any:
     """One grid value, read as the key's flag reads it (strings stay strings for string
     fields, the rest is YAML), except lists, which are YAML lists here: `[64,64]`."""
     if key in COMMA_LIST_FIELDS:
-        value = yaml.safe_load(raw)
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            value = None
         if not isinstance(value, list):
             raise ConfigError(f"--grid {key}: give each value as a list: {key}=[64,64],[32]")
         return value
-    return read_flag_value(key, raw)
+    try:
+        return read_flag_value(key, raw)
+    except ConfigError as err:
+        raise ConfigError(f"--grid {key}={raw}: {str(err).split(': ', 1)[-1]}") from None
 
 
 def _grid(items: list[str] | None) -> dict[str, list]:
@@ -179,7 +185,11 @@ def read_arms(path: str) -> list[dict[str, Any]]:
     """An arms file: a YAML list of mappings, each with a `name` (or a mapping whose
     `arms` is that list). The keys are the API's to judge; only the shape is checked."""
     try:
-        data = yaml.safe_load(Path(path).read_text())
+        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot be read ({err.strerror or err})") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: not valid YAML: {err}") from None
     if isinstance(data, dict) and "arms" in data:
@@ -462,14 +472,11 @@ def cmd_ls(args: argparse.Namespace) -> int:
 
 def _curves_from_store(db: str, experiment: str, metric: str) -> dict[str, Any] | None:
     """`plot --db`: the curves straight from a store file, no API needed."""
-    from services.api.store import Store
+    from cli.export import store_copy
     from services.api.views import curves
 
-    store = Store(db)
-    try:
+    with store_copy(db) as store:  # only read: NotAStore if it is none
         return curves(store, experiment, [metric])
-    finally:
-        store.close()
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
@@ -482,7 +489,13 @@ def cmd_plot(args: argparse.Namespace) -> int:
         if not Path(args.db).is_file():  # (a Store would make it, and its folder)
             print(f"macb plot: no store file {args.db}", file=sys.stderr)
             return 2
-        data = _curves_from_store(args.db, args.experiment, args.metric)
+        from cli.export import NotAStore
+
+        try:
+            data = _curves_from_store(args.db, args.experiment, args.metric)
+        except NotAStore as err:
+            print(f"macb plot: {err}", file=sys.stderr)
+            return 2
         if data is None:
             print(f"macb plot: no experiment {args.experiment!r} in {args.db}", file=sys.stderr)
             return 1

@@ -78,7 +78,11 @@ def read_flag_value(name: str, raw: str) -> Any:
         return [s.strip() for s in raw.split(",") if s.strip()]
     if name in STRING_FIELDS:
         return raw
-    return yaml.safe_load(raw)
+    try:
+        return yaml.safe_load(raw)
+    except yaml.YAMLError as err:
+        problem = getattr(err, "problem", None) or "not YAML"
+        raise ConfigError(f"{flag_name(name)} {raw!r}: not a value ({problem})") from None
 
 
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:

@@ -12,8 +12,10 @@ doubling them.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -64,18 +66,19 @@ class NotAStore(Exception):
     """The --db file is not an API store (named, with the reason)."""
 
 
-def _from_store(db: str, ident: str) -> tuple[dict[str, Any], list[dict[str, Any]]] | None:
-    """(experiment, its runs each with `points`) from a store file; one run if `ident` is
-    a run id. The file is only read: opening a store migrates it to this version's
-    schema, so a consistent copy (SQLite's backup, a running API's WAL included) is
-    opened instead, and an older API can still read its own file afterwards."""
+@contextlib.contextmanager
+def store_copy(db: str) -> Iterator[Any]:
+    """A store file, only read: opening a store migrates it to this version's schema (and
+    makes any file one), so a consistent copy (SQLite's backup, a running API's WAL
+    included) is opened instead, and an older API can still read its own file after.
+    NotAStore, naming the file, if it is not an API store this version reads."""
     import sqlite3
     import tempfile
 
     from services.api.db import StoreError
     from services.api.store import Store
 
-    with tempfile.TemporaryDirectory(prefix="macb-export-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="macb-store-") as tmp:
         copy = Path(tmp) / "store.sqlite3"
         try:
             src = sqlite3.connect(f"{Path(db).resolve().as_uri()}?mode=ro", uri=True)
@@ -92,9 +95,16 @@ def _from_store(db: str, ident: str) -> tuple[dict[str, Any], list[dict[str, Any
         except (sqlite3.Error, StoreError) as err:
             raise NotAStore(f"{db}: not a store this version reads ({err})") from None
         try:
-            return _read_store(store, ident)
+            yield store
         finally:
             store.close()
+
+
+def _from_store(db: str, ident: str) -> tuple[dict[str, Any], list[dict[str, Any]]] | None:
+    """(experiment, its runs each with `points`) from a store file (`store_copy`); one
+    run if `ident` is a run id."""
+    with store_copy(db) as store:
+        return _read_store(store, ident)
 
 
 def _read_store(store: Any, ident: str) -> tuple[dict[str, Any], list[dict[str, Any]]] | None:

@@ -238,6 +238,11 @@ def run_groups(
         for line in conflicts:
             print(f"{line}; move it away or give another --out: nothing was run", file=sys.stderr)
         raise Refused()
+    from cli.runs_folder import unwritable
+
+    if why := unwritable(out):
+        print(f"{out}: cannot write there ({why}): nothing was run", file=sys.stderr)
+        raise Refused()
     if why := device_error([r.config for r in runs]):
         print(f"{why}: nothing was run", file=sys.stderr)
         return 2

@@ -15,6 +15,7 @@ import io
 import json
 import math
 import re
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +80,20 @@ def _recorded_arms(root: Path) -> dict[str, str]:
             raise RunsError(f"{record}: not a reproduce runs record (runs: not a list of objects)")
         arms.update({str(r["id"]): str(r["arm"]) for r in runs if "id" in r and "arm" in r})
     return arms
+
+
+def unwritable(folder: Path) -> str | None:
+    """Why a file cannot be created in `folder` (made if missing), or None: asked before
+    a command writes there, so that it refuses instead of failing midway."""
+    if folder.exists() and not folder.is_dir():
+        return "a file, not a folder"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".macb-write-check-"):
+            pass
+    except OSError as err:
+        return err.strerror or str(err)
+    return None
 
 
 def read_config(folder: Path) -> dict[str, Any]:

@@ -15,7 +15,7 @@ from cli.config_flags import (
     flag_name,
     resolve_config,
 )
-from shared.config import ConfigError, load_config
+from shared.config import ConfigError, load_config, make_config
 
 if TYPE_CHECKING:  # (imported when a writer opens: tensorboard is slow to import)
     from cli.tensorboard import TensorBoardRun
@@ -123,6 +123,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         out = Path(args.out)
         if args.seeds:
             return _train_seeds(args, cfg, out)
+    from cli.runs_folder import unwritable
+
+    for flag, folder in (("--tensorboard", args.tensorboard), ("--out", out)):
+        if folder and (why := unwritable(Path(folder))):
+            print(f"macb train: {flag} {folder}: cannot write there ({why})", file=sys.stderr)
+            return 2
     tb = None
     if args.tensorboard:
         tb = _TensorBoardRows(Path(args.tensorboard) / out.resolve().name, bool(args.resume))
@@ -171,7 +177,12 @@ def _train_seeds(args: argparse.Namespace, cfg, out: Path) -> int:
     if len(set(args.seeds)) != len(args.seeds):
         print(f"macb train: --seeds {args.seeds}: a seed is given twice", file=sys.stderr)
         return 2
-    runs = [LocalRun(f"seed-{s}", None, s, cfg.model_copy(update={"seed": s})) for s in args.seeds]
+    try:  # each seed's config checked (a negative seed) before any runs
+        seeded = {s: make_config({**cfg.model_dump(mode="json"), "seed": s}) for s in args.seeds}
+    except ConfigError as err:
+        print(f"macb train: --seeds {' '.join(map(str, args.seeds))}: {err}", file=sys.stderr)
+        return 2
+    runs = [LocalRun(f"seed-{s}", None, s, seeded[s]) for s in args.seeds]
     code = run_groups(runs, out, quiet=args.quiet, cut_every_s=args.cut_every, jobs=1)
     for r in runs:
         rows = (out / r.name / "metrics.jsonl").read_text().splitlines()

@@ -23,6 +23,7 @@ import hashlib
 import json
 import math
 import re
+import socket
 import sys
 import threading
 import time
@@ -388,6 +389,20 @@ def cmd_view(args: argparse.Namespace) -> int:
     except (RunsError, ValueError, OSError) as err:
         print(f"macb view: {err}", file=sys.stderr)
         return 2
+    if not 0 <= args.port <= 65535:
+        print(f"macb view: --port {args.port}: a port is from 0 to 65535", file=sys.stderr)
+        return 2
+    # Bound here, so that a port in use or a host not of this machine is refused (exit
+    # 2) before the server starts, and the server takes this very socket.
+    sock = socket.socket(socket.AF_INET6 if ":" in args.host else socket.AF_INET)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((args.host, args.port))
+    except (OSError, OverflowError) as err:
+        sock.close()
+        why = getattr(err, "strerror", None) or err
+        print(f"macb view: cannot listen on {args.host}:{args.port} ({why})", file=sys.stderr)
+        return 2
     config = uvicorn.Config(
         page_app(view), host=args.host, port=args.port, log_level="warning", access_log=False
     )
@@ -400,5 +415,5 @@ def cmd_view(args: argparse.Namespace) -> int:
         print(f"macb view: http://{args.host}:{port}/ (Ctrl-C stops it)", flush=True)
 
     threading.Thread(target=announce, daemon=True).start()
-    server.run()
+    server.run(sockets=[sock])
     return 0

@@ -653,12 +653,21 @@ def plain_data(value: Any, where: str, depth: int = 0) -> None:
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:
-    """A YAML or JSON file's mapping as written (YAML is a superset), not yet validated."""
-    text = Path(path).read_text()
+    """A YAML or JSON file's mapping as written (YAML is a superset), not yet validated.
+    A file that cannot be read, is not UTF-8 or not YAML is a ConfigError naming it."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: a folder, not a config file") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot be read ({err.strerror or err})") from None
     try:
         data = yaml.safe_load(text) or {}
     except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML/JSON: {err}") from None
+        where = str(err).replace('"<unicode string>"', str(path))
+        raise ConfigError(f"{path}: not valid YAML/JSON: {where}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config is a mapping of keys to values")
     return data

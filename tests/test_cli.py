@@ -433,3 +433,99 @@ def test_the_command_freezes_the_heap_before_a_torch_process_exits():
             capture_output=True, text=True, cwd=ROOT, timeout=120, check=True,
         ).stdout.splitlines()[-1].split()  # fmt: skip
         assert out[0] == "0" and (int(out[1]) > 0) == frozen, (torch, out)
+
+
+# ---------------------------------------------------------------- bad input, refused
+def _refused(got: subprocess.CompletedProcess, *said: str) -> None:
+    """Exit 2, each of `said` in stderr, no traceback."""
+    assert got.returncode == 2, (got.returncode, got.stderr[-2000:])
+    assert "Traceback" not in got.stderr, got.stderr[-2000:]
+    for text in said:
+        assert text in got.stderr, (text, got.stderr[-2000:])
+
+
+def test_a_config_that_does_not_read_and_flag_values_that_are_not_yaml_are_refused(tmp_path):
+    """A config file of bytes that are not UTF-8, a folder given as the config, and a
+    flag value that is not YAML (`{bad`, `[1`) ended in tracebacks (exit 1)."""
+    from tests.harness import macb
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes(b"task: \xff\xfe\n")
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("task: simple\nalgo: ddpg\nepisodes: 2\n")
+    out = str(tmp_path / "out")
+    for argv in (["train", "--config", str(bad)], ["run", str(bad), "--local"]):
+        _refused(macb(*argv, "--out", out), f"{bad}: not UTF-8 text")
+    _refused(macb("train", "--config", str(tmp_path), "--out", out), "a folder, not a config")
+    _refused(macb("train", "--config", str(ok), "--task-kwargs", "{bad", "--out", out),
+             "--task-kwargs '{bad': not a value")  # fmt: skip
+    _refused(macb("run", str(ok), "--local", "--grid", "beta=[1", "--out", out),
+             "--grid beta=[1: not a value")  # fmt: skip
+    assert not Path(out).exists(), "nothing written"
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_anything_runs(tmp_path):
+    """`--out` naming a file or a folder that cannot be made, `--tensorboard` too, and a
+    negative seed failed midway (a traceback, a half-made folder) or after training."""
+    from tests.harness import macb
+
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("task: simple\nalgo: ddpg\nepisodes: 2\n")
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    train = ("train", "--config", str(ok))
+    _refused(macb(*train, "--out", str(a_file)), f"--out {a_file}: cannot write there")
+    _refused(macb(*train, "--out", "/proc/macb-x"), "--out /proc/macb-x: cannot write there")
+    out = tmp_path / "out"
+    _refused(macb(*train, "--out", str(out), "--tensorboard", str(a_file)),
+             f"--tensorboard {a_file}: cannot write there (a file, not a folder)")  # fmt: skip
+    assert not out.exists(), "the run's folder is not made for a refused command"
+    _refused(macb(*train, "--seeds", "-1", "--out", str(out)), "--seeds -1: seed")
+    _refused(macb("run", str(ok), "--local", "--out", str(a_file)),
+             f"{a_file}: cannot write there (a file, not a folder): nothing was run")  # fmt: skip
+    assert not out.exists() and a_file.read_text() == ""
+
+
+def test_a_bus_endpoint_of_no_form_and_a_port_that_cannot_be_had_are_refused(tmp_path):
+    """`--connect nonsense` ended in zenoh's ZError traceback; `macb view --port 70000`
+    in an OverflowError, a port in use in uvicorn's exit 3."""
+    import socket
+
+    from tests.harness import macb
+
+    _refused(macb("ps", "--connect", "nonsense"), "bus endpoints nonsense: Endpoints must be")
+    run = tmp_path / "runs" / "r"
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps(make_config({}).model_dump(mode="json")))
+    (run / "metrics.jsonl").write_text('{"episode": 4, "success_rate": 0.5}\n')
+    _refused(macb("view", str(tmp_path), "--port", "70000"), "--port 70000: a port is from 0")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = str(taken.getsockname()[1])
+        _refused(macb("view", str(tmp_path), "--port", port), f"cannot listen on 127.0.0.1:{port}")
+
+
+def test_plot_db_only_reads_its_store_and_refuses_a_file_that_is_none(tmp_path):
+    """`macb plot --db` opened the file as the API's store: an empty file became a
+    store and an older store was migrated in place (its API could no longer read it).
+    It reads a copy now, as `macb export --db` does."""
+    import hashlib
+    import shutil
+
+    from tests.harness import macb
+
+    def digest(path: Path) -> str:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+
+    empty = tmp_path / "empty.db"
+    empty.write_bytes(b"")
+    _refused(macb("plot", "x", "-o", str(tmp_path / "p.png"), "--db", str(empty)),
+             "not a macb API store")  # fmt: skip
+    assert empty.read_bytes() == b"" and not (tmp_path / "p.png").exists()
+    old = tmp_path / "old.db"
+    shutil.copy(ROOT / "tests" / "data" / "api-store-schema1.sqlite3", old)
+    before = digest(old)
+    got = macb("plot", "xgrid", "-o", str(tmp_path / "p.png"), "--db", str(old))
+    assert got.returncode == 0 and (tmp_path / "p.png").stat().st_size > 0, got.stderr
+    assert digest(old) == before, "the store file is as it was"

@@ -25,13 +25,14 @@ import shlex
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+from cli.runs_folder import unwritable
 
 #: Task states in which Slurm will still run (or is running) the task.
 ACTIVE = frozenset(
@@ -166,17 +167,6 @@ def device_error(devices: Sequence[str]) -> str | None:
                 f"--device {device}: with --launcher slurm each task gets one GPU of its "
                 "own, which it sees as cuda:0; give --device cuda"
             )
-    return None
-
-
-def unwritable(folder: Path) -> str | None:
-    """Why a file cannot be created in `folder` (made if missing), or None."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".macb-write-check-"):
-            pass
-    except OSError as err:
-        return err.strerror or str(err)
     return None
 
 

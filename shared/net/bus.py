@@ -137,7 +137,13 @@ def _config(
     security: Security | None = None,
     acl: dict[str, Any] | None = None,
 ) -> zenoh.Config:
-    return zenoh.Config.from_json5(json.dumps(session_config(mode, connect, listen, security, acl)))
+    conf = json.dumps(session_config(mode, connect, listen, security, acl))
+    try:
+        return zenoh.Config.from_json5(conf)
+    except zenoh.ZError as err:  # an endpoint not of the form proto/address, say
+        where = ", ".join([*(connect or []), *(listen or [])]) or "the defaults"
+        why = str(err).split(" at /", 1)[0]  # (without the Rust source location)
+        raise BusError(f"bus endpoints {where}: {why}") from None
 
 
 _logging_ready = False
