@@ -419,7 +419,10 @@ def _run_local(args: argparse.Namespace, body: dict[str, Any]) -> int:
         return 2
     try:
         name, seeds, runs = expand_body(body)
-    except (ValidationError, ValueError) as err:
+    except ValidationError as err:  # (before ValueError, which it is): field: reason
+        print(f"macb run: invalid config: {format_errors(err)}", file=sys.stderr)
+        return 2
+    except ValueError as err:
         print(f"macb run: invalid config: {err}", file=sys.stderr)
         return 2
     out = Path(args.out or "runs/local")
@@ -482,9 +485,13 @@ def _curves_from_store(db: str, experiment: str, metric: str) -> dict[str, Any] 
 def cmd_plot(args: argparse.Namespace) -> int:
     import httpx
 
+    from cli.runs_folder import unwritable
     from services.api.client import ApiError
     from services.api.plot import PlotFormatError, plot_curves
 
+    if why := unwritable(Path(args.output).parent):
+        print(f"macb plot: -o {args.output}: cannot write there ({why})", file=sys.stderr)
+        return 2
     if args.db:
         if not Path(args.db).is_file():  # (a Store would make it, and its folder)
             print(f"macb plot: no store file {args.db}", file=sys.stderr)

@@ -133,6 +133,6 @@ def resolve_config(args: argparse.Namespace) -> TrainConfig:
     if not args.config:
         return make_config(overrides)
     cfg, note = one_run_config(args.config, overrides)
-    if note:
+    if note and not getattr(args, "seeds", None):  # (`train --seeds` says its own seeds)
         print(f"note: {note}", file=sys.stderr)
     return cfg

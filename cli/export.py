@@ -198,6 +198,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     if not args.tensorboard and not args.csv:
         print("macb export: say where: --tensorboard DIR and/or --csv DIR", file=sys.stderr)
         return 2
+    from cli.runs_folder import unwritable
+
+    for flag, folder in (("--tensorboard", args.tensorboard), ("--csv", args.csv)):
+        if folder and (why := unwritable(Path(folder))):
+            print(f"macb export: {flag} {folder}: cannot write there ({why})", file=sys.stderr)
+            return 2
     if args.db:
         if not Path(args.db).exists():
             print(f"macb export: no store file {args.db}", file=sys.stderr)

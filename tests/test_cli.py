@@ -506,7 +506,7 @@ def test_a_bus_endpoint_of_no_form_and_a_port_that_cannot_be_had_are_refused(tmp
         _refused(macb("view", str(tmp_path), "--port", port), f"cannot listen on 127.0.0.1:{port}")
 
 
-def test_plot_db_only_reads_its_store_and_refuses_a_file_that_is_none(tmp_path):
+def test_plot_db_only_reads_its_store_and_outputs_that_cannot_be_written_are_refused(tmp_path):
     """`macb plot --db` opened the file as the API's store: an empty file became a
     store and an older store was migrated in place (its API could no longer read it).
     It reads a copy now, as `macb export --db` does."""
@@ -529,3 +529,28 @@ def test_plot_db_only_reads_its_store_and_refuses_a_file_that_is_none(tmp_path):
     got = macb("plot", "xgrid", "-o", str(tmp_path / "p.png"), "--db", str(old))
     assert got.returncode == 0 and (tmp_path / "p.png").stat().st_size > 0, got.stderr
     assert digest(old) == before, "the store file is as it was"
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    _refused(macb("plot", "xgrid", "-o", str(a_file / "p.png"), "--db", str(old)),
+             f"-o {a_file / 'p.png'}: cannot write there (a file, not a folder)")  # fmt: skip
+    _refused(macb("export", "xgrid", "--db", str(old), "--csv", str(a_file)),
+             f"--csv {a_file}: cannot write there (a file, not a folder)")  # fmt: skip
+    got = macb("run", "configs/fig8/sparse.yaml", "--local", "--seeds", "1", "1", "--out",
+               str(tmp_path / "o"))  # fmt: skip
+    _refused(got, "seeds: a seed is repeated")
+    assert "pydantic" not in got.stderr, "the field and the reason, not pydantic's dump"
+
+
+def test_a_files_seeds_note_is_said_only_when_one_run_is_what_runs(capsys):
+    """`macb train --config sparse.yaml --seeds 5 6` said "this runs one run, seed 0"
+    while it trained seeds 5 and 6."""
+    from cli.config_flags import flag_dest, resolve_config
+
+    args = argparse.Namespace(config=str(ROOT / "configs/fig8/sparse.yaml"), seeds=None)
+    for name in TrainConfig.model_fields:
+        setattr(args, flag_dest(name), None)
+    resolve_config(args)
+    assert "this runs one run, seed 0" in capsys.readouterr().err
+    args.seeds = [5, 6]
+    resolve_config(args)
+    assert "this runs one run" not in capsys.readouterr().err
