@@ -14,7 +14,13 @@ from typing import TYPE_CHECKING, Any
 import yaml
 from pydantic import ValidationError
 
-from cli.config_flags import COMMA_LIST_FIELDS, add_config_flags, config_overrides, read_flag_value
+from cli.config_flags import (
+    COMMA_LIST_FIELDS,
+    add_config_flags,
+    at_least_one,
+    config_overrides,
+    read_flag_value,
+)
 from cli.local import add_group_flags
 from cli.security import add_security_flags
 from shared.config import ConfigError, TrainConfig, format_errors, read_config_file
@@ -67,7 +73,7 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
         "each arm runs every seed (and grid point)",
     )
     rn.add_argument("--name", help="experiment name")
-    rn.add_argument("--actors", type=int, default=1, help="actors per run")
+    rn.add_argument("--actors", type=at_least_one, default=1, help="actors per run")
     rn.add_argument("--api", metavar="URL", help=API_HELP)
     rn.add_argument("--out", metavar="DIR", help="write metrics.csv and plot.png here")
     rn.add_argument("--detach", action="store_true", help="submit, print the id and return")
@@ -86,7 +92,12 @@ def add_run_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def add_ls_parser(sub: argparse._SubParsersAction) -> None:
-    ls = sub.add_parser("ls", help="list experiments and their runs (through the API)")
+    ls = sub.add_parser(
+        "ls",
+        help="list experiments and their runs (through the API)",
+        description="List the API's newest experiments, each with its runs: status, "
+        "progress and points.",
+    )
     ls.add_argument("--api", metavar="URL", help=API_HELP)
     ls.add_argument("--limit", type=int, default=20, help="newest N experiments")
     ls.set_defaults(func=cmd_ls)
@@ -96,6 +107,9 @@ def add_plot_parser(sub: argparse._SubParsersAction) -> None:
     pl = sub.add_parser(
         "plot",
         help="draw an experiment's learning curves (mean over seeds with a band) to a PNG",
+        description="Draw an experiment's curves of one metric (each arm's mean over its "
+        "seeds, with a band) to a PNG, from the API or, with --db, from a store file (only "
+        "read).",
     )
     pl.add_argument("experiment", metavar="EXPERIMENT_ID")
     pl.add_argument(

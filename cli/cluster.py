@@ -19,7 +19,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cli.api import experiment_body, run_via_api
-from cli.config_flags import add_config_flags, config_overrides, one_run_config, resolve_config
+from cli.config_flags import (
+    add_config_flags,
+    at_least_one,
+    config_overrides,
+    one_run_config,
+    resolve_config,
+)
 from cli.security import add_security_flags
 from cli.supervisor import (
     Cluster,
@@ -83,7 +89,7 @@ def add_serve_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument(
         "--db", metavar="FILE", help="api only: SQLite store (default DATA_DIR/api.sqlite3)"
     )
-    s.add_argument("--actors", type=int, default=1, help="slot only: its actors")
+    s.add_argument("--actors", type=at_least_one, default=1, help="slot only: its actors")
     add_security_flags(s)
     s.set_defaults(func=cmd_serve)
 
@@ -96,7 +102,7 @@ def add_start_parser(sub: argparse._SubParsersAction) -> None:
         "and write DIR/metrics.csv and DIR/metrics.jsonl from the evaluation points.",
     )
     st.add_argument("--config", metavar="FILE", help="YAML/JSON config file")
-    st.add_argument("--actors", type=int, default=1, help="actors to use")
+    st.add_argument("--actors", type=at_least_one, default=1, help="actors to use")
     st.add_argument("--out", metavar="DIR", help="write metrics here")
     st.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint")
     st.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -106,7 +112,13 @@ def add_start_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def add_ps_parser(sub: argparse._SubParsersAction) -> None:
-    ps = sub.add_parser("ps", help="list live services and the runs they serve")
+    ps = sub.add_parser(
+        "ps",
+        help="list live services and the runs they serve",
+        description="Ask every service on the bus for its info and print one line each: "
+        "role, id, the run it serves, messages it rejected, restarts (and each router's "
+        "ACL denials).",
+    )
     ps.add_argument("--connect", action="append", metavar="ENDPOINT", help="router endpoint")
     add_security_flags(ps)
     ps.set_defaults(func=cmd_ps)
@@ -125,7 +137,7 @@ def add_up_parser(sub: argparse._SubParsersAction) -> None:
         "were running. No process outlives this command, even killed. A router or API port "
         "that something already listens on is refused before anything starts (exit 2).",
     )
-    up.add_argument("--actors", type=int, default=1, help="actor processes")
+    up.add_argument("--actors", type=at_least_one, default=1, help="actor processes")
     up.add_argument(
         "--slots",
         type=int,

@@ -34,6 +34,18 @@ STRING_FIELDS = frozenset(
 )
 
 
+def at_least_one(text: str) -> int:
+    """An argparse type: a whole number >= 1 (`--actors`, ...), refused by argparse
+    (exit 2, naming the flag) otherwise."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: at least 1")
+    return value
+
+
 def flag_name(field: str) -> str:
     """The option string of a field: underscores become dashes."""
     return f"--{field.replace('_', '-')}"

@@ -13,8 +13,12 @@ import logging
 import sys
 from collections.abc import Callable
 
+from pydantic import ValidationError
+
 from cli import api, cluster, export, reproduce, results, security, train, view
+from cli.config_flags import HelpFormatter
 from shared import procs
+from shared.config import error_text
 from shared.net.security import BusError, SecurityError
 
 # In the order `macb --help` lists them.
@@ -45,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for add_parser in COMMANDS:
         add_parser(sub)
+    for command in sub.choices.values():  # every command's --help says its defaults
+        if command.formatter_class is argparse.HelpFormatter:
+            command.formatter_class = HelpFormatter
     return parser
 
 
@@ -87,6 +94,11 @@ def main(argv: list[str] | None = None) -> int:
     # at the endpoints, a port taken): said in one line, as any other bad input.
     except (SecurityError, BusError) as err:
         print(f"macb {args.command}: {err}", file=sys.stderr)
+        return 2
+    # A value a command hands a model (the API's settings, a figure's body) that the
+    # model refuses: the field and the reason, not pydantic's dump.
+    except ValidationError as err:
+        print(f"macb {args.command}: {error_text(err)}", file=sys.stderr)
         return 2
 
 

@@ -21,6 +21,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+from cli.config_flags import at_least_one
 from shared.net.roles import role_of
 from shared.net.security import ENV, SecurityError, read_users_file
 
@@ -81,7 +82,7 @@ def add_certs_parser(sub: argparse._SubParsersAction) -> None:
         help="a router and the host names / IPs clients reach it by (default: router; "
         "localhost, 127.0.0.1 and NAME are always included); repeat per router",
     )
-    c.add_argument("--actors", type=int, default=1, help="actor users actor0..actor{N-1}")
+    c.add_argument("--actors", type=at_least_one, default=1, help="actor users actor0..actor{N-1}")
     c.add_argument(
         "--user",
         action="append",

@@ -50,6 +50,7 @@ from cli.reproduce.figures import FIGURES, PROFILES
 from cli.reproduce.plot import figure_colors, thesis_marks
 from cli.reproduce.status import FigureProgress, from_points, read_folders
 from cli.runs_folder import RunsError, arm_of, read_config, read_rows, runs_in
+from shared.config import error_text
 
 # Keys of a run's config that are the run's own, not its arm's.
 RUN_KEYS = ("seed",)
@@ -387,7 +388,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         view = folder_view(args)
         view.data()
     except (RunsError, ValueError, OSError) as err:
-        print(f"macb view: {err}", file=sys.stderr)
+        print(f"macb view: {error_text(err)}", file=sys.stderr)
         return 2
     if not 0 <= args.port <= 65535:
         print(f"macb view: --port {args.port}: a port is from 0 to 65535", file=sys.stderr)

@@ -608,6 +608,12 @@ def format_errors(err: ValidationError) -> str:
     return "; ".join(f"{field}: {' or '.join(msgs)}" for field, msgs in reasons.items())
 
 
+def error_text(err: BaseException) -> str:
+    """An error as a user reads it: a ValidationError (of any model) as 'field: reason;
+    ...' (`format_errors`), anything else as it says itself."""
+    return format_errors(err) if isinstance(err, ValidationError) else str(err)
+
+
 def make_config(data: dict[str, Any]) -> TrainConfig:
     try:
         return TrainConfig.model_validate(data)

@@ -554,3 +554,33 @@ def test_a_files_seeds_note_is_said_only_when_one_run_is_what_runs(capsys):
     args.seeds = [5, 6]
     resolve_config(args)
     assert "this runs one run" not in capsys.readouterr().err
+
+
+def test_counts_below_one_and_values_a_model_refuses_are_said_by_field(tmp_path):
+    """`certs --actors -1` wrote a user set with no actor (exit 0); `start --actors 0`
+    went on to the bus; reproduce/view `--seeds -1` and `serve api` with port 70000
+    printed pydantic's dump (the latter with a traceback, exit 1)."""
+    from tests.harness import macb
+
+    _refused(macb("certs", str(tmp_path / "c"), "--actors", "-1"), "--actors: -1: at least 1")
+    assert not (tmp_path / "c").exists()
+    _refused(macb("start", "--actors", "0"), "--actors: 0: at least 1")
+    for argv, said in (
+        (["reproduce", "fig3", "--local", "--seeds", "-1", "--out", str(tmp_path / "o")],
+         "macb reproduce: seeds.0: Input should be greater than or equal to 0"),
+        (["serve", "api", "--listen-http", "127.0.0.1:70000"],
+         "macb serve: port: Input should be less than or equal to 65535"),
+    ):  # fmt: skip
+        got = macb(*argv)
+        _refused(got, said)
+        assert "errors.pydantic.dev" not in got.stderr
+
+
+@pytest.mark.parametrize("command", ["up", "start", "ls", "certs"])
+def test_every_commands_help_says_its_defaults(command):
+    """`up`, `start`, `ls`, `certs` (and plot, ps) were built without the formatter the
+    others use, so their --help left the defaults out."""
+    from tests.harness import macb
+
+    got = macb(command, "--help")
+    assert got.returncode == 0 and "(default: " in got.stdout, got.stdout

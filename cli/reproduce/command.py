@@ -188,6 +188,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from services.api.client import DEFAULT_URL, ApiClient
+    from shared.config import error_text
 
     if args.episodes is not None and args.episodes < 1:
         return _refuse(f"--episodes {args.episodes}: give a number of episodes >= 1")
@@ -203,7 +204,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     try:
         body = figure_body(fig, args)
     except (ValueError, OSError, ValidationError) as err:
-        return _refuse(str(err))
+        return _refuse(error_text(err))
     out = Path(args.out or f"runs/reproduce/{out_name(fig, args)}")
     if args.status:
         from cli.local import expand_body
@@ -257,6 +258,7 @@ def reproduce_all(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from cli.reproduce.slurm import campaign, reproduce_slurm
+    from shared.config import error_text
 
     if not (args.local and args.launcher == "slurm") or args.status or args.report_only:
         return _refuse("all: give --local --launcher slurm (or name one figure)")
@@ -269,7 +271,7 @@ def reproduce_all(args: argparse.Namespace) -> int:
         try:
             body = figure_body(fig, args)
         except (ValueError, OSError, ValidationError) as err:
-            return _refuse(f"{fig.name}: {err}")
+            return _refuse(f"{fig.name}: {error_text(err)}")
         campaigns.append(campaign(fig, body, args.profile, parent / out_name(fig, args), None))
     return reproduce_slurm(campaigns, args, parent.resolve() / ".slurm")
 
