@@ -99,7 +99,7 @@ def add_ls_parser(sub: argparse._SubParsersAction) -> None:
         "progress and points.",
     )
     ls.add_argument("--api", metavar="URL", help=API_HELP)
-    ls.add_argument("--limit", type=int, default=20, help="newest N experiments")
+    ls.add_argument("--limit", type=at_least_one, default=20, help="newest N experiments")
     ls.set_defaults(func=cmd_ls)
 
 
@@ -133,6 +133,20 @@ def _api_client(args: argparse.Namespace) -> ApiClient:
 
 
 def _api_failed(cmd: str, err: Exception | str) -> int:
+    """Say why the API did not answer: 2 for a URL of no form (bad input), 1 otherwise,
+    naming the URL tried when the API could not be reached."""
+    import httpx
+
+    if isinstance(err, (httpx.UnsupportedProtocol, httpx.InvalidURL)):
+        print(f"macb {cmd}: --api (or MACB_API_URL): not an http(s) URL: {err}", file=sys.stderr)
+        return 2
+    if isinstance(err, httpx.RequestError):
+        try:
+            url = err.request.url
+            where = f" at {url.scheme}://{url.netloc.decode()}"
+        except RuntimeError:  # (no request was built)
+            where = ""
+        err = f"cannot reach the API{where}: {err} (--api URL or MACB_API_URL says where)"
     print(f"macb {cmd}: {err}", file=sys.stderr)
     return 1
 

@@ -90,16 +90,22 @@ def add_certs_parser(sub: argparse._SubParsersAction) -> None:
         metavar="NAME",
         help="more users (named after their role: actor-h2-0, learner2, cli-alice)",
     )
-    c.add_argument("--days", type=int, default=825, help="certificate lifetime")
+    c.add_argument("--days", type=at_least_one, default=825, help="certificate lifetime, in days")
     c.set_defaults(func=cmd_certs)
 
 
 BASE_USERS = ("counter", "learner", "evaluator", "api", "cli")
 
 
+MAX_DAYS = 36_500  # a hundred years: within every openssl's date range
+
+
 def cmd_certs(args: argparse.Namespace) -> int:
     if shutil.which("openssl") is None:
         print("macb certs: needs the openssl command", file=sys.stderr)
+        return 2
+    if args.days > MAX_DAYS:  # (openssl fails past its date range, a key already written)
+        print(f"macb certs: --days {args.days}: at most {MAX_DAYS}", file=sys.stderr)
         return 2
     routers: dict[str, list[str]] = {}
     for spec in args.router or ["router"]:

@@ -98,6 +98,9 @@ def cmd_train(args: argparse.Namespace) -> int:
     from shared.persist.runlock import RunLocked
     from shared.run.rollout import WorldError
 
+    if args.cut_every < 0:
+        print(f"macb train: --cut-every {args.cut_every:g}: 0 or more seconds", file=sys.stderr)
+        return 2
     if args.resume:
         given = sorted(config_overrides(args))
         if args.config or given:

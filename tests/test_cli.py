@@ -584,3 +584,20 @@ def test_every_commands_help_says_its_defaults(command):
 
     got = macb(command, "--help")
     assert got.returncode == 0 and "(default: " in got.stdout, got.stdout
+
+
+def test_lifetimes_limits_and_intervals_out_of_range_and_an_api_url_of_no_form(tmp_path):
+    """`certs --days 99999999` left a key without its certificate (openssl's dump);
+    `--days 0`, `ls --limit -3`, `train --cut-every -5` were taken; `ls --api notaurl`
+    said httpx's words without naming the flag, and an unreachable API no URL."""
+    from tests.harness import macb
+
+    _refused(macb("certs", str(tmp_path / "c"), "--days", "99999999"), "--days 99999999: at most")
+    _refused(macb("certs", str(tmp_path / "c"), "--days", "0"), "--days: 0: at least 1")
+    assert not (tmp_path / "c").exists()
+    _refused(macb("ls", "--limit", "-3"), "--limit: -3: at least 1")
+    _refused(macb("train", "--task", "simple", "--algo", "ddpg", "--cut-every", "-5",
+                  "--out", str(tmp_path / "o")), "--cut-every -5: 0 or more")  # fmt: skip
+    _refused(macb("ls", "--api", "notaurl"), "--api (or MACB_API_URL): not an http(s) URL")
+    got = macb("ls", "--api", "http://127.0.0.1:1")
+    assert got.returncode == 1 and "cannot reach the API at http://127.0.0.1:1" in got.stderr
