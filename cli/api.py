@@ -412,6 +412,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     except (ConfigError, OSError) as err:
         print(f"macb run: invalid config: {err}", file=sys.stderr)
         return 2
+    if why := _run_flags_error(args):
+        print(f"macb run: {why}", file=sys.stderr)
+        return 2
     if args.local:
         return _run_local(args, body)
     try:
@@ -428,6 +431,21 @@ def cmd_run(args: argparse.Namespace) -> int:
         return _api_failed("run", err)
     except httpx.HTTPError as err:
         return _api_failed("run", f"cannot reach the API: {err} (is `macb up` running?)")
+
+
+def _run_flags_error(args: argparse.Namespace) -> str | None:
+    """Flags of the other way of running, which it would ignore: with --local the API's
+    (--detach, --api, --actors), without it --local's (--group-size, --jobs)."""
+    if args.local:
+        api_only = [("--detach", args.detach), ("--api", args.api), ("--actors", args.actors != 1)]
+        if given := [flag for flag, on in api_only if on]:
+            return (
+                f"{', '.join(given)}: not with --local (its runs train in this process, "
+                "without the API or a cluster's actors); drop it"
+            )
+    elif given := [f for f in ("--group-size", "--jobs") if getattr(args, f[2:].replace("-", "_"))]:
+        return f"{', '.join(given)}: only with --local (the API's services run the runs)"
+    return None
 
 
 def _run_local(args: argparse.Namespace, body: dict[str, Any]) -> int:

@@ -30,7 +30,7 @@ def runs_in(root: Path) -> tuple[list[Path], dict[str, str]]:
     """The run folders under `root` (see run_folders) and each recorded arm; RunsError
     when `root` is no folder or holds no run."""
     if not root.is_dir():
-        raise RunsError(f"{root}: no such folder")
+        raise RunsError(f"{root}: {'a file, not a folder' if root.exists() else 'no such folder'}")
     folders, arms = run_folders(root)
     if not folders:
         raise RunsError(

@@ -103,8 +103,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         return 2
     if args.resume:
         given = sorted(config_overrides(args))
-        if args.config or given:
-            flags = ", ".join(["--config"] * bool(args.config) + [flag_name(n) for n in given])
+        others = ["--config"] * bool(args.config) + ["--seeds"] * bool(args.seeds)
+        others += ["--out"] * (args.out != "runs/train")  # (the run's folder is DIR)
+        if others or given:
+            flags = ", ".join(others + [flag_name(n) for n in given])
             print(
                 f"macb train: --resume takes the config from {args.resume}/config.json; "
                 f"drop {flags}",

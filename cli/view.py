@@ -362,12 +362,15 @@ def folder_view(args: argparse.Namespace) -> FolderView:
     """The view of args.runs_dir: RunsError / ValueError when it cannot be one."""
     root = Path(args.runs_dir)
     if args.figure is None:
+        figure_only = ("arms", "seeds", "episodes", "precision", "threads", "device")
+        if given := [f"--{k}" for k in figure_only if getattr(args, k, None) is not None]:
+            raise ValueError(f"{', '.join(given)}: only with --figure (they say its runs)")
         return FolderView(root)
     fig = FIGURES[args.figure]
     given = {"threads": None, "device": None, **vars(args)}  # a caller's may lack those two
     flags = argparse.Namespace(**{**given, "local": True, "report_only": False, "status": False})
     if not root.is_dir():
-        raise RunsError(f"{root}: no such folder")
+        raise RunsError(f"{root}: {'a file, not a folder' if root.exists() else 'no such folder'}")
     view = FolderView(root, fig, figure_body(fig, flags))
     from cli.local import config_conflicts, expand_body
 

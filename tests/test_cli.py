@@ -601,3 +601,25 @@ def test_lifetimes_limits_and_intervals_out_of_range_and_an_api_url_of_no_form(t
     _refused(macb("ls", "--api", "notaurl"), "--api (or MACB_API_URL): not an http(s) URL")
     got = macb("ls", "--api", "http://127.0.0.1:1")
     assert got.returncode == 1 and "cannot reach the API at http://127.0.0.1:1" in got.stderr
+
+
+def test_flags_the_chosen_way_of_running_would_ignore_are_refused(tmp_path):
+    """`run --local` took --detach, --api and --actors and ignored them, `run` without
+    --local --group-size and --jobs, `train --resume` --seeds and --out, `view` without
+    --figure the figure's flags; `view FILE` said "no such folder"."""
+    from tests.harness import macb
+
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("task: simple\nalgo: ddpg\nepisodes: 2\n")
+    out = str(tmp_path / "o")
+    _refused(macb("run", str(ok), "--local", "--detach", "--out", out),
+             "--detach: not with --local")  # fmt: skip
+    _refused(macb("run", str(ok), "--local", "--actors", "2", "--api", "http://x", "--out", out),
+             "--api, --actors: not with --local")  # fmt: skip
+    _refused(macb("run", str(ok), "--group-size", "2", "--jobs", "1"),
+             "--group-size, --jobs: only with --local")  # fmt: skip
+    assert not Path(out).exists()
+    _refused(macb("train", "--resume", out, "--seeds", "1", "--out", "x"),
+             "--resume takes the config from", "drop --seeds, --out")  # fmt: skip
+    _refused(macb("view", str(tmp_path), "--seeds", "1"), "--seeds: only with --figure")
+    _refused(macb("view", str(ok)), f"{ok}: a file, not a folder")
