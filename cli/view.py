@@ -363,8 +363,8 @@ def folder_view(args: argparse.Namespace) -> FolderView:
     root = Path(args.runs_dir)
     if args.figure is None:
         figure_only = ("arms", "seeds", "episodes", "precision", "threads", "device")
-        if given := [f"--{k}" for k in figure_only if getattr(args, k, None) is not None]:
-            raise ValueError(f"{', '.join(given)}: only with --figure (they say its runs)")
+        if extra := [f"--{k}" for k in figure_only if getattr(args, k, None) is not None]:
+            raise ValueError(f"{', '.join(extra)}: only with --figure (they say its runs)")
         return FolderView(root)
     fig = FIGURES[args.figure]
     given = {"threads": None, "device": None, **vars(args)}  # a caller's may lack those two
