@@ -521,7 +521,7 @@ def cmd_ls(args: argparse.Namespace) -> int:
 
 def _curves_from_store(db: str, experiment: str, metric: str) -> dict[str, Any] | None:
     """`plot --db`: the curves straight from a store file, no API needed."""
-    from cli.export import store_copy
+    from cli.store_file import store_copy
     from services.api.views import curves
 
     with store_copy(db) as store:  # only read: NotAStore if it is none
@@ -542,7 +542,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
         if not Path(args.db).is_file():  # (a Store would make it, and its folder)
             print(f"macb plot: no store file {args.db}", file=sys.stderr)
             return 2
-        from cli.export import NotAStore
+        from cli.store_file import NotAStore
 
         try:
             data = _curves_from_store(args.db, args.experiment, args.metric)

@@ -240,12 +240,12 @@ def run_groups(
         raise Refused()
     from cli.runs_folder import unwritable
 
-    if why := unwritable(out):
-        print(f"{out}: cannot write there ({why}): nothing was run", file=sys.stderr)
-        raise Refused()
     if why := device_error([r.config for r in runs]):
         print(f"{why}: nothing was run", file=sys.stderr)
         return 2
+    if why := unwritable(out):  # (made if missing: after every refusal that writes nothing)
+        print(f"{out}: cannot write there ({why}): nothing was run", file=sys.stderr)
+        raise Refused()
     jobs = jobs or default_jobs([r.config for r in runs])
     # One writer per run folder: a run another process trains is refused before any
     # group starts (each group takes its folders' locks too, for a race with this look).
