@@ -146,7 +146,10 @@ def _api_failed(cmd: str, err: Exception | str) -> int:
             where = f" at {url.scheme}://{url.netloc.decode()}"
         except RuntimeError:  # (no request was built)
             where = ""
-        err = f"cannot reach the API{where}: {err} (--api URL or MACB_API_URL says where)"
+        err = (
+            f"cannot reach the API{where}: {err} (is `macb up` running? --api URL or "
+            "MACB_API_URL says where)"
+        )
     print(f"macb {cmd}: {err}", file=sys.stderr)
     return 1
 
@@ -398,7 +401,7 @@ def _api_stop(args: argparse.Namespace) -> int:
             return 1
         return _api_failed("stop", err)
     except httpx.HTTPError as err:
-        return _api_failed("stop", f"cannot reach the API: {err}")
+        return _api_failed("stop", err)
     return 0
 
 
@@ -430,7 +433,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             return 2
         return _api_failed("run", err)
     except httpx.HTTPError as err:
-        return _api_failed("run", f"cannot reach the API: {err} (is `macb up` running?)")
+        return _api_failed("run", err)
 
 
 def _run_flags_error(args: argparse.Namespace) -> str | None:
