@@ -206,7 +206,7 @@ class RunWatch:
     _final: Decision | None = None  # once a run is over, it stays so
     _alive: set[tuple[str, str]] = field(default_factory=set)  # (role, id) with a token
     _checked: float = 0.0  # when who serves the run was last asked
-    config: TrainConfig | None = None  # its start's, sent again to a counter that missed it
+    config: TrainConfig | None = None  # its start's, sent again to a service that missed it
     _lost_start: LostStart = field(default_factory=LostStart)
 
     def __post_init__(self) -> None:
