@@ -29,10 +29,12 @@ taken, the runs file), `services/peers.py` (peers away and their grace),
 
 from __future__ import annotations
 
+import faulthandler
 import json
 import logging
 import queue
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -500,12 +502,21 @@ class ServiceBase(ServiceHooks):
             self.bus.close()
 
 
+# A service still alive this long after SIGTERM or SIGINT writes every thread's stack to
+# its log (stderr): a shutdown that hangs says where, before a supervisor's SIGKILL.
+SHUTDOWN_STACKS_AFTER_S = 8.0
+
+
 def stop_on_signals(service: ServiceBase) -> None:
-    """SIGTERM and SIGINT end the service's loop; `shutdown` then flushes and closes."""
+    """SIGTERM and SIGINT end the service's loop; `shutdown` then flushes and closes.
+    SIGUSR1 writes every thread's stack to the log and the service goes on (a service
+    that seems stuck says where, as `py-spy dump` would without installing it)."""
 
     def handler(signum: int, frame: object) -> None:
         service.log.info("signal %d: shutting down", signum)
+        faulthandler.dump_traceback_later(SHUTDOWN_STACKS_AFTER_S, file=sys.stderr)
         service.stop_event.set()
 
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
+    faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True)

@@ -274,7 +274,16 @@ class Cluster:
             procs.send(self.pids()[name], sig)
         elif self.procs[name].poll() is None:
             os.kill(self.procs[name].pid, sig)
-            self.procs[name].wait(timeout=timeout)
+            try:
+                self.procs[name].wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                # A service still up writes its threads' stacks to its log
+                # (services.common.SHUTDOWN_STACKS_AFTER_S): the failure shows them.
+                self.procs[name].kill()
+                tail = "\n".join(self.log(name).splitlines()[-200:])
+                raise AssertionError(
+                    f"{name} still running {timeout:g} s after signal {sig}; its log's end:\n{tail}"
+                ) from None
 
     def pause(self, *names: str, seconds: float) -> None:
         """SIGSTOP each process, then SIGCONT them all `seconds` later."""

@@ -11,8 +11,11 @@ its shape.
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
+import subprocess
+import sys
 import threading
 import time
 from collections import defaultdict
@@ -39,6 +42,7 @@ from shared.net.wire import SCHEMA_VERSION, decode, encode
 from shared.persist.wal import WriteAheadLog, read_wal
 from shared.run.factories import build_exploration
 from tests.conftest import wait_for
+from tests.harness import ROOT
 
 OBS, ACT = 14, 5  # speaker_listener: joint obs 3 + 11, joint act 3 + 2
 ASSIGN = Assignment.from_wire(
@@ -635,3 +639,57 @@ def test_wal_round_trip_and_torn_tail(tmp_path):
     data[-1] ^= 0xFF  # a flipped bit: the CRC refuses the record
     path.write_bytes(bytes(data))
     assert read_wal(path)[0] == [] and read_wal(path)[2]
+
+
+def test_sigusr1_logs_every_threads_stack_and_the_service_goes_on(counter):
+    """A service that seems stuck says where: SIGUSR1 writes its threads' stacks to its
+    log (stderr), and it goes on answering and counting."""
+    counter.launch()
+    os.kill(counter.cluster.pid(counter.name), signal.SIGUSR1)
+    wait_for(lambda: "in serve_forever" in counter.log(), 10, what="the stacks in the log")
+    assert "Current thread" in counter.log() or "Thread 0x" in counter.log()
+    run, stream = "r-usr1", Stream(4, 10)
+    counter.start_run(run)
+    counter.send(run, "a0", stream, 0, 10)
+    counter.wait_acked(run, {"a0": 10})
+    assert counter.alive()
+    counter.kill(signal.SIGTERM)  # and shuts down as ever, flushing
+    assert "1 run(s) saved" in counter.log()
+
+
+def test_a_shutdown_that_hangs_writes_the_stacks_before_it_is_killed(tmp_path):
+    """SIGTERM starts a watchdog: a service whose shutdown does not end writes every
+    thread's stack, so the SIGKILL that follows does not hide where it hung."""
+    script = tmp_path / "hung.py"
+    script.write_text(
+        "import logging, threading, time\n"
+        "import services.common as common\n"
+        "common.SHUTDOWN_STACKS_AFTER_S = 0.5\n"
+        "class Hung:\n"
+        "    log = logging.getLogger('hung')\n"
+        "    stop_event = threading.Event()\n"
+        "def flush_forever():\n"
+        "    while True:\n"
+        "        time.sleep(0.05)\n"
+        "service = Hung()\n"
+        "common.stop_on_signals(service)\n"
+        "print('ready', flush=True)\n"
+        "service.stop_event.wait()\n"
+        "flush_forever()\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, str(script)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGTERM)
+        time.sleep(2.0)
+        assert proc.poll() is None  # still hung: the watchdog does not end it
+    finally:
+        proc.kill()
+        _, err = proc.communicate(timeout=10)
+    assert "in flush_forever" in err, err
