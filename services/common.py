@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from services.endpoint import Endpoint
-from services.inbox import DRAINED, Inbox, Item, Rejects, reason_bucket
+from services.inbox import DRAINED, Inbox, Item, Rejects, reason_bucket, wake
 from services.peers import PeerWatch
 from services.runs import ServedRuns
 from shared.config import ConfigError, TrainConfig, make_config
@@ -516,6 +516,7 @@ def stop_on_signals(service: ServiceBase) -> None:
         service.log.info("signal %d: shutting down", signum)
         faulthandler.dump_traceback_later(SHUTDOWN_STACKS_AFTER_S, file=sys.stderr)
         service.stop_event.set()
+        wake(service.inbox)
 
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)

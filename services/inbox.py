@@ -15,6 +15,18 @@ from typing import Literal
 
 Item = tuple[str, str, bytes]  # tag, key expression, payload
 DRAINED: Literal["drained"] = "drained"
+WAKE: Item = ("wake", "", b"")  # no message: wakes a thread waiting in `take`
+
+
+def wake(q: queue.Queue[Item] | queue.SimpleQueue[Item]) -> None:
+    """Wake the thread waiting on `q` (from a signal handler: the loop then sees its stop).
+
+    CPython 3.11's `SimpleQueue.get(timeout=...)`, interrupted by a signal whose handler
+    ends after the timeout, waits again with a negative timeout, which is no timeout: only
+    a put ends it. Its put is reentrant, safe in a handler. A `Queue`'s wait ends by its
+    timeout, and its put takes a lock the interrupted thread may hold: not put there."""
+    if isinstance(q, queue.SimpleQueue):
+        q.put(WAKE)
 
 
 class Inbox:
@@ -38,6 +50,8 @@ class Inbox:
             if self.in_burst:
                 self.in_burst = False
                 return DRAINED
+            return None
+        if item is WAKE:
             return None
         self.in_burst = True
         return item

@@ -162,6 +162,56 @@ def test_the_inbox_says_once_when_a_burst_has_drained_and_waits_only_when_idle()
     assert inbox.take(False, 0.01) is None  # once
 
 
+SIGNAL_IN_A_WAIT = """
+import logging, queue, signal, sys, threading, time
+from services.common import stop_on_signals
+from services.inbox import Inbox
+
+class SlowHandler(logging.Handler):
+    def emit(self, record):  # a log line that outlasts the wait's timeout (a loaded host)
+        t = time.monotonic()
+        while time.monotonic() - t < 0.2:
+            pass
+
+class Service:
+    log = logging.getLogger("slow")
+    stop_event = threading.Event()
+    inbox = getattr(queue, sys.argv[1])()
+
+Service.log.addHandler(SlowHandler())
+Service.log.setLevel(logging.INFO)
+stop_on_signals(Service)
+inbox = Inbox(Service.inbox)
+main = threading.main_thread().ident  # (the thread in the wait gets the signal)
+threading.Timer(0.02, lambda: signal.pthread_kill(main, signal.SIGTERM)).start()
+t0 = time.monotonic()
+while not Service.stop_event.is_set():
+    assert inbox.take(False, 0.05) is None
+print(f"stopped after {time.monotonic() - t0:.2f} s")
+"""
+
+
+@pytest.mark.parametrize("inbox", ["SimpleQueue", "Queue"])
+def test_a_stop_signal_in_the_inboxs_wait_ends_the_loop(inbox):
+    """SIGTERM while the service thread waits on its inbox: CPython 3.11's SimpleQueue
+    (the counter's) waited on with no timeout once the handler outlasted the wait's, and
+    the loop never saw its stop (a counter alive 20 s after SIGTERM). The handler wakes it."""
+    import subprocess
+    import sys
+
+    from tests.harness import ROOT
+
+    got = subprocess.run(
+        [sys.executable, "-c", SIGNAL_IN_A_WAIT, inbox],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert got.returncode == 0 and "stopped after" in got.stdout, got.stderr[-2000:]
+    assert float(got.stdout.split()[2]) < 2.0, got.stdout
+
+
 def test_rejects_are_counted_by_reason_and_logged_at_most_once_an_interval():
     rejects = Rejects(log_every_s=1.0)
     assert rejects.add("unknown run: r1", now=10.0) == 1

@@ -55,8 +55,9 @@ def test_short_speaker_listener_cen_macb_run_is_exact(cluster, bus, actors, opti
     assert rows == draws * config.batch_size * learner["updates"], learner
     # Each actor acted with the learner's weights, and the rising versions reached the
     # actors. Not every actor: credit follows the learner's receipt of a batch, not its
-    # ingestion (held until counted), so on a loaded machine one actor may finish all
-    # its episodes before the learner's first boundary after version 0.
+    # ingestion (held until the counter's ack, which comes on another subscription, each
+    # on a thread of its own, in no order with the batches), so on a loaded machine one
+    # actor may have every batch acknowledged before version 1 reaches it.
     versions = [watch.states[a]["policy_version"] for a in watch.assign.actors]
     assert min(versions) >= 0 and max(versions) > 1, watch.states
     # Services are free again.
