@@ -24,6 +24,7 @@ from cli.config_flags import (
 from cli.local import add_group_flags
 from cli.security import add_security_flags
 from shared.config import ConfigError, TrainConfig, format_errors, read_config_file
+from shared.metrics import CURVE_FIELDS
 
 if TYPE_CHECKING:
     from services.api.client import ApiClient
@@ -119,7 +120,13 @@ def add_plot_parser(sub: argparse._SubParsersAction) -> None:
         metavar="FILE.png",
         help="the figure; its suffix names the format (png, svg, pdf, ...)",
     )
-    pl.add_argument("--metric", default="success_rate", help="metric to plot")
+    pl.add_argument(
+        "--metric",
+        default="success_rate",
+        choices=CURVE_FIELDS,
+        metavar="METRIC",
+        help=f"the metric to plot: one of {', '.join(CURVE_FIELDS)}",
+    )
     pl.add_argument("--api", metavar="URL", help=API_HELP)
     pl.add_argument("--db", metavar="FILE", help="read this store instead of asking the API")
     pl.set_defaults(func=cmd_plot)

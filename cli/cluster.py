@@ -23,6 +23,8 @@ from cli.config_flags import (
     add_config_flags,
     at_least_one,
     config_overrides,
+    flag_dest,
+    flag_name,
     one_run_config,
     resolve_config,
 )
@@ -293,7 +295,8 @@ def serve_api(args: argparse.Namespace) -> int:
     if args.listen_http:
         host, _, port = args.listen_http.rpartition(":")
         if not host or not port.isdigit():
-            print(f"macb serve api: --listen-http wants HOST:PORT, not {args.listen_http}")
+            print(f"macb serve api: --listen-http wants HOST:PORT, not {args.listen_http}",
+                  file=sys.stderr)  # fmt: skip
             return 2
         overrides.update(host=host.strip("[]"), port=int(port))
     if args.db:
@@ -443,6 +446,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     if not 1 <= args.api_port <= 65535:
         print(f"macb up: --api-port must be from 1 to 65535, not {args.api_port}", file=sys.stderr)
         return 2
+    if not args.run and (run_only := _run_flags(args)):  # (taken and ignored, before)
+        print(f"macb up: {', '.join(run_only)}: with --run CONFIG (without it, up serves "
+              "until stopped: runs come by `macb run`)", file=sys.stderr)  # fmt: skip
+        return 2
     if args.launcher == "slurm":
         from cli.slurm_cluster import cmd_up_slurm
 
@@ -577,6 +584,13 @@ def local_cluster(
             api.close()
         cluster.stop()
         print("cluster stopped", file=sys.stderr)
+
+
+def _run_flags(args: argparse.Namespace) -> list[str]:
+    """The flags given that only --run takes: its seeds, folder and config's values."""
+    given = ["--seeds"] * bool(args.seeds) + ["--out"] * bool(args.out)
+    fields = sorted(n for n in TrainConfig.model_fields if getattr(args, flag_dest(n)) is not None)
+    return given + [flag_name(n) for n in fields]
 
 
 def _up_experiment(args: argparse.Namespace) -> tuple[TrainConfig | None, dict | None]:

@@ -283,6 +283,9 @@ def _results(args: argparse.Namespace) -> int:
             print("macb results: --compare needs --runs DIR (the runs' folders)", file=sys.stderr)
             return 2
         return cmd_compare(Path(args.compare), Path(args.runs))
+    if args.runs:  # (taken and ignored, before: the index was rewritten instead)
+        print("macb results: --runs is for --compare", file=sys.stderr)
+        return 2
     root = Path(args.dir)
     readme = root / "README.md"
     if not readme.is_file():

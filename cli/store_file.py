@@ -8,6 +8,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+STORE_TABLES = {"schema_version", "experiments", "runs", "metrics"}
+
 
 class NotAStore(Exception):
     """The --db file is not an API store (named, with the reason)."""
@@ -16,9 +18,9 @@ class NotAStore(Exception):
 @contextlib.contextmanager
 def store_copy(db: str) -> Iterator[Any]:
     """A store file, only read: opening a store migrates it to this version's schema (and
-    makes any file one), so a consistent copy (SQLite's backup, a running API's WAL
-    included) is opened instead, and an older API can still read its own file after.
-    NotAStore, naming the file, if it is not an API store this version reads."""
+    makes any file one), so a consistent copy is opened instead, and an older API can
+    still read its own file after. NotAStore, naming the file, if it is not an API store
+    this version reads."""
     import sqlite3
     import tempfile
 
@@ -28,16 +30,7 @@ def store_copy(db: str) -> Iterator[Any]:
     with tempfile.TemporaryDirectory(prefix="macb-store-") as tmp:
         copy = Path(tmp) / "store.sqlite3"
         try:
-            src = sqlite3.connect(f"{Path(db).resolve().as_uri()}?mode=ro", uri=True)
-            try:
-                tables = {r[0] for r in src.execute("SELECT name FROM sqlite_master")}
-                if not {"schema_version", "experiments", "runs", "metrics"} <= tables:
-                    raise NotAStore(f"{db}: not a macb API store (no experiments, runs, metrics)")
-                with sqlite3.connect(copy) as dst:
-                    src.backup(dst)
-                dst.close()
-            finally:
-                src.close()
+            _copy(Path(db), copy)
             store = Store(copy)
         except (sqlite3.Error, StoreError) as err:
             raise NotAStore(f"{db}: not a store this version reads ({err})") from None
@@ -45,3 +38,45 @@ def store_copy(db: str) -> Iterator[Any]:
             yield store
         finally:
             store.close()
+
+
+def _copy(db: Path, copy: Path) -> None:
+    """`db` copied to `copy`. With a `-wal` beside it (a running API's, or one that ended
+    without its checkpoint) through SQLite's backup, which reads the log too; without,
+    its bytes: SQLite opening a store of journal mode WAL, even read-only, would leave a
+    `-wal` and a `-shm` beside it. Bytes that do not check (a checkpoint under way while
+    they were read) are read again through SQLite."""
+    import shutil
+    import sqlite3
+
+    if not Path(f"{db}-wal").exists():
+        shutil.copyfile(db, copy)
+        with contextlib.suppress(sqlite3.DatabaseError):
+            if _checked(db, copy):
+                return
+        copy.unlink()
+    src = sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True)
+    try:
+        with sqlite3.connect(copy) as dst:
+            src.backup(dst)
+        dst.close()
+    finally:
+        src.close()
+    if not _checked(db, copy):
+        raise sqlite3.DatabaseError("the file does not pass SQLite's quick_check")
+
+
+def _checked(db: Path, copy: Path) -> bool:
+    """Whether `db`'s copy passes SQLite's quick check; NotAStore if it is a database
+    but not a store."""
+    import sqlite3
+
+    con = sqlite3.connect(copy)
+    try:
+        ok = con.execute("PRAGMA quick_check").fetchone()[0] == "ok"
+        tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master")}
+    finally:
+        con.close()
+    if ok and not tables >= STORE_TABLES:
+        raise NotAStore(f"{db}: not a macb API store (no experiments, runs, metrics)")
+    return ok

@@ -128,8 +128,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         out = Path(args.out)
         if args.seeds:
             return _train_seeds(args, cfg, out)
+    from cli.local import device_error
     from cli.runs_folder import unwritable
 
+    if why := device_error([cfg]):  # (before the run's folder, its lock and cuts/)
+        print(f"macb train: {why}", file=sys.stderr)
+        return 2
     for flag, folder in (("--tensorboard", args.tensorboard), ("--out", out)):
         if folder and (why := unwritable(Path(folder))):
             print(f"macb train: {flag} {folder}: cannot write there ({why})", file=sys.stderr)

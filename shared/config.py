@@ -51,7 +51,7 @@ class BetaSchedule(BaseModel):
     (beyond the thesis: its §7 suggests a decaying beta for Cen-MACB's fall after it
     converges). `constant` keeps `beta` throughout: the thesis's method, bit for bit."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     kind: Literal["constant", "linear", "exponential"] = Field(
         "constant",
@@ -97,7 +97,7 @@ class EarlyStop(BaseModel):
     thesis: its §6.3 and §7 suggest early stopping for Cen-MACB's fall after it
     converges). The best point's weights are kept beside the last (best.pt)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     rule: Literal["success_at_least", "no_improvement"] = Field(
         ...,
@@ -131,7 +131,7 @@ class CountSketchConfig(BaseModel):
     table (shared/core/counting.py, CountSketch). Its size is `width` x `depth` cells,
     or what fits in `memory_mb` at `depth`; each table of the run gets one that size."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     width: Int | None = Field(
         None,
@@ -181,7 +181,7 @@ class CountSketchConfig(BaseModel):
 class TrainConfig(BaseModel):
     """One training run. Field docs appear in `macb train --help` and the API schema."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     task: str = Field(
         "speaker_listener",

@@ -34,6 +34,15 @@ ALL_FIELDS = TRAIN_FIELDS + SERVICE_FIELDS
 # force at the point's last transition (`beta_schedule`), and `stop_reason`, set on the
 # point its `early_stop` rule ends it at. A run without them writes the rows it always did.
 OPTION_FIELDS = ("beta", "stop_reason")
+# What a curve may draw: every number a row may hold (`episode`, its x, too).
+CURVE_FIELDS = (*ALL_FIELDS, "beta")
+
+
+def curve_field_error(name: str) -> str | None:
+    """Why `name` is no metric a curve may draw (None if it is one)."""
+    if name in CURVE_FIELDS:
+        return None
+    return f"unknown metric {name[:64]!r} (one of: {', '.join(CURVE_FIELDS)})"
 
 
 def run_fields(cfg: TrainConfig, base: tuple[str, ...] = TRAIN_FIELDS) -> tuple[str, ...]:

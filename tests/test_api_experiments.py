@@ -626,8 +626,12 @@ def test_bad_input_gets_the_right_status_names_the_field_and_changes_nothing(api
         (f"/runs/{run}/metrics", {"since": "x"}),
         ("/experiments", {"limit": 100_000}),
         (f"/experiments/{exp['id']}/curves", {"metric": "a b"}),
+        (f"/experiments/{exp['id']}/curves", {"metric": "nosuch"}),
     ]:
         assert client.get(path, params=params).status_code == 422, (path, params)
+    # An unknown metric gave empty curves (200): refused naming it and what may be asked.
+    r = client.get(f"/experiments/{exp['id']}/curves", params={"metric": "nosuch"})
+    assert "unknown metric 'nosuch'" in r.text and "success_rate" in r.text, r.text
     assert client.delete(f"/runs/{run}").status_code == 405
     assert store.snapshot() == before, "a refused request changed stored state"
     store.close()

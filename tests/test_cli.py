@@ -535,6 +535,10 @@ def test_plot_db_only_reads_its_store_and_outputs_that_cannot_be_written_are_ref
              f"-o {a_file / 'p.png'}: cannot write there (a file, not a folder)")  # fmt: skip
     _refused(macb("export", "xgrid", "--db", str(old), "--csv", str(a_file)),
              f"--csv {a_file}: cannot write there (a file, not a folder)")  # fmt: skip
+    # A metric no row holds drew an empty figure and said "wrote" (exit 0).
+    _refused(macb("plot", "xgrid", "-o", str(tmp_path / "q.png"), "--db", str(old),
+                  "--metric", "nosuch"), "invalid choice: 'nosuch'")  # fmt: skip
+    assert not (tmp_path / "q.png").exists()
     got = macb("run", "configs/fig8/sparse.yaml", "--local", "--seeds", "1", "1", "--out",
                str(tmp_path / "o"))  # fmt: skip
     _refused(got, "seeds: a seed is repeated")
@@ -570,6 +574,8 @@ def test_counts_below_one_and_values_a_model_refuses_are_said_by_field(tmp_path)
          "macb reproduce: seeds.0: Input should be greater than or equal to 0"),
         (["serve", "api", "--listen-http", "127.0.0.1:70000"],
          "macb serve: port: Input should be less than or equal to 65535"),
+        (["serve", "api", "--listen-http", "nonsense"],  # (said on stdout, before)
+         "macb serve api: --listen-http wants HOST:PORT, not nonsense"),
     ):  # fmt: skip
         got = macb(*argv)
         _refused(got, said)
@@ -623,3 +629,7 @@ def test_flags_the_chosen_way_of_running_would_ignore_are_refused(tmp_path):
              "--resume takes the config from", "drop --seeds, --out")  # fmt: skip
     _refused(macb("view", str(tmp_path), "--seeds", "1"), "--seeds: only with --figure")
     _refused(macb("view", str(ok)), f"{ok}: a file, not a folder")
+    # `up` without --run served until stopped and ignored the run's flags.
+    _refused(macb("up", "--seeds", "1", "--out", out, "--beta", "0.5"),
+             "--seeds, --out, --beta: with --run CONFIG")  # fmt: skip
+    assert not Path(out).exists()

@@ -30,6 +30,9 @@ def test_defaults_are_the_thesis_settings():
     [
         ({"task": "pong"}, "task", "unknown task 'pong'"),
         ({"beta": -0.1}, "beta", "greater than or equal to 0"),
+        # (nan and inf were said to be "less than or equal to 100")
+        ({"beta": float("nan")}, "beta", "Input should be a finite number"),
+        ({"tau": float("inf")}, "tau", "Input should be a finite number"),
         ({"k": 0}, "k", "greater than or equal to 1"),
         ({"task": "simple", "algo": "cen-maddpg"}, "config", "task simple has one"),
         ({"task": "spread", "algo": "ddpg"}, "config", "trains one agent"),

@@ -42,14 +42,17 @@ def test_config_takes_device_names_and_refuses_others():
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
-def test_a_missing_device_is_refused_with_the_reason():
+def test_a_missing_device_is_refused_with_the_reason(tmp_path):
     with pytest.raises(DeviceError, match="device cuda: not available here"):
         resolve_device("cuda")
     with pytest.raises(DeviceError):
         BatchedMADDPG(agents_of("simple"), LearnerSpec(algo="ddpg"), device="cuda")
+    out = tmp_path / "o"
     got = macb("train", "--task", "simple", "--algo", "ddpg", "--device", "cuda",
-               "--episodes", "1", "--out", "/nonexistent/never", timeout=120)  # fmt: skip
+               "--episodes", "1", "--out", str(out), timeout=120)  # fmt: skip
     assert got.returncode == 2 and "device cuda: not available here" in got.stderr
+    # Refused before the run's folder is made (it held a .lock and cuts/ before).
+    assert not out.exists()
 
 
 def test_an_explicit_device_runs_the_same_update():

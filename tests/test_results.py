@@ -239,3 +239,6 @@ def test_compare_says_whether_runs_give_a_page_s_points_bit_for_bit(tmp_path):
 
     no_runs = macb_cli("results", "--compare", str(page))
     assert no_runs.returncode == 2 and "--compare needs --runs" in no_runs.stderr
+    # --runs alone was ignored, and the index rewritten as if it had not been given.
+    runs_alone = macb_cli("results", "--dir", str(tmp_path / "nowhere"), "--runs", str(other))
+    assert runs_alone.returncode == 2 and "--runs is for --compare" in runs_alone.stderr

@@ -229,6 +229,8 @@ def test_each_task_s_command_names_the_runs_and_configs_of_the_user_s(
         (["--local", "--detach"], "--detach is for --launcher slurm"),
         (["--group-runs", "x-s0"], "--group-runs trains with --local"),
         (["--local", "--group-runs", "nosuch-s0"], "--group-runs: no run nosuch-s0 in"),
+        # (--status went first and wrote no page)
+        (["--status", "--report-only"], "--status and --report-only: give one"),
     ],
 )
 def test_launcher_flags_that_do_not_fit_are_refused(

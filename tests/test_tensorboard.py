@@ -165,6 +165,7 @@ def test_macb_export_only_reads_its_store_and_refuses_a_file_that_is_none(tmp_pa
     """`--db` reads: an older API's store is exported from a copy and left as it was
     (opening it as a store would migrate it, and that API could no longer read it); a
     file that is not a store is refused, naming it, and left alone too."""
+    import contextlib
     import hashlib
     import shutil
     import sqlite3
@@ -174,20 +175,15 @@ def test_macb_export_only_reads_its_store_and_refuses_a_file_that_is_none(tmp_pa
     old = tmp_path / "old.sqlite3"
     shutil.copy(COMMITTED, old)
     before = hashlib.sha256(old.read_bytes()).hexdigest()
-    exp = sqlite3.connect(old).execute("SELECT id FROM experiments ORDER BY id").fetchone()[0]
+    with contextlib.closing(sqlite3.connect(old)) as con:  # (closed: it leaves no -wal)
+        exp = con.execute("SELECT id FROM experiments ORDER BY id").fetchone()[0]
     proc = macb("export", exp, "--db", str(old), "--csv", str(tmp_path / "csv"), timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "point" in proc.stdout and (tmp_path / "csv").is_dir()
     assert hashlib.sha256(old.read_bytes()).hexdigest() == before
-    # (SQLite may leave a reader's empty -wal beside a WAL-mode file, and its -shm index)
-    assert {p.name for p in tmp_path.iterdir()} - {"old.sqlite3-wal", "old.sqlite3-shm"} == {
-        "csv",
-        "old.sqlite3",
-    }
-    assert (
-        not (tmp_path / "old.sqlite3-wal").exists()
-        or not (tmp_path / "old.sqlite3-wal").stat().st_size
-    )
+    # Nothing beside it either (SQLite's read-only open of a WAL-mode file left a -wal
+    # and a -shm: a file with no -wal beside it is copied as bytes)
+    assert {p.name for p in tmp_path.iterdir()} == {"csv", "old.sqlite3"}
     other = tmp_path / "notes.sqlite3"
     with sqlite3.connect(other) as c:
         c.execute("CREATE TABLE notes (x)")
@@ -198,3 +194,29 @@ def test_macb_export_only_reads_its_store_and_refuses_a_file_that_is_none(tmp_pa
         proc = macb("export", "x", "--db", str(bad), "--csv", str(tmp_path / "c2"), timeout=60)
         assert proc.returncode == 2 and f"macb export: {bad}: not a" in proc.stderr, proc.stderr
         assert "Traceback" not in proc.stderr and bad.read_bytes() == kept
+
+
+def test_a_store_a_running_api_writes_is_read_with_what_its_log_holds(tmp_path):
+    """A store with a `-wal` beside it (an API writing it now) is read through SQLite, so
+    what is committed but not yet checkpointed into the file is in the copy."""
+    import shutil
+    import sqlite3
+
+    from cli.store_file import store_copy
+    from tests.store_schema1 import COMMITTED
+
+    db = tmp_path / "live.sqlite3"
+    shutil.copy(COMMITTED, db)
+    with store_copy(str(db)) as store:  # (bytes: no -wal yet)
+        exp = store.experiments()[0]["id"]
+    writer = sqlite3.connect(db)
+    try:
+        writer.execute("PRAGMA journal_mode=wal")
+        writer.execute("PRAGMA wal_autocheckpoint=0")
+        writer.execute("UPDATE experiments SET name = 'renamed' WHERE id = ?", (exp,))
+        writer.commit()
+        assert (tmp_path / "live.sqlite3-wal").stat().st_size > 0
+        with store_copy(str(db)) as store:
+            assert store.experiment(exp)["name"] == "renamed"
+    finally:
+        writer.close()

@@ -326,6 +326,8 @@ def launcher_error(args: argparse.Namespace) -> str | None:
             return "--detach is for --launcher slurm"
     if args.group_runs and (not args.local or args.report_only or args.status):
         return "--group-runs trains with --local (not with --report-only or --status)"
+    if args.status and args.report_only:  # (--status went first: no page was written)
+        return "--status and --report-only: give one (the runs' progress, or their page)"
     return None
 
 

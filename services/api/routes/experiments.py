@@ -12,6 +12,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import JSONResponse, Response
+from pydantic import AfterValidator
+
+from shared.metrics import curve_field_error
 
 from ..deps import (
     AllowedTasks,
@@ -36,7 +39,14 @@ from ..views import curves, load_experiments
 
 router = APIRouter(prefix="/experiments", tags=["experiments"])
 
-MetricName = Annotated[str, Query(pattern=r"^[A-Za-z0-9_]{1,64}$")]
+
+def known_metric(name: str) -> str:
+    if why := curve_field_error(name):
+        raise ValueError(why)
+    return name
+
+
+MetricName = Annotated[str, AfterValidator(known_metric), Query(max_length=64)]
 RunIds = Annotated[
     list[Annotated[str, Query(max_length=200)]] | None,
     Query(max_length=256, description="only these runs (default: every failed or stopped one)"),
