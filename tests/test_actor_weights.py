@@ -140,3 +140,25 @@ def test_weights_error_takes_what_a_learner_sends():
         weights_error("no list", policy.layout) == "weights for no list of agents, the policy has 2"
     )
     assert weights_error([[1], {}], policy.layout) is not None
+
+
+def test_the_newest_weights_are_decoded_once_not_at_every_tick(monkeypatch):
+    """The loop looks for new weights every tick: a message already looked at (loaded,
+    or not newer) was decoded again each time, a whole policy's arrays per tick."""
+    actor, st = serving_actor()
+    decoded = []
+    real = ActorService.decode_or_why
+
+    def counting(self, key, payload, kind):
+        decoded.append(payload)
+        return real(self, key, payload, kind)
+
+    monkeypatch.setattr(ActorService, "decode_or_why", counting)
+    actor._on_weights(keys.k_weights("r", "latest"), weights_payload(trained(st, 0), 0))
+    for _ in range(5):
+        actor.load_newest_weights(st)
+    assert st.version == 0 and len(decoded) == 1
+    actor._on_weights(keys.k_weights("r", "latest"), weights_payload(trained(st, 1), 1))
+    for _ in range(5):
+        actor.load_newest_weights(st)
+    assert st.version == 1 and len(decoded) == 2  # a new arrival is looked at

@@ -235,8 +235,9 @@ class ActorService(ServiceBase):
         run = st.runs[0]
         with self._newest_lock:
             newest = self._newest.get(run)
-        if newest is None:
-            return
+        if newest is None or newest is st.looked_at:
+            return  # (each arrival is a new tuple: one looked at says the same again)
+        st.looked_at = newest
         msg, why = self.decode_or_why(*newest, Weights)
         if msg is None:
             self._forget_newest(run, newest)  # (refused: counted once, not every tick)

@@ -68,6 +68,7 @@ class ActorRuns:
     act_pub: Callable[[bytes], None] | None = None  # lockstep: the lead run's act requests
     version: int = -1  # weights version acting now; -1 until the learner's first weights
     incarnation: Any = None  # the learner process whose weights those are
+    looked_at: object = None  # the newest weights message last looked at (decoded once)
     rejoin: Rejoin | None = None  # restarted: waiting to hear where each run goes on
     done: int = 0
     steps: int = 0  # steps taken by this process (each run's)
