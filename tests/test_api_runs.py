@@ -117,3 +117,40 @@ def test_events_resume_after_last_event_id_and_refuse_one_that_is_not_a_seq(api,
     for bad in (b"\xb2", b"1" * 20, b"-1", b"1e3"):
         r = client.get(f"/runs/{run}/events", headers={"Last-Event-ID": bad})
         assert r.status_code == 422 and "last-event-id" in r.text.lower(), (bad, r.text)
+
+
+def test_events_name_the_attempt_each_point_and_status_is_of(api, client):
+    """A retry deletes a run's points and its new attempt's start again from the first
+    episode, numbered on: a stream's client saw the episodes go back with nothing to
+    say why. Every event names the attempt it is of."""
+    import json
+
+    exp = post(client, {**TINY, "seeds": [0]}).json()
+    run = exp["runs"][0]["id"]
+    store = Store(api.settings.db_path)
+    store.add_points(run, [row(e) for e in (4, 8)])
+    assert client.post(f"/runs/{run}/stop").json()["changed"] is True
+
+    def events(since: int) -> list[tuple[str, dict]]:
+        text = client.get(f"/runs/{run}/events", params={"since": since}).text
+        blocks = [b for b in text.split("\n\n") if "event:" in b]
+        out = []
+        for b in blocks:
+            lines = dict(x.split(": ", 1) for x in b.splitlines() if not x.startswith("id:"))
+            out.append((lines["event"], json.loads(lines["data"])))
+        return out
+
+    first = events(0)
+    assert [(e, d["attempt"]) for e, d in first] == [
+        ("metric", 1),
+        ("metric", 1),
+        ("status", 1),
+        ("end", 1),
+    ]
+    assert client.post(f"/experiments/{exp['id']}/retry").status_code == 200
+    store.add_points(run, [row(4)], attempt=2)
+    assert client.post(f"/runs/{run}/stop").json()["changed"] is True
+    again = events(2)  # (a client that had the first attempt's two points)
+    assert [(e, d["attempt"]) for e, d in again] == [("metric", 2), ("status", 2), ("end", 2)]
+    assert again[0][1]["episode"] == 4 and again[0][1]["seq"] == 3
+    store.close()

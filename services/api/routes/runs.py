@@ -110,11 +110,14 @@ async def _events(
         run = await run_in_threadpool(load_run, store, run_id)
         if run is None:
             return
-        points = await run_in_threadpool(store.points, run_id, since, 1000)
+        # (the points and the attempt they are of read in one statement: a retry
+        # deletes the earlier attempt's points in the transaction that counts the new one)
+        text, _, _, attempt, _ = await run_in_threadpool(store.points_json, run_id, since, 1000)
+        points = json.loads(text)
         for p in points:
             since = p["seq"]
-            yield _sse("metric", p, since)
-        status = (run["status"], run["reason"], run["progress"]["trained_episodes"])
+            yield _sse("metric", {**p, "attempt": attempt}, since)
+        status = (run["status"], run["reason"], run["progress"]["trained_episodes"], attempt)
         if status != last_status:
             skipped_running = (
                 last_status is not None
@@ -125,15 +128,15 @@ async def _events(
             if skipped_running:
                 # Started and ended between two polls (a short run): still say that it
                 # ran, so every client sees queued -> running -> the end, in order.
-                yield _sse("status", {"status": "running", "reason": None, "progress": None})
+                running = {"status": "running", "reason": None, "progress": None}
+                yield _sse("status", {**running, "attempt": attempt})
             last_status = status
-            yield _sse(
-                "status",
-                {"status": run["status"], "reason": run["reason"], "progress": run["progress"]},
-            )
+            now = {"status": run["status"], "reason": run["reason"], "progress": run["progress"]}
+            yield _sse("status", {**now, "attempt": attempt})
         if run["status"] not in ACTIVE and not points:
             # Final, and every stored point has gone out: say so and end the stream.
-            yield _sse("end", {"status": run["status"], "reason": run["reason"], "seq": since})
+            end = {"status": run["status"], "reason": run["reason"], "seq": since}
+            yield _sse("end", {**end, "attempt": attempt})
             return
         if points:
             continue
@@ -164,7 +167,9 @@ async def run_events(
     """Server-sent events: `metric` (one per point, id = its seq), `status` on each
     change (as polled; a run seen queued and then ended also gets its `running`, with
     progress null), and `end` once the run has ended and every point has been sent.
-    Resume with `since` or the Last-Event-ID header."""
+    Each names the run's `attempt` it is of: a retry (a new attempt, its points numbered
+    on) deletes the earlier attempt's points, and its own start again from the first
+    episode. Resume with `since` or the Last-Event-ID header."""
     run = await run_in_threadpool(load_run, store, run_id)
     if run is None:
         raise not_found("run", run_id)
