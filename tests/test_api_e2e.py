@@ -139,11 +139,12 @@ def test_two_seeds_queue_run_and_every_point_reaches_events_json_and_csv(cluster
             assert statuses[-1] == "completed" and "running" in statuses
             assert events[run_id][-1] == (
                 "end",
-                {"status": "completed", "reason": None, "seq": 3},
+                {"status": "completed", "reason": None, "seq": 3, "attempt": 1},
             )
             assert [p["episode"] for p in streamed] == [4, 8, 12]
             stored = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
-            assert stored == streamed, "the events carry exactly the stored points"
+            # the events carry exactly the stored points, each naming its attempt
+            assert [{**p, "attempt": 1} for p in stored] == streamed
             # This test's subscriber hears the rows on its own, maybe after the API did.
             bus_rows.wait(run_id, len(stored))
             assert [without_seq(p) for p in stored] == bus_rows.rows[run_id], (
@@ -200,7 +201,7 @@ def test_restarting_the_api_mid_run_loses_no_metric_and_the_run_goes_on(cluster)
         assert run["reason"] is None, run
         final = httpx.get(f"{url}/runs/{run_id}/metrics").json()["points"]
         assert final[: len(after_restart)] == after_restart, "stored points are kept as they were"
-        assert [d for e, d in streamed if e == "metric"] == final
+        assert [d for e, d in streamed if e == "metric"] == [{**p, "attempt": 1} for p in final]
         bus_rows.wait(run_id, episodes // 4)
         published = bus_rows.rows[run_id]
         assert len(published) == episodes // 4
