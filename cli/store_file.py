@@ -44,16 +44,20 @@ def _copy(db: Path, copy: Path) -> None:
     """`db` copied to `copy`. With a `-wal` beside it (a running API's, or one that ended
     without its checkpoint) through SQLite's backup, which reads the log too; without,
     its bytes: SQLite opening a store of journal mode WAL, even read-only, would leave a
-    `-wal` and a `-shm` beside it. Bytes that do not check (a checkpoint under way while
-    they were read) are read again through SQLite."""
+    `-wal` and a `-shm` beside it. Bytes read while the file changed (an API started
+    meanwhile: a `-wal` beside it after, another size or time) or that do not check are
+    read again through SQLite."""
     import shutil
     import sqlite3
 
-    if not Path(f"{db}-wal").exists():
+    wal = Path(f"{db}-wal")
+    if not wal.exists():
+        before = _stamp(db)
         shutil.copyfile(db, copy)
-        with contextlib.suppress(sqlite3.DatabaseError):
-            if _checked(db, copy):
-                return
+        if not wal.exists() and _stamp(db) == before:
+            with contextlib.suppress(sqlite3.DatabaseError):
+                if _checked(db, copy):
+                    return
         copy.unlink()
     src = sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True)
     try:
@@ -64,6 +68,11 @@ def _copy(db: Path, copy: Path) -> None:
         src.close()
     if not _checked(db, copy):
         raise sqlite3.DatabaseError("the file does not pass SQLite's quick_check")
+
+
+def _stamp(path: Path) -> tuple[int, int]:
+    st = path.stat()
+    return st.st_size, st.st_mtime_ns
 
 
 def _checked(db: Path, copy: Path) -> bool:

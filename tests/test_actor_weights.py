@@ -162,3 +162,16 @@ def test_the_newest_weights_are_decoded_once_not_at_every_tick(monkeypatch):
     for _ in range(5):
         actor.load_newest_weights(st)
     assert st.version == 1 and len(decoded) == 2  # a new arrival is looked at
+
+
+def test_weights_looked_at_by_a_run_ended_are_looked_at_again_by_the_next():
+    """The message looked at belongs to the runs served: a run started again (a retry,
+    a restarted actor rejoining) is a new ActorRuns, which looks at the newest message
+    again even when it is the very one its predecessor had."""
+    actor, st = serving_actor()
+    actor._on_weights(keys.k_weights("r", "latest"), weights_payload(trained(st, 0), 3))
+    actor.load_newest_weights(st)
+    assert st.version == 3
+    again = ActorRuns.open("a0", st.cfgs, st.outboxes)
+    actor.load_newest_weights(again)
+    assert again.version == 3 and again.policy is not None

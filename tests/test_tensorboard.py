@@ -220,3 +220,32 @@ def test_a_store_a_running_api_writes_is_read_with_what_its_log_holds(tmp_path):
             assert store.experiment(exp)["name"] == "renamed"
     finally:
         writer.close()
+
+
+def test_a_store_that_changes_while_its_bytes_are_copied_is_read_again(tmp_path, monkeypatch):
+    """An API that starts (and writes) while its store's bytes are copied: the copy may
+    mix two states that SQLite's quick check passes, so a file whose size, time or `-wal`
+    changed meanwhile is read again through SQLite."""
+    import contextlib
+    import shutil
+    import sqlite3
+
+    import cli.store_file as store_file
+    from tests.store_schema1 import COMMITTED
+
+    db = tmp_path / "s.sqlite3"
+    shutil.copy(COMMITTED, db)
+    with store_file.store_copy(str(db)) as store:
+        exp = store.experiments()[0]["id"]
+    copy_bytes = shutil.copyfile
+
+    def copy_then_write(src, dst):  # the bytes read, then the API's write lands
+        out = copy_bytes(src, dst)
+        with contextlib.closing(sqlite3.connect(db)) as writer:
+            writer.execute("UPDATE experiments SET name = 'renamed' WHERE id = ?", (exp,))
+            writer.commit()
+        return out
+
+    monkeypatch.setattr(shutil, "copyfile", copy_then_write)
+    with store_file.store_copy(str(db)) as store:
+        assert store.experiment(exp)["name"] == "renamed"

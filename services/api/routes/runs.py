@@ -117,6 +117,9 @@ async def _events(
         for p in points:
             since = p["seq"]
             yield _sse("metric", {**p, "attempt": attempt}, since)
+        if run["attempts"] != attempt:  # a retry between the two reads: the status
+            await asyncio.sleep(poll_s)  # read is of the attempt before; read both again
+            continue
         status = (run["status"], run["reason"], run["progress"]["trained_episodes"], attempt)
         if status != last_status:
             skipped_running = (
