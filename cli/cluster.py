@@ -447,8 +447,10 @@ def cmd_up(args: argparse.Namespace) -> int:
         print(f"macb up: --api-port must be from 1 to 65535, not {args.api_port}", file=sys.stderr)
         return 2
     if not args.run and (run_only := _run_flags(args)):  # (taken and ignored, before)
-        print(f"macb up: {', '.join(run_only)}: with --run CONFIG (without it, up serves "
-              "until stopped: runs come by `macb run`)", file=sys.stderr)  # fmt: skip
+        where = "with --run CONFIG (without it, up serves until stopped: runs come by `macb run`)"
+        if args.launcher == "slurm":
+            where = "not with --launcher slurm (runs go to the job's API: `macb run`)"
+        print(f"macb up: {', '.join(run_only)}: {where}", file=sys.stderr)
         return 2
     if args.launcher == "slurm":
         from cli.slurm_cluster import cmd_up_slurm

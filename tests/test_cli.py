@@ -632,4 +632,6 @@ def test_flags_the_chosen_way_of_running_would_ignore_are_refused(tmp_path):
     # `up` without --run served until stopped and ignored the run's flags.
     _refused(macb("up", "--seeds", "1", "--out", out, "--beta", "0.5"),
              "--seeds, --out, --beta: with --run CONFIG")  # fmt: skip
+    _refused(macb("up", "--launcher", "slurm", "--seeds", "1"),
+             "--seeds: not with --launcher slurm")  # fmt: skip
     assert not Path(out).exists()
