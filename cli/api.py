@@ -23,7 +23,13 @@ from cli.config_flags import (
 )
 from cli.local import add_group_flags
 from cli.security import add_security_flags
-from shared.config import ConfigError, TrainConfig, format_errors, read_config_file
+from shared.config import (
+    ConfigError,
+    TrainConfig,
+    format_errors,
+    read_config_file,
+    read_yaml_file,
+)
 from shared.metrics import CURVE_FIELDS
 
 if TYPE_CHECKING:
@@ -222,14 +228,7 @@ def _grid(items: list[str] | None) -> dict[str, list]:
 def read_arms(path: str) -> list[dict[str, Any]]:
     """An arms file: a YAML list of mappings, each with a `name` (or a mapping whose
     `arms` is that list). The keys are the API's to judge; only the shape is checked."""
-    try:
-        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except UnicodeDecodeError as err:
-        raise ConfigError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot be read ({err.strerror or err})") from None
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    data = read_yaml_file(path, "an arms file")
     if isinstance(data, dict) and "arms" in data:
         data = data["arms"]
     if not isinstance(data, list) or not data:

@@ -23,8 +23,7 @@ from cli.config_flags import (
     add_config_flags,
     at_least_one,
     config_overrides,
-    flag_dest,
-    flag_name,
+    given_config_flags,
     one_run_config,
     resolve_config,
 )
@@ -590,9 +589,7 @@ def local_cluster(
 
 def _run_flags(args: argparse.Namespace) -> list[str]:
     """The flags given that only --run takes: its seeds, folder and config's values."""
-    given = ["--seeds"] * bool(args.seeds) + ["--out"] * bool(args.out)
-    fields = sorted(n for n in TrainConfig.model_fields if getattr(args, flag_dest(n)) is not None)
-    return given + [flag_name(n) for n in fields]
+    return ["--seeds"] * bool(args.seeds) + ["--out"] * bool(args.out) + given_config_flags(args)
 
 
 def _up_experiment(args: argparse.Namespace) -> tuple[TrainConfig | None, dict | None]:

@@ -97,6 +97,15 @@ def read_flag_value(name: str, raw: str) -> Any:
         raise ConfigError(f"{flag_name(name)} {raw!r}: not a value ({problem})") from None
 
 
+def given_config_flags(args: argparse.Namespace) -> list[str]:
+    """The config fields' flags given (their values not read), in field name order."""
+    return [
+        flag_name(n)
+        for n in sorted(TrainConfig.model_fields)
+        if getattr(args, flag_dest(n)) is not None
+    ]
+
+
 def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """The config keys given as flags, each read the way its field wants."""
     out: dict[str, Any] = {}

@@ -11,8 +11,7 @@ from typing import TYPE_CHECKING
 from cli.config_flags import (
     HelpFormatter,
     add_config_flags,
-    config_overrides,
-    flag_name,
+    given_config_flags,
     resolve_config,
 )
 from shared.config import ConfigError, load_config, make_config
@@ -102,11 +101,11 @@ def cmd_train(args: argparse.Namespace) -> int:
         print(f"macb train: --cut-every {args.cut_every:g}: 0 or more seconds", file=sys.stderr)
         return 2
     if args.resume:
-        given = sorted(config_overrides(args))
-        others = ["--config"] * bool(args.config) + ["--seeds"] * bool(args.seeds)
-        others += ["--out"] * (args.out != "runs/train")  # (the run's folder is DIR)
-        if others or given:
-            flags = ", ".join(others + [flag_name(n) for n in given])
+        given = ["--config"] * bool(args.config) + ["--seeds"] * bool(args.seeds)
+        given += ["--out"] * (args.out != "runs/train")  # (the run's folder is DIR)
+        given += given_config_flags(args)
+        if given:
+            flags = ", ".join(given)
             print(
                 f"macb train: --resume takes the config from {args.resume}/config.json; "
                 f"drop {flags}",

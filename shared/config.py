@@ -658,22 +658,28 @@ def plain_data(value: Any, where: str, depth: int = 0) -> None:
         raise ValueError(f"{where}: a {type(value).__name__} is not plain data (JSON's kinds)")
 
 
-def read_config_file(path: str | Path) -> dict[str, Any]:
-    """A YAML or JSON file's mapping as written (YAML is a superset), not yet validated.
-    A file that cannot be read, is not UTF-8 or not YAML is a ConfigError naming it."""
+def read_yaml_file(path: str | Path, what: str) -> Any:
+    """A YAML or JSON file's data as written (YAML is a superset), not yet validated. A
+    file that cannot be read, is not UTF-8 or not YAML is a ConfigError naming it; `what`
+    says what it should have been (a folder given for it)."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except UnicodeDecodeError as err:
         raise ConfigError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
     except IsADirectoryError:
-        raise ConfigError(f"{path}: a folder, not a config file") from None
+        raise ConfigError(f"{path}: a folder, not {what}") from None
     except OSError as err:
         raise ConfigError(f"{path}: cannot be read ({err.strerror or err})") from None
     try:
-        data = yaml.safe_load(text) or {}
+        return yaml.safe_load(text)
     except yaml.YAMLError as err:
         where = str(err).replace('"<unicode string>"', str(path))
         raise ConfigError(f"{path}: not valid YAML/JSON: {where}") from None
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """A config file's mapping as written (`read_yaml_file`), not yet validated."""
+    data = read_yaml_file(path, "a config file") or {}
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config is a mapping of keys to values")
     return data

@@ -120,6 +120,7 @@ async def _events(
         if run["attempts"] != attempt:  # a retry between the two reads: the status
             await asyncio.sleep(poll_s)  # read is of the attempt before; read both again
             continue
+        said = {"status": run["status"], "reason": run["reason"]}
         status = (run["status"], run["reason"], run["progress"]["trained_episodes"], attempt)
         if status != last_status:
             skipped_running = (
@@ -131,15 +132,13 @@ async def _events(
             if skipped_running:
                 # Started and ended between two polls (a short run): still say that it
                 # ran, so every client sees queued -> running -> the end, in order.
-                running = {"status": "running", "reason": None, "progress": None}
-                yield _sse("status", {**running, "attempt": attempt})
+                ran = {"status": "running", "reason": None, "progress": None, "attempt": attempt}
+                yield _sse("status", ran)
             last_status = status
-            now = {"status": run["status"], "reason": run["reason"], "progress": run["progress"]}
-            yield _sse("status", {**now, "attempt": attempt})
+            yield _sse("status", {**said, "progress": run["progress"], "attempt": attempt})
         if run["status"] not in ACTIVE and not points:
             # Final, and every stored point has gone out: say so and end the stream.
-            end = {"status": run["status"], "reason": run["reason"], "seq": since}
-            yield _sse("end", {**end, "attempt": attempt})
+            yield _sse("end", {**said, "seq": since, "attempt": attempt})
             return
         if points:
             continue
