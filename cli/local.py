@@ -437,6 +437,7 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
                 "stopped_at": int(rows[-1]["episode"]) if why else None,
                 "live": {"provenance": starts[-1] if starts else None},
                 "resumes": [_resume(s) for s in starts[1:]] if starts else None,
+                "cpus": [start_cpu(s) for s in starts] if starts else None,
             }
         )
     counts: dict[str, int] = {}
@@ -455,15 +456,23 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
     }
 
 
+def start_cpu(start: dict[str, Any]) -> str | None:
+    """The CPU model a start ran on (None where its provenance does not say): a run's
+    rows round as the CPU of the start that computed them does."""
+    cpu = (start.get("machine") or {}).get("cpu")
+    return cpu if isinstance(cpu, str) else None
+
+
 def _resume(start: dict[str, Any]) -> dict[str, Any]:
     """A start after a run's first, as the page's header names it: the episode it went on
-    from (None before starts recorded it), its code, when, and the command that made it
-    (None before starts named it)."""
+    from (None before starts recorded it), its code, its CPU, when, and the command that
+    made it (None before starts named it)."""
     episode = start.get("resumed_at")
     command = start.get("command")
     return {
         "episode": episode if isinstance(episode, int) else None,
         "code": start.get("code"),
+        "cpu": start_cpu(start),
         "started": start.get("started"),
         "command": command if isinstance(command, str) else None,
     }

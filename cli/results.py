@@ -180,9 +180,48 @@ def compare_points(page: Path, runs_dir: Path) -> list[tuple[str, int, int, str 
     return out
 
 
+def _json(path: Path) -> Any:
+    """A JSON file's data, or None where it is missing or does not parse (a hint's
+    source, never a verdict's)."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+
+
+def page_cpus(page: Path) -> dict[str, set[str]]:
+    """Each run's CPUs as the page's FIGURE-runs.json records them: every start's
+    (`cpus`), or an older page's latest start's; {} without the file."""
+    out: dict[str, set[str]] = {}
+    for points in points_files(page):
+        figure = points.name.split(".")[0]
+        record = _json(page / f"{figure}-runs.json")
+        for r in (record or {}).get("runs", []) if isinstance(record, dict) else []:
+            if not isinstance(r, dict) or not isinstance(r.get("id"), str):
+                continue
+            cpus = r.get("cpus")
+            if not isinstance(cpus, list):
+                cpus = [((r.get("provenance") or {}).get("machine") or {}).get("cpu")]
+            out[r["id"]] = {c for c in cpus if isinstance(c, str)}
+    return out
+
+
+def folder_cpus(folder: Path) -> set[str]:
+    """The CPUs of a run folder's starts, from its provenance.json (empty without it)."""
+    record = _json(folder / "provenance.json")
+    starts = record.get("starts") if isinstance(record, dict) else None
+    return {
+        cpu
+        for s in starts or []
+        if isinstance(s, dict) and isinstance(cpu := (s.get("machine") or {}).get("cpu"), str)
+    }
+
+
 def cmd_compare(page: Path, runs_dir: Path) -> int:
     """`macb results --compare PAGE --runs DIR`: 0 when every run's common points are
-    equal, 1 when one differs, 2 when a run has nothing to compare or cannot be read."""
+    equal, 1 when one differs, 2 when a run has nothing to compare or cannot be read.
+    Runs that differ and ran on another CPU than the page's (its FIGURE-runs.json
+    against their provenance.json) are named: rounding, not the code, may explain them."""
     from cli.local import MetricsError
 
     try:
@@ -205,6 +244,23 @@ def cmd_compare(page: Path, runs_dir: Path) -> int:
         f"at every episode in common (each at least {least:,}); {differ} differ, "
         f"{empty} with nothing to compare"
     )
+    if differ:
+        theirs = page_cpus(page)
+        crossed = {
+            run: (theirs[run], mine)
+            for run, both, same, _ in result
+            if same != both and theirs.get(run) and (mine := folder_cpus(runs_dir / run))
+            and mine != theirs[run]
+        }  # fmt: skip
+        if crossed:
+            was = sorted({c for a, _ in crossed.values() for c in a})
+            now = sorted({c for _, b in crossed.values() for c in b})
+            print(
+                f"{len(crossed)} of the {differ} that differ ran on another CPU than the "
+                f"page's ({', '.join(was)} on the page; {', '.join(now)} here): the same "
+                "code rounds differently on another kind of CPU, so its rows are equal "
+                "only on the same kind (docs/reliability.md, 'What a run ran on')"
+            )
     return 1 if differ else 2 if empty or not result else 0
 
 

@@ -182,6 +182,37 @@ def test_the_page_header_says_how_often_and_where_the_campaign_resumed(runs_dir,
     ) in header
 
 
+def test_a_campaign_resumed_on_another_cpu_says_which_cpu_computed_which_rows(runs_dir, tmp_path):
+    """The same code rounds differently on another kind of CPU: a campaign that moves
+    between machines names every start's CPU (What ran lists them all and how many runs
+    crossed, from which first CPU; each restart names its own), and the page's runs
+    record keeps them for `macb results --compare`."""
+    for folder in runs_dir.iterdir():
+        starts = [
+            {**_start("c" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": "Xeon X"}},
+            {**_start("c" * 40, "2026-12-05T13:00:00Z", 500), "machine": {"cpu": "EPYC Y"}},
+        ]
+        (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
+    out = tmp_path / "page"
+    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
+    header = (out / "fig8.md").read_text().split("## Arms")[0]
+    n = len(list(runs_dir.iterdir()))
+    assert (
+        f"; CPU EPYC Y, Xeon X ({n} run(s) resumed on another CPU than the one they started "
+        "on, Xeon X:"
+    ) in header
+    assert "at episodes 500 (code cccccccccccc, CPU EPYC Y, 2026-12-05T13:00:00Z)" in header
+    record = json.loads((out / "fig8-runs.json").read_text())
+    assert {tuple(r["cpus"]) for r in record["runs"] if r["cpus"]} == {("Xeon X", "EPYC Y")}
+    # One CPU throughout: no note of a crossing.
+    for folder in runs_dir.iterdir():
+        starts = [{**_start("c" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": "Xeon X"}}]
+        (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
+    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
+    header = (out / "fig8.md").read_text().split("## Arms")[0]
+    assert "; CPU Xeon X; code cccccccccccc" in header and "another CPU" not in header
+
+
 def test_one_commands_starts_hours_apart_are_one_restart_and_two_commands_two():
     """A `--local` with more groups than `--jobs` starts its later groups hours after its
     first: the starts name their command, so they are one restart; another command is

@@ -229,6 +229,18 @@ def test_compare_says_whether_runs_give_a_page_s_points_bit_for_bit(tmp_path):
     assert differ.returncode == 1, differ.stdout + differ.stderr
     assert "arm-s0:" in differ.stdout and "differ; first at episode" in differ.stdout
     assert "on the page" in differ.stdout and "1 differ" in differ.stdout
+    assert "another CPU" not in differ.stdout, "both ran on this machine's CPU"
+    # The page's run on another kind of CPU: the difference is named as rounding's.
+    runs_record = {"runs": [{"id": "arm-s0", "cpus": ["Some Other CPU"]}]}
+    (page / "fig8-runs.json").write_text(json.dumps(runs_record))
+    crossed = macb_cli("results", "--compare", str(page), "--runs", str(other.parent))
+    assert crossed.returncode == 1, crossed.stdout + crossed.stderr
+    assert (
+        "1 of the 1 that differ ran on another CPU than the page's (Some Other CPU on the page;"
+        in crossed.stdout
+    )
+    same_again = macb_cli("results", "--compare", str(page), "--runs", str(again.parent))
+    assert same_again.returncode == 0 and "another CPU" not in same_again.stdout
 
     missing = macb_cli("results", "--compare", str(page), "--runs", str(tmp_path / "nowhere"))
     assert missing.returncode == 2 and "no folder" in missing.stdout

@@ -14,13 +14,18 @@ from cli.reproduce.defs import FigureDef
 
 
 def write_runs_record(exp: dict[str, Any], path: Path) -> Path:
-    """Every run of a local reproduce: id, arm, seed, status, config and the provenance
-    of its latest start (code, machine, libraries, the precision as run)."""
+    """Every run of a local reproduce: id, arm, seed, status, config, the provenance
+    of its latest start (code, machine, libraries, the precision as run) and the CPU of
+    each of its starts (`cpus`: which CPUs rounded its rows, `macb results --compare`)."""
     import json
 
     keep = ("id", "arm", "seed", "status", "config")
     runs = [
-        {**{k: r[k] for k in keep}, "provenance": (r.get("live") or {}).get("provenance")}
+        {
+            **{k: r[k] for k in keep},
+            "provenance": (r.get("live") or {}).get("provenance"),
+            "cpus": r.get("cpus"),
+        }
         for r in exp["runs"]
     ]
     record = {"experiment": exp["name"], "wall_s": exp.get("wall_s"), "runs": runs}

@@ -83,8 +83,10 @@ def started_arms(a: Analysis) -> list[ArmCurve]:
 def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str:
     """The report's line on what the runs ran on, from each run's provenance (the
     learner's report, `live.provenance`): the precision as run, which may not be the one
-    asked (bf16 on a CPU without it runs fp32), the CPUs and the code. A run outside
-    `started` (the ids with rows, when given) has not run yet, so has nothing to report."""
+    asked (bf16 on a CPU without it runs fp32), the CPUs (of every start, where `cpus`
+    lists them: a campaign resumed on another kind of machine rounds differently from
+    there on) and the code. A run outside `started` (the ids with rows, when given) has
+    not run yet, so has nothing to report."""
     # provenance.reported(r), read here without it: shared.persist.provenance loads torch.
     starts = [(r.get("live") or {}).get("provenance") for r in runs]
     known = [s for s in starts if isinstance(s, dict)]
@@ -93,12 +95,23 @@ def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str
     ran = Counter(str((s.get("learner") or {}).get("precision")) for s in known)
     asked = sorted({str((s.get("learner") or {}).get("precision_asked")) for s in known})
     cpus = sorted({str((s.get("machine") or {}).get("cpu")) for s in known})
+    every = [r["cpus"] for r in runs if isinstance(r.get("cpus"), list)]  # each start's
+    cpus = sorted({*cpus, *(str(c) for cs in every for c in cs if c)})
+    crossed = sum(1 for cs in every if len({c for c in cs if c}) > 1)
+    firsts = sorted({str(cs[0]) for cs in every if cs and cs[0]})
     commits = sorted({_commit(s.get("code") or {}) for s in known})
     precision = ", ".join(f"{p} on {n} run(s)" for p, n in sorted(ran.items()))
     line = f"- What ran (each run's provenance): learner precision {precision}"
     if set(ran) != set(asked):
         line += f" (**asked {', '.join(asked)}**: a CPU without native bf16 runs fp32)"
-    line += f"; CPU {', '.join(cpus)}; code {', '.join(commits)}"
+    line += f"; CPU {', '.join(cpus)}"
+    if crossed:
+        line += (
+            f" ({crossed} run(s) resumed on another CPU than the one they started on, "
+            f"{', '.join(firsts)}: each row is rounded as the CPU of the start that "
+            "computed it rounds, and the Restarts line names each restart's CPU)"
+        )
+    line += f"; code {', '.join(commits)}"
     silent = [r for r, s in zip(runs, starts, strict=True) if not isinstance(s, dict)]
     waiting = 0 if started is None else sum(1 for r in silent if r.get("id") not in started)
     if missing := len(silent) - waiting:
@@ -310,8 +323,10 @@ def restarts(runs: list[dict[str, Any]]) -> list[str]:
         unknown |= missing
         where = " and ".join([*(f"{e:,}" for e in eps), *["?"] * missing])
         commits = sorted({_commit(x.get("code") or {}) for x in these})
+        cpus = sorted({str(c) for x in these if (c := x.get("cpu"))})
+        on = f", CPU {', '.join(cpus)}" if cpus else ""
         when = min((str(x.get("started") or "") for x in these), default="")
-        parts.append(f"{where} (code {', '.join(commits)}{', ' + when if when else ''})")
+        parts.append(f"{where} (code {', '.join(commits)}{on}{', ' + when if when else ''})")
     note = "; ?: a resume written before its episode was recorded" if unknown else ""
     n = len(clusters)
     times = f"{n} time{'s' * (n != 1)}"
