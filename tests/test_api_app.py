@@ -10,6 +10,7 @@ import pytest
 
 from services.api.main import Settings, check_bind
 from shared.config import TrainConfig
+from shared.metrics import CURVE_FIELDS
 from tests.harness import TINY, free_port, macb, start_api
 
 
@@ -32,6 +33,13 @@ def test_health_docs_and_dashboard(client):
         "/health",
     ):
         assert path in spec["paths"], path
+    # The curves' metric names, listed for a client (each item's enum: shared.metrics).
+    (metric,) = [
+        q for q in spec["paths"]["/experiments/{exp_id}/curves"]["get"]["parameters"]
+        if q["name"] == "metric"
+    ]  # fmt: skip
+    items = next(s["items"] for s in metric["schema"]["anyOf"] if s.get("type") == "array")
+    assert items["enum"] == list(CURVE_FIELDS) and "success_rate" in items["enum"]
     body = spec["components"]["schemas"]["ExperimentCreate"]["properties"]
     assert {"seeds", "grid", "arms", "name", "beta", "k", "episodes", "task"} <= set(body)
     for schema in ("Grid", "Arm"):  # every config key but the seed, documented

@@ -14,7 +14,7 @@ from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import AfterValidator
 
-from shared.metrics import curve_field_error
+from shared.metrics import CURVE_FIELDS, curve_field_error
 
 from ..deps import (
     AllowedTasks,
@@ -46,7 +46,12 @@ def known_metric(name: str) -> str:
     return name
 
 
-MetricName = Annotated[str, AfterValidator(known_metric), Query(max_length=64)]
+# The names are checked by known_metric (a 422 that lists them) and listed in the schema.
+MetricName = Annotated[
+    str,
+    AfterValidator(known_metric),
+    Query(max_length=64, json_schema_extra={"enum": list(CURVE_FIELDS)}),
+]
 RunIds = Annotated[
     list[Annotated[str, Query(max_length=200)]] | None,
     Query(max_length=256, description="only these runs (default: every failed or stopped one)"),
