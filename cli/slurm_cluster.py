@@ -168,12 +168,18 @@ def render_cluster_script(job: ClusterJob, macb: list[str], cwd: Path, opts: Slu
         'echo "macb cluster job $SLURM_JOB_ID on $SLURM_JOB_NODELIST: router and API on $HEAD,'
         ' $SLURM_NTASKS slot(s), bus $MACB_ZENOH_CONNECT"',
         "# the router's and the API's ports free: else whoever listens there answers for them",
-        "for p in $PORT $API_PORT; do",
-        "    if (exec 3<>/dev/tcp/127.0.0.1/$p) 2>/dev/null; then",
-        f"        {job_says} port $p on $HEAD is in use: something listens on it (another"
-        ' cluster?); not starting" >&2',
-        "        exit 2",
-        "    fi",
+        "# (a service on every address is probed on this node's name too: a listener on",
+        "# its address alone does not answer on loopback)",
+        f"for p in {'$PORT@$HEAD' if n > 1 else '$PORT'} "
+        f"{'$API_PORT@$HEAD' if job.api_public else '$API_PORT'}; do",
+        '    port=${p%@*}; hosts=127.0.0.1; [[ $p == *@* ]] && hosts="127.0.0.1 ${p#*@}"',
+        "    for h in $hosts; do",
+        "        if (exec 3<>/dev/tcp/$h/$port) 2>/dev/null; then",
+        f"            {job_says} port $port on $HEAD is in use: something listens on it"
+        ' (another cluster?); not starting" >&2',
+        "            exit 2",
+        "        fi",
+        "    done",
         "done",
         f'{user("router")}"${{MACB[@]}}" serve router --listen {listen} &',
         "ROUTER=$!",

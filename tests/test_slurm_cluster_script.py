@@ -46,13 +46,16 @@ def executable(path: Path, text: str) -> Path:
 
 
 def run_script(
-    tmp_path: Path, job: ClusterJob, **more_env: str
+    tmp_path: Path, job: ClusterJob, head: str | None = None, **more_env: str
 ) -> tuple[list[list[str]], str, int]:
     """The rendered script run by bash with the stubs: the recorded lines (user,
-    connect, secrets, args), the job's own output and its exit code."""
+    connect, secrets, args), the job's own output and its exit code. `head`: what
+    `hostname -s` says (the first node's name), this machine's when None."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
     executable(bin_dir / "srun", SRUN)
+    if head is not None:
+        executable(bin_dir / "hostname", f"#!/bin/sh\necho {head}\n")
     macb = executable(bin_dir / "macb stub", MACB)  # (a space: the path stays one word)
     text = render_cluster_script(job, [str(macb)], tmp_path, SlurmOptions("short", "1:00:00"))
     script = tmp_path / "job.sh"
@@ -183,6 +186,30 @@ def test_a_taken_port_on_the_first_node_starts_nothing_naming_it(tmp_path):
             lines, out, code = run_script(folder, job)
         port = router if taken == "router" else api
         assert code == 2 and f"port {port} on " in out and "something listens" in out, out
+        assert lines == [], f"nothing starts: {lines}"
+
+
+def test_a_port_taken_on_the_first_nodes_own_address_stops_a_service_on_every_address(tmp_path):
+    """A router or public API listens on every address: a listener on the first node's
+    own address alone (here 127.0.0.2, the node's name as `hostname -s` gives it) does
+    not answer on 127.0.0.1, so the job probes the node's name too and ends, exit 2;
+    a service on loopback alone is not refused for it."""
+    for taken in ("router", "api", "loopback"):
+        folder = tmp_path / taken
+        folder.mkdir()
+        router, api = free_port(), free_port()
+        nodes = 2 if taken == "router" else 1
+        job = ClusterJob(nodes, 1, 1, 1, folder / "data", router_port=router, api_port=api,
+                         api_public=taken == "api")  # fmt: skip
+        port = router if taken == "router" else api
+        with socket.socket() as held:
+            held.bind(("127.0.0.2", port))
+            held.listen()
+            lines, out, code = run_script(folder, job, head="127.0.0.2", ROUTER_FAILS="1")
+        if taken == "loopback":
+            assert "in use" not in out and lines, out  # it went on to start the router
+            continue
+        assert code == 2 and f"port {port} on 127.0.0.2 is in use" in out, out
         assert lines == [], f"nothing starts: {lines}"
 
 
