@@ -191,30 +191,35 @@ def _json(path: Path) -> Any:
 
 def page_cpus(page: Path) -> dict[str, set[str]]:
     """Each run's CPUs as the page's FIGURE-runs.json records them: every start's
-    (`cpus`), or an older page's latest start's; {} without the file."""
+    (`start_cpus`), or an older page's latest start's; {} without the file, and nothing
+    for an entry it cannot read (the record is a hint here, never a verdict)."""
     out: dict[str, set[str]] = {}
     for points in points_files(page):
         figure = points.name.split(".")[0]
         record = _json(page / f"{figure}-runs.json")
-        for r in (record or {}).get("runs", []) if isinstance(record, dict) else []:
+        runs = record.get("runs") if isinstance(record, dict) else None
+        for r in runs if isinstance(runs, list) else []:
             if not isinstance(r, dict) or not isinstance(r.get("id"), str):
                 continue
-            cpus = r.get("cpus")
+            cpus = r.get("start_cpus")
             if not isinstance(cpus, list):
-                cpus = [((r.get("provenance") or {}).get("machine") or {}).get("cpu")]
-            out[r["id"]] = {c for c in cpus if isinstance(c, str)}
+                provenance = r.get("provenance")
+                machine = provenance.get("machine") if isinstance(provenance, dict) else None
+                cpus = [machine.get("cpu")] if isinstance(machine, dict) else []
+            if found := {c for c in cpus if isinstance(c, str)}:
+                out[r["id"]] = found
     return out
 
 
 def folder_cpus(folder: Path) -> set[str]:
-    """The CPUs of a run folder's starts, from its provenance.json (empty without it)."""
+    """The CPUs of a run folder's starts, from its provenance.json (empty without it, or
+    for entries it cannot read)."""
     record = _json(folder / "provenance.json")
     starts = record.get("starts") if isinstance(record, dict) else None
-    return {
-        cpu
-        for s in starts or []
-        if isinstance(s, dict) and isinstance(cpu := (s.get("machine") or {}).get("cpu"), str)
-    }
+    if not isinstance(starts, list):
+        return set()
+    machines = [s.get("machine") for s in starts if isinstance(s, dict)]
+    return {c for m in machines if isinstance(m, dict) and isinstance(c := m.get("cpu"), str)}
 
 
 def cmd_compare(page: Path, runs_dir: Path) -> int:
@@ -257,9 +262,10 @@ def cmd_compare(page: Path, runs_dir: Path) -> int:
             now = sorted({c for _, b in crossed.values() for c in b})
             print(
                 f"{len(crossed)} of the {differ} that differ ran on another CPU than the "
-                f"page's ({', '.join(was)} on the page; {', '.join(now)} here): the same "
-                "code rounds differently on another kind of CPU, so its rows are equal "
-                "only on the same kind (docs/reliability.md, 'What a run ran on')"
+                f"page's ({', '.join(was)} on the page; {', '.join(now)} here): "
+                f"{', '.join(sorted(crossed))}. Another kind of CPU rounds the fp32 update "
+                "differently, which may explain it: the same code gives the same rows only "
+                "on the same kind (docs/reliability.md, 'What a run ran on')"
             )
     return 1 if differ else 2 if empty or not result else 0
 

@@ -198,12 +198,25 @@ def test_a_campaign_resumed_on_another_cpu_says_which_cpu_computed_which_rows(ru
     header = (out / "fig8.md").read_text().split("## Arms")[0]
     n = len(list(runs_dir.iterdir()))
     assert (
-        f"; CPU EPYC Y, Xeon X ({n} run(s) resumed on another CPU than the one they started "
-        "on, Xeon X:"
+        f"; CPU EPYC Y, Xeon X ({n} run(s) started on Xeon X and resumed on another CPU:"
     ) in header
     assert "at episodes 500 (code cccccccccccc, CPU EPYC Y, 2026-12-05T13:00:00Z)" in header
     record = json.loads((out / "fig8-runs.json").read_text())
-    assert {tuple(r["cpus"]) for r in record["runs"] if r["cpus"]} == {("Xeon X", "EPYC Y")}
+    assert {tuple(r["start_cpus"]) for r in record["runs"] if r["start_cpus"]} == {
+        ("Xeon X", "EPYC Y")
+    }
+    # One run moved, the others on EPYC Y throughout: only the one that moved is counted,
+    # and only the CPU it started on is named as a start.
+    for i, folder in enumerate(sorted(runs_dir.iterdir())):
+        cpu = "Xeon X" if i == 0 else "EPYC Y"
+        starts = [
+            {**_start("c" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": cpu}},
+            {**_start("c" * 40, "2026-12-05T13:00:00Z", 500), "machine": {"cpu": "EPYC Y"}},
+        ]
+        (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
+    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
+    header = (out / "fig8.md").read_text().split("## Arms")[0]
+    assert "; CPU EPYC Y, Xeon X (1 run(s) started on Xeon X and resumed on another CPU:" in header
     # One CPU throughout: no note of a crossing.
     for folder in runs_dir.iterdir():
         starts = [{**_start("c" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": "Xeon X"}}]

@@ -229,18 +229,30 @@ def test_compare_says_whether_runs_give_a_page_s_points_bit_for_bit(tmp_path):
     assert differ.returncode == 1, differ.stdout + differ.stderr
     assert "arm-s0:" in differ.stdout and "differ; first at episode" in differ.stdout
     assert "on the page" in differ.stdout and "1 differ" in differ.stdout
-    assert "another CPU" not in differ.stdout, "both ran on this machine's CPU"
-    # The page's run on another kind of CPU: the difference is named as rounding's.
-    runs_record = {"runs": [{"id": "arm-s0", "cpus": ["Some Other CPU"]}]}
-    (page / "fig8-runs.json").write_text(json.dumps(runs_record))
-    crossed = macb_cli("results", "--compare", str(page), "--runs", str(other.parent))
-    assert crossed.returncode == 1, crossed.stdout + crossed.stderr
-    assert (
-        "1 of the 1 that differ ran on another CPU than the page's (Some Other CPU on the page;"
-        in crossed.stdout
-    )
-    same_again = macb_cli("results", "--compare", str(page), "--runs", str(again.parent))
-    assert same_again.returncode == 0 and "another CPU" not in same_again.stdout
+    # The page's run on this machine's CPU too: a difference, not named as rounding's.
+    here = json.loads((first / "provenance.json").read_text())["starts"][0]["machine"]["cpu"]
+    record = page / "fig8-runs.json"
+    record.write_text(json.dumps({"runs": [{"id": "arm-s0", "start_cpus": [here]}]}))
+    same_cpu = macb_cli("results", "--compare", str(page), "--runs", str(other.parent))
+    assert same_cpu.returncode == 1 and "another CPU" not in same_cpu.stdout, same_cpu.stdout
+    # On another kind of CPU (every start's, or an older page's latest provenance alone):
+    # the runs that differ are named, and rounding as what may explain it.
+    for run in (
+        {"id": "arm-s0", "start_cpus": ["Some Other CPU"]},
+        {"id": "arm-s0", "provenance": {"machine": {"cpu": "Some Other CPU"}}},
+    ):
+        record.write_text(json.dumps({"runs": [run]}))
+        crossed = macb_cli("results", "--compare", str(page), "--runs", str(other.parent))
+        assert crossed.returncode == 1, crossed.stdout + crossed.stderr
+        assert (
+            "1 of the 1 that differ ran on another CPU than the page's (Some Other CPU on the "
+            f"page; {here} here): arm-s0. Another kind of CPU rounds"
+        ) in crossed.stdout
+    # A record it cannot read is no hint, and no crash after the result.
+    for bad in ('{"runs": 5}', '{"runs": [{"id": "arm-s0", "provenance": "x"}]}', "not json"):
+        record.write_text(bad)
+        got = macb_cli("results", "--compare", str(page), "--runs", str(other.parent))
+        assert got.returncode == 1 and not got.stderr and "another CPU" not in got.stdout, bad
 
     missing = macb_cli("results", "--compare", str(page), "--runs", str(tmp_path / "nowhere"))
     assert missing.returncode == 2 and "no folder" in missing.stdout

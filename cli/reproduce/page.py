@@ -16,7 +16,8 @@ from cli.reproduce.defs import FigureDef
 def write_runs_record(exp: dict[str, Any], path: Path) -> Path:
     """Every run of a local reproduce: id, arm, seed, status, config, the provenance
     of its latest start (code, machine, libraries, the precision as run) and the CPU of
-    each of its starts (`cpus`: which CPUs rounded its rows, `macb results --compare`)."""
+    each of its starts (`start_cpus`: which CPUs rounded its rows, for `macb results
+    --compare`)."""
     import json
 
     keep = ("id", "arm", "seed", "status", "config")
@@ -24,7 +25,7 @@ def write_runs_record(exp: dict[str, Any], path: Path) -> Path:
         {
             **{k: r[k] for k in keep},
             "provenance": (r.get("live") or {}).get("provenance"),
-            "cpus": r.get("cpus"),
+            "start_cpus": r.get("start_cpus"),
         }
         for r in exp["runs"]
     ]

@@ -83,10 +83,10 @@ def started_arms(a: Analysis) -> list[ArmCurve]:
 def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str:
     """The report's line on what the runs ran on, from each run's provenance (the
     learner's report, `live.provenance`): the precision as run, which may not be the one
-    asked (bf16 on a CPU without it runs fp32), the CPUs (of every start, where `cpus`
-    lists them: a campaign resumed on another kind of machine rounds differently from
-    there on) and the code. A run outside `started` (the ids with rows, when given) has
-    not run yet, so has nothing to report."""
+    asked (bf16 on a CPU without it runs fp32), the CPUs (of every start, where
+    `start_cpus` lists them: a campaign resumed on another kind of machine rounds
+    differently from there on) and the code. A run outside `started` (the ids with
+    rows, when given) has not run yet, so has nothing to report."""
     # provenance.reported(r), read here without it: shared.persist.provenance loads torch.
     starts = [(r.get("live") or {}).get("provenance") for r in runs]
     known = [s for s in starts if isinstance(s, dict)]
@@ -94,22 +94,26 @@ def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str
         return "- What ran: no run reported its provenance (docs/reliability.md)."
     ran = Counter(str((s.get("learner") or {}).get("precision")) for s in known)
     asked = sorted({str((s.get("learner") or {}).get("precision_asked")) for s in known})
-    cpus = sorted({str((s.get("machine") or {}).get("cpu")) for s in known})
-    every = [r["cpus"] for r in runs if isinstance(r.get("cpus"), list)]  # each start's
-    cpus = sorted({*cpus, *(str(c) for cs in every for c in cs if c)})
-    crossed = sum(1 for cs in every if len({c for c in cs if c}) > 1)
-    firsts = sorted({str(cs[0]) for cs in every if cs and cs[0]})
+    latest = {c for s in known if isinstance(c := (s.get("machine") or {}).get("cpu"), str)}
+    every = [
+        [c for c in r["start_cpus"] if isinstance(c, str)]
+        for r in runs
+        if isinstance(r.get("start_cpus"), list)
+    ]  # each start's CPU, in order
+    cpus = sorted({*latest, *(c for cs in every for c in cs)}) or ["unknown"]
+    moved = [cs for cs in every if len(set(cs)) > 1]
+    firsts = sorted({cs[0] for cs in moved})
     commits = sorted({_commit(s.get("code") or {}) for s in known})
     precision = ", ".join(f"{p} on {n} run(s)" for p, n in sorted(ran.items()))
     line = f"- What ran (each run's provenance): learner precision {precision}"
     if set(ran) != set(asked):
         line += f" (**asked {', '.join(asked)}**: a CPU without native bf16 runs fp32)"
     line += f"; CPU {', '.join(cpus)}"
-    if crossed:
+    if moved:
         line += (
-            f" ({crossed} run(s) resumed on another CPU than the one they started on, "
-            f"{', '.join(firsts)}: each row is rounded as the CPU of the start that "
-            "computed it rounds, and the Restarts line names each restart's CPU)"
+            f" ({len(moved)} run(s) started on {' or '.join(firsts)} and resumed on another "
+            "CPU: each row is rounded as the CPU of the start that computed it rounds, and "
+            "the Restarts line names each restart's CPU)"
         )
     line += f"; code {', '.join(commits)}"
     silent = [r for r, s in zip(runs, starts, strict=True) if not isinstance(s, dict)]
