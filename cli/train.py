@@ -32,7 +32,13 @@ def add_train_parser(sub: argparse._SubParsersAction) -> None:
         formatter_class=HelpFormatter,
     )
     p.add_argument("--config", metavar="FILE", help="YAML/JSON config file")
-    p.add_argument("--out", metavar="DIR", default="runs/train", help="output directory")
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        default="runs/train",
+        help="output directory. One that holds this config's run goes on from its cuts "
+        "(or, complete, runs nothing); one that holds another config's run is refused",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(
         "--resume",
@@ -137,16 +143,41 @@ def cmd_train(args: argparse.Namespace) -> int:
         if folder and (why := unwritable(Path(folder))):
             print(f"macb train: {flag} {folder}: cannot write there ({why})", file=sys.stderr)
             return 2
+    resume = bool(args.resume)
+    if not resume:
+        # A folder that holds a run: another config's is refused (its rows are not this
+        # run's); this config's goes on from its cuts, or is complete, as a run of
+        # `--seeds` or `--local` does. Nothing starts a run again over one.
+        from cli.local import config_conflict, run_rows, run_state
+
+        if why := config_conflict(out, cfg):
+            print(
+                f"macb train: --out {out}: holds a run of another config ({why}); give "
+                f"another --out, or continue that run with `macb train --resume {out}`",
+                file=sys.stderr,
+            )
+            return 2
+        state = run_state(out, cfg)
+        if state == "done":
+            last = run_rows(out)[-1]
+            print(
+                f"{out} holds this run, complete ({last.get('episode', 0)} episodes): "
+                "nothing to run (another --out trains it again)"
+            )
+            return 0
+        if state.startswith("cut-"):
+            print(f"{out} holds this run: going on from its cut at episode {state[4:]}")
+            resume = True
     tb = None
     if args.tensorboard:
-        tb = _TensorBoardRows(Path(args.tensorboard) / out.resolve().name, bool(args.resume))
+        tb = _TensorBoardRows(Path(args.tensorboard) / out.resolve().name, resume)
     try:
         rows = train(
             cfg,
             out,
             progress=not args.quiet,
             on_metrics=tb,
-            resume=bool(args.resume),
+            resume=resume,
             cut_every_s=args.cut_every,
         )
     except CutError as err:

@@ -91,13 +91,7 @@ def test_a_killed_macb_train_resumes_to_the_same_rows(tmp_path, straight):
     cfg = {**BASE, "episodes": 40}
     rows, _ = straight(episodes=40)
     out = tmp_path / "run"
-    argv = ["train", "--out", str(out), "--quiet", "--cut-every", "0"]
-    for k, v in cfg.items():
-        argv += [
-            f"--{k.replace('_', '-')}",
-            ",".join(map(str, v)) if isinstance(v, list) else str(v),
-        ]
-    proc = spawn(*argv)
+    proc = spawn("train", "--out", str(out), "--quiet", "--cut-every", "0", *_argv(cfg))
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
@@ -116,6 +110,40 @@ def test_a_killed_macb_train_resumes_to_the_same_rows(tmp_path, straight):
     assert killed_at < len(rows), "killed too late to test anything"
     assert main(["train", "--resume", str(out), "--quiet", "--cut-every", "0"]) == 0
     assert strip(jsonl(out)) == strip(rows)
+
+
+def _argv(cfg: dict) -> list[str]:
+    """`macb train`'s flags for the keys of `cfg`."""
+    argv: list[str] = []
+    for k, v in cfg.items():
+        argv += [
+            f"--{k.replace('_', '-')}",
+            ",".join(map(str, v)) if isinstance(v, list) else str(v),
+        ]
+    return argv
+
+
+def test_train_into_a_folder_holding_a_run_goes_on_with_this_config_and_refuses_another(
+    tmp_path, straight, capsys
+):
+    """`macb train --out DIR` over a run: this config's goes on from its cut to the rows of
+    not stopping, and once complete runs nothing; another config's is refused naming the
+    key, with nothing written, rather than trained over from episode 0."""
+    rows, _ = straight()
+    out = tmp_path / "run"
+    train(make_config(BASE), out, progress=False, cut_every_s=0,
+          stop_when=lambda r: r["episode"] == 6)  # fmt: skip
+    argv = ["train", "--out", str(out), "--quiet", "--cut-every", "0", *_argv(BASE)]
+    assert main(argv) == 0
+    assert "going on from its cut at episode 6" in capsys.readouterr().out
+    assert strip(jsonl(out)) == strip(rows)
+    before = {f.name: f.read_bytes() for f in out.iterdir() if f.is_file()}
+    assert main(argv) == 0
+    assert "complete (12 episodes): nothing to run" in capsys.readouterr().out
+    assert main([*argv, "--k", "64"]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {out}: holds a run of another config (k: 32 in the folder, 64" in err
+    assert {f.name: f.read_bytes() for f in out.iterdir() if f.is_file()} == before
 
 
 def test_a_corrupt_newest_cut_is_refused_by_name_and_the_one_before_is_used(
