@@ -154,6 +154,7 @@ def test_runs_of_another_config_are_neither_trained_on_nor_shown_as_the_figure_s
     wrong_folder = ["--episodes", "3", "--runs", str(out)]
     for mode, more in [("--report-only", ["--episodes", "4"]), ("--local", ["--episodes", "4"]),
                        ("--report-only", wrong_folder), ("--status", wrong_folder),
+                       ("--status", ["--episodes", "4"]),
                        ("--report-only", ["--group-runs", "beta_0.8-s0"])]:  # fmt: skip
         other = macb("reproduce", "fig3", mode, *more, "--quiet", *flags)
         assert other.returncode == 2, (mode, other.stderr)

@@ -76,7 +76,7 @@ def write_page(
             print(f"macb reproduce: {line}", file=sys.stderr)
         print(
             "macb reproduce: no page written: give the flags these runs were trained with "
-            "(--episodes, --seeds, --precision, ...) or another --runs",
+            "(--profile, --episodes, --seeds, --precision, ...) or another --runs",
             file=sys.stderr,
         )
         return 2

@@ -311,9 +311,10 @@ def status_text(name: str, progress: FigureProgress, runs_dir: Path, now: float)
 
 
 def print_status(name: str, runs: list[Any], runs_dir: Path, target: int) -> int:
-    """`macb reproduce FIGURE --status`: 0, or 2 when there is no runs folder, or when
+    """`macb reproduce FIGURE --status`: 0, or 2 when there is no runs folder, when
     none of the runs has a folder in it while it holds a `runs` folder (OUT given for
-    OUT/runs). Runs not started yet (queued on Slurm, arms that run later) are shown so."""
+    OUT/runs), or when a run's folder holds another config's run (another --profile,
+    --episodes: named). Runs not started yet (queued on Slurm, arms that run later) are shown so."""
     if not runs_dir.is_dir():
         print(f"macb reproduce --status: no runs folder {runs_dir}", file=sys.stderr)
         return 2
@@ -321,6 +322,17 @@ def print_status(name: str, runs: list[Any], runs_dir: Path, target: int) -> int
         print(
             f"macb reproduce --status: none of the {len(runs)} runs selected has a folder in "
             f"{runs_dir}, which holds a runs folder: give --runs {runs_dir / 'runs'}",
+            file=sys.stderr,
+        )
+        return 2
+    from cli.local import config_conflicts
+
+    if conflicts := config_conflicts(runs, runs_dir):  # their rows are not these runs'
+        for line in conflicts:
+            print(f"macb reproduce --status: {line}", file=sys.stderr)
+        print(
+            "macb reproduce --status: give the flags these runs were trained with "
+            "(--profile, --episodes, --seeds, --precision, ...) or another --runs",
             file=sys.stderr,
         )
         return 2
