@@ -184,6 +184,25 @@ def config_conflicts(runs: list[LocalRun], out: Path) -> list[str]:
     ]
 
 
+def foreign_runs(runs: list[LocalRun], runs_dir: Path) -> str | None:
+    """Why `runs_dir` is not these runs' folder when none of them has a folder there but
+    other runs do (other --seeds, --arms or another figure's folder: a mistake, where an
+    empty folder is a campaign not started yet), or None."""
+    if not runs_dir.is_dir() or any((runs_dir / r.name).is_dir() for r in runs):
+        return None
+    others = sorted(
+        d.name for d in runs_dir.iterdir() if d.is_dir() and (d / "config.json").is_file()
+    )
+    if not others:
+        return None
+    listed = ", ".join(others[:4]) + (f" and {len(others) - 4} more" if len(others) > 4 else "")
+    return (
+        f"none of the {len(runs)} runs selected has a folder in {runs_dir}, which holds "
+        f"other runs ({listed}): give the flags they were trained with (--seeds, --arms, "
+        "--profile, ...) or their folder"
+    )
+
+
 def run_state(folder: Path, cfg: TrainConfig) -> str:
     """'done' (every episode run, or ended by its `early_stop` rule, checkpoint
     written), 'cut-<episode>' (can resume from its newest cut, of that episode) or

@@ -372,12 +372,15 @@ def folder_view(args: argparse.Namespace) -> FolderView:
     if not root.is_dir():
         raise RunsError(f"{root}: {'a file, not a folder' if root.exists() else 'no such folder'}")
     view = FolderView(root, fig, figure_body(fig, flags))
-    from cli.local import config_conflicts, expand_body
+    from cli.local import config_conflicts, expand_body, foreign_runs
 
-    if conflicts := config_conflicts(expand_body(view.body or {})[2], view.runs_dir):
+    runs = expand_body(view.body or {})[2]
+    if why := foreign_runs(runs, view.runs_dir):
+        raise RunsError(why)
+    if conflicts := config_conflicts(runs, view.runs_dir):
         raise RunsError(
             "; ".join(conflicts) + ": give the flags these runs were trained with "
-            "(--episodes, --seeds, --precision, ...) or another folder"
+            "(--profile, --episodes, --seeds, --precision, ...) or another folder"
         )
     return view
 

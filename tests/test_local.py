@@ -167,6 +167,15 @@ def test_runs_of_another_config_are_neither_trained_on_nor_shown_as_the_figure_s
         assert "wrote" not in other.stderr and "Traceback" not in other.stderr, other.stderr
         assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == pages
         assert (out / "runs" / "beta_0.8-s0" / "metrics.jsonl").read_bytes() == rows_before
+    # Other runs' folders and none of these (another --seeds): a mistake, refused.
+    seeds1 = ["--seeds", "1", *flags[2:]]
+    elsewhere = f"none of the 1 runs selected has a folder in {out / 'runs'}, which holds "
+    for argv in (["reproduce", "fig3", "--status", "--episodes", "3", *seeds1],
+                 ["view", str(out), "--figure", "fig3", "--episodes", "3", "--port", "0",
+                  *seeds1[:-2]]):  # fmt: skip
+        got = macb(*argv, timeout=60)
+        assert got.returncode == 2, got.stdout + got.stderr
+        assert elsewhere + "other runs (beta_0.8-s0)" in got.stderr, got.stderr
     # A runs folder none of whose runs has started (queued on Slurm, arms that run later)
     # is a campaign not started, not a mistake: --status says so.
     (tmp_path / "later").mkdir()

@@ -325,8 +325,11 @@ def print_status(name: str, runs: list[Any], runs_dir: Path, target: int) -> int
             file=sys.stderr,
         )
         return 2
-    from cli.local import config_conflicts
+    from cli.local import config_conflicts, foreign_runs
 
+    if why := foreign_runs(runs, runs_dir):
+        print(f"macb reproduce --status: {why}", file=sys.stderr)
+        return 2
     if conflicts := config_conflicts(runs, runs_dir):  # their rows are not these runs'
         for line in conflicts:
             print(f"macb reproduce --status: {line}", file=sys.stderr)
