@@ -262,7 +262,7 @@ def run_groups(
     if why := device_error([r.config for r in runs]):
         print(f"{why}: nothing was run", file=sys.stderr)
         return 2
-    if why := unwritable(out):  # (made if missing: after every refusal that writes nothing)
+    if why := unwritable(out, make=True):  # (after every refusal that writes nothing)
         print(f"{out}: cannot write there ({why}): nothing was run", file=sys.stderr)
         raise Refused()
     jobs = jobs or default_jobs([r.config for r in runs])

@@ -82,14 +82,22 @@ def _recorded_arms(root: Path) -> dict[str, str]:
     return arms
 
 
-def unwritable(folder: Path) -> str | None:
-    """Why a file cannot be created in `folder` (made if missing), or None: asked before
-    a command writes there, so that it refuses instead of failing midway."""
+def unwritable(folder: Path, make: bool = False) -> str | None:
+    """Why a file cannot be created in `folder`, or None: asked before a command writes
+    there, so that it refuses instead of failing midway. A missing folder is made with
+    `make`; without it nothing is left behind (a command that fails later, its source
+    unreadable, leaves no empty folder): the nearest folder that exists is probed."""
     if folder.exists() and not folder.is_dir():
         return "a file, not a folder"
+    probe = folder
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".macb-write-check-"):
+        if make:
+            folder.mkdir(parents=True, exist_ok=True)
+        while not probe.exists() and probe != probe.parent:
+            probe = probe.parent
+        if not probe.is_dir():
+            return f"{probe} is a file, not a folder"
+        with tempfile.NamedTemporaryFile(dir=probe, prefix=".macb-write-check-"):
             pass
     except OSError as err:
         return err.strerror or str(err)

@@ -535,6 +535,15 @@ def test_plot_db_only_reads_its_store_and_outputs_that_cannot_be_written_are_ref
              f"-o {a_file / 'p.png'}: cannot write there (a file, not a folder)")  # fmt: skip
     _refused(macb("export", "xgrid", "--db", str(old), "--csv", str(a_file)),
              f"--csv {a_file}: cannot write there (a file, not a folder)")  # fmt: skip
+    # A command refused for its source (a run the store lacks, no store) leaves no folder
+    # behind where it would have written.
+    for argv in (["plot", "nosuch", "-o", str(tmp_path / "new" / "p.png"), "--db", str(old)],
+                 ["export", "nosuch", "--csv", str(tmp_path / "new" / "csv"), "--tensorboard",
+                  str(tmp_path / "new" / "tb"), "--db", str(old)],
+                 ["export", "xgrid", "--csv", str(tmp_path / "new"), "--db",
+                  str(tmp_path / "no.db")]):  # fmt: skip
+        got = macb(*argv)
+        assert got.returncode in (1, 2) and not (tmp_path / "new").exists(), got.stderr
     # A metric no row holds drew an empty figure and said "wrote" (exit 0).
     _refused(macb("plot", "xgrid", "-o", str(tmp_path / "q.png"), "--db", str(old),
                   "--metric", "nosuch"), "invalid choice: 'nosuch'")  # fmt: skip

@@ -124,7 +124,7 @@ def preflight(
                 f"{', '.join(partitions) or 'none'})"
             )
     for path in folders:
-        if why := unwritable(path):
+        if why := unwritable(path, make=True):  # (sbatch needs its log's folder)
             return (
                 f"--launcher slurm: {folder} {path} is not writable ({why}); the job's tasks "
                 f"write there: give {flag} on a filesystem the nodes share and you can write"
