@@ -229,8 +229,7 @@ def run_groups(
 ) -> int:
     """Train `runs` as groups under `out`, `jobs` groups at a time in processes of their
     own (None: `default_jobs`), continuing what an earlier call left; 0 when every run
-    completed, 2 when a group could not resume or the runs' device is not here (the
-    reason printed).
+    completed, 2 when a group could not resume (the reason printed).
 
     Complete runs are skipped one by one; the others are grouped by what they share and
     by where they stopped (runs that stopped together, at one cut, resume together;
@@ -241,7 +240,8 @@ def run_groups(
     than two threads on one.
 
     A run whose folder holds another config's run, that another process trains, or
-    whose rows cannot be read, ends the command before anything is trained or written:
+    whose rows cannot be read, and runs for a device not here, end the command before
+    anything is trained or written:
     `Refused` (a SystemExit, 2), the reason printed; the caller writes no page or plot
     either. SIGTERM, SIGINT or SIGHUP while it trains
     ends every group process and raises `Stopped` (a SystemExit, 128 + the signal), one
@@ -261,7 +261,7 @@ def run_groups(
 
     if why := device_error([r.config for r in runs]):
         print(f"{why}: nothing was run", file=sys.stderr)
-        return 2
+        raise Refused()  # (a return code would let the caller go on to a page)
     if why := unwritable(out, make=True):  # (after every refusal that writes nothing)
         print(f"{out}: cannot write there ({why}): nothing was run", file=sys.stderr)
         raise Refused()

@@ -295,6 +295,8 @@ def test_reproduce_takes_a_device_for_every_run(tmp_path):
         got = macb(*base, "--device", "cuda", timeout=300)
         assert got.returncode == 2 and "device cuda: not available here" in got.stderr
         assert "nothing was run" in got.stderr and not (tmp_path / "runs").exists()
+        # and nothing after it: no "trained in", no page refused for want of runs
+        assert "trained in" not in got.stderr and "has a folder" not in got.stderr, got.stderr
 
 
 @pytest.mark.parametrize("profile", ["mpe2", "thesis"], ids=["per-run", "per-agent"])

@@ -119,6 +119,12 @@ def test_reproduce_local_and_report_only(tmp_path):
     assert drop((page / "fig3.md").read_text()) == drop(md) and not (page / "runs").exists()
     none = macb("reproduce", "fig3", "--report-only", "--out", str(tmp_path / "empty"))
     assert none.returncode == 2 and "no runs stored" in none.stderr
+    a_file = tmp_path / "a-file"  # a page's --out that is a file: refused, no traceback
+    a_file.write_text("")
+    filed = macb("reproduce", "fig3", "--report-only", "--episodes", "6", "--seeds", "0",
+                 "--runs", str(out / "runs"), "--out", str(a_file))  # fmt: skip
+    assert filed.returncode == 2 and "Traceback" not in filed.stderr, filed.stderr
+    assert f"--out {a_file}: cannot write the page there (a file, not a folder)" in filed.stderr
 
 
 def test_reproduce_arms_runs_only_the_arms_named_and_refuses_a_pattern_of_none(tmp_path):

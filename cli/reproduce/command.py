@@ -298,6 +298,11 @@ def reproduce_local(
         print(f"trained in {time.monotonic() - t0:,.0f} s", file=sys.stderr)
     elif not runs_dir.exists():
         return _refuse(f"--report-only: no runs stored in {runs_dir}")
+    else:
+        from cli.runs_folder import unwritable
+
+        if why := unwritable(out):  # (before the runs are read: no traceback midway)
+            return _refuse(f"--out {out}: cannot write the page there ({why})")
     page = write_page(fig, body, profile, out, runs_dir, not args.report_only, figure_flags(args))
     return code or page
 
