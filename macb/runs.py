@@ -57,6 +57,8 @@ def load_page(path: str | Path) -> pd.DataFrame:
     from cli.results import points_file, points_files
 
     page = Path(path)
+    if not page.exists():
+        raise RunsError(f"{page}: no such page (a folder holding FIGURE.csv.gz, or the file)")
     found: Path | None = page if page.is_file() else None
     if page.is_dir():
         for claims in sorted(page.glob("*-claims.json")):
@@ -70,9 +72,12 @@ def load_page(path: str | Path) -> pd.DataFrame:
     if found is None:
         raise RunsError(f"{page}: no page's points (FIGURE.csv.gz or FIGURE.csv) there")
     try:
-        return pd.read_csv(found)  # gzip inferred from the name
+        frame = pd.read_csv(found)  # gzip inferred from the name
     except (OSError, EOFError, ValueError, zlib.error) as err:  # torn or corrupt; not a CSV
         raise RunsError(f"{found}: not a page's points ({err})") from err
+    if missing := [c for c in ("run", "episode") if c not in frame.columns]:
+        raise RunsError(f"{found}: not a page's points (no {' or '.join(missing)} column)")
+    return frame
 
 
 def joined(frames: list[pd.DataFrame]) -> pd.DataFrame:

@@ -193,6 +193,12 @@ def test_a_page_s_points_are_its_csv_gz_and_an_older_page_s_plain_csv_still_read
     (copied / "fig8.csv.gz").write_bytes((folder / "fig3.csv.gz").read_bytes())
     with pytest.raises(macb.RunsError, match="which page's points"):
         macb.load_page(copied)
+    text = tmp_path / "notes.txt"  # a file that parses as a CSV of one column
+    text.write_text("hi\n")
+    with pytest.raises(macb.RunsError, match=r"notes.txt: not a page's points \(no run or"):
+        macb.load_page(text)
+    with pytest.raises(macb.RunsError, match="nowhere: no such page"):
+        macb.load_page(tmp_path / "nowhere")
 
 
 def _train(out: Path, seed: int) -> None:
