@@ -234,6 +234,16 @@ def cmd_compare(page: Path, runs_dir: Path) -> int:
     except (MetricsError, ResultsError) as err:
         print(f"macb results: {err}", file=sys.stderr)
         return 2
+    if result and all(why and why.startswith("no folder ") for *_, why in result):
+        hint = "" if runs_dir.is_dir() else ": no such folder"
+        if (runs_dir / "runs").is_dir():  # OUT given for OUT/runs
+            hint = f", which holds a runs folder: give --runs {runs_dir / 'runs'}"
+        print(
+            f"macb results: none of the page's {len(result)} run(s) has a folder in "
+            f"{runs_dir}{hint}",
+            file=sys.stderr,
+        )
+        return 2
     for run, both, same, why in result:
         if both and same == both:
             print(f"{run}: equal at all {both:,} episodes both have")

@@ -261,7 +261,13 @@ def test_compare_says_whether_runs_give_a_page_s_points_bit_for_bit(tmp_path):
         assert got.returncode == 1 and not got.stderr and "another CPU" not in got.stdout, bad
 
     missing = macb_cli("results", "--compare", str(page), "--runs", str(tmp_path / "nowhere"))
-    assert missing.returncode == 2 and "no folder" in missing.stdout
+    assert missing.returncode == 2 and not missing.stdout
+    assert f"has a folder in {tmp_path / 'nowhere'}: no such folder" in missing.stderr
+    outer = macb_cli("results", "--compare", str(page), "--runs", str(tmp_path))  # OUT/runs?
+    assert outer.returncode == 2 and "none of the page's 1 run(s) has a folder in" in outer.stderr
+    (tmp_path / "runs").mkdir()
+    outer = macb_cli("results", "--compare", str(page), "--runs", str(tmp_path))
+    assert f"which holds a runs folder: give --runs {tmp_path / 'runs'}" in outer.stderr
 
     (other / "metrics.jsonl").write_text('{"episode": 1}\nnot json\n{"episode": 3}\n')
     torn = macb_cli("results", "--compare", str(page), "--runs", str(other.parent))
