@@ -425,6 +425,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"macb run: {why}", file=sys.stderr)
         return 2
     if args.local:
+        if why := _expand_error(body):
+            print(f"macb run: invalid config: {why}", file=sys.stderr)
+            return 2
         return _run_local(args, body)
     try:
         with _api_client(args) as api:
@@ -439,7 +442,29 @@ def cmd_run(args: argparse.Namespace) -> int:
             return 2
         return _api_failed("run", err)
     except httpx.HTTPError as err:
+        # The API checks the runs (a custom task may be importable only where it runs);
+        # when it cannot be asked, a config that is invalid here is the first thing to say.
+        if why := _expand_error(body):
+            print(f"macb run: invalid config: {why} (checked here: the API did not "
+                  f"answer: {err})", file=sys.stderr)  # fmt: skip
+            return 2
         return _api_failed("run", err)
+
+
+def _expand_error(body: dict[str, Any]) -> str | None:
+    """Why the experiment's runs are not valid configs ('field: reason'), as the API and
+    `--local` expand them, or None."""
+    from pydantic import ValidationError
+
+    from cli.local import expand_body
+
+    try:
+        expand_body(body)
+    except ValidationError as err:  # (before ValueError, which it is): field: reason
+        return format_errors(err)
+    except ValueError as err:
+        return str(err)
+    return None
 
 
 def _run_flags_error(args: argparse.Namespace) -> str | None:
@@ -459,7 +484,6 @@ def _run_flags_error(args: argparse.Namespace) -> str | None:
 
 def _run_local(args: argparse.Namespace, body: dict[str, Any]) -> int:
     """`macb run --local`: the experiment's runs as run groups in this process."""
-    from pydantic import ValidationError
 
     from cli.local import (
         expand_body,
@@ -472,14 +496,7 @@ def _run_local(args: argparse.Namespace, body: dict[str, Any]) -> int:
     if error := group_flag_error(args):
         print(f"macb run: {error}", file=sys.stderr)
         return 2
-    try:
-        name, seeds, runs = expand_body(body)
-    except ValidationError as err:  # (before ValueError, which it is): field: reason
-        print(f"macb run: invalid config: {format_errors(err)}", file=sys.stderr)
-        return 2
-    except ValueError as err:
-        print(f"macb run: invalid config: {err}", file=sys.stderr)
-        return 2
+    name, seeds, runs = expand_body(body)  # (checked by cmd_run: `_expand_error`)
     out = Path(args.out or "runs/local")
     code = run_groups(runs, out, args.group_size, args.quiet, jobs=args.jobs)
     exp = local_experiment(name, seeds, runs, out)

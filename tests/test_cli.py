@@ -616,6 +616,15 @@ def test_lifetimes_limits_and_intervals_out_of_range_and_an_api_url_of_no_form(t
     _refused(macb("ls", "--api", "notaurl"), "--api (or MACB_API_URL): not an http(s) URL")
     got = macb("ls", "--api", "http://127.0.0.1:1")
     assert got.returncode == 1 and "cannot reach the API at http://127.0.0.1:1" in got.stderr
+    # An unreachable API: the runs are checked here, and an invalid one said first, exit 2.
+    for text, why in (
+        ("betaa: 0.3", "betaa: unknown key (misspelt?)"),
+        ("arms: [{name: a, k: -1}]", "arms.0.k: Input should be greater than"),
+    ):
+        (tmp_path / "bad.yaml").write_text(text + "\n")
+        got = macb("run", str(tmp_path / "bad.yaml"), "--api", "http://127.0.0.1:1")
+        _refused(got, f"macb run: invalid config: {why}")
+        assert "cannot reach" not in got.stderr
 
 
 def test_flags_the_chosen_way_of_running_would_ignore_are_refused(tmp_path):
