@@ -565,10 +565,11 @@ def cmd_plot(args: argparse.Namespace) -> int:
         print(f"macb plot: -o {args.output}: cannot write there ({why})", file=sys.stderr)
         return 2
     if args.db:
-        if not Path(args.db).is_file():  # (a Store would make it, and its folder)
-            print(f"macb plot: no store file {args.db}", file=sys.stderr)
+        from cli.store_file import NotAStore, store_file_error
+
+        if why := store_file_error(args.db):  # (a Store would make it, and its folder)
+            print(f"macb plot: {why}", file=sys.stderr)
             return 2
-        from cli.store_file import NotAStore
 
         try:
             data = _curves_from_store(args.db, args.experiment, args.metric)

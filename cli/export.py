@@ -166,8 +166,10 @@ def cmd_export(args: argparse.Namespace) -> int:
             print(f"macb export: {flag} {folder}: cannot write there ({why})", file=sys.stderr)
             return 2
     if args.db:
-        if not Path(args.db).exists():
-            print(f"macb export: no store file {args.db}", file=sys.stderr)
+        from cli.store_file import store_file_error
+
+        if why := store_file_error(args.db):
+            print(f"macb export: {why}", file=sys.stderr)
             return 2
         try:
             found = _from_store(args.db, args.id)

@@ -15,6 +15,17 @@ class NotAStore(Exception):
     """The --db file is not an API store (named, with the reason)."""
 
 
+def store_file_error(db: str) -> str | None:
+    """Why `db` is no store file to read (missing, a folder), or None: asked before
+    anything is read or written, as a Store would make a missing file."""
+    path = Path(db)
+    if path.is_dir():
+        return f"{db}: a folder, not a store file (the API's, DATA_DIR/api.sqlite3)"
+    if not path.is_file():
+        return f"no store file {db}"
+    return None
+
+
 @contextlib.contextmanager
 def store_copy(db: str) -> Iterator[Any]:
     """A store file, only read: opening a store migrates it to this version's schema (and
@@ -32,6 +43,8 @@ def store_copy(db: str) -> Iterator[Any]:
         try:
             _copy(Path(db), copy)
             store = Store(copy)
+        except OSError as err:  # (gone or unreadable since it was checked)
+            raise NotAStore(f"{db}: cannot be read ({err.strerror or err})") from None
         except (sqlite3.Error, StoreError) as err:
             raise NotAStore(f"{db}: not a store this version reads ({err})") from None
         try:

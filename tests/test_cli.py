@@ -535,6 +535,11 @@ def test_plot_db_only_reads_its_store_and_outputs_that_cannot_be_written_are_ref
              f"-o {a_file / 'p.png'}: cannot write there (a file, not a folder)")  # fmt: skip
     _refused(macb("export", "xgrid", "--db", str(old), "--csv", str(a_file)),
              f"--csv {a_file}: cannot write there (a file, not a folder)")  # fmt: skip
+    for command in (["plot", "xgrid", "-o", str(tmp_path / "f.png")],
+                    ["export", "xgrid", "--csv", str(tmp_path / "f")]):  # fmt: skip
+        got = macb(*command, "--db", str(tmp_path))  # a folder: said so, no traceback
+        _refused(got, f"{tmp_path}: a folder, not a store file")
+        assert "Traceback" not in got.stderr
     # A command refused for its source (a run the store lacks, no store) leaves no folder
     # behind where it would have written.
     for argv in (["plot", "nosuch", "-o", str(tmp_path / "new" / "p.png"), "--db", str(old)],
