@@ -112,6 +112,9 @@ def cmd_certs(args: argparse.Namespace) -> int:
         name, _, hosts = spec.partition("=")
         routers[name] = [h for h in hosts.split(",") if h]
     users = [*BASE_USERS, *(f"actor{i}" for i in range(args.actors)), *args.user, *routers]
+    if Path(args.dir).exists() and not Path(args.dir).is_dir():
+        print(f"macb certs: {args.dir}: a file, not a folder for the certificates", file=sys.stderr)
+        return 2
     try:
         for u in users:
             role_of(u)

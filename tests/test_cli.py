@@ -615,6 +615,8 @@ def test_lifetimes_limits_and_intervals_out_of_range_and_an_api_url_of_no_form(t
     _refused(macb("certs", str(tmp_path / "c"), "--days", "99999999"), "--days 99999999: at most")
     _refused(macb("certs", str(tmp_path / "c"), "--days", "0"), "--days: 0: at least 1")
     assert not (tmp_path / "c").exists()
+    (tmp_path / "f").write_text("x")  # a file where the folder should be: named, no errno
+    _refused(macb("certs", str(tmp_path / "f")), f"{tmp_path / 'f'}: a file, not a folder")
     _refused(macb("ls", "--limit", "-3"), "--limit: -3: at least 1")
     _refused(macb("train", "--task", "simple", "--algo", "ddpg", "--cut-every", "-5",
                   "--out", str(tmp_path / "o")), "--cut-every -5: 0 or more")  # fmt: skip
