@@ -19,6 +19,7 @@ import socket
 import sys
 import time
 import uuid
+from collections.abc import Collection
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -184,20 +185,26 @@ def config_conflicts(runs: list[LocalRun], out: Path) -> list[str]:
     ]
 
 
-def foreign_runs(runs: list[LocalRun], runs_dir: Path) -> str | None:
+def foreign_runs(
+    runs: list[LocalRun], runs_dir: Path, siblings: Collection[str] = ()
+) -> str | None:
     """Why `runs_dir` is not these runs' folder when none of them has a folder there but
-    other runs do (other --seeds, --arms or another figure's folder: a mistake, where an
-    empty folder is a campaign not started yet), or None."""
+    other runs do (other --seeds, another figure's folder: a mistake, where an empty
+    folder is a campaign not started yet), or None. `siblings`: the names of runs of the
+    same campaign that are not asked for (a figure's other arms: arms that run later are
+    not started, not a mistake)."""
     if not runs_dir.is_dir() or any((runs_dir / r.name).is_dir() for r in runs):
         return None
     others = sorted(
-        d.name for d in runs_dir.iterdir() if d.is_dir() and (d / "config.json").is_file()
+        d.name
+        for d in runs_dir.iterdir()
+        if d.is_dir() and (d / "config.json").is_file() and d.name not in siblings
     )
     if not others:
         return None
     listed = ", ".join(others[:4]) + (f" and {len(others) - 4} more" if len(others) > 4 else "")
     return (
-        f"none of the {len(runs)} runs selected has a folder in {runs_dir}, which holds "
+        f"none of the {len(runs)} run(s) selected has a folder in {runs_dir}, which holds "
         f"other runs ({listed}): give the flags they were trained with (--seeds, --arms, "
         "--profile, ...) or their folder"
     )

@@ -236,6 +236,8 @@ def cmd_compare(page: Path, runs_dir: Path) -> int:
         return 2
     if result and all(why and why.startswith("no folder ") for *_, why in result):
         hint = "" if runs_dir.is_dir() else ": no such folder"
+        if runs_dir.exists() and not runs_dir.is_dir():
+            hint = ": a file, not a folder"
         if (runs_dir / "runs").is_dir():  # OUT given for OUT/runs
             hint = f", which holds a runs folder: give --runs {runs_dir / 'runs'}"
         print(

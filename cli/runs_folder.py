@@ -14,6 +14,7 @@ import csv
 import io
 import json
 import math
+import os
 import re
 import tempfile
 from pathlib import Path
@@ -89,11 +90,13 @@ def unwritable(folder: Path, make: bool = False) -> str | None:
     unreadable, leaves no empty folder): the nearest folder that exists is probed."""
     if folder.exists() and not folder.is_dir():
         return "a file, not a folder"
+    if folder.is_symlink() and not folder.exists():
+        return "a symbolic link to nothing"
     probe = folder
     try:
         if make:
             folder.mkdir(parents=True, exist_ok=True)
-        while not probe.exists() and probe != probe.parent:
+        while not os.path.lexists(probe) and probe != probe.parent:
             probe = probe.parent
         if not probe.is_dir():
             return f"{probe} is a file, not a folder"

@@ -148,21 +148,32 @@ def cmd_train(args: argparse.Namespace) -> int:
         # A folder that holds a run: another config's is refused (its rows are not this
         # run's); this config's goes on from its cuts, or is complete, as a run of
         # `--seeds` or `--local` does. Nothing starts a run again over one.
-        from cli.local import config_conflict, run_rows, run_state
+        from cli.local import MetricsError, config_conflict, run_rows, run_state
 
         if why := config_conflict(out, cfg):
             print(
-                f"macb train: --out {out}: holds a run of another config ({why}); give "
-                f"another --out, or continue that run with `macb train --resume {out}`",
+                f"macb train: --out {out}: holds a run of another config ({why}); move it "
+                f"away or give another --out (`macb train --resume {out}` continues that "
+                "run if it stopped short)",
                 file=sys.stderr,
             )
             return 2
-        state = run_state(out, cfg)
+        try:
+            state = run_state(out, cfg)
+            last = run_rows(out)[-1] if state == "done" else {}
+        except MetricsError as err:  # (its rows do not read: nothing to go on from)
+            print(f"macb train: {err}", file=sys.stderr)
+            return 2
         if state == "done":
-            last = run_rows(out)[-1]
             print(
                 f"{out} holds this run, complete ({last.get('episode', 0)} episodes): "
                 "nothing to run (another --out trains it again)"
+                + (
+                    "; no TensorBoard events written: `macb export --tensorboard` writes a "
+                    "stored run's"
+                    if args.tensorboard
+                    else ""
+                )
             )
             return 0
         if state.startswith("cut-"):

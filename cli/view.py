@@ -375,7 +375,8 @@ def folder_view(args: argparse.Namespace) -> FolderView:
     from cli.local import config_conflicts, expand_body, foreign_runs
 
     runs = expand_body(view.body or {})[2]
-    if why := foreign_runs(runs, view.runs_dir):
+    every = figure_body(fig, argparse.Namespace(**{**vars(flags), "arms": None}))
+    if why := foreign_runs(runs, view.runs_dir, {r.name for r in expand_body(every)[2]}):
         raise RunsError(why)
     if conflicts := config_conflicts(runs, view.runs_dir):
         raise RunsError(

@@ -680,7 +680,7 @@ def read_yaml_file(path: str | Path, what: str) -> Any:
 def read_config_file(path: str | Path) -> dict[str, Any]:
     """A config file's mapping as written (`read_yaml_file`), not yet validated."""
     data = read_yaml_file(path, "a config file")
-    if data is None:  # (an empty file, or comments only: another file was meant, likely)
+    if data is None or data == {}:  # (empty, comments only, `{}`: another file was meant)
         raise ConfigError(f"{path}: empty: a config file holds at least one key")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config is a mapping of keys to values")

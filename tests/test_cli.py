@@ -476,6 +476,8 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_anything_runs
     train = ("train", "--config", str(ok))
     _refused(macb(*train, "--out", str(a_file)), f"--out {a_file}: cannot write there")
     _refused(macb(*train, "--out", "/proc/macb-x"), "--out /proc/macb-x: cannot write there")
+    (tmp_path / "link").symlink_to(tmp_path / "gone")
+    _refused(macb(*train, "--out", str(tmp_path / "link")), "(a symbolic link to nothing)")
     out = tmp_path / "out"
     _refused(macb(*train, "--out", str(out), "--tensorboard", str(a_file)),
              f"--tensorboard {a_file}: cannot write there (a file, not a folder)")  # fmt: skip

@@ -83,7 +83,7 @@ def test_config_file_and_overrides(tmp_path):
     p.write_text("- not\n- a mapping\n")
     with pytest.raises(ConfigError, match="mapping"):
         load_config(p)
-    for empty in ("", "# only a comment\n"):  # not "every default": another file was meant
+    for empty in ("", "# only a comment\n", "{}\n"):  # not "every default": another file was meant
         p.write_text(empty)
         with pytest.raises(ConfigError, match="c.yaml: empty: a config file holds at least"):
             load_config(p)

@@ -167,7 +167,7 @@ def test_runs_of_another_config_are_neither_trained_on_nor_shown_as_the_figure_s
         if "--group-runs" in more:
             assert "--group-runs trains with --local (not with --report-only" in other.stderr
         elif "--runs" in more:
-            assert f"none of the 1 runs selected has a folder in {out}" in other.stderr
+            assert f"none of the 1 run(s) selected has a folder in {out}" in other.stderr
         else:
             assert why in other.stderr and "4 in the run" in other.stderr, other.stderr
         assert "wrote" not in other.stderr and "Traceback" not in other.stderr, other.stderr
@@ -175,13 +175,17 @@ def test_runs_of_another_config_are_neither_trained_on_nor_shown_as_the_figure_s
         assert (out / "runs" / "beta_0.8-s0" / "metrics.jsonl").read_bytes() == rows_before
     # Other runs' folders and none of these (another --seeds): a mistake, refused.
     seeds1 = ["--seeds", "1", *flags[2:]]
-    elsewhere = f"none of the 1 runs selected has a folder in {out / 'runs'}, which holds "
+    elsewhere = f"none of the 1 run(s) selected has a folder in {out / 'runs'}, which holds "
     for argv in (["reproduce", "fig3", "--status", "--episodes", "3", *seeds1],
                  ["view", str(out), "--figure", "fig3", "--episodes", "3", "--port", "0",
                   *seeds1[:-2]]):  # fmt: skip
         got = macb(*argv, timeout=60)
         assert got.returncode == 2, got.stdout + got.stderr
         assert elsewhere + "other runs (beta_0.8-s0)" in got.stderr, got.stderr
+    # The figure's other arms (that run later) are not other runs: not started, exit 0.
+    later_arm = ["--seeds", "0", "--arms", "beta=0.0", "--threads", "2", "--out", str(out)]
+    got = macb("reproduce", "fig3", "--status", "--episodes", "3", *later_arm, timeout=60)
+    assert got.returncode == 0 and "not started" in got.stdout, got.stdout + got.stderr
     # A runs folder none of whose runs has started (queued on Slurm, arms that run later)
     # is a campaign not started, not a mistake: --status says so.
     (tmp_path / "later").mkdir()

@@ -263,6 +263,9 @@ def test_compare_says_whether_runs_give_a_page_s_points_bit_for_bit(tmp_path):
     missing = macb_cli("results", "--compare", str(page), "--runs", str(tmp_path / "nowhere"))
     assert missing.returncode == 2 and not missing.stdout
     assert f"has a folder in {tmp_path / 'nowhere'}: no such folder" in missing.stderr
+    (tmp_path / "a-file").write_text("")
+    filed = macb_cli("results", "--compare", str(page), "--runs", str(tmp_path / "a-file"))
+    assert filed.returncode == 2 and "a-file: a file, not a folder" in filed.stderr
     outer = macb_cli("results", "--compare", str(page), "--runs", str(tmp_path))  # OUT/runs?
     assert outer.returncode == 2 and "none of the page's 1 run(s) has a folder in" in outer.stderr
     (tmp_path / "runs").mkdir()

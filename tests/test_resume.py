@@ -144,6 +144,10 @@ def test_train_into_a_folder_holding_a_run_goes_on_with_this_config_and_refuses_
     err = capsys.readouterr().err
     assert f"--out {out}: holds a run of another config (k: 32 in the folder, 64" in err
     assert {f.name: f.read_bytes() for f in out.iterdir() if f.is_file()} == before
+    lines = (out / "metrics.jsonl").read_text().splitlines()  # two writers' garbage
+    (out / "metrics.jsonl").write_text("\n".join([lines[0], "not json", *lines[1:]]) + "\n")
+    assert main(argv) == 2
+    assert "metrics.jsonl, line 2" in capsys.readouterr().err
 
 
 def test_a_corrupt_newest_cut_is_refused_by_name_and_the_one_before_is_used(

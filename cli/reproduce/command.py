@@ -212,7 +212,11 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
         _, _, runs = expand_body(body)
         runs_dir = Path(args.runs) if args.runs else out / "runs"
-        return print_status(f"{fig.name}, profile {args.profile}", runs, runs_dir, fig.episodes)
+        every = figure_body(fig, argparse.Namespace(**{**vars(args), "arms": None}))
+        siblings = {r.name for r in expand_body(every)[2]}  # (arms that run later)
+        return print_status(
+            f"{fig.name}, profile {args.profile}", runs, runs_dir, fig.episodes, siblings
+        )
     if args.launcher == "slurm" and not (args.report_only or args.group_runs):
         from cli.local import MetricsError
         from cli.reproduce.slurm import campaign, reproduce_slurm

@@ -56,6 +56,7 @@ def write_page(
         MetricsError,
         config_conflicts,
         expand_body,
+        foreign_runs,
         local_experiment,
         local_points,
     )
@@ -64,12 +65,12 @@ def write_page(
 
     name, seeds, runs = expand_body(body)
     if not any((runs_dir / r.name).is_dir() for r in runs):
-        print(
-            f"macb reproduce: none of the {len(runs)} runs selected has a folder in "
-            f"{runs_dir} (give the runs folder, OUT/runs, and the flags they were trained "
-            "with: --seeds, --arms, ...): no page written",
-            file=sys.stderr,
+        why = foreign_runs(runs, runs_dir) or (
+            f"none of the {len(runs)} run(s) selected has a folder in {runs_dir} (give the "
+            "runs folder, OUT/runs, and the flags they were trained with: --seeds, --arms, "
+            "...)"
         )
+        print(f"macb reproduce: {why}: no page written", file=sys.stderr)
         return 2
     if conflicts := config_conflicts(runs, runs_dir):
         for line in conflicts:

@@ -17,6 +17,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Collection
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -310,24 +311,28 @@ def status_text(name: str, progress: FigureProgress, runs_dir: Path, now: float)
     return "\n".join(lines)
 
 
-def print_status(name: str, runs: list[Any], runs_dir: Path, target: int) -> int:
+def print_status(
+    name: str, runs: list[Any], runs_dir: Path, target: int, siblings: Collection[str] = ()
+) -> int:
     """`macb reproduce FIGURE --status`: 0, or 2 when there is no runs folder, when
     none of the runs has a folder in it while it holds a `runs` folder (OUT given for
     OUT/runs), or when a run's folder holds another config's run (another --profile,
-    --episodes: named). Runs not started yet (queued on Slurm, arms that run later) are shown so."""
+    --episodes: named), or when it holds other runs and none of these nor of `siblings`
+    (the figure's other arms). Runs not started yet (queued on Slurm, arms that run
+    later) are shown so."""
     if not runs_dir.is_dir():
         print(f"macb reproduce --status: no runs folder {runs_dir}", file=sys.stderr)
         return 2
     if not any((runs_dir / r.name).is_dir() for r in runs) and (runs_dir / "runs").is_dir():
         print(
-            f"macb reproduce --status: none of the {len(runs)} runs selected has a folder in "
+            f"macb reproduce --status: none of the {len(runs)} run(s) selected has a folder in "
             f"{runs_dir}, which holds a runs folder: give --runs {runs_dir / 'runs'}",
             file=sys.stderr,
         )
         return 2
     from cli.local import config_conflicts, foreign_runs
 
-    if why := foreign_runs(runs, runs_dir):
+    if why := foreign_runs(runs, runs_dir, siblings):
         print(f"macb reproduce --status: {why}", file=sys.stderr)
         return 2
     if conflicts := config_conflicts(runs, runs_dir):  # their rows are not these runs'
