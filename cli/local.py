@@ -174,6 +174,12 @@ def config_conflict(folder: Path, cfg: TrainConfig) -> str | None:
     return folder_config_difference(folder, cfg.model_dump(mode="json"))
 
 
+# What to do about folders of another config's runs (config_conflicts), said after them.
+TRAINED_WITH = (
+    "give the flags these runs were trained with (--profile, --episodes, --seeds, --precision, ...)"
+)
+
+
 def config_conflicts(runs: list[LocalRun], out: Path) -> list[str]:
     """One line per run whose folder under `out` holds another config's run ('FOLDER:
     holds a run of another config (why)'): its rows are not this run's, so nothing may

@@ -45,7 +45,13 @@ from cli.reproduce.analysis import (
 )
 from cli.reproduce.controls import control_verdicts
 from cli.reproduce.defs import ArmDef, FigureDef
-from cli.reproduce.experiments import arm_configs, control_of, counts, figure_body
+from cli.reproduce.experiments import (
+    arm_configs,
+    control_of,
+    counts,
+    every_arms_runs,
+    figure_body,
+)
 from cli.reproduce.figures import FIGURES, PROFILES
 from cli.reproduce.plot import figure_colors, thesis_marks
 from cli.reproduce.status import FigureProgress, from_points, read_folders
@@ -372,17 +378,13 @@ def folder_view(args: argparse.Namespace) -> FolderView:
     if not root.is_dir():
         raise RunsError(f"{root}: {'a file, not a folder' if root.exists() else 'no such folder'}")
     view = FolderView(root, fig, figure_body(fig, flags))
-    from cli.local import config_conflicts, expand_body, foreign_runs
+    from cli.local import TRAINED_WITH, config_conflicts, expand_body, foreign_runs
 
     runs = expand_body(view.body or {})[2]
-    every = figure_body(fig, argparse.Namespace(**{**vars(flags), "arms": None}))
-    if why := foreign_runs(runs, view.runs_dir, {r.name for r in expand_body(every)[2]}):
+    if why := foreign_runs(runs, view.runs_dir, every_arms_runs(fig, flags)):
         raise RunsError(why)
     if conflicts := config_conflicts(runs, view.runs_dir):
-        raise RunsError(
-            "; ".join(conflicts) + ": give the flags these runs were trained with "
-            "(--profile, --episodes, --seeds, --precision, ...) or another folder"
-        )
+        raise RunsError("; ".join(conflicts) + f": {TRAINED_WITH} or another folder")
     return view
 
 

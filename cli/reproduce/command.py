@@ -20,7 +20,7 @@ from typing import Any
 from cli.config_flags import HelpFormatter
 from cli.local import add_group_flags, group_flag_error
 from cli.reproduce.defs import FigureDef
-from cli.reproduce.experiments import figure_body
+from cli.reproduce.experiments import every_arms_runs, figure_body
 from cli.reproduce.figures import FIGURES, PROFILES
 from cli.reproduce.page import write_page
 from cli.reproduce.session import Session, answers_at, with_local_cluster
@@ -212,10 +212,12 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
         _, _, runs = expand_body(body)
         runs_dir = Path(args.runs) if args.runs else out / "runs"
-        every = figure_body(fig, argparse.Namespace(**{**vars(args), "arms": None}))
-        siblings = {r.name for r in expand_body(every)[2]}  # (arms that run later)
         return print_status(
-            f"{fig.name}, profile {args.profile}", runs, runs_dir, fig.episodes, siblings
+            f"{fig.name}, profile {args.profile}",
+            runs,
+            runs_dir,
+            fig.episodes,
+            every_arms_runs(fig, args),
         )
     if args.launcher == "slurm" and not (args.report_only or args.group_runs):
         from cli.local import MetricsError

@@ -157,6 +157,15 @@ def figure_body(fig: FigureDef, args: argparse.Namespace) -> dict[str, Any]:
     return body
 
 
+def every_arms_runs(fig: FigureDef, args: argparse.Namespace) -> set[str]:
+    """The names of the figure's runs under the flags but --arms: a selection's siblings
+    (arms that run later are not started, not another campaign's runs)."""
+    from cli.local import expand_body
+
+    every = figure_body(fig, argparse.Namespace(**{**vars(args), "arms": None}))
+    return {r.name for r in expand_body(every)[2]}
+
+
 # ---------------------------------------------------------------- controls
 def counts(config: dict[str, Any]) -> bool:
     """The arm counts (Dis- or Cen-MACB): a config's keys as its file gives them, where

@@ -53,6 +53,7 @@ def write_page(
     import shlex
 
     from cli.local import (
+        TRAINED_WITH,
         MetricsError,
         config_conflicts,
         expand_body,
@@ -75,11 +76,7 @@ def write_page(
     if conflicts := config_conflicts(runs, runs_dir):
         for line in conflicts:
             print(f"macb reproduce: {line}", file=sys.stderr)
-        print(
-            "macb reproduce: no page written: give the flags these runs were trained with "
-            "(--profile, --episodes, --seeds, --precision, ...) or another --runs",
-            file=sys.stderr,
-        )
+        print(f"macb reproduce: no page written: {TRAINED_WITH} or another --runs", file=sys.stderr)
         return 2
     try:
         exp = local_experiment(name, seeds, runs, runs_dir)

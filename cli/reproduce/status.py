@@ -330,7 +330,7 @@ def print_status(
             file=sys.stderr,
         )
         return 2
-    from cli.local import config_conflicts, foreign_runs
+    from cli.local import TRAINED_WITH, config_conflicts, foreign_runs
 
     if why := foreign_runs(runs, runs_dir, siblings):
         print(f"macb reproduce --status: {why}", file=sys.stderr)
@@ -338,11 +338,7 @@ def print_status(
     if conflicts := config_conflicts(runs, runs_dir):  # their rows are not these runs'
         for line in conflicts:
             print(f"macb reproduce --status: {line}", file=sys.stderr)
-        print(
-            "macb reproduce --status: give the flags these runs were trained with "
-            "(--profile, --episodes, --seeds, --precision, ...) or another --runs",
-            file=sys.stderr,
-        )
+        print(f"macb reproduce --status: {TRAINED_WITH} or another --runs", file=sys.stderr)
         return 2
     progress = read_folders(runs, runs_dir, target)
     print(status_text(name, progress, runs_dir, time.time()))
