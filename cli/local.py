@@ -489,10 +489,11 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
     }
 
 
-def start_cpu(start: dict[str, Any]) -> str | None:
-    """The CPU model a start ran on (None where its provenance does not say): a run's
-    rows round as the CPU of the start that computed them does."""
-    cpu = (start.get("machine") or {}).get("cpu")
+def start_cpu(start: Any) -> str | None:
+    """The CPU model a start ran on (None where its provenance does not say, or is no
+    record): a run's rows round as the CPU of the start that computed them does."""
+    machine = start.get("machine") if isinstance(start, dict) else None
+    cpu = machine.get("cpu") if isinstance(machine, dict) else None
     return cpu if isinstance(cpu, str) else None
 
 

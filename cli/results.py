@@ -193,6 +193,8 @@ def page_cpus(page: Path) -> dict[str, set[str]]:
     """Each run's CPUs as the page's FIGURE-runs.json records them: every start's
     (`start_cpus`), or an older page's latest start's; {} without the file, and nothing
     for an entry it cannot read (the record is a hint here, never a verdict)."""
+    from cli.local import start_cpu
+
     out: dict[str, set[str]] = {}
     for points in points_files(page):
         figure = points.name.split(".")[0]
@@ -203,9 +205,7 @@ def page_cpus(page: Path) -> dict[str, set[str]]:
                 continue
             cpus = r.get("start_cpus")
             if not isinstance(cpus, list):
-                provenance = r.get("provenance")
-                machine = provenance.get("machine") if isinstance(provenance, dict) else None
-                cpus = [machine.get("cpu")] if isinstance(machine, dict) else []
+                cpus = [start_cpu(r.get("provenance"))]
             if found := {c for c in cpus if isinstance(c, str)}:
                 out[r["id"]] = found
     return out
@@ -214,12 +214,11 @@ def page_cpus(page: Path) -> dict[str, set[str]]:
 def folder_cpus(folder: Path) -> set[str]:
     """The CPUs of a run folder's starts, from its provenance.json (empty without it, or
     for entries it cannot read)."""
+    from cli.local import start_cpu
+
     record = _json(folder / "provenance.json")
     starts = record.get("starts") if isinstance(record, dict) else None
-    if not isinstance(starts, list):
-        return set()
-    machines = [s.get("machine") for s in starts if isinstance(s, dict)]
-    return {c for m in machines if isinstance(m, dict) and isinstance(c := m.get("cpu"), str)}
+    return {c for s in starts if (c := start_cpu(s))} if isinstance(starts, list) else set()
 
 
 def cmd_compare(page: Path, runs_dir: Path) -> int:
@@ -234,7 +233,7 @@ def cmd_compare(page: Path, runs_dir: Path) -> int:
     except (MetricsError, ResultsError) as err:
         print(f"macb results: {err}", file=sys.stderr)
         return 2
-    if result and all(why and why.startswith("no folder ") for *_, why in result):
+    if result and not any((runs_dir / run).is_dir() for run, *_ in result):
         hint = "" if runs_dir.is_dir() else ": no such folder"
         if runs_dir.exists() and not runs_dir.is_dir():
             hint = ": a file, not a folder"
