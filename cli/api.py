@@ -33,6 +33,7 @@ from shared.config import (
 from shared.metrics import CURVE_FIELDS
 
 if TYPE_CHECKING:
+    from cli.local import LocalRun
     from services.api.client import ApiClient
 
 API_HELP = "API base URL (default: MACB_API_URL or http://127.0.0.1:8000)"
@@ -425,10 +426,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"macb run: {why}", file=sys.stderr)
         return 2
     if args.local:
-        if why := _expand_error(body):
-            print(f"macb run: invalid config: {why}", file=sys.stderr)
+        try:
+            expanded = _expand(body)
+        except ConfigError as err:
+            print(f"macb run: invalid config: {err}", file=sys.stderr)
             return 2
-        return _run_local(args, body)
+        return _run_local(args, *expanded)
     try:
         with _api_client(args) as api:
             if args.detach:
@@ -444,27 +447,28 @@ def cmd_run(args: argparse.Namespace) -> int:
     except httpx.HTTPError as err:
         # The API checks the runs (a custom task may be importable only where it runs);
         # when it cannot be asked, a config that is invalid here is the first thing to say.
-        if why := _expand_error(body):
+        try:
+            _expand(body)
+        except ConfigError as why:
             print(f"macb run: invalid config: {why} (checked here: the API did not "
                   f"answer: {err})", file=sys.stderr)  # fmt: skip
             return 2
         return _api_failed("run", err)
 
 
-def _expand_error(body: dict[str, Any]) -> str | None:
-    """Why the experiment's runs are not valid configs ('field: reason'), as the API and
-    `--local` expand them, or None."""
+def _expand(body: dict[str, Any]) -> tuple[str, list[int], list[LocalRun]]:
+    """The experiment's name, seeds and runs, as the API and `--local` expand them;
+    ConfigError ('field: reason') when a run's config is not valid."""
     from pydantic import ValidationError
 
     from cli.local import expand_body
 
     try:
-        expand_body(body)
+        return expand_body(body)
     except ValidationError as err:  # (before ValueError, which it is): field: reason
-        return format_errors(err)
+        raise ConfigError(format_errors(err)) from None
     except ValueError as err:
-        return str(err)
-    return None
+        raise ConfigError(str(err)) from None
 
 
 def _run_flags_error(args: argparse.Namespace) -> str | None:
@@ -482,11 +486,10 @@ def _run_flags_error(args: argparse.Namespace) -> str | None:
     return None
 
 
-def _run_local(args: argparse.Namespace, body: dict[str, Any]) -> int:
-    """`macb run --local`: the experiment's runs as run groups in this process."""
-
+def _run_local(args: argparse.Namespace, name: str, seeds: list[int], runs: list[LocalRun]) -> int:
+    """`macb run --local`: the experiment's runs (`_expand`) as run groups in this
+    process."""
     from cli.local import (
-        expand_body,
         group_flag_error,
         local_experiment,
         local_points,
@@ -496,7 +499,6 @@ def _run_local(args: argparse.Namespace, body: dict[str, Any]) -> int:
     if error := group_flag_error(args):
         print(f"macb run: {error}", file=sys.stderr)
         return 2
-    name, seeds, runs = expand_body(body)  # (checked by cmd_run: `_expand_error`)
     out = Path(args.out or "runs/local")
     code = run_groups(runs, out, args.group_size, args.quiet, jobs=args.jobs)
     exp = local_experiment(name, seeds, runs, out)
