@@ -39,9 +39,11 @@ def test_distributed_run_reaches_comparable_success(cluster, bus):
     cluster.services(1)
     wait_services(bus, 4)
     watch = start_run(bus, config, actors=1)
+    # The one-process run trains here while the cluster's runs: the two share the cores
+    # (the cluster's rows depend on timing anyway; the trainer's do not).
+    local = [r["success_rate"] for r in train(config, None, progress=False)]
     assert watch.wait(timeout=900) == "completed", watch.states
     distributed = [r["success_rate"] for r in sorted(watch.rows, key=lambda r: r["episode"])]
-    local = [r["success_rate"] for r in train(config, None, progress=False)]
     print(f"\ndistributed {distributed}\none-process {local}")
     assert len(distributed) == len(local) == 12
     assert max(distributed) >= 0.7 and max(local) >= 0.7
