@@ -96,13 +96,8 @@ class _TensorBoardRows:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    """A bad config is refused (exit 2) before training starts or anything is written."""
-    from cli.trainer import train
-    from shared.core.learners.precision import DeviceError
-    from shared.persist.cuts import CutError
-    from shared.persist.runlock import RunLocked
-    from shared.run.rollout import WorldError
-
+    """A bad config is refused (exit 2) before training starts or anything is written,
+    and before torch is imported: a refusal answers at once."""
     if args.cut_every < 0:
         print(f"macb train: --cut-every {args.cut_every:g}: 0 or more seconds", file=sys.stderr)
         return 2
@@ -179,6 +174,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         if state.startswith("cut-"):
             print(f"{out} holds this run: going on from its cut at episode {state[4:]}")
             resume = True
+    from cli.trainer import train
+    from shared.core.learners.precision import DeviceError
+    from shared.persist.cuts import CutError
+    from shared.persist.runlock import RunLocked
+    from shared.run.rollout import WorldError
+
     tb = None
     if args.tensorboard:
         tb = _TensorBoardRows(Path(args.tensorboard) / out.resolve().name, resume)

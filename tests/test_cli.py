@@ -488,6 +488,35 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_anything_runs
     assert not out.exists() and a_file.read_text() == ""
 
 
+def test_macb_train_refuses_before_it_imports_torch(tmp_path):
+    """A refusal of `macb train` answers at once: torch (seconds to import) is imported
+    only once the config, the flags and the folder are found good."""
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("task: simple\nalgo: ddpg\nepisodes: 2\n")
+    code = (
+        "import sys; from cli.main import main; rc = main(sys.argv[1:]); "
+        "print('torch' in sys.modules, rc)"
+    )
+    for argv in (
+        ["train", "--config", str(tmp_path / "none.yaml")],
+        ["train", "--config", str(ok), "--episodes", "-3"],
+        ["train", "--config", str(ok), "--out", "/proc/macb-x"],
+        ["train", "--config", str(ok), "--seeds", "-1"],
+        ["train", "--resume", str(tmp_path / "no-run")],
+    ):
+        got = subprocess.run(
+            [sys.executable, "-c", code, *argv], cwd=ROOT, capture_output=True, text=True
+        )
+        assert got.stdout.split()[-2:] == ["False", "2"], (argv, got.stdout, got.stderr[-800:])
+    # and one that trains does import it (the check above can fail)
+    got = subprocess.run(
+        [sys.executable, "-c", code, "train", "--config", str(ok), "--quiet",
+         "--out", str(tmp_path / "run")],
+        cwd=ROOT, capture_output=True, text=True,
+    )  # fmt: skip
+    assert got.stdout.split()[-2:] == ["True", "0"], (got.stdout, got.stderr[-800:])
+
+
 def test_a_bus_endpoint_of_no_form_and_a_port_that_cannot_be_had_are_refused(tmp_path):
     """`--connect nonsense` ended in zenoh's ZError traceback; `macb view --port 70000`
     in an OverflowError, a port in use in uvicorn's exit 3."""
