@@ -80,10 +80,15 @@ DEFAULT_CUT_EVERY_S = 60.0
 
 METRIC_FIELDS = TRAIN_FIELDS
 
-# A cut waits at least this many times the last cut's seconds after it, beyond the
-# cut interval: late in a long run the count tables make a cut take seconds, and cuts
-# then take at most about 1/CUT_SPACING of the loop's time.
+# A cut waits at least this many times the recent cuts' seconds after the last, beyond
+# the cut interval: late in a long run the count tables make a cut take seconds, and cuts
+# then take at most about 1/CUT_SPACING of the loop's time. The least of the last
+# CUT_SPACING_OVER cuts counts, so one cut slowed by a load beside the run does not space
+# out the rest; and cuts are never more than CUT_MAX_WAIT_S apart (unless --cut-every
+# asks for more), so a stop loses at most that much running.
 CUT_SPACING = 50.0
+CUT_SPACING_OVER = 3
+CUT_MAX_WAIT_S = 900.0
 
 # What GroupRun.timing sums, in seconds (the rest of a group's wall time is its loop's own).
 TIMING_KEYS = ("act_env", "store_count", "sample", "price", "update", "eval", "rows", "cut")
@@ -713,13 +718,15 @@ class GroupRun:
         return m.frozen_draws
 
     def cut_due(self) -> bool:
-        """`cut_every_s` since the last cut, and CUT_SPACING times its length (0: every
-        point). Which points cut changes no row: a resume from any of them is exact."""
+        """`cut_every_s` since the last cut (0: every point), and CUT_SPACING times the
+        least of the recent cuts' seconds, up to CUT_MAX_WAIT_S. Which points cut changes
+        no row: a resume from any of them is exact."""
         waited = time.monotonic() - self.last_cut
         if self.cut_every_s <= 0:
             return True
-        last = self.cut_log[-1][1] if self.cut_log else 0.0
-        return waited >= max(self.cut_every_s, CUT_SPACING * last)
+        recent = [spent for _, spent, *_ in self.cut_log[-CUT_SPACING_OVER:]]
+        spacing = min(CUT_SPACING * min(recent), CUT_MAX_WAIT_S) if recent else 0.0
+        return waited >= max(self.cut_every_s, spacing)
 
     def timing_snapshot(self, episode: int) -> dict[str, float]:
         """`timing` at this point, beside the loop's wall time and the process's CPU

@@ -13,7 +13,14 @@ from pathlib import Path
 
 import pytest
 
-from cli.trainer import CUT_SPACING, TIMING_KEYS, GroupRun, train_group
+from cli.trainer import (
+    CUT_MAX_WAIT_S,
+    CUT_SPACING,
+    CUT_SPACING_OVER,
+    TIMING_KEYS,
+    GroupRun,
+    train_group,
+)
 from shared.config import make_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,6 +72,20 @@ def test_a_slow_cut_spaces_the_next_ones_out(tmp_path: Path) -> None:
     assert 2.0 * CUT_SPACING > 70 and not g.cut_due()
     g.cut_log = [(1, 0.5, 0, 0)]
     assert g.cut_due()
+    # one cut slowed by a load beside the run (60 s) among fast ones spaces nothing out:
+    # the least of the last CUT_SPACING_OVER counts
+    g.cut_log = [(1, 0.5, 0, 0), (2, 0.5, 0, 0), (3, 60.0, 0, 0)]
+    assert CUT_SPACING_OVER == 3 and g.cut_due()
+    g.cut_log = [(1, 0.5, 0, 0), (2, 2.0, 0, 0), (3, 60.0, 0, 0), (4, 60.0, 0, 0)]
+    assert not g.cut_due()  # the last three all took 2 s or more
+    # however slow the cuts, they are at most CUT_MAX_WAIT_S apart ...
+    g.cut_log = [(1, 1e3, 0, 0)]
+    g.last_cut = time.monotonic() - CUT_MAX_WAIT_S + 5
+    assert not g.cut_due()
+    g.last_cut = time.monotonic() - CUT_MAX_WAIT_S - 1
+    assert g.cut_due()
+    g.cut_every_s = 2 * CUT_MAX_WAIT_S  # ... unless --cut-every asks for fewer
+    assert not g.cut_due()
     g.cut_every_s = 0.0  # every point, however slow
     g.cut_log = [(1, 1e6, 0, 0)]
     assert g.cut_due()
