@@ -586,7 +586,8 @@ def test_plot_db_only_reads_its_store_and_outputs_that_cannot_be_written_are_ref
     assert not (tmp_path / "q.png").exists()
     got = macb("run", "configs/fig8/sparse.yaml", "--local", "--seeds", "1", "1", "--out",
                str(tmp_path / "o"))  # fmt: skip
-    _refused(got, "seeds: a seed is repeated")
+    _refused(got, "macb run: invalid config: seeds: a seed is repeated")
+    assert got.stderr.count("config:") == 1, "named by the field, once"
     assert "pydantic" not in got.stderr, "the field and the reason, not pydantic's dump"
 
 

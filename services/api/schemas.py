@@ -270,12 +270,18 @@ class _ExperimentFields(BaseModel):
                     raise ValueError(f"arms.{i}.{key}: {SEED_MSG}")
         return data
 
+    @field_validator("seeds")
+    @classmethod
+    def _distinct_seeds(cls, seeds: list[int] | None) -> list[int] | None:
+        """On the field, so the error's location is `seeds` (the API's and the CLI's)."""
+        if seeds is not None and len(set(seeds)) != len(seeds):
+            raise ValueError("a seed is repeated")
+        return seeds
+
     @model_validator(mode="after")
     def _check(self) -> _ExperimentFields:
         if self.seeds is not None and "seed" in self.model_fields_set:
             raise ValueError("seed: give either seed or seeds (a list), not both")
-        if self.seeds is not None and len(set(self.seeds)) != len(self.seeds):
-            raise ValueError("seeds: a seed is repeated")
         swept = {key for key, _ in self.grid.axes()} if self.grid else set()
         names: set[str] = set()
         for i, arm in enumerate(self.arms or []):
