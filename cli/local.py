@@ -443,8 +443,8 @@ def _train_group_job(
 def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Path) -> dict:
     """The runs under `out` as the API would describe their experiment (what the
     report reads): each run's status, config, latest provenance, resumes (the page's
-    restarts) and the CPU of each start (`start_cpus`). `MetricsError` for a run whose
-    rows cannot be read."""
+    restarts) and the CPU and code of each start (`start_cpus`, `start_codes`).
+    `MetricsError` for a run whose rows cannot be read."""
     from shared.persist import provenance
 
     described: list[dict[str, Any]] = []
@@ -471,6 +471,7 @@ def local_experiment(name: str, seeds: list[int], runs: list[LocalRun], out: Pat
                 "live": {"provenance": starts[-1] if starts else None},
                 "resumes": [_resume(s) for s in starts[1:]] if starts else None,
                 "start_cpus": [start_cpu(s) for s in starts] if starts else None,
+                "start_codes": [s.get("code") for s in starts] if starts else None,
             }
         )
     counts: dict[str, int] = {}

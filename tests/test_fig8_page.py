@@ -223,7 +223,27 @@ def test_a_campaign_resumed_on_another_cpu_says_which_cpu_computed_which_rows(ru
         (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
     main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
     header = (out / "fig8.md").read_text().split("## Arms")[0]
-    assert "; CPU Xeon X; code cccccccccccc" in header and "another CPU" not in header
+    assert "; CPU Xeon X; code cccccccccccc." in header and "another CPU" not in header
+
+
+def test_a_campaign_restarted_on_newer_code_names_every_starts_code(runs_dir, tmp_path):
+    """What ran names the code of every start, not only the latest's: a campaign that
+    went on from its cuts on a newer checkout ran its first rows with the older one."""
+    for folder in runs_dir.iterdir():
+        starts = [
+            {**_start("a" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": "Xeon X"}},
+            {**_start("b" * 40, "2026-12-05T13:00:00Z", 500), "machine": {"cpu": "Xeon X"}},
+        ]
+        (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
+    out = tmp_path / "page"
+    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
+    header = (out / "fig8.md").read_text().split("## Arms")[0]
+    assert "; code aaaaaaaaaaaa, bbbbbbbbbbbb (the starts' code; the Restarts line" in header
+    assert "at episodes 500 (code bbbbbbbbbbbb, CPU Xeon X" in header
+    record = json.loads((out / "fig8-runs.json").read_text())
+    assert {
+        tuple(c["commit"] for c in r["start_codes"]) for r in record["runs"] if r["start_codes"]
+    } == {("a" * 40, "b" * 40)}
 
 
 def test_one_commands_starts_hours_apart_are_one_restart_and_two_commands_two():

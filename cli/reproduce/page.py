@@ -17,7 +17,7 @@ def write_runs_record(exp: dict[str, Any], path: Path) -> Path:
     """Every run of a local reproduce: id, arm, seed, status, config, the provenance
     of its latest start (code, machine, libraries, the precision as run) and the CPU of
     each of its starts (`start_cpus`: which CPUs rounded its rows, for `macb results
-    --compare`)."""
+    --compare`) and the code of each (`start_codes`)."""
     import json
 
     keep = ("id", "arm", "seed", "status", "config")
@@ -26,6 +26,7 @@ def write_runs_record(exp: dict[str, Any], path: Path) -> Path:
             **{k: r[k] for k in keep},
             "provenance": (r.get("live") or {}).get("provenance"),
             "start_cpus": r.get("start_cpus"),
+            "start_codes": r.get("start_codes"),
         }
         for r in exp["runs"]
     ]

@@ -85,8 +85,9 @@ def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str
     learner's report, `live.provenance`): the precision as run, which may not be the one
     asked (bf16 on a CPU without it runs fp32), the CPUs (of every start, where
     `start_cpus` lists them: a campaign resumed on another kind of machine rounds
-    differently from there on) and the code. A run outside `started` (the ids with
-    rows, when given) has not run yet, so has nothing to report."""
+    differently from there on) and the code (of every start, where `start_codes` lists
+    them). A run outside `started` (the ids with rows, when given) has not run yet, so
+    has nothing to report."""
     # provenance.reported(r), read here without it: shared.persist.provenance loads torch.
     starts = [(r.get("live") or {}).get("provenance") for r in runs]
     known = [s for s in starts if isinstance(s, dict)]
@@ -103,7 +104,14 @@ def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str
     cpus = sorted({*latest, *(c for cs in every for c in cs)}) or ["unknown"]
     moved = [cs for cs in every if len(set(cs)) > 1]
     firsts = sorted({cs[0] for cs in moved})
-    commits = sorted({_commit(s.get("code") or {}) for s in known})
+    codes = [
+        c
+        for r in runs
+        if isinstance(r.get("start_codes"), list)
+        for c in r["start_codes"]
+        if isinstance(c, dict)
+    ]  # each start's code: a campaign restarted on a newer checkout names both
+    commits = sorted({_commit(c) for c in [*(s.get("code") or {} for s in known), *codes]})
     precision = ", ".join(f"{p} on {n} run(s)" for p, n in sorted(ran.items()))
     line = f"- What ran (each run's provenance): learner precision {precision}"
     if set(ran) != set(asked):
@@ -116,6 +124,8 @@ def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str
             "the Restarts line names each restart's CPU)"
         )
     line += f"; code {', '.join(commits)}"
+    if len(commits) > 1:
+        line += " (the starts' code; the Restarts line names each restart's)"
     silent = [r for r, s in zip(runs, starts, strict=True) if not isinstance(s, dict)]
     waiting = 0 if started is None else sum(1 for r in silent if r.get("id") not in started)
     if missing := len(silent) - waiting:
