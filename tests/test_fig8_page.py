@@ -238,7 +238,11 @@ def test_a_campaign_restarted_on_newer_code_names_every_starts_code(runs_dir, tm
     out = tmp_path / "page"
     main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
     header = (out / "fig8.md").read_text().split("## Arms")[0]
-    assert "; code aaaaaaaaaaaa, bbbbbbbbbbbb (the starts' code; the Restarts line" in header
+    n = len(list(runs_dir.iterdir()))
+    assert (
+        f"; code aaaaaaaaaaaa, bbbbbbbbbbbb ({n} run(s) resumed on other code than they "
+        "started with: the Restarts line"
+    ) in header
     assert "at episodes 500 (code bbbbbbbbbbbb, CPU Xeon X" in header
     record = json.loads((out / "fig8-runs.json").read_text())
     assert {

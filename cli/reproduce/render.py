@@ -104,14 +104,13 @@ def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str
     cpus = sorted({*latest, *(c for cs in every for c in cs)}) or ["unknown"]
     moved = [cs for cs in every if len(set(cs)) > 1]
     firsts = sorted({cs[0] for cs in moved})
-    codes = [
-        c
+    start_codes = [
+        {_commit(c) for c in r["start_codes"] if isinstance(c, dict)}
         for r in runs
         if isinstance(r.get("start_codes"), list)
-        for c in r["start_codes"]
-        if isinstance(c, dict)
     ]  # each start's code: a campaign restarted on a newer checkout names both
-    commits = sorted({_commit(c) for c in [*(s.get("code") or {} for s in known), *codes]})
+    latest_codes = {_commit(s.get("code") or {}) for s in known}
+    commits = sorted(latest_codes.union(*start_codes))
     precision = ", ".join(f"{p} on {n} run(s)" for p, n in sorted(ran.items()))
     line = f"- What ran (each run's provenance): learner precision {precision}"
     if set(ran) != set(asked):
@@ -124,8 +123,11 @@ def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str
             "the Restarts line names each restart's CPU)"
         )
     line += f"; code {', '.join(commits)}"
-    if len(commits) > 1:
-        line += " (the starts' code; the Restarts line names each restart's)"
+    if changed := sum(1 for cs in start_codes if len(cs) > 1):
+        line += (
+            f" ({changed} run(s) resumed on other code than they started with: the "
+            "Restarts line names each restart's)"
+        )
     silent = [r for r, s in zip(runs, starts, strict=True) if not isinstance(s, dict)]
     waiting = 0 if started is None else sum(1 for r in silent if r.get("id") not in started)
     if missing := len(silent) - waiting:
