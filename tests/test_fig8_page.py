@@ -182,20 +182,29 @@ def test_the_page_header_says_how_often_and_where_the_campaign_resumed(runs_dir,
     ) in header
 
 
+def _page_of_starts(runs_dir: Path, out: Path, starts_of) -> str:
+    """Every run folder's provenance.json set to `starts_of(i)` (its starts, the folders
+    in name order), then the page built: its header (all before `## Arms`)."""
+    for i, folder in enumerate(sorted(runs_dir.iterdir())):
+        (folder / "provenance.json").write_text(json.dumps({"starts": starts_of(i)}))
+    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
+    return (out / "fig8.md").read_text().split("## Arms")[0]
+
+
 def test_a_campaign_resumed_on_another_cpu_says_which_cpu_computed_which_rows(runs_dir, tmp_path):
     """The same code rounds differently on another kind of CPU: a campaign that moves
     between machines names every start's CPU (What ran lists them all and how many runs
     crossed, from which first CPU; each restart names its own), and the page's runs
     record keeps them for `macb results --compare`."""
-    for folder in runs_dir.iterdir():
-        starts = [
-            {**_start("c" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": "Xeon X"}},
+
+    def moved(first_cpu: str) -> list[dict]:
+        return [
+            {**_start("c" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": first_cpu}},
             {**_start("c" * 40, "2026-12-05T13:00:00Z", 500), "machine": {"cpu": "EPYC Y"}},
         ]
-        (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
+
     out = tmp_path / "page"
-    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
-    header = (out / "fig8.md").read_text().split("## Arms")[0]
+    header = _page_of_starts(runs_dir, out, lambda i: moved("Xeon X"))
     n = len(list(runs_dir.iterdir()))
     assert (
         f"; CPU EPYC Y, Xeon X ({n} run(s) started on Xeon X and resumed on another CPU:"
@@ -207,37 +216,23 @@ def test_a_campaign_resumed_on_another_cpu_says_which_cpu_computed_which_rows(ru
     }
     # One run moved, the others on EPYC Y throughout: only the one that moved is counted,
     # and only the CPU it started on is named as a start.
-    for i, folder in enumerate(sorted(runs_dir.iterdir())):
-        cpu = "Xeon X" if i == 0 else "EPYC Y"
-        starts = [
-            {**_start("c" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": cpu}},
-            {**_start("c" * 40, "2026-12-05T13:00:00Z", 500), "machine": {"cpu": "EPYC Y"}},
-        ]
-        (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
-    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
-    header = (out / "fig8.md").read_text().split("## Arms")[0]
+    header = _page_of_starts(runs_dir, out, lambda i: moved("Xeon X" if i == 0 else "EPYC Y"))
     assert "; CPU EPYC Y, Xeon X (1 run(s) started on Xeon X and resumed on another CPU:" in header
     # One CPU throughout: no note of a crossing.
-    for folder in runs_dir.iterdir():
-        starts = [{**_start("c" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": "Xeon X"}}]
-        (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
-    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
-    header = (out / "fig8.md").read_text().split("## Arms")[0]
+    one = [{**_start("c" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": "Xeon X"}}]
+    header = _page_of_starts(runs_dir, out, lambda i: one)
     assert "; CPU Xeon X; code cccccccccccc." in header and "another CPU" not in header
 
 
 def test_a_campaign_restarted_on_newer_code_names_every_starts_code(runs_dir, tmp_path):
     """What ran names the code of every start, not only the latest's: a campaign that
     went on from its cuts on a newer checkout ran its first rows with the older one."""
-    for folder in runs_dir.iterdir():
-        starts = [
-            {**_start("a" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": "Xeon X"}},
-            {**_start("b" * 40, "2026-12-05T13:00:00Z", 500), "machine": {"cpu": "Xeon X"}},
-        ]
-        (folder / "provenance.json").write_text(json.dumps({"starts": starts}))
+    starts = [
+        {**_start("a" * 40, "2026-12-05T09:00:00Z"), "machine": {"cpu": "Xeon X"}},
+        {**_start("b" * 40, "2026-12-05T13:00:00Z", 500), "machine": {"cpu": "Xeon X"}},
+    ]
     out = tmp_path / "page"
-    main(["reproduce", *ARGS, "--report-only", "--runs", str(runs_dir), "--out", str(out)])
-    header = (out / "fig8.md").read_text().split("## Arms")[0]
+    header = _page_of_starts(runs_dir, out, lambda i: starts)
     n = len(list(runs_dir.iterdir()))
     assert (
         f"; code aaaaaaaaaaaa, bbbbbbbbbbbb ({n} run(s) resumed on other code than they "
