@@ -18,6 +18,7 @@ leaves behind is read off the service itself.
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 import pytest
@@ -187,6 +188,11 @@ def test_a_query_whose_handler_raises_is_refused_counted_and_the_service_answers
 
     try:
         svc.answer("macb/test/q/s", handler)
+        # The queryable's declaration reaches the router a moment after answer() returns; a
+        # query sent before then finds no one (neither answer nor refusal), so wait for it.
+        deadline = time.monotonic() + 10
+        while bus.get("macb/test/q/s", b"ready", timeout=1) != [b"ok:ready"]:
+            assert time.monotonic() < deadline, "the queryable never became reachable"
         with caplog.at_level(logging.ERROR, logger="macb.service.s"):
             for _ in range(3):
                 got = Bus.collect_all(bus.get_async("macb/test/q/s", b"bad", timeout=5))
