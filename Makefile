@@ -33,9 +33,10 @@ run: $(STAMP)
 	$(BIN)/macb up --run configs/default.yaml --out runs/default --data-dir runs/cluster --quiet-services
 
 # Everything but the long checks (marked `slow`): ~20 minutes on 2 shared cores, in
-# TEST_WORKERS pytest-xdist workers (2: one core idles while a serial suite's test waits
-# on its processes; more only fight over the cores). TEST_WORKERS=0: one process.
-TEST_WORKERS ?= 2
+# TEST_WORKERS pytest-xdist workers (3 on 2 cores: a cluster test spends much of its time
+# waiting on its processes, so a third worker fills what two leave idle).
+# TEST_WORKERS=0: one process.
+TEST_WORKERS ?= 3
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .

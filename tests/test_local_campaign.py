@@ -173,13 +173,10 @@ def _groups_running(out: Path, parent: int) -> set[int]:
     return pids if len(pids) == 2 and pids <= _children(parent) else set()
 
 
-SLOW_SIGNALS = (signal.SIGINT, signal.SIGHUP, signal.SIGKILL)
-
-
+@pytest.mark.slow  # each signal's case is ~1 min on 2 shared cores
 @pytest.mark.parametrize(
     "sig",
-    # SIGTERM in `make test`; the others, the same path by another signal, in test-slow.
-    [signal.SIGTERM, *(pytest.param(s, marks=pytest.mark.slow) for s in SLOW_SIGNALS)],
+    [signal.SIGTERM, signal.SIGINT, signal.SIGHUP, signal.SIGKILL],
     ids=lambda s: signal.Signals(s).name,
 )
 def test_a_signalled_campaign_leaves_no_group_process_and_the_same_command_resumes(tmp_path, sig):
