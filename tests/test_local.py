@@ -144,7 +144,7 @@ def test_reproduce_arms_runs_only_the_arms_named_and_refuses_a_pattern_of_none(t
     assert "--arms 'sparse*': no arm of fig3 matches (beta=0.0; beta=0.2;" in bad.stderr
 
 
-@pytest.mark.slow  # one of make test's longest (~1 min on 2 shared cores)
+@pytest.mark.slow  # a whole cluster or campaign run: ~35-55 s alone on 2 cores
 def test_runs_of_another_config_are_neither_trained_on_nor_shown_as_the_figure_s(tmp_path):
     """A page, a --local campaign or a view asked for runs of another length than its
     folders hold refuses, naming the folder and the field, and writes nothing: the

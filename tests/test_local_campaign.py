@@ -173,7 +173,7 @@ def _groups_running(out: Path, parent: int) -> set[int]:
     return pids if len(pids) == 2 and pids <= _children(parent) else set()
 
 
-@pytest.mark.slow  # each signal's case is ~1 min on 2 shared cores
+@pytest.mark.slow  # each signal's case runs a campaign and resumes it: ~50 s alone
 @pytest.mark.parametrize(
     "sig",
     [signal.SIGTERM, signal.SIGINT, signal.SIGHUP, signal.SIGKILL],

@@ -131,7 +131,7 @@ def test_reproduce_fig3_runs_resumes_and_then_reruns_nothing(tmp_path):
     )
 
 
-@pytest.mark.slow  # one of make test's longest (~1 min on 2 shared cores)
+@pytest.mark.slow  # a whole cluster or campaign run: ~35-55 s alone on 2 cores
 def test_reproduce_through_the_cluster_runs_the_thesis_loop_by_default(tmp_path):
     """`macb reproduce` without --local: every run in `interleave: lockstep` (6 episodes:
     past the 100-step warm-up, so there are updates; actions

@@ -193,6 +193,7 @@ def test_a_query_whose_handler_raises_is_refused_counted_and_the_service_answers
         deadline = time.monotonic() + 10
         while bus.get("macb/test/q/s", b"ready", timeout=1) != [b"ok:ready"]:
             assert time.monotonic() < deadline, "the queryable never became reachable"
+            time.sleep(0.05)
         with caplog.at_level(logging.ERROR, logger="macb.service.s"):
             for _ in range(3):
                 got = Bus.collect_all(bus.get_async("macb/test/q/s", b"bad", timeout=5))

@@ -91,7 +91,7 @@ def test_short_thesis_profile_run_is_exact(cluster, bus, task, actors):
     wait_for(lambda: all(not i.get("run") for i in discover(bus)), timeout=10, what="free")
 
 
-@pytest.mark.slow  # one of make test's longest (~1 min on 2 shared cores)
+@pytest.mark.slow  # a whole cluster or campaign run: ~35-55 s alone on 2 cores
 def test_counter_killed_mid_run_loses_no_count(cluster, bus):
     cluster.services(1)
     wait_services(bus, 4)

@@ -55,7 +55,7 @@ def test_up_runs_an_experiment_and_leaves_nothing_running(tmp_path):
         assert cluster.leftovers() == []
 
 
-@pytest.mark.slow  # one of make test's longest (~1 min on 2 shared cores)
+@pytest.mark.slow  # a whole cluster or campaign run: ~35-55 s alone on 2 cores
 def test_slots_run_two_runs_at_once_each_exact(tmp_path):
     """`macb up --slots 2`: two learners and evaluators, two actors, one counter; an
     experiment of two seeds has both runs running at once, and each is exact."""
