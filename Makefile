@@ -47,7 +47,8 @@ test: $(STAMP)
 # The long checks: learning (DDPG learns sparse simple; bf16 learns like fp32; the
 # cluster learns like the trainer), the fault matrix, `macb reproduce` end to end, the
 # longest cluster runs: ~25-30 minutes, in one process: most of them compute more than
-# they wait, so two at once on two cores took longer in all (32 minutes, measured). `.ci/run` runs them after `make test`.
+# they wait, so two at once on two cores took longer in all (32 minutes, measured).
+# `.ci/run` runs them after `make test`.
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -rs -m slow
 

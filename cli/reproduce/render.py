@@ -80,6 +80,14 @@ def started_arms(a: Analysis) -> list[ArmCurve]:
     return [arm for name, arm in a.arms.items() if arm.runs and name not in waiting]
 
 
+def _of_each_start(runs: list[dict[str, Any]], field: str, kind: type) -> list[list[Any]]:
+    """Per run that lists it, `field`'s value for each start (`start_cpus`,
+    `start_codes`), in order, keeping only entries of `kind`."""
+    return [
+        [v for v in r[field] if isinstance(v, kind)] for r in runs if isinstance(r.get(field), list)
+    ]
+
+
 def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str:
     """The report's line on what the runs ran on, from each run's provenance (the
     learner's report, `live.provenance`): the precision as run, which may not be the one
@@ -96,19 +104,12 @@ def what_ran(runs: list[dict[str, Any]], started: set[str] | None = None) -> str
     ran = Counter(str((s.get("learner") or {}).get("precision")) for s in known)
     asked = sorted({str((s.get("learner") or {}).get("precision_asked")) for s in known})
     latest = {c for s in known if isinstance(c := (s.get("machine") or {}).get("cpu"), str)}
-    every = [
-        [c for c in r["start_cpus"] if isinstance(c, str)]
-        for r in runs
-        if isinstance(r.get("start_cpus"), list)
-    ]  # each start's CPU, in order
+    every = _of_each_start(runs, "start_cpus", str)  # each start's CPU, in order
     cpus = sorted({*latest, *(c for cs in every for c in cs)}) or ["unknown"]
     moved = [cs for cs in every if len(set(cs)) > 1]
     firsts = sorted({cs[0] for cs in moved})
-    start_codes = [
-        {_commit(c) for c in r["start_codes"] if isinstance(c, dict)}
-        for r in runs
-        if isinstance(r.get("start_codes"), list)
-    ]  # each start's code: a campaign restarted on a newer checkout names both
+    # each start's code: a campaign restarted on a newer checkout names both
+    start_codes = [{_commit(c) for c in cs} for cs in _of_each_start(runs, "start_codes", dict)]
     latest_codes = {_commit(s.get("code") or {}) for s in known}
     commits = sorted(latest_codes.union(*start_codes))
     precision = ", ".join(f"{p} on {n} run(s)" for p, n in sorted(ran.items()))
