@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -24,16 +25,22 @@ def atomic_write(
 ) -> None:
     """The one way a file others rely on is replaced: `write` fills a temporary file,
     which is fsynced and renamed over `path`, so a crash leaves the old file or the new
-    one, whole. With `previous`, the old file is kept there, moved aside only once the
-    new one is on disk: a kill at any point leaves a good file at `path` or, between the
-    two renames, at `previous`."""
+    one, whole. With `previous`, the old file is kept there too: it is hard-linked (a
+    copy where links are refused) to `previous` before the new one replaces it, so a
+    kill at any point leaves a whole file at `path`, never a moment without one."""
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
         write(f)
         f.flush()
         os.fsync(f.fileno())
     if previous is not None and path.exists():
-        os.replace(path, previous)
+        keep = previous.with_name(previous.name + ".tmp")
+        keep.unlink(missing_ok=True)
+        try:
+            os.link(path, keep)
+        except OSError:  # a filesystem without hard links
+            shutil.copyfile(path, keep)
+        os.replace(keep, previous)
     os.replace(tmp, path)
     fsync_dir(path.parent)
 
