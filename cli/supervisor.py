@@ -34,7 +34,6 @@ import errno
 import json
 import os
 import socket
-import subprocess
 import sys
 import threading
 import time
@@ -42,6 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
+from cli import forkserver
 from shared import procs
 
 RESTART_LIMIT = 5  # deaths of one service within RESTART_WINDOW_S: it is given up
@@ -244,7 +244,7 @@ def check_ports(plan: list[ServiceSpec]) -> None:
         raise PortInUse("; ".join(taken))
 
 
-def wait_port(endpoint: str, timeout: float = 20.0, proc: subprocess.Popen | None = None) -> None:
+def wait_port(endpoint: str, timeout: float = 20.0, proc: procs.Child | None = None) -> None:
     """Until something listens at `endpoint` (TimeoutError after `timeout`). With `proc`
     (the child that is to listen there): DidNotListen once it has ended, also just after
     the port answered, since then another process answered."""
@@ -276,7 +276,7 @@ class Cluster:
         self.plan = plan
         self.log_dir = Path(log_dir)
         self.echo = echo
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.procs: dict[str, procs.Child] = {}
         self._threads: list[threading.Thread] = []
         self.restarts: collections.Counter[str] = collections.Counter()
         self._deaths: dict[str, collections.deque[float]] = collections.defaultdict(
@@ -306,7 +306,7 @@ class Cluster:
             **procs.parent_env(),
         }
         # In a session of its own: our signal handler, not the terminal, ends it.
-        proc = procs.start([sys.executable, "-m", "cli", "serve", *spec.args], pipe=True, env=env)
+        proc = forkserver.start_cli(["serve", *spec.args], env, pipe=True)
         self.procs[spec.name] = proc
         log_file = (self.log_dir / f"{spec.name}.log").open("ab")
         t = threading.Thread(
@@ -378,5 +378,6 @@ class Cluster:
         router = self.procs.get("router")
         if router:
             procs.end(router, 5.0)
+        forkserver.close_shared()
         if self.procs:
             self._write_state()

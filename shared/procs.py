@@ -20,7 +20,21 @@ import subprocess
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import IO
+from typing import IO, Protocol
+
+
+class Child(Protocol):
+    """A child process as this module handles it: a `subprocess.Popen`, or a service
+    forked for this process (cli/forkserver.py's `Forked`), which this one waits for."""
+
+    pid: int
+    returncode: int | None
+    stdout: IO[bytes] | None
+
+    def poll(self) -> int | None: ...
+    def wait(self, timeout: float | None = None) -> int: ...
+    def send_signal(self, sig: int) -> None: ...
+    def kill(self) -> None: ...
 
 
 def start(
@@ -60,13 +74,13 @@ def send(pid: int, sig: int) -> None:
         os.kill(pid, sig)
 
 
-def terminate(p: subprocess.Popen) -> None:
+def terminate(p: Child) -> None:
     """SIGTERM a child of ours still running (it flushes and exits)."""
     if p.poll() is None:
         p.send_signal(signal.SIGTERM)
 
 
-def reap(p: subprocess.Popen, deadline: float, group: bool = False) -> None:
+def reap(p: Child, deadline: float, group: bool = False) -> None:
     """Wait for a child until `deadline` (monotonic; at least a moment), then SIGKILL it,
     or with `group` its whole process group, and wait. The group id is the child's PID
     and still ours: a child is not reaped until wait() returns, so its PID cannot have
@@ -82,7 +96,7 @@ def reap(p: subprocess.Popen, deadline: float, group: bool = False) -> None:
         p.wait()
 
 
-def end(p: subprocess.Popen, grace: float, group: bool = False) -> None:
+def end(p: Child, grace: float, group: bool = False) -> None:
     """SIGTERM, `grace` seconds to exit, then SIGKILL (`reap`)."""
     if p.poll() is not None:
         return
@@ -90,7 +104,7 @@ def end(p: subprocess.Popen, grace: float, group: bool = False) -> None:
     reap(p, time.monotonic() + grace, group)
 
 
-def end_all(procs: Iterable[subprocess.Popen], grace: float, group: bool = False) -> None:
+def end_all(procs: Iterable[Child], grace: float, group: bool = False) -> None:
     """SIGTERM every one at once, then reap each by one deadline `grace` from now."""
     procs = list(procs)
     for p in procs:

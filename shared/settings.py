@@ -55,6 +55,10 @@ class Settings(BaseSettings):
     node: str | None = Field(
         None, description="the node this service runs on (default SLURMD_NODENAME, else the host)"
     )
+    # cli/forkserver.py reads this one itself, from the environment it starts a service with.
+    fork_server: str = Field(
+        "", description="0, off, false or no: `macb up` starts each service as its own interpreter"
+    )
     learner_cut_s: float = Field(30.0, description="a learner's cut every this many seconds")
     counter_snapshot_s: float = Field(
         5.0, description="a counter's snapshot every this many seconds"

@@ -30,6 +30,7 @@ from typing import Any
 
 import pytest
 
+from cli import forkserver
 from cli.supervisor import THREAD_ENV, free_port, wait_port
 from shared import procs
 
@@ -167,7 +168,7 @@ class Cluster:
         self.endpoint = endpoint or f"{'tls' if secrets else 'tcp'}/127.0.0.1:{free_port()}"
         self.url = f"http://127.0.0.1:{free_port()}"  # the API's, when there is one
         self.env: dict[str, str] = dict(env or {})
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.procs: dict[str, procs.Child] = {}
         self.seen: set[int] = set()  # every PID of the cluster, macb up's children too
         self.api_name: str | None = None  # the process /workers is asked of
         self.answering = 0  # workers that answer when the cluster is ready
@@ -194,7 +195,9 @@ class Cluster:
             **signed_in,
             **(env or {}),
         }
-        p = spawn("serve", *args, log=self.tmp / f"{name}.log", env=env)
+        p = forkserver.start_cli(
+            ["serve", *args], _environ(env), cwd=ROOT, log=self.tmp / f"{name}.log"
+        )
         self.procs[name] = p
         self.seen.add(p.pid)
         return p

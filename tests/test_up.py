@@ -21,6 +21,7 @@ from tests.harness import (
     Cluster,
     cluster_processes,
     macb,
+    wait_for,
     wait_port,
     wait_services,
     write_config,
@@ -100,14 +101,36 @@ def test_sigterm_stops_every_service_and_the_router(tmp_path):
         assert cluster.leftovers() == [], "no orphan process"
 
 
-def test_a_killed_macb_up_takes_every_service_with_it(tmp_path):
+def _children(pid: int, marker: str) -> list[int]:
+    """PIDs whose parent is `pid` and whose command line (its words joined by spaces,
+    as a forked service's title has them) holds `marker`."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        argv = procs.cmdline(int(stat.parent.name))
+        if ppid == pid and argv is not None and marker in " ".join(argv):
+            found.append(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.parametrize("fork_server", ["1", "0"])
+def test_a_killed_macb_up_takes_every_service_with_it(tmp_path, fork_server):
     """SIGKILL of `macb up` (no handler of its own runs; the OOM killer, `kill -9`): the
     router, the API and every service die with it (PR_SET_PDEATHSIG, armed by each child
-    from MACB_PARENT_PID), so none goes on holding its port and writing the data dir."""
-    with Cluster(tmp_path) as cluster:
+    from MACB_PARENT_PID), so none goes on holding its port and writing the data dir;
+    with its services forked from its fork server (cli/forkserver.py), or not, and the
+    server dies with it too."""
+    with Cluster(tmp_path, env={"MACB_FORK_SERVER": fork_server}) as cluster:
         cluster.up("--quiet", answering=5)  # the API, counter, learner, evaluator, actor0
         pids = cluster.pids()
         assert sorted(pids) == ["actor0", "api", "counter", "evaluator", "learner", "router"]
+        up = cluster.procs["up"].pid
+        servers = _children(up, "cli.forkserver")
+        assert len(servers) == (fork_server == "1"), servers
+        assert sorted(_children(up, "-m cli serve ")) == sorted(pids.values())  # each up's child
         cluster.procs["up"].kill()
         cluster.procs["up"].wait(timeout=30)
         deadline = time.monotonic() + 5
@@ -117,6 +140,7 @@ def test_a_killed_macb_up_takes_every_service_with_it(tmp_path):
             time.sleep(0.1)
         assert alive == [], f"outlived a killed macb up: {alive}"
         assert cluster.leftovers() == []
+        wait_for(lambda: not any(procs.alive(s) for s in servers), 10, what="the server's end")
 
 
 def test_up_refuses_a_port_someone_listens_on_naming_it_and_starts_nothing(tmp_path):

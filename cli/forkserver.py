@@ -1,0 +1,366 @@
+"""A fork server for `macb serve`: one process loads torch, numpy, the environments and
+Zenoh once, and each service is forked from it, instead of a fresh interpreter loading
+them again for every service and every restart (most of what starting a service costs,
+on two cores that the running services share).
+
+`macb up`'s supervisor and the tests' clusters start services through it. A forked
+service is the same program as `python -m cli serve ...`: its own session, its own
+environment, working folder and output, its arguments as its process title (`ps`,
+`pgrep -f` and the PID checks in shared/procs.py see `... -m cli serve ROLE ...`), and
+our own modules imported after the fork, so whatever they read from the environment as
+they load is the service's. Only libraries that read nothing of ours as they load are
+preloaded, and a service whose environment differs from the server's in anything but
+`MACB_*` and PYTHONUNBUFFERED (`_own`: thread counts and PYTHONPATH, say, are read as
+a library loads) is started as its own interpreter instead.
+
+The client is the services' parent, as with `subprocess.Popen`: it makes itself a child
+subreaper (Linux prctl), the server forks an intermediate that forks the service and
+exits, and the service, re-parented to the client, is waited for with `os.waitpid`, so
+exit codes, signals and PIDs behave as for a `Popen`'s child (`Forked`). The server runs
+single-threaded and holds no thread pool (one BLAS/OpenMP thread, nothing run), so a
+fork from it is safe; it dies with its client. Where the prctl is missing (not Linux)
+the client starts interpreters as before. MACB_FORK_SERVER=0 turns it off.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import gc
+import importlib
+import io
+import json
+import os
+import runpy
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import IO, Any
+
+from shared import procs
+
+# What the server loads before it forks anything: the libraries every service loads,
+# none of them reading a variable of ours as it loads.
+PRELOAD = (
+    "numpy",
+    "torch",
+    "gymnasium",
+    "pettingzoo",
+    "mpe2",
+    "zenoh",
+    "msgpack",
+    "yaml",
+    "pydantic",
+    "pydantic_settings",
+    "setproctitle",
+)
+PR_SET_CHILD_SUBREAPER = 36  # linux/prctl.h
+REPLY_TIMEOUT_S = 120.0  # the server's first reply waits for its preload
+
+
+def _own(name: str) -> bool:
+    """A variable a forked service may have apart from its server: ours (read by our
+    code when it runs, never by a library as it loads), PYTHONUNBUFFERED (which `become`
+    applies itself) and pytest's PYTEST_* (the test of the moment)."""
+    return name.startswith(("MACB_", "PYTEST_")) or name == "PYTHONUNBUFFERED"
+
+
+def become_subreaper() -> None:
+    """Make this process the parent of the orphans among its descendants (the services
+    the server forks); OSError where the kernel cannot."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        failed = libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0
+    except (OSError, AttributeError) as err:  # not Linux: no prctl in the C library
+        raise OSError(f"no child subreaper here: {err}") from err
+    if failed:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER) failed")
+
+
+class Forked:
+    """A service the server forked, handled as the `subprocess.Popen` it stands in for
+    (`pid`, `args`, `returncode`, `stdout`, `poll`, `wait`, `send_signal`, `terminate`,
+    `kill`). This process is its parent (the subreaper), so it is waited for here, and
+    its PID is not reused before that."""
+
+    def __init__(self, pid: int, args: list[str], stdout: IO[bytes] | None = None) -> None:
+        self.pid = pid
+        self.args = args
+        self.stdout = stdout
+        self.returncode: int | None = None
+        self._lock = threading.Lock()
+
+    def poll(self) -> int | None:
+        with self._lock:
+            if self.returncode is None:
+                try:
+                    pid, status = os.waitpid(self.pid, os.WNOHANG)
+                except ChildProcessError:  # reaped by someone else: its code is lost
+                    pid, status = self.pid, 255 << 8
+                if pid:
+                    self.returncode = os.waitstatus_to_exitcode(status)
+            return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        pause = 0.001
+        while (code := self.poll()) is None:
+            if deadline is not None and time.monotonic() >= deadline:
+                raise subprocess.TimeoutExpired(self.args, timeout or 0.0)
+            time.sleep(pause)
+            pause = min(pause * 2, 0.05)
+        return code
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None:  # (once reaped, its PID may be another process's)
+            procs.send(self.pid, sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+
+class ForkServer:
+    """The client's end: starts the server (its environment `env`, the one its services
+    must share apart from `MACB_*`), then `start` forks services from it."""
+
+    def __init__(self, env: Mapping[str, str], log: Path | None = None) -> None:
+        become_subreaper()
+        self.env = dict(env)
+        self._lock = threading.Lock()
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        out: IO[bytes] | int = open(log, "ab") if log else subprocess.DEVNULL  # noqa: SIM115
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "cli.forkserver", str(theirs.fileno())],
+                env={**self.env, **procs.parent_env()},
+                pass_fds=[theirs.fileno()],
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        finally:
+            theirs.close()
+            if not isinstance(out, int):
+                out.close()
+        self.sock = mine
+        self.sock.settimeout(REPLY_TIMEOUT_S)
+
+    def serves(self, env: Mapping[str, str]) -> bool:
+        """Whether a service of environment `env` may be forked from this server."""
+        if self.proc.poll() is not None:
+            return False
+        theirs = {k: v for k, v in env.items() if not _own(k)}
+        return theirs == {k: v for k, v in self.env.items() if not _own(k)}
+
+    def start(
+        self,
+        args: list[str],
+        env: Mapping[str, str],
+        cwd: Path | str | None = None,
+        log: Path | None = None,
+        pipe: bool = False,
+    ) -> Forked:
+        """`python -m cli ARGS`, forked: output appended to `log`, readable from
+        `.stdout` with `pipe`, else dropped. OSError if the server cannot fork it."""
+        read = None
+        if pipe:
+            read, out = os.pipe()
+        elif log is not None:
+            out = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        else:
+            out = os.open(os.devnull, os.O_WRONLY)
+        request = {"args": list(args), "env": dict(env), "cwd": str(cwd or os.getcwd())}
+        try:
+            with self._lock:
+                socket.send_fds(self.sock, [json.dumps(request).encode()], [out])
+                reply = json.loads(self.sock.recv(1 << 16) or b'{"error": "server ended"}')
+        except (OSError, ValueError) as err:
+            if read is not None:
+                os.close(read)
+            raise OSError(f"the fork server did not start {args}: {err}") from err
+        finally:
+            os.close(out)
+        if "pid" not in reply:
+            if read is not None:
+                os.close(read)
+            raise OSError(f"the fork server did not start {args}: {reply.get('error')}")
+        stdout = os.fdopen(read, "rb") if read is not None else None
+        return Forked(int(reply["pid"]), [sys.executable, "-m", "cli", *args], stdout)
+
+    def close(self) -> None:
+        """End the server (its services go on: each is in a session of its own)."""
+        with contextlib.suppress(OSError):
+            self.sock.close()
+        procs.end(self.proc, 5.0)
+
+
+_SHARED: ForkServer | None = None
+_SHARED_LOCK = threading.Lock()
+_REFUSED: str | None = None  # why this process forks nothing (said once)
+
+
+def _shared_server() -> ForkServer | None:
+    """This process's one server, started with this process's environment (our own
+    variables left out); None where a child subreaper cannot be had."""
+    global _SHARED, _REFUSED
+    with _SHARED_LOCK:
+        if _SHARED is None and _REFUSED is None:
+            try:
+                _SHARED = ForkServer({k: v for k, v in os.environ.items() if not _own(k)})
+            except OSError as err:
+                _REFUSED = str(err)
+                print(f"no fork server ({err}): each service loads its own", file=sys.stderr)
+        return _SHARED
+
+
+def start_cli(
+    args: list[str],
+    env: Mapping[str, str],
+    *,
+    cwd: Path | None = None,
+    log: Path | None = None,
+    pipe: bool = False,
+) -> subprocess.Popen[bytes] | Forked:
+    """`python -m cli ARGS` as `procs.start` starts it (a session of its own, output to
+    `log`, or to `.stdout` with `pipe`), forked from this process's server when it is a
+    `serve` and may be (module doc; MACB_FORK_SERVER=0 in `env` never forks)."""
+    global _REFUSED
+    forks = env.get("MACB_FORK_SERVER", "1").strip().lower() not in ("0", "off", "false", "no")
+    server = _shared_server() if forks and args[:1] == ["serve"] else None
+    if server is not None and server.serves(env):
+        try:
+            return server.start(args, env, cwd, log, pipe)
+        except OSError as err:  # the server is gone: this service, and the next, load their own
+            print(f"{err}: each service loads its own from now on", file=sys.stderr)
+            _REFUSED = str(err)
+            close_shared()
+    return procs.start([sys.executable, "-m", "cli", *args], log=log, pipe=pipe, env=env, cwd=cwd)
+
+
+def close_shared() -> None:
+    """End this process's server, if it has one (`macb up` as it stops)."""
+    global _SHARED
+    with _SHARED_LOCK:
+        if _SHARED is not None:
+            _SHARED.close()
+            _SHARED = None
+
+
+# ------------------------------------------------------------------ the server's side
+def serve(fd: int) -> dict[str, Any] | None:
+    """Fork a service per request on socket `fd` until the client goes. Returns None in
+    the server when it goes, and the request in each forked service (which then
+    `become`s it), so the service unwinds out of here as a program's main returns."""
+    procs.die_with_env_parent()
+    server_cwd = os.getcwd()
+    sock = socket.socket(fileno=fd)
+    for name in PRELOAD:
+        importlib.import_module(name)
+    import setproctitle
+
+    # Taken over now, while the environment is still the one the kernel laid out after
+    # the arguments: the services' titles may then use that room too.
+    setproctitle.setproctitle(setproctitle.getproctitle())
+    gc.freeze()  # the preloaded objects: never collected, so their pages stay shared
+    while True:
+        try:
+            msg, fds, _, _ = socket.recv_fds(sock, 1 << 20, 1)
+        except OSError:
+            return None
+        if not msg:
+            return None
+        try:
+            request = json.loads(msg)
+            read, write = os.pipe()
+            sys.stdout.flush()  # (nothing of ours is written twice by the fork)
+            sys.stderr.flush()
+            middle = os.fork()
+        except (OSError, ValueError) as err:
+            for f in fds:
+                os.close(f)
+            sock.send(json.dumps({"error": f"{type(err).__name__}: {err}"}).encode())
+            continue
+        if middle == 0:  # the intermediate: forks the service and leaves it orphaned
+            os.close(read)
+            me = os.getpid()
+            try:
+                pid = os.fork()
+            except OSError:
+                os._exit(1)  # (nothing written: the server replies with an error)
+            if pid == 0:
+                os.close(write)
+                sock.close()
+                return {**request, "out": fds[0], "middle": me, "server_cwd": server_cwd}
+            os.write(write, str(pid).encode())
+            os._exit(0)
+        os.close(write)
+        for f in fds:
+            os.close(f)
+        with os.fdopen(read, "rb") as r:
+            pid_text = r.read()
+        os.waitpid(middle, 0)  # gone: the service is the client's child now
+        reply = {"pid": int(pid_text)} if pid_text else {"error": "the fork failed"}
+        sock.send(json.dumps(reply).encode())
+
+
+def _stream(fd: int, unbuffered: bool, errors: str, line: bool) -> io.TextIOWrapper:
+    raw = io.FileIO(fd, "w", closefd=False)
+    binary: io.RawIOBase | io.BufferedWriter = raw if unbuffered else io.BufferedWriter(raw)
+    return io.TextIOWrapper(
+        binary,  # type: ignore[arg-type]
+        encoding="utf-8",
+        errors=errors,
+        line_buffering=line,
+        write_through=unbuffered,
+    )
+
+
+def become(request: dict[str, Any]) -> int:
+    """Turn this forked process into `python -m cli ARGS` as a fresh start would be."""
+    while os.getppid() == request["middle"]:  # re-parented to the client first
+        time.sleep(0.0005)
+    os.setsid()
+    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGCHLD, signal.SIGUSR1, signal.SIGUSR2):
+        signal.signal(sig, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)
+    os.close(null)
+    os.dup2(request["out"], 1)
+    os.dup2(request["out"], 2)
+    os.close(request["out"])
+    os.chdir(request["cwd"])
+    os.environ.clear()
+    os.environ.update(request["env"])
+    unbuffered = bool(os.environ.get("PYTHONUNBUFFERED"))
+    sys.stdout = _stream(1, unbuffered, "strict", False)
+    sys.stderr = _stream(2, True, "backslashreplace", True)
+    sys.stdin = open(0, encoding="utf-8", closefd=False)  # noqa: SIM115
+    args = list(request["args"])
+    if sys.path and sys.path[0] == request["server_cwd"]:
+        sys.path[0] = request["cwd"]  # where `-m` would have put it
+    import setproctitle
+
+    setproctitle.setproctitle(" ".join([sys.executable, "-m", "cli", *args]))
+    sys.argv = [str(Path(__file__).with_name("__main__.py")), *args]
+    # As `python -m cli` runs: cli/__main__.py as __main__, its SystemExit the exit code.
+    runpy.run_module("cli", run_name="__main__", alter_sys=True)
+    return 0
+
+
+def main() -> int:
+    request = serve(int(sys.argv[1]))
+    return 0 if request is None else become(request)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
