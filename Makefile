@@ -32,7 +32,7 @@ setup: $(STAMP)
 run: $(STAMP)
 	$(BIN)/macb up --run configs/default.yaml --out runs/default --data-dir runs/cluster --quiet-services
 
-# Everything but the long checks (marked `slow`): ~20-25 minutes on 2 shared cores, in
+# Everything but the long checks (marked `slow`): ~20 minutes on 2 shared cores, in
 # TEST_WORKERS pytest-xdist workers (3 on 2 cores: a cluster test spends much of its time
 # waiting on its processes, so a third worker fills what two leave idle).
 # TEST_WORKERS=0: one process.
@@ -46,7 +46,7 @@ test: $(STAMP)
 
 # The long checks: learning (DDPG learns sparse simple; bf16 learns like fp32; the
 # cluster learns like the trainer), the fault matrix, `macb reproduce` end to end, the
-# longest cluster runs: ~25-30 minutes, in one process: most of them compute more than
+# longest cluster runs: ~30 minutes, in one process: most of them compute more than
 # they wait, so two at once on two cores took longer in all (32 minutes, measured).
 # `.ci/run` runs them after `make test`.
 test-slow: $(STAMP)

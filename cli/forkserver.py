@@ -1,25 +1,32 @@
-"""A fork server for `macb serve`: one process loads torch, numpy, the environments and
-Zenoh once, and each service is forked from it, instead of a fresh interpreter loading
-them again for every service and every restart (most of what starting a service costs,
-on two cores that the running services share).
+"""A fork server for `macb` commands, `macb serve` foremost: one process loads torch,
+numpy, the environments and Zenoh once, and each service is forked from it, instead of
+a fresh interpreter loading them again for every service and every restart (most of
+what starting a service costs, on two cores that the running services share).
 
-`macb up`'s supervisor and the tests' clusters start services through it. A forked
-service is the same program as `python -m cli serve ...`: its own session, its own
-environment, working folder and output, its arguments as its process title (`ps`,
-`pgrep -f` and the PID checks in shared/procs.py see `... -m cli serve ROLE ...`), and
-our own modules imported after the fork, so whatever they read from the environment as
-they load is the service's. Only libraries that read nothing of ours as they load are
-preloaded, and a service whose environment differs from the server's in anything but
-`MACB_*` and PYTHONUNBUFFERED (`_own`: thread counts and PYTHONPATH, say, are read as
-a library loads) is started as its own interpreter instead.
+`macb up`'s supervisor starts its services through it, and the tests their clusters and
+`macb` commands (tests/harness.py). A forked command is the same program as `python -m
+cli ARGS`: its own session, environment, working folder and output, its arguments as
+its process title (`ps`, `pgrep -f` and the PID checks in shared/procs.py see `... -m
+cli serve ROLE ...`), and our own modules imported after the fork, so whatever they read
+from the environment as they load is its own. Only libraries that read nothing of ours
+as they load are preloaded, and a command whose environment differs from the server's
+in more than `_own` variables (thread counts and PYTHONPATH, say, are read as a library
+loads) is started as its own interpreter instead.
 
-The client is the services' parent, as with `subprocess.Popen`: it makes itself a child
-subreaper (Linux prctl), the server forks an intermediate that forks the service and
-exits, and the service, re-parented to the client, is waited for with `os.waitpid`, so
+The client is the commands' parent, as with `subprocess.Popen`: it makes itself a child
+subreaper (Linux prctl), the server forks an intermediate that forks the command and
+exits, and the command, re-parented to the client, is waited for with `os.waitpid`, so
 exit codes, signals and PIDs behave as for a `Popen`'s child (`Forked`). The server runs
 single-threaded and holds no thread pool (one BLAS/OpenMP thread, nothing run), so a
 fork from it is safe; it dies with its client. Where the prctl is missing (not Linux)
 the client starts interpreters as before. MACB_FORK_SERVER=0 turns it off.
+
+The client is a subreaper only while a command is being started (`subreaping`), so the
+orphans of what it starts go to init as before, not to it as zombies. The server dies
+with the client's thread that started it (PR_SET_PDEATHSIG): `macb up` and the tests
+start it from their main thread. What a forked command shares with its server, unlike
+a fresh interpreter: the string hash seed, the room its title may use (the server's
+arguments and environment), and the server's log for the preloaded libraries' warnings.
 """
 
 from __future__ import annotations
@@ -38,7 +45,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import IO, Any
 
@@ -59,7 +66,7 @@ PRELOAD = (
     "pydantic_settings",
     "setproctitle",
 )
-PR_SET_CHILD_SUBREAPER = 36  # linux/prctl.h
+PR_SET_CHILD_SUBREAPER, PR_GET_CHILD_SUBREAPER = 36, 37  # linux/prctl.h
 REPLY_TIMEOUT_S = 120.0  # the server's first reply waits for its preload
 
 
@@ -70,16 +77,41 @@ def _own(name: str) -> bool:
     return name.startswith(("MACB_", "PYTEST_")) or name == "PYTHONUNBUFFERED"
 
 
-def become_subreaper() -> None:
-    """Make this process the parent of the orphans among its descendants (the services
-    the server forks); OSError where the kernel cannot."""
+def _libc() -> ctypes.CDLL:
     try:
         libc = ctypes.CDLL(None, use_errno=True)
-        failed = libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0
-    except (OSError, AttributeError) as err:  # not Linux: no prctl in the C library
+        libc.prctl  # noqa: B018 (not Linux: no prctl in the C library)
+    except (OSError, AttributeError) as err:
         raise OSError(f"no child subreaper here: {err}") from err
-    if failed:
+    return libc
+
+
+def subreaper() -> bool:
+    """Whether this process is a child subreaper now."""
+    flag = ctypes.c_int(0)
+    if _libc().prctl(PR_GET_CHILD_SUBREAPER, ctypes.byref(flag), 0, 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_GET_CHILD_SUBREAPER) failed")
+    return bool(flag.value)
+
+
+def set_subreaper(on: bool) -> None:
+    """Make this process the parent of the orphans among its descendants, or stop;
+    OSError where the kernel cannot."""
+    if _libc().prctl(PR_SET_CHILD_SUBREAPER, int(on), 0, 0, 0) != 0:
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER) failed")
+
+
+@contextlib.contextmanager
+def subreaping() -> Iterator[None]:
+    """A child subreaper for the time of one start, so that the command the server forks
+    is re-parented to us, and only it: an orphan of ours at any other time goes to init,
+    which reaps it, not to us, who would not (a zombie kept until we exit)."""
+    before = subreaper()
+    set_subreaper(True)
+    try:
+        yield
+    finally:
+        set_subreaper(before)
 
 
 class Forked:
@@ -132,8 +164,10 @@ class ForkServer:
     must share apart from `MACB_*`), then `start` forks services from it."""
 
     def __init__(self, env: Mapping[str, str], log: Path | None = None) -> None:
-        become_subreaper()
+        with subreaping():  # here, only to learn that it can be had
+            pass
         self.env = dict(env)
+        self.failed: str | None = None  # why it forks nothing more
         self._lock = threading.Lock()
         mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         out: IO[bytes] | int = open(log, "ab") if log else subprocess.DEVNULL  # noqa: SIM115
@@ -156,7 +190,7 @@ class ForkServer:
 
     def serves(self, env: Mapping[str, str]) -> bool:
         """Whether a service of environment `env` may be forked from this server."""
-        if self.proc.poll() is not None:
+        if self.failed is not None or self.proc.poll() is not None:
             return False
         theirs = {k: v for k, v in env.items() if not _own(k)}
         return theirs == {k: v for k, v in self.env.items() if not _own(k)}
@@ -178,23 +212,46 @@ class ForkServer:
             out = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
         else:
             out = os.open(os.devnull, os.O_WRONLY)
-        request = {"args": list(args), "env": dict(env), "cwd": str(cwd or os.getcwd())}
         try:
-            with self._lock:
-                socket.send_fds(self.sock, [json.dumps(request).encode()], [out])
-                reply = json.loads(self.sock.recv(1 << 16) or b'{"error": "server ended"}')
-        except (OSError, ValueError) as err:
+            proc = self.start_fds(args, env, cwd, out)
+        except OSError:
             if read is not None:
                 os.close(read)
-            raise OSError(f"the fork server did not start {args}: {err}") from err
+            raise
         finally:
             os.close(out)
-        if "pid" not in reply:
-            if read is not None:
-                os.close(read)
-            raise OSError(f"the fork server did not start {args}: {reply.get('error')}")
-        stdout = os.fdopen(read, "rb") if read is not None else None
-        return Forked(int(reply["pid"]), [sys.executable, "-m", "cli", *args], stdout)
+        proc.stdout = os.fdopen(read, "rb") if read is not None else None
+        return proc
+
+    def start_fds(
+        self,
+        args: list[str],
+        env: Mapping[str, str],
+        cwd: Path | str | None,
+        stdout: int,
+        stderr: int | None = None,
+    ) -> Forked:
+        """`python -m cli ARGS`, forked, writing to the descriptors `stdout` and `stderr`
+        (None: stdout's), which stay the caller's to close. OSError if it cannot."""
+        request = {"args": list(args), "env": dict(env), "cwd": str(cwd or os.getcwd())}
+        fds = [stdout] if stderr is None else [stdout, stderr]
+        with self._lock:
+            if self.failed is not None:
+                raise OSError(f"the fork server is gone: {self.failed}")
+            try:
+                with subreaping():  # until the reply: by then the command is our child
+                    socket.send_fds(self.sock, [json.dumps(request).encode()], fds)
+                    reply = json.loads(self.sock.recv(1 << 16) or b'{"error": "it ended"}')
+            except (OSError, ValueError) as err:
+                reply = {"error": f"{type(err).__name__}: {err}"}
+            if "pid" not in reply:
+                # A reply late or lost: nothing more is asked of it (a late one would be
+                # taken for the next command's), and the caller starts an interpreter.
+                self.failed = str(reply.get("error"))
+                with contextlib.suppress(OSError):
+                    self.sock.close()
+                raise OSError(f"the fork server did not start {args}: {self.failed}")
+        return Forked(int(reply["pid"]), [sys.executable, "-m", "cli", *args])
 
     def close(self) -> None:
         """End the server (its services go on: each is in a session of its own)."""
@@ -222,6 +279,22 @@ def _shared_server() -> ForkServer | None:
         return _SHARED
 
 
+def server_for(env: Mapping[str, str]) -> ForkServer | None:
+    """This process's server, if a command of environment `env` may be forked from it
+    (module doc); None where it may not, MACB_FORK_SERVER=0 in `env` included."""
+    forks = env.get("MACB_FORK_SERVER", "1").strip().lower() not in ("0", "off", "false", "no")
+    server = _shared_server() if forks else None
+    return server if server is not None and server.serves(env) else None
+
+
+def give_up(err: OSError) -> None:
+    """The server failed: said once, and nothing more is forked in this process."""
+    global _REFUSED
+    print(f"{err}: each command loads its own from now on", file=sys.stderr)
+    _REFUSED = str(err)
+    close_shared()
+
+
 def start_cli(
     args: list[str],
     env: Mapping[str, str],
@@ -231,18 +304,13 @@ def start_cli(
     pipe: bool = False,
 ) -> subprocess.Popen[bytes] | Forked:
     """`python -m cli ARGS` as `procs.start` starts it (a session of its own, output to
-    `log`, or to `.stdout` with `pipe`), forked from this process's server when it is a
-    `serve` and may be (module doc; MACB_FORK_SERVER=0 in `env` never forks)."""
-    global _REFUSED
-    forks = env.get("MACB_FORK_SERVER", "1").strip().lower() not in ("0", "off", "false", "no")
-    server = _shared_server() if forks and args[:1] == ["serve"] else None
-    if server is not None and server.serves(env):
+    `log`, or to `.stdout` with `pipe`), forked from this process's server when it may
+    be (`server_for`)."""
+    if (server := server_for(env)) is not None:
         try:
             return server.start(args, env, cwd, log, pipe)
-        except OSError as err:  # the server is gone: this service, and the next, load their own
-            print(f"{err}: each service loads its own from now on", file=sys.stderr)
-            _REFUSED = str(err)
-            close_shared()
+        except OSError as err:  # the server is gone: this command loads its own
+            give_up(err)
     return procs.start([sys.executable, "-m", "cli", *args], log=log, pipe=pipe, env=env, cwd=cwd)
 
 
@@ -273,41 +341,43 @@ def serve(fd: int) -> dict[str, Any] | None:
     gc.freeze()  # the preloaded objects: never collected, so their pages stay shared
     while True:
         try:
-            msg, fds, _, _ = socket.recv_fds(sock, 1 << 20, 1)
+            msg, fds, _, _ = socket.recv_fds(sock, 1 << 20, 2)
         except OSError:
             return None
         if not msg:
             return None
+        pipe: tuple[int, int] | None = None
         try:
             request = json.loads(msg)
-            read, write = os.pipe()
+            pipe = read, write = os.pipe()
             sys.stdout.flush()  # (nothing of ours is written twice by the fork)
             sys.stderr.flush()
             middle = os.fork()
         except (OSError, ValueError) as err:
-            for f in fds:
+            for f in [*fds, *(pipe or ())]:
                 os.close(f)
             sock.send(json.dumps({"error": f"{type(err).__name__}: {err}"}).encode())
             continue
-        if middle == 0:  # the intermediate: forks the service and leaves it orphaned
+        if middle == 0:  # the intermediate: forks the command and leaves it orphaned
             os.close(read)
             me = os.getpid()
             try:
                 pid = os.fork()
             except OSError:
                 os._exit(1)  # (nothing written: the server replies with an error)
-            if pid == 0:
+            if pid == 0:  # the command: a session of its own before its PID is known
+                os.setsid()
+                os.write(write, str(os.getpid()).encode())
                 os.close(write)
                 sock.close()
-                return {**request, "out": fds[0], "middle": me, "server_cwd": server_cwd}
-            os.write(write, str(pid).encode())
+                return {**request, "fds": fds, "middle": me, "server_cwd": server_cwd}
             os._exit(0)
         os.close(write)
         for f in fds:
             os.close(f)
         with os.fdopen(read, "rb") as r:
-            pid_text = r.read()
-        os.waitpid(middle, 0)  # gone: the service is the client's child now
+            pid_text = r.read()  # (to its end: the command and the intermediate closed it)
+        os.waitpid(middle, 0)  # gone: the command is the client's child now
         reply = {"pid": int(pid_text)} if pid_text else {"error": "the fork failed"}
         sock.send(json.dumps(reply).encode())
 
@@ -328,16 +398,17 @@ def become(request: dict[str, Any]) -> int:
     """Turn this forked process into `python -m cli ARGS` as a fresh start would be."""
     while os.getppid() == request["middle"]:  # re-parented to the client first
         time.sleep(0.0005)
-    os.setsid()
     for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGCHLD, signal.SIGUSR1, signal.SIGUSR2):
         signal.signal(sig, signal.SIG_DFL)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     null = os.open(os.devnull, os.O_RDONLY)
     os.dup2(null, 0)
     os.close(null)
-    os.dup2(request["out"], 1)
-    os.dup2(request["out"], 2)
-    os.close(request["out"])
+    out, err = request["fds"][0], request["fds"][-1]  # (one descriptor: both)
+    os.dup2(out, 1)
+    os.dup2(err, 2)
+    for fd in set(request["fds"]) - {1, 2}:
+        os.close(fd)
     os.chdir(request["cwd"])
     os.environ.clear()
     os.environ.update(request["env"])

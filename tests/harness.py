@@ -18,8 +18,10 @@ in as its own user.
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import os
+import selectors
 import signal
 import subprocess
 import sys
@@ -93,24 +95,78 @@ def macb(
 ) -> subprocess.CompletedProcess:
     """`macb ARGS` run from the checkout to its end, its output captured as text.
     `env`: variables over this process's (None unsets one); `check`: fail, showing
-    the end of its stderr, unless it exits 0."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "cli", *args],
-        cwd=ROOT,
-        env=_environ(env),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    the end of its stderr, unless it exits 0. Forked from this process's fork server
+    (cli/forkserver.py) when it may be: the command's code is the same, without
+    loading torch again."""
+    environ = _environ(env)
+    server = forkserver.server_for(environ)
+    proc = None
+    if server is not None:
+        with contextlib.suppress(OSError):  # (the server failed: an interpreter instead)
+            proc = _run_forked(server, list(args), environ, timeout)
+    if proc is None:
+        proc = subprocess.run(
+            [sys.executable, "-m", "cli", *args],
+            cwd=ROOT,
+            env=environ,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
     if check:
         assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
 
 
-def spawn(*args: str, log: Path | None = None, env: dict | None = None) -> subprocess.Popen:
+def _run_forked(server, args: list[str], env: dict[str, str], timeout: float):
+    """`subprocess.run(..., capture_output=True, text=True, timeout=...)` of a forked
+    `macb ARGS`: both outputs read to their end, universal newlines as text=True gives;
+    on a timeout or an interruption the command is killed and reaped, as there.
+    OSError if the server cannot start it."""
+    pipes = [os.pipe(), os.pipe()]
+    try:
+        p = server.start_fds(args, env, ROOT, pipes[0][1], pipes[1][1])
+    except OSError:
+        for r, _ in pipes:
+            os.close(r)
+        raise
+    finally:
+        for _, w in pipes:
+            os.close(w)
+    chunks: dict[int, list[bytes]] = {r: [] for r, _ in pipes}
+    deadline = time.monotonic() + timeout
+    with selectors.DefaultSelector() as sel:
+        for r, _ in pipes:
+            sel.register(r, selectors.EVENT_READ)
+        try:
+            while sel.get_map():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise subprocess.TimeoutExpired(p.args, timeout)
+                for key, _ in sel.select(min(left, 1.0)):
+                    data = os.read(key.fd, 1 << 16)
+                    if data:
+                        chunks[key.fd].append(data)
+                    else:
+                        sel.unregister(key.fd)
+                        os.close(key.fd)
+            code = p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except BaseException:
+            p.kill()
+            p.wait()
+            raise
+        finally:
+            for fd in list(sel.get_map()):
+                sel.unregister(fd)
+                os.close(fd)
+    out, err = (io.TextIOWrapper(io.BytesIO(b"".join(chunks[r]))).read() for r, _ in pipes)
+    return subprocess.CompletedProcess(p.args, code, out, err)
+
+
+def spawn(*args: str, log: Path | None = None, env: dict | None = None) -> procs.Child:
     """`macb ARGS` started in a session of its own (a test ends it, and whatever it
-    started, by PID), its output appended to `log` (or dropped)."""
-    return procs.start([sys.executable, "-m", "cli", *args], log=log, env=_environ(env), cwd=ROOT)
+    started, by PID), its output appended to `log` (or dropped); forked when it may be."""
+    return forkserver.start_cli(list(args), _environ(env), cwd=ROOT, log=log)
 
 
 def processes_with(marker: str) -> list[str]:

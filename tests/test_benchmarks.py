@@ -69,6 +69,18 @@ def test_bench_learner_bf16_table_runs(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_bench_forkserver_times_both_ways_of_starting_the_cluster(tmp_path: Path) -> None:
+    out = tmp_path / "forkserver.json"
+    argv = [sys.executable, str(ROOT / "benchmarks" / "bench_forkserver.py"), "--quick"]
+    proc = subprocess.run([*argv, "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert [len(result["rounds"][v]) for v in ("exec", "fork")] == [1, 1]
+    for row in result["median"].values():
+        assert row["exec"] > 0 and row["fork"] > 0 and row["ratio_fork_exec"] > 0
+    assert "fork/exec" in proc.stdout and result["cpu"]
+
+
 def test_bench_resume_kills_the_learner_and_times_its_resume(tmp_path: Path) -> None:
     out = tmp_path / "resume.json"
     argv = [sys.executable, str(ROOT / "benchmarks" / "bench_resume.py"), "--quick"]

@@ -39,6 +39,8 @@ def test_a_forked_service_is_our_child_in_its_own_session_with_its_own_environme
     try:
         alpha, where = _router(server, env, tmp_path / "alpha.log", "alpha")
         beta, _ = _router(server, env, tmp_path / "beta.log", "beta")
+        # A subreaper only while it starts one: an orphan of ours goes to init, as before.
+        assert not forkserver.subreaper()
         for p in (alpha, beta):
             assert _ppid(p.pid) == os.getpid()  # ours to wait for, not the server's
             assert os.getsid(p.pid) == p.pid  # a session of its own, as procs.start gives
