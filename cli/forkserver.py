@@ -25,8 +25,9 @@ The client is a subreaper only while a command is being started (`subreaping`), 
 orphans of what it starts go to init as before, not to it as zombies. The server dies
 with the client's thread that started it (PR_SET_PDEATHSIG): `macb up` and the tests
 start it from their main thread. What a forked command shares with its server, unlike
-a fresh interpreter: the string hash seed, the room its title may use (the server's
-arguments and environment), and the server's log for the preloaded libraries' warnings.
+a fresh interpreter: the string hash seed and the room its title may use (the server's
+arguments and environment); what the preloaded libraries print as they load is in no
+command's output (the server's goes to /dev/null).
 """
 
 from __future__ import annotations
@@ -163,28 +164,25 @@ class ForkServer:
     """The client's end: starts the server (its environment `env`, the one its services
     must share apart from `MACB_*`), then `start` forks services from it."""
 
-    def __init__(self, env: Mapping[str, str], log: Path | None = None) -> None:
+    def __init__(self, env: Mapping[str, str]) -> None:
         with subreaping():  # here, only to learn that it can be had
             pass
-        self.env = dict(env)
+        self.env = {k: v for k, v in env.items() if not _own(k)}  # what `serves` compares
         self.failed: str | None = None  # why it forks nothing more
         self._lock = threading.Lock()
         mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        out: IO[bytes] | int = open(log, "ab") if log else subprocess.DEVNULL  # noqa: SIM115
         try:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "cli.forkserver", str(theirs.fileno())],
                 env={**self.env, **procs.parent_env()},
                 pass_fds=[theirs.fileno()],
                 stdin=subprocess.DEVNULL,
-                stdout=out,
+                stdout=subprocess.DEVNULL,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
             )
         finally:
             theirs.close()
-            if not isinstance(out, int):
-                out.close()
         self.sock = mine
         self.sock.settimeout(REPLY_TIMEOUT_S)
 
@@ -192,8 +190,7 @@ class ForkServer:
         """Whether a service of environment `env` may be forked from this server."""
         if self.failed is not None or self.proc.poll() is not None:
             return False
-        theirs = {k: v for k, v in env.items() if not _own(k)}
-        return theirs == {k: v for k, v in self.env.items() if not _own(k)}
+        return {k: v for k, v in env.items() if not _own(k)} == self.env
 
     def start(
         self,
@@ -246,10 +243,12 @@ class ForkServer:
                 reply = {"error": f"{type(err).__name__}: {err}"}
             if "pid" not in reply:
                 # A reply late or lost: nothing more is asked of it (a late one would be
-                # taken for the next command's), and the caller starts an interpreter.
+                # taken for the next command's), it is ended, and the caller (and every
+                # caller after it: `serves` says no) starts an interpreter.
                 self.failed = str(reply.get("error"))
-                with contextlib.suppress(OSError):
-                    self.sock.close()
+                print(f"the fork server failed ({self.failed}): each command loads its own",
+                      file=sys.stderr)  # fmt: skip
+                self.close()
                 raise OSError(f"the fork server did not start {args}: {self.failed}")
         return Forked(int(reply["pid"]), [sys.executable, "-m", "cli", *args])
 
@@ -262,7 +261,7 @@ class ForkServer:
 
 _SHARED: ForkServer | None = None
 _SHARED_LOCK = threading.Lock()
-_REFUSED: str | None = None  # why this process forks nothing (said once)
+_REFUSED: str | None = None  # why this process has no server (said once)
 
 
 def _shared_server() -> ForkServer | None:
@@ -287,14 +286,6 @@ def server_for(env: Mapping[str, str]) -> ForkServer | None:
     return server if server is not None and server.serves(env) else None
 
 
-def give_up(err: OSError) -> None:
-    """The server failed: said once, and nothing more is forked in this process."""
-    global _REFUSED
-    print(f"{err}: each command loads its own from now on", file=sys.stderr)
-    _REFUSED = str(err)
-    close_shared()
-
-
 def start_cli(
     args: list[str],
     env: Mapping[str, str],
@@ -307,10 +298,8 @@ def start_cli(
     `log`, or to `.stdout` with `pipe`), forked from this process's server when it may
     be (`server_for`)."""
     if (server := server_for(env)) is not None:
-        try:
+        with contextlib.suppress(OSError):  # (the server failed: an interpreter instead)
             return server.start(args, env, cwd, log, pipe)
-        except OSError as err:  # the server is gone: this command loads its own
-            give_up(err)
     return procs.start([sys.executable, "-m", "cli", *args], log=log, pipe=pipe, env=env, cwd=cwd)
 
 

@@ -169,6 +169,19 @@ def spawn(*args: str, log: Path | None = None, env: dict | None = None) -> procs
     return forkserver.start_cli(list(args), _environ(env), cwd=ROOT, log=log)
 
 
+def parents() -> dict[int, int]:
+    """Every live process's parent (PID -> PID), from /proc; zombies left out."""
+    found: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if fields[0] != "Z":
+            found[int(stat.parent.name)] = int(fields[1])
+    return found
+
+
 def processes_with(marker: str) -> list[str]:
     out = subprocess.run(["pgrep", "-af", marker], capture_output=True, text=True).stdout
     return [line for line in out.splitlines() if "pgrep" not in line]

@@ -17,11 +17,7 @@ from cli import forkserver
 from cli.forkserver import Forked, ForkServer, start_cli
 from cli.supervisor import free_port, wait_port
 from shared import procs
-from tests.harness import ROOT, Cluster, _environ, wait_for
-
-
-def _ppid(pid: int) -> int:
-    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+from tests.harness import ROOT, Cluster, _environ, parents, wait_for
 
 
 def _router(server: ForkServer, env: dict, log: Path, user: str) -> tuple[Forked, str]:
@@ -42,7 +38,7 @@ def test_a_forked_service_is_our_child_in_its_own_session_with_its_own_environme
         # A subreaper only while it starts one: an orphan of ours goes to init, as before.
         assert not forkserver.subreaper()
         for p in (alpha, beta):
-            assert _ppid(p.pid) == os.getpid()  # ours to wait for, not the server's
+            assert parents()[p.pid] == os.getpid()  # ours to wait for, not the server's
             assert os.getsid(p.pid) == p.pid  # a session of its own, as procs.start gives
             assert procs.names_one_of(p.pid, ["-m cli serve router --listen"])
         assert procs.names_one_of(alpha.pid, [where.rsplit(":", 1)[1]])

@@ -18,7 +18,7 @@ import pytest
 from cli.local import MetricsError, run_rows, split_groups
 from shared import procs
 from shared.persist import runlock
-from tests.harness import macb, spawn, wait_for
+from tests.harness import macb, parents, spawn, wait_for
 
 ARMS = (
     "task: speaker_listener\nalgo: cen-maddpg\nexplore: cen-macb\nk: 16\nepisodes: {episodes}\n"
@@ -145,19 +145,11 @@ def test_a_second_process_on_a_run_folder_is_refused_naming_the_holder(tmp_path)
 # ---------------------------------------------------------------- signals
 def _children(pid: int) -> set[int]:
     """Every live descendant of `pid`, from /proc."""
-    parents: dict[int, int] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            text = stat.read_text()
-        except OSError:
-            continue
-        fields = text.rsplit(")", 1)[1].split()
-        if fields[0] != "Z":
-            parents[int(stat.parent.name)] = int(fields[1])
+    parent_of = parents()
     found, todo = set(), [pid]
     while todo:
         p = todo.pop()
-        for child, parent in parents.items():
+        for child, parent in parent_of.items():
             if parent == p and child not in found:
                 found.add(child)
                 todo.append(child)

@@ -21,6 +21,7 @@ from tests.harness import (
     Cluster,
     cluster_processes,
     macb,
+    parents,
     wait_for,
     wait_port,
     wait_services,
@@ -102,18 +103,13 @@ def test_sigterm_stops_every_service_and_the_router(tmp_path):
 
 
 def _children(pid: int, marker: str) -> list[int]:
-    """PIDs whose parent is `pid` and whose command line (its words joined by spaces,
-    as a forked service's title has them) holds `marker`."""
-    found = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            continue
-        argv = procs.cmdline(int(stat.parent.name))
-        if ppid == pid and argv is not None and marker in " ".join(argv):
-            found.append(int(stat.parent.name))
-    return found
+    """Live PIDs whose parent is `pid` and whose command line (its words joined by
+    spaces, as a forked service's title has them) holds `marker`."""
+    return [
+        child
+        for child, parent in parents().items()
+        if parent == pid and marker in " ".join(procs.cmdline(child) or [])
+    ]
 
 
 @pytest.mark.parametrize("fork_server", ["1", "0"])
