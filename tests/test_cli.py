@@ -23,7 +23,7 @@ import pytest
 
 from shared.config import ConfigError, TrainConfig, make_config
 from tests.conftest import ROOT
-from tests.harness import free_port, wait_for
+from tests.harness import free_port, macb, wait_for
 
 CONFIG_COMMANDS = ("train", "start", "run", "up")
 POSITIONALS = {"run": ["c.yaml"]}  # what a command needs before its flags parse
@@ -225,14 +225,7 @@ def test_with_arms_the_base_alone_may_break_a_cross_field_rule_but_not_a_field(
 def test_macb_run_refuses_a_bad_grid_with_exit_2_without_an_api(tmp_path):
     config = tmp_path / "c.yaml"
     config.write_text(BASE_YAML)
-    proc = subprocess.run(
-        [sys.executable, "-m", "cli", "run", str(config), "--grid", "seed=1,2"]
-        + ["--api", "http://127.0.0.1:1"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    proc = macb("run", str(config), "--grid", "seed=1,2", "--api", "http://127.0.0.1:1")
     assert proc.returncode == 2, proc.stderr
     assert "the seed is not a grid key: use --seeds" in proc.stderr
 
@@ -279,14 +272,10 @@ def test_macb_run_sends_the_files_seeds_unless_a_flag_says_otherwise(subparsers,
 
 def test_macb_train_runs_one_seed_of_a_shipped_config(tmp_path):
     out = tmp_path / "out"
-    proc = subprocess.run(
-        [sys.executable, "-m", "cli", "train", "--config", "configs/fig3/beta0.8.yaml"]
-        + ["--episodes", "2", "--eval-every", "2", "--eval-episodes", "1", "--hidden", "16"]
-        + ["--learning-starts", "10", "--out", str(out), "--quiet"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
+    proc = macb(
+        *["train", "--config", "configs/fig3/beta0.8.yaml", "--episodes", "2"],
+        *["--eval-every", "2", "--eval-episodes", "1", "--hidden", "16"],
+        *["--learning-starts", "10", "--out", str(out), "--quiet"],
     )
     assert proc.returncode == 0, proc.stderr
     assert "lists seeds [0, 1, 2]: this runs one run, seed 0" in proc.stderr
@@ -300,14 +289,8 @@ def test_a_lockstep_run_with_several_actors_is_refused_before_anything_starts(tm
     config = tmp_path / "c.yaml"
     config.write_text("task: simple\nalgo: ddpg\nprofile: thesis\n")
     flag = ["--config", str(config)] if command == "start" else ["--run", str(config)]
-    proc = subprocess.run(
-        [sys.executable, "-m", "cli", command, *flag, "--actors", "2"]
-        + ["--endpoint" if command == "up" else "--connect", "tcp/127.0.0.1:1"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    connect = "--endpoint" if command == "up" else "--connect"
+    proc = macb(command, *flag, "--actors", "2", connect, "tcp/127.0.0.1:1")
     assert proc.returncode == 2, proc.stderr
     assert "actors: interleave lockstep" in proc.stderr, proc.stderr
 

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from cli.reproduce.figures import FIGURES
 from cli.results import BEGIN, END, render, table
+from tests.harness import macb as macb_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 FIG3 = FIGURES["fig3"]
@@ -33,11 +32,6 @@ def _results(tmp_path: Path) -> Path:
     root.mkdir()
     (root / "README.md").write_text(f"# Results\n\nprose\n\n{BEGIN}\nold\n{END}\n\nafter\n")
     return root
-
-
-def macb_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli", *args], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120, check=False)  # fmt: skip
 
 
 def test_each_claim_shows_each_profiles_page_and_claims_without_one_say_not_run(tmp_path):
