@@ -11,7 +11,6 @@ from cli.reproduce.figures import FIGURES
 from cli.results import BEGIN, END, render, table
 from tests.harness import macb as macb_cli
 
-ROOT = Path(__file__).resolve().parents[1]
 FIG3 = FIGURES["fig3"]
 
 
