@@ -20,13 +20,20 @@ run in the same order every round (A B A B ...: the machine's drift hits each al
   on random minibatches: the update outside the figure.
 * `figure-glibc-heap` (not run unless asked): `figure` with MACB_STEADY_HEAP=0, malloc's
   thresholds left as glibc moves them (shared/run/heap.py says why that costs).
+* `figure-unfused`, `update-unfused` (not run unless asked): `figure` and `update` with
+  MACB_FUSED=0, each network's Adam step and its targets' soft update as torch's two
+  passes instead of fused.py's one (the same bits).
+* `master`, `master-unfused` (not run unless asked): two probes at once, each timing the
+  update's master-weight work alone (both networks' Adam steps and the soft update, the
+  learner's own `_step` and `soft_update` on fixed gradients), fused and with
+  MACB_FUSED=0.
 
 The figure's ratio is its time per training step over the floor's time per update of
 the same round. The probes set up their process as a group's (one torch thread, one BLAS
 thread, `shared.run.heap.steady_heap`).
 
     .venv/bin/python benchmarks/bench_fig8.py [--episodes 120] [--from 60] [--rounds 3]
-        [--probe-seconds 30] [--variants figure floor update] [--py-spy] [--quick]
+        [--probe-seconds 30] [--variants figure floor update ...] [--py-spy] [--quick]
 """
 
 from __future__ import annotations
@@ -49,8 +56,23 @@ pin_threads()  # before numpy or torch: the probes run one BLAS/OpenMP thread, a
 
 GROUPS = 2  # the campaign's: one group per core
 STEP_PARTS = ("update", "sample", "price", "act_env", "store_count", "eval", "rows", "cut")
-VARIANTS = ("figure", "floor", "update", "figure-glibc-heap")
-FIGURE_ENV = {"figure": {}, "figure-glibc-heap": {"MACB_STEADY_HEAP": "0"}}
+VARIANTS = (
+    "figure", "floor", "update", "figure-glibc-heap", "figure-unfused", "update-unfused",
+    "master", "master-unfused",
+)  # fmt: skip
+FIGURE_ENV = {
+    "figure": {},
+    "figure-glibc-heap": {"MACB_STEADY_HEAP": "0"},
+    "figure-unfused": {"MACB_FUSED": "0"},
+}
+UNFUSED = {"MACB_FUSED": "0"}
+PROBE_ENV = {
+    "floor": {},
+    "update": {},
+    "update-unfused": UNFUSED,
+    "master": {},
+    "master-unfused": UNFUSED,
+}
 
 
 def cpu() -> str:
@@ -115,8 +137,20 @@ def probe(kind: str, seconds: float, runs: int) -> dict[str, Any]:
     steady_heap()  # as train_group does
     torch.set_num_threads(1)
     group, batch = group_learner(runs)
-    if kind == "update":
+    if kind in ("update", "update-unfused"):
         fn = lambda: group.update(*batch)  # noqa: E731
+    elif kind in ("master", "master-unfused"):
+        group.update(*batch)  # Adam's state exists
+        nets = [(group.critic_optim, group.critic), (group.actor_optim, group.actor)]
+        grads = [[torch.randn_like(p).mul_(1e-3) for p in s.params] for _, s in nets]
+
+        def fn() -> None:  # what update_on does after the products (batched.py)
+            group._soft_in_step = group.stats()["fused"] == 1.0
+            for (optim, stack), g in zip(nets, grads):
+                group._step(optim, stack.params, g, stack.targets)
+            group._soft_in_step = False
+            group.soft_update()
+
     else:
         products, one_pass = bench_group.group_floor(group, target_rows=group.n * 100)
 
@@ -137,14 +171,17 @@ def probe(kind: str, seconds: float, runs: int) -> dict[str, Any]:
         "mean_ms": statistics.mean(blocks),
         "blocks": len(blocks),
         "torch_threads": torch.get_num_threads(),
+        "fused": group.stats()["fused"],
     }
 
 
 def run_probes(kind: str, seconds: float, runs: int) -> dict[str, Any]:
     """GROUPS probes at once; each one's result and their mean."""
     argv = [sys.executable, __file__, "_probe", kind, str(seconds), str(runs)]
+    env = {**os.environ, **PROBE_ENV[kind]}
     procs = [
-        subprocess.Popen(argv, stdout=subprocess.PIPE, text=True, cwd=ROOT) for _ in range(GROUPS)
+        subprocess.Popen(argv, stdout=subprocess.PIPE, text=True, cwd=ROOT, env=env)
+        for _ in range(GROUPS)
     ]
     parts = []
     for p in procs:
@@ -292,7 +329,10 @@ def summarise(rounds: list[dict[str, Any]]) -> dict[str, Any]:
     for a in present:
         for b in present:
             got = [per_call(r, a) / per_call(r, b) for r in rounds if a in r and b in r]
-            if a != b and got and (b in ("floor", "update") or a == "figure-glibc-heap"):
+            against_all = a in (
+                "figure-glibc-heap", "figure-unfused", "update-unfused", "master-unfused"
+            )  # fmt: skip
+            if a != b and got and (b in ("floor", "update") or against_all):
                 ratios[f"{a} / {b}"] = statistics.median(got)
     out["ratios"] = ratios
     return out

@@ -1,7 +1,8 @@
-"""The bf16 learner's fused master-weight kernel (shared/core/learners/fused.py, master.c):
-its Adam and soft update equal torch's bit for bit, a whole fused update equals the
-unfused one bit for bit, weights written between updates are cast anew, and where the
-kernel cannot be built the learner says so and runs torch's ops."""
+"""The learners' fused master-weight kernel (shared/core/learners/fused.py, master.c):
+its Adam, soft update and fp32 Adam-with-soft-update equal torch's bit for bit, a whole
+fused update (bf16 and fp32, one run or a group) equals the unfused one bit for bit,
+weights written between updates are cast anew, and where the kernel cannot be built the
+learner says so and runs torch's ops."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from shared.core.learners import (
     fused,
     precision,
 )
+from shared.core.learners.group import GroupMADDPG
 
 MOVE = ((-1.0, -1.0), (1.0, 1.0))
 CASES = {
@@ -111,6 +113,33 @@ def test_adam_equals_torch_fused_adam_bit_for_bit(kernel, step, grad_dtype):
         assert torch.equal(low, t[0].bfloat16()), f"bf16 copy of a tensor of {n}"
 
 
+@pytest.mark.parametrize("step", [1, 2, 1000])
+def test_adam_soft_equals_torch_adam_then_lerp_bit_for_bit(kernel, step):
+    """fp32: Adam, then each target's lerp towards its new weight, in one pass."""
+    gen = torch.Generator().manual_seed(100 + step)
+    tensors = [moments(n, gen) for n in SIZES]
+    targets = [ts[0] + 0.05 * torch.randn(n, generator=gen) for ts, n in zip(tensors, SIZES)]
+    ours = [[t.clone() for t in ts] for ts in tensors]
+    theirs = [[t.clone() for t in ts] for ts in tensors]
+    our_targets, their_targets = [t.clone() for t in targets], [t.clone() for t in targets]
+    lr, beta1, beta2, eps, tau = 1e-2, 0.9, 0.999, 1e-8, 0.01
+    kernel.adam_soft(
+        [o[0] for o in ours], [o[1] for o in ours], [o[2] for o in ours], [o[3] for o in ours],
+        our_targets, step, lr, beta1, beta2, eps, tau,
+    )  # fmt: skip
+    torch._fused_adam_(
+        [t[0] for t in theirs], [t[1] for t in theirs], [t[2] for t in theirs],
+        [t[3] for t in theirs], [], [torch.tensor(float(step)) for _ in SIZES],
+        amsgrad=False, lr=lr, beta1=beta1, beta2=beta2, weight_decay=0.0, eps=eps,
+        maximize=False,
+    )  # fmt: skip
+    torch._foreach_lerp_(their_targets, [t[0] for t in theirs], tau)
+    for n, o, t, a, b in zip(SIZES, ours, theirs, our_targets, their_targets):
+        for name, x, y in (("weight", o[0], t[0]), ("exp_avg", o[2], t[2]), ("sq", o[3], t[3])):
+            assert torch.equal(x, y), f"{name} of a tensor of {n}: {(x - y).abs().max()}"
+        assert torch.equal(a, b), f"target of a tensor of {n}: {(a - b).abs().max()}"
+
+
 def test_soft_update_equals_torch_lerp_and_its_bf16_copy_bit_for_bit(kernel):
     gen = torch.Generator().manual_seed(0)
     params = [torch.randn(n, generator=gen) for n in SIZES]
@@ -164,12 +193,19 @@ def test_the_kernel_refuses_what_it_cannot_read(kernel):
                     [torch.zeros(4, dtype=torch.bfloat16)], 1, 1e-3, 0.9, 0.999, 1e-8)  # fmt: skip
     with pytest.raises(ValueError, match="tau < 0.5"):
         kernel.soft_update(p, p, [torch.zeros(4, dtype=torch.bfloat16)], 0.5)
+    with pytest.raises(ValueError, match="must be fp32"):
+        kernel.adam_soft(p, [torch.zeros(4, dtype=torch.bfloat16)], p, p, p, 1, 1e-3, 0.9,
+                         0.999, 1e-8, 0.01)  # fmt: skip
+    with pytest.raises(ValueError, match="tau < 0.5"):
+        kernel.adam_soft(p, p, p, p, p, 1, 1e-3, 0.9, 0.999, 1e-8, 0.5)
 
 
-def learner(case: str, fused_: bool | None, lanes: int = 1) -> BatchedMADDPG:
+def learner(
+    case: str, fused_: bool | None, lanes: int = 1, precision: str = "bf16"
+) -> BatchedMADDPG:
     algo, agents, _ = CASES[case]
     spec = LearnerSpec(algo=algo, hidden=(400, 300), seed=3)
-    return BatchedMADDPG(agents, spec, lanes=lanes, precision="bf16", fused=fused_)
+    return BatchedMADDPG(agents, spec, lanes=lanes, precision=precision, fused=fused_)
 
 
 def batch(m: BatchedMADDPG, per_agent: bool, seed: int, rows: int = 100) -> tuple:
@@ -206,10 +242,11 @@ def differences(a: BatchedMADDPG, b: BatchedMADDPG) -> list[str]:
     ]
 
 
+@pytest.mark.parametrize("precision", ["bf16", "fp32"])
 @pytest.mark.parametrize("lanes", [1, 2])
 @pytest.mark.parametrize("case", list(CASES))
-def test_a_fused_update_equals_the_unfused_one_bit_for_bit(kernel, case, lanes):
-    plain, fast = learner(case, False, lanes), learner(case, True, lanes)
+def test_a_fused_update_equals_the_unfused_one_bit_for_bit(kernel, case, lanes, precision):
+    plain, fast = learner(case, False, lanes, precision), learner(case, True, lanes, precision)
     assert fast.stats()["fused"] == 1.0 and plain.stats()["fused"] == 0.0
     per_agent = CASES[case][2]
     for i in range(4):
@@ -240,11 +277,12 @@ def test_weights_written_between_updates_are_cast_anew(kernel):
     assert differences(a, fresh) == []
 
 
-def test_switching_torch_threads_between_updates_keeps_the_bits(kernel):
+@pytest.mark.parametrize("precision", ["bf16", "fp32"])
+def test_switching_torch_threads_between_updates_keeps_the_bits(kernel, precision):
     """The kernel splits large tensors over torch's threads (its OpenMP pool); the bits
     do not depend on the split, and a tuner switches threads block by block."""
     case = "spread-dis"
-    plain, fast = learner(case, False), learner(case, True)
+    plain, fast = learner(case, False, 1, precision), learner(case, True, 1, precision)
     try:
         for i, threads in enumerate([1, 2, 2, 1, 1, 2, 1]):
             torch.set_num_threads(threads)
@@ -322,11 +360,51 @@ def test_the_build_is_cached_by_source_compiler_and_flags(kernel, fresh_kernel_l
     assert [p.name for p in fresh_kernel_lookup.iterdir()] == [first.name]
 
 
-def test_fp32_learners_have_no_kernel():
-    m = BatchedMADDPG(CASES["simple-ddpg"][1], LearnerSpec(algo="ddpg"), precision="fp32")
-    assert m.stats()["fused"] == 0.0
-    with pytest.raises(ValueError, match="fused needs precision bf16"):
-        BatchedMADDPG(CASES["simple-ddpg"][1], LearnerSpec(algo="ddpg"), fused=True)
+@pytest.mark.parametrize("hidden", [(400, 300), (37, 5)], ids=["whole", "per-run"])
+@pytest.mark.parametrize("per_agent", [False, True], ids=["shared", "per-agent"])
+def test_a_fused_fp32_group_update_equals_the_unfused_one_bit_for_bit(kernel, hidden, per_agent):
+    """A group's tensors go to the kernel whole or run by run (`_parts`: 37 x 5 weights
+    are no whole number of vectors per run, so those go run by run, each with its own
+    vector tail); either way every run's weights, moments and targets are torch's."""
+    algo, agents, _ = CASES["speaker_listener-cen"]
+    specs = [LearnerSpec(algo=algo, hidden=hidden, seed=s) for s in (1, 2, 3)]
+    plain = GroupMADDPG(agents, specs, precision="fp32", fused=False)
+    fast = GroupMADDPG(agents, specs, precision="fp32", fused=True)
+    rng = np.random.default_rng(5)
+    r, n, f = 3, plain.n, np.float32
+    lead = (r, n, 64) if per_agent else (r, 64)
+    for i in range(4):
+        b = (
+            rng.standard_normal((*lead, plain.joint_obs)).astype(f),
+            rng.uniform(-1, 1, (*lead, plain.joint_act)).astype(f),
+            rng.uniform(-1, 0, (*lead, n)).astype(f),
+            rng.standard_normal((*lead, plain.joint_obs)).astype(f),
+            (rng.uniform(0, 1, lead) < 0.1).astype(f),
+        )
+        assert plain.update(*b) == fast.update(*b), f"losses of update {i}"
+    for run in range(r):
+        assert differences(plain.run_learner(run), fast.run_learner(run)) == [], f"run {run}"
+
+
+def test_fp32_steps_outside_update_leave_the_targets_to_soft_update(kernel):
+    """The fp32 kernel soft-updates a network's targets in its Adam step only inside
+    `update`: a caller stepping a critic itself sees the targets where they were until it
+    calls `soft_update`, which then moves them (torch's lerp)."""
+    m = learner("speaker_listener-cen", True, precision="fp32")
+    assert m.stats()["fused"] == 1.0
+    obs, act, rew, next_obs, done = m.tensors(*batch(m, False, 0))
+    before = [t.clone() for t in m.critic.targets]
+    m.critic_step(obs, act, m.target_q(rew, next_obs, done))
+    assert all(torch.equal(a, b) for a, b in zip(before, m.critic.targets))
+    m.soft_update()
+    expected = [t.clone() for t in before]
+    torch._foreach_lerp_(expected, m.critic.params, m.spec.tau)
+    assert all(torch.equal(a, b) for a, b in zip(expected, m.critic.targets))
+
+
+def test_the_kernel_is_for_the_cpu_only():
+    with pytest.raises(ValueError, match="fused needs the CPU"):
+        BatchedMADDPG(CASES["simple-ddpg"][1], LearnerSpec(algo="ddpg"), fused=True, device="meta")
 
 
 def test_the_kernel_finds_torchs_vector_width_and_refuses_a_wrong_one(

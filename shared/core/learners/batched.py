@@ -31,7 +31,11 @@ arithmetic, not the algorithm: one update stays within bf16's rounding of the fp
 In bf16 the master-weight work (Adam with the weights' bf16 copies, the soft update with
 the targets') runs in fused.py's compiled kernel where a C compiler is at hand, with the
 same results bit for bit; the copies then stay valid between updates, and every other
-write to the weights (`load_state_dict`, `load_actor_weights`) marks them stale.
+write to the weights (`load_state_dict`, `load_actor_weights`) marks them stale. In fp32
+the same kernel runs each network's Adam step and its targets' soft update in one pass
+(`adam_soft`): within `update` a network's targets are read again only by the next
+update's target values, so they may follow its step at once; the same bits, one pass
+over the weights less.
 """
 
 from __future__ import annotations
@@ -179,16 +183,16 @@ class StackedMADDPG:
             )
         # Lanes are CPU threads: on an accelerator the device runs the rows in parallel.
         self.lanes = Lanes(lanes if self.device.type == "cpu" else 1)
-        # The fused kernel (bf16 only) and the weight lists whose copies it has kept
-        # current since they were last cast; any other write to the weights empties it.
-        if fused and (self.dtype != torch.bfloat16 or self.device.type != "cpu"):
-            raise ValueError(
-                f"fused needs precision bf16 on the CPU (this learner runs {self.precision} "
-                f"on {self.device})"
-            )
-        on_cpu_bf16 = self.dtype == torch.bfloat16 and self.device.type == "cpu"
-        self._kernel = self._fused_kernel(fused) if on_cpu_bf16 else None
+        # The fused kernel (CPU only) and, in bf16, the weight lists whose copies it has
+        # kept current since they were last cast; any other write to the weights empties it.
+        if fused and self.device.type != "cpu":
+            raise ValueError(f"fused needs the CPU (this learner runs on {self.device})")
+        self._kernel = self._fused_kernel(fused) if self.device.type == "cpu" else None
         self._current: set[int] = set()
+        # fp32 within `update`: whether an Adam step soft-updates its network's targets
+        # (`adam_soft`), and the target lists it did so for since the last soft update.
+        self._soft_in_step = False
+        self._softened: set[int] = set()
 
     def _stack_runs(self) -> None:
         """Called once the stacks hold their initial weights, on the CPU, before they
@@ -426,7 +430,7 @@ class StackedMADDPG:
         batch = obs.shape[-2]
         critic = self._weights(self.critic.params)
         sq_sum, grads = self._critic_grads(critic, obs, act, next_q_value, batch)
-        self._step(self.critic_optim, self.critic.params, grads)
+        self._step(self.critic_optim, self.critic.params, grads, self.critic.targets)
         return sq_sum / batch
 
     def _actor_weights(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
@@ -489,24 +493,30 @@ class StackedMADDPG:
         """
         batch = obs.shape[-2]
         q_sum, grads = self._actor_grads(self._actor_weights(), obs, act, batch)
-        self._step(self.actor_optim, self.actor.params, grads)
+        self._step(self.actor_optim, self.actor.params, grads, self.actor.targets)
         return -q_sum / batch
 
     def _low_grads(self, batch: int, obs: torch.Tensor) -> bool:
         """Whether the weight gradients of these rows (`obs`) stay bf16 for the fused
         Adam: yes, unless they are a lane's block, whose gradients are summed with the
         other lanes' first (in fp32, as unfused: a bf16 sum would round)."""
-        return self._kernel is not None and obs.shape[-2] == batch
+        bf16 = self.dtype == torch.bfloat16
+        return self._kernel is not None and bf16 and obs.shape[-2] == batch
 
     def _step(
-        self, optim: torch.optim.Adam, params: list[torch.Tensor], grads: Sequence[torch.Tensor]
+        self,
+        optim: torch.optim.Adam,
+        params: list[torch.Tensor],
+        grads: Sequence[torch.Tensor],
+        targets: list[torch.Tensor],
     ) -> None:
         """One Adam step of one network, as `optim.step()` with `grads` would take it, without
         Optimizer.step's per-call bookkeeping (hooks, grouping, state checks), which is a
-        noticeable share of a whole update on small networks: torch's fused kernel, or in
-        bf16 fused.py's (the same bits, and the weights' bf16 copies written in the same
-        pass). Settings outside the plain Adam the learner uses (amsgrad,
-        weight decay) go through `optim.step()` itself."""
+        noticeable share of a whole update on small networks: torch's fused kernel, or
+        fused.py's (the same bits): in bf16 with the weights' bf16 copies written in the
+        same pass, in fp32 within `update` with the soft update of `targets`, the
+        network's targets (`soft_update` then skips them). Settings outside the plain
+        Adam the learner uses (amsgrad, weight decay) go through `optim.step()` itself."""
         group = optim.param_groups[0]
         if group["amsgrad"] or group["weight_decay"] or group["maximize"]:
             for p, g in zip(params, grads):
@@ -529,7 +539,15 @@ class StackedMADDPG:
         exp_avgs = [s["exp_avg"] for s in states]
         exp_avg_sqs = [s["exp_avg_sq"] for s in states]
         part = self._parts
-        if self._kernel is not None:
+        if self._kernel is not None and self.dtype == torch.float32 and self._soft_in_step:
+            self._kernel.adam_soft(
+                part(params), part(grads), part(exp_avgs), part(exp_avg_sqs), part(targets),
+                steps[0].item(), lr=group["lr"], beta1=beta1, beta2=beta2, eps=group["eps"],
+                tau=self.spec.tau,
+            )  # fmt: skip
+            self._softened.add(id(targets))
+            return
+        if self._kernel is not None and self.dtype == torch.bfloat16:
             self._kernel.adam(
                 part(params), part(grads), part(exp_avgs), part(exp_avg_sqs),
                 part(self._low[id(params)]), steps[0].item(),
@@ -569,15 +587,21 @@ class StackedMADDPG:
         if lanes not in (1, self.lanes.n):
             raise ValueError(f"lanes must be 1 or {self.lanes.n}, got {lanes!r}")
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
+        fp32_kernel = self._kernel is not None and self.dtype == torch.float32
         with denormals_flushed(self._flush):
-            if lanes > 1 and obs_t.shape[-2] > 1:
-                critic_losses, actor_losses = self._update_in_lanes(
-                    obs_t, act_t, rew_t, next_t, done_t
-                )
-            else:
-                y = self.target_q(rew_t, next_t, done_t)
-                critic_losses = self.critic_step(obs_t, act_t, y)
-                actor_losses = self.actor_step(obs_t, act_t)
+            # fp32 with the kernel: each step soft-updates its targets (`_step`).
+            self._soft_in_step = fp32_kernel and 0 <= self.spec.tau < 0.5
+            try:
+                if lanes > 1 and obs_t.shape[-2] > 1:
+                    critic_losses, actor_losses = self._update_in_lanes(
+                        obs_t, act_t, rew_t, next_t, done_t
+                    )
+                else:
+                    y = self.target_q(rew_t, next_t, done_t)
+                    critic_losses = self.critic_step(obs_t, act_t, y)
+                    actor_losses = self.actor_step(obs_t, act_t)
+            finally:
+                self._soft_in_step = False
             self.soft_update()
         self.updates += 1
         return Losses(torch.stack([critic_losses.mean(), actor_losses.mean()]))
@@ -628,10 +652,10 @@ class StackedMADDPG:
                 return self._actor_grads(weights, b[0], b[1], batch)
 
         sq_sum, grads = self._sum_parts(self.lanes.map(critic_part, blocks))
-        self._step(self.critic_optim, self.critic.params, grads)
+        self._step(self.critic_optim, self.critic.params, grads, self.critic.targets)
         weights = self._actor_weights()
         q_sum, grads = self._sum_parts(self.lanes.map(actor_part, blocks))
-        self._step(self.actor_optim, self.actor.params, grads)
+        self._step(self.actor_optim, self.actor.params, grads, self.actor.targets)
         return sq_sum / batch, -q_sum / batch
 
     @staticmethod
@@ -646,9 +670,20 @@ class StackedMADDPG:
 
     def soft_update(self) -> None:
         """theta' <- tau theta + (1 - tau) theta' for every target network, in one call
-        (fused: with the targets' bf16 copies)."""
+        (fused: with the targets' bf16 copies), but those the fp32 Adam step soft-updated
+        in this update already (`_step`)."""
         actor, critic, part = self.actor, self.critic, self._parts
-        if self._kernel is not None and self.spec.tau < 0.5:
+        if self._softened:
+            pending = [s for s in (actor, critic) if id(s.targets) not in self._softened]
+            self._softened.clear()
+            if pending:
+                torch._foreach_lerp_(
+                    part([t for s in pending for t in s.targets]),
+                    part([p for s in pending for p in s.params]),
+                    self.spec.tau,
+                )
+            return
+        if self._kernel is not None and self.dtype == torch.bfloat16 and self.spec.tau < 0.5:
             self._kernel.soft_update(
                 part(actor.targets + critic.targets),
                 part(actor.params + critic.params),
@@ -671,7 +706,7 @@ class BatchedMADDPG(StackedMADDPG):
     `lanes` row blocks of each minibatch run in that many threads (`update`); a tuner
     may run an update on one of them instead (`update_on`, see tuning.py). `precision`
     is what the matrix products run in, fp32 or bf16 (`self.precision` says what they
-    run in here: fp32 on a CPU without native bf16). `fused` (bf16 only): None runs the
+    run in here: fp32 on a CPU without native bf16). `fused` (CPU only): None runs the
     master-weight work in fused.py's kernel where it builds, True insists on it (an error
     if it cannot be built), False keeps torch's ops; the results are the same.
     """

@@ -1,4 +1,4 @@
-"""The bf16 learner's master-weight work (Adam, the soft update, the weights' bf16 copies)
+"""The learners' master-weight work (Adam, the soft update, the weights' bf16 copies)
 in one pass over the weights each, from a small C kernel (master.c) compiled on first use.
 
 Why: in a bf16 update the matrix products are several times cheaper than in fp32, and what
@@ -11,6 +11,13 @@ pass, its soft update writes the target's copy, so no cast pass is left (the cop
 valid from one update to the next; `BatchedMADDPG` re-casts them after any other write to
 the weights). The arithmetic is torch's, operation for operation: the results equal the
 unfused bf16 path's bit for bit (tests/test_fused.py), so `fused` changes speed only.
+
+An fp32 learner has no copies to keep, and its matrix products dominate, but on a
+2-core machine running two learners its elementwise passes are memory-bound: Adam reads
+every weight, its gradient and both moments and writes three, then `_foreach_lerp_`
+reads every weight again with its target and writes the target. The kernel's
+`adam_soft` does both in one pass (the weight is at hand when its target is updated),
+with the same arithmetic (torch's Adam, then torch's lerp): the same bits, one pass less.
 
 The kernel is built with the system C compiler (`cc`, or $CC) into a cache directory
 ($MACB_KERNEL_CACHE, default ~/.cache/macb/kernels), named by a digest of the source, the
@@ -108,12 +115,12 @@ def kernel() -> MasterKernel | None:
     where $MACB_FUSED turns it off. Also the way into torch's OpenMP threads for
     `flush_denormals` (base.py), in fp32 learners too."""
     if switched_off():
-        log.info("%s is off: the bf16 learner's master weights go through torch's ops", ENV_SWITCH)
+        log.info("%s is off: the learners' master weights go through torch's ops", ENV_SWITCH)
         return None
     cc = _compiler()
     if cc is None:
         log.warning(
-            "no C compiler (cc or $CC) on PATH: a bf16 learner runs its master-weight work "
+            "no C compiler (cc or $CC) on PATH: a learner runs its master-weight work "
             "unfused (same results, slower), and flush_denormals reaches only the OpenMP "
             "threads an update starts (docs/performance.md, 'bf16: the fused master-weight "
             "pass', 'Subnormal Adam moments')"
@@ -123,16 +130,22 @@ def kernel() -> MasterKernel | None:
         found = MasterKernel(ctypes.CDLL(str(_build(cc))))
     except (OSError, RuntimeError, subprocess.SubprocessError) as err:
         log.warning(
-            "the bf16 learner's fused kernel could not be built (%s): its master-weight "
+            "the learners' fused kernel could not be built (%s): their master-weight "
             "work runs unfused (same results, slower)",
             err,
         )
         return None
     if found.vec is None:
         log.warning(
-            "the bf16 learner's fused kernel does not reproduce this torch's Adam bit for bit "
+            "the learners' fused kernel does not reproduce this torch's Adam bit for bit "
             "(for no vector width in %s): its master-weight work runs unfused",
             VEC_WIDTHS,
+        )
+        return None
+    if not found.lerp_matches:
+        log.warning(
+            "the learners' fused kernel does not reproduce this torch's lerp bit for bit: "
+            "the master-weight work runs unfused"
         )
         return None
     return found
@@ -155,12 +168,16 @@ class MasterKernel:
         lib.macb_adam.argtypes += [f] * 7 + [ctypes.c_int32] * 2
         lib.macb_flush_denormals.restype = ctypes.c_int32
         lib.macb_flush_denormals.argtypes = [ctypes.c_int32, ctypes.c_int32]
+        lib.macb_adam_soft.restype = None
+        lib.macb_adam_soft.argtypes = [i64] + [_P(_ptrs)] * 5 + [_P(i64)]
+        lib.macb_adam_soft.argtypes += [f] * 7 + [ctypes.c_int32, f, ctypes.c_int32]
         lib.macb_soft_update.restype = None
         lib.macb_soft_update.argtypes = [i64, _P(_ptrs), _P(_ptrs), _P(_ptrs), _P(i64), f]
         lib.macb_soft_update.argtypes += [ctypes.c_int32]
         self.lib = lib
         self.vec: int | None = 8  # the probe's first try; then what matched, or None
         self.vec = self._probe_vec()
+        self.lerp_matches = self._probe_lerp()
 
     def _probe_vec(self) -> int | None:
         """The width of torch's vector loop in its fused Adam, found by running both on
@@ -191,6 +208,20 @@ class MasterKernel:
             if all(torch.equal(a, b) for xs, ys in zip(ours, theirs) for a, b in zip(xs, ys)):
                 return vec
         return None
+
+    def _probe_lerp(self) -> bool:
+        """Whether the soft update equals torch's lerp bit for bit on tensors of 1 to 47
+        elements (both sides of its vector loop's end): the kernel computes it as one
+        fused multiply-add, as torch's vector loop does."""
+        gen = torch.Generator().manual_seed(1)
+        sizes = list(range(1, 48))
+        params = [torch.randn(n, generator=gen) for n in sizes]
+        theirs = [p + 0.1 * torch.randn(n, generator=gen) for p, n in zip(params, sizes)]
+        ours = [t.clone() for t in theirs]
+        lows = [torch.empty(n, dtype=torch.bfloat16) for n in sizes]
+        self.soft_update(ours, params, lows, 0.01)
+        torch._foreach_lerp_(theirs, params, 0.01)
+        return all(torch.equal(a, b) for a, b in zip(ours, theirs))
 
     def flush_denormals(self, on: bool, threads: int) -> bool:
         """DAZ and FTZ on (or off) in every thread of an OpenMP team of `threads` (torch's
@@ -248,6 +279,50 @@ class MasterKernel:
             math.sqrt(bias_correction2),
             eps,
             self.vec or 1,
+            torch.get_num_threads(),
+        )
+
+    def adam_soft(
+        self,
+        params: Sequence[torch.Tensor],
+        grads: Sequence[torch.Tensor],
+        exp_avgs: Sequence[torch.Tensor],
+        exp_avg_sqs: Sequence[torch.Tensor],
+        targets: Sequence[torch.Tensor],
+        step: float,
+        lr: float,
+        beta1: float,
+        beta2: float,
+        eps: float,
+        tau: float,
+    ) -> None:
+        """One Adam step of fp32 weights (as `adam`, without copies), then each weight's
+        target soft-updated from it (`soft_update`'s lerp, tau < 0.5), in one pass."""
+        if not 0 <= tau < 0.5:
+            raise ValueError(f"the fused soft update needs 0 <= tau < 0.5, got {tau}")
+        self._check(params, grads, exp_avgs, exp_avg_sqs, targets)
+        if any(t.dtype != torch.float32 for t in (*params, *grads, *exp_avgs, *exp_avg_sqs)):
+            raise ValueError("adam_soft's weights, gradients and moments must be fp32")
+        if any(t.dtype != torch.float32 for t in targets):
+            raise ValueError("adam_soft's targets must be fp32")
+        n = len(params)
+        self.lib.macb_adam_soft(
+            n,
+            _array(params),
+            _array(grads),
+            _array(exp_avgs),
+            _array(exp_avg_sqs),
+            _array(targets),
+            (ctypes.c_int64 * n)(*[t.numel() for t in params]),
+            beta1,
+            beta2,
+            1 - beta1,
+            1 - beta2,
+            lr / (1 - beta1**step),
+            math.sqrt(1 - beta2**step),
+            eps,
+            self.vec or 1,
+            tau,
             torch.get_num_threads(),
         )
 

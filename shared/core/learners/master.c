@@ -1,4 +1,4 @@
-/* The bf16 learner's fp32 master-weight work, one pass over the weights per call.
+/* The learners' fp32 master-weight work, one pass over the weights per call.
 
    Adam: torch 2.13's fused CPU Adam for float, operation for operation, including where
    its build fuses a multiply-add (m = fma(1 - beta1, g - m, m) as its lerp; v =
@@ -11,7 +11,11 @@
    bf16 copy. The bf16 copies round to nearest even as torch's float -> bfloat16
    conversion does (a NaN becomes the quiet NaN 0x7fc0).
 
-   tests/test_fused.py checks both against torch bit for bit; shared/core/learners/fused.py
+   fp32 learner: Adam and then the soft update of the target in the same pass (the
+   weight is in a register when its target reads it), the same arithmetic as torch's
+   Adam followed by its lerp, no copies (an fp32 learner's products read the weights).
+
+   tests/test_fused.py checks all three against torch bit for bit; shared/core/learners/fused.py
    compiles this file and says why it is there. */
 #include <math.h>
 #include <stdint.h>
@@ -85,6 +89,39 @@ static void soft(float *restrict t, const float *restrict p, uint16_t *restrict 
     }
 }
 
+/* Adam (adam_f32's arithmetic) then t <- fma(tau, p - t, t) (soft's), elements [lo, hi):
+   two loops, torch's vector body and its scalar tail, each without a branch inside. */
+static void adam_soft_f32(float *restrict p, const float *restrict g, float *restrict m,
+                          float *restrict v, float *restrict t, int64_t n, int64_t lo,
+                          int64_t hi, adam_args a, float tau) {
+    const float beta2 = a.beta2, c1 = a.c1, c2 = a.c2, step_size = a.step_size;
+    const float bc2_sqrt = a.bc2_sqrt, eps = a.eps;
+    const int64_t body = n - n % a.vec;
+    const int64_t mid = hi < body ? hi : body;
+    for (int64_t i = lo; i < mid; i++) {
+        float gi = g[i];
+        float mi = fmaf(c1, gi - m[i], m[i]);
+        float vi = fmaf(c2 * gi, gi, v[i] * beta2);
+        m[i] = mi;
+        v[i] = vi;
+        float denom = sqrtf(vi) / bc2_sqrt + eps;
+        float pi = p[i] + -step_size * mi / denom;
+        p[i] = pi;
+        t[i] = fmaf(tau, pi - t[i], t[i]);
+    }
+    for (int64_t i = lo > body ? lo : body; i < hi; i++) {
+        float gi = g[i];
+        float mi = fmaf(c1, gi - m[i], m[i]);
+        float vi = fmaf(v[i], beta2, c2 * gi * gi);
+        m[i] = mi;
+        v[i] = vi;
+        float denom = sqrtf(vi) / bc2_sqrt + eps;
+        float pi = p[i] + -step_size * mi / denom;
+        p[i] = pi;
+        t[i] = fmaf(tau, pi - t[i], t[i]);
+    }
+}
+
 /* The share [lo, hi) of a tensor of n elements that thread `part` of `parts` takes: cut
    at multiples of 16 (a cache line of floats; which of torch's loops an element is in
    is decided by its index in the whole tensor, not by the share). */
@@ -125,6 +162,11 @@ static void soft_range(const work *w, int64_t k, int64_t n, int64_t lo, int64_t 
     soft(w->t[k], w->p[k], w->low[k], lo, hi, w->tau);
 }
 
+static void adam_soft_range(const work *w, int64_t k, int64_t n, int64_t lo, int64_t hi) {
+    adam_soft_f32(w->p[k], (const float *)w->g[k], w->m[k], w->v[k], w->t[k], n, lo, hi, w->a,
+                  w->tau);
+}
+
 /* `fn` over every element of `count` tensors; a large tensor split over `threads` OpenMP
    threads (the process's one OpenMP runtime, torch's: the same pool its ops use). */
 static void each_tensor(const work *w, range_fn fn, int64_t count, const int64_t *numel,
@@ -158,6 +200,23 @@ void macb_adam(int64_t count, float **p, void **g, const int32_t *g_bf16, float 
     w.low = low;
     w.a = (adam_args){beta1, beta2, c1, c2, step_size, bc2_sqrt, eps, vec > 0 ? vec : 1};
     each_tensor(&w, adam_range, count, numel, threads);
+}
+
+/* One Adam step of `count` fp32 tensors (macb_adam's scalars, fp32 gradients), each
+   weight's target then soft-updated from it (tau < 0.5): t <- t + tau (p - t). */
+void macb_adam_soft(int64_t count, float **p, void **g, float **m, float **v, float **t,
+                    const int64_t *numel, float beta1, float beta2, float c1, float c2,
+                    float step_size, float bc2_sqrt, float eps, int32_t vec, float tau,
+                    int32_t threads) {
+    work w = {0};
+    w.p = p;
+    w.g = g;
+    w.m = m;
+    w.v = v;
+    w.t = t;
+    w.tau = tau;
+    w.a = (adam_args){beta1, beta2, c1, c2, step_size, bc2_sqrt, eps, vec > 0 ? vec : 1};
+    each_tensor(&w, adam_soft_range, count, numel, threads);
 }
 
 /* t <- t + tau (p - t) for `count` tensors (tau < 0.5), then low[k] <- bf16(t). */
