@@ -589,7 +589,9 @@ class StackedMADDPG:
         obs_t, act_t, rew_t, next_t, done_t = self.tensors(obs, act, rew, next_obs, done)
         fp32_kernel = self._kernel is not None and self.dtype == torch.float32
         with denormals_flushed(self._flush):
-            # fp32 with the kernel: each step soft-updates its targets (`_step`).
+            # fp32 with the kernel: each step soft-updates its targets (`_step`); what an
+            # update cut short by an error did so for is forgotten, not skipped again.
+            self._softened.clear()
             self._soft_in_step = fp32_kernel and 0 <= self.spec.tau < 0.5
             try:
                 if lanes > 1 and obs_t.shape[-2] > 1:
