@@ -151,6 +151,17 @@ def kernel() -> MasterKernel | None:
     return found
 
 
+def _adam_scalars(step: float, lr: float, beta1: float, beta2: float, eps: float) -> tuple:
+    """master.c's Adam scalars, computed as torch's kernel computes them (in double, then
+    rounded to float by ctypes): beta1, beta2, 1 - beta1, 1 - beta2, the step size
+    lr / (1 - beta1^step), sqrt(1 - beta2^step), eps. One place for both entry points."""
+    bias_correction1 = 1 - beta1**step
+    bias_correction2 = 1 - beta2**step
+    return (
+        beta1, beta2, 1 - beta1, 1 - beta2, lr / bias_correction1, math.sqrt(bias_correction2), eps
+    )  # fmt: skip
+
+
 def _array(tensors: Sequence[torch.Tensor]) -> ctypes.Array:
     return (_ptrs * len(tensors))(*[t.data_ptr() for t in tensors])
 
@@ -260,8 +271,6 @@ class MasterKernel:
         if any(t.dtype != torch.bfloat16 for t in lows):
             raise ValueError("the copies must be bf16")
         n = len(params)
-        bias_correction1 = 1 - beta1**step
-        bias_correction2 = 1 - beta2**step
         self.lib.macb_adam(
             n,
             _array(params),
@@ -271,13 +280,7 @@ class MasterKernel:
             _array(exp_avg_sqs),
             _array(lows),
             (ctypes.c_int64 * n)(*[t.numel() for t in params]),
-            beta1,
-            beta2,
-            1 - beta1,
-            1 - beta2,
-            lr / bias_correction1,
-            math.sqrt(bias_correction2),
-            eps,
+            *_adam_scalars(step, lr, beta1, beta2, eps),
             self.vec or 1,
             torch.get_num_threads(),
         )
@@ -314,13 +317,7 @@ class MasterKernel:
             _array(exp_avg_sqs),
             _array(targets),
             (ctypes.c_int64 * n)(*[t.numel() for t in params]),
-            beta1,
-            beta2,
-            1 - beta1,
-            1 - beta2,
-            lr / (1 - beta1**step),
-            math.sqrt(1 - beta2**step),
-            eps,
+            *_adam_scalars(step, lr, beta1, beta2, eps),
             self.vec or 1,
             tau,
             torch.get_num_threads(),
